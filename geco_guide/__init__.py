@@ -1,0 +1,1 @@
+"""GeCo: geometric-consistency metric and guidance for diffusers video models."""
