@@ -1,1 +1,47 @@
-"""GeCo: geometric-consistency metric and guidance for diffusers video models."""
+"""GeCo: geometric-consistency metric and training-free guidance for diffusers video models.
+
+Public names are imported lazily, so ``import geco_guide`` stays light (no diffusers import)
+until a sampler name is used.
+"""
+
+from importlib import import_module
+from typing import TYPE_CHECKING
+
+__version__ = "0.1.0"
+
+_EXPORTS = {
+    "GeCoLoss": "geco_guide.loss.geco",
+    "GeCoLossConfig": "geco_guide.loss.geco",
+    "GeCoResult": "geco_guide.loss.geco",
+    "geco_from_geometry": "geco_guide.loss.geco",
+    "motion_statistics": "geco_guide.loss.motion_stats",
+    "SceneGeometry": "geco_guide.estimators.base",
+    "Correspondences": "geco_guide.estimators.base",
+    "GeometryEstimator": "geco_guide.estimators.base",
+    "FlowEstimator": "geco_guide.estimators.base",
+    "VGGT": "geco_guide.estimators.vggt",
+    "VGGTConfig": "geco_guide.estimators.vggt",
+    "UFM": "geco_guide.estimators.ufm",
+    "UFMConfig": "geco_guide.estimators.ufm",
+}
+
+__all__ = sorted(_EXPORTS)
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .estimators.base import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry
+    from .estimators.ufm import UFM, UFMConfig
+    from .estimators.vggt import VGGT, VGGTConfig
+    from .loss.geco import GeCoLoss, GeCoLossConfig, GeCoResult, geco_from_geometry
+    from .loss.motion_stats import motion_statistics
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'geco_guide' has no attribute {name!r}")
+    value = getattr(import_module(_EXPORTS[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

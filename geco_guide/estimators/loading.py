@@ -1,0 +1,142 @@
+"""Checkpoint loading shared by the estimators: hub ids or local folders, safetensors or torch files.
+
+Offline without weights ends in one :class:`WeightsNotFoundError` line that names the repository
+id and how to pass a local folder instead; a checkpoint whose keys do not fit the module ends in a
+:class:`CheckpointMismatchError` listing what is missing, unexpected or mis-shaped.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+
+class WeightsNotFoundError(FileNotFoundError):
+    """A checkpoint could be found neither in a local folder nor in the hub cache / on the hub."""
+
+
+class CheckpointMismatchError(ValueError):
+    """A state dict does not fit the module it is loaded into."""
+
+
+def fetch_checkpoint_file(
+    repo_id_or_dir: str | os.PathLike,
+    filenames: Sequence[str],
+    *,
+    model_name: str,
+    revision: str | None = None,
+    cache_dir: str | os.PathLike | None = None,
+) -> Path:
+    """Return the first of ``filenames`` available in a local folder or a Hugging Face repo.
+
+    A path that exists on disk is treated as a local folder; anything else as a hub repo id,
+    resolved through the local cache first (so ``HF_HUB_OFFLINE=1`` works once downloaded).
+
+    Raises:
+        WeightsNotFoundError: none of the files can be had (missing folder, offline, unknown repo).
+    """
+    path = Path(repo_id_or_dir).expanduser()
+    if path.is_dir():
+        for name in filenames:
+            if (path / name).is_file():
+                return path / name
+        raise WeightsNotFoundError(
+            f"{model_name}: none of {list(filenames)} found in local folder {str(path)!r}"
+        )
+    repo_id = str(repo_id_or_dir)
+    if repo_id.startswith((".", "/", "~")) or repo_id.count("/") > 1:
+        raise WeightsNotFoundError(
+            f"{model_name}: local folder {repo_id!r} does not exist "
+            "(pass an existing folder or a Hugging Face repo id such as 'owner/name')"
+        )
+    from huggingface_hub import hf_hub_download
+    from huggingface_hub.utils import EntryNotFoundError, LocalEntryNotFoundError
+
+    reason = ""
+    for name in filenames:
+        try:
+            return Path(hf_hub_download(repo_id, name, revision=revision, cache_dir=cache_dir))
+        except LocalEntryNotFoundError:
+            reason = " (offline and not in the cache)"
+            break
+        except EntryNotFoundError:
+            continue  # the repo exists but stores the weights under another name
+        except Exception as exc:  # offline, unknown repo, gated, network: all end the same way
+            reason = f" ({type(exc).__name__})"
+            break
+    raise WeightsNotFoundError(
+        f"{model_name}: could not load weights for {repo_id!r} from the Hugging Face hub or its "
+        f"local cache{reason}; download them where you have network "
+        f"(huggingface-cli download {repo_id}) and pass the local folder instead of the repo id"
+    )
+
+
+def load_weights(path: str | os.PathLike) -> dict[str, Tensor]:
+    """Read a state dict from ``.safetensors`` or a torch file (``.pt``, ``.pth``, ``.bin``)."""
+    path = Path(path)
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
+
+        return load_file(str(path))
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if isinstance(state, Mapping) and "model" in state and isinstance(state["model"], Mapping):
+        state = state["model"]  # training checkpoints wrap the weights
+    if not isinstance(state, Mapping):
+        raise CheckpointMismatchError(f"{path} does not hold a state dict")
+    return dict(state)
+
+
+def _summarise(keys: Sequence[str], limit: int = 12) -> str:
+    keys = sorted(keys)
+    shown = ", ".join(keys[:limit])
+    return shown + (f", ... ({len(keys) - limit} more)" if len(keys) > limit else "")
+
+
+def load_state_dict_checked(
+    module: nn.Module,
+    state_dict: Mapping[str, Tensor],
+    *,
+    model_name: str,
+    ignore_prefixes: Sequence[str] = (),
+    aliases: Mapping[str, str] | None = None,
+) -> None:
+    """Load ``state_dict`` into ``module`` strictly, after renaming and dropping keys.
+
+    Args:
+        module: the target module; its parameters and persistent buffers must all be covered.
+        state_dict: checkpoint tensors; cast to each target tensor's dtype on copy.
+        model_name: used in the error message.
+        ignore_prefixes: checkpoint keys starting with one of these are dropped (heads we skip).
+        aliases: alternative checkpoint key -> our key (e.g. de-duplicated safetensors names).
+
+    Raises:
+        CheckpointMismatchError: with every missing, unexpected and mis-shaped key listed.
+    """
+    aliases = aliases or {}
+    renamed: dict[str, Tensor] = {}
+    for key, value in state_dict.items():
+        if any(key.startswith(prefix) for prefix in ignore_prefixes):
+            continue
+        renamed[aliases.get(key, key)] = value
+    expected = module.state_dict()
+    missing = [k for k in expected if k not in renamed]
+    unexpected = [k for k in renamed if k not in expected]
+    misshaped = [
+        f"{k} {tuple(renamed[k].shape)} vs {tuple(expected[k].shape)}"
+        for k in expected
+        if k in renamed and renamed[k].shape != expected[k].shape
+    ]
+    if missing or unexpected or misshaped:
+        parts = []
+        if missing:
+            parts.append(f"missing {len(missing)}: {_summarise(missing)}")
+        if unexpected:
+            parts.append(f"unexpected {len(unexpected)}: {_summarise(unexpected)}")
+        if misshaped:
+            parts.append(f"wrong shape {len(misshaped)} (checkpoint vs model): {_summarise(misshaped)}")
+        raise CheckpointMismatchError(f"{model_name} checkpoint does not fit: " + "; ".join(parts))
+    module.load_state_dict(renamed, strict=True, assign=False)

@@ -1,0 +1,112 @@
+"""GeCo's per-pixel cues: motion residual, structure residual and their fusion.
+
+Both cues are scale invariant: the motion residual is measured in normalised image units
+(pixels divided by the focal length) and the structure residual is a depth difference divided
+by the source depth, so scaling all depths and camera translations by ``k > 0`` leaves them
+unchanged.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .geometry import MIN_DEPTH, check_tensor, local_depth_ratio, sample_at_projection
+
+
+def safe_norm(x: Tensor, dim: int) -> Tensor:
+    """Euclidean norm along ``dim`` whose gradient is finite (zero) where the norm is 0."""
+    squared = (x * x).sum(dim)
+    positive = squared > 0
+    # The double where keeps sqrt's infinite slope at 0 out of the backward pass.
+    safe = torch.where(positive, squared, torch.ones_like(squared))
+    return torch.where(positive, torch.sqrt(safe), torch.zeros_like(squared))
+
+
+def motion_residual(flow: Tensor, rigid_flow: Tensor, K_src: Tensor) -> Tensor:
+    """Residual motion between measured flow and camera-induced rigid flow.
+
+    Args:
+        flow: ``[B, 2, H, W]`` measured flow (du, dv) in pixels.
+        rigid_flow: ``[B, 2, H, W]`` rigid flow in pixels.
+        K_src: ``[B, 3, 3]`` source intrinsics (focal lengths normalise the residual).
+
+    Returns:
+        ``m [B, H, W] = sqrt(((du - du_r)/fx)^2 + ((dv - dv_r)/fy)^2)``.
+    """
+    check_tensor(flow, "flow", (None, 2, None, None))
+    check_tensor(rigid_flow, "rigid_flow", tuple(flow.shape))
+    check_tensor(K_src, "K_src", (flow.shape[0], 3, 3))
+    focal = torch.stack((K_src[:, 0, 0], K_src[:, 1, 1]), dim=1)[:, :, None, None]
+    return safe_norm((flow - rigid_flow) / focal, dim=1)
+
+
+def structure_residual(
+    depth_src: Tensor,
+    depth_tgt: Tensor,
+    K_src: Tensor,
+    K_tgt: Tensor,
+    src_to_tgt: Tensor,
+    tau: float = 0.02,
+    edge_tau: float | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Depth reprojection error of the source depth against the target depth.
+
+    Args:
+        depth_src: ``[B, H, W]`` source z-depth.
+        depth_tgt: ``[B, H_t, W_t]`` target z-depth.
+        K_src, K_tgt: ``[B, 3, 3]`` intrinsics.
+        src_to_tgt: ``[B, 4, 4]`` relative pose.
+        tau: occlusion threshold: a pixel is hidden when the target surface at its projection
+            is closer than its projected depth by more than ``tau * D_src``.
+        edge_tau: if set, also drop pixels whose projection falls on a target depth edge (the
+            depths a bilinear sample there mixes differ by more than a factor ``1 + edge_tau``):
+            such a sample blends two surfaces and is comparable to neither. ``None`` (default)
+            keeps them, as the paper does.
+
+    Returns:
+        ``s [B, H, W] = |D_tgt(p') - z_proj| / D_src`` (0 where invalid) and ``valid [B, H, W]``
+        excluding occluded, out-of-image and non-positive-depth pixels (and depth edges).
+    """
+    check_tensor(depth_tgt, "depth_tgt", (depth_src.shape[0], None, None))
+    maps = depth_tgt[:, None]
+    if edge_tau is not None:
+        maps = torch.cat((maps, local_depth_ratio(depth_tgt)[:, None]), dim=1)
+    z_proj, samples, valid = sample_at_projection(depth_src, K_src, K_tgt, src_to_tgt, maps)
+    depth_at_proj = samples[:, 0]
+    valid = valid & (depth_at_proj > MIN_DEPTH)
+    if edge_tau is not None:
+        valid = valid & (samples[:, 1] <= 1.0 + edge_tau)
+    denom = torch.where(valid, depth_src, torch.ones_like(depth_src))
+    occluded = (z_proj - depth_at_proj) / denom > tau
+    valid = valid & ~occluded
+    s = torch.where(valid, (depth_at_proj - z_proj).abs() / denom, torch.zeros_like(depth_src))
+    return s, valid
+
+
+def fuse_cues(
+    motion: Tensor, motion_valid: Tensor, structure: Tensor, structure_valid: Tensor
+) -> tuple[Tensor, Tensor]:
+    """The paper's fusion ``M_geo = sqrt((1_cov m)^2 + s^2)``.
+
+    Args:
+        motion: ``[B, H, W]`` motion residual ``m``.
+        motion_valid: ``[B, H, W]`` where ``m`` counts: co-visible and rigid-flow valid (this is
+            the ``1_cov`` indicator).
+        structure: ``[B, H, W]`` structure residual ``s``.
+        structure_valid: ``[B, H, W]`` where ``s`` counts.
+
+    Returns:
+        ``fused [B, H, W]`` and ``valid [B, H, W]`` (either cue valid).
+    """
+    m = torch.where(motion_valid, motion, torch.zeros_like(motion))
+    s = torch.where(structure_valid, structure, torch.zeros_like(structure))
+    return safe_norm(torch.stack((m, s), dim=0), dim=0), motion_valid | structure_valid
+
+
+def masked_mean(values: Tensor, valid: Tensor, dims: tuple[int, ...]) -> Tensor:
+    """Mean of ``values`` over ``dims`` where ``valid``; 0 (with zero gradient) where none is."""
+    weights = valid.to(values.dtype)
+    total = (torch.where(valid, values, torch.zeros_like(values)) * weights).sum(dims)
+    count = weights.sum(dims)
+    return total / count.clamp_min(1.0)

@@ -1,0 +1,320 @@
+"""GeCoLoss: frames -> estimators -> frame pairs -> cues -> per-pixel maps -> scalars.
+
+The same computation is the evaluation metric and the guidance loss. :func:`geco_from_geometry`
+does the math from given geometry and correspondences (tests, evaluation with ground truth);
+:class:`GeCoLoss` obtains them from a :class:`GeometryEstimator` and a :class:`FlowEstimator`.
+
+Aggregation: per pair, each cue is a map with a validity mask; a frame's map is the pixel-wise
+mean over the pairs whose source it is (where valid); a frame's score is the mean of its map over
+valid pixels; a scalar is the mean of the frame scores over frames with any valid pixel. With
+adjacent pairs this is the mean over pairs of the per-pair means.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ..estimators.base import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry, check_frames
+from .cues import fuse_cues, masked_mean, motion_residual, structure_residual
+from .geometry import check_tensor, relative_pose, resize_flow, rigid_flow
+
+PAIR_MODES = ("adjacent", "center", "all")
+CUES = ("fused", "motion", "structure")
+
+
+@dataclass
+class GeCoLossConfig:
+    """Options of the GeCo metric / loss.
+
+    Attributes:
+        pairs: ``adjacent`` (k -> k+1), ``center`` (centre frame against every other frame, both
+            directions) or ``all`` (every ordered pair).
+        cue: which scalar is the loss: ``fused``, ``motion`` or ``structure``.
+        covisibility_threshold: motion counts where the flow estimator's covisibility exceeds it.
+        confidence_percentile: drop source pixels below this percentile of the frame's depth
+            confidence (VGGT-style); ``None`` keeps all pixels.
+        flow_downscale: run the flow estimator on frames resized by this factor and bring flow
+            and covisibility back to full resolution (0.5 for guidance).
+        occlusion_tau: relative depth margin of the occlusion test of the structure cue.
+        depth_edge_tau: drop structure pixels whose projection lands on a target depth edge
+            (bilinear sample mixing depths that differ by more than ``1 + depth_edge_tau``);
+            ``None`` keeps them as the paper does. See :func:`structure_residual`.
+        geometry_grad: let gradients flow through the geometry estimator. Without it the
+            structure cue gives no gradient at all and the motion cue only through the flow.
+    """
+
+    pairs: str = "adjacent"
+    cue: str = "fused"
+    covisibility_threshold: float = 0.5
+    confidence_percentile: float | None = 20.0
+    flow_downscale: float = 1.0
+    occlusion_tau: float = 0.02
+    depth_edge_tau: float | None = 0.1
+    geometry_grad: bool = True
+
+    def __post_init__(self) -> None:
+        if self.pairs not in PAIR_MODES:
+            raise ValueError(f"pairs must be one of {PAIR_MODES}, got {self.pairs!r}")
+        if self.cue not in CUES:
+            raise ValueError(f"cue must be one of {CUES}, got {self.cue!r}")
+        if not 0.0 <= self.covisibility_threshold < 1.0:
+            raise ValueError(f"covisibility_threshold must be in [0, 1), got {self.covisibility_threshold}")
+        if self.confidence_percentile is not None and not 0.0 <= self.confidence_percentile < 100.0:
+            raise ValueError(f"confidence_percentile must be in [0, 100) or None, got {self.confidence_percentile}")
+        if not 0.0 < self.flow_downscale <= 1.0:
+            raise ValueError(f"flow_downscale must be in (0, 1], got {self.flow_downscale}")
+        if self.occlusion_tau <= 0.0:
+            raise ValueError(f"occlusion_tau must be > 0, got {self.occlusion_tau}")
+        if self.depth_edge_tau is not None and self.depth_edge_tau <= 0.0:
+            raise ValueError(f"depth_edge_tau must be > 0 or None, got {self.depth_edge_tau}")
+
+
+def frame_pairs(num_frames: int, mode: str) -> list[tuple[int, int]]:
+    """Ordered ``(source, target)`` frame pairs of a clip of ``num_frames`` frames."""
+    if num_frames < 2:
+        raise ValueError(f"GeCo needs at least 2 frames, got {num_frames}")
+    if mode == "adjacent":
+        return [(k, k + 1) for k in range(num_frames - 1)]
+    if mode == "center":
+        c = num_frames // 2
+        others = [k for k in range(num_frames) if k != c]
+        return [(k, c) for k in others] + [(c, k) for k in others]
+    if mode == "all":
+        return [(i, j) for i in range(num_frames) for j in range(num_frames) if i != j]
+    raise ValueError(f"pairs must be one of {PAIR_MODES}, got {mode!r}")
+
+
+@dataclass
+class GeCoMaps:
+    """Per-pixel cue maps with their validity masks, all ``[B, N, H, W]``.
+
+    ``N`` indexes pairs (pair maps) or frames (frame maps).
+    """
+
+    motion: Tensor
+    motion_valid: Tensor
+    structure: Tensor
+    structure_valid: Tensor
+    fused: Tensor
+    fused_valid: Tensor
+
+    def cue(self, name: str) -> tuple[Tensor, Tensor]:
+        """``(map, valid)`` of cue ``name`` (fused | motion | structure)."""
+        return getattr(self, name), getattr(self, f"{name}_valid")
+
+
+@dataclass
+class GeCoResult:
+    """Everything GeCo computes for a clip.
+
+    Attributes:
+        loss: scalar of the configured cue (differentiable, fp32 or the geometry's dtype).
+        motion, structure, fused: scalars M_motion, M_struct, M_geo.
+        pairs: the ``(source, target)`` frame pairs.
+        pair_maps: :class:`GeCoMaps` ``[B, P, H, W]``.
+        frame_maps: :class:`GeCoMaps` ``[B, S, H, W]`` (frames that are no pair's source are
+            all-invalid).
+        frame_scores: cue name -> ``[B, S]`` mean over the frame's valid pixels.
+        frame_has_valid: cue name -> ``[B, S]`` bool, frames that count in the scalars.
+    """
+
+    loss: Tensor
+    motion: Tensor
+    structure: Tensor
+    fused: Tensor
+    pairs: list[tuple[int, int]]
+    pair_maps: GeCoMaps
+    frame_maps: GeCoMaps
+    frame_scores: dict[str, Tensor]
+    frame_has_valid: dict[str, Tensor]
+
+    def scalars(self) -> dict[str, float]:
+        """Plain floats: ``motion``, ``structure``, ``fused`` and ``loss``."""
+        return {name: float(getattr(self, name).detach()) for name in ("motion", "structure", "fused", "loss")}
+
+
+def confidence_mask(confidence: Tensor, percentile: float) -> Tensor:
+    """``[B, S, H, W]`` -> bool mask of pixels at or above the frame's ``percentile``.
+
+    Non-positive confidence marks pixels without a prediction (e.g. rows VGGT cropped away)
+    and never passes, even when they make up more than ``percentile`` % of the frame.
+    """
+    confidence = confidence.detach()
+    threshold = torch.quantile(confidence.flatten(2).float(), percentile / 100.0, dim=-1)
+    return (confidence >= threshold[..., None, None].to(confidence.dtype)) & (confidence > 0)
+
+
+def _check_geometry(geometry: SceneGeometry) -> tuple[int, int, int, int]:
+    check_tensor(geometry.depth, "depth", (None, None, None, None))
+    batch, frames, height, width = geometry.depth.shape
+    check_tensor(geometry.intrinsics, "intrinsics", (batch, frames, 3, 3))
+    check_tensor(geometry.extrinsics, "extrinsics", (batch, frames, 3, 4))
+    if geometry.confidence is not None:
+        check_tensor(geometry.confidence, "confidence", (batch, frames, height, width))
+    return batch, frames, height, width
+
+
+def _frame_average(pair_map: Tensor, pair_valid: Tensor, sources: Tensor, num_frames: int) -> tuple[Tensor, Tensor]:
+    """Pixel-wise mean over the pairs of each source frame: ``[B, P, H, W]`` -> ``[B, S, H, W]``."""
+    batch, _, height, width = pair_map.shape
+    weights = pair_valid.to(pair_map.dtype)
+    total = pair_map.new_zeros(batch, num_frames, height, width)
+    total = total.index_add(1, sources, torch.where(pair_valid, pair_map, torch.zeros_like(pair_map)))
+    count = weights.new_zeros(batch, num_frames, height, width).index_add(1, sources, weights)
+    return total / count.clamp_min(1.0), count > 0
+
+
+def geco_from_geometry(
+    geometry: SceneGeometry,
+    correspondences: Correspondences,
+    pairs: list[tuple[int, int]],
+    config: GeCoLossConfig | None = None,
+) -> GeCoResult:
+    """GeCo maps and scores from known geometry and correspondences (no estimator).
+
+    Args:
+        geometry: per-frame depth ``[B, S, H, W]``, K ``[B, S, 3, 3]``, extrinsics
+            ``[B, S, 3, 4]`` and optional confidence ``[B, S, H, W]``.
+        correspondences: flow ``[B*P, 2, H, W]`` and covisibility ``[B*P, H, W]`` of the pairs,
+            batch-major (all pairs of batch element 0 first).
+        pairs: ``P`` ordered ``(source, target)`` frame indices.
+        config: the options (defaults if ``None``).
+
+    Returns:
+        :class:`GeCoResult`.
+    """
+    config = config or GeCoLossConfig()
+    batch, num_frames, height, width = _check_geometry(geometry)
+    num_pairs = len(pairs)
+    if num_pairs == 0:
+        raise ValueError("pairs must not be empty")
+    if any(not (0 <= i < num_frames and 0 <= j < num_frames) or i == j for i, j in pairs):
+        raise ValueError(f"pairs must hold distinct frame indices in [0, {num_frames}), got {pairs}")
+    check_tensor(correspondences.flow, "flow", (batch * num_pairs, 2, height, width))
+    check_tensor(correspondences.covisibility, "covisibility", (batch * num_pairs, height, width))
+
+    device = geometry.depth.device
+    src = torch.tensor([i for i, _ in pairs], device=device)
+    tgt = torch.tensor([j for _, j in pairs], device=device)
+
+    def gather(x: Tensor, index: Tensor) -> Tensor:
+        return x[:, index].reshape(batch * num_pairs, *x.shape[2:])
+
+    depth_src, depth_tgt = gather(geometry.depth, src), gather(geometry.depth, tgt)
+    K_src, K_tgt = gather(geometry.intrinsics, src), gather(geometry.intrinsics, tgt)
+    src_to_tgt = relative_pose(gather(geometry.extrinsics, src), gather(geometry.extrinsics, tgt))
+    flow = correspondences.flow.to(depth_src.dtype)
+
+    rigid, rigid_valid = rigid_flow(depth_src, K_src, K_tgt, src_to_tgt)
+    motion = motion_residual(flow, rigid, K_src)
+    covisible = correspondences.covisibility > config.covisibility_threshold
+    structure, structure_valid = structure_residual(
+        depth_src, depth_tgt, K_src, K_tgt, src_to_tgt, tau=config.occlusion_tau, edge_tau=config.depth_edge_tau
+    )
+    motion_valid = rigid_valid & covisible
+    if geometry.confidence is not None and config.confidence_percentile is not None:
+        trusted = gather(confidence_mask(geometry.confidence, config.confidence_percentile), src)
+        motion_valid = motion_valid & trusted
+        structure_valid = structure_valid & trusted
+    fused, fused_valid = fuse_cues(motion, motion_valid, structure, structure_valid)
+
+    def per_pair(x: Tensor) -> Tensor:
+        return x.reshape(batch, num_pairs, height, width)
+
+    pair_maps = GeCoMaps(*(per_pair(x) for x in (motion, motion_valid, structure, structure_valid, fused, fused_valid)))
+    frame_fields = []
+    for name in CUES[1:] + CUES[:1]:  # motion, structure, fused: GeCoMaps field order
+        frame_fields.extend(_frame_average(*pair_maps.cue(name), src, num_frames))
+    frame_maps = GeCoMaps(*frame_fields)
+
+    frame_scores, frame_has_valid, scalars = {}, {}, {}
+    for name in CUES:
+        values, valid = frame_maps.cue(name)
+        frame_scores[name] = masked_mean(values, valid, dims=(-2, -1))
+        frame_has_valid[name] = valid.flatten(2).any(-1)
+        scalars[name] = masked_mean(frame_scores[name], frame_has_valid[name], dims=(0, 1))
+    return GeCoResult(
+        loss=scalars[config.cue],
+        motion=scalars["motion"],
+        structure=scalars["structure"],
+        fused=scalars["fused"],
+        pairs=list(pairs),
+        pair_maps=pair_maps,
+        frame_maps=frame_maps,
+        frame_scores=frame_scores,
+        frame_has_valid=frame_has_valid,
+    )
+
+
+def _resize_images(images: Tensor, size: tuple[int, int]) -> Tensor:
+    if tuple(images.shape[-2:]) == size:
+        return images
+    return F.interpolate(images, size=size, mode="bilinear", align_corners=False)
+
+
+class GeCoLoss(nn.Module):
+    """The GeCo metric as a differentiable module.
+
+    Args:
+        geometry: a :class:`GeometryEstimator` (e.g. VGGT) giving depth, K, extrinsics.
+        flow: a :class:`FlowEstimator` (e.g. UFM) giving flow and covisibility per pair.
+        config: :class:`GeCoLossConfig` (or a dict of its fields); defaults if ``None``.
+
+    ``forward(frames [B, S, 3, H, W] in [0, 1]) -> GeCoResult``.
+    """
+
+    def __init__(
+        self,
+        geometry: GeometryEstimator,
+        flow: FlowEstimator,
+        config: GeCoLossConfig | dict | None = None,
+    ) -> None:
+        super().__init__()
+        if not isinstance(geometry, GeometryEstimator):
+            raise ValueError(f"geometry must implement estimate_geometry(frames), got {type(geometry).__name__}")
+        if not isinstance(flow, FlowEstimator):
+            raise ValueError(f"flow must implement estimate_flow(source, target), got {type(flow).__name__}")
+        if isinstance(config, dict):
+            known = {f.name for f in fields(GeCoLossConfig)}
+            unknown = sorted(set(config) - known)
+            if unknown:
+                raise ValueError(f"unknown GeCo loss option(s) {unknown}; known: {sorted(known)}")
+            config = GeCoLossConfig(**config)
+        self.config = config or GeCoLossConfig()
+        # Registered as attributes (modules when they are modules) so .to() moves them.
+        self.geometry = geometry
+        self.flow = flow
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{k}={v!r}" for k, v in asdict(self.config).items())
+
+    def estimate_correspondences(self, frames: Tensor, pairs: list[tuple[int, int]]) -> Correspondences:
+        """Flow and covisibility for ``pairs`` of ``frames [B, S, 3, H, W]``, batched in one call.
+
+        Returns ``Correspondences`` at full resolution: flow ``[B*P, 2, H, W]``, covisibility
+        ``[B*P, H, W]``, batch-major.
+        """
+        height, width = frames.shape[-2:]
+        src = frames[:, [i for i, _ in pairs]].flatten(0, 1)
+        tgt = frames[:, [j for _, j in pairs]].flatten(0, 1)
+        scale = self.config.flow_downscale
+        small = (max(2, round(height * scale)), max(2, round(width * scale)))
+        result = self.flow.estimate_flow(_resize_images(src, small), _resize_images(tgt, small))
+        flow = resize_flow(result.flow, (height, width))
+        covisibility = _resize_images(result.covisibility[:, None], (height, width))[:, 0]
+        return Correspondences(flow=flow, covisibility=covisibility)
+
+    def forward(self, frames: Tensor) -> GeCoResult:
+        check_frames(frames)
+        if frames.shape[1] < 2:
+            raise ValueError(f"frames must hold at least 2 frames, got {frames.shape[1]}")
+        frames = frames.float()
+        with torch.set_grad_enabled(torch.is_grad_enabled() and self.config.geometry_grad):
+            geometry = self.geometry.estimate_geometry(frames)
+        pairs = frame_pairs(frames.shape[1], self.config.pairs)
+        correspondences = self.estimate_correspondences(frames, pairs)
+        return geco_from_geometry(geometry, correspondences, pairs, self.config)
