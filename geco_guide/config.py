@@ -1,0 +1,238 @@
+"""One structured config (omegaconf) for a GeCo generation run.
+
+Sections: ``model`` (the CogVideoX checkpoint), ``estimators`` (geometry + flow backbones),
+``sampling`` (steps, CFG, size), ``guidance`` (:class:`GuidanceConfig`: anchors, schedule,
+step size, time travel, and ``guidance.loss``, which *is* :class:`GeCoLossConfig`), ``output``
+and ``seed``. Defaults are the GeCo paper's CogVideoX-5b setting; the presets are
+``geco_guide/configs/<name>.yaml`` (shipped inside the package, so ``--preset`` works after a plain
+``pip install``).
+
+``load_config(path, preset, overrides)`` merges schema <- YAML <- ``key=value`` overrides and
+validates: an unknown key or an invalid value raises a ValueError naming the key.
+The special id ``"tiny-random"`` (for the model and each estimator) builds the tiny, randomly
+initialised offline models of :mod:`geco_guide.testing` instead of loading weights.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Optional
+
+from omegaconf import DictConfig, OmegaConf, StringNode
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
+
+from .loss.geco import GeCoLossConfig
+from .sampler.guidance import GuidanceConfig
+
+TINY_RANDOM = "tiny-random"
+DTYPES = ("float32", "float16", "bfloat16")
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+
+
+@dataclass
+class ModelConfig:
+    """The video model: a hub id or local folder loaded with ``from_pretrained``, or ``tiny-random``."""
+
+    id: str = "THUDM/CogVideoX-5b"
+    revision: Optional[str] = None
+    dtype: str = "bfloat16"
+    device: str = "auto"  # auto = cuda if available, else cpu
+    init_seed: int = 0  # weights seed of tiny-random models
+    vae_tiling: bool = False
+    vae_slicing: bool = False
+
+
+@dataclass
+class EstimatorsConfig:
+    """The frozen GeCo backbones: hub ids or local folders, or ``tiny-random``."""
+
+    geometry: str = "facebook/VGGT-1B"
+    flow: str = "infinity1096/UFM-Base"
+    dtype: str = "float32"
+    init_seed: int = 0
+
+
+@dataclass
+class SamplingConfig:
+    """Stock CogVideoX sampling arguments (paper: 50 DDIM steps, CFG 6, 49 x 480 x 720)."""
+
+    num_inference_steps: int = 50
+    guidance_scale: float = 6.0
+    num_frames: int = 49
+    height: int = 480
+    width: int = 720
+    fps: int = 8
+    negative_prompt: Optional[str] = None
+    use_dynamic_cfg: bool = False
+    max_sequence_length: int = 226
+
+
+@dataclass
+class OutputConfig:
+    """Where results go: ``<dir>/<name>.mp4`` and ``<dir>/<name>.json``."""
+
+    dir: str = "outputs"
+    name: Optional[str] = None  # default: prompt slug + seed
+    score_anchors: bool = True  # GeCo scores of the final video's anchor frames in the sidecar
+
+
+@dataclass
+class GeCoConfig:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    estimators: EstimatorsConfig = field(default_factory=EstimatorsConfig)
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    seed: int = 0
+
+
+def preset_path(name: str) -> Path:
+    """``geco_guide/configs/<name>.yaml``; ValueError listing the presets if there is none."""
+    path = CONFIG_DIR / f"{name}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+        raise ValueError(f"unknown preset {name!r}; known presets: {known}")
+    return path
+
+
+def _key_error(err: OmegaConfBaseException, source: str) -> ValueError:
+    key = getattr(err, "full_key", None) or getattr(err, "key", None) or "?"
+    if isinstance(err, (ConfigKeyError, ConfigAttributeError)):
+        return ValueError(f"unknown config key {key!r} ({source})")
+    msg = str(err).split("\n")[0]
+    return ValueError(f"invalid value for config key {key!r} ({source}): {msg}")
+
+
+def _merge(base: DictConfig, other: Any, source: str) -> DictConfig:
+    try:
+        return OmegaConf.merge(base, other)
+    except OmegaConfBaseException as err:
+        raise _key_error(err, source) from None
+
+
+def load_config(
+    path: str | Path | None = None,
+    preset: str | None = None,
+    overrides: Sequence[str] = (),
+) -> GeCoConfig:
+    """Schema defaults <- preset <- YAML file <- ``key=value`` overrides, validated.
+
+    Raises:
+        ValueError: unknown key, wrong type or invalid value, naming the key.
+        FileNotFoundError: ``path`` does not exist.
+    """
+    cfg = OmegaConf.structured(GeCoConfig)
+    if preset is not None:
+        p = preset_path(preset)
+        cfg = _merge(cfg, OmegaConf.load(p), str(p))
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"config file {str(p)!r} does not exist")
+        cfg = _merge(cfg, OmegaConf.load(p), str(p))
+    if overrides:
+        bad = [o for o in overrides if "=" not in o]
+        if bad:
+            raise ValueError(f"overrides must be key=value, got {bad}")
+        for item in overrides:
+            cfg = _merge(cfg, _parse_override(cfg, item), "command line")
+    return to_config(cfg)
+
+
+def _parse_override(cfg: DictConfig, item: str) -> DictConfig:
+    """``key=value`` -> a DictConfig to merge. Values are YAML, except for string fields, which
+    take the text as is (YAML would read ``guidance.repeats=0x2`` as the hex number 2)."""
+    key, _, raw = item.partition("=")
+    key = key.strip()
+    parent_key, _, leaf = key.rpartition(".")
+    try:
+        parent = OmegaConf.select(cfg, parent_key) if parent_key else cfg
+        node = parent._get_node(leaf) if isinstance(parent, DictConfig) else None
+    except OmegaConfBaseException:
+        node = None
+    if isinstance(node, StringNode) and raw.strip().lower() not in ("null", "~"):
+        return OmegaConf.create(_nest(key.split("."), raw))
+    try:
+        return OmegaConf.from_dotlist([f"{key}={raw}"])
+    except OmegaConfBaseException as err:
+        raise ValueError(f"cannot parse override {item!r}: {err}") from None
+
+
+def _nest(parts: list[str], value: Any) -> dict:
+    return {parts[0]: value} if len(parts) == 1 else {parts[0]: _nest(parts[1:], value)}
+
+
+def to_config(cfg: DictConfig | dict | GeCoConfig) -> GeCoConfig:
+    """A validated :class:`GeCoConfig` from a DictConfig / plain dict / GeCoConfig."""
+    if isinstance(cfg, GeCoConfig):
+        cfg = OmegaConf.structured(cfg)
+    elif not isinstance(cfg, DictConfig) or OmegaConf.get_type(cfg) is not GeCoConfig:
+        cfg = _merge(OmegaConf.structured(GeCoConfig), cfg, "config")
+    try:
+        obj = OmegaConf.to_object(cfg)
+    except OmegaConfBaseException as err:
+        raise _key_error(err, "config") from None
+    except ValueError as err:  # dataclass __post_init__ checks (guidance.loss)
+        name = str(err).split(" ", 1)[0]
+        known = {f.name for f in fields(GeCoLossConfig)}
+        key = f"guidance.loss.{name}" if name in known else "guidance.loss"
+        raise ValueError(f"invalid value for config key {key!r}: {err}") from None
+    validate_config(obj)
+    return obj
+
+
+def _require(cond: bool, key: str, message: str) -> None:
+    if not cond:
+        raise ValueError(f"invalid value for config key {key!r}: {message}")
+
+
+def validate_config(cfg: GeCoConfig) -> None:
+    """Semantic checks beyond types; ValueError naming the key."""
+    _require(bool(cfg.model.id), "model.id", "must be a hub id, a local folder or 'tiny-random'")
+    _require(cfg.model.dtype in DTYPES, "model.dtype", f"must be one of {DTYPES}, got {cfg.model.dtype!r}")
+    _require(cfg.estimators.dtype in DTYPES, "estimators.dtype", f"must be one of {DTYPES}, got {cfg.estimators.dtype!r}")
+    _require(bool(cfg.estimators.geometry), "estimators.geometry", "must not be empty")
+    _require(bool(cfg.estimators.flow), "estimators.flow", "must not be empty")
+    device = cfg.model.device
+    _require(
+        device in ("auto", "cpu", "mps") or device.startswith("cuda"),
+        "model.device",
+        f"must be auto, cpu, mps or cuda[:N], got {device!r}",
+    )
+    s = cfg.sampling
+    _require(s.num_inference_steps >= 1, "sampling.num_inference_steps", f"must be >= 1, got {s.num_inference_steps}")
+    _require(s.guidance_scale >= 0, "sampling.guidance_scale", f"must be >= 0, got {s.guidance_scale}")
+    _require(s.fps >= 1, "sampling.fps", f"must be >= 1, got {s.fps}")
+    _require(s.max_sequence_length >= 1, "sampling.max_sequence_length", f"must be >= 1, got {s.max_sequence_length}")
+    for key in ("height", "width"):
+        value = getattr(s, key)
+        _require(value > 0 and value % 16 == 0, f"sampling.{key}", f"must be a positive multiple of 16, got {value}")
+    _require(
+        s.num_frames >= 1 and (s.num_frames - 1) % 8 == 0,
+        "sampling.num_frames",
+        f"the CogVideoX VAE makes 8k+1 frames (e.g. 9, 17, 49), got {s.num_frames}",
+    )
+    g = cfg.guidance
+    _require(g.eta >= 0, "guidance.eta", f"must be >= 0, got {g.eta}")
+    _require(g.grad_eps > 0, "guidance.grad_eps", f"must be > 0, got {g.grad_eps}")
+    _require(g.chunk_latents >= 2, "guidance.chunk_latents", f"must be >= 2, got {g.chunk_latents}")
+    try:
+        g.schedule(s.num_inference_steps)
+    except ValueError as err:
+        raise ValueError(f"invalid guidance schedule (guidance.repeats / guidance.time_travel): {err}") from None
+    try:
+        g.validate(s.num_inference_steps, s.num_frames, 4)
+    except ValueError as err:
+        raise ValueError(f"invalid value for config key 'guidance.anchors': {err}") from None
+    _require(bool(cfg.output.dir), "output.dir", "must not be empty")
+
+
+def config_to_dict(cfg: GeCoConfig) -> dict[str, Any]:
+    """Plain, JSON-serialisable dict of a config (for sidecars)."""
+    return OmegaConf.to_container(OmegaConf.structured(cfg), resolve=True)
+
+
+def config_to_yaml(cfg: GeCoConfig) -> str:
+    return OmegaConf.to_yaml(OmegaConf.structured(cfg))

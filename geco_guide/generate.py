@@ -1,0 +1,336 @@
+"""Generate a GeCo-guided video: ``python -m geco_guide.generate --prompt "..."``.
+
+    python -m geco_guide.generate --preset tiny --prompt "a marble bust"
+    python -m geco_guide.generate --preset cogvideox-5b --prompt "..." --seed 3 \\
+        guidance.eta=2.0 guidance.loss.cue=motion
+
+Writes ``<name>.mp4`` and a JSON sidecar ``<name>.json`` (resolved config, seed, scheduler,
+versions, timings, guidance log, GeCo scores of the anchor frames of the final video), each
+atomically. Trailing ``key=value`` arguments override the config (unknown keys are rejected).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import platform
+import re
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .config import TINY_RANDOM, GeCoConfig, config_to_dict, load_config
+from .estimators.loading import WeightsNotFoundError
+
+
+# --------------------------------------------------------------------------------------------
+# building the pipeline from a config
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+@contextlib.contextmanager
+def _quiet_hub_logs():
+    """diffusers/transformers print several lines while failing to reach the hub; keep one error."""
+    from diffusers.utils import logging as dlogging
+
+    level = dlogging.get_verbosity()
+    dlogging.set_verbosity_error()
+    try:
+        yield
+    finally:
+        dlogging.set_verbosity(level)
+
+
+def _looks_like_path(model_id: str) -> bool:
+    return model_id.startswith((".", "/", "~")) or model_id.count("/") > 1 or os.sep in model_id.replace("/", "")
+
+
+def _dtype_kwarg() -> str:
+    """diffusers renamed ``torch_dtype`` to ``dtype``; use whichever this version reads."""
+    from diffusers.pipelines import pipeline_utils
+
+    return "dtype" if hasattr(pipeline_utils, "_resolve_dtype") else "torch_dtype"
+
+
+def load_video_pipeline(cfg: GeCoConfig, geometry_estimator=None, flow_estimator=None):
+    """The GeCoCogVideoXPipeline of ``cfg.model`` on its device (estimators attached, DDIM).
+
+    Raises:
+        WeightsNotFoundError: one line naming the model id and how to pass a local folder, when
+            the weights are neither in a local folder nor in the hub cache / reachable.
+    """
+    from .sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+
+    dtype = getattr(torch, cfg.model.dtype)
+    device = resolve_device(cfg.model.device)
+    model_id = cfg.model.id
+    extra = dict(geometry_estimator=geometry_estimator, flow_estimator=flow_estimator, guidance_config=cfg.guidance)
+    if model_id == TINY_RANDOM:
+        from .testing import tiny_cogvideox_components
+
+        components = tiny_cogvideox_components(cfg.model.init_seed)
+        pipe = GeCoCogVideoXPipeline(**components, **extra)
+        if dtype != torch.float32:
+            for model in (pipe.text_encoder, pipe.transformer, pipe.vae):
+                model.to(dtype)
+    else:
+        if _looks_like_path(model_id) and not Path(model_id).expanduser().is_dir():
+            raise WeightsNotFoundError(
+                f"CogVideoX: local folder {model_id!r} does not exist (pass an existing folder or a hub id such "
+                "as 'THUDM/CogVideoX-5b' with model.id=...)"
+            )
+        source = str(Path(model_id).expanduser()) if Path(model_id).expanduser().is_dir() else model_id
+        try:
+            with _quiet_hub_logs():
+                pipe = GeCoCogVideoXPipeline.from_pretrained(
+                    source, revision=cfg.model.revision, **{_dtype_kwarg(): dtype}, **extra
+                )
+        except (OSError, ValueError) as err:
+            if isinstance(err, ValueError) and type(err).__name__ != "HFValidationError":
+                raise
+            raise WeightsNotFoundError(
+                f"CogVideoX weights {model_id!r} are not available: not in the local Hugging Face cache and the hub "
+                f"cannot be reached (offline?). Download them once with `huggingface-cli download {model_id}` "
+                f"or pass a local folder: model.id=/path/to/{model_id.split('/')[-1]}"
+            ) from None
+    if cfg.model.vae_tiling:
+        pipe.vae.enable_tiling()
+    if cfg.model.vae_slicing:
+        pipe.vae.enable_slicing()
+    pipe.to(device)
+    return pipe
+
+
+def load_estimators(cfg: GeCoConfig) -> tuple[Any, Any]:
+    """``(geometry, flow)`` estimators of ``cfg.estimators``, frozen, in eval mode, on the model's device."""
+    dtype = getattr(torch, cfg.estimators.dtype)
+    device = resolve_device(cfg.model.device)
+    tiny = None
+    if TINY_RANDOM in (cfg.estimators.geometry, cfg.estimators.flow):
+        from .testing import tiny_estimators
+
+        tiny = tiny_estimators(cfg.estimators.init_seed)
+    if cfg.estimators.geometry == TINY_RANDOM:
+        geometry = tiny[0].to(device=device, dtype=dtype)
+    else:
+        from .estimators.vggt import VGGT
+
+        geometry = VGGT.from_pretrained(cfg.estimators.geometry, dtype=dtype, device=device)
+    if cfg.estimators.flow == TINY_RANDOM:
+        flow = tiny[1].to(device=device, dtype=dtype)
+    else:
+        from .estimators.ufm import UFM
+
+        flow = UFM.from_pretrained(cfg.estimators.flow, dtype=dtype, device=device)
+    for model in (geometry, flow):
+        model.eval().requires_grad_(False)
+    return geometry, flow
+
+
+def build_pipeline(cfg: GeCoConfig):
+    """Estimators + video pipeline of a config (estimators first: they are the cheaper failure)."""
+    geometry, flow = load_estimators(cfg)
+    return load_video_pipeline(cfg, geometry, flow)
+
+
+# --------------------------------------------------------------------------------------------
+# outputs
+
+
+def slugify(text: str, max_len: int = 48) -> str:
+    slug = re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")
+    return slug[:max_len].rstrip("-") or "video"
+
+
+def output_paths(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None) -> tuple[Path, Path]:
+    """``(video.mp4, sidecar.json)``: ``out`` (a .mp4 path or a folder) or ``output.dir/name``."""
+    suffix = "" if cfg.guidance.enabled else "-unguided"
+    name = cfg.output.name or f"{slugify(prompt)}-seed{cfg.seed}{suffix}"
+    if out is not None:
+        out = Path(out)
+        video = out if out.suffix.lower() == ".mp4" else out / f"{name}.mp4"
+    else:
+        video = Path(cfg.output.dir) / f"{name}.mp4"
+    return video, video.with_suffix(".json")
+
+
+def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
+    """Write JSON to a temporary file in the same folder, then ``os.replace`` it into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".json.tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(data, fh, indent=2, allow_nan=True)
+            fh.write("\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def versions() -> dict[str, str]:
+    import diffusers
+    import numpy
+    import transformers
+
+    try:
+        from importlib.metadata import version
+
+        geco_version = version("geco_guide")
+    except Exception:  # not installed (running from a checkout)
+        geco_version = "unknown"
+    return {
+        "geco_guide": geco_version,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "diffusers": diffusers.__version__,
+        "transformers": transformers.__version__,
+        "numpy": numpy.__version__,
+    }
+
+
+@dataclass
+class GenerationResult:
+    video_path: Path
+    sidecar_path: Path
+    scores: dict[str, float] | None
+    sidecar: dict[str, Any]
+
+
+def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None, pipe=None) -> GenerationResult:
+    """Run one generation of ``cfg`` and write the mp4 + JSON sidecar. ``pipe`` skips loading."""
+    from .loss.geco import GeCoLoss
+    from .sampler.guidance import score_anchor_frames
+    from .video import write_video
+
+    if not prompt or not prompt.strip():
+        raise ValueError("prompt must not be empty")
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    if pipe is None:
+        pipe = build_pipeline(cfg)
+    timings["load_s"] = time.perf_counter() - start
+
+    s = cfg.sampling
+    generator = torch.Generator(device="cpu").manual_seed(cfg.seed)
+    start = time.perf_counter()
+    output = pipe(
+        prompt=prompt,
+        negative_prompt=s.negative_prompt,
+        height=s.height,
+        width=s.width,
+        num_frames=s.num_frames,
+        num_inference_steps=s.num_inference_steps,
+        guidance_scale=s.guidance_scale,
+        use_dynamic_cfg=s.use_dynamic_cfg,
+        generator=generator,
+        output_type="pt",
+        max_sequence_length=s.max_sequence_length,
+        guidance=cfg.guidance,
+    )
+    timings["sampling_s"] = time.perf_counter() - start
+    frames = output.frames  # [1, F, 3, H, W] in [0, 1]
+
+    scores = None
+    if cfg.output.score_anchors:
+        start = time.perf_counter()
+        loss = GeCoLoss(pipe.geometry_estimator, pipe.flow_estimator, cfg.guidance.loss)
+        scores = score_anchor_frames(frames, cfg.guidance.anchors, loss)
+        timings["scoring_s"] = time.perf_counter() - start
+
+    video_path, sidecar_path = output_paths(cfg, prompt, out)
+    start = time.perf_counter()
+    write_video(video_path, frames[0], fps=s.fps)
+    timings["write_video_s"] = time.perf_counter() - start
+    log = output.guidance_log or []
+    timings["guidance_s"] = sum(r["seconds"] for r in log)
+    sidecar = {
+        "prompt": prompt,
+        "seed": cfg.seed,
+        "video": video_path.name,
+        "num_frames": int(frames.shape[1]),
+        "fps": s.fps,
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "config": config_to_dict(cfg),
+        "scheduler": getattr(pipe, "scheduler_note", type(pipe.scheduler).__name__),
+        "device": str(pipe.device),
+        "versions": versions(),
+        "timings": timings,
+        "geco_scores": {"anchors": list(cfg.guidance.anchors), **scores} if scores is not None else None,
+        "guidance_log": log,
+    }
+    write_json_atomic(sidecar_path, sidecar)
+    return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=scores, sidecar=sidecar)
+
+
+# --------------------------------------------------------------------------------------------
+# CLI
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m geco_guide.generate",
+        description="Generate a video with GeCo geometric-consistency guidance (CogVideoX).",
+    )
+    p.add_argument("--prompt", required=True, help="text prompt")
+    p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
+    p.add_argument("--preset", default=None, help="a preset shipped in geco_guide/configs/ (tiny, cogvideox-5b)")
+    p.add_argument("--seed", type=int, default=None, help="sampling seed (overrides the config's seed)")
+    p.add_argument("--no-guidance", action="store_true", help="sample without GeCo guidance")
+    p.add_argument("--out", default=None, help="output .mp4 path or folder (sidecar next to it, .json)")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.eta=2.0")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    overrides = list(args.overrides)
+    if args.seed is not None:
+        overrides.append(f"seed={args.seed}")
+    if args.no_guidance:
+        overrides.append("guidance.enabled=false")
+    try:
+        cfg = load_config(args.config, args.preset, overrides)
+        result = generate(cfg, args.prompt, out=args.out)
+    except (ValueError, FileNotFoundError) as err:  # WeightsNotFoundError is a FileNotFoundError
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(f"wrote video:   {result.video_path}")
+    print(f"wrote sidecar: {result.sidecar_path}")
+    if result.scores is not None:
+        s = result.scores
+        print(
+            f"GeCo scores of anchor frames {list(cfg.guidance.anchors)}: "
+            f"fused={s['fused']:.4f} motion={s['motion']:.4f} structure={s['structure']:.4f}"
+        )
+    log = result.sidecar["guidance_log"]
+    if log:
+        print(f"guidance: {len(log)} updates in {result.sidecar['timings']['guidance_s']:.1f} s")
+    else:
+        print("guidance: off")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

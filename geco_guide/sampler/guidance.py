@@ -1,0 +1,290 @@
+"""The model-agnostic guided step, shared by GeCoCogVideoXPipeline and the pipeline hooks.
+
+One denoising step ``t -> t_prev`` with GeCo guidance, for any latent video model:
+
+    for r in range(R_t):
+        x0 = predict_x0(z_t)                        # through the denoiser, or with v held constant
+        L  = loss(decode_anchors(x0))               # frozen VAE on short causal chunks, GeCo loss
+        g  = dL/dz_t
+        z_t <- z_t - eta * g / (||g|| + eps)        # fp32, norm per video
+        (time travel: z_t <- renoise(DDIM(z_t, x0) - eta * g / (||g|| + eps)) back to t)
+    x0 = predict_x0(z_t) without gradients          # the last, gradient-free prediction
+    z_prev = A z_t + B x0                           # deterministic DDIM
+
+The model only enters through three callables (``predict_x0``, ``decode_anchors``, ``loss_fn``)
+and two noise levels ``alpha_t``, ``alpha_prev`` (cumulative alphas taken from the scheduler's
+timestep table, never from arithmetic on ``t``). This module imports torch only.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from typing import Any, Optional
+
+import torch
+from torch import Tensor
+
+from ..loss.geco import GeCoLossConfig
+from .schedule import PAPER_ETA, PAPER_REPEATS, PAPER_TIME_TRAVEL, GuidanceSchedule
+from .slicing import anchor_latent_chunks
+
+PAPER_ANCHORS = (12, 24, 36, 48)
+
+
+def _guidance_loss_default() -> GeCoLossConfig:
+    # The paper runs the flow estimator on frames downscaled by 0.5 during guidance.
+    return GeCoLossConfig(flow_downscale=0.5)
+
+
+@dataclass
+class GuidanceConfig:
+    """GeCo guidance options (defaults = the paper, for 50 DDIM steps of a 49-frame video).
+
+    Attributes:
+        enabled: ``False`` samples without guidance (plain deterministic DDIM).
+        anchors: 0-based pixel frames decoded and scored during guidance.
+        chunk_latents: latents per causal chunk decoded for each anchor (ending at its latent).
+        repeats: ``R_t`` per step, as runs ``"RxN,..."`` (see :mod:`.schedule`).
+        eta: normalised step size of each update (>= 0).
+        time_travel: inclusive ``[first, last]`` step window of time travel; empty/None disables.
+        denoiser_grad: ``True`` backpropagates through the denoiser (paper); ``False`` is the
+            fast mode that treats the model output as constant (``dx0/dz_t = sqrt(a_t)``).
+        gradient_checkpointing: checkpoint the denoiser's blocks while differentiating it.
+        grad_eps: ``eps`` of the normalised update.
+        loss: the GeCo loss options; the structure cue only gives gradients with
+            ``loss.geometry_grad=True`` (default), since it depends on the frames only through
+            the geometry estimator.
+    """
+
+    enabled: bool = True
+    anchors: list[int] = field(default_factory=lambda: list(PAPER_ANCHORS))
+    chunk_latents: int = 3
+    repeats: str = PAPER_REPEATS
+    eta: float = PAPER_ETA
+    time_travel: Optional[list[int]] = field(default_factory=lambda: list(PAPER_TIME_TRAVEL))
+    denoiser_grad: bool = True
+    gradient_checkpointing: bool = True
+    grad_eps: float = 1e-8
+    loss: GeCoLossConfig = field(default_factory=_guidance_loss_default)
+
+    def schedule(self, num_steps: int) -> GuidanceSchedule:
+        """The validated :class:`GuidanceSchedule` for ``num_steps`` steps."""
+        return GuidanceSchedule.build(self.repeats, num_steps, self.eta, self.time_travel)
+
+    def validate(self, num_steps: int, num_frames: int, temporal_compression: int) -> GuidanceSchedule:
+        """Check everything against a run; ValueError naming the problem. Returns the schedule."""
+        if not self.grad_eps > 0:
+            raise ValueError(f"guidance grad_eps must be > 0, got {self.grad_eps}")
+        anchor_latent_chunks(self.anchors, num_frames, temporal_compression, self.chunk_latents)
+        return self.schedule(num_steps)
+
+
+def resolve_guidance_config(
+    base: GuidanceConfig | None, override: GuidanceConfig | Mapping[str, Any] | bool | None
+) -> GuidanceConfig:
+    """The guidance config of one call: ``override`` (config, dict of changes, or bool) over ``base``.
+
+    ``False`` disables guidance, ``True``/``None`` keeps ``base``; a dict changes only the keys it
+    names (``{"loss": {"cue": "motion"}}`` works). Unknown keys raise ValueError naming them.
+    """
+    base = base if base is not None else GuidanceConfig()
+    if override is None or override is True:
+        return base
+    if override is False:
+        return replace(base, enabled=False)
+    if isinstance(override, GuidanceConfig):
+        return override
+    if hasattr(override, "keys"):  # dict or omegaconf DictConfig
+        return _merge_dataclass(base, dict(override), "guidance")
+    raise ValueError(f"guidance must be a GuidanceConfig, a dict, True/False or None, got {type(override).__name__}")
+
+
+def _merge_dataclass(obj, changes: dict, path: str):
+    known = {f.name for f in fields(obj)}
+    unknown = sorted(set(changes) - known)
+    if unknown:
+        raise ValueError(f"unknown option(s) {[f'{path}.{k}' for k in unknown]}; known: {sorted(known)}")
+    updates = {}
+    for key, value in changes.items():
+        current = getattr(obj, key)
+        if is_dataclass(current) and hasattr(value, "keys"):
+            value = _merge_dataclass(current, dict(value), f"{path}.{key}")
+        elif isinstance(value, Sequence) and not isinstance(value, str):
+            value = list(value)
+        updates[key] = value
+    try:
+        return replace(obj, **updates)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: {err}") from err
+
+
+# --------------------------------------------------------------------------------------------
+# DDIM arithmetic (v-prediction). Coefficients are computed in the precision of the scheduler's
+# alphas_cumprod table and applied to fp32 latents, exactly as diffusers' DDIM step does.
+
+
+def v_to_x0(z: Tensor, v: Tensor, alpha_t: Tensor | float) -> Tensor:
+    """Clean-sample estimate of v-prediction: ``x0 = sqrt(a_t) z_t - sqrt(1 - a_t) v``."""
+    return (alpha_t**0.5) * z - ((1 - alpha_t) ** 0.5) * v
+
+
+def ddim_step(z: Tensor, x0: Tensor, alpha_t: Tensor | float, alpha_prev: Tensor | float) -> Tensor:
+    """Deterministic DDIM ``z_prev = A z_t + B x0`` with ``A = sqrt((1-a_prev)/(1-a_t))``."""
+    a = ((1 - alpha_prev) / (1 - alpha_t)) ** 0.5
+    b = alpha_prev**0.5 - alpha_t**0.5 * a
+    return a * z + b * x0
+
+
+def randn_like(z: Tensor, generator: torch.Generator | list[torch.Generator] | None) -> Tensor:
+    """Standard normal noise shaped like ``z`` (fp32) drawn from ``generator`` (list: one per video)."""
+    if isinstance(generator, (list, tuple)):
+        if len(generator) != z.shape[0]:
+            raise ValueError(f"got {len(generator)} generators for a batch of {z.shape[0]}")
+        return torch.cat([randn_like(z[i : i + 1], g) for i, g in enumerate(generator)])
+    device = generator.device if generator is not None else z.device
+    noise = torch.randn(z.shape, generator=generator, device=device, dtype=torch.float32)
+    return noise.to(z.device)
+
+
+def renoise(z_prev: Tensor, alpha_t: Tensor | float, alpha_prev: Tensor | float, noise: Tensor) -> Tensor:
+    """Forward-diffuse ``z_prev`` (level ``alpha_prev``) back to level ``alpha_t``."""
+    ratio = alpha_t / alpha_prev
+    return (ratio**0.5) * z_prev + ((1 - ratio) ** 0.5) * noise
+
+
+def normalized_update(z: Tensor, grad: Tensor, eta: float, eps: float = 1e-8) -> tuple[Tensor, Tensor]:
+    """``z - eta * g / (||g|| + eps)`` in fp32, with the norm taken per video. Returns (z, ||g||)."""
+    grad = grad.float()
+    norm = grad.flatten(1).norm(dim=1).view(-1, *([1] * (grad.ndim - 1)))
+    return z.float() - eta * grad / (norm + eps), norm.flatten()
+
+
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class GuidanceRecord:
+    """One guided update: step index, timestep, loss and cues before the update, ||g||, seconds."""
+
+    step: int
+    repeat: int
+    t: int
+    loss: float
+    motion: float | None
+    structure: float | None
+    fused: float | None
+    grad_norm: float
+    seconds: float
+    time_travel: bool
+    skipped: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _scalars(result: Any) -> tuple[Tensor, dict[str, float]]:
+    if isinstance(result, Tensor):
+        return result, {"loss": float(result.detach())}
+    return result.loss, result.scalars()
+
+
+def guided_step(
+    z: Tensor,
+    *,
+    predict_x0: Callable[[Tensor, bool], Tensor],
+    decode_anchors: Callable[[Tensor], Tensor],
+    loss_fn: Callable[[Tensor], Any],
+    alpha_t: Tensor | float,
+    alpha_prev: Tensor | float,
+    repeats: int = 0,
+    eta: float = PAPER_ETA,
+    time_travel: bool = False,
+    denoiser_grad: bool = True,
+    generator: torch.Generator | list[torch.Generator] | None = None,
+    eps: float = 1e-8,
+    step: int = 0,
+    t: int = 0,
+    on_record: Callable[[GuidanceRecord], None] | None = None,
+) -> tuple[Tensor, Tensor, list[GuidanceRecord]]:
+    """One denoising step with ``repeats`` GeCo updates of ``z`` (see the module docstring).
+
+    Args:
+        z: ``z_t`` (any float dtype; the update runs in fp32).
+        predict_x0: ``(z, differentiate_denoiser) -> x0`` in fp32. When the flag is False the
+            model output must be computed without gradients and treated as a constant
+            (so ``dx0/dz = sqrt(a_t)`` for v-prediction); it is always False for the final
+            prediction, which runs under ``torch.no_grad``.
+        decode_anchors: ``x0 -> frames [B, S, 3, H, W]`` in ``[0, 1]`` (differentiable).
+        loss_fn: ``frames -> GeCoResult`` (``.loss``, ``.scalars()``) or a scalar tensor.
+        alpha_t, alpha_prev: cumulative alphas of this step and of the next table entry
+            (the final alpha after the last step).
+        repeats: ``R_t``; 0 makes this a plain DDIM step.
+        eta: normalised step size.
+        time_travel: take the DDIM step with the update, then re-noise back to ``t``.
+        denoiser_grad: differentiate through the denoiser (paper) or hold its output constant.
+        generator: source of the time-travel noise.
+        eps: of the normalised update.
+        step, t: step index and timestep, for the records.
+        on_record: called with each :class:`GuidanceRecord` as soon as it exists.
+
+    Returns:
+        ``(z_prev, x0, records)``: the latents at the next level (fp32), the final clean
+        estimate and one record per update.
+    """
+    z = z.detach().float()
+    records: list[GuidanceRecord] = []
+    for r in range(repeats):
+        start = time.perf_counter()
+        with torch.enable_grad():
+            z_in = z.detach().requires_grad_(True)
+            x0 = predict_x0(z_in, denoiser_grad)
+            result = loss_fn(decode_anchors(x0))
+            loss, scalars = _scalars(result)
+            (grad,) = torch.autograd.grad(loss, z_in, allow_unused=True)
+        if grad is None:
+            grad = torch.zeros_like(z)
+        skipped = not bool(torch.isfinite(grad).all())
+        if skipped:  # a NaN gradient must never reach the latents
+            grad = torch.zeros_like(z)
+        x0 = x0.detach().float()
+        z_new, norm = normalized_update(z, grad, eta, eps)
+        if time_travel:
+            z_prev = ddim_step(z, x0, alpha_t, alpha_prev) + (z_new - z)
+            z = renoise(z_prev, alpha_t, alpha_prev, randn_like(z, generator))
+        else:
+            z = z_new
+        record = GuidanceRecord(
+            step=step,
+            repeat=r,
+            t=int(t),
+            loss=scalars["loss"],
+            motion=scalars.get("motion"),
+            structure=scalars.get("structure"),
+            fused=scalars.get("fused"),
+            grad_norm=float(norm.mean()),
+            seconds=time.perf_counter() - start,
+            time_travel=time_travel,
+            skipped=skipped,
+        )
+        records.append(record)
+        if on_record is not None:
+            on_record(record)
+    with torch.no_grad():
+        x0 = predict_x0(z, False).float()
+        z_prev = ddim_step(z, x0, alpha_t, alpha_prev)
+    return z_prev, x0, records
+
+
+def score_anchor_frames(video: Tensor, anchors: Sequence[int], loss_fn: Callable[[Tensor], Any]) -> dict[str, float]:
+    """GeCo scalars (``motion``, ``structure``, ``fused``, ``loss``) of the anchor frames of a
+    decoded ``video [B, F, 3, H, W]`` in ``[0, 1]``, without gradients."""
+    if video.ndim != 5:
+        raise ValueError(f"video must be [B, F, 3, H, W], got shape {list(video.shape)}")
+    bad = [a for a in anchors if not 0 <= a < video.shape[1]]
+    if bad:
+        raise ValueError(f"anchors {bad} out of range for a {video.shape[1]}-frame video")
+    with torch.no_grad():
+        loss, scalars = _scalars(loss_fn(video[:, list(anchors)].float()))
+    return scalars

@@ -1,0 +1,116 @@
+"""The guidance schedule: recursive repeats R_t, step size eta and the time-travel window.
+
+Steps are 0-based indices into the sampler's timestep table (step 0 is the noisiest). The
+repeat schedule is written compactly as comma-separated ``RxN`` runs ("R repeats for N steps"),
+so the paper's schedule (R = 0 for steps 0-2, 3 for 3-19, 2 for 20-49) is ``"0x3,3x17,2x30"``;
+a plain ``R`` counts as one step, and an explicit list of per-step ints is accepted too.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+PAPER_REPEATS = "0x3,3x17,2x30"
+PAPER_ETA = 3.0
+PAPER_TIME_TRAVEL = (15, 20)
+
+
+def parse_repeats(spec: str | Sequence[int]) -> list[int]:
+    """Expand a repeat schedule into one ``R_t`` per step.
+
+    Args:
+        spec: ``"0x3,3x17,2x30"`` (runs of ``R x count``), ``"1,2,2"`` or a sequence of ints.
+
+    Raises:
+        ValueError: malformed spec or negative values.
+    """
+    if isinstance(spec, str):
+        repeats: list[int] = []
+        for part in spec.replace(" ", "").split(","):
+            if not part:
+                raise ValueError(f"repeats {spec!r}: empty entry (write runs like '0x3,3x17,2x30')")
+            value, _, count = part.partition("x")
+            try:
+                r, n = int(value), int(count) if count else 1
+            except ValueError:
+                raise ValueError(f"repeats {spec!r}: cannot read {part!r} (write runs like '0x3,3x17,2x30')") from None
+            if r < 0 or n < 1:
+                raise ValueError(f"repeats {spec!r}: {part!r} needs R >= 0 and a count >= 1")
+            repeats.extend([r] * n)
+        return repeats
+    repeats = [int(r) for r in spec]
+    if any(r < 0 for r in repeats):
+        raise ValueError(f"repeats must be >= 0, got {repeats}")
+    return repeats
+
+
+@dataclass(frozen=True)
+class GuidanceSchedule:
+    """What guidance does at each denoising step.
+
+    Attributes:
+        repeats: ``R_t`` per step (number of guided updates at that step).
+        eta: normalised step size of every update.
+        time_travel: inclusive ``(first, last)`` step window of time travel, or ``None``.
+    """
+
+    repeats: tuple[int, ...]
+    eta: float = PAPER_ETA
+    time_travel: tuple[int, int] | None = PAPER_TIME_TRAVEL
+
+    @classmethod
+    def build(
+        cls,
+        repeats: str | Sequence[int],
+        num_steps: int,
+        eta: float = PAPER_ETA,
+        time_travel: Sequence[int] | None = PAPER_TIME_TRAVEL,
+    ) -> "GuidanceSchedule":
+        """Parse and validate a schedule for ``num_steps`` denoising steps.
+
+        Raises:
+            ValueError: a length that does not match ``num_steps``, negative ``eta``, or a
+                time-travel window that is not ``[first, last]`` inside the steps.
+        """
+        if num_steps < 1:
+            raise ValueError(f"num_inference_steps must be >= 1, got {num_steps}")
+        per_step = parse_repeats(repeats)
+        if len(per_step) != num_steps:
+            raise ValueError(
+                f"guidance repeats schedule {repeats!r} covers {len(per_step)} steps but the sampler runs "
+                f"{num_steps} steps (num_inference_steps); give one R_t per step"
+            )
+        eta = float(eta)
+        if not eta >= 0.0:  # also rejects NaN
+            raise ValueError(f"guidance eta must be >= 0, got {eta}")
+        window = None
+        if time_travel is not None and len(time_travel) > 0:
+            if len(time_travel) != 2:
+                raise ValueError(f"time_travel must be [first_step, last_step] or empty, got {list(time_travel)}")
+            first, last = (int(s) for s in time_travel)
+            if not 0 <= first <= last < num_steps:
+                raise ValueError(
+                    f"time_travel window [{first}, {last}] must satisfy 0 <= first <= last < {num_steps} (the step count)"
+                )
+            window = (first, last)
+        return cls(repeats=tuple(per_step), eta=eta, time_travel=window)
+
+    @property
+    def num_steps(self) -> int:
+        return len(self.repeats)
+
+    def repeats_at(self, step: int) -> int:
+        return self.repeats[step]
+
+    def time_travel_at(self, step: int) -> bool:
+        return self.time_travel is not None and self.time_travel[0] <= step <= self.time_travel[1]
+
+    @property
+    def total_updates(self) -> int:
+        return sum(self.repeats)
+
+
+def paper_schedule(num_steps: int = 50) -> GuidanceSchedule:
+    """The GeCo paper's schedule for 50 DDIM steps."""
+    return GuidanceSchedule.build(PAPER_REPEATS, num_steps, PAPER_ETA, PAPER_TIME_TRAVEL)

@@ -1,0 +1,187 @@
+"""Anchor frame <-> latent chunk mapping for causal video VAEs, and the chunked anchor decode.
+
+A causal video VAE with temporal compression ``r`` (CogVideoX, Wan, Hunyuan: ``r = 4``) maps
+latent frame 0 to pixel frame 0 alone and latent ``k >= 1`` to pixel frames
+``r(k-1)+1 ... rk``; ``L`` latents therefore decode to ``1 + r(L-1)`` frames.
+
+Guidance only needs a few *anchor* frames, so instead of decoding the whole video it decodes, for
+each anchor, a short causal chunk of latents that ends at the anchor's latent (``chunk_latents``
+latents, 3 by default as in the paper's code). The VAE treats the first latent of a chunk as a
+"first frame" (one pixel frame; the CogVideoX VAE only does so for an odd number of latents); the
+anchor's latent, at the end of the chunk, gets its full ``r`` frames with ``chunk_latents - 1``
+latents of causal context, so the anchor is picked counting from the chunk's last frame. Everything here is pure index
+arithmetic except :func:`decode_anchor_frames`, which only needs ``vae.decode``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+def check_num_frames(num_frames: int, temporal_compression: int) -> int:
+    """Number of latent frames of a ``num_frames`` video; ValueError if the VAE cannot make it."""
+    if temporal_compression < 1:
+        raise ValueError(f"temporal_compression must be >= 1, got {temporal_compression}")
+    if num_frames < 1 or (num_frames - 1) % temporal_compression != 0:
+        raise ValueError(
+            f"num_frames={num_frames} cannot be produced by a causal VAE with temporal compression "
+            f"{temporal_compression}: it must be {temporal_compression}*k + 1 "
+            f"(e.g. {temporal_compression * max(1, (num_frames - 1) // temporal_compression) + 1})"
+        )
+    return (num_frames - 1) // temporal_compression + 1
+
+
+def pixel_to_latent(frame: int, temporal_compression: int) -> int:
+    """Latent frame whose decode produces pixel frame ``frame`` (0-based)."""
+    if frame < 0:
+        raise ValueError(f"frame index must be >= 0, got {frame}")
+    return 0 if frame == 0 else (frame - 1) // temporal_compression + 1
+
+
+def latent_to_pixels(latent: int, temporal_compression: int) -> range:
+    """Pixel frames produced by latent frame ``latent`` (0-based)."""
+    if latent < 0:
+        raise ValueError(f"latent index must be >= 0, got {latent}")
+    if latent == 0:
+        return range(0, 1)
+    return range(temporal_compression * (latent - 1) + 1, temporal_compression * latent + 1)
+
+
+@dataclass(frozen=True)
+class AnchorChunk:
+    """Where one anchor frame comes from.
+
+    Attributes:
+        anchor: 0-based pixel frame index in the full video.
+        latent: latent frame that produces it.
+        start, stop: the causal chunk of latents ``[start, stop)`` decoded for it
+            (``stop = latent + 1``).
+        index_in_chunk: index of the anchor among the ``1 + r*(stop-start-1)`` frames of a causal
+            decode of the chunk.
+        from_end: position of the anchor counted from the chunk's last decoded frame (0 = last).
+            The anchor's latent is the chunk's last, so its ``r`` frames are the last ``r`` decoded
+            frames whatever the VAE does with the chunk's first latent; the decode uses this.
+    """
+
+    anchor: int
+    latent: int
+    start: int
+    stop: int
+    index_in_chunk: int
+    from_end: int
+
+
+def anchor_latent_chunks(
+    anchors: Sequence[int],
+    num_frames: int,
+    temporal_compression: int = 4,
+    chunk_latents: int = 3,
+) -> list[AnchorChunk]:
+    """Map anchor pixel frames to the causal latent chunks that decode them.
+
+    Args:
+        anchors: strictly increasing 0-based pixel frame indices, at least two, none in latent 0's
+            group (frame 0), all ``< num_frames``.
+        num_frames: frames of the decoded video (``r*k + 1``).
+        temporal_compression: the VAE's ``r``.
+        chunk_latents: latents per chunk, ending at the anchor's latent (clipped at latent 0).
+
+    Returns:
+        One :class:`AnchorChunk` per anchor, in order.
+
+    Raises:
+        ValueError: naming the problem (frame count, anchor range/order/count, chunk length).
+    """
+    num_latents = check_num_frames(num_frames, temporal_compression)
+    anchors = [int(a) for a in anchors]
+    if len(anchors) < 2:
+        raise ValueError(f"guidance needs at least two anchor frames to form a pair, got anchors={anchors}")
+    if any(b <= a for a, b in zip(anchors, anchors[1:])):
+        raise ValueError(f"anchors must be strictly increasing, got {anchors}")
+    bad = [a for a in anchors if not 0 <= a < num_frames]
+    if bad:
+        raise ValueError(f"anchors {bad} are out of range for a {num_frames}-frame video (valid: 0..{num_frames - 1})")
+    first_group = list(latent_to_pixels(0, temporal_compression))
+    inside = [a for a in anchors if a in first_group]
+    if inside:
+        raise ValueError(
+            f"anchors {inside} lie in latent 0's group (pixel frames {first_group}); a causal chunk cannot end "
+            "there. Use anchors >= 1 (the paper uses 12, 24, 36, 48)."
+        )
+    if chunk_latents < 2:
+        raise ValueError(
+            f"chunk_latents must be >= 2 (the chunk's first latent decodes to a single frame), got {chunk_latents}"
+        )
+    chunks = []
+    for anchor in anchors:
+        latent = pixel_to_latent(anchor, temporal_compression)
+        assert latent < num_latents
+        start = max(0, latent - chunk_latents + 1)
+        offset = anchor - latent_to_pixels(latent, temporal_compression).start
+        decoded = 1 + temporal_compression * (latent - start)
+        index = decoded - temporal_compression + offset
+        chunks.append(
+            AnchorChunk(anchor=anchor, latent=latent, start=start, stop=latent + 1, index_in_chunk=index, from_end=decoded - 1 - index)
+        )
+    return chunks
+
+
+def decoded_frame_count(num_latents: int, temporal_compression: int) -> int:
+    """Frames a causal VAE decodes ``num_latents`` latents into."""
+    return 1 + temporal_compression * (num_latents - 1)
+
+
+def decode_chunk(vae, latents: Tensor, scaling_factor: float) -> Tensor:
+    """Decode ``latents [B, F, C, h, w]`` (diffusers CogVideoX layout) to ``[B, T, 3, H, W]`` in [0, 1]."""
+    param = next(vae.parameters(), None)
+    dtype = param.dtype if param is not None else latents.dtype
+    z = latents.permute(0, 2, 1, 3, 4).to(dtype) / scaling_factor
+    video = vae.decode(z).sample  # [B, 3, T, H, W] in [-1, 1]
+    return (video.float() / 2 + 0.5).clamp(0, 1).permute(0, 2, 1, 3, 4)
+
+
+def decode_anchor_frames(
+    vae,
+    latents: Tensor,
+    chunks: Sequence[AnchorChunk],
+    scaling_factor: float,
+    decode: Callable[[Tensor], Tensor] | None = None,
+) -> Tensor:
+    """Decode only the anchor frames, each from its causal chunk, through the frozen VAE.
+
+    Args:
+        vae: a causal video VAE with ``decode(z [B, C, F, h, w]).sample -> [B, 3, T, H, W]``
+            in ``[-1, 1]`` (ignored when ``decode`` is given).
+        latents: ``[B, F, C, h, w]`` clean-latent estimate (differentiable).
+        chunks: from :func:`anchor_latent_chunks`; chunks shared by several anchors are decoded once.
+        scaling_factor: the VAE's latent scaling factor (latents are divided by it).
+        decode: optional ``latents [B, F', C, h, w] -> frames [B, T, 3, H, W] in [0, 1]`` to use
+            instead of :func:`decode_chunk` (other pipelines' layouts).
+
+    Returns:
+        ``[B, S, 3, H, W]`` fp32 frames in ``[0, 1]``, one per chunk, in order.
+    """
+    if len(chunks) == 0:
+        raise ValueError("chunks must not be empty")
+    num_latents = latents.shape[1]
+    decode = decode or (lambda z: decode_chunk(vae, z, scaling_factor))
+    decoded: dict[tuple[int, int], Tensor] = {}
+    frames = []
+    for chunk in chunks:
+        if chunk.stop > num_latents:
+            raise ValueError(f"anchor {chunk.anchor} needs latent {chunk.latent} but latents has only {num_latents}")
+        key = (chunk.start, chunk.stop)
+        if key not in decoded:
+            decoded[key] = decode(latents[:, chunk.start : chunk.stop])
+        video = decoded[key]
+        if chunk.from_end >= video.shape[1]:
+            raise ValueError(
+                f"decoding latents [{chunk.start}, {chunk.stop}) gave {video.shape[1]} frames, expected at least "
+                f"{chunk.from_end + 1}: is the VAE causal with the configured temporal compression?"
+            )
+        frames.append(video[:, video.shape[1] - 1 - chunk.from_end])
+    return torch.stack(frames, dim=1).float()

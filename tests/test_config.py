@@ -1,0 +1,100 @@
+"""Structured config: presets, overrides, rejection of unknown keys and invalid values."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from geco_guide.config import GeCoConfig, config_to_dict, load_config, to_config
+from geco_guide.loss.geco import GeCoLossConfig
+from geco_guide.sampler.guidance import GuidanceConfig
+
+
+def test_schema_defaults_are_the_paper():
+    cfg = to_config({})
+    assert cfg.model.id == "THUDM/CogVideoX-5b"
+    s = cfg.sampling
+    assert (s.num_inference_steps, s.guidance_scale, s.num_frames, s.height, s.width) == (50, 6.0, 49, 480, 720)
+    g = cfg.guidance
+    assert g.anchors == [12, 24, 36, 48] and g.chunk_latents == 3
+    assert g.repeats == "0x3,3x17,2x30" and g.eta == 3.0 and g.time_travel == [15, 20]
+    assert g.denoiser_grad and g.enabled
+    assert isinstance(g.loss, GeCoLossConfig)
+    assert g.loss.cue == "fused" and g.loss.pairs == "adjacent" and g.loss.flow_downscale == 0.5
+    assert g.loss.geometry_grad
+
+
+def test_presets_load_and_paper_preset_equals_schema_defaults():
+    paper = load_config(preset="cogvideox-5b")
+    assert isinstance(paper, GeCoConfig) and isinstance(paper.guidance, GuidanceConfig)
+    assert config_to_dict(paper) == config_to_dict(to_config({}))
+    tiny = load_config(preset="tiny")
+    assert tiny.model.id == "tiny-random" and tiny.model.device == "cpu"
+    assert tiny.sampling.num_frames == 17 and tiny.guidance.anchors == [4, 8, 12, 16]
+
+
+def test_file_and_overrides_merge_in_order(tmp_path: Path):
+    path = tmp_path / "c.yaml"
+    path.write_text("seed: 5\nguidance:\n  eta: 1.0\n")
+    cfg = load_config(path, preset="tiny", overrides=["guidance.eta=2.5", "guidance.loss.cue=motion"])
+    assert cfg.seed == 5 and cfg.guidance.eta == 2.5 and cfg.guidance.loss.cue == "motion"
+    assert cfg.model.id == "tiny-random"
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("model.nope=1", "model.nope"),
+        ("guidance.loss.bogus=1", "guidance.loss.bogus"),
+        ("colour=red", "colour"),
+    ],
+)
+def test_unknown_keys_are_rejected_naming_the_key(override, key):
+    with pytest.raises(ValueError, match=f"unknown config key '{key}'"):
+        load_config(preset="tiny", overrides=[override])
+
+
+def test_unknown_keys_in_yaml_are_rejected(tmp_path: Path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("sampling:\n  num_step: 4\n")
+    with pytest.raises(ValueError, match="sampling.num_step"):
+        load_config(path)
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("sampling.num_inference_steps=abc", "sampling.num_inference_steps"),
+        ("sampling.height=100", "sampling.height"),
+        ("sampling.num_frames=16", "sampling.num_frames"),
+        ("guidance.eta=-1", "guidance.eta"),
+        ("guidance.loss.cue=colour", "guidance.loss.cue"),
+        ("guidance.loss.flow_downscale=0", "guidance.loss.flow_downscale"),
+        ("model.dtype=float8", "model.dtype"),
+        ("model.device=tpu", "model.device"),
+        ("guidance.anchors=[8]", "guidance.anchors"),
+        ("guidance.repeats=1x5", "guidance.repeats"),
+        ("guidance.time_travel=[3,9]", "guidance.time_travel"),
+    ],
+)
+def test_invalid_values_are_rejected_naming_the_key(override, key):
+    with pytest.raises(ValueError, match=key.replace(".", r"\.")):
+        load_config(preset="tiny", overrides=[override])
+
+
+def test_unknown_preset_and_missing_file():
+    with pytest.raises(ValueError, match="unknown preset 'nope'.*tiny"):
+        load_config(preset="nope")
+    with pytest.raises(FileNotFoundError):
+        load_config("/nonexistent/config.yaml")
+
+
+def test_string_overrides_are_taken_verbatim():
+    cfg = load_config(
+        preset="tiny",
+        overrides=["sampling.num_inference_steps=2", "guidance.repeats=0x2", "guidance.time_travel=[]", "output.name=0x5"],
+    )
+    assert cfg.guidance.repeats == "0x2"  # not YAML's hex 2
+    assert cfg.guidance.schedule(2).repeats == (0, 0)
+    assert cfg.output.name == "0x5" and cfg.guidance.time_travel == []

@@ -1,0 +1,278 @@
+"""GeCoCogVideoXPipeline and the model-agnostic guided step, with tiny random models on CPU."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+from diffusers import CogVideoXDDIMScheduler, CogVideoXDPMScheduler, CogVideoXPipeline
+
+from geco_guide.loss.geco import GeCoLoss
+from geco_guide.sampler.guidance import (
+    GuidanceConfig,
+    ddim_step,
+    guided_step,
+    renoise,
+    resolve_guidance_config,
+    score_anchor_frames,
+    v_to_x0,
+)
+from geco_guide.testing import TINY_ANCHORS, TINY_CALL_KWARGS, tiny_cogvideox_components, tiny_pipeline
+
+PROMPT = "a marble bust on a table"
+
+
+@pytest.fixture(scope="module")
+def pipe():
+    return tiny_pipeline(0)
+
+
+def run(pipe, seed=0, **kwargs):
+    args = dict(TINY_CALL_KWARGS, output_type="pt")
+    args.update(kwargs)
+    return pipe(PROMPT, generator=torch.Generator().manual_seed(seed), **args)
+
+
+def scores(pipe, frames):
+    loss = GeCoLoss(pipe.geometry_estimator, pipe.flow_estimator, pipe.guidance_config.loss)
+    return score_anchor_frames(frames, TINY_ANCHORS, loss)
+
+
+# ---- the guided step on its own ---------------------------------------------------------------
+
+
+def test_guided_step_without_repeats_is_a_ddim_step():
+    z = torch.randn(1, 3, 2, 4, 4)
+    v = torch.randn_like(z)
+    a_t, a_prev = torch.tensor(0.3, dtype=torch.float64), torch.tensor(0.6, dtype=torch.float64)
+    z_prev, x0, records = guided_step(
+        z, predict_x0=lambda z, grad: v_to_x0(z, v, a_t), decode_anchors=None, loss_fn=None,
+        alpha_t=a_t, alpha_prev=a_prev, repeats=0,
+    )
+    assert records == []
+    torch.testing.assert_close(x0, a_t.sqrt().float() * z - (1 - a_t).sqrt().float() * v)
+    eps = ((z - a_t.sqrt().float() * x0) / (1 - a_t).sqrt().float())
+    torch.testing.assert_close(z_prev, a_prev.sqrt().float() * x0 + (1 - a_prev).sqrt().float() * eps)
+
+
+def test_fast_mode_update_is_the_normalised_gradient_through_sqrt_alpha():
+    # loss = ||x0 - target||^2 with v held constant: dL/dz = 2 sqrt(a_t) (x0 - target)
+    z = torch.randn(1, 2, 2, 3, 3, generator=torch.Generator().manual_seed(1))
+    v = torch.randn_like(z)
+    target = torch.randn_like(z)
+    a_t, a_prev = torch.tensor(0.5, dtype=torch.float64), torch.tensor(0.8, dtype=torch.float64)
+    seen = []
+
+    def predict(z_in, grad):
+        seen.append(grad)
+        return v_to_x0(z_in, v, a_t)
+
+    z_prev, _, records = guided_step(
+        z, predict_x0=predict, decode_anchors=lambda x: x, loss_fn=lambda x: ((x - target) ** 2).sum(),
+        alpha_t=a_t, alpha_prev=a_prev, repeats=1, eta=0.5, denoiser_grad=False,
+    )
+    g = 2 * 0.5**0.5 * (v_to_x0(z, v, a_t) - target)
+    z_upd = z - 0.5 * g / g.norm()
+    torch.testing.assert_close(z_prev, ddim_step(z_upd, v_to_x0(z_upd, v, a_t), a_t, a_prev))
+    assert seen == [False, False]  # one prediction per repeat + the final gradient-free one
+    assert len(records) == 1 and records[0].grad_norm == pytest.approx(float(g.norm()), rel=1e-5)
+
+
+def test_time_travel_renoises_back_to_t_with_the_generator():
+    z = torch.randn(1, 2, 2, 3, 3)
+    v = torch.zeros_like(z)
+    a_t, a_prev = torch.tensor(0.4, dtype=torch.float64), torch.tensor(0.7, dtype=torch.float64)
+    kwargs = dict(
+        predict_x0=lambda z, g: v_to_x0(z, v, a_t), decode_anchors=lambda x: x, loss_fn=lambda x: (x**2).sum(),
+        alpha_t=a_t, alpha_prev=a_prev, repeats=1, eta=1.0, time_travel=True,
+    )
+    out1 = guided_step(z, generator=torch.Generator().manual_seed(5), **kwargs)[0]
+    out2 = guided_step(z, generator=torch.Generator().manual_seed(5), **kwargs)[0]
+    out3 = guided_step(z, generator=torch.Generator().manual_seed(6), **kwargs)[0]
+    assert torch.equal(out1, out2) and not torch.equal(out1, out3)
+    # by hand: DDIM step with the update, re-noise to t, then the final DDIM step
+    x0 = v_to_x0(z, v, a_t)
+    g = 2 * x0 * a_t.sqrt().float()
+    noise = torch.randn(z.shape, generator=torch.Generator().manual_seed(5))
+    z_t = renoise(ddim_step(z, x0, a_t, a_prev) - g / (g.norm() + 1e-8), a_t, a_prev, noise)
+    torch.testing.assert_close(out1, ddim_step(z_t, v_to_x0(z_t, v, a_t), a_t, a_prev))
+
+
+def test_resolve_guidance_config():
+    base = GuidanceConfig()
+    assert resolve_guidance_config(base, None) is base
+    assert resolve_guidance_config(base, False).enabled is False
+    changed = resolve_guidance_config(base, {"eta": 1.5, "loss": {"cue": "motion"}})
+    assert changed.eta == 1.5 and changed.loss.cue == "motion" and changed.loss.flow_downscale == 0.5
+    with pytest.raises(ValueError, match="guidance.bogus"):
+        resolve_guidance_config(base, {"bogus": 1})
+    with pytest.raises(ValueError, match="guidance.loss"):
+        resolve_guidance_config(base, {"loss": {"cue": "nope"}})
+
+
+# ---- the pipeline -------------------------------------------------------------------------------
+
+
+def test_pipeline_exposes_components_and_geco_parts(pipe):
+    for name in ("tokenizer", "text_encoder", "vae", "transformer", "scheduler"):
+        assert getattr(pipe, name) is pipe.components[name]
+    assert isinstance(pipe.scheduler, CogVideoXDDIMScheduler)
+    assert pipe.geometry_estimator is not None and pipe.flow_estimator is not None
+    assert isinstance(pipe.guidance_config, GuidanceConfig)
+
+
+def test_guidance_off_matches_stock_pipeline_bitwise(pipe):
+    stock = CogVideoXPipeline(**tiny_cogvideox_components(0))
+    stock.set_progress_bar_config(disable=True)
+    for output_type in ("pt", "latent"):
+        ours = run(pipe, seed=3, guidance=False, output_type=output_type)
+        ref = stock(PROMPT, generator=torch.Generator().manual_seed(3), output_type=output_type, **TINY_CALL_KWARGS)
+        assert torch.equal(ours.frames, ref.frames), output_type
+        assert ours.guidance_log == [] and ours.guidance is None
+
+
+def test_guided_run_lowers_geco_loss_on_anchor_frames(pipe):
+    unguided = run(pipe, seed=0, guidance=False).frames
+    guided = run(pipe, seed=0)
+    fast = run(pipe, seed=0, guidance={"denoiser_grad": False})
+    base = scores(pipe, unguided)["loss"]
+    assert scores(pipe, guided.frames)["loss"] < 0.9 * base
+    assert scores(pipe, fast.frames)["loss"] < 0.9 * base
+    # the log: one entry per update, with every cue, ||g|| and time
+    assert len(guided.guidance_log) == 5  # "0x1,2x2,1x1"
+    entry = guided.guidance_log[0]
+    assert {"step", "repeat", "t", "loss", "motion", "structure", "fused", "grad_norm", "seconds"} <= set(entry)
+    assert [e["step"] for e in guided.guidance_log] == [1, 1, 2, 2, 3]
+    assert [e["time_travel"] for e in guided.guidance_log] == [False, False, True, True, False]
+    assert all(e["grad_norm"] > 0 and e["loss"] == e["fused"] for e in guided.guidance_log)
+    assert guided.guidance_log[0]["t"] == int(pipe.scheduler.timesteps[1])
+
+
+def test_same_seed_same_frames_with_time_travel(pipe):
+    cfg = {"repeats": "0x1,1x3", "time_travel": [1, 3]}  # every update time-travels
+    a = run(pipe, seed=7, guidance=cfg).frames
+    b = run(pipe, seed=7, guidance=cfg).frames
+    c = run(pipe, seed=8, guidance=cfg).frames
+    assert torch.equal(a, b)
+    assert not torch.equal(a, c)
+
+
+def test_only_anchor_chunks_are_decoded_and_models_stay_frozen(pipe):
+    models = {
+        "transformer": pipe.transformer, "vae": pipe.vae, "text_encoder": pipe.text_encoder,
+        "geometry": pipe.geometry_estimator, "flow": pipe.flow_estimator,
+    }
+    before = {k: copy.deepcopy(m.state_dict()) for k, m in models.items()}
+    flags = {k: [p.requires_grad for p in m.parameters()] for k, m in models.items()}
+    calls = []
+    original = pipe.vae.decode
+
+    def counting_decode(z, *args, **kwargs):
+        calls.append(z.shape[2])
+        return original(z, *args, **kwargs)
+
+    pipe.vae.decode = counting_decode
+    try:
+        out = run(pipe, seed=1, output_type="latent")
+    finally:
+        del pipe.vae.decode
+    updates = len(out.guidance_log)
+    assert updates == 5
+    # 4 anchors -> 4 chunks of <= 3 latents per update (chunk [0, 2) of anchor 4 has 2); never 5
+    assert len(calls) == 4 * updates
+    assert sorted(set(calls)) == [2, 3]
+    for k, m in models.items():
+        after = m.state_dict()
+        assert all(torch.equal(before[k][n], after[n]) for n in after), k
+        assert [p.requires_grad for p in m.parameters()] == flags[k], k
+        assert all(p.grad is None for p in m.parameters()), k
+
+
+def test_cue_is_selectable(pipe):
+    out = run(pipe, seed=0, guidance={"repeats": "0x1,1x1,0x2", "loss": {"cue": "motion"}})
+    assert len(out.guidance_log) == 1
+    assert out.guidance_log[0]["loss"] == out.guidance_log[0]["motion"] != out.guidance_log[0]["fused"]
+
+
+def test_callback_on_step_end_still_works(pipe):
+    seen = []
+
+    def callback(p, i, t, kwargs):
+        seen.append((i, int(t), kwargs["latents"].dtype))
+        return {"latents": kwargs["latents"] * 0 if i == 3 else kwargs["latents"]}
+
+    out = run(pipe, seed=0, guidance=False, output_type="latent", callback_on_step_end=callback)
+    assert [s[0] for s in seen] == [0, 1, 2, 3]
+    assert [s[1] for s in seen] == [int(t) for t in pipe.scheduler.timesteps]
+    assert torch.count_nonzero(out.frames) == 0
+
+
+class CountingForward:
+    def __init__(self, module):
+        self.n = 0
+        self.handle = module.register_forward_pre_hook(self)
+
+    def __call__(self, *args):
+        self.n += 1
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(guidance={"anchors": [4, 20]}), "out of range"),
+        (dict(guidance={"anchors": [8]}), "at least two"),
+        (dict(guidance={"anchors": [0, 8]}), "latent 0"),
+        (dict(num_frames=16), "num_frames=16"),
+        (dict(num_frames=13), "even number of latents"),
+        (dict(height=40), "multiples of 16"),
+        (dict(width=56), "multiples of 16"),
+        (dict(num_inference_steps=5), "covers 4 steps but the sampler runs 5"),
+        (dict(guidance={"eta": -1.0}), "eta must be >= 0"),
+        (dict(guidance={"time_travel": [3, 4]}), "time_travel"),
+    ],
+)
+def test_invalid_inputs_raise_before_any_denoising_step(pipe, kwargs, match):
+    counter = CountingForward(pipe.transformer)
+    try:
+        with pytest.raises(ValueError, match=match):
+            run(pipe, **kwargs)
+    finally:
+        counter.handle.remove()
+    assert counter.n == 0
+
+
+def test_guidance_needs_estimators_but_unguided_does_not():
+    bare = tiny_pipeline(0)
+    bare.geometry_estimator = None
+    with pytest.raises(ValueError, match="geometry_estimator"):
+        run(bare)
+    assert run(bare, guidance=False, output_type="latent").frames.shape[1] == 5
+
+
+def test_from_pretrained_takes_estimators_and_builds_ddim_from_dpm(tmp_path, pipe):
+    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+
+    components = tiny_cogvideox_components(0)
+    components["scheduler"] = CogVideoXDPMScheduler.from_config(components["scheduler"].config)
+    CogVideoXPipeline(**components).save_pretrained(tmp_path)
+    loaded = GeCoCogVideoXPipeline.from_pretrained(
+        tmp_path, geometry_estimator=pipe.geometry_estimator, flow_estimator=pipe.flow_estimator,
+        guidance_config=pipe.guidance_config,
+    )
+    assert isinstance(loaded.scheduler, CogVideoXDDIMScheduler)
+    assert "CogVideoXDPMScheduler" in loaded.scheduler_note
+    assert loaded.geometry_estimator is pipe.geometry_estimator
+    loaded.set_progress_bar_config(disable=True)
+    a = run(loaded, seed=2, guidance=False, output_type="latent").frames
+    b = run(pipe, seed=2, guidance=False, output_type="latent").frames
+    assert torch.equal(a, b)
+
+
+def test_gradient_checkpointing_gives_the_same_update(pipe):
+    cfg = {"repeats": "0x2,1x1,0x1", "time_travel": []}
+    plain = run(pipe, seed=4, output_type="latent", guidance={**cfg, "gradient_checkpointing": False})
+    ckpt = run(pipe, seed=4, output_type="latent", guidance={**cfg, "gradient_checkpointing": True})
+    assert not pipe.transformer.is_gradient_checkpointing  # restored after the call
+    torch.testing.assert_close(ckpt.frames, plain.frames, rtol=1e-4, atol=1e-5)
+    assert ckpt.guidance_log[0]["grad_norm"] == pytest.approx(plain.guidance_log[0]["grad_norm"], rel=1e-4)
