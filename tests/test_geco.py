@@ -90,8 +90,7 @@ def test_gradients_reach_geometry_and_flow():
 
 
 def test_geco_loss_runs_end_to_end_with_tiny_vggt_and_ufm():
-    torch.manual_seed(0)
-    loss = GeCoLoss(VGGT.random(VGGTConfig.tiny(), seed=0), UFM(UFMConfig.tiny()), GeCoLossConfig(flow_downscale=0.5))
+    loss = GeCoLoss(VGGT.random(VGGTConfig.tiny(), seed=0), UFM.random(UFMConfig.tiny(), seed=0), GeCoLossConfig(flow_downscale=0.5))
     frames = rigid_clip(num_frames=3, height=28, width=42).frames[None].float().requires_grad_(True)
     result = loss(frames)
     assert set(result.scalars()) == {"motion", "structure", "fused", "loss"}

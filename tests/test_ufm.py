@@ -11,7 +11,13 @@ import torch
 
 from geco_guide.estimators.base import FlowEstimator
 from geco_guide.estimators.loading import CheckpointMismatchError, WeightsNotFoundError
-from geco_guide.estimators.ufm import UFM, UFMConfig, choose_resolution, region_size
+from geco_guide.estimators.ufm import (
+    UFM,
+    UFMConfig,
+    choose_resolution,
+    region_size,
+    sinusoid_view_table,
+)
 
 FIXTURES = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures"
 FIXTURE = FIXTURES / "ufm_tiny.pt"
@@ -27,8 +33,7 @@ def fx() -> dict:
 
 @pytest.fixture(scope="module")
 def tiny() -> UFM:
-    torch.manual_seed(0)
-    return UFM(UFMConfig.tiny())
+    return UFM.random(UFMConfig.tiny(), seed=0)
 
 
 def assert_close(ours: torch.Tensor, ref: torch.Tensor, name: str) -> None:
@@ -187,7 +192,8 @@ def test_ufm_base_layout_on_meta() -> None:
     expected = expected_ufm_base_keys()
     assert len(expected) == 613
     with torch.device("meta"):
-        model = UFM(UFMConfig())
+        model = UFM()  # None = UFM-Base
+    assert model.config == UFMConfig()
     ours = {k: tuple(v.shape) for k, v in model.state_dict().items()}
     assert sorted(set(ours) - set(expected)) == [] and sorted(set(expected) - set(ours)) == []
     assert ours == expected
@@ -365,6 +371,10 @@ def test_tiny_random_model_is_sane(tiny: UFM) -> None:
     assert corr.flow.shape == (2, 2, 48, 80) and corr.covisibility.shape == (2, 48, 80)
     assert torch.isfinite(corr.flow).all() and corr.flow.abs().max() < 5.0
     assert 0.01 < corr.covisibility.min() and corr.covisibility.max() < 0.99
+    # Mostly above GeCo's 0.5 covisibility threshold (else its motion cue sees no pixel), and
+    # depending on the images rather than constant.
+    assert 0.6 < corr.covisibility.mean() < 0.9 and (corr.covisibility > 0.5).float().mean() > 0.9
+    assert corr.covisibility.std() > 1e-3 and corr.flow.std() > 1e-2
     # Layouts: channel-last and unbatched inputs give the same answer.
     out_hwc = tiny.predict_correspondences(source[0].permute(1, 2, 0), target[0].permute(1, 2, 0))
     assert torch.allclose(out_hwc["flow"], corr.flow[:1], atol=1e-5)
@@ -372,6 +382,37 @@ def test_tiny_random_model_is_sane(tiny: UFM) -> None:
         tiny.predict_correspondences(source, target, data_norm_type="unheard_of")
     with pytest.raises(ValueError, match="source and target shapes differ"):
         tiny.estimate_flow(source, target[:, :, :40])
+
+
+def test_random_is_seeded_and_leaves_the_global_rng_alone() -> None:
+    rng_state = torch.get_rng_state()
+    a, b = UFM.random(UFMConfig.tiny(), seed=3), UFM.random(UFMConfig.tiny(), seed=3)
+    c = UFM.random(UFMConfig.tiny(), seed=4, gradient_checkpointing=True)
+    assert torch.equal(torch.get_rng_state(), rng_state)
+    assert c.gradient_checkpointing and not a.gradient_checkpointing
+    for (name, ta), tb in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+        assert torch.equal(ta, tb), name
+    differ = [k for k, v in a.state_dict().items() if v.numel() > 1 and not torch.equal(v, c.state_dict()[k])]
+    assert "encoder.model.patch_embed.proj.weight" in differ and "head1.0.1.conv2.2.weight" in differ
+    # Buffers are initialised too (the model was materialised from the meta device).
+    assert torch.equal(a.info_sharing.view_pos_table, sinusoid_view_table(2, 64))
+    assert a.head1[1].adaptors["flow"].flow_std.flatten().tolist() == [1.0, 1.0]
+    source, target = torch.rand(2, 1, 3, 42, 56, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        flow_a, flow_c = a.estimate_flow(source, target).flow, c.estimate_flow(source, target).flow
+    assert torch.isfinite(flow_a).all() and flow_a.abs().max() < 5.0
+    assert not torch.allclose(flow_a, flow_c)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_random_covisibility_is_mostly_above_threshold(seed: int) -> None:
+    model = UFM.random(UFMConfig.tiny(), seed=seed)
+    gen = torch.Generator().manual_seed(10 + seed)
+    source, target = torch.rand(2, 2, 3, 48, 64, generator=gen)
+    with torch.no_grad():
+        corr = model.estimate_flow(source, target)
+    assert 0.6 < corr.covisibility.mean() < 0.9
+    assert torch.isfinite(corr.flow).all() and corr.flow.abs().max() < 5.0
 
 
 def test_gradients_reach_both_inputs_and_params_are_frozen(tiny: UFM) -> None:
@@ -391,14 +432,14 @@ def test_checkpointing_and_autocast_options(tiny: UFM) -> None:
     plain = tiny.estimate_flow(source, target).flow
     (grad_plain,) = torch.autograd.grad(plain.sum(), source)
     try:
-        tiny.activation_checkpointing = True
+        tiny.gradient_checkpointing = True
         ckpt = tiny.estimate_flow(source, target).flow
         (grad_ckpt,) = torch.autograd.grad(ckpt.sum(), source)
-        tiny.activation_checkpointing = False
+        tiny.gradient_checkpointing = False
         tiny.autocast_dtype = torch.bfloat16
         low = tiny.estimate_flow(source, target)
     finally:
-        tiny.activation_checkpointing = False
+        tiny.gradient_checkpointing = False
         tiny.autocast_dtype = None
     assert torch.equal(ckpt, plain) and torch.allclose(grad_ckpt, grad_plain, atol=1e-6)
     assert low.flow.dtype == torch.float32 and torch.allclose(

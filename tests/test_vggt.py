@@ -10,14 +10,13 @@ import torch
 from geco_guide.estimators.base import GeometryEstimator
 from geco_guide.estimators.loading import CheckpointMismatchError, WeightsNotFoundError
 from geco_guide.estimators.vggt import (
-    IMAGENET_MEAN,
-    IMAGENET_STD,
     VGGT,
     PreprocessPlan,
     VGGTConfig,
     plan_preprocess,
     unmap_intrinsics,
 )
+from geco_guide.estimators.vit import imagenet_normalise
 
 FIXTURES = Path(__file__).parents[1].parent / "shared" / "fixtures"
 OUTPUT_NAMES = ("depth", "depth_conf", "pose_enc", "extrinsic", "intrinsic")
@@ -51,10 +50,7 @@ def test_fixture_parity_outputs_and_debug(fixture: dict) -> None:
     debug = fixture["debug"]
     with torch.no_grad():
         out = model.forward_raw(images)
-        normalised = (images.flatten(0, 1) - torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)) / torch.tensor(
-            IMAGENET_STD
-        ).view(1, 3, 1, 1)
-        dino_tokens = model.aggregator.patch_embed(normalised)
+        dino_tokens = model.aggregator.patch_embed(imagenet_normalise(images.flatten(0, 1)))
         tokens = model.aggregator(images)
         iterations = model.camera_head(tokens[model.config.aggregator.depth - 1][:, :, 0])
     for name in OUTPUT_NAMES:
@@ -152,7 +148,8 @@ def test_full_size_state_dict_matches_checkpoint_layout() -> None:
     expected = _spec_vggt1b_keys()
     assert len(expected) == 1340
     with torch.device("meta"):
-        model = VGGT(VGGTConfig())
+        model = VGGT()  # None = VGGT-1B
+    assert model.config == VGGTConfig()
     ours = {k: tuple(v.shape) for k, v in model.state_dict().items()}
     assert ours == expected
 
@@ -198,8 +195,10 @@ def test_batch_elements_are_independent(tiny: VGGT) -> None:
 
 
 def test_random_is_seeded() -> None:
+    rng_state = torch.get_rng_state()
     a, b = VGGT.random(VGGTConfig.tiny(), seed=3), VGGT.random(VGGTConfig.tiny(), seed=3)
     c = VGGT.random(VGGTConfig.tiny(), seed=4)
+    assert torch.equal(torch.get_rng_state(), rng_state)
     for (name, pa), pb, pc in zip(a.state_dict().items(), b.state_dict().values(), c.state_dict().values()):
         assert torch.equal(pa, pb), name
     assert not torch.equal(a.aggregator.camera_token, c.aggregator.camera_token)

@@ -15,12 +15,12 @@ from geco_guide.estimators.vit import (
     Block,
     DinoV2,
     RotaryEmbedding2D,
+    grid_positions,
+    imagenet_normalise,
     resize_pos_embed,
 )
 
 FIXTURES = Path(__file__).parents[1].parent / "shared" / "fixtures"
-IMAGENET_MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
-IMAGENET_STD = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
 
 
 def _randomise(module: torch.nn.Module, seed: int = 0) -> None:
@@ -119,7 +119,7 @@ def test_dinov2_matches_vggt_fixture_tokens() -> None:
     dino.load_state_dict({k[len(prefix):]: v for k, v in fx["state_dict"].items() if k.startswith(prefix)})
     images = fx["inputs"]["images"].flatten(0, 1)
     with torch.no_grad():
-        tokens = dino((images - IMAGENET_MEAN) / IMAGENET_STD)
+        tokens = dino(imagenet_normalise(images))
     ref = fx["debug"]["dino_patch_tokens"]
     assert tokens.shape == ref.shape
     assert (tokens - ref).abs().max() <= 1e-4 * ref.abs().max()
@@ -138,6 +138,32 @@ def test_dinov2_gradient_checkpointing_is_transparent() -> None:
     assert plain.shape == (2, 6, 16)
     torch.testing.assert_close(ckpt, plain)
     torch.testing.assert_close(g_ckpt, g_plain)
+
+
+def test_dinov2_earlier_block_with_and_without_norm() -> None:
+    torch.manual_seed(0)
+    dino = DinoV2(16, 3, 2, img_size=28, patch_size=14, num_register_tokens=2, pos_embed_variant="registers")
+    _randomise(dino)
+    x = torch.randn(2, 3, 28, 42)
+    with torch.no_grad():
+        tokens = dino.prepare_tokens(x)
+        assert tokens.shape == (2, 1 + 2 + 6, 16)
+        after_block1 = dino.blocks[1](dino.blocks[0](tokens))
+        torch.testing.assert_close(dino(x, block=1, norm=False), after_block1[:, 3:])
+        torch.testing.assert_close(dino(x, block=-2), dino.norm(after_block1)[:, 3:])
+        torch.testing.assert_close(dino(x), dino(x, block=2, norm=True))
+    with pytest.raises(ValueError, match="out of range"):
+        dino(x, block=3)
+
+
+def test_imagenet_normalise_and_grid_positions() -> None:
+    x = torch.rand(2, 3, 4, 5)
+    mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+    std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+    torch.testing.assert_close(imagenet_normalise(x), (x - mean) / std)
+    assert grid_positions(2, 3, torch.device("cpu"), start=1).tolist() == [
+        [1, 1], [1, 2], [1, 3], [2, 1], [2, 2], [2, 3]
+    ]
 
 
 def test_residual_conv_unit_flavours() -> None:

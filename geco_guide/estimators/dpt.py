@@ -27,6 +27,7 @@ class ResidualConvUnit(nn.Module):
         self.conv2 = nn.Conv2d(features, features, kernel_size=3, padding=1)
 
     def forward(self, x: Tensor) -> Tensor:
+        """``[N, F, H, W] -> [N, F, H, W]``."""
         rectified = F.relu(x)
         out = self.conv2(F.relu(self.conv1(rectified)))
         return out + (rectified if self.rectify_skip else x)
@@ -60,6 +61,21 @@ class FusionBlock(nn.Module):
         else:
             y = F.interpolate(y, size=tuple(size), mode="bilinear", align_corners=True)
         return self.out_conv(y)
+
+
+def resample_layer(channels: int, level: int) -> nn.Module:
+    """Resampling of DPT pyramid level ``level`` (0 = finest), ``[N, ch, h', w']`` in:
+    x4 and x2 transposed convs (kernel = stride), identity, and a stride-2 3x3 conv (padding 1,
+    ``ceil(h'/2) x ceil(w'/2)``) for levels 0-3 (spec 3.4, 4.4)."""
+    if level == 0:
+        return nn.ConvTranspose2d(channels, channels, kernel_size=4, stride=4)
+    if level == 1:
+        return nn.ConvTranspose2d(channels, channels, kernel_size=2, stride=2)
+    if level == 2:
+        return nn.Identity()
+    if level == 3:
+        return nn.Conv2d(channels, channels, kernel_size=3, stride=2, padding=1)
+    raise ValueError(f"DPT pyramid level must be 0..3, got {level}")
 
 
 def add_position_embedding(x: Tensor, image_hw: tuple[int, int], ratio: float = 0.1) -> Tensor:

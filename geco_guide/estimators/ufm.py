@@ -1,13 +1,16 @@
 """UFM (UniFlowMatchConfidence): dense flow + covisibility, checkpoint-compatible with UFM-Base.
 
-Our own implementation of ``infinity1096/UFM-Base`` written from ``specs/estimators.md``
+Our own implementation of ``infinity1096/UFM-Base`` written from ``shared/specs/estimators.md``
 (sections 2 and 4): a DINOv2 encoder sees both images, a global-attention transformer lets the
 two views exchange information, and two DPT heads read view 1 only: ``head1`` regresses flow,
 ``uncertainty_head`` a covisibility logit (and optionally a 2-D flow covariance). Module and key
 names follow the released ``model.safetensors`` so the checkpoint loads by key.
 
 Everything runs in float32 by default and keeps gradients, because GeCo differentiates its loss
-through UFM back to the decoded frames.
+through UFM back to the decoded frames. Precision knobs: ``autocast_dtype`` (e.g.
+``torch.bfloat16``) runs the encoder and info-sharing under autocast; ``from_pretrained(dtype=...)``
+stores the model in that dtype. ``gradient_checkpointing`` recomputes the encoder's and the
+info-sharing transformer's block activations in backward.
 """
 
 from __future__ import annotations
@@ -25,14 +28,23 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .base import Correspondences
-from .dpt import FusionBlock
+from .dpt import FusionBlock, resample_layer
 from .loading import (
     CheckpointMismatchError,
     fetch_checkpoint_file,
     load_state_dict_checked,
     load_weights,
 )
-from .vit import Block, DinoV2, RotaryEmbedding2D, resize_pos_embed, run_block, run_blocks
+from .vit import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    Block,
+    DinoV2,
+    RotaryEmbedding2D,
+    grid_positions,
+    init_weights_,
+    run_block,
+)
 
 __all__ = [
     "UFM",
@@ -44,9 +56,6 @@ __all__ = [
     "UFMAdaptorSpec",
     "NORMALISATIONS",
 ]
-
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 
 # Input normalisations a caller may declare for float images: name -> (mean, std).
 NORMALISATIONS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
@@ -60,6 +69,10 @@ ADAPTOR_CHANNELS = {"mask": 1, "covariance2d": 3}
 COVISIBILITY_ADAPTOR = "non_occluded_mask"
 SCALE_STRATEGIES = ("none", "scale_width", "scale_height", "scale_both")
 NUM_HEAD_FEATURES = 4  # encoder, two info-sharing intermediates, info-sharing final
+# Random init (UFM.reset_parameters): output-layer gains and the covisibility bias, sigmoid ~0.8.
+FLOW_INIT_GAIN = 0.5
+UNCERTAINTY_INIT_GAIN = 0.3
+COVISIBILITY_INIT_LOGIT = 1.4
 
 
 # ---------------------------------------------------------------------------------------------
@@ -199,8 +212,8 @@ class UFMConfig:
 
     @classmethod
     def tiny(cls) -> UFMConfig:
-        """A ~0.6 M-parameter model for tests and the CPU demo (random weights give small flows
-        and unsaturated covisibility)."""
+        """A ~0.6 M-parameter model for tests and the CPU demo (with :meth:`UFM.random` weights:
+        flow of a pixel or so, covisibility ~0.8)."""
         return cls.from_dict(
             {
                 "inference_resolution": [[98, 56], [70, 70], [56, 98]],
@@ -619,34 +632,9 @@ class UFMEncoder(nn.Module):
 
     def forward(self, images: Tensor) -> Tensor:
         """images ``[N, 3, h, w]`` (normalised) -> ``[N, C, h/p, w/p]`` (row-major tokens)."""
-        dino = self.model
-        if self.feature_block == len(dino.blocks) - 1 and self.norm_output:
-            tokens = dino(images)
-        else:
-            tokens = _dino_block_output(dino, images, self.feature_block, self.norm_output)
-        grid_h, grid_w = images.shape[-2] // dino.patch_size, images.shape[-1] // dino.patch_size
-        return tokens.transpose(1, 2).reshape(tokens.shape[0], -1, grid_h, grid_w)
-
-
-def _dino_block_output(dino: DinoV2, images: Tensor, block: int, norm: bool) -> Tensor:
-    """Patch tokens ``[N, h*w, C]`` after DINOv2 block ``block`` (optionally final-normed).
-
-    Only needed for configs whose ``encoder_kwargs.indices`` stop before the last block, which
-    :meth:`DinoV2.forward` does not offer; the later blocks are skipped, not run.
-    """
-    n = images.shape[0]
-    x = dino.patch_embed(images)
-    x = torch.cat([dino.cls_token.to(x.dtype).expand(n, -1, -1), x], dim=1)
-    grid_hw = (images.shape[-2] // dino.patch_size, images.shape[-1] // dino.patch_size)
-    x = x + resize_pos_embed(dino.pos_embed, grid_hw, dino.pos_embed_variant, dino.interpolate_offset).to(
-        x.dtype
-    )
-    if dino.register_tokens is not None:
-        x = torch.cat([x[:, :1], dino.register_tokens.to(x.dtype).expand(n, -1, -1), x[:, 1:]], dim=1)
-    x = run_blocks(dino.blocks[: block + 1], x, None, dino.gradient_checkpointing)
-    if norm:
-        x = dino.norm(x)
-    return x[:, 1 + dino.num_register_tokens :]
+        tokens = self.model(images, block=self.feature_block, norm=self.norm_output)
+        grid_hw = (images.shape[-2] // self.model.patch_size, images.shape[-1] // self.model.patch_size)
+        return tokens.transpose(1, 2).reshape(tokens.shape[0], -1, *grid_hw)
 
 
 def sinusoid_view_table(num_views: int, dim: int) -> Tensor:
@@ -708,11 +696,7 @@ class InfoSharing(nn.Module):
 
 def _view_positions(grid_h: int, grid_w: int, device: torch.device) -> Tensor:
     """``[1, 2*h'*w', 2]`` 0-based ``(row, col)`` of every patch token, the same for both views."""
-    rows, cols = torch.meshgrid(
-        torch.arange(grid_h, device=device), torch.arange(grid_w, device=device), indexing="ij"
-    )
-    per_view = torch.stack([rows.flatten(), cols.flatten()], dim=-1)  # [P, 2]
-    return per_view.repeat(2, 1)[None]
+    return grid_positions(grid_h, grid_w, device).repeat(2, 1)[None]
 
 
 def _split_views(tokens: Tensor, grid_h: int, grid_w: int) -> tuple[Tensor, Tensor]:
@@ -724,16 +708,10 @@ def _split_views(tokens: Tensor, grid_h: int, grid_w: int) -> tuple[Tensor, Tens
 def _level_input_process(in_dim: int, layer_dim: int, feature_dim: int, level: int) -> nn.Sequential:
     """Pyramid level ``level`` (0 = finest): ``[[1x1 conv, resample], layer_rn 3x3 conv]`` with
     resampling x4 (transposed conv), x2 (transposed conv), none, /2 (strided conv)."""
-    project: list[nn.Module] = [nn.Conv2d(in_dim, layer_dim, kernel_size=1)]
-    if level == 0:
-        project.append(nn.ConvTranspose2d(layer_dim, layer_dim, kernel_size=4, stride=4))
-    elif level == 1:
-        project.append(nn.ConvTranspose2d(layer_dim, layer_dim, kernel_size=2, stride=2))
-    elif level == 3:
-        project.append(nn.Conv2d(layer_dim, layer_dim, kernel_size=3, stride=2, padding=1))
+    project = nn.Sequential(nn.Conv2d(in_dim, layer_dim, kernel_size=1), resample_layer(layer_dim, level))
     # The no-bias 3x3 conv is the checkpoint's layer{k}_rn, stored as input_process.{k-1}.1.
     layer_rn = nn.Conv2d(layer_dim, feature_dim, kernel_size=3, padding=1, bias=False)
-    return nn.Sequential(nn.Sequential(*project), layer_rn)
+    return nn.Sequential(project, layer_rn)
 
 
 class _Scratch(nn.Module):
@@ -760,7 +738,8 @@ class DPTFeaturePyramid(nn.Module):
         self.scratch = _Scratch(config.feature_dim)
 
     def forward(self, features: Sequence[Tensor]) -> Tensor:
-        """features: ``[enc, inter0, inter1, final]`` of one view, each ``[B, C, h', w']``."""
+        """features ``[enc, inter0, inter1, final]`` of one view, each ``[B, C_k, h', w']`` ->
+        ``[B, F, 8h', 8w']``."""
         r1, r2, r3, r4 = (
             proc(features[hook]) for proc, hook in zip(self.input_process, self.hooks, strict=True)
         )
@@ -786,6 +765,7 @@ class DPTRegressionProcessor(nn.Module):
         )
 
     def forward(self, x: Tensor, size: tuple[int, int]) -> Tensor:
+        """x ``[B, F, H', W']`` -> ``[B, out, *size]``."""
         x = F.interpolate(self.conv1(x), size=size, mode="bilinear", align_corners=True)
         return self.conv2(x)
 
@@ -994,19 +974,27 @@ class UFM(nn.Module):
 
     Parameters are frozen and the module is in eval mode; gradients still flow to the inputs.
     ``autocast_dtype`` (e.g. ``torch.bfloat16``) runs the encoder and info-sharing under autocast
-    while the heads always run in their parameter dtype (fp32); ``activation_checkpointing``
+    while the heads always run in their parameter dtype (fp32); ``gradient_checkpointing``
     recomputes transformer blocks in backward to save memory when differentiating.
+
+    ``UFM(config)`` draws a random initialisation from the global torch RNG (use :meth:`random`
+    for a seeded one) that gives sane outputs: flow of a pixel or so, covisibility ~0.8 (above
+    GeCo's 0.5 threshold, not saturated), both depending on the images.
     """
 
     def __init__(
         self,
-        config: UFMConfig | Mapping[str, Any],
+        config: UFMConfig | Mapping[str, Any] | None = None,
         *,
+        gradient_checkpointing: bool = False,
         autocast_dtype: torch.dtype | None = None,
-        activation_checkpointing: bool = False,
     ) -> None:
+        """``config``: a :class:`UFMConfig` or section-5 dict; None = UFM-Base."""
         super().__init__()
-        config = config if isinstance(config, UFMConfig) else UFMConfig.from_dict(config)
+        if config is None:
+            config = UFMConfig()
+        elif not isinstance(config, UFMConfig):
+            config = UFMConfig.from_dict(config)
         config.validate()
         self.config = config
         self.encoder = UFMEncoder(config.encoder, config.patch_size)
@@ -1015,18 +1003,66 @@ class UFM(nn.Module):
         self.head1 = UFMHead(config.flow_head, dims, 2, {"flow": FlowAdaptor(config.flow_adaptor)})
         self.uncertainty_head = UFMHead(config.uncertainty_head, dims, config.uncertainty_channels)
         self.autocast_dtype = autocast_dtype
-        self.activation_checkpointing = activation_checkpointing
+        self.gradient_checkpointing = gradient_checkpointing
+        self.reset_parameters()
         self.requires_grad_(False)
         self.eval()
 
     @property
-    def activation_checkpointing(self) -> bool:
+    def gradient_checkpointing(self) -> bool:
+        """Recompute the encoder and info-sharing blocks' activations in backward."""
         return self.info_sharing.gradient_checkpointing
 
-    @activation_checkpointing.setter
-    def activation_checkpointing(self, enabled: bool) -> None:
-        self.encoder.model.gradient_checkpointing = enabled
-        self.info_sharing.gradient_checkpointing = enabled
+    @gradient_checkpointing.setter
+    def gradient_checkpointing(self, value: bool) -> None:
+        self.encoder.model.gradient_checkpointing = bool(value)
+        self.info_sharing.gradient_checkpointing = bool(value)
+
+    # -- construction ------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def reset_parameters(self, generator: torch.Generator | None = None) -> None:
+        """Random weights that keep a random model's outputs in a sane range (see class doc).
+
+        Also resets the buffers to their initial values (``view_pos_table``, the flow
+        adaptor's ``flow_mean`` / ``flow_std`` from the config), so a model built on the meta
+        device and materialised with ``to_empty`` is complete.
+        """
+        init_weights_(self, generator)
+        info, adaptor = self.info_sharing, self.head1[1].adaptors["flow"]
+        # Variance-preserving info-sharing linears (not std 0.02): with near-uniform attention
+        # the flow of a random model would hardly depend on the target image.
+        for module in info.modules():
+            if isinstance(module, nn.Linear):
+                nn.init.normal_(module.weight, std=module.in_features**-0.5, generator=generator)
+        info.view_pos_table.copy_(sinusoid_view_table(*info.view_pos_table.shape))
+        flow_config = self.config.flow_adaptor
+        adaptor.flow_mean.copy_(torch.tensor(flow_config.flow_mean).view_as(adaptor.flow_mean))
+        adaptor.flow_std.copy_(torch.tensor(flow_config.flow_std).view_as(adaptor.flow_std))
+        # Small last layers: flow of a pixel or so whatever the adaptor's scale, and a
+        # covisibility logit near logit(0.8) with some spread (other channels start near 0).
+        flow_out = self.head1[0][1].conv2[2]
+        std = FLOW_INIT_GAIN / (max(flow_config.flow_std) * flow_out.weight[0].numel() ** 0.5)
+        nn.init.normal_(flow_out.weight, std=std, generator=generator)
+        uncertainty_out = self.uncertainty_head[0][1].conv2[2]
+        std = UNCERTAINTY_INIT_GAIN * uncertainty_out.weight[0].numel() ** -0.5
+        nn.init.normal_(uncertainty_out.weight, std=std, generator=generator)
+        start = 0
+        for spec in self.config.uncertainty_adaptors:
+            if spec.type == "mask":
+                uncertainty_out.bias[start] = COVISIBILITY_INIT_LOGIT
+            start += ADAPTOR_CHANNELS[spec.type]
+
+    @classmethod
+    def random(
+        cls, config: UFMConfig | Mapping[str, Any] | None = None, seed: int = 0, **kwargs: Any
+    ) -> UFM:
+        """A randomly initialised model whose weights depend only on ``seed`` (global RNG untouched)."""
+        with torch.device("meta"):
+            model = cls(config, **kwargs)
+        model.to_empty(device="cpu")
+        model.reset_parameters(torch.Generator().manual_seed(seed))
+        return model
 
     # -- loading -----------------------------------------------------------------------------
 
@@ -1076,9 +1112,14 @@ class UFM(nn.Module):
         load_state_dict_checked(self, state_dict, model_name="UFM", aliases=aliases)
 
     @classmethod
-    def from_state_dict(cls, config: UFMConfig | Mapping[str, Any], state_dict: Mapping[str, Tensor]) -> UFM:
-        """Build from a config (section-5 dict or :class:`UFMConfig`) and load ``state_dict``."""
-        model = cls(config)
+    def from_state_dict(
+        cls, config: UFMConfig | Mapping[str, Any] | None, state_dict: Mapping[str, Tensor], **kwargs: Any
+    ) -> UFM:
+        """Build from a config (section-5 dict or :class:`UFMConfig`; None = UFM-Base) and load
+        ``state_dict`` with :meth:`load_checkpoint`; ``kwargs`` go to the constructor."""
+        with torch.device("meta"):
+            model = cls(config, **kwargs)
+        model.to_empty(device="cpu")  # every parameter and buffer is overwritten by the strict load
         model.load_checkpoint(state_dict)
         return model
 
@@ -1091,11 +1132,14 @@ class UFM(nn.Module):
         device: str | torch.device = "cpu",
         revision: str | None = None,
         cache_dir: str | os.PathLike | None = None,
+        **kwargs: Any,
     ) -> UFM:
         """Load ``config.json`` + ``model.safetensors`` from a hub repo or a local folder.
 
         ``config.json`` may be the upstream schema (translated by
-        :meth:`UFMConfig.from_config_json`) or our section-5 schema.
+        :meth:`UFMConfig.from_config_json`) or our section-5 schema. ``dtype`` applies to the
+        whole model; ``kwargs`` (``gradient_checkpointing``, ``autocast_dtype``) go to the
+        constructor.
 
         Raises:
             WeightsNotFoundError: the files are neither in the folder nor reachable / cached.
@@ -1106,8 +1150,9 @@ class UFM(nn.Module):
             repo_id_or_local_dir, ["model.safetensors", "pytorch_model.bin"], **fetch
         )
         config = config_from_json(json.loads(config_path.read_text()))
-        with torch.device(device):
-            model = cls(config)
+        with torch.device("meta"):
+            model = cls(config, **kwargs)
+        model.to_empty(device=device)  # every parameter and buffer is overwritten by the strict load
         model.load_checkpoint(load_weights(weights_path))
         return model.to(dtype=dtype)
 

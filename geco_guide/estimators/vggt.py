@@ -29,13 +29,20 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from geco_guide.estimators.base import SceneGeometry, check_frames
-from geco_guide.estimators.dpt import FusionBlock, add_position_embedding
+from geco_guide.estimators.dpt import FusionBlock, add_position_embedding, resample_layer
 from geco_guide.estimators.loading import fetch_checkpoint_file, load_state_dict_checked, load_weights
-from geco_guide.estimators.vit import Block, DinoV2, Mlp, RotaryEmbedding2D, run_block
+from geco_guide.estimators.vit import (
+    Block,
+    DinoV2,
+    Mlp,
+    RotaryEmbedding2D,
+    grid_positions,
+    imagenet_normalise,
+    init_weights_,
+    run_block,
+)
 from geco_guide.loss.geometry import crop_intrinsics, resize_intrinsics
 
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 # Checkpoint parts we never build (spec 3.6 / 6); the DINO mask token is unused at inference.
 IGNORED_CHECKPOINT_PREFIXES = ("point_head.", "track_head.", "aggregator.patch_embed.mask_token")
 CHECKPOINT_FILES = ("model.safetensors", "model.pt")
@@ -234,10 +241,9 @@ class Aggregator(nn.Module):
         self.rope = RotaryEmbedding2D(c // agg.num_heads, base=agg.rope_freq)
 
     def forward(self, images: Tensor) -> dict[int, Tensor]:
+        """images ``[B, S, 3, H, W]`` in ``[0, 1]`` -> ``{i: [B, S, T, 2C]}`` (see class doc)."""
         b, s, _, h_img, w_img = images.shape
-        mean = images.new_tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
-        std = images.new_tensor(IMAGENET_STD).view(1, 3, 1, 1)
-        patches = self.patch_embed((images.reshape(b * s, 3, h_img, w_img) - mean) / std)  # [BS, P, C]
+        patches = self.patch_embed(imagenet_normalise(images.reshape(b * s, 3, h_img, w_img)))  # [BS, P, C]
         special = torch.cat(
             [_per_frame_tokens(self.camera_token, b, s), _per_frame_tokens(self.register_token, b, s)], dim=2
         )  # [B, S, 1+R, C]
@@ -266,9 +272,7 @@ def _per_frame_tokens(token: Tensor, b: int, s: int) -> Tensor:
 
 def _token_positions(gh: int, gw: int, num_special: int, device: torch.device) -> Tensor:
     """RoPE positions ``[1, num_special + gh*gw, 2]`` (y, x): 0 for special tokens, 1-based patches."""
-    ys, xs = torch.meshgrid(torch.arange(1, gh + 1, device=device), torch.arange(1, gw + 1, device=device),
-                            indexing="ij")
-    patch = torch.stack([ys.flatten(), xs.flatten()], dim=-1)
+    patch = grid_positions(gh, gw, device, start=1)
     special = torch.zeros(num_special, 2, dtype=patch.dtype, device=device)
     return torch.cat([special, patch], dim=0).unsqueeze(0)
 
@@ -296,6 +300,7 @@ class CameraHead(nn.Module):
         self.pose_branch = Mlp(dim, dim // 2, out_dim=POSE_ENCODING_DIM)
 
     def forward(self, tokens: Tensor) -> list[Tensor]:
+        """tokens ``[B, S, 2C]`` -> ``num_iterations`` pose encodings ``[B, S, 9]``."""
         c = self.token_norm(tokens)
         normed_c = self.adaln_norm(c)
         raw: Tensor | None = None
@@ -336,12 +341,7 @@ class DepthHead(nn.Module):
         self.layer_idx = tuple(cfg.intermediate_layer_idx)
         self.norm = nn.LayerNorm(dim_in, eps=1e-5)
         self.projects = nn.ModuleList(nn.Conv2d(dim_in, ch, kernel_size=1) for ch in oc)
-        self.resize_layers = nn.ModuleList([
-            nn.ConvTranspose2d(oc[0], oc[0], kernel_size=4, stride=4),
-            nn.ConvTranspose2d(oc[1], oc[1], kernel_size=2, stride=2),
-            nn.Identity(),
-            nn.Conv2d(oc[3], oc[3], kernel_size=3, stride=2, padding=1),
-        ])
+        self.resize_layers = nn.ModuleList(resample_layer(ch, level) for level, ch in enumerate(oc))
         self.scratch = nn.Module()
         for k, ch in enumerate(oc, start=1):
             setattr(self.scratch, f"layer{k}_rn", nn.Conv2d(ch, feats, kernel_size=3, padding=1, bias=False))
@@ -353,6 +353,7 @@ class DepthHead(nn.Module):
 
     def forward(self, tokens: Mapping[int, Tensor], patch_start_idx: int,
                 image_hw: tuple[int, int]) -> tuple[Tensor, Tensor]:
+        """tokens ``{layer: [B, S, T, 2C]}`` -> depth ``[B, S, H, W, 1]``, confidence ``[B, S, H, W]``."""
         b, s = tokens[self.layer_idx[0]].shape[:2]
         gh, gw = image_hw[0] // self.patch_size, image_hw[1] // self.patch_size
         sc = self.scratch
@@ -384,8 +385,9 @@ class VGGT(nn.Module):
 
     def __init__(self, config: VGGTConfig | None = None, *, gradient_checkpointing: bool = False,
                  autocast_dtype: torch.dtype | None = None) -> None:
+        """``config`` None = VGGT-1B."""
         super().__init__()
-        self.config = config = config or VGGTConfig()
+        self.config = config = VGGTConfig() if config is None else config
         depth = config.aggregator.depth
         layer_idx = tuple(config.depth_head.intermediate_layer_idx)
         if not all(0 <= i < depth for i in layer_idx):
@@ -401,6 +403,7 @@ class VGGT(nn.Module):
 
     @property
     def gradient_checkpointing(self) -> bool:
+        """Recompute the DINO and aggregator blocks' activations in backward."""
         return self.aggregator.gradient_checkpointing
 
     @gradient_checkpointing.setter
@@ -413,25 +416,7 @@ class VGGT(nn.Module):
     @torch.no_grad()
     def reset_parameters(self, generator: torch.Generator | None = None) -> None:
         """Random weights that keep a random model's outputs in a sane range (see class doc)."""
-        for module in self.modules():
-            if isinstance(module, nn.Linear):
-                nn.init.trunc_normal_(module.weight, std=0.02, generator=generator)
-                if module.bias is not None:
-                    nn.init.zeros_(module.bias)
-            elif isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
-                # Variance-preserving; a stride == kernel transposed conv sees in_channels inputs.
-                fan_in = module.weight[0].numel() if isinstance(module, nn.Conv2d) else module.weight.shape[0]
-                nn.init.normal_(module.weight, std=fan_in**-0.5, generator=generator)
-                if module.bias is not None:
-                    nn.init.zeros_(module.bias)
-            elif isinstance(module, nn.LayerNorm) and module.elementwise_affine:
-                nn.init.ones_(module.weight)
-                nn.init.zeros_(module.bias)
-        for name, param in self.named_parameters():
-            if name.endswith(".gamma"):
-                param.fill_(0.1)
-            elif name.endswith(("_token", "_tokens", "pos_embed")) and "empty_pose" not in name:
-                nn.init.normal_(param, std=0.02, generator=generator)
+        init_weights_(self, generator, exclude={"camera_head.empty_pose_tokens"})
         nn.init.zeros_(self.camera_head.empty_pose_tokens)
         # Small last layers: the accumulated pose starts at identity rotation, zero translation
         # and FoV ~1 rad; depth / confidence logits start near 0.

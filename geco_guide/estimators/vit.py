@@ -2,7 +2,9 @@
 
 Everything here follows ``shared/specs/estimators.md`` section 2: pre-norm blocks with optional
 LayerScale and q/k-norm, the fused ``qkv`` layout ``[3][heads][head_dim]``, 2D rotary position
-embedding, and a DINOv2 ViT whose parameter names match the public checkpoints.
+embedding, and a DINOv2 ViT whose parameter names match the public checkpoints. Also the
+ImageNet normalisation both encoders expect (spec 1.4) and the random initialisation both models'
+``reset_parameters`` start from.
 
 Token tensors are ``[N, T, C]`` (batch, tokens, channels) throughout.
 """
@@ -10,7 +12,8 @@ Token tensors are ``[N, T, C]`` (batch, tokens, channels) throughout.
 from __future__ import annotations
 
 import math
-from typing import Callable, Literal
+from collections.abc import Callable, Collection
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -19,6 +22,17 @@ from torch.utils.checkpoint import checkpoint
 
 RopeFn = Callable[[Tensor], Tensor]
 PosEmbedVariant = Literal["classic", "registers"]
+
+# ImageNet / "dinov2" / "resnet" statistics of both encoders (spec 1.4), per RGB channel.
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def imagenet_normalise(images: Tensor) -> Tensor:
+    """``(images - mean) / std`` for images ``[N, 3, H, W]`` in ``[0, 1]``; same shape and dtype."""
+    mean = images.new_tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+    std = images.new_tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    return (images - mean) / std
 
 
 class Mlp(nn.Module):
@@ -114,14 +128,15 @@ class Block(nn.Module):
 
 
 def run_blocks(blocks: nn.ModuleList, x: Tensor, rope: RopeFn | None, checkpointed: bool) -> Tensor:
-    """Apply ``blocks`` in order; with ``checkpointed`` and grad enabled, recompute in backward."""
+    """Apply ``blocks`` to ``x [N, T, C]`` in order; with ``checkpointed`` and grad enabled,
+    recompute their activations in backward."""
     for block in blocks:
         x = run_block(block, x, rope, checkpointed)
     return x
 
 
 def run_block(block: nn.Module, x: Tensor, rope: RopeFn | None, checkpointed: bool) -> Tensor:
-    """One block call, optionally under activation checkpointing (only useful with grad)."""
+    """One block call ``[N, T, C] -> [N, T, C]``, optionally checkpointed (only useful with grad)."""
     if checkpointed and torch.is_grad_enabled():
         return checkpoint(block, x, rope, use_reentrant=False)
     return block(x, rope)
@@ -189,6 +204,17 @@ def _rotate(t: Tensor, cos: Tensor, sin: Tensor) -> Tensor:
     return t * cos.to(t.dtype) + rotated * sin.to(t.dtype)
 
 
+def grid_positions(grid_h: int, grid_w: int, device: torch.device, start: int = 0) -> Tensor:
+    """Integer ``(y, x)`` of a row-major ``grid_h x grid_w`` patch grid: ``[grid_h*grid_w, 2]``,
+    counting from ``start`` (RoPE positions; VGGT is 1-based, UFM 0-based)."""
+    ys, xs = torch.meshgrid(
+        torch.arange(start, start + grid_h, device=device),
+        torch.arange(start, start + grid_w, device=device),
+        indexing="ij",
+    )
+    return torch.stack([ys.flatten(), xs.flatten()], dim=-1)
+
+
 def resize_pos_embed(
     pos_embed: Tensor,
     grid_hw: tuple[int, int],
@@ -244,7 +270,8 @@ class DinoV2(nn.Module):
     """DINOv2 ViT with the public checkpoints' parameter names (spec 2.1).
 
     ``forward(images [N, 3, H, W], already normalised, H and W multiples of patch_size)``
-    returns the final-normed patch tokens ``[N, h*w, C]`` (cls and registers dropped).
+    returns the final-normed patch tokens ``[N, h*w, C]`` (cls and registers dropped); ``block``
+    and ``norm`` select an earlier block's output and whether the final norm is applied.
     Set ``gradient_checkpointing = True`` to recompute block activations in backward.
     """
 
@@ -284,8 +311,9 @@ class DinoV2(nn.Module):
         )
         self.norm = nn.LayerNorm(embed_dim, eps=1e-6)
 
-    def forward(self, images: Tensor) -> Tensor:
-        """images ``[N, 3, H, W]`` -> patch tokens ``[N, (H/p)*(W/p), C]``."""
+    def prepare_tokens(self, images: Tensor) -> Tensor:
+        """images ``[N, 3, H, W]`` -> block input ``[N, 1 + R + h*w, C]`` = ``[cls, registers,
+        patches]`` with the resized position embedding added to cls and patches (spec 2.1 1-4)."""
         n, _, h_img, w_img = images.shape
         if h_img % self.patch_size or w_img % self.patch_size:
             raise ValueError(f"image size {(h_img, w_img)} is not a multiple of {self.patch_size}")
@@ -299,5 +327,48 @@ class DinoV2(nn.Module):
             # Registers carry no position: inserted after the cls token, after the add.
             reg = self.register_tokens.to(x.dtype).expand(n, -1, -1)
             x = torch.cat([x[:, :1], reg, x[:, 1:]], dim=1)
-        x = run_blocks(self.blocks, x, None, self.gradient_checkpointing)
-        return self.norm(x)[:, 1 + self.num_register_tokens :]
+        return x
+
+    def forward(self, images: Tensor, block: int = -1, norm: bool = True) -> Tensor:
+        """images ``[N, 3, H, W]`` -> patch tokens ``[N, (H/p)*(W/p), C]`` after block ``block``
+        (negative counts from the end; later blocks are not run), final-normed if ``norm``."""
+        depth = len(self.blocks)
+        if not -depth <= block < depth:
+            raise ValueError(f"block {block} is out of range for a depth-{depth} DINOv2")
+        x = self.prepare_tokens(images)
+        x = run_blocks(self.blocks[: block % depth + 1], x, None, self.gradient_checkpointing)
+        if norm:
+            x = self.norm(x)
+        return x[:, 1 + self.num_register_tokens :]
+
+
+@torch.no_grad()
+def init_weights_(
+    module: nn.Module, generator: torch.Generator | None = None, *, exclude: Collection[str] = ()
+) -> None:
+    """Random init of ``module`` that keeps a deep random stack's activations in range.
+
+    Linear: truncated normal (std 0.02), zero bias. Conv / transposed conv: variance-preserving
+    normal (std ``fan_in^-0.5``; a stride == kernel transposed conv sees ``in_channels`` inputs),
+    zero bias. LayerNorm: identity. LayerScale: 0.1. Then, in parameter order, every
+    ``*_token``, ``*_tokens`` and ``*pos_embed`` parameter not named in ``exclude``: normal,
+    std 0.02. Buffers are not touched. Draws come from ``generator`` (global RNG if None).
+    """
+    for m in module.modules():
+        if isinstance(m, nn.Linear):
+            nn.init.trunc_normal_(m.weight, std=0.02, generator=generator)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+            fan_in = m.weight[0].numel() if isinstance(m, nn.Conv2d) else m.weight.shape[0]
+            nn.init.normal_(m.weight, std=fan_in**-0.5, generator=generator)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, nn.LayerNorm) and m.elementwise_affine:
+            nn.init.ones_(m.weight)
+            nn.init.zeros_(m.bias)
+        elif isinstance(m, LayerScale):
+            m.gamma.fill_(0.1)
+    for name, param in module.named_parameters():
+        if name.endswith(("_token", "_tokens", "pos_embed")) and name not in exclude:
+            nn.init.normal_(param, std=0.02, generator=generator)
