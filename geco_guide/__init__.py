@@ -23,6 +23,8 @@ _EXPORTS = {
     "VGGTConfig": "geco_guide.estimators.vggt",
     "UFM": "geco_guide.estimators.ufm",
     "UFMConfig": "geco_guide.estimators.ufm",
+    "attach_geco_guidance": "geco_guide.sampler.hooks",
+    "evaluate_video": "geco_guide.evaluate",
 }
 
 __all__ = sorted(_EXPORTS)
@@ -31,6 +33,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .estimators.base import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry
     from .estimators.ufm import UFM, UFMConfig
     from .estimators.vggt import VGGT, VGGTConfig
+    from .evaluate import evaluate_video
     from .loss.geco import GeCoLoss, GeCoLossConfig, GeCoResult, geco_from_geometry
     from .loss.motion_stats import motion_statistics
 

@@ -2,8 +2,9 @@
 
 Sections: ``model`` (the CogVideoX checkpoint), ``estimators`` (geometry + flow backbones),
 ``sampling`` (steps, CFG, size), ``guidance`` (:class:`GuidanceConfig`: anchors, schedule,
-step size, time travel, and ``guidance.loss``, which *is* :class:`GeCoLossConfig`), ``output``
-and ``seed``. Defaults are the GeCo paper's CogVideoX-5b setting; the presets are
+step size, time travel, and ``guidance.loss``, which *is* :class:`GeCoLossConfig`), ``output``,
+``evaluation`` (:class:`EvaluationConfig`: how ``python -m geco_guide.evaluate`` samples a video,
+with the metric's own ``evaluation.loss``) and ``seed``. Defaults are the GeCo paper's CogVideoX-5b setting; the presets are
 ``geco_guide/configs/<name>.yaml`` (shipped inside the package, so ``--preset`` works after a plain
 ``pip install``).
 
@@ -23,10 +24,10 @@ from typing import Any, Optional
 from omegaconf import DictConfig, OmegaConf, StringNode
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
+from .estimators import TINY_RANDOM
 from .loss.geco import GeCoLossConfig
 from .sampler.guidance import GuidanceConfig
 
-TINY_RANDOM = "tiny-random"
 DTYPES = ("float32", "float16", "bfloat16")
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
@@ -78,6 +79,48 @@ class OutputConfig:
     score_anchors: bool = True  # GeCo scores of the final video's anchor frames in the sidecar
 
 
+def _evaluation_loss_default() -> GeCoLossConfig:
+    # The metric runs the flow estimator at full resolution (guidance halves it to save time).
+    return GeCoLossConfig(pairs="center", flow_downscale=1.0)
+
+
+@dataclass
+class EvaluationConfig:
+    """How a video is scored (GeCo paper protocol: windows of about 3 s at <= 8 fps).
+
+    Attributes:
+        window_seconds: target duration of an evaluation window; the sampled frames are split
+            into ``round(duration / window_seconds)`` (at least 1) windows of near-equal length.
+        max_fps: frames are subsampled with an integer stride to at most this rate.
+        default_fps: frame rate of inputs that carry none (frame folders, gifs without timing).
+        flow_batch_size: frame pairs per flow-estimator call (bounds memory; any value gives the
+            same numbers).
+        device: where the estimators run (``auto`` = cuda if available, else cpu).
+        loss: the metric's :class:`GeCoLossConfig`: frame pairs within a window (``center``,
+            the paper's protocol; ``all``; ``adjacent``), covisibility threshold, occlusion tau,
+            confidence percentile, ...; full-resolution flow (``flow_downscale=1.0``).
+    """
+
+    window_seconds: float = 3.0
+    max_fps: float = 8.0
+    default_fps: float = 8.0
+    flow_batch_size: int = 16
+    device: str = "auto"
+    loss: GeCoLossConfig = field(default_factory=_evaluation_loss_default)
+
+    def __post_init__(self) -> None:
+        if not self.window_seconds > 0:
+            raise ValueError(f"window_seconds must be > 0, got {self.window_seconds}")
+        if not self.max_fps > 0:
+            raise ValueError(f"max_fps must be > 0, got {self.max_fps}")
+        if not self.default_fps > 0:
+            raise ValueError(f"default_fps must be > 0, got {self.default_fps}")
+        if self.flow_batch_size < 1:
+            raise ValueError(f"flow_batch_size must be >= 1, got {self.flow_batch_size}")
+        if not (self.device in ("auto", "cpu", "mps") or self.device.startswith("cuda")):
+            raise ValueError(f"device must be auto, cpu, mps or cuda[:N], got {self.device!r}")
+
+
 @dataclass
 class GeCoConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -85,6 +128,7 @@ class GeCoConfig:
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     seed: int = 0
 
 
@@ -174,13 +218,23 @@ def to_config(cfg: DictConfig | dict | GeCoConfig) -> GeCoConfig:
         obj = OmegaConf.to_object(cfg)
     except OmegaConfBaseException as err:
         raise _key_error(err, "config") from None
-    except ValueError as err:  # dataclass __post_init__ checks (guidance.loss)
-        name = str(err).split(" ", 1)[0]
-        known = {f.name for f in fields(GeCoLossConfig)}
-        key = f"guidance.loss.{name}" if name in known else "guidance.loss"
-        raise ValueError(f"invalid value for config key {key!r}: {err}") from None
+    except ValueError as err:  # dataclass __post_init__ checks (guidance.loss, evaluation)
+        raise ValueError(f"invalid value for config key {_invalid_key(cfg, err)!r}: {err}") from None
     validate_config(obj)
     return obj
+
+
+def _invalid_key(cfg: DictConfig, err: ValueError) -> str:
+    """The key whose ``__post_init__`` check raised ``err``: the section is found by building the
+    checked sections one by one (the same field name, e.g. ``pairs``, lives in several), the
+    field by the message's first word."""
+    name = str(err).split(" ", 1)[0]
+    for section, schema in (("guidance.loss", GeCoLossConfig), ("evaluation.loss", GeCoLossConfig), ("evaluation", EvaluationConfig)):
+        try:
+            OmegaConf.to_object(OmegaConf.select(cfg, section))
+        except ValueError:
+            return f"{section}.{name}" if name in {f.name for f in fields(schema)} else section
+    return "?"
 
 
 def _require(cond: bool, key: str, message: str) -> None:

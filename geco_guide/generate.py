@@ -28,6 +28,7 @@ from typing import Any
 import torch
 
 from .config import TINY_RANDOM, GeCoConfig, config_to_dict, load_config
+from .estimators import load_estimators
 from .estimators.loading import WeightsNotFoundError
 
 
@@ -114,35 +115,9 @@ def load_video_pipeline(cfg: GeCoConfig, geometry_estimator=None, flow_estimator
     return pipe
 
 
-def load_estimators(cfg: GeCoConfig) -> tuple[Any, Any]:
-    """``(geometry, flow)`` estimators of ``cfg.estimators``, frozen, in eval mode, on the model's device."""
-    dtype = getattr(torch, cfg.estimators.dtype)
-    device = resolve_device(cfg.model.device)
-    tiny = None
-    if TINY_RANDOM in (cfg.estimators.geometry, cfg.estimators.flow):
-        from .testing import tiny_estimators
-
-        tiny = tiny_estimators(cfg.estimators.init_seed)
-    if cfg.estimators.geometry == TINY_RANDOM:
-        geometry = tiny[0].to(device=device, dtype=dtype)
-    else:
-        from .estimators.vggt import VGGT
-
-        geometry = VGGT.from_pretrained(cfg.estimators.geometry, dtype=dtype, device=device)
-    if cfg.estimators.flow == TINY_RANDOM:
-        flow = tiny[1].to(device=device, dtype=dtype)
-    else:
-        from .estimators.ufm import UFM
-
-        flow = UFM.from_pretrained(cfg.estimators.flow, dtype=dtype, device=device)
-    for model in (geometry, flow):
-        model.eval().requires_grad_(False)
-    return geometry, flow
-
-
 def build_pipeline(cfg: GeCoConfig):
     """Estimators + video pipeline of a config (estimators first: they are the cheaper failure)."""
-    geometry, flow = load_estimators(cfg)
+    geometry, flow = load_estimators(cfg.estimators, resolve_device(cfg.model.device))
     return load_video_pipeline(cfg, geometry, flow)
 
 

@@ -1,4 +1,13 @@
-"""Read and write video files (mp4 through imageio-ffmpeg).
+"""Video I/O, the metric's frame sampling, and interpretable rendering of heat maps.
+
+* Files: :func:`write_video` / :func:`read_video` (mp4 through imageio-ffmpeg) and
+  :func:`read_frames` (mp4 and other ffmpeg formats, gif, folders of png/jpg frames, subsampled
+  while decoding). Unreadable inputs raise a one-line :class:`VideoReadError`.
+* Sampling (pure functions): :func:`resample_indices` (integer stride to at most ``max_fps``) and
+  :func:`evaluation_windows` (near-equal windows of about ``window_seconds``).
+* Rendering: :func:`colorize` (viridis lookup table over the FIXED range :data:`MAP_RANGE`, so maps
+  of different videos are comparable), :func:`colorbar` (its legend with tick labels),
+  :func:`draw_text` (a built-in 3x5 bitmap font) and :func:`side_by_side` (labelled panels).
 
 Frames are float ``[S, 3, H, W]`` (or ``[S, H, W, 3]`` on input) in ``[0, 1]``, RGB. Writes are
 atomic: the file is written under a temporary name in the same folder and moved into place with
@@ -7,12 +16,34 @@ atomic: the file is written under a temporary name in the same folder and moved 
 
 from __future__ import annotations
 
+import math
 import os
+import re
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".gif")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+DEFAULT_FPS = 8.0
+
+
+class VideoReadError(ValueError):
+    """An input cannot be read as a video (missing, corrupt, empty, too short); one line."""
+
+
+def _error_reason(err: Exception) -> str:
+    """First line of an imageio/ffmpeg error (plus its last, which names the cause), one line."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    reason = lines[0] if lines else type(err).__name__
+    if len(lines) > 1:
+        reason += f" ({lines[-1]})"
+    return reason
 
 
 def _to_uint8_hwc(frames) -> np.ndarray:
@@ -81,7 +112,7 @@ def read_video(path: str | os.PathLike) -> tuple[torch.Tensor, float]:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: the file is not a readable video (corrupt, truncated, empty).
+        VideoReadError: the file is not a readable video (corrupt, truncated, empty).
     """
     import imageio.v2 as imageio
 
@@ -96,12 +127,411 @@ def read_video(path: str | os.PathLike) -> tuple[torch.Tensor, float]:
         finally:
             reader.close()
     except Exception as err:  # imageio/ffmpeg raise OSError, RuntimeError, IndexError, ...
-        lines = [line.strip() for line in str(err).splitlines() if line.strip()]
-        reason = lines[0] if lines else type(err).__name__
-        if len(lines) > 1:
-            reason += f" ({lines[-1]})"
-        raise ValueError(f"cannot read video {str(path)!r}: {reason}") from err
+        raise VideoReadError(f"cannot read video {str(path)!r}: {_error_reason(err)}") from err
     if not frames:
-        raise ValueError(f"cannot read video {str(path)!r}: it holds no frames")
+        raise VideoReadError(f"cannot read video {str(path)!r}: it holds no frames")
     video = torch.from_numpy(np.stack(frames)[..., :3]).permute(0, 3, 1, 2).float() / 255.0
     return video.contiguous(), fps
+
+
+# --------------------------------------------------------------------------------------------
+# the metric's frame sampling (pure functions)
+
+
+def resample_indices(num_frames: int, fps: float, max_fps: float | None = None) -> tuple[list[int], float]:
+    """Source frames to evaluate: every ``stride``-th frame, ``stride = ceil(fps / max_fps)``.
+
+    An integer stride keeps the sampled frames evenly spaced in time (nearest-frame resampling to
+    exactly ``max_fps`` would jitter). The stride never exceeds ``num_frames - 1``, so a clip of
+    at least 2 frames always yields at least 2 (its first and last, at worst).
+
+    Args:
+        num_frames: frames in the source clip (>= 1).
+        fps: the source frame rate (> 0).
+        max_fps: upper bound of the sampled rate; ``None`` keeps every frame.
+
+    Returns:
+        ``(indices, sampled_fps)``: increasing 0-based source indices and their frame rate.
+    """
+    if num_frames < 1:
+        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
+    if not fps > 0:
+        raise ValueError(f"fps must be > 0, got {fps}")
+    if max_fps is not None and not max_fps > 0:
+        raise ValueError(f"max_fps must be > 0, got {max_fps}")
+    stride = 1 if max_fps is None else max(1, math.ceil(fps / max_fps - 1e-6))  # 24/8 is exactly 3
+    stride = max(1, min(stride, num_frames - 1))
+    return list(range(0, num_frames, stride)), fps / stride
+
+
+def evaluation_windows(num_samples: int, sampled_fps: float, window_seconds: float) -> list[list[int]]:
+    """Split ``num_samples`` evenly spaced frames into windows of about ``window_seconds``.
+
+    A window of ``window_seconds`` spans ``window_seconds * sampled_fps + 1`` frames; the clip
+    gets the nearest whole number of such windows (at least 1, at most ``num_samples // 2`` so
+    that every window has >= 2 frames), of near-equal length, covering every frame once. Equal
+    lengths keep a short leftover window (few frames, noisy scores) from weighing in on its own.
+
+    Returns:
+        Per window, its consecutive positions in the sampled sequence (e.g. 80 frames at 8 fps,
+        3 s -> 3 windows of 27, 26, 27 frames).
+    """
+    if num_samples < 2:
+        raise ValueError(f"a clip needs at least 2 frames, got {num_samples}")
+    if not sampled_fps > 0 or not window_seconds > 0:
+        raise ValueError(f"sampled_fps and window_seconds must be > 0, got {sampled_fps}, {window_seconds}")
+    per_window = window_seconds * sampled_fps + 1
+    count = max(1, min(round(num_samples / per_window), num_samples // 2))
+    bounds = [round(k * num_samples / count) for k in range(count + 1)]
+    return [list(range(bounds[k], bounds[k + 1])) for k in range(count)]
+
+
+# --------------------------------------------------------------------------------------------
+# reading any video: files through imageio, folders of frames
+
+
+@dataclass
+class VideoFrames:
+    """Frames read from a video, subsampled.
+
+    Attributes:
+        frames: ``[N, 3, H, W]`` float in ``[0, 1]``, the sampled frames.
+        indices: the 0-based source index of each sampled frame.
+        fps: the source frame rate (from the file, the caller, or the default).
+        sampled_fps: the rate of the sampled frames.
+        num_frames: frames in the source.
+    """
+
+    frames: Tensor
+    indices: list[int]
+    fps: float
+    sampled_fps: float
+    num_frames: int
+
+
+def _natural_key(path: Path) -> list:
+    """``frame2.png`` before ``frame10.png``."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name.lower())]
+
+
+def frame_files(folder: str | os.PathLike) -> list[Path]:
+    """The png/jpg frames of a folder in natural order (hidden files skipped)."""
+    files = [
+        p for p in Path(folder).iterdir()
+        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
+    ]
+    return sorted(files, key=_natural_key)
+
+
+def _to_float_chw(array: np.ndarray) -> Tensor:
+    """An image array (gray, RGB, RGBA; uint8/uint16/float) -> ``[3, H, W]`` float in [0, 1]."""
+    array = np.asarray(array)
+    if array.ndim == 2:
+        array = np.repeat(array[..., None], 3, axis=-1)
+    if array.ndim != 3 or array.shape[-1] not in (1, 3, 4):
+        raise ValueError(f"not an image array: shape {list(array.shape)}")
+    if array.shape[-1] == 1:
+        array = np.repeat(array, 3, axis=-1)
+    array = array[..., :3]  # alpha is dropped: frames are opaque RGB
+    if np.issubdtype(array.dtype, np.integer):
+        scaled = array.astype(np.float32) / float(np.iinfo(array.dtype).max)
+    else:
+        scaled = np.clip(array.astype(np.float32), 0.0, 1.0)
+    return torch.from_numpy(np.ascontiguousarray(scaled)).permute(2, 0, 1)
+
+
+def _stack(path: Path, images: list[Tensor]) -> Tensor:
+    sizes = sorted({tuple(img.shape[-2:]) for img in images})
+    if len(sizes) > 1:
+        raise VideoReadError(f"cannot read video {str(path)!r}: frames have different sizes {sizes[:3]}")
+    return torch.stack(images)
+
+
+def _read_folder(path: Path, fps: float, max_fps: float | None) -> tuple[list[Tensor], list[int], int]:
+    import imageio.v3 as iio
+
+    files = frame_files(path)
+    if not files:
+        raise VideoReadError(f"cannot read video {str(path)!r}: the folder holds no {'/'.join(IMAGE_SUFFIXES)} frames")
+    indices, _ = resample_indices(len(files), fps, max_fps)
+    images = []
+    for i in indices:
+        try:
+            images.append(_to_float_chw(iio.imread(files[i], plugin="pillow")))  # png/jpg only
+        except Exception as err:  # imageio/pillow raise many types for a bad image
+            raise VideoReadError(f"cannot read frame {str(files[i])!r}: {_error_reason(err)}") from err
+    return images, indices, len(files)
+
+
+def _file_fps(meta: dict) -> float | None:
+    """Frame rate from imageio metadata: ffmpeg's ``fps``, or a gif's ``duration`` (ms per frame)."""
+    fps = meta.get("fps")
+    if fps and math.isfinite(fps) and fps > 0:
+        return float(fps)
+    duration = meta.get("duration")
+    if duration and duration > 0:
+        return 1000.0 / float(duration)
+    return None
+
+
+def _read_file(path: Path, fps: float | None, default_fps: float, max_fps: float | None) -> tuple[list[Tensor], list[int], int, float]:
+    """Decode a file, keeping only what :func:`resample_indices` can select (frames on the stride
+    and the latest one, since the frame count is only known at the end): long videos never sit
+    in memory whole."""
+    import imageio.v2 as imageio
+
+    kept: dict[int, np.ndarray] = {}
+    count = 0
+    try:
+        if path.suffix.lower() == ".gif":
+            reader = imageio.get_reader(path)
+        else:
+            reader = imageio.get_reader(path, format="FFMPEG")
+        try:
+            source_fps = float(fps or _file_fps(reader.get_meta_data()) or default_fps)
+            stride = 1 if max_fps is None else max(1, math.ceil(source_fps / max_fps - 1e-6))
+            for index, frame in enumerate(reader):
+                if index and (index - 1) % stride:  # off the stride and no longer the latest
+                    del kept[index - 1]
+                kept[index] = np.asarray(frame)
+                count = index + 1
+        finally:
+            reader.close()
+    except Exception as err:  # imageio/ffmpeg/pillow raise OSError, RuntimeError, IndexError, ...
+        raise VideoReadError(f"cannot read video {str(path)!r}: {_error_reason(err)}") from err
+    if count == 0:
+        raise VideoReadError(f"cannot read video {str(path)!r}: it holds no frames")
+    indices, _ = resample_indices(count, source_fps, max_fps)
+    return [_to_float_chw(kept[i]) for i in indices], indices, count, source_fps
+
+
+def read_frames(
+    path: str | os.PathLike,
+    *,
+    fps: float | None = None,
+    default_fps: float = DEFAULT_FPS,
+    max_fps: float | None = None,
+    min_frames: int = 1,
+) -> VideoFrames:
+    """Read a video file (mp4, mov, webm, gif, ...) or a folder of png/jpg frames, subsampled.
+
+    Args:
+        path: a video file, or a folder whose images (natural order: ``2.png`` < ``10.png``) are
+            the frames.
+        fps: the source frame rate, overriding the file's.
+        default_fps: the rate of inputs that carry none (folders, gifs without timing).
+        max_fps: keep every ``stride``-th frame so the rate is at most this
+            (:func:`resample_indices`); ``None`` keeps every frame.
+        min_frames: fewer source frames than this is an error.
+
+    Raises:
+        VideoReadError: one line naming the input: missing, corrupt/unreadable, no frames, frames
+            of different sizes, fewer than ``min_frames`` frames.
+    """
+    path = Path(path)
+    if fps is not None and not fps > 0:
+        raise ValueError(f"fps must be > 0, got {fps}")
+    if path.is_dir():
+        source_fps = float(fps or default_fps)
+        images, indices, count = _read_folder(path, source_fps, max_fps)
+    elif path.is_file():
+        images, indices, count, source_fps = _read_file(path, fps, default_fps, max_fps)
+    else:
+        raise VideoReadError(f"cannot read video {str(path)!r}: no such file or folder")
+    if count < min_frames:
+        raise VideoReadError(f"cannot use video {str(path)!r}: it has {count} frame(s), at least {min_frames} needed")
+    _, sampled_fps = resample_indices(count, source_fps, max_fps)
+    return VideoFrames(_stack(path, images), indices, source_fps, sampled_fps, count)
+
+
+# --------------------------------------------------------------------------------------------
+# heat maps with a fixed colour scale
+
+# Viridis (matplotlib's perceptually uniform, colour-blind-safe map): 9 evenly spaced samples,
+# linearly interpolated in between (sRGB, 0-255).
+VIRIDIS = torch.tensor(
+    [
+        [0x44, 0x01, 0x54], [0x47, 0x2D, 0x7B], [0x3B, 0x52, 0x8B], [0x2C, 0x72, 0x8E], [0x21, 0x90, 0x8C],
+        [0x27, 0xAD, 0x81], [0x5D, 0xC8, 0x63], [0xAA, 0xDC, 0x32], [0xFD, 0xE7, 0x25],
+    ],
+    dtype=torch.float32,
+) / 255.0
+#: The fixed value range of GeCo heat maps: residuals in normalised image units / relative depth.
+#: 0.2 sits above generated videos' typical fused scores (0.1-0.3 in the paper); larger values
+#: are clipped to the top colour, so one colour means one value in every video.
+MAP_RANGE = (0.0, 0.2)
+#: Pixels without a valid value (occluded, not co-visible, low confidence): neutral grey, a
+#: colour viridis never takes.
+INVALID_COLOR = (0.5, 0.5, 0.5)
+
+
+def colorize(values: Tensor, valid: Tensor | None = None, value_range: tuple[float, float] = MAP_RANGE) -> Tensor:
+    """Map values ``[..., H, W]`` to viridis RGB ``[..., 3, H, W]`` over a fixed range.
+
+    Values outside ``value_range`` are clipped to its ends; pixels where ``valid [..., H, W]`` is
+    False (and NaNs) are :data:`INVALID_COLOR`.
+    """
+    low, high = value_range
+    if not high > low:
+        raise ValueError(f"value_range must be increasing, got {value_range}")
+    values = values.detach().float()
+    finite = torch.isfinite(values)
+    t = ((torch.where(finite, values, torch.zeros_like(values)) - low) / (high - low)).clamp(0, 1)
+    t = t * (VIRIDIS.shape[0] - 1)
+    lo = t.floor().long().clamp(max=VIRIDIS.shape[0] - 2)
+    frac = (t - lo)[..., None]
+    lut = VIRIDIS.to(values.device)
+    rgb = lut[lo] * (1 - frac) + lut[lo + 1] * frac  # [..., H, W, 3]
+    keep = finite if valid is None else finite & valid.to(values.device).bool()
+    rgb = torch.where(keep[..., None], rgb, rgb.new_tensor(INVALID_COLOR))
+    return rgb.movedim(-1, -3).contiguous()
+
+
+# --------------------------------------------------------------------------------------------
+# text: a 3x5 bitmap font (upper case, digits, a little punctuation)
+
+_GLYPHS = {
+    "0": "111101101101111", "1": "010110010010111", "2": "111001111100111", "3": "111001011001111",
+    "4": "101101111001001", "5": "111100111001111", "6": "111100111101111", "7": "111001001010010",
+    "8": "111101111101111", "9": "111101111001111",
+    "A": "010101111101101", "B": "110101110101110", "C": "011100100100011", "D": "110101101101110",
+    "E": "111100110100111", "F": "111100110100100", "G": "011100101101011", "H": "101101111101101",
+    "I": "111010010010111", "J": "001001001101010", "K": "101101110101101", "L": "100100100100111",
+    "M": "101111111101101", "N": "110101101101101", "O": "010101101101010", "P": "110101110100100",
+    "Q": "010101101110011", "R": "110101110101101", "S": "011100010001110", "T": "111010010010010",
+    "U": "101101101101111", "V": "101101101101010", "W": "101101111111101", "X": "101101010101101",
+    "Y": "101101010010010", "Z": "111001010100111",
+    " ": "000000000000000", ".": "000000000000010", ",": "000000000010100", "-": "000000111000000",
+    "_": "000000000000111", ":": "000010000010000", "/": "001001010100100", "%": "101001010100101",
+    "(": "010100100100010", ")": "010001001001010", "<": "001010100010001", ">": "100010001010100",
+    "=": "000111000111000", "+": "000010111010000", "|": "010010010010010", "?": "111001010000010",
+}
+GLYPH_HEIGHT, GLYPH_WIDTH = 5, 3
+
+
+def text_scale(size: int) -> int:
+    """Integer pixel scale of text next to an image of ``size`` pixels (its height)."""
+    return max(1, size // 120)
+
+
+def text_mask(text: str, scale: int = 1) -> Tensor:
+    """``[5 * scale, (4 * len - 1) * scale]`` bool pixels of ``text`` (lower case is drawn as
+    upper case, unknown characters as ``?``)."""
+    if not text:
+        return torch.zeros(GLYPH_HEIGHT * scale, 0, dtype=torch.bool)
+    columns = []
+    for k, char in enumerate(text.upper()):
+        bits = _GLYPHS.get(char, _GLYPHS["?"])
+        glyph = torch.tensor([c == "1" for c in bits]).view(GLYPH_HEIGHT, GLYPH_WIDTH)
+        columns.append(glyph if k == 0 else torch.cat((torch.zeros(GLYPH_HEIGHT, 1, dtype=torch.bool), glyph), 1))
+    mask = torch.cat(columns, dim=1)
+    return mask.repeat_interleave(scale, 0).repeat_interleave(scale, 1)
+
+
+def draw_text(image: Tensor, text: str, x: int, y: int, scale: int = 1, color: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Tensor:
+    """``image [3, H, W]`` with ``text`` drawn, top-left corner at column ``x``, row ``y``
+    (clipped at the image border). Returns a new tensor."""
+    out = image.clone()
+    mask = text_mask(text, scale)
+    height, width = out.shape[-2:]
+    h = max(0, min(mask.shape[0], height - y))
+    w = max(0, min(mask.shape[1], width - x))
+    if x < 0 or y < 0 or h == 0 or w == 0:
+        return out
+    region = out[:, y : y + h, x : x + w]
+    colour = out.new_tensor(color)[:, None, None].expand_as(region)
+    out[:, y : y + h, x : x + w] = torch.where(mask[:h, :w].to(out.device), colour, region)
+    return out
+
+
+def text_strip(text: str, width: int, scale: int) -> Tensor:
+    """``[3, label_height(scale), width]``: one line of white ``text`` on black, left-aligned."""
+    strip = torch.zeros(3, label_height(scale), width)
+    return draw_text(strip, text, 2 * scale, 3 * scale, scale)
+
+
+def label_height(scale: int) -> int:
+    """Height of a :func:`text_strip`: the text with margins of ``3 * scale`` above and
+    ``2 * scale`` below (an even height, which yuv420p video needs)."""
+    return (GLYPH_HEIGHT + 5) * scale
+
+
+def colorbar(width: int, scale: int = 1, value_range: tuple[float, float] = MAP_RANGE, ticks: int = 5) -> Tensor:
+    """Legend of :func:`colorize`: ``[3, h, width]``, a grey ``N/A`` swatch (invalid pixels), then
+    the colour bar over ``value_range`` with ``ticks`` labelled ticks; the last reads ``0.2+``
+    because larger values are clipped to its colour."""
+    margin, bar_h, tick_h = 2 * scale, 4 * scale, 2 * scale
+    text_y = margin + bar_h + tick_h + 3 * scale  # as in a text strip under the bar
+    legend = torch.zeros(3, margin + bar_h + tick_h + label_height(scale), width)  # even height
+    swatch_w = text_mask("N/A", scale).shape[1]
+    legend[:, margin : margin + bar_h, margin : margin + swatch_w] = torch.tensor(INVALID_COLOR)[:, None, None]
+    legend = draw_text(legend, "N/A", margin, text_y, scale)
+    left = 2 * margin + swatch_w + 3 * scale
+    right = width - margin - text_mask("0.2+", scale).shape[1] // 2  # room for the last label
+    if right - left < 2:
+        return legend
+    low, high = value_range
+    ramp = torch.linspace(low, high, right - left)
+    legend[:, margin : margin + bar_h, left:right] = colorize(ramp[None])
+    for k in range(ticks):
+        value = low + (high - low) * k / (ticks - 1)
+        x = left + round(k * (right - left - 1) / (ticks - 1))
+        legend[:, margin + bar_h : margin + bar_h + tick_h, x : x + scale] = 1.0
+        label = f"{value:g}" + ("+" if k == ticks - 1 else "")
+        x_text = min(max(0, x - text_mask(label, scale).shape[1] // 2), width - text_mask(label, scale).shape[1])
+        legend = draw_text(legend, label, x_text, text_y, scale)
+    return legend
+
+
+# --------------------------------------------------------------------------------------------
+# labelled panels
+
+
+def panel_layout(sizes: list[tuple[int, int]]) -> tuple[tuple[int, int], list[tuple[int, int, int, int]]]:
+    """Where :func:`side_by_side` puts panels of ``sizes`` ``(H, W)`` (already at a common H).
+
+    Returns:
+        ``((total_height, total_width), [(top, left, height, width), ...])``: each panel's video
+        area; its label strip (:func:`label_height`) sits above it, panels are separated by
+        ``2 * scale`` black columns, ``scale = text_scale(H)``.
+    """
+    height = sizes[0][0]
+    scale = text_scale(height)
+    top, gap = label_height(scale), 2 * scale
+    boxes, left = [], 0
+    for h, w in sizes:
+        boxes.append((top, left, h, w))
+        left += w + gap
+    return (top + height, left - gap), boxes
+
+
+def side_by_side(videos: list[Tensor], labels: list[str]) -> Tensor:
+    """Labelled panels in a row: ``[S_i, 3, H_i, W_i]`` each -> ``[S, 3, H', W']``.
+
+    Panels are resized (bilinear) to the tallest height keeping their aspect ratio; a shorter
+    video holds its last frame, so ``S = max S_i``. Each label is drawn above its panel with the
+    built-in font. Layout: :func:`panel_layout`.
+    """
+    if not videos or len(videos) != len(labels):
+        raise ValueError(f"need one label per video, got {len(videos)} videos and {len(labels)} labels")
+    for k, video in enumerate(videos):
+        if not isinstance(video, Tensor) or video.ndim != 4 or video.shape[1] != 3 or video.shape[0] < 1:
+            raise ValueError(f"videos[{k}] must be a [S, 3, H, W] tensor, got {getattr(video, 'shape', type(video))}")
+    height = max(v.shape[-2] for v in videos)
+    num_frames = max(v.shape[0] for v in videos)
+    panels = []
+    for video in videos:
+        video = video.detach().float().cpu()
+        if video.shape[-2] != height:
+            width = max(1, round(video.shape[-1] * height / video.shape[-2]))
+            video = F.interpolate(video, size=(height, width), mode="bilinear", align_corners=False)
+        if video.shape[0] < num_frames:
+            video = torch.cat((video, video[-1:].expand(num_frames - video.shape[0], -1, -1, -1)))
+        panels.append(video.clamp(0, 1))
+    (total_h, total_w), boxes = panel_layout([tuple(p.shape[-2:]) for p in panels])
+    scale = text_scale(height)
+    out = torch.zeros(num_frames, 3, total_h, total_w)
+    for panel, label, (top, left, h, w) in zip(panels, labels, boxes):
+        out[:, :, :top, left : left + w] = text_strip(label, w, scale)
+        out[:, :, top : top + h, left : left + w] = panel
+    return out

@@ -8,7 +8,25 @@ import numpy as np
 import pytest
 import torch
 
-from geco_guide.video import read_video, write_video
+from geco_guide.video import (
+    GLYPH_HEIGHT,
+    INVALID_COLOR,
+    MAP_RANGE,
+    VIRIDIS,
+    VideoReadError,
+    colorbar,
+    colorize,
+    draw_text,
+    evaluation_windows,
+    label_height,
+    panel_layout,
+    read_frames,
+    read_video,
+    resample_indices,
+    side_by_side,
+    text_mask,
+    write_video,
+)
 
 
 def smooth_video(frames=5, h=32, w=48):
@@ -70,3 +88,143 @@ def test_uint8_and_value_clipping(tmp_path: Path):
     assert (frames * 255 - 200).abs().max() < 4
     frames, _ = read_video(write_video(tmp_path / "c.mp4", torch.full((2, 3, 16, 16), 3.0), fps=8))
     assert frames.min() > 0.95
+
+
+# --- the metric's sampling -----------------------------------------------------------------
+
+
+def test_resample_indices_to_at_most_max_fps():
+    indices, fps = resample_indices(240, 24.0, 8.0)  # 10 s at 24 fps
+    assert fps == 8.0 and indices == list(range(0, 240, 3))
+    assert resample_indices(300, 30.0, 8.0)[1] == 7.5  # integer stride 4: evenly spaced frames
+    assert resample_indices(100, 23.976, 8.0)[1] == pytest.approx(7.992)
+    assert resample_indices(10, 8.0, 8.0) == (list(range(10)), 8.0)
+    assert resample_indices(10, 6.0, 8.0) == (list(range(10)), 6.0)  # never upsampled
+    assert resample_indices(10, 24.0, None) == (list(range(10)), 24.0)
+    assert resample_indices(2, 30.0, 8.0) == ([0, 1], 30.0)  # a 2-frame clip keeps both frames
+    assert resample_indices(3, 60.0, 8.0) == ([0, 2], 30.0)
+    with pytest.raises(ValueError):
+        resample_indices(0, 8.0, 8.0)
+    with pytest.raises(ValueError):
+        resample_indices(5, 0.0, 8.0)
+
+
+def test_windows_of_about_three_seconds_cover_the_clip():
+    indices, fps = resample_indices(240, 24.0, 8.0)
+    windows = evaluation_windows(len(indices), fps, 3.0)
+    assert [len(w) for w in windows] == [27, 26, 27]  # ~3.25 s each at 8 fps
+    assert [k for w in windows for k in w] == list(range(80))  # every frame once, in order
+    assert all((len(w) - 1) / fps == pytest.approx(3.0, abs=0.4) for w in windows)
+    assert [len(w) for w in evaluation_windows(49, 8.0, 3.0)] == [24, 25]  # CogVideoX: 49 frames, 6 s
+    assert evaluation_windows(17, 8.0, 3.0) == [list(range(17))]  # shorter than a window: one window
+    assert [len(w) for w in evaluation_windows(5, 8.0, 0.01)] == [2, 3]  # >= 2 frames per window
+    with pytest.raises(ValueError):
+        evaluation_windows(1, 8.0, 3.0)
+
+
+# --- reading any video -----------------------------------------------------------------------
+
+
+def test_read_frames_subsamples_files_while_decoding(tmp_path: Path):
+    video = smooth_video(frames=13).clamp(0, 1)
+    path = write_video(tmp_path / "a.mp4", video, fps=24)
+    clip = read_frames(path, max_fps=8)
+    assert clip.indices == [0, 3, 6, 9, 12] and clip.fps == 24.0 and clip.sampled_fps == 8.0 and clip.num_frames == 13
+    assert (clip.frames - video[clip.indices]).abs().mean() < 0.02
+    clip = read_frames(path, fps=4.0, max_fps=8)  # the caller's rate wins over the file's
+    assert clip.indices == list(range(13)) and clip.fps == 4.0
+
+
+def test_read_gif_and_frame_folder(tmp_path: Path):
+    import imageio.v2 as imageio
+
+    video = smooth_video(frames=4)
+    data = (video.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    imageio.mimsave(tmp_path / "a.gif", list(data), duration=100, loop=0)  # 100 ms a frame
+    clip = read_frames(tmp_path / "a.gif")
+    assert clip.fps == pytest.approx(10.0) and clip.frames.shape == (4, 3, 32, 48)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    order = [0, 1, 2, 3]
+    for k, name in zip(order, ["f1.png", "f2.jpg", "f10.png", "f11.PNG"]):  # natural order, any case
+        imageio.imwrite(folder / name, data[k])
+    (folder / "readme.txt").write_text("not a frame")
+    clip = read_frames(folder)
+    assert clip.fps == 8.0 and clip.num_frames == 4 and clip.indices == order
+    assert (clip.frames - video).abs().mean() < 0.03
+    assert read_frames(folder, fps=2.0).fps == 2.0
+
+
+def test_read_frames_errors_are_one_line_video_read_errors(tmp_path: Path):
+    import imageio.v2 as imageio
+
+    (tmp_path / "junk.mp4").write_bytes(b"not a video" * 50)
+    (tmp_path / "empty").mkdir()
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    imageio.imwrite(mixed / "0.png", np.zeros((8, 8, 3), np.uint8))
+    imageio.imwrite(mixed / "1.png", np.zeros((8, 10, 3), np.uint8))
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "0.png").write_bytes(b"garbage")
+    one = write_video(tmp_path / "one.mp4", smooth_video(frames=1), fps=8)
+    cases = [
+        (tmp_path / "junk.mp4", "cannot read video"),
+        (tmp_path / "missing.mp4", "no such file"),
+        (tmp_path / "empty", "holds no"),
+        (mixed, "different sizes"),
+        (broken, "cannot read frame"),
+        (one, "1 frame"),
+    ]
+    for path, message in cases:
+        with pytest.raises(VideoReadError, match=message) as info:
+            read_frames(path, min_frames=2)
+        assert isinstance(info.value, ValueError) and "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+# --- heat maps, text, panels -------------------------------------------------------------------
+
+
+def test_colorize_uses_a_fixed_clipped_range():
+    low, high = MAP_RANGE
+    values = torch.tensor([[low, high, 10 * high, -1.0, (low + high) / 2, float("nan")]])
+    valid = torch.tensor([[True, True, True, True, False, True]])
+    rgb = colorize(values, valid)
+    assert rgb.shape == (3, 1, 6)
+    assert torch.allclose(rgb[:, 0, 0], VIRIDIS[0]) and torch.allclose(rgb[:, 0, 1], VIRIDIS[-1])
+    assert torch.allclose(rgb[:, 0, 2], VIRIDIS[-1]) and torch.allclose(rgb[:, 0, 3], VIRIDIS[0])  # clipped
+    for k in (4, 5):  # invalid and NaN
+        assert torch.allclose(rgb[:, 0, k], torch.tensor(INVALID_COLOR))
+    ramp = colorize(torch.linspace(low, high, 50)[None])[:, 0]  # viridis gets brighter along the range
+    luminance = 0.2126 * ramp[0] + 0.7152 * ramp[1] + 0.0722 * ramp[2]
+    assert (luminance.diff() > 0).all()
+    assert colorize(torch.zeros(2, 4, 5, 6)).shape == (2, 4, 3, 5, 6)
+
+
+def test_text_and_legend():
+    assert text_mask("AB", 1).shape == (GLYPH_HEIGHT, 7) and text_mask("AB", 3).shape == (15, 21)
+    assert torch.equal(text_mask("a"), text_mask("A")) and torch.equal(text_mask("~"), text_mask("?"))
+    image = draw_text(torch.zeros(3, 10, 8), "HELLO", 2, 3)  # clipped at the border, not an error
+    assert image.shape == (3, 10, 8) and image.max() == 1.0 and image[:, :3].max() == 0.0
+    legend = colorbar(200, scale=1)
+    assert legend.shape[0] == 3 and legend.shape[2] == 200
+    bar = legend[:, 3]
+    assert (bar - torch.tensor(INVALID_COLOR)[:, None]).abs().amax(0).lt(1e-6).any()  # the N/A swatch
+    assert any(torch.allclose(bar[:, x], VIRIDIS[0]) for x in range(200))
+    assert any(torch.allclose(bar[:, x], VIRIDIS[-1]) for x in range(200))
+
+
+def test_side_by_side_layout():
+    a = torch.rand(4, 3, 32, 48)
+    b = torch.rand(2, 3, 16, 16)  # shorter and smaller: resized to height 32, last frame held
+    out = side_by_side([a, b], ["unguided", "guided"])
+    (height, width), boxes = panel_layout([(32, 48), (32, 32)])
+    assert out.shape == (4, 3, height, width) and boxes == [(label_height(1), 0, 32, 48), (label_height(1), 50, 32, 32)]
+    top = boxes[0][0]
+    assert torch.equal(out[:, :, top:, :48], a)
+    assert torch.equal(out[2, :, top:, 50:], out[1, :, top:, 50:])  # held
+    assert out[0, :, :top, :48].max() == 1.0  # the label is drawn
+    with pytest.raises(ValueError, match="one label per video"):
+        side_by_side([a], ["x", "y"])
+    with pytest.raises(ValueError, match=r"videos\[0\]"):
+        side_by_side([a[0]], ["x"])

@@ -1,0 +1,71 @@
+"""Frozen GeCo backbones, and the one function that builds them from a config.
+
+:func:`load_estimators` is shared by ``python -m geco_guide.generate`` and
+``python -m geco_guide.evaluate``: hub ids, local folders, or ``tiny-random`` for the tiny,
+randomly initialised offline models of :mod:`geco_guide.testing`. This module stays light (no
+model code is imported until an estimator is built), because every ``geco_guide.estimators.*``
+import runs it.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..config import EstimatorsConfig
+
+TINY_RANDOM = "tiny-random"
+
+
+def resolve_device(name: str | torch.device) -> torch.device:
+    """``"auto"`` -> cuda if available, else cpu; anything else as ``torch.device``."""
+    if isinstance(name, str) and name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def estimator_id(estimator: Any) -> str:
+    """What produced an estimator's numbers: the id it was loaded from, else its class name."""
+    return getattr(estimator, "geco_estimator_id", None) or type(estimator).__name__
+
+
+def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device = "auto") -> tuple[Any, Any]:
+    """``(geometry, flow)`` of ``estimators_cfg``: frozen, in eval mode, on ``device``.
+
+    Args:
+        estimators_cfg: :class:`~geco_guide.config.EstimatorsConfig` (``geometry`` / ``flow``: a
+            hub id, a local folder or ``tiny-random``; ``dtype``; ``init_seed`` of tiny models).
+        device: a torch device or ``"auto"``.
+
+    Each estimator gets a ``geco_estimator_id`` attribute (the id it came from) so results can
+    name their estimators (:func:`estimator_id`).
+
+    Raises:
+        WeightsNotFoundError: one line naming the repo id, when the weights are unavailable.
+    """
+    dtype = getattr(torch, estimators_cfg.dtype)
+    device = resolve_device(device)
+    tiny = None
+    if TINY_RANDOM in (estimators_cfg.geometry, estimators_cfg.flow):
+        from ..testing import tiny_estimators
+
+        tiny = tiny_estimators(estimators_cfg.init_seed)
+    if estimators_cfg.geometry == TINY_RANDOM:
+        geometry = tiny[0].to(device=device, dtype=dtype)
+    else:
+        from .vggt import VGGT
+
+        geometry = VGGT.from_pretrained(estimators_cfg.geometry, dtype=dtype, device=device)
+    if estimators_cfg.flow == TINY_RANDOM:
+        flow = tiny[1].to(device=device, dtype=dtype)
+    else:
+        from .ufm import UFM
+
+        flow = UFM.from_pretrained(estimators_cfg.flow, dtype=dtype, device=device)
+    for model, name in ((geometry, estimators_cfg.geometry), (flow, estimators_cfg.flow)):
+        model.eval().requires_grad_(False)
+        suffix = f"(seed={estimators_cfg.init_seed})" if name == TINY_RANDOM else ""
+        model.geco_estimator_id = f"{name}{suffix}"
+    return geometry, flow

@@ -1,0 +1,241 @@
+"""GeCo evaluation of any video: metric validity with ground truth, maps video, CLI, config."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+import geco_guide
+from geco_guide.config import EstimatorsConfig, EvaluationConfig, load_config
+from geco_guide.estimators import load_estimators
+from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
+from geco_guide.loss.geco import GeCoLossConfig
+from geco_guide.evaluate import MAP_PANELS, evaluate_video, main, render_maps, write_maps_video
+from geco_guide.synthetic import inject_deformation, rigid_clip
+from geco_guide.video import (
+    VIRIDIS,
+    VideoReadError,
+    colorize,
+    label_height,
+    panel_layout,
+    read_video,
+    text_scale,
+    write_video,
+)
+
+
+H, W = 32, 48
+
+
+@pytest.fixture(scope="module")
+def clips():
+    rigid = rigid_clip(num_frames=5, height=H, width=W)
+    return {"rigid": rigid, "deformed": inject_deformation(rigid, amplitude=3.0)}
+
+
+def oracle(clip):
+    return {"geometry": OracleGeometry(clip), "flow": OracleFlow(clip)}
+
+
+@pytest.fixture(scope="module")
+def evaluated(clips):
+    """Tensor-path results with maps, computed once (the oracle's ray casts are the slow part)."""
+    return {name: evaluate_video(clip.frames, **oracle(clip), fps=8, maps=True) for name, clip in clips.items()}
+
+
+def test_rigid_scene_scores_zero_and_deformation_scores_higher(evaluated):
+    for result in evaluated.values():
+        assert result.num_frames == 5 and result.fps == 8 and result.sampled_fps == 8 and result.source is None
+        assert [row["index"] for row in result.frame_scores] == list(range(5))
+        assert [row["time_s"] for row in result.frame_scores] == [k / 8 for k in range(5)]
+        assert len(result.windows) == 1 and result.windows[0]["frames"] == list(range(5))
+        assert result.total_motion > 0 and result.mean_motion == pytest.approx(result.total_motion / (4 / 8))
+        assert result.estimators == {"geometry": "OracleGeometry", "flow": "OracleFlow"}
+        assert result.config["loss"]["pairs"] == "center" and result.config["loss"]["flow_downscale"] == 1.0
+    rigid, deformed = evaluated["rigid"], evaluated["deformed"]
+    assert rigid.fused < 1e-4
+    assert deformed.fused > 1e-3 and deformed.fused > 20 * rigid.fused
+    assert deformed.motion > 20 * rigid.motion
+
+
+def test_windows_are_frame_weighted(clips):
+    clip = clips["deformed"]
+    cfg = EvaluationConfig(window_seconds=1.0, loss=GeCoLossConfig(pairs="all", flow_downscale=1.0))
+    result = evaluate_video(clip.frames, **oracle(clip), fps=2, config=cfg)  # windows of 3 frames: 5 -> 2 + 3
+    assert [w["frames"] for w in result.windows] == [[0, 1], [2, 3, 4]]
+    assert [(w["start_s"], w["end_s"]) for w in result.windows] == [(0.0, 0.5), (1.0, 2.0)]
+    assert [row["window"] for row in result.frame_scores] == [0, 0, 1, 1, 1]
+    fused = [row["fused"] for row in result.frame_scores]
+    assert result.fused == pytest.approx(sum(fused) / len(fused))
+    assert result.fused == pytest.approx((2 * result.windows[0]["fused"] + 3 * result.windows[1]["fused"]) / 5)
+    assert result.config["loss"]["pairs"] == "all" and result.mean_motion == pytest.approx(result.total_motion / 2)
+
+
+def test_mp4_round_trip_with_oracle_of_the_decoded_frames(tmp_path: Path, clips, evaluated):
+    fused = {}
+    for name, clip in clips.items():
+        path = write_video(tmp_path / f"{name}.mp4", clip.frames, fps=8)
+        decoded = replace(clip, frames=read_video(path)[0])  # the oracle answers for what was decoded
+        result = evaluate_video(path, **oracle(decoded))
+        assert result.source == str(path) and result.fps == pytest.approx(8.0) and result.num_frames == 5
+        fused[name] = result.fused
+        assert result.fused == pytest.approx(evaluated[name].fused, rel=1e-3)  # same ground truth
+    assert fused["rigid"] < 1e-4 and fused["deformed"] > 20 * fused["rigid"]
+
+
+def test_to_dict_is_strict_json(evaluated):
+    loaded = json.loads(json.dumps(evaluated["rigid"].to_dict(), allow_nan=False))
+    assert {"motion", "structure", "fused", "total_motion", "mean_motion", "frame_scores", "windows",
+            "estimators", "config", "num_frames", "fps", "sampled_fps"} <= set(loaded)
+    assert loaded["paper_names"]["fused"] == "M_geo" and "maps" not in loaded
+
+
+def test_maps_video_has_the_panel_layout(tmp_path: Path, clips, evaluated):
+    clip, result = clips["deformed"], evaluated["deformed"]
+    maps = result.maps
+    assert maps.frames.shape == (5, 3, H, W) and maps.fused.shape == (5, H, W) and maps.fused_valid.dtype == torch.bool
+    assert len(maps) == 5 and set(maps[0]) == {"frame", *(f"{c}{v}" for c in ("motion", "structure", "fused") for v in ("", "_valid"))}
+    frames = render_maps(result)
+    (grid_h, grid_w), boxes = panel_layout([(H, W)] * len(MAP_PANELS))
+    assert [left for _, left, _, _ in boxes] == [0, W + 2, 2 * W + 4, 3 * W + 6] and grid_w == 4 * W + 3 * 2
+    assert frames.shape[0] == 5 and frames.shape[-1] == grid_w and frames.shape[-2] > grid_h + label_height(text_scale(H))
+    top = boxes[0][0]
+    assert torch.allclose(frames[:, :, top : top + H, :W], clip.frames.float())
+    for name, (_, left, _, _) in zip(MAP_PANELS[1:], boxes[1:]):
+        expected = colorize(getattr(maps, name), getattr(maps, f"{name}_valid"))
+        assert torch.allclose(frames[:, :, top : top + H, left : left + W], expected)
+    # the legend under the panels: a colour bar from viridis' first to its last colour
+    bar = frames[0, :, grid_h + 3]
+    on_bar = [x for x in range(grid_w) if any(torch.allclose(bar[:, x], c) for c in (VIRIDIS[0], VIRIDIS[-1]))]
+    assert torch.allclose(bar[:, on_bar[0]], VIRIDIS[0]) and torch.allclose(bar[:, on_bar[-1]], VIRIDIS[-1])
+
+    path = write_maps_video(result, tmp_path / "m.maps.mp4")
+    video, fps = read_video(path)
+    assert fps == pytest.approx(8.0) and video.shape[0] == 5 and video.shape[-1] == grid_w
+    assert video.shape[-2] == frames.shape[-2] and frames.shape[-2] % 2 == 0  # even: no yuv420p padding
+    assert (video[:, :, : frames.shape[-2]] - frames).abs().mean() < 0.05
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.maps.mp4"]
+    with pytest.raises(ValueError, match="maps=True"):
+        render_maps(replace(result, maps=None))
+
+
+def test_bad_inputs_give_clear_errors(tmp_path: Path, clips):
+    clip = clips["rigid"]
+    with pytest.raises(ValueError, match="fps"):
+        evaluate_video(clip.frames, **oracle(clip))
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        evaluate_video(clip.frames[:1], **oracle(clip), fps=8)
+    with pytest.raises(ValueError, match=r"\[S, 3, H, W\]"):
+        evaluate_video(clip.frames[None], **oracle(clip), fps=8)
+    single = write_video(tmp_path / "one.mp4", clip.frames[:1], fps=8)
+    with pytest.raises(VideoReadError, match="1 frame"):
+        evaluate_video(single, **oracle(clip))
+    with pytest.raises(VideoReadError, match="no such file"):
+        evaluate_video(tmp_path / "missing.mp4", **oracle(clip))
+
+
+def test_evaluate_video_is_exported():
+    assert geco_guide.evaluate_video is evaluate_video and "evaluate_video" in geco_guide.__all__
+
+
+# --- configuration and the shared estimator loader -----------------------------------------
+
+
+def test_evaluation_config_section():
+    cfg = load_config(preset="tiny")
+    e = cfg.evaluation
+    assert (e.window_seconds, e.max_fps, e.device) == (3.0, 8.0, "cpu")
+    assert e.loss.flow_downscale == 1.0 and e.loss.pairs == "center" and e.loss.covisibility_threshold == 0.5
+    assert cfg.guidance.loss.flow_downscale == 0.5  # guidance keeps its own loss settings
+    cfg = load_config(preset="cogvideox-5b", overrides=["evaluation.loss.pairs=all", "evaluation.loss.occlusion_tau=0.05"])
+    assert cfg.evaluation.loss.pairs == "all" and cfg.evaluation.loss.occlusion_tau == 0.05
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("evaluation.window_seconds=0", "evaluation.window_seconds"),
+        ("evaluation.loss.pairs=some", "evaluation.loss.pairs"),
+        ("evaluation.loss.covisibility_threshold=2", "evaluation.loss.covisibility_threshold"),
+        ("guidance.loss.pairs=some", "guidance.loss.pairs"),
+        ("evaluation.device=tpu", "evaluation.device"),
+        ("evaluation.windows=3", "evaluation.windows"),
+    ],
+)
+def test_invalid_evaluation_keys_are_named(override, key):
+    with pytest.raises(ValueError, match=f"'{key}'"):
+        load_config(preset="tiny", overrides=[override])
+
+
+def test_shared_estimator_loader_builds_tiny_models():
+    geometry, flow = load_estimators(EstimatorsConfig(geometry="tiny-random", flow="tiny-random"), "cpu")
+    assert geometry.geco_estimator_id == "tiny-random(seed=0)" and flow.geco_estimator_id == "tiny-random(seed=0)"
+    assert not any(p.requires_grad for p in geometry.parameters()) and not geometry.training
+
+
+# --- CLI ----------------------------------------------------------------------------------
+
+
+def test_cli_scores_videos_and_reports_bad_inputs(tmp_path: Path, capsys):
+    rigid = rigid_clip(num_frames=6, height=32, width=48)
+    write_video(tmp_path / "static.mp4", rigid.frames, fps=8)
+    write_video(tmp_path / "deformed.mp4", inject_deformation(rigid).frames, fps=8)
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    (mixed / "corrupt.mp4").write_bytes(b"not a video" * 40)
+    (mixed / "notes.txt").write_text("ignored")
+    frames = mixed / "frames"  # a frame folder inside a folder of videos is one more video
+    frames.mkdir()
+    import imageio.v2 as imageio
+
+    for k, frame in enumerate(rigid.frames[:3]):
+        imageio.imwrite(frames / f"{k}.png", (frame.permute(1, 2, 0).numpy() * 255).astype("uint8"))
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    out = tmp_path / "out"
+
+    rc = main([str(tmp_path / "static.mp4"), str(tmp_path / "deformed.mp4"), str(mixed), str(empty),
+               "--preset", "tiny", "--out", str(out), "--maps", "--pairs", "all", "evaluation.flow_batch_size=7"])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    errors = captured.err.strip().splitlines()
+    assert len(errors) == 2 and all(line.startswith("error: ") for line in errors)
+    assert "corrupt.mp4" in errors[0] and "cannot read video" in errors[0]
+    assert "empty" in errors[1] and "holds no video" in errors[1]
+    assert "static: M_geo=" in captured.out
+
+    names = ["static", "deformed", "frames"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [f"{n}.geco.json" for n in names] + [f"{n}.maps.mp4" for n in names] + ["geco_scores.csv", "geco_summary.json"]
+    )
+    data = json.loads((out / "static.geco.json").read_text())
+    assert data["estimators"] == {"geometry": "tiny-random(seed=0)", "flow": "tiny-random(seed=0)"}
+    assert data["config"]["loss"]["pairs"] == "all" and data["config"]["flow_batch_size"] == 7
+    assert data["num_frames"] == 6 and len(data["frame_scores"]) == 6 and math.isfinite(data["fused"])
+    assert read_video(out / "static.maps.mp4")[0].shape[0] == 6
+    assert json.loads((out / "frames.geco.json").read_text())["fps"] == 8.0  # a folder's default rate
+
+    rows = list(csv.DictReader((out / "geco_scores.csv").open()))
+    assert [r["name"] for r in rows] == ["static", "deformed", "corrupt", "frames", "empty"]
+    assert [bool(r["error"]) for r in rows] == [False, False, True, False, True]
+    assert float(rows[0]["fused"]) > 0 and rows[2]["fused"] == ""
+    summary = json.loads((out / "geco_summary.json").read_text())
+    assert (summary["num_videos"], summary["num_ok"], summary["num_failed"]) == (5, 3, 2)
+    ok = [float(r["fused"]) for r in rows if not r["error"]]
+    assert summary["mean"]["fused"] == pytest.approx(sum(ok) / 3)
+
+
+def test_cli_exit_codes(tmp_path: Path, capsys):
+    (tmp_path / "bad.mp4").write_bytes(b"junk" * 100)
+    assert main([str(tmp_path / "bad.mp4"), "--preset", "tiny", "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err
+    assert main([str(tmp_path / "bad.mp4"), "--preset", "tiny", "evaluation.max_fps=-1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "evaluation.max_fps" in err and "\n" not in err
