@@ -298,9 +298,9 @@ def vggt_workload(spec: dict[str, Any], device: torch.device) -> Workload:
 
 def ufm_workload(spec: dict[str, Any], device: torch.device) -> Workload:
     """``UFM.estimate_flow`` on the ``S - 1`` adjacent pairs of ``[1, S, 3, H, W]`` in one batch;
-    the scalar is mean flow + mean covisibility. Weights: PyTorch's default init, seeded."""
+    the scalar is mean flow + mean covisibility. Weights: ``UFM.random(config, seed)``."""
     config = UFMConfig.tiny() if spec["size"] == "tiny" else UFMConfig()
-    model = UFM(config).to(device)  # default init draws from the global RNG seeded by the worker
+    model = UFM.random(config, seed=spec["seed"]).to(device)
     frames = _random_frames(spec, device)
 
     def scalar() -> Tensor:
