@@ -24,7 +24,6 @@ from typing import Any, Optional
 from omegaconf import DictConfig, OmegaConf, StringNode
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
-from .estimators import TINY_RANDOM
 from .loss.geco import GeCoLossConfig
 from .sampler.guidance import GuidanceConfig
 

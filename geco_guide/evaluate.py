@@ -28,7 +28,6 @@ import math
 import os
 import re
 import sys
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,7 +38,7 @@ from torch import Tensor
 from .config import EstimatorsConfig, EvaluationConfig, GeCoConfig, load_config
 from .estimators import estimator_id, load_estimators
 from .estimators.base import Correspondences
-from .generate import write_json_atomic
+from .files import write_json_atomic, write_text_atomic
 from .loss.geco import CUES, PAIR_MODES, GeCoLoss, frame_pairs, geco_from_geometry
 from .loss.motion_stats import motion_statistics
 from .video import (
@@ -382,25 +381,6 @@ def _one_line(err: BaseException) -> str:
     text = str(err).strip().splitlines()
     message = text[0] if text else ""
     return message if isinstance(err, ValueError) else f"{type(err).__name__}: {message}"
-
-
-def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` to a temporary file in the same folder, then ``os.replace`` it into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f"{path.suffix}.tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as fh:
-            fh.write(text)
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600 files
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 CSV_COLUMNS = (

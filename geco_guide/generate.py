@@ -13,12 +13,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import platform
 import re
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -27,9 +25,10 @@ from typing import Any
 
 import torch
 
-from .config import TINY_RANDOM, GeCoConfig, config_to_dict, load_config
-from .estimators import load_estimators
+from .config import GeCoConfig, config_to_dict, load_config
+from .estimators import TINY_RANDOM, load_estimators
 from .estimators.loading import WeightsNotFoundError
+from .files import write_json_atomic
 
 
 # --------------------------------------------------------------------------------------------
@@ -140,28 +139,6 @@ def output_paths(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = N
     else:
         video = Path(cfg.output.dir) / f"{name}.mp4"
     return video, video.with_suffix(".json")
-
-
-def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
-    """Write JSON to a temporary file in the same folder, then ``os.replace`` it into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".json.tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=2, allow_nan=True)
-            fh.write("\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 def versions() -> dict[str, str]:

@@ -157,13 +157,7 @@ def tiny_estimators(seed: int = 0) -> tuple[Any, Any]:
     from .estimators.ufm import UFM, UFMConfig
     from .estimators.vggt import VGGT, VGGTConfig
 
-    state = _seeded(seed)
-    try:
-        geometry = VGGT(VGGTConfig.tiny()).eval()
-        flow = UFM(UFMConfig.tiny()).eval()
-    finally:
-        torch.random.set_rng_state(state)
-    return geometry, flow
+    return VGGT.random(VGGTConfig.tiny(), seed=seed), UFM.random(UFMConfig.tiny(), seed=seed)
 
 
 def tiny_guidance_config(**changes: Any):
@@ -215,3 +209,349 @@ TINY_CALL_KWARGS = dict(
     num_inference_steps=4,
     max_sequence_length=TINY_MAX_SEQUENCE_LENGTH,
 )
+
+
+# ---- tiny pipelines of the other families (for the pipeline hooks) -----------------------------
+#
+# Every builder returns a stock diffusers pipeline (not a GeCo subclass) with all parts randomly
+# initialised from ``seed``, eval mode, progress bar off. Call them with
+# ``pipe(prompt, generator=..., **tiny_call_kwargs(pipe))``: 17 frames of 32x48 pixels, 4 steps.
+
+
+def _tiny_t5(tokenizer, d_model: int = 16):
+    from transformers import T5Config, T5EncoderModel
+
+    return T5EncoderModel(
+        T5Config(
+            vocab_size=len(tokenizer),
+            d_model=d_model,
+            d_kv=8,
+            d_ff=32,
+            num_layers=1,
+            num_heads=2,
+            relative_attention_num_buckets=8,
+            dropout_rate=0.0,
+            pad_token_id=tokenizer.pad_token_id,
+            eos_token_id=tokenizer.eos_token_id,
+        )
+    )
+
+
+def _finish(pipe):
+    for component in pipe.components.values():
+        if isinstance(component, torch.nn.Module):
+            component.eval()
+    pipe.set_progress_bar_config(disable=True)
+    return pipe
+
+
+def tiny_cogvideox_pipeline(seed: int = 0, *, version: str = "1.0", scheduler: str = "ddim"):
+    """A stock tiny ``CogVideoXPipeline``.
+
+    ``version="1.5"`` builds the CogVideoX 1.5 layout: ``patch_size_t=2`` (so the pipeline pads
+    the 5 latent frames of a 17-frame video to 6 at the front) and no patch bias.
+    ``scheduler="dpm"`` swaps in ``CogVideoXDPMScheduler`` (the scheduler the checkpoints ship).
+    """
+    from diffusers import CogVideoXDPMScheduler, CogVideoXPipeline, CogVideoXTransformer3DModel
+
+    components = tiny_cogvideox_components(seed)
+    if version == "1.5":
+        sizes = TinySizes()
+        state = _seeded(seed + 1)
+        try:
+            components["transformer"] = CogVideoXTransformer3DModel(
+                num_attention_heads=sizes.heads,
+                attention_head_dim=sizes.head_dim,
+                in_channels=sizes.latent_channels,
+                out_channels=sizes.latent_channels,
+                time_embed_dim=8,
+                text_embed_dim=sizes.text_dim,
+                num_layers=sizes.layers,
+                sample_width=TINY_WIDTH // 8,
+                sample_height=TINY_HEIGHT // 8,
+                sample_frames=TINY_NUM_FRAMES,
+                patch_size=2,
+                patch_size_t=2,
+                patch_bias=False,
+                temporal_compression_ratio=4,
+                max_text_seq_length=TINY_MAX_SEQUENCE_LENGTH,
+                use_rotary_positional_embeddings=True,
+                use_learned_positional_embeddings=False,
+            ).eval()
+        finally:
+            torch.random.set_rng_state(state)
+    elif version != "1.0":
+        raise ValueError(f"version must be '1.0' or '1.5', got {version!r}")
+    if scheduler == "dpm":
+        components["scheduler"] = CogVideoXDPMScheduler.from_config(components["scheduler"].config)
+    elif scheduler != "ddim":
+        raise ValueError(f"scheduler must be 'ddim' or 'dpm', got {scheduler!r}")
+    return _finish(CogVideoXPipeline(**components))
+
+
+def tiny_cogvideox_i2v_pipeline(seed: int = 0):
+    """A stock tiny ``CogVideoXImageToVideoPipeline`` (the transformer sees latents + image latents)."""
+    from diffusers import CogVideoXImageToVideoPipeline, CogVideoXTransformer3DModel
+
+    components = tiny_cogvideox_components(seed)
+    sizes = TinySizes()
+    state = _seeded(seed + 2)
+    try:
+        components["transformer"] = CogVideoXTransformer3DModel(
+            num_attention_heads=sizes.heads,
+            attention_head_dim=sizes.head_dim,
+            in_channels=2 * sizes.latent_channels,
+            out_channels=sizes.latent_channels,
+            time_embed_dim=8,
+            text_embed_dim=sizes.text_dim,
+            num_layers=sizes.layers,
+            sample_width=TINY_WIDTH // 8,
+            sample_height=TINY_HEIGHT // 8,
+            sample_frames=TINY_NUM_FRAMES,
+            patch_size=2,
+            temporal_compression_ratio=4,
+            max_text_seq_length=TINY_MAX_SEQUENCE_LENGTH,
+            use_rotary_positional_embeddings=True,
+            use_learned_positional_embeddings=False,
+        ).eval()
+    finally:
+        torch.random.set_rng_state(state)
+    return _finish(CogVideoXImageToVideoPipeline(**components))
+
+
+def tiny_image(seed: int = 0, height: int = TINY_HEIGHT, width: int = TINY_WIDTH):
+    """A seeded random RGB ``PIL.Image`` (the conditioning image of the image-to-video pipelines)."""
+    import numpy as np
+    from PIL import Image
+
+    rng = np.random.default_rng(seed)
+    return Image.fromarray(rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8))
+
+
+def tiny_wan_pipeline(seed: int = 0, *, scheduler: str = "unipc"):
+    """A stock tiny ``WanPipeline`` (Wan 2.1 layout): UMT5 text encoder, ``AutoencoderKLWan`` with
+    per-channel ``latents_mean/std`` (r=4, 8x spatial), ``WanTransformer3DModel``.
+
+    ``scheduler="unipc"`` (default, as the Wan 2.1 diffusers checkpoints: UniPC multistep with flow
+    sigmas, a corrector that reads ``last_sample``) or ``"euler"`` (``FlowMatchEulerDiscreteScheduler``).
+    """
+    from diffusers import (
+        AutoencoderKLWan,
+        FlowMatchEulerDiscreteScheduler,
+        UniPCMultistepScheduler,
+        WanPipeline,
+        WanTransformer3DModel,
+    )
+    from transformers import UMT5Config, UMT5EncoderModel
+
+    tokenizer = tiny_tokenizer()
+    z_dim = 4
+    state = _seeded(seed)
+    try:
+        text_encoder = UMT5EncoderModel(
+            UMT5Config(
+                vocab_size=len(tokenizer),
+                d_model=16,
+                d_kv=8,
+                d_ff=32,
+                num_layers=1,
+                num_heads=2,
+                relative_attention_num_buckets=8,
+                dropout_rate=0.0,
+                pad_token_id=tokenizer.pad_token_id,
+                eos_token_id=tokenizer.eos_token_id,
+            )
+        )
+        vae = AutoencoderKLWan(
+            base_dim=8,
+            z_dim=z_dim,
+            dim_mult=[1, 1, 1, 1],
+            num_res_blocks=1,
+            temperal_downsample=[False, True, True],
+            latents_mean=[0.1, -0.2, 0.3, -0.1],
+            latents_std=[1.5, 0.8, 1.2, 2.0],
+        )
+        transformer = WanTransformer3DModel(
+            patch_size=(1, 2, 2),
+            num_attention_heads=2,
+            attention_head_dim=12,
+            in_channels=z_dim,
+            out_channels=z_dim,
+            text_dim=16,
+            freq_dim=32,
+            ffn_dim=32,
+            num_layers=1,
+            cross_attn_norm=True,
+            qk_norm="rms_norm_across_heads",
+            rope_max_seq_len=32,
+        )
+    finally:
+        torch.random.set_rng_state(state)
+    if scheduler == "unipc":
+        sched = UniPCMultistepScheduler(
+            prediction_type="flow_prediction", use_flow_sigmas=True, num_train_timesteps=1000, flow_shift=3.0
+        )
+    elif scheduler == "euler":
+        sched = FlowMatchEulerDiscreteScheduler(shift=3.0)
+    else:
+        raise ValueError(f"scheduler must be 'unipc' or 'euler', got {scheduler!r}")
+    pipe = WanPipeline(tokenizer=tokenizer, text_encoder=text_encoder, vae=vae, transformer=transformer, scheduler=sched)
+    return _finish(pipe)
+
+
+def tiny_ltx_pipeline(seed: int = 0):
+    """A stock tiny ``LTXPipeline``: packed latent tokens, ``AutoencoderKLLTXVideo`` with 8x temporal
+    and 8x spatial compression (as LTX-Video's 8 x 32 x 32, scaled down), per-channel latent
+    mean/std, a non-causal decoder, and the LTX-Video scheduler settings (dynamic shifting)."""
+    from diffusers import AutoencoderKLLTXVideo, FlowMatchEulerDiscreteScheduler, LTXPipeline, LTXVideoTransformer3DModel
+
+    tokenizer = tiny_tokenizer()
+    channels = 8
+    state = _seeded(seed)
+    try:
+        text_encoder = _tiny_t5(tokenizer)
+        vae = AutoencoderKLLTXVideo(
+            latent_channels=channels,
+            block_out_channels=(8, 8, 8, 8),
+            decoder_block_out_channels=(8, 8, 8, 8),
+            layers_per_block=(1, 1, 1, 1, 1),
+            decoder_layers_per_block=(1, 1, 1, 1, 1),
+            spatio_temporal_scaling=(True, True, True, False),
+            decoder_spatio_temporal_scaling=(True, True, True, False),
+            patch_size=1,
+            patch_size_t=1,
+            encoder_causal=True,
+            decoder_causal=False,
+        )
+        vae.use_framewise_encoding = False
+        vae.use_framewise_decoding = False
+        # non-trivial latent statistics, so that the de-normalisation before decoding matters
+        vae.latents_mean.copy_(torch.linspace(-0.2, 0.2, channels))
+        vae.latents_std.copy_(torch.linspace(0.8, 1.5, channels))
+        transformer = LTXVideoTransformer3DModel(
+            in_channels=channels,
+            out_channels=channels,
+            patch_size=1,
+            patch_size_t=1,
+            num_attention_heads=2,
+            attention_head_dim=8,
+            cross_attention_dim=16,
+            num_layers=1,
+            caption_channels=16,
+        )
+    finally:
+        torch.random.set_rng_state(state)
+    scheduler = FlowMatchEulerDiscreteScheduler(
+        base_image_seq_len=1024,
+        base_shift=0.95,
+        max_image_seq_len=4096,
+        max_shift=2.05,
+        shift_terminal=0.1,
+        use_dynamic_shifting=True,
+    )
+    pipe = LTXPipeline(scheduler=scheduler, vae=vae, text_encoder=text_encoder, tokenizer=tokenizer, transformer=transformer)
+    return _finish(pipe)
+
+
+def tiny_hunyuan_pipeline(seed: int = 0):
+    """A stock tiny ``HunyuanVideoPipeline``: a tiny Llama (hidden states) + CLIP text encoder pair,
+    ``AutoencoderKLHunyuanVideo`` (r=4, 8x spatial), ``HunyuanVideoTransformer3DModel`` with the
+    distilled guidance embedding, and the flow-matching Euler scheduler (shift 7)."""
+    from diffusers import (
+        AutoencoderKLHunyuanVideo,
+        FlowMatchEulerDiscreteScheduler,
+        HunyuanVideoPipeline,
+        HunyuanVideoTransformer3DModel,
+    )
+    from transformers import CLIPTextConfig, CLIPTextModel, LlamaConfig, LlamaModel
+
+    tokenizer = tiny_tokenizer(max_length=128)
+    tokenizer_2 = tiny_tokenizer(max_length=77)
+    state = _seeded(seed)
+    try:
+        text_encoder = LlamaModel(
+            LlamaConfig(
+                vocab_size=len(tokenizer),
+                hidden_size=16,
+                intermediate_size=32,
+                num_attention_heads=2,
+                num_key_value_heads=2,
+                num_hidden_layers=3,
+                max_position_embeddings=256,
+                pad_token_id=tokenizer.pad_token_id,
+                bos_token_id=tokenizer.eos_token_id,
+                eos_token_id=tokenizer.eos_token_id,
+            )
+        )
+        text_encoder_2 = CLIPTextModel(
+            CLIPTextConfig(
+                vocab_size=len(tokenizer_2),
+                hidden_size=8,
+                intermediate_size=16,
+                num_attention_heads=2,
+                num_hidden_layers=1,
+                max_position_embeddings=77,
+                projection_dim=8,
+                pad_token_id=tokenizer_2.pad_token_id,
+                bos_token_id=tokenizer_2.eos_token_id,
+                eos_token_id=tokenizer_2.eos_token_id,
+            )
+        )
+        vae = AutoencoderKLHunyuanVideo(
+            latent_channels=4,
+            block_out_channels=(8, 8, 8, 8),
+            layers_per_block=1,
+            norm_num_groups=4,
+            spatial_compression_ratio=8,
+            temporal_compression_ratio=4,
+            mid_block_add_attention=True,
+        )
+        transformer = HunyuanVideoTransformer3DModel(
+            in_channels=4,
+            out_channels=4,
+            num_attention_heads=2,
+            attention_head_dim=10,
+            num_layers=1,
+            num_single_layers=1,
+            num_refiner_layers=1,
+            patch_size=1,
+            patch_size_t=1,
+            guidance_embeds=True,
+            text_embed_dim=16,
+            pooled_projection_dim=8,
+            rope_axes_dim=(2, 4, 4),
+        )
+    finally:
+        torch.random.set_rng_state(state)
+    pipe = HunyuanVideoPipeline(
+        text_encoder=text_encoder,
+        tokenizer=tokenizer,
+        transformer=transformer,
+        vae=vae,
+        scheduler=FlowMatchEulerDiscreteScheduler(shift=7.0),
+        text_encoder_2=text_encoder_2,
+        tokenizer_2=tokenizer_2,
+    )
+    return _finish(pipe)
+
+
+def tiny_call_kwargs(pipe, **changes: Any) -> dict[str, Any]:
+    """Call arguments that fit the tiny pipelines: 17 frames of 32x48, 4 steps, short prompts
+    (32x64 for LTX, which wants multiples of 32; plus the conditioning image for image-to-video, and
+    the bare ``"{}"`` prompt template for Hunyuan)."""
+    kwargs: dict[str, Any] = dict(
+        num_frames=TINY_NUM_FRAMES,
+        height=TINY_HEIGHT,
+        width=TINY_WIDTH,
+        num_inference_steps=4,
+        max_sequence_length=TINY_MAX_SEQUENCE_LENGTH,
+    )
+    name = type(pipe).__name__
+    if "ImageToVideo" in name:
+        kwargs["image"] = tiny_image(0)
+    if name.startswith("HunyuanVideo"):
+        kwargs["prompt_template"] = {"template": "{}", "crop_start": 0}
+    if name.startswith("LTX"):
+        kwargs["width"] = 64  # LTXPipeline wants multiples of 32
+    kwargs.update(changes)
+    return kwargs

@@ -19,7 +19,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,6 +26,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from .files import atomic_path
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".gif")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -69,12 +70,6 @@ def _to_uint8_hwc(frames) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def write_video(path: str | os.PathLike, frames, fps: float = 8) -> Path:
     """Write ``frames`` (``[S, 3, H, W]`` or ``[S, H, W, 3]``, float in [0, 1] or uint8) as an
     H.264 mp4 (yuv420p; an odd height/width is padded by one repeated row/column), atomically.
@@ -85,10 +80,7 @@ def write_video(path: str | os.PathLike, frames, fps: float = 8) -> Path:
         raise ValueError(f"fps must be > 0, got {fps}")
     path = Path(path)
     data = _to_uint8_hwc(frames)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix or ".mp4", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         writer = imageio.get_writer(
             tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
             macro_block_size=1, quality=8, ffmpeg_log_level="error",
@@ -98,12 +90,6 @@ def write_video(path: str | os.PathLike, frames, fps: float = 8) -> Path:
                 writer.append_data(frame)
         finally:
             writer.close()
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600 files
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

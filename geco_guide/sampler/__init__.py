@@ -1,9 +1,13 @@
 """Everything that knows about diffusion: anchor slicing, the guidance schedule, the
-model-agnostic guided step and the CogVideoX pipeline (imported lazily: it pulls in diffusers)."""
+model-agnostic guided step, the CogVideoX pipeline and the hooks that guide other diffusers video
+pipelines (both imported lazily: they pull in diffusers)."""
 
 from .guidance import (
+    FlowLevels,
     GuidanceConfig,
     GuidanceRecord,
+    NoiseLevels,
+    VPLevels,
     ddim_step,
     guided_step,
     normalized_update,
@@ -15,8 +19,24 @@ from .guidance import (
 from .schedule import GuidanceSchedule, paper_schedule, parse_repeats
 from .slicing import AnchorChunk, anchor_latent_chunks, check_num_frames, decode_anchor_frames
 
+_LAZY = {
+    "GeCoCogVideoXPipeline": "pipeline_cogvideox",
+    "GeCoCogVideoXPipelineOutput": "pipeline_cogvideox",
+    "attach_geco_guidance": "hooks",
+    "GeCoGuidanceHandle": "hooks",
+    "PipelineAdapter": "adapters",
+    "register_adapter": "adapters",
+}
+
 __all__ = [
     "AnchorChunk",
+    "FlowLevels",
+    "GeCoGuidanceHandle",
+    "NoiseLevels",
+    "PipelineAdapter",
+    "VPLevels",
+    "attach_geco_guidance",
+    "register_adapter",
     "GeCoCogVideoXPipeline",
     "GeCoCogVideoXPipelineOutput",
     "GuidanceConfig",
@@ -38,8 +58,8 @@ __all__ = [
 
 
 def __getattr__(name: str):
-    if name in ("GeCoCogVideoXPipeline", "GeCoCogVideoXPipelineOutput"):
-        from . import pipeline_cogvideox
+    if name in _LAZY:
+        from importlib import import_module
 
-        return getattr(pipeline_cogvideox, name)
+        return getattr(import_module(f"{__name__}.{_LAZY[name]}"), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -3,28 +3,41 @@
 One denoising step ``t -> t_prev`` with GeCo guidance, for any latent video model:
 
     for r in range(R_t):
-        x0 = predict_x0(z_t)                        # through the denoiser, or with v held constant
+        x0 = predict_x0(z_t)                        # through the denoiser, or with its output held constant
         L  = loss(decode_anchors(x0))               # frozen VAE on short causal chunks, GeCo loss
         g  = dL/dz_t
         z_t <- z_t - eta * g / (||g|| + eps)        # fp32, norm per video
         (time travel: z_t <- renoise(DDIM(z_t, x0) - eta * g / (||g|| + eps)) back to t)
     x0 = predict_x0(z_t) without gradients          # the last, gradient-free prediction
-    z_prev = A z_t + B x0                           # deterministic DDIM
+    z_prev = DDIM(z_t, x0)                          # deterministic; optional (the hooks let the
+                                                    # pipeline's own scheduler take the step)
 
 The model only enters through three callables (``predict_x0``, ``decode_anchors``, ``loss_fn``)
-and two noise levels ``alpha_t``, ``alpha_prev`` (cumulative alphas taken from the scheduler's
-timestep table, never from arithmetic on ``t``). This module imports torch only.
+and the two noise levels of the step, :class:`NoiseLevels`. Both supported parametrisations
+write a noisy latent as ``z = a x0 + b eps``:
+
+- variance preserving (CogVideoX, v-prediction): ``a = sqrt(alpha_bar)``, ``b = sqrt(1 - alpha_bar)``,
+  cumulative alphas taken from the scheduler's table at its timestep entries (:class:`VPLevels`);
+- rectified flow (Wan, HunyuanVideo, LTX-Video): ``a = 1 - sigma``, ``b = sigma``, the model
+  predicts ``v = eps - x0`` so ``x0 = z - sigma v`` (:class:`FlowLevels`).
+
+"DDIM" is the deterministic step that keeps the implied noise ``eps = (z - a_t x0) / b_t``:
+``z_prev = a_prev x0 + b_prev eps`` (for rectified flow this is exactly the Euler step
+``z + (sigma_prev - sigma_t) v``). Time travel re-noises with the forward transition of the
+process from the ``prev`` level back to ``t``: ``z_t = (a_t / a_prev) z_prev + sqrt(b_t^2 -
+(a_t b_prev / a_prev)^2) n``. This module imports torch only.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from typing import Any, Optional
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from ..loss.geco import GeCoLossConfig
 from .schedule import PAPER_ETA, PAPER_REPEATS, PAPER_TIME_TRAVEL, GuidanceSchedule
@@ -161,6 +174,108 @@ def normalized_update(z: Tensor, grad: Tensor, eta: float, eps: float = 1e-8) ->
     return z.float() - eta * grad / (norm + eps), norm.flatten()
 
 
+def flow_to_x0(z: Tensor, v: Tensor, sigma_t: Tensor | float) -> Tensor:
+    """Clean-sample estimate of rectified flow (``z = (1-s) x0 + s eps``, ``v = eps - x0``): ``x0 = z - s v``."""
+    return z - sigma_t * v
+
+
+def flow_step(z: Tensor, x0: Tensor, sigma_t: Tensor | float, sigma_prev: Tensor | float) -> Tensor:
+    """Deterministic flow step to ``sigma_prev`` with the velocity implied by ``x0``: the Euler step
+    ``z + (s_prev - s_t) (z - x0) / s_t`` (identical to DDIM in the flow parametrisation)."""
+    return z + (sigma_prev - sigma_t) * ((z - x0) / sigma_t)
+
+
+def flow_renoise(z_prev: Tensor, sigma_t: Tensor | float, sigma_prev: Tensor | float, noise: Tensor) -> Tensor:
+    """Forward transition of rectified flow from ``sigma_prev`` back to ``sigma_t >= sigma_prev``.
+
+    With ``z_prev = (1-s_p) x0 + s_p e1``: ``a = (1-s_t)/(1-s_p)`` gives ``a z_prev = (1-s_t) x0 +
+    a s_p e1``, and independent noise of std ``sqrt(s_t^2 - (a s_p)^2)`` completes ``s_t eps``.
+    """
+    sigma_t = torch.as_tensor(sigma_t, dtype=torch.float64)
+    sigma_prev = torch.as_tensor(sigma_prev, dtype=torch.float64)
+    a = (1 - sigma_t) / (1 - sigma_prev)
+    std = (sigma_t**2 - (a * sigma_prev) ** 2).clamp_min(0) ** 0.5
+    return float(a) * z_prev + float(std) * noise
+
+
+class NoiseLevels:
+    """The two noise levels of one step and the arithmetic ``guided_step`` needs between them."""
+
+    def to_x0(self, z: Tensor, out: Tensor) -> Tensor:  # pragma: no cover - interface
+        """Clean estimate from the latents and the (CFG-combined) model output."""
+        raise NotImplementedError
+
+    def step(self, z: Tensor, x0: Tensor) -> Tensor:  # pragma: no cover - interface
+        """Deterministic DDIM step to the ``prev`` level."""
+        raise NotImplementedError
+
+    def renoise(self, z_prev: Tensor, noise: Tensor) -> Tensor:  # pragma: no cover - interface
+        """Forward-diffuse from the ``prev`` level back to ``t``."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class VPLevels(NoiseLevels):
+    """Variance-preserving v-prediction (CogVideoX): cumulative alphas of this and the next table entry."""
+
+    alpha_t: Any
+    alpha_prev: Any
+
+    def to_x0(self, z: Tensor, out: Tensor) -> Tensor:
+        return v_to_x0(z, out, self.alpha_t)
+
+    def step(self, z: Tensor, x0: Tensor) -> Tensor:
+        return ddim_step(z, x0, self.alpha_t, self.alpha_prev)
+
+    def renoise(self, z_prev: Tensor, noise: Tensor) -> Tensor:
+        return renoise(z_prev, self.alpha_t, self.alpha_prev, noise)
+
+
+@dataclass(frozen=True)
+class FlowLevels(NoiseLevels):
+    """Rectified flow with velocity prediction (Wan, HunyuanVideo, LTX-Video): ``sigma`` of this and
+    the next entry of the scheduler's ``sigmas`` (the last entry is the final ``sigma``, usually 0)."""
+
+    sigma_t: Any
+    sigma_prev: Any
+
+    def to_x0(self, z: Tensor, out: Tensor) -> Tensor:
+        return flow_to_x0(z, out, self.sigma_t)
+
+    def step(self, z: Tensor, x0: Tensor) -> Tensor:
+        return flow_step(z, x0, self.sigma_t, self.sigma_prev)
+
+    def renoise(self, z_prev: Tensor, noise: Tensor) -> Tensor:
+        return flow_renoise(z_prev, self.sigma_t, self.sigma_prev, noise)
+
+
+@contextlib.contextmanager
+def frozen(*modules: Any):
+    """Disable ``requires_grad`` of every parameter of the given modules; restore on exit."""
+    params = [p for m in modules if isinstance(m, nn.Module) for p in m.parameters()]
+    flags = [p.requires_grad for p in params]
+    try:
+        for p in params:
+            p.requires_grad_(False)
+        yield
+    finally:
+        for p, flag in zip(params, flags):
+            p.requires_grad_(flag)
+
+
+@contextlib.contextmanager
+def gradient_checkpointing(model: Any, enable: bool):
+    """Turn on the model's diffusers gradient checkpointing for the duration; restore on exit."""
+    if not enable or not getattr(model, "_supports_gradient_checkpointing", False) or model.is_gradient_checkpointing:
+        yield
+        return
+    model.enable_gradient_checkpointing()
+    try:
+        yield
+    finally:
+        model.disable_gradient_checkpointing()
+
+
 # --------------------------------------------------------------------------------------------
 
 
@@ -196,8 +311,9 @@ def guided_step(
     predict_x0: Callable[[Tensor, bool], Tensor],
     decode_anchors: Callable[[Tensor], Tensor],
     loss_fn: Callable[[Tensor], Any],
-    alpha_t: Tensor | float,
-    alpha_prev: Tensor | float,
+    alpha_t: Tensor | float | None = None,
+    alpha_prev: Tensor | float | None = None,
+    levels: NoiseLevels | None = None,
     repeats: int = 0,
     eta: float = PAPER_ETA,
     time_travel: bool = False,
@@ -207,6 +323,7 @@ def guided_step(
     step: int = 0,
     t: int = 0,
     on_record: Callable[[GuidanceRecord], None] | None = None,
+    take_step: bool = True,
 ) -> tuple[Tensor, Tensor, list[GuidanceRecord]]:
     """One denoising step with ``repeats`` GeCo updates of ``z`` (see the module docstring).
 
@@ -219,7 +336,9 @@ def guided_step(
         decode_anchors: ``x0 -> frames [B, S, 3, H, W]`` in ``[0, 1]`` (differentiable).
         loss_fn: ``frames -> GeCoResult`` (``.loss``, ``.scalars()``) or a scalar tensor.
         alpha_t, alpha_prev: cumulative alphas of this step and of the next table entry
-            (the final alpha after the last step).
+            (the final alpha after the last step): shorthand for ``levels=VPLevels(alpha_t, alpha_prev)``.
+        levels: the step's :class:`NoiseLevels` (:class:`VPLevels` or :class:`FlowLevels`);
+            ``predict_x0`` must agree with it (``x0 = levels.to_x0(z, model_output)``).
         repeats: ``R_t``; 0 makes this a plain DDIM step.
         eta: normalised step size.
         time_travel: take the DDIM step with the update, then re-noise back to ``t``.
@@ -228,11 +347,17 @@ def guided_step(
         eps: of the normalised update.
         step, t: step index and timestep, for the records.
         on_record: called with each :class:`GuidanceRecord` as soon as it exists.
+        take_step: ``False`` returns the guided ``z_t`` instead of taking the final DDIM step
+            (the pipeline hooks hand it to the pipeline's own scheduler).
 
     Returns:
-        ``(z_prev, x0, records)``: the latents at the next level (fp32), the final clean
-        estimate and one record per update.
+        ``(z_prev, x0, records)``: the latents at the next level (fp32; the guided ``z_t`` when
+        ``take_step=False``), the final clean estimate and one record per update.
     """
+    if levels is None:
+        if alpha_t is None or alpha_prev is None:
+            raise ValueError("guided_step needs levels=... or alpha_t and alpha_prev")
+        levels = VPLevels(alpha_t, alpha_prev)
     z = z.detach().float()
     records: list[GuidanceRecord] = []
     for r in range(repeats):
@@ -251,8 +376,8 @@ def guided_step(
         x0 = x0.detach().float()
         z_new, norm = normalized_update(z, grad, eta, eps)
         if time_travel:
-            z_prev = ddim_step(z, x0, alpha_t, alpha_prev) + (z_new - z)
-            z = renoise(z_prev, alpha_t, alpha_prev, randn_like(z, generator))
+            z_prev = levels.step(z, x0) + (z_new - z)
+            z = levels.renoise(z_prev, randn_like(z, generator))
         else:
             z = z_new
         record = GuidanceRecord(
@@ -273,7 +398,9 @@ def guided_step(
             on_record(record)
     with torch.no_grad():
         x0 = predict_x0(z, False).float()
-        z_prev = ddim_step(z, x0, alpha_t, alpha_prev)
+        if not take_step:
+            return z, x0, records
+        z_prev = levels.step(z, x0)
     return z_prev, x0, records
 
 

@@ -31,7 +31,16 @@ from torch import Tensor, nn
 
 from ..estimators.base import FlowEstimator, GeometryEstimator
 from ..loss.geco import GeCoLoss
-from .guidance import GuidanceConfig, GuidanceRecord, guided_step, resolve_guidance_config, v_to_x0
+from .guidance import (
+    GuidanceConfig,
+    GuidanceRecord,
+    VPLevels,
+    frozen,
+    gradient_checkpointing,
+    guided_step,
+    resolve_guidance_config,
+    v_to_x0,
+)
 from .slicing import anchor_latent_chunks, check_num_frames, decode_anchor_frames
 
 logger = logging.get_logger(__name__)
@@ -50,33 +59,6 @@ class GeCoCogVideoXPipelineOutput(CogVideoXPipelineOutput):
 
     guidance_log: list[dict[str, Any]] | None = None
     guidance: dict[str, Any] | None = None
-
-
-@contextlib.contextmanager
-def frozen(*modules: Any):
-    """Disable ``requires_grad`` of every parameter of the given modules; restore on exit."""
-    params = [p for m in modules if isinstance(m, nn.Module) for p in m.parameters()]
-    flags = [p.requires_grad for p in params]
-    try:
-        for p in params:
-            p.requires_grad_(False)
-        yield
-    finally:
-        for p, flag in zip(params, flags):
-            p.requires_grad_(flag)
-
-
-@contextlib.contextmanager
-def gradient_checkpointing(model: Any, enable: bool):
-    """Turn on the model's diffusers gradient checkpointing for the duration; restore on exit."""
-    if not enable or not getattr(model, "_supports_gradient_checkpointing", False) or model.is_gradient_checkpointing:
-        yield
-        return
-    model.enable_gradient_checkpointing()
-    try:
-        yield
-    finally:
-        model.disable_gradient_checkpointing()
 
 
 class GeCoCogVideoXPipeline(CogVideoXPipeline):
@@ -414,8 +396,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                     predict_x0=predict,
                     decode_anchors=decode_anchors,
                     loss_fn=loss_fn,
-                    alpha_t=alpha_t,
-                    alpha_prev=alpha_prev,
+                    levels=VPLevels(alpha_t, alpha_prev),
                     repeats=schedule.repeats_at(i) if config.enabled else 0,
                     eta=config.eta,
                     time_travel=config.enabled and schedule.time_travel_at(i),

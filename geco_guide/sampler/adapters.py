@@ -1,0 +1,374 @@
+"""Per-family knowledge GeCo guidance needs to steer a stock diffusers video pipeline.
+
+A :class:`PipelineAdapter` knows, for one family of pipelines:
+
+- which modules are the denoisers (whose calls the hook captures and replays),
+- the frame geometry of a call (from the arguments of ``pipe.prepare_latents``): frames of the
+  output video, latent frames, front padding, latent height/width,
+- how the latents the scheduler steps are laid out, and how to bring a clean estimate to the
+  frames-first layout ``[B, F, C, h, w]`` that :mod:`.slicing` cuts into causal chunks,
+- how to de-normalise and decode such a chunk into frames ``[B, T, 3, H, W]`` in ``[0, 1]``,
+- how the denoiser outputs of one step combine into the model output the scheduler gets
+  (default: a linear combination fitted to the captured outputs, which covers CFG in one
+  batched call, CFG in two calls, dynamic CFG and no CFG; LTX adds ``guidance_rescale``).
+
+The noise parametrisation is a property of the scheduler, not the family: see
+:func:`noise_levels` (v-prediction DDIM/DPM tables for CogVideoX, flow-matching ``sigmas`` for
+Wan, HunyuanVideo and LTX-Video), and :func:`keep_update` for multistep schedulers whose history
+would otherwise discard a change of the sample (UniPC's corrector).
+
+New families: subclass :class:`PipelineAdapter` and ``register_adapter(PipelineClass, adapter)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from .guidance import FlowLevels, NoiseLevels, VPLevels
+from .slicing import decode_chunk
+
+
+@dataclass(frozen=True)
+class CallGeometry:
+    """Frame geometry of one pipeline call.
+
+    Attributes:
+        num_frames: frames of the decoded output video (what anchors index).
+        num_latents: latent frames that decode to it (without padding).
+        pad: latent frames the pipeline adds in front (CogVideoX 1.5) and drops before decoding.
+        latent_height, latent_width: spatial size of the latents (before any transformer patching).
+        temporal_compression: the VAE's ``r``.
+    """
+
+    num_frames: int
+    num_latents: int
+    pad: int
+    latent_height: int
+    latent_width: int
+    temporal_compression: int
+
+
+def _to_unit(video: Tensor) -> Tensor:
+    """``[B, 3, T, H, W]`` in ``[-1, 1]`` -> fp32 ``[B, T, 3, H, W]`` in ``[0, 1]``."""
+    return (video.float() / 2 + 0.5).clamp(0, 1).permute(0, 2, 1, 3, 4)
+
+
+def _module_dtype(module: nn.Module, fallback: torch.dtype) -> torch.dtype:
+    param = next(module.parameters(), None)
+    return param.dtype if param is not None else fallback
+
+
+class PipelineAdapter:
+    """Base adapter: latents ``[B, C, F, h, w]`` (channels first), no padding, plain VAE decode."""
+
+    #: shown in messages
+    name = "pipeline"
+
+    def denoisers(self, pipe) -> list[nn.Module]:
+        """The denoiser modules whose calls are captured (``transformer``, Wan 2.2's ``transformer_2``)."""
+        return [m for m in (getattr(pipe, "transformer", None), getattr(pipe, "transformer_2", None)) if m is not None]
+
+    def frozen_modules(self, pipe) -> list[Any]:
+        """Modules frozen (``requires_grad=False``) while guidance differentiates."""
+        return [*self.denoisers(pipe), pipe.vae]
+
+    def temporal_compression(self, pipe) -> int:
+        return int(pipe.vae_scale_factor_temporal)
+
+    def call_geometry(self, pipe, args: dict[str, Any], latents: Tensor) -> CallGeometry:
+        """Geometry of a call from ``prepare_latents``' bound arguments and the latents it returned."""
+        r = self.temporal_compression(pipe)
+        num_latents = latents.shape[2]
+        return CallGeometry(1 + r * (num_latents - 1), num_latents, 0, latents.shape[-2], latents.shape[-1], r)
+
+    def check(self, pipe, geometry: CallGeometry) -> None:
+        """Extra up-front checks of a call (ValueError naming the problem)."""
+
+    def frames_first(self, pipe, x0: Tensor, geometry: CallGeometry) -> Tensor:
+        """Scheduler-layout clean latents -> ``[B, F, C, h, w]`` without padding (differentiable)."""
+        return x0.permute(0, 2, 1, 3, 4)
+
+    def decode(self, pipe, latents: Tensor) -> Tensor:
+        """Decode a chunk ``[B, F', C, h, w]`` to frames ``[B, T, 3, H, W]`` in ``[0, 1]`` (differentiable)."""
+        z = self.denormalize(pipe, latents.permute(0, 2, 1, 3, 4).float())
+        return _to_unit(pipe.vae.decode(z.to(_module_dtype(pipe.vae, z.dtype))).sample)
+
+    def denormalize(self, pipe, z: Tensor) -> Tensor:
+        """Model latents ``[B, C, F, h, w]`` -> what ``vae.decode`` takes."""
+        return z / pipe.vae.config.scaling_factor
+
+    def combine(self, pipe, parts: list[Tensor], weights: Tensor) -> Tensor:
+        """The model output from the outputs of one step's denoiser calls (fp32), given the weights
+        fitted on the captured outputs (:func:`fit_combination`)."""
+        out = weights[0].item() * parts[0].float()
+        for w, p in zip(weights[1:], parts[1:]):
+            out = out + w.item() * p.float()
+        return out
+
+
+class CogVideoXAdapter(PipelineAdapter):
+    """``CogVideoXPipeline`` and ``CogVideoXImageToVideoPipeline`` (1.0 and 1.5).
+
+    Latents ``[B, F, C, h, w]``, v-prediction on a VP schedule. CogVideoX 1.5 (``patch_size_t=2``)
+    pads the latent frames at the front to a multiple of ``patch_size_t`` and drops the padding
+    before decoding. The pipeline does not expose the unpadded count, so the adapter takes the
+    odd count below the padded one: the only kind the CogVideoX VAE decodes into ``4k+1`` frames
+    (and the only kind guidance accepts, as ``GeCoCogVideoXPipeline``). The image-to-video
+    variant concatenates image latents to the denoiser input along channels; the hook replaces
+    only the latent channels.
+    """
+
+    name = "CogVideoX"
+
+    def frozen_modules(self, pipe):
+        return [pipe.transformer, pipe.vae]
+
+    def call_geometry(self, pipe, args, latents):
+        r = self.temporal_compression(pipe)
+        padded = latents.shape[1]
+        patch_t = pipe.transformer.config.patch_size_t
+        pad = 0
+        if patch_t is not None and patch_t > 1:
+            pad = next(p for p in range(patch_t) if (padded - p) % 2 == 1) if padded > 1 else 0
+        num_latents = padded - pad
+        return CallGeometry(1 + r * (num_latents - 1), num_latents, pad, latents.shape[-2], latents.shape[-1], r)
+
+    def check(self, pipe, geometry):
+        if geometry.num_latents % 2 == 0 and getattr(pipe.vae, "num_latent_frames_batch_size", None) == 2:
+            r = geometry.temporal_compression
+            raise ValueError(
+                f"{geometry.num_latents} latent frames: the CogVideoX VAE cannot make a 4k+1-frame video from an even "
+                f"number of latents (it decodes them to {r * geometry.num_latents} frames). "
+                f"Use {2 * r}k+1 frames, e.g. 49."
+            )
+
+    def frames_first(self, pipe, x0, geometry):
+        return x0[:, geometry.pad :]
+
+    def decode(self, pipe, latents):
+        # as CogVideoXPipeline.decode_latents: divide by the scaling factor, decode (also for
+        # the 1.5 I2V models with invert_scale_latents, whose decode path is the same)
+        return decode_chunk(pipe.vae, latents, pipe.vae_scaling_factor_image)
+
+
+class WanAdapter(PipelineAdapter):
+    """``WanPipeline``: latents ``[B, C, F, h, w]``, flow matching, CFG as two calls, per-channel
+    ``latents_mean/std`` (decode input ``z * std + mean``); Wan 2.2's ``transformer_2`` is hooked too."""
+
+    name = "Wan"
+
+    def denormalize(self, pipe, z):
+        cfg = pipe.vae.config
+        mean = torch.tensor(cfg.latents_mean, dtype=z.dtype, device=z.device).view(1, -1, 1, 1, 1)
+        std = torch.tensor(cfg.latents_std, dtype=z.dtype, device=z.device).view(1, -1, 1, 1, 1)
+        return z * std + mean
+
+
+class HunyuanVideoAdapter(PipelineAdapter):
+    """``HunyuanVideoPipeline``: latents ``[B, C, F, h, w]``, flow matching, the distilled guidance
+    embedding in one call (true CFG, when on, as a second call); decode input ``z / scaling_factor``."""
+
+    name = "HunyuanVideo"
+
+
+class LTXAdapter(PipelineAdapter):
+    """``LTXPipeline``: packed latent tokens ``[B, S, C]``, flow matching with dynamic shifting,
+    per-channel ``latents_mean/std``; the VAE has ``r = 8`` and a non-causal decoder (the anchor's
+    chunk still ends at its latent). For a timestep-conditioned VAE the chunk is decoded at
+    timestep 0 without decode noise (deterministic). CFG in one batched call, with
+    ``guidance_rescale`` applied as the pipeline does."""
+
+    name = "LTX-Video"
+
+    def temporal_compression(self, pipe):
+        return int(pipe.vae_temporal_compression_ratio)
+
+    def call_geometry(self, pipe, args, latents):
+        r = self.temporal_compression(pipe)
+        num_latents = (int(args["num_frames"]) - 1) // r + 1
+        s = pipe.vae_spatial_compression_ratio
+        height, width = int(args["height"]) // s, int(args["width"]) // s
+        return CallGeometry(1 + r * (num_latents - 1), num_latents, 0, height, width, r)
+
+    def frames_first(self, pipe, x0, geometry):
+        z = pipe._unpack_latents(
+            x0,
+            geometry.num_latents,
+            geometry.latent_height,
+            geometry.latent_width,
+            pipe.transformer_spatial_patch_size,
+            pipe.transformer_temporal_patch_size,
+        )  # [B, C, F, h, w]
+        return z.permute(0, 2, 1, 3, 4)
+
+    def denormalize(self, pipe, z):
+        return pipe._denormalize_latents(z, pipe.vae.latents_mean, pipe.vae.latents_std, pipe.vae.config.scaling_factor)
+
+    def decode(self, pipe, latents):
+        z = self.denormalize(pipe, latents.permute(0, 2, 1, 3, 4).float())
+        z = z.to(_module_dtype(pipe.vae, z.dtype))
+        temb = None
+        if pipe.vae.config.timestep_conditioning:  # decode timestep 0, no decode noise
+            temb = torch.zeros(z.shape[0], device=z.device, dtype=z.dtype)
+        return _to_unit(pipe.vae.decode(z, temb).sample)
+
+    def combine(self, pipe, parts, weights):
+        rescale = float(getattr(pipe, "_guidance_rescale", 0.0) or 0.0)
+        if rescale > 0 and len(parts) == 2:  # not linear: CFG as the pipeline does, then the rescale
+            from diffusers.pipelines.ltx.pipeline_ltx import rescale_noise_cfg
+
+            uncond, text = parts[0].float(), parts[1].float()
+            out = uncond + pipe.guidance_scale * (text - uncond)
+            return rescale_noise_cfg(out, text, guidance_rescale=rescale)
+        return super().combine(pipe, parts, weights)
+
+
+def fit_combination(parts: list[Tensor], target: Tensor) -> tuple[Tensor, float]:
+    """Weights ``w`` with ``sum_k w_k parts_k ~= target`` (least squares, float64) and the relative
+    residual. CFG ``u + s (c - u)`` gives ``w = (1 - s, s)``; one call without CFG gives ``w = (1,)``."""
+    a = torch.stack([p.detach().double().flatten() for p in parts], dim=1)
+    y = target.detach().double().flatten()
+    gram = a.T @ a
+    w = torch.linalg.pinv(gram) @ (a.T @ y)
+    residual = float((a @ w - y).norm() / y.norm().clamp_min(1e-30))
+    return w.float().cpu(), residual
+
+
+# --------------------------------------------------------------------------------------------
+# schedulers
+
+
+def _scheduler_index(scheduler, timestep, counter: int) -> int:
+    timesteps = scheduler.timesteps
+    if counter < len(timesteps) and float(timesteps[counter]) == float(timestep):
+        return counter
+    matches = (timesteps.float() == float(timestep)).nonzero().flatten()
+    if len(matches) == 0:
+        raise ValueError(f"timestep {float(timestep)} is not in the scheduler's table")
+    return int(matches[0])
+
+
+def is_flow_scheduler(scheduler) -> bool:
+    from diffusers import FlowMatchEulerDiscreteScheduler
+
+    if isinstance(scheduler, FlowMatchEulerDiscreteScheduler):
+        return True
+    cfg = scheduler.config
+    return cfg.get("prediction_type") == "flow_prediction" and bool(cfg.get("use_flow_sigmas", False))
+
+
+def is_vp_vprediction_scheduler(scheduler) -> bool:
+    return hasattr(scheduler, "alphas_cumprod") and scheduler.config.get("prediction_type") == "v_prediction"
+
+
+def noise_levels(scheduler, timestep, counter: int) -> NoiseLevels:
+    """The :class:`NoiseLevels` of the step at ``timestep`` (``counter``: the step's index in the call).
+
+    Flow matching (``FlowMatchEulerDiscreteScheduler``; UniPC/DPM-Solver with ``use_flow_sigmas`` and
+    ``prediction_type="flow_prediction"``): ``sigmas[i]``, ``sigmas[i + 1]``. VP v-prediction
+    (``CogVideoXDDIMScheduler``, ``CogVideoXDPMScheduler``, ``DDIMScheduler``): cumulative alphas of
+    ``t`` and of ``t - num_train_timesteps // num_inference_steps`` (the final alpha below 0), the
+    rule those schedulers step with.
+    """
+    if is_flow_scheduler(scheduler):
+        i = _scheduler_index(scheduler, timestep, counter)
+        return FlowLevels(scheduler.sigmas[i], scheduler.sigmas[i + 1])
+    if is_vp_vprediction_scheduler(scheduler):
+        t = int(timestep)
+        prev = t - scheduler.config.num_train_timesteps // scheduler.num_inference_steps
+        alphas = scheduler.alphas_cumprod
+        alpha_prev = alphas[prev] if prev >= 0 else scheduler.final_alpha_cumprod
+        return VPLevels(alphas[t], alpha_prev)
+    raise ValueError(
+        f"GeCo guidance does not know the noise parametrisation of {type(scheduler).__name__} "
+        f"(prediction_type={scheduler.config.get('prediction_type')!r}); supported: flow matching "
+        "(FlowMatchEulerDiscreteScheduler, UniPC/DPM-Solver with use_flow_sigmas) and v-prediction DDIM/DPM"
+    )
+
+
+def check_scheduler(scheduler) -> None:
+    """ValueError unless :func:`noise_levels` supports ``scheduler``."""
+    if not (is_flow_scheduler(scheduler) or is_vp_vprediction_scheduler(scheduler)):
+        noise_levels(scheduler, 0, 0)  # raises with the message
+
+
+def keep_update(scheduler, old_sample: Tensor, new_sample: Tensor) -> None:
+    """Make a multistep scheduler's history keep a change of the sample about to be stepped.
+
+    UniPC's corrector rebuilds the current sample from ``last_sample`` (the previous step's
+    input) and the model outputs, ignoring the sample it is handed: a guided change would be
+    discarded. Its result is affine in ``last_sample`` with the coefficient ``c = sigma_t /
+    sigma_s0`` (data prediction; ``alpha_t / alpha_s0`` otherwise), so shifting ``last_sample`` by
+    ``delta / c`` makes the corrected sample move by exactly ``delta = new - old``. Other supported
+    schedulers step from the sample they are given (nothing to do).
+    """
+    from diffusers import UniPCMultistepScheduler
+
+    if not isinstance(scheduler, UniPCMultistepScheduler):
+        return
+    idx = scheduler.step_index
+    if idx is None or idx == 0 or scheduler.last_sample is None or (idx - 1) in scheduler.disable_corrector:
+        return  # no corrector at this step
+    alpha_t, sigma_t = scheduler._sigma_to_alpha_sigma_t(scheduler.sigmas[idx])
+    alpha_s0, sigma_s0 = scheduler._sigma_to_alpha_sigma_t(scheduler.sigmas[idx - 1])
+    coeff = float(sigma_t / sigma_s0) if scheduler.predict_x0 else float(alpha_t / alpha_s0)
+    last = scheduler.last_sample
+    delta = new_sample.float() - old_sample.float()
+    scheduler.last_sample = (last.float() + delta.to(last.device) / coeff).to(last.dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# registry
+
+_REGISTRY: dict[type, PipelineAdapter] = {}
+
+
+def register_adapter(pipeline_class: type, adapter: PipelineAdapter) -> None:
+    """Let :func:`~geco_guide.sampler.hooks.attach_geco_guidance` guide ``pipeline_class`` (and subclasses)."""
+    if not isinstance(adapter, PipelineAdapter):
+        raise TypeError(f"adapter must be a PipelineAdapter, got {type(adapter).__name__}")
+    _REGISTRY[pipeline_class] = adapter
+
+
+def _register_defaults() -> None:
+    import diffusers
+
+    for cls_name, adapter in (
+        ("CogVideoXPipeline", CogVideoXAdapter()),
+        ("CogVideoXImageToVideoPipeline", CogVideoXAdapter()),
+        ("WanPipeline", WanAdapter()),
+        ("LTXPipeline", LTXAdapter()),
+        ("HunyuanVideoPipeline", HunyuanVideoAdapter()),
+    ):
+        cls = getattr(diffusers, cls_name, None)
+        if cls is not None and cls not in _REGISTRY:
+            _REGISTRY[cls] = adapter
+
+
+def supported_pipelines() -> list[str]:
+    _register_defaults()
+    return [cls.__name__ for cls in _REGISTRY]
+
+
+def adapter_for(pipe) -> PipelineAdapter:
+    """The adapter of ``pipe``'s class (the most derived registered base); ValueError listing the
+    supported pipelines and how to register one otherwise."""
+    _register_defaults()
+    from .pipeline_cogvideox import GeCoCogVideoXPipeline
+
+    if isinstance(pipe, GeCoCogVideoXPipeline):
+        raise ValueError(
+            "GeCoCogVideoXPipeline guides itself: pass guidance=... to its call instead of attaching a hook"
+        )
+    for cls in type(pipe).__mro__:
+        if cls in _REGISTRY:
+            return _REGISTRY[cls]
+    raise ValueError(
+        f"GeCo guidance has no adapter for {type(pipe).__name__}. Supported: {', '.join(supported_pipelines())}. "
+        "To add one, subclass geco_guide.sampler.adapters.PipelineAdapter (latent layout, de-normalisation, "
+        "chunk decode) and call geco_guide.sampler.adapters.register_adapter(YourPipeline, YourAdapter())."
+    )

@@ -1,0 +1,436 @@
+"""Attach GeCo guidance to stock diffusers video pipelines, without copying their code.
+
+``attach_geco_guidance(pipe, config, geometry=..., flow=...)`` installs three things on the
+pipeline *instance* and returns a handle whose ``detach()`` (or the end of its ``with`` block)
+removes them again, leaving the pipeline exactly as it was:
+
+1. ``pipe.prepare_latents`` is wrapped (an instance attribute over the class method): every call
+   of the pipeline goes through it before its first denoising step. The hook reads the frame
+   geometry of the call from its arguments (and the caller's ``generator``, the source of the
+   time-travel noise), checks the anchors against the video the call will make and resets its
+   per-call state. Anchors the video cannot contain raise ValueError here, up front.
+2. Forward hooks on the denoiser(s) (``register_forward_pre_hook``/``register_forward_hook``
+   with kwargs) capture each call's arguments and output: latent model input, timestep, text
+   states, CFG batch layout. They also validate the ``R_t`` schedule against the scheduler's
+   timestep table before the first denoiser call.
+3. ``pipe.scheduler.step`` is wrapped (an instance attribute). At a step with ``R_t > 0`` the
+   wrapper runs the shared :func:`~geco_guide.sampler.guidance.guided_step` on the ``sample`` the
+   pipeline is about to step: it predicts ``x0`` from the captured model output (fast mode) or by
+   re-running the captured denoiser calls with gradients, both CFG branches (faithful mode),
+   decodes the anchor chunks, and updates ``z_t`` (time travel included). It then hands the
+   original ``step`` the guided sample and the model output re-computed there, after telling a
+   multistep scheduler's history to keep the update (:func:`.adapters.keep_update`). Steps with
+   ``R_t = 0`` call the original ``step`` untouched.
+
+The model output of a step is rebuilt from the outputs of its denoiser calls with weights fitted
+on the captured outputs (CFG in one batched call or two calls, dynamic CFG, no CFG; an adapter
+may override the combination, as LTX does for ``guidance_rescale``) and checked against the
+output the pipeline passed: an output the calls cannot reproduce fails loudly instead of guiding
+with a wrong prediction.
+
+Compared with ``GeCoCogVideoXPipeline``: the same guided step, schedule, time travel, fast and
+faithful modes, anchors and loss. Differences: the pipeline's own scheduler takes the step (for
+CogVideoX with ``CogVideoXDDIMScheduler`` that is the same DDIM step), and the latents between
+steps are whatever the pipeline keeps (stock CogVideoX rounds them to the model dtype after every
+step, which in bf16 swallows most of a guidance update: use ``GeCoCogVideoXPipeline`` there; Wan,
+HunyuanVideo and LTX keep fp32 latents). The guided sample reaches the scheduler in fp32.
+Denoiser caches (FirstBlockCache, FasterCache, ...) are not supported while guiding.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from ..estimators.base import FlowEstimator, GeometryEstimator
+from ..loss.geco import GeCoLoss
+from .adapters import (
+    CallGeometry,
+    PipelineAdapter,
+    adapter_for,
+    check_scheduler,
+    fit_combination,
+    keep_update,
+    noise_levels,
+)
+from .guidance import GuidanceConfig, frozen, gradient_checkpointing, guided_step, resolve_guidance_config
+from .schedule import GuidanceSchedule
+from .slicing import AnchorChunk, anchor_latent_chunks, decode_anchor_frames
+
+__all__ = ["GeCoGuidanceHandle", "attach_geco_guidance"]
+
+_MISSING = object()
+
+
+@dataclass
+class _Call:
+    module: nn.Module
+    args: tuple
+    kwargs: dict
+    output: Tensor
+
+
+@dataclass
+class _CallState:
+    geometry: CallGeometry
+    chunks: list[AnchorChunk] | None
+    generator: Any
+    loss_fn: Any
+    config: GuidanceConfig
+    schedule: GuidanceSchedule | None = None
+    counter: int = 0
+    calls: list[_Call] = field(default_factory=list)
+
+
+def _output_tensor(output: Any) -> Tensor:
+    if isinstance(output, Tensor):
+        return output
+    if isinstance(output, (tuple, list)):
+        return output[0]
+    return output.sample
+
+
+def _hidden_states(args: tuple, kwargs: dict) -> tuple[Tensor, str | int]:
+    if "hidden_states" in kwargs:
+        return kwargs["hidden_states"], "hidden_states"
+    if args and isinstance(args[0], Tensor):
+        return args[0], 0
+    raise ValueError("could not find the denoiser's hidden_states argument")
+
+
+class _Replay:
+    """Re-run one step's captured denoiser calls at new latents and combine them as the pipeline did."""
+
+    def __init__(self, pipe, adapter: PipelineAdapter, calls: list[_Call], sample: Tensor, model_output: Tensor):
+        if not calls:
+            raise ValueError(
+                "GeCo guidance saw no denoiser call before scheduler.step; the pipeline computes its model output "
+                "in a way this hook does not know"
+            )
+        self.pipe, self.adapter, self.batch = pipe, adapter, sample.shape[0]
+        self.items = []
+        parts: list[Tensor] = []
+        for call in calls:
+            hidden, key = _hidden_states(call.args, call.kwargs)
+            rep, dim = self._locate(hidden, sample)
+            self.items.append((call, key, hidden, rep, dim, sample.shape[dim] if dim is not None else None))
+            out = _output_tensor(call.output)
+            if out.shape[0] != hidden.shape[0] or out.shape[1:] != sample.shape[1:]:
+                raise ValueError(
+                    f"denoiser output {list(out.shape)} does not match the latents {list(sample.shape)} "
+                    f"(x {rep} CFG branches): register an adapter for this pipeline"
+                )
+            parts.extend(out.split(self.batch))
+        self.weights, _ = fit_combination(parts, model_output)
+        combined = adapter.combine(pipe, parts, self.weights)
+        residual = float((combined - model_output.float()).norm() / model_output.float().norm().clamp_min(1e-30))
+        low_precision = any(p.dtype not in (torch.float32, torch.float64) for p in parts) or model_output.dtype not in (
+            torch.float32,
+            torch.float64,
+        )
+        if residual > (3e-2 if low_precision else 1e-4):
+            raise ValueError(
+                f"GeCo guidance cannot rebuild the model output from the {len(calls)} denoiser call(s) of this step "
+                f"(relative residual {residual:.2e}): the {type(pipe).__name__} combines them in a way its adapter "
+                "does not know (e.g. a non-linear CFG rescale); register an adapter with its own combine()"
+            )
+
+    @staticmethod
+    def _locate(hidden: Tensor, sample: Tensor) -> tuple[int, int | None]:
+        batch = sample.shape[0]
+        layout = f"denoiser input {list(hidden.shape)} is not laid out like the latents {list(sample.shape)}"
+        if hidden.ndim != sample.ndim or hidden.shape[0] % batch:
+            raise ValueError(layout)
+        rep = hidden.shape[0] // batch
+        diff = [d for d in range(1, sample.ndim) if hidden.shape[d] != sample.shape[d]]
+        if len(diff) > 1 or (diff and hidden.shape[diff[0]] < sample.shape[diff[0]]):
+            raise ValueError(layout)
+        dim = diff[0] if diff else None
+        latent_part = hidden if dim is None else hidden.narrow(dim, 0, sample.shape[dim])
+        expected = sample.to(hidden.dtype)
+        expected = torch.cat([expected] * rep) if rep > 1 else expected
+        if not torch.equal(latent_part, expected.to(latent_part.device)):
+            raise ValueError(
+                "the denoiser input does not contain the latents the scheduler steps (a scaled or transformed "
+                "model input?): register an adapter for this pipeline"
+            )
+        return rep, dim
+
+    def __call__(self, z: Tensor, differentiate: bool) -> Tensor:
+        parts: list[Tensor] = []
+        with torch.set_grad_enabled(differentiate and torch.is_grad_enabled()):
+            for call, key, hidden, rep, dim, channels in self.items:
+                z_in = z.to(device=hidden.device, dtype=hidden.dtype)
+                z_in = torch.cat([z_in] * rep) if rep > 1 else z_in
+                if dim is not None:
+                    z_in = torch.cat([z_in, hidden.narrow(dim, channels, hidden.shape[dim] - channels)], dim=dim)
+                args, kwargs = list(call.args), dict(call.kwargs)
+                if key == "hidden_states":
+                    kwargs["hidden_states"] = z_in
+                else:
+                    args[key] = z_in
+                out = _output_tensor(call.module(*args, **kwargs))
+                parts.extend(out.split(self.batch))
+            return self.adapter.combine(self.pipe, parts, self.weights)
+
+
+class GeCoGuidanceHandle:
+    """GeCo guidance attached to one pipeline; see :func:`attach_geco_guidance`.
+
+    Attributes:
+        pipe: the guided pipeline.
+        adapter: its family's :class:`~geco_guide.sampler.adapters.PipelineAdapter`.
+        config: the :class:`GuidanceConfig` used by the next call (may be replaced between calls).
+        geometry_estimator, flow_estimator: the GeCo loss' estimators.
+        log: one dict per guided update of the last call (``step, repeat, t, loss, motion,
+            structure, fused, grad_norm, seconds, time_travel, skipped``).
+        geometry: the :class:`~geco_guide.sampler.adapters.CallGeometry` of the last call.
+    """
+
+    def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, geometry_estimator, flow_estimator):
+        self.pipe = pipe
+        self.adapter = adapter
+        self.config = config
+        self.geometry_estimator = geometry_estimator
+        self.flow_estimator = flow_estimator
+        self.log: list[dict[str, Any]] = []
+        self.geometry: CallGeometry | None = None
+        self._state: _CallState | None = None
+        self._replaying = False
+        self._attached = False
+        self._hook_handles: list[Any] = []
+        self._saved_prepare = _MISSING
+        self._schedulers: list[tuple[Any, Any]] = []  # (scheduler, previous instance 'step' or _MISSING)
+
+    # ------------------------------------------------------------------------------------------
+    # install / remove
+
+    @property
+    def attached(self) -> bool:
+        return self._attached
+
+    def _attach(self) -> None:
+        pipe = self.pipe
+        self._saved_prepare = pipe.__dict__.get("prepare_latents", _MISSING)
+        original_prepare = pipe.prepare_latents
+        signature = inspect.signature(original_prepare)
+
+        def prepare_latents(*args, **kwargs):
+            bound = signature.bind(*args, **kwargs)
+            bound.apply_defaults()
+            result = original_prepare(*args, **kwargs)
+            latents = result[0] if isinstance(result, tuple) else result
+            self._begin_call(dict(bound.arguments), latents)
+            return result
+
+        prepare_latents._geco_handle = self  # type: ignore[attr-defined]
+        pipe.prepare_latents = prepare_latents
+        for module in self.adapter.denoisers(pipe):
+            self._hook_handles.append(module.register_forward_pre_hook(self._pre_hook, with_kwargs=True))
+            self._hook_handles.append(module.register_forward_hook(self._post_hook, with_kwargs=True))
+        self._patch_scheduler(pipe.scheduler)
+        self._attached = True
+
+    def _patch_scheduler(self, scheduler) -> None:
+        if any(s is scheduler for s, _ in self._schedulers):
+            return
+        previous = scheduler.__dict__.get("step", _MISSING)
+        original = scheduler.step
+        signature = inspect.signature(original)
+
+        def step(*args, **kwargs):
+            return self._step(scheduler, original, signature, args, kwargs)
+
+        step._geco_handle = self  # type: ignore[attr-defined]
+        scheduler.step = step
+        self._schedulers.append((scheduler, previous))
+
+    def detach(self) -> None:
+        """Remove every hook and wrapper; the pipeline is exactly as before :func:`attach_geco_guidance`."""
+        if not self._attached:
+            return
+        for handle in self._hook_handles:
+            handle.remove()
+        self._hook_handles.clear()
+        if self._saved_prepare is _MISSING:
+            del self.pipe.__dict__["prepare_latents"]
+        else:
+            self.pipe.__dict__["prepare_latents"] = self._saved_prepare
+        for scheduler, previous in self._schedulers:
+            if previous is _MISSING:
+                del scheduler.__dict__["step"]
+            else:
+                scheduler.__dict__["step"] = previous
+        self._schedulers.clear()
+        self._state = None
+        self._attached = False
+
+    def __enter__(self) -> "GeCoGuidanceHandle":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.detach()
+
+    # ------------------------------------------------------------------------------------------
+    # per call
+
+    def _begin_call(self, args: dict[str, Any], latents: Tensor) -> None:
+        config = self.config
+        geometry = self.adapter.call_geometry(self.pipe, args, latents)
+        self.geometry = geometry
+        self.log = []
+        self._state = None
+        if not config.enabled:
+            return
+        self.adapter.check(self.pipe, geometry)
+        if not config.grad_eps > 0:
+            raise ValueError(f"guidance grad_eps must be > 0, got {config.grad_eps}")
+        chunks = anchor_latent_chunks(
+            config.anchors, geometry.num_frames, geometry.temporal_compression, config.chunk_latents
+        )
+        check_scheduler(self.pipe.scheduler)
+        loss_fn = GeCoLoss(self.geometry_estimator, self.flow_estimator, config.loss)
+        self._state = _CallState(geometry, chunks, args.get("generator"), loss_fn, config)
+
+    def _pre_hook(self, module, args, kwargs):
+        state = self._state
+        if state is None or self._replaying:
+            return None
+        if state.schedule is None:  # first denoiser call of this pipeline call
+            self._patch_scheduler(self.pipe.scheduler)
+            check_scheduler(self.pipe.scheduler)
+            state.schedule = state.config.schedule(len(self.pipe.scheduler.timesteps))
+        return None
+
+    def _post_hook(self, module, args, kwargs, output):
+        state = self._state
+        if state is None or self._replaying:
+            return None
+        state.calls.append(_Call(module, tuple(args), dict(kwargs), _output_tensor(output).detach()))
+        return None
+
+    def _step(self, scheduler, original, signature, args, kwargs):
+        state = self._state
+        if state is None or self._replaying or scheduler is not self.pipe.scheduler:
+            return original(*args, **kwargs)
+        bound = signature.bind(*args, **kwargs)
+        i = state.counter
+        state.counter += 1
+        calls, state.calls = state.calls, []
+        schedule = state.schedule
+        repeats = schedule.repeats_at(i) if schedule is not None and i < schedule.num_steps else 0
+        if repeats == 0:
+            return original(*args, **kwargs)
+        model_output = bound.arguments["model_output"]
+        sample = bound.arguments["sample"]
+        timestep = bound.arguments["timestep"]
+        new_sample, new_output = self._guide(scheduler, state, i, repeats, timestep, sample, model_output, calls)
+        keep_update(scheduler, sample, new_sample)
+        bound.arguments["model_output"] = new_output.to(model_output.dtype)
+        # fp32 (or the pipeline's fp64): a low-precision copy would round the update away
+        bound.arguments["sample"] = new_sample.double() if sample.dtype == torch.float64 else new_sample
+        return original(*bound.args, **bound.kwargs)
+
+    def _guide(self, scheduler, state: _CallState, i: int, repeats: int, timestep, sample, model_output, calls):
+        pipe, adapter, config = self.pipe, self.adapter, state.config
+        levels = noise_levels(scheduler, timestep, i)
+        replay = _Replay(pipe, adapter, calls, sample, model_output)
+        start = sample.detach().float()
+        last: dict[str, Tensor] = {}
+
+        def predict_x0(z: Tensor, differentiate: bool) -> Tensor:
+            if not differentiate and torch.equal(z, start):
+                out = model_output.float()  # the pipeline's own prediction at this very sample
+            else:
+                self._replaying = True
+                try:
+                    out = replay(z, differentiate)
+                finally:
+                    self._replaying = False
+            last["out"] = out.detach()
+            return levels.to_x0(z, out)
+
+        def decode_anchors(x0: Tensor) -> Tensor:
+            latents = adapter.frames_first(pipe, x0, state.geometry)
+            return decode_anchor_frames(None, latents, state.chunks, 1.0, decode=lambda c: adapter.decode(pipe, c))
+
+        faithful = config.denoiser_grad
+        denoisers = {id(c.module): c.module for c in calls}.values()
+        with frozen(*adapter.frozen_modules(pipe), *denoisers, self.geometry_estimator, self.flow_estimator):
+            contexts = [gradient_checkpointing(m, faithful and config.gradient_checkpointing) for m in denoisers]
+            for ctx in contexts:
+                ctx.__enter__()
+            try:
+                z, _, _ = guided_step(
+                    sample,
+                    predict_x0=predict_x0,
+                    decode_anchors=decode_anchors,
+                    loss_fn=state.loss_fn,
+                    levels=levels,
+                    repeats=repeats,
+                    eta=state.schedule.eta,
+                    time_travel=state.schedule.time_travel_at(i),
+                    denoiser_grad=faithful,
+                    generator=state.generator,
+                    eps=config.grad_eps,
+                    step=i,
+                    t=int(timestep),
+                    on_record=lambda record: self.log.append(record.to_dict()),
+                    take_step=False,
+                )
+            finally:
+                for ctx in reversed(contexts):
+                    ctx.__exit__(None, None, None)
+        return z.to(sample.device), last["out"].to(sample.device)
+
+
+def attach_geco_guidance(
+    pipe,
+    config: GuidanceConfig | Mapping[str, Any] | None = None,
+    *,
+    geometry: GeometryEstimator,
+    flow: FlowEstimator,
+) -> GeCoGuidanceHandle:
+    """Guide every following call of a stock diffusers video pipeline with GeCo.
+
+    Args:
+        pipe: a ``CogVideoXPipeline`` (1.0, or 1.5 with ``patch_size_t=2``),
+            ``CogVideoXImageToVideoPipeline``, ``WanPipeline``, ``LTXPipeline`` or
+            ``HunyuanVideoPipeline`` (or a subclass, or a class registered with
+            :func:`geco_guide.sampler.adapters.register_adapter`).
+        config: a :class:`GuidanceConfig` or a dict of fields over the default one. Its
+            ``repeats`` schedule must cover the call's ``num_inference_steps``; its anchors are
+            pixel frames of the output video.
+        geometry, flow: the GeCo loss' estimators (e.g. ``VGGT``, ``UFM``).
+
+    Returns:
+        A :class:`GeCoGuidanceHandle`; ``handle.detach()`` (or leaving ``with handle:``)
+        restores the pipeline exactly. ``handle.log`` holds the last call's guidance log.
+
+    Raises:
+        ValueError: an unsupported pipeline (naming the supported ones and how to register an
+            adapter), missing estimators, or a pipeline that already has GeCo guidance attached.
+    """
+    adapter = adapter_for(pipe)
+    config = resolve_guidance_config(None, config)
+    missing = [
+        name
+        for name, est, proto in (("geometry", geometry, GeometryEstimator), ("flow", flow, FlowEstimator))
+        if not isinstance(est, proto)
+    ]
+    if missing:
+        raise ValueError(
+            f"GeCo guidance needs the {' and '.join(missing)} estimator(s): "
+            "attach_geco_guidance(pipe, geometry=..., flow=...)"
+        )
+    current = pipe.__dict__.get("prepare_latents")
+    if getattr(current, "_geco_handle", None) is not None:
+        raise ValueError("this pipeline already has GeCo guidance attached; detach() it first")
+    handle = GeCoGuidanceHandle(pipe, adapter, config, geometry, flow)
+    handle._attach()
+    return handle

@@ -1,0 +1,727 @@
+"""A/B test of GeCo guidance on your prompts: unguided vs guided video from the same noise.
+
+    python scripts/ab_compare.py --prompts prompts.txt --seeds 0 1 2 --out ab/ --preset tiny
+    python scripts/ab_compare.py --prompts prompts.jsonl --seeds 0 --out ab/ --config my.yaml guidance.eta=2.0
+    accelerate launch scripts/ab_compare.py --prompts prompts.txt --seeds 0 1 --out ab/ --preset cogvideox-5b
+
+The prompts file holds one prompt per line, or JSON lines ``{"id": "bust", "prompt": "..."}``
+(``id`` optional; blank lines and ``#`` comments are skipped). A prompt's id (its slug when not
+given) names its output folders, so ids must be unique and filesystem-safe.
+
+For every prompt x seed ("pair"), both arms run :func:`geco_guide.generate.generate` with the same
+config and seed, so both start from the same initial noise (``torch.Generator("cpu").manual_seed
+(seed)``); the unguided arm is exactly ``python -m geco_guide.generate --no-guidance --seed S``.
+Both videos are scored by :func:`geco_guide.evaluate.evaluate_video` with the same estimators and
+the config's ``evaluation`` protocol. ``<out>/pairs/<id>-s<seed>/`` then holds ``unguided.mp4``,
+``guided.mp4`` (each with its generation sidecar ``.json``), ``side_by_side.mp4``, with
+``--maps`` the maps videos, and last ``result.json``, whose presence marks the pair complete.
+
+Every file is written atomically, so killing the run at any moment loses at most the pair in
+progress and never leaves a truncated file; a rerun skips complete pairs. Under ``accelerate
+launch`` the pairs are dealt round-robin to the processes; at the end the main process rebuilds
+``results.csv`` (one row per pair and arm), ``summary.json``, ``report.md`` and ``pareto.png`` from
+the pairs' ``result.json`` files. ``run.json`` pins the config: reusing an output folder with a
+different config is refused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import hashlib
+import io
+import json
+import os
+import re
+import shlex
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from geco_guide.config import GeCoConfig, config_to_dict, config_to_yaml, load_config
+from geco_guide.evaluate import PAPER_NAMES, evaluate_video, write_maps_video
+from geco_guide.files import write_bytes_atomic, write_json_atomic
+from geco_guide.generate import build_pipeline, generate, resolve_device, slugify, versions
+from geco_guide.loss.geco import CUES
+from geco_guide.video import read_video, side_by_side, write_video
+
+ARMS = ("unguided", "guided")
+METRICS = (*CUES, "total_motion", "mean_motion")
+UNIT_STEMS = ("unguided", "guided", "side_by_side", "unguided_maps", "guided_maps", "result")
+REPORT_STEMS = ("results", "summary", "report", "pareto", "run")
+BOOTSTRAP_RESAMPLES = 10_000
+BOOTSTRAP_SEED = 0
+CI_LEVEL = 0.95
+MAX_SEED = 2**63 - 1
+SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+MIB = 2**20
+
+
+class InputError(ValueError):
+    """A bad command-line input, reported as one line before any model is loaded."""
+
+
+# ----------------------------------------------------------------------------------------------
+# inputs: prompts, seeds, pairs
+
+
+@dataclass(frozen=True)
+class Prompt:
+    id: str
+    text: str
+
+
+@dataclass(frozen=True)
+class Pair:
+    """One prompt x seed: the unit of work, of resuming and of sharding."""
+
+    prompt: Prompt
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.prompt.id}-s{self.seed}"
+
+
+def _parse_prompt_line(line: str, where: str) -> Prompt:
+    """One non-empty line: plain text, or a JSON object with ``prompt`` and optional ``id``."""
+    if not line.startswith("{"):
+        return Prompt(slugify(line), line)
+    try:
+        item = json.loads(line)
+    except json.JSONDecodeError as err:
+        raise InputError(f"{where}: not valid JSON ({err.msg})") from None
+    text = item.get("prompt") if isinstance(item, dict) else None
+    if not isinstance(text, str) or not text.strip():
+        raise InputError(f"{where}: a JSON line needs a non-empty string 'prompt'")
+    if item.get("id") is None:
+        return Prompt(slugify(text), text.strip())
+    prompt_id = str(item["id"])
+    if not SAFE_ID.fullmatch(prompt_id):
+        raise InputError(
+            f"{where}: id {prompt_id!r} is not filesystem-safe (1-64 letters, digits, '.', '_', '-', "
+            f"not starting with '.', '_' or '-'), e.g. {slugify(prompt_id)!r}"
+        )
+    return Prompt(prompt_id, text.strip())
+
+
+def read_prompts(path: str | os.PathLike) -> list[Prompt]:
+    """The prompts of a file; InputError naming the file and line for anything wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"prompts file {str(path)!r} does not exist")
+    prompts: list[Prompt] = []
+    first_line: dict[str, int] = {}
+    for number, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        prompt = _parse_prompt_line(line, f"{path}:{number}")
+        if prompt.id in first_line:
+            raise InputError(
+                f"{path}:{number}: prompt id {prompt.id!r} already used on line {first_line[prompt.id]}; "
+                'give distinct ids with JSON lines {"id": ..., "prompt": ...}'
+            )
+        first_line[prompt.id] = number
+        prompts.append(prompt)
+    if not prompts:
+        raise InputError(f"prompts file {str(path)!r} holds no prompts")
+    return prompts
+
+
+def parse_seeds(values: Sequence[str]) -> list[int]:
+    """Distinct integer seeds in ``[0, 2**63)``, in the given order."""
+    seeds = []
+    for value in values:
+        try:
+            seed = int(value)
+        except ValueError:
+            hint = " (put key=value overrides before --seeds, or after another option)" if "=" in value else ""
+            raise InputError(f"--seeds takes integers, got {value!r}{hint}") from None
+        if not 0 <= seed <= MAX_SEED:
+            raise InputError(f"--seeds must be in [0, 2**63), got {seed}")
+        if seed in seeds:
+            raise InputError(f"--seeds lists {seed} twice")
+        seeds.append(seed)
+    return seeds
+
+
+def plan_pairs(prompts: Sequence[Prompt], seeds: Sequence[int]) -> list[Pair]:
+    return [Pair(prompt, seed) for prompt in prompts for seed in seeds]
+
+
+def config_fingerprint(cfg: GeCoConfig) -> str:
+    return hashlib.sha256(config_to_yaml(cfg).encode()).hexdigest()[:16]
+
+
+def check_output_folder(out: Path, cfg: GeCoConfig, pairs: Sequence[Pair]) -> None:
+    """Refuse an output folder that holds results of another config or other prompt texts."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {str(out)!r} exists and is not a folder")
+    run_file = out / "run.json"
+    if run_file.is_file():
+        previous = json.loads(run_file.read_text())["config_sha"]
+        if previous != config_fingerprint(cfg):
+            raise InputError(
+                f"{out} holds results of another config (run.json: {previous}, now: {config_fingerprint(cfg)}); "
+                "use a new --out folder or the same config"
+            )
+    for pair in pairs:
+        result = read_result(out, pair)
+        if result is not None and result["prompt"] != pair.prompt.text:
+            raise InputError(
+                f"{pair_dir(out, pair)} was made for the prompt {result['prompt']!r}, not {pair.prompt.text!r}; "
+                "give this prompt another id or use a new --out folder"
+            )
+
+
+# ----------------------------------------------------------------------------------------------
+# files: atomic writes, pair folders
+
+
+def remove_temp_files(folder: Path, stems: Sequence[str]) -> None:
+    """Delete temporary files (``.<stem>.*``) that a killed run left behind in ``folder``."""
+    if not folder.is_dir():
+        return
+    for path in folder.iterdir():
+        if path.is_file() and any(path.name.startswith(f".{stem}.") for stem in stems):
+            path.unlink(missing_ok=True)
+
+
+def pair_dir(out: Path, pair: Pair) -> Path:
+    return out / "pairs" / pair.name
+
+
+def read_result(out: Path, pair: Pair) -> dict[str, Any] | None:
+    """The pair's ``result.json``, or None when the pair is not complete."""
+    path = pair_dir(out, pair) / "result.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+# ----------------------------------------------------------------------------------------------
+# one pair
+
+
+class PeakMemory:
+    """Peak memory of a block, in MiB: CUDA ``max_memory_allocated`` on a GPU; on CPU the peak
+    resident set size, its high-water mark reset at entry on Linux (``/proc/self/clear_refs``),
+    else the process's lifetime peak (``kind`` says which)."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self.kind = "cuda_max_allocated"
+        self.peak_mib = 0.0
+
+    def __enter__(self) -> PeakMemory:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            torch.cuda.reset_peak_memory_stats(self.device)
+        else:
+            try:
+                Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM (Linux >= 4.0)
+                self.kind = "cpu_peak_rss"
+            except OSError:
+                self.kind = "cpu_peak_rss_since_start"
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            self.peak_mib = torch.cuda.max_memory_allocated(self.device) / MIB
+        else:
+            self.peak_mib = _peak_rss_bytes() / MIB
+
+
+def _peak_rss_bytes() -> int:
+    """``VmHWM`` of ``/proc/self/status`` (Linux), else ``ru_maxrss``."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    import resource
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak if sys.platform == "darwin" else peak * 1024  # bytes on macOS, KiB elsewhere
+
+
+def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps: bool) -> dict[str, Any]:
+    """Generate one arm of a pair into ``folder/<arm>.mp4`` (+ sidecar) and score it."""
+    arm_cfg = replace(cfg, seed=pair.seed, guidance=replace(cfg.guidance, enabled=arm == "guided"))
+    with PeakMemory(pipe.device) as memory:
+        generated = generate(arm_cfg, pair.prompt.text, out=folder / f"{arm}.mp4", pipe=pipe)
+    start = time.perf_counter()
+    evaluation = evaluate_video(
+        generated.video_path,
+        geometry=pipe.geometry_estimator,
+        flow=pipe.flow_estimator,
+        config=cfg.evaluation,
+        maps=maps,
+    )
+    evaluation_s = time.perf_counter() - start
+    record = {
+        "video": generated.video_path.name,
+        "sidecar": generated.sidecar_path.name,
+        **{metric: float(getattr(evaluation, metric)) for metric in METRICS},
+        "generation_s": generated.sidecar["timings"]["sampling_s"],
+        "evaluation_s": evaluation_s,
+        "peak_memory_mib": memory.peak_mib,
+        "memory_kind": memory.kind,
+        "guidance_updates": len(generated.sidecar["guidance_log"]),
+        "evaluation": evaluation.to_dict(),
+    }
+    if maps:
+        record["maps_video"] = write_maps_video(evaluation, folder / f"{arm}_maps.mp4").name
+    return record
+
+
+def write_side_by_side(folder: Path, fps: float) -> None:
+    """``side_by_side.mp4``: the two arms' videos next to each other, labelled."""
+    videos = [read_video(folder / f"{arm}.mp4")[0] for arm in ARMS]
+    write_video(folder / "side_by_side.mp4", side_by_side(videos, list(ARMS)), fps=fps)
+
+
+def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool) -> dict[str, Any]:
+    """Both arms, the side-by-side video, then ``result.json`` (last: it marks the pair complete)."""
+    folder = pair_dir(out, pair)
+    remove_temp_files(folder, UNIT_STEMS)
+    arms = {arm: run_arm(pipe, cfg, pair, arm, folder, maps) for arm in ARMS}
+    write_side_by_side(folder, cfg.sampling.fps)
+    result = {
+        "pair": pair.name,
+        "prompt_id": pair.prompt.id,
+        "prompt": pair.prompt.text,
+        "seed": pair.seed,
+        "device": str(pipe.device),
+        "side_by_side": "side_by_side.mp4",
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "arms": arms,
+    }
+    write_json_atomic(folder / "result.json", result)
+    return result
+
+
+def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag: str) -> None:
+    """Run the pairs of this process that are not complete yet (models load only if needed)."""
+    todo = [pair for pair in pairs if read_result(out, pair) is None]
+    print(f"{tag}{len(pairs) - len(todo)} of {len(pairs)} pairs already complete", flush=True)
+    if not todo:
+        return
+    pipe = build_pipeline(cfg)
+    pipe.set_progress_bar_config(disable=not sys.stderr.isatty())
+    for index, pair in enumerate(todo, start=1):
+        result = run_pair(pipe, cfg, pair, out, maps)
+        unguided, guided = (result["arms"][arm] for arm in ARMS)
+        print(
+            f"{tag}[{index}/{len(todo)}] {pair.name}: fused {unguided['fused']:.4f} -> {guided['fused']:.4f} "
+            f"(sampling {unguided['generation_s']:.1f} s -> {guided['generation_s']:.1f} s)",
+            flush=True,
+        )
+
+
+# ----------------------------------------------------------------------------------------------
+# statistics
+
+
+def bootstrap_ci(diffs: np.ndarray, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED,
+                 level: float = CI_LEVEL) -> tuple[float, float] | None:
+    """Percentile bootstrap confidence interval of the mean of ``diffs``; None below 2 values."""
+    if len(diffs) < 2:
+        return None
+    rng = np.random.default_rng(seed)
+    means = diffs[rng.integers(0, len(diffs), size=(resamples, len(diffs)))].mean(axis=1)
+    low, high = np.quantile(means, [(1 - level) / 2, (1 + level) / 2])
+    return float(low), float(high)
+
+
+def paired_difference(results: Sequence[dict[str, Any]], metric: str) -> dict[str, Any]:
+    """Mean of ``guided - unguided`` over the pairs where both values are finite, with its CI."""
+    diffs = np.array([r["arms"]["guided"][metric] - r["arms"]["unguided"][metric] for r in results], dtype=float)
+    diffs = diffs[np.isfinite(diffs)]
+    ci = bootstrap_ci(diffs)
+    return {
+        "n": int(len(diffs)),
+        "mean_diff": float(diffs.mean()) if len(diffs) else None,
+        "ci95": list(ci) if ci is not None else None,
+    }
+
+
+def arm_summary(results: Sequence[dict[str, Any]], arm: str) -> dict[str, Any]:
+    """Means of the scores, and time and memory, of one arm over the pairs."""
+    records = [r["arms"][arm] for r in results]
+    summary: dict[str, Any] = {metric: _finite_mean([rec[metric] for rec in records]) for metric in METRICS}
+    summary.update(
+        generation_s_mean=float(np.mean([rec["generation_s"] for rec in records])),
+        generation_s_total=float(np.sum([rec["generation_s"] for rec in records])),
+        evaluation_s_mean=float(np.mean([rec["evaluation_s"] for rec in records])),
+        peak_memory_mib_max=float(np.max([rec["peak_memory_mib"] for rec in records])),
+        memory_kind=records[0]["memory_kind"],
+    )
+    return summary
+
+
+def _finite_mean(values: Sequence[float]) -> float | None:
+    """Mean over the finite values (a video without valid pixels scores NaN); None if there are none."""
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else None
+
+
+def summarize(results: Sequence[dict[str, Any]], pairs: Sequence[Pair], cfg: GeCoConfig) -> dict[str, Any]:
+    """Everything ``summary.json`` and ``report.md`` say, from the complete pairs' results."""
+    done = {r["pair"] for r in results}
+    fused = [(r["arms"]["unguided"]["fused"], r["arms"]["guided"]["fused"]) for r in results]
+    lowered = [guided < unguided for unguided, guided in fused if np.isfinite([unguided, guided]).all()]
+    return {
+        "pairs": len(results),
+        "pairs_planned": len(pairs),
+        "missing_pairs": [p.name for p in pairs if p.name not in done],
+        "prompts": len({p.prompt.id for p in pairs}),
+        "seeds": sorted({p.seed for p in pairs}),
+        "arms": {arm: arm_summary(results, arm) for arm in ARMS} if results else {},
+        "paired_differences": {metric: paired_difference(results, metric) for metric in METRICS},
+        "guidance_lowered_fused": {
+            "count": int(sum(lowered)),
+            "n": len(lowered),
+            "fraction": sum(lowered) / len(lowered) if lowered else None,
+        },
+        "bootstrap": {"resamples": BOOTSTRAP_RESAMPLES, "seed": BOOTSTRAP_SEED, "level": CI_LEVEL},
+        "config_sha": config_fingerprint(cfg),
+        "config": config_to_dict(cfg),
+        "devices": sorted({r["device"] for r in results}),
+        "versions": _versions(),
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+def _versions() -> dict[str, str]:
+    import accelerate
+
+    return {**versions(), "accelerate": accelerate.__version__}
+
+
+# ----------------------------------------------------------------------------------------------
+# report files
+
+
+def csv_text(results: Sequence[dict[str, Any]]) -> str:
+    """``results.csv``: one row per pair and arm."""
+    columns = ["pair", "prompt_id", "seed", "arm", *METRICS, "generation_s", "evaluation_s",
+               "peak_memory_mib", "memory_kind", "guidance_updates", "video", "prompt"]
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for result in results:
+        for arm in ARMS:
+            video = f"pairs/{result['pair']}/{result['arms'][arm]['video']}"
+            writer.writerow({**result, **result["arms"][arm], "arm": arm, "video": video})
+    return buffer.getvalue()
+
+
+def _fmt(value: float | None, digits: int = 4) -> str:
+    return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}g}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return lines + ["| " + " | ".join(row) + " |" for row in rows]
+
+
+def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], config_yaml: str, command: str) -> str:
+    """``report.md``: scores, paired differences, cost, the plot, per-pair table, config, versions."""
+    n = summary["pairs"]
+    lowered = summary["guidance_lowered_fused"]
+    lines = [
+        "# GeCo guidance A/B: unguided vs guided",
+        "",
+        f"{n} pairs complete of {summary['pairs_planned']} planned ({summary['prompts']} prompts x seeds "
+        f"{summary['seeds']}), same initial noise per pair; device {', '.join(summary['devices']) or '-'}; "
+        f"config `{summary['config_sha']}`; {summary['created']}.",
+        "",
+        f"Command: `{command}`",
+        "",
+    ]
+    if summary["missing_pairs"]:
+        lines += [f"**Missing pairs** (rerun the same command to finish them): {', '.join(summary['missing_pairs'])}", ""]
+    if not n:
+        return "\n".join(lines + ["No complete pairs yet."]) + "\n"
+    arms, paired = summary["arms"], summary["paired_differences"]
+    level = int(summary["bootstrap"]["level"] * 100)
+    share = f"{_fmt(100 * lowered['fraction'], 3)} %" if lowered["n"] else "-"
+    rows = []
+    for metric in METRICS:
+        diff = paired[metric]
+        ci = diff["ci95"]
+        ci_text = f"[{_fmt(ci[0])}, {_fmt(ci[1])}]" if ci else "undefined (fewer than 2 pairs)"
+        label = f"{metric} ({PAPER_NAMES[metric]})" if metric in CUES else PAPER_NAMES[metric]
+        rows.append([label, _fmt(arms["unguided"][metric]), _fmt(arms["guided"][metric]),
+                     _fmt(diff["mean_diff"]), ci_text])
+    lines += [
+        "## Scores (mean over pairs; lower fused/motion/structure is more consistent)",
+        "",
+        *_table(["metric", "unguided", "guided", "guided - unguided", f"{level}% CI (paired bootstrap)"], rows),
+        "",
+        f"Guidance lowered the fused score in **{lowered['count']} of {lowered['n']}** pairs "
+        f"({share}). Bootstrap: {summary['bootstrap']['resamples']} resamples of "
+        f"the pairs, seed {summary['bootstrap']['seed']}. Total/Mean Motion measure how much the video "
+        "moves: a lower score at similar motion is the better trade-off (right panel of the plot).",
+        "",
+        "## Cost per arm",
+        "",
+        *_table(
+            ["arm", "sampling s (mean)", "sampling s (total)", "scoring s (mean)", "peak memory MiB (max)"],
+            [[arm, _fmt(arms[arm]["generation_s_mean"], 3), _fmt(arms[arm]["generation_s_total"], 3),
+              _fmt(arms[arm]["evaluation_s_mean"], 3), f"{_fmt(arms[arm]['peak_memory_mib_max'], 4)} "
+              f"({arms[arm]['memory_kind']})"] for arm in ARMS],
+        ),
+        "",
+        "![fused score: guided vs unguided per pair, and vs Total Motion](pareto.png)",
+        "",
+        "## Pairs",
+        "",
+        *_table(
+            ["pair", "fused unguided", "fused guided", "TM unguided", "TM guided", "video"],
+            [[r["pair"], _fmt(r["arms"]["unguided"]["fused"]), _fmt(r["arms"]["guided"]["fused"]),
+              _fmt(r["arms"]["unguided"]["total_motion"]), _fmt(r["arms"]["guided"]["total_motion"]),
+              f"[side by side](pairs/{r['pair']}/{r['side_by_side']})"] for r in results],
+        ),
+        "",
+        "## Configuration",
+        "",
+        "```yaml",
+        config_yaml.rstrip(),
+        "```",
+        "",
+        "## Versions",
+        "",
+        *_table(["package", "version"], [[k, v] for k, v in summary["versions"].items()]),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------------------------
+# the plot: drawn with PIL (an imageio dependency), no matplotlib
+
+UNGUIDED_COLOR, GUIDED_COLOR = (60, 110, 200), (235, 125, 30)
+BETTER_COLOR, WORSE_COLOR, GREY = (40, 160, 70), (210, 50, 50), (170, 170, 170)
+
+
+def _limits(values: Sequence[float]) -> tuple[float, float]:
+    """Axis limits around ``values`` with a 6 % margin (a unit-width range around a constant)."""
+    low, high = min(values), max(values)
+    pad = 0.06 * (high - low) if high > low else max(abs(low) * 0.1, 1e-3)
+    return low - pad, high + pad
+
+
+def _text(draw: Any, xy: tuple[float, float], text: str, align: str) -> float:
+    """Draw black ``text`` with its box aligned at ``xy``: ``align`` is horizontal (``l``, ``m``,
+    ``r``) + vertical (``t``, ``m``, ``b``); works with bitmap fonts too. Returns the text width."""
+    left, top, right, bottom = draw.textbbox((0, 0), text)
+    width, height = right - left, bottom - top
+    x = xy[0] - {"l": 0, "m": width / 2, "r": width}[align[0]] - left
+    y = xy[1] - {"t": 0, "m": height / 2, "b": height}[align[1]] - top
+    draw.text((x, y), text, fill=(0, 0, 0))
+    return width
+
+
+@dataclass
+class Panel:
+    """One scatter panel: a pixel box on the canvas and data limits."""
+
+    box: tuple[int, int, int, int]  # left, top, right, bottom (the plot area)
+    xlim: tuple[float, float]
+    ylim: tuple[float, float]
+
+    def to_pixel(self, x: float, y: float) -> tuple[float, float]:
+        left, top, right, bottom = self.box
+        u = left + (x - self.xlim[0]) / (self.xlim[1] - self.xlim[0]) * (right - left)
+        v = bottom - (y - self.ylim[0]) / (self.ylim[1] - self.ylim[0]) * (bottom - top)
+        return u, v
+
+    def draw_axes(self, draw: Any, title: str, xlabel: str, ylabel: str) -> None:
+        left, top, right, bottom = self.box
+        draw.rectangle(self.box, outline=(0, 0, 0))
+        _text(draw, (left - 50, top - 44), title, "lt")
+        _text(draw, ((left + right) / 2, bottom + 24), xlabel, "mt")
+        _text(draw, (left - 50, top - 8), ylabel, "lb")
+        for t in (0.0, 0.5, 1.0):
+            x = self.xlim[0] + t * (self.xlim[1] - self.xlim[0])
+            y = self.ylim[0] + t * (self.ylim[1] - self.ylim[0])
+            u, _ = self.to_pixel(x, self.ylim[0])
+            _, v = self.to_pixel(self.xlim[0], y)
+            draw.line([(u, bottom), (u, bottom + 4)], fill=(0, 0, 0))
+            _text(draw, (u, bottom + 6), f"{x:.3g}", "mt")
+            draw.line([(left - 4, v), (left, v)], fill=(0, 0, 0))
+            _text(draw, (left - 6, v), f"{y:.3g}", "rm")
+
+    def dot(self, draw: Any, x: float, y: float, color: tuple[int, int, int], radius: int = 4) -> None:
+        u, v = self.to_pixel(x, y)
+        draw.ellipse([u - radius, v - radius, u + radius, v + radius], fill=color, outline=(0, 0, 0))
+
+
+def plot_png(results: Sequence[dict[str, Any]]) -> bytes:
+    """``pareto.png``: left, guided vs unguided fused score per pair (below the diagonal: guidance
+    helped); right, fused score vs Total Motion of both arms, each pair joined by a line."""
+    from PIL import Image, ImageDraw
+
+    image = Image.new("RGB", (860, 430), (255, 255, 255))
+    draw = ImageDraw.Draw(image)
+    pairs = [(r["arms"]["unguided"], r["arms"]["guided"]) for r in results
+             if all(np.isfinite([r["arms"][a][k] for a in ARMS for k in ("fused", "total_motion")]))]
+    fused = [rec["fused"] for pair in pairs for rec in pair] or [0.0]
+    motion = [rec["total_motion"] for pair in pairs for rec in pair] or [0.0]
+
+    left = Panel((70, 80, 400, 360), _limits(fused), _limits(fused))
+    left.draw_axes(draw, "fused score per pair (below the line: guidance helped)", "unguided fused", "guided fused")
+    draw.line([left.to_pixel(left.xlim[0], left.ylim[0]), left.to_pixel(left.xlim[1], left.ylim[1])], fill=GREY)
+    for unguided, guided in pairs:
+        color = BETTER_COLOR if guided["fused"] < unguided["fused"] else WORSE_COLOR
+        left.dot(draw, unguided["fused"], guided["fused"], color)
+
+    right = Panel((510, 80, 840, 360), _limits(motion), _limits(fused))
+    right.draw_axes(draw, "fused score vs Total Motion (lower-right is better)", "Total Motion (%)", "fused")
+    for unguided, guided in pairs:
+        draw.line([right.to_pixel(unguided["total_motion"], unguided["fused"]),
+                   right.to_pixel(guided["total_motion"], guided["fused"])], fill=GREY)
+    for unguided, guided in pairs:
+        right.dot(draw, unguided["total_motion"], unguided["fused"], UNGUIDED_COLOR)
+        right.dot(draw, guided["total_motion"], guided["fused"], GUIDED_COLOR)
+    _legend(draw, left, (("guidance lowered fused", BETTER_COLOR), ("guidance raised fused", WORSE_COLOR)))
+    _legend(draw, right, (("unguided", UNGUIDED_COLOR), ("guided", GUIDED_COLOR)))
+    buffer = io.BytesIO()
+    image.save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def _legend(draw: Any, panel: Panel, entries: Sequence[tuple[str, tuple[int, int, int]]]) -> None:
+    """Coloured dots with labels in a row below the panel's x label."""
+    u, v = panel.box[0], panel.box[3] + 48
+    for label, color in entries:
+        draw.ellipse([u - 4, v - 4, u + 4, v + 4], fill=color, outline=(0, 0, 0))
+        u += 9 + _text(draw, (u + 9, v), label, "lm") + 24
+
+
+def write_report(out: Path, pairs: Sequence[Pair], cfg: GeCoConfig, command: str) -> dict[str, Any]:
+    """Rebuild the four report files from the pairs' ``result.json`` files; returns the summary."""
+    remove_temp_files(out, REPORT_STEMS)
+    results = [r for r in (read_result(out, pair) for pair in pairs) if r is not None]
+    summary = summarize(results, pairs, cfg)
+    write_bytes_atomic(out / "results.csv", csv_text(results).encode())
+    write_json_atomic(out / "summary.json", summary)
+    write_bytes_atomic(out / "pareto.png", plot_png(results))
+    write_bytes_atomic(out / "report.md", report_markdown(summary, results, config_to_yaml(cfg), command).encode())
+    return summary
+
+
+# ----------------------------------------------------------------------------------------------
+# processes: one, or many under `accelerate launch`
+
+
+def process_state(cfg: GeCoConfig) -> Any:
+    """accelerate's PartialState: rank and world size under ``accelerate launch`` (or torchrun),
+    else one process. ``cpu=True`` for a CPU run, without which accelerate ignores CPU launches.
+
+    The barrier at the end waits for the slowest shard, which may take hours: hence the long timeout.
+    """
+    from accelerate import PartialState
+
+    cpu = resolve_device(cfg.model.device).type == "cpu"
+    return PartialState(cpu=cpu, timeout=timedelta(days=7))
+
+
+def process_config(cfg: GeCoConfig, state: Any) -> GeCoConfig:
+    """The config of this process: with one GPU per process, its own GPU instead of ``cuda``."""
+    if state.num_processes > 1 and state.device.type == "cuda" and cfg.model.device in ("auto", "cuda"):
+        return replace(cfg, model=replace(cfg.model, device=str(state.device)))
+    return cfg
+
+
+def shard(pairs: Sequence[Pair], index: int, count: int) -> list[Pair]:
+    """Pairs of process ``index`` of ``count``, dealt round-robin."""
+    return list(pairs[index::count])
+
+
+# ----------------------------------------------------------------------------------------------
+# CLI
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"error: {message} (see --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="scripts/ab_compare.py",
+        description="A/B test of GeCo guidance: unguided vs guided video per prompt x seed, from the same noise.",
+    )
+    p.add_argument("--prompts", required=True, help="text file: one prompt per line, or JSON lines {id, prompt}")
+    p.add_argument("--seeds", required=True, nargs="+", metavar="SEED", help="sampling seeds (integers)")
+    p.add_argument("--out", required=True, help="output folder (reuse it to resume)")
+    p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
+    p.add_argument("--preset", default=None, help="a preset shipped in geco_guide/configs/ (tiny, cogvideox-5b)")
+    p.add_argument("--maps", action="store_true", help="also write each arm's GeCo maps video")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.eta=2.0")
+    return p
+
+
+@dataclass
+class Inputs:
+    cfg: GeCoConfig
+    pairs: list[Pair]
+    out: Path
+
+
+def validate_inputs(args: argparse.Namespace) -> Inputs:
+    """Every check that needs no model: prompts, seeds, config, output folder."""
+    prompts = read_prompts(args.prompts)
+    seeds = parse_seeds(args.seeds)
+    cfg = load_config(args.config, args.preset, args.overrides)
+    if not cfg.guidance.enabled:
+        raise InputError("guidance.enabled=false leaves nothing to compare: the guided arm needs guidance")
+    pairs = plan_pairs(prompts, seeds)
+    out = Path(args.out)
+    check_output_folder(out, cfg, pairs)
+    return Inputs(cfg, pairs, out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        inputs = validate_inputs(args)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    cfg, pairs, out = inputs.cfg, inputs.pairs, inputs.out
+    state = process_state(cfg)
+    tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
+    if state.is_main_process:
+        write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
+    try:
+        run_shard(process_config(cfg, state), shard(pairs, state.process_index, state.num_processes), out, args.maps, tag)
+    except FileNotFoundError as err:  # weights not available (WeightsNotFoundError)
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    state.wait_for_everyone()
+    if not state.is_main_process:
+        return 0
+    command = shlex.join(["python", *sys.argv] if argv is None else ["scripts/ab_compare.py", *argv])
+    summary = write_report(out, pairs, cfg, command)
+    fused = summary["paired_differences"]["fused"]
+    ci = f"[{_fmt(fused['ci95'][0])}, {_fmt(fused['ci95'][1])}]" if fused["ci95"] else "undefined"
+    print(f"{summary['pairs']} pairs: fused guided - unguided = {_fmt(fused['mean_diff'])}, 95% CI {ci}; "
+          f"report: {out / 'report.md'}")
+    return 0 if not summary["missing_pairs"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

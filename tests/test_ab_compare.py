@@ -1,0 +1,306 @@
+"""scripts/ab_compare.py: the A/B run end to end (tiny models, CPU), resuming after a kill, bad inputs.
+
+The end-to-end and interruption tests run the script in subprocesses with 2 sampling steps; the
+statistics, report and input checks run in process on hand-made results.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+from geco_guide.video import panel_layout, read_video
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = REPO / "scripts" / "ab_compare.py"
+FAST = [  # the tiny preset, shortened: 9 frames, 2 steps with one guided update each, 5 scored frames
+    "--preset", "tiny", "sampling.num_frames=9", "guidance.anchors=[4,8]", "sampling.num_inference_steps=2",
+    "guidance.repeats=1x2", "guidance.time_travel=[]", "output.score_anchors=false", "evaluation.max_fps=4",
+]
+PROMPTS = 'a marble bust\n# a comment\n\n{"id": "bridge", "prompt": "a stone bridge over a river"}\n'
+PAIRS = ("a-marble-bust-s0", "bridge-s0")
+SCORES = ("fused", "motion", "structure", "total_motion", "mean_motion")
+
+
+def _load_script():
+    spec = importlib.util.spec_from_file_location("ab_compare", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["ab_compare"] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+ab = _load_script()
+
+
+def _command(prompts: Path, out: Path) -> list[str]:
+    return [sys.executable, str(SCRIPT), "--prompts", str(prompts), "--seeds", "0", "--out", str(out), *FAST]
+
+
+def _env() -> dict[str, str]:
+    """One thread per process: numbers are bitwise reproducible only at a fixed thread count (guided
+    sampling amplifies float summation-order differences), and torchrun uses one thread too."""
+    return dict(os.environ, HF_HUB_OFFLINE="1", PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+
+
+def _assert_same_scores(rows: list[dict[str, str]], expected: list[dict[str, str]]) -> None:
+    assert [(r["pair"], r["arm"]) for r in rows] == [(r["pair"], r["arm"]) for r in expected]
+    for row, ref in zip(rows, expected):
+        assert {k: row[k] for k in SCORES} == {k: ref[k] for k in SCORES}, row["pair"]
+
+
+def _rows(out: Path) -> list[dict[str, str]]:
+    with open(out / "results.csv", newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _temporaries(out: Path) -> list[Path]:
+    return [p for p in out.rglob("*") if p.name.startswith(".")]
+
+
+@pytest.fixture(scope="module")
+def prompts_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("prompts") / "prompts.txt"
+    path.write_text(PROMPTS)
+    return path
+
+
+@pytest.fixture(scope="module")
+def reference(prompts_file: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An uninterrupted A/B run of 2 prompts x 1 seed; its output folder."""
+    out = tmp_path_factory.mktemp("ab") / "reference"
+    proc = subprocess.run(_command(prompts_file, out), env=_env(), capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "0 of 2 pairs already complete" in proc.stdout and "2 pairs: fused guided - unguided" in proc.stdout
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# end to end
+
+
+def test_end_to_end_report(reference: Path):
+    rows = _rows(reference)
+    assert len(rows) == 4
+    assert sorted((r["pair"], r["arm"]) for r in rows) == [(p, a) for p in PAIRS for a in ("guided", "unguided")]
+    for row in rows:
+        assert all(np.isfinite(float(row[k])) for k in SCORES)
+        assert float(row["generation_s"]) > 0 and row["memory_kind"] == "cpu_peak_rss"
+        assert (int(row["guidance_updates"]) > 0) == (row["arm"] == "guided")
+
+    summary = json.loads((reference / "summary.json").read_text())
+    assert {"pairs", "arms", "paired_differences", "guidance_lowered_fused", "bootstrap", "config", "versions",
+            "devices", "seeds"} <= set(summary)
+    assert summary["pairs"] == 2 and summary["missing_pairs"] == [] and summary["seeds"] == [0]
+    assert set(summary["arms"]) == {"unguided", "guided"}
+    assert {*SCORES, "generation_s_mean", "peak_memory_mib_max"} <= set(summary["arms"]["guided"])
+    fused = summary["paired_differences"]["fused"]
+    by_arm = {(r["pair"], r["arm"]): float(r["fused"]) for r in rows}
+    diffs = [by_arm[p, "guided"] - by_arm[p, "unguided"] for p in PAIRS]
+    assert fused["n"] == 2 and fused["mean_diff"] == pytest.approx(np.mean(diffs))
+    assert fused["ci95"][0] <= fused["mean_diff"] <= fused["ci95"][1]
+    assert summary["guidance_lowered_fused"]["count"] == sum(d < 0 for d in diffs)
+    assert summary["config"]["sampling"]["num_frames"] == 9 and summary["devices"] == ["cpu"]
+
+    report = (reference / "report.md").read_text()
+    for text in ("## Configuration", "num_frames: 9", "## Versions", "| torch |", "pareto.png",
+                 "seeds [0]", "95% CI"):
+        assert text in report, text
+
+    image = imageio.imread(reference / "pareto.png")
+    assert image.ndim == 3 and image.shape[2] == 3 and image.shape[0] > 100 and image.std() > 0
+
+    pair = reference / "pairs" / "bridge-s0"
+    unguided, fps = read_video(pair / "unguided.mp4")
+    both, _ = read_video(pair / "side_by_side.mp4")
+    (height, width), _ = panel_layout([tuple(unguided.shape[-2:])] * 2)  # labels above, a gap between
+    even = (height + height % 2, width + width % 2)  # mp4 (yuv420p) pads odd sizes by one
+    assert both.shape == (unguided.shape[0], 3, *even) and width >= 2 * unguided.shape[-1]
+    result = json.loads((pair / "result.json").read_text())
+    assert result["prompt"] == "a stone bridge over a river" and result["seed"] == 0
+    assert {"unguided.json", "guided.json", "guided.mp4"} <= {p.name for p in pair.iterdir()}
+    assert not _temporaries(reference)
+
+
+def test_arms_differ_only_in_guidance(reference: Path):
+    """Both arms ran `generate` with the same seed and config but guidance.enabled, so from the same
+    initial noise (generate seeds its generator from the config); the unguided arm logged no update."""
+    pair = reference / "pairs" / "a-marble-bust-s0"
+    sidecars = {arm: json.loads((pair / f"{arm}.json").read_text()) for arm in ("unguided", "guided")}
+    configs = {arm: sidecar["config"] for arm, sidecar in sidecars.items()}
+    assert configs["unguided"]["guidance"].pop("enabled") is False and configs["guided"]["guidance"].pop("enabled")
+    assert configs["unguided"] == configs["guided"] and configs["guided"]["seed"] == 0
+    assert sidecars["unguided"]["guidance_log"] == [] and sidecars["guided"]["guidance_log"]
+
+
+# ----------------------------------------------------------------------------------------------
+# interruption
+
+
+def test_rerun_after_kill_finishes_with_the_same_results(reference: Path, prompts_file: Path, tmp_path: Path):
+    out = tmp_path / "killed"
+    first = out / "pairs" / PAIRS[0] / "result.json"
+    proc = subprocess.Popen(_command(prompts_file, out), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 240
+    while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert first.exists(), proc.stderr.read().decode()
+    assert not (out / "pairs" / PAIRS[1] / "result.json").exists()  # killed mid-way through the second pair
+    assert not (out / "results.csv").exists()
+    for path in out.rglob("*"):  # whatever the kill left is complete, or a hidden temporary
+        if path.suffix == ".json" and not path.name.startswith("."):
+            json.loads(path.read_text())
+        elif path.suffix == ".mp4" and not path.name.startswith("."):
+            read_video(path)
+    completed = first.read_bytes()
+
+    rerun = subprocess.run(_command(prompts_file, out), env=_env(), capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    assert "1 of 2 pairs already complete" in rerun.stdout
+    assert first.read_bytes() == completed  # the complete pair was skipped, not redone
+    rows = _rows(out)
+    assert len(rows) == 4 and len({(r["pair"], r["arm"]) for r in rows}) == 4
+    _assert_same_scores(rows, _rows(reference))
+    assert not _temporaries(out)
+
+
+def test_sharded_run_matches_the_single_process_run(reference: Path, prompts_file: Path, tmp_path: Path):
+    """Two processes (torchrun, as ``accelerate launch`` starts them) share the pairs; the main one merges."""
+    out = tmp_path / "sharded"
+    launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
+    proc = subprocess.run([*launcher, *_command(prompts_file, out)[1:]], env=_env(), capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "[rank 0 of 2] 0 of 1 pairs" in proc.stdout and "[rank 1 of 2] 0 of 1 pairs" in proc.stdout
+    _assert_same_scores(_rows(out), _rows(reference))
+
+
+# ----------------------------------------------------------------------------------------------
+# statistics and report on hand-made results
+
+
+def _result(name: str, unguided: float, guided: float) -> dict:
+    def arm(fused: float) -> dict:
+        return {"video": "v.mp4", "fused": fused, "motion": fused / 2, "structure": fused / 2, "total_motion": 5.0,
+                "mean_motion": 40.0, "generation_s": 1.0, "evaluation_s": 0.1, "peak_memory_mib": 10.0,
+                "memory_kind": "cpu_peak_rss", "guidance_updates": 0}
+
+    return {"pair": name, "prompt_id": name, "prompt": name, "seed": 0, "device": "cpu",
+            "side_by_side": "side_by_side.mp4", "arms": {"unguided": arm(unguided), "guided": arm(guided)}}
+
+
+def test_bootstrap_ci():
+    assert ab.bootstrap_ci(np.array([0.1])) is None
+    diffs = np.array([-0.02, -0.01, 0.0, -0.03, 0.01])
+    low, high = ab.bootstrap_ci(diffs)
+    assert low < diffs.mean() < high and (low, high) == ab.bootstrap_ci(diffs)  # seeded
+    assert ab.bootstrap_ci(np.full(4, 0.5)) == (0.5, 0.5)
+
+
+def test_single_pair_reports_an_undefined_interval():
+    cfg = ab.load_config(preset="tiny")
+    pairs = ab.plan_pairs([ab.Prompt("one", "one"), ab.Prompt("two", "two")], [0])
+    results = [_result("one-s0", 0.2, 0.1)]
+    summary = ab.summarize(results, pairs, cfg)
+    assert summary["paired_differences"]["fused"] == {"n": 1, "mean_diff": pytest.approx(-0.1), "ci95": None}
+    assert summary["guidance_lowered_fused"] == {"count": 1, "n": 1, "fraction": 1.0}
+    assert summary["missing_pairs"] == ["two-s0"]
+    report = ab.report_markdown(summary, results, "config: yaml", "cmd")
+    assert "undefined (fewer than 2 pairs)" in report and "Missing pairs" in report and "two-s0" in report
+    assert ab.plot_png(results).startswith(b"\x89PNG")
+
+
+def test_a_video_without_valid_pixels_is_left_out_of_the_statistics():
+    cfg = ab.load_config(preset="tiny")
+    results = [_result("nan-s0", float("nan"), 0.1)]
+    summary = ab.summarize(results, ab.plan_pairs([ab.Prompt("nan", "nan")], [0]), cfg)
+    assert summary["arms"]["unguided"]["fused"] is None and summary["arms"]["guided"]["fused"] == 0.1
+    assert summary["paired_differences"]["fused"] == {"n": 0, "mean_diff": None, "ci95": None}
+    assert summary["guidance_lowered_fused"] == {"count": 0, "n": 0, "fraction": None}
+    assert "in **0 of 0** pairs (-)" in ab.report_markdown(summary, results, "", "cmd")
+    assert ab.plot_png(results).startswith(b"\x89PNG")
+
+
+def test_shards_cover_every_pair_once():
+    pairs = ab.plan_pairs([ab.Prompt(f"p{i}", f"p{i}") for i in range(3)], [0, 1])
+    shards = [ab.shard(pairs, rank, 4) for rank in range(4)]
+    assert sorted(p.name for s in shards for p in s) == sorted(p.name for p in pairs)
+
+
+# ----------------------------------------------------------------------------------------------
+# bad inputs: one error line, before any model is loaded
+
+
+@pytest.fixture
+def no_models(monkeypatch: pytest.MonkeyPatch) -> None:
+    def fail(*args, **kwargs):
+        raise AssertionError("models must not be loaded for bad inputs")
+
+    monkeypatch.setattr(ab, "process_state", fail)
+    monkeypatch.setattr(ab, "run_shard", fail)
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize(
+    "prompts, seeds, extra, message",
+    [
+        (None, ["0"], [], "does not exist"),
+        ("# only a comment\n\n", ["0"], [], "holds no prompts"),
+        ("a cat\nA cat!\n", ["0"], [], "prompt id 'a-cat' already used on line 1"),
+        ('{"id": "../up", "prompt": "x"}\n', ["0"], [], "not filesystem-safe"),
+        ('{"id": "x"}\n', ["0"], [], "needs a non-empty string 'prompt'"),
+        ("{not json\n", ["0"], [], "not valid JSON"),
+        ("a cat\n", ["zero"], [], "--seeds takes integers, got 'zero'"),
+        ("a cat\n", ["-1"], [], "must be in [0, 2**63)"),
+        ("a cat\n", ["1", "1"], [], "lists 1 twice"),
+        ("a cat\n", ["0", "guidance.eta=2"], [], "put key=value overrides before --seeds"),
+        ("a cat\n", ["0"], ["sampling.nope=1"], "unknown config key 'sampling.nope'"),
+        ("a cat\n", ["0"], ["sampling.num_frames=10"], "sampling.num_frames"),
+        ("a cat\n", ["0"], ["guidance.enabled=false"], "nothing to compare"),
+        ("a cat\n", ["0"], ["--config", "missing.yaml"], "config file"),
+    ],
+)
+def test_bad_inputs_are_one_line(prompts, seeds, extra, message, tmp_path, capsys, no_models):
+    path = _write(tmp_path / "p.txt", prompts) if prompts is not None else tmp_path / "missing.txt"
+    rc = ab.main(["--prompts", str(path), "--out", str(tmp_path / "out"), "--preset", "tiny", *extra, "--seeds", *seeds])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.startswith("error:") and "\n" not in err, err
+    assert message in err, err
+
+
+def test_reusing_an_output_folder_for_other_work_is_refused(tmp_path, capsys, no_models):
+    out = tmp_path / "out"
+    argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out), "--preset", "tiny"]
+    ab.write_json_atomic(out / "pairs" / "a-cat-s0" / "result.json", {"prompt": "a black cat"})
+    assert ab.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "was made for the prompt 'a black cat', not 'a cat'" in err and "\n" not in err
+
+    ab.write_json_atomic(out / "run.json", {"config_sha": "0123456789abcdef"})
+    assert ab.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "holds results of another config" in err and "\n" not in err
+
+
+def test_missing_argument_is_one_line(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        ab.main(["--prompts", "p.txt", "--out", "o"])
+    err = capsys.readouterr().err.strip()
+    assert exit_info.value.code == 2 and err.startswith("error:") and "--seeds" in err and "\n" not in err
