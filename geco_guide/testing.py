@@ -75,9 +75,34 @@ class TinySizes:
     vae_channels: tuple[int, ...] = field(default_factory=lambda: (8, 8, 8, 8))
 
 
+def tiny_cogvideox_transformer(sizes: TinySizes, **changes: Any):
+    """A tiny ``CogVideoXTransformer3DModel`` (1.0 layout unless ``changes`` say otherwise),
+    initialised from the global RNG: callers seed it."""
+    from diffusers import CogVideoXTransformer3DModel
+
+    kwargs = dict(
+        num_attention_heads=sizes.heads,
+        attention_head_dim=sizes.head_dim,
+        in_channels=sizes.latent_channels,
+        out_channels=sizes.latent_channels,
+        time_embed_dim=8,
+        text_embed_dim=sizes.text_dim,
+        num_layers=sizes.layers,
+        sample_width=TINY_WIDTH // 8,
+        sample_height=TINY_HEIGHT // 8,
+        sample_frames=TINY_NUM_FRAMES,
+        patch_size=2,
+        temporal_compression_ratio=4,
+        max_text_seq_length=TINY_MAX_SEQUENCE_LENGTH,
+        use_rotary_positional_embeddings=True,
+        use_learned_positional_embeddings=False,
+    )
+    return CogVideoXTransformer3DModel(**{**kwargs, **changes})
+
+
 def tiny_cogvideox_components(seed: int = 0, sizes: TinySizes | None = None) -> dict[str, Any]:
     """Tokenizer, text encoder, VAE, transformer and DDIM scheduler, randomly initialised from ``seed``."""
-    from diffusers import AutoencoderKLCogVideoX, CogVideoXDDIMScheduler, CogVideoXTransformer3DModel
+    from diffusers import AutoencoderKLCogVideoX, CogVideoXDDIMScheduler
     from transformers import T5Config, T5EncoderModel
 
     sizes = sizes or TinySizes()
@@ -109,23 +134,7 @@ def tiny_cogvideox_components(seed: int = 0, sizes: TinySizes | None = None) -> 
             norm_num_groups=2,
             temporal_compression_ratio=4,
         )
-        transformer = CogVideoXTransformer3DModel(
-            num_attention_heads=sizes.heads,
-            attention_head_dim=sizes.head_dim,
-            in_channels=sizes.latent_channels,
-            out_channels=sizes.latent_channels,
-            time_embed_dim=8,
-            text_embed_dim=sizes.text_dim,
-            num_layers=sizes.layers,
-            sample_width=TINY_WIDTH // 8,
-            sample_height=TINY_HEIGHT // 8,
-            sample_frames=TINY_NUM_FRAMES,
-            patch_size=2,
-            temporal_compression_ratio=4,
-            max_text_seq_length=TINY_MAX_SEQUENCE_LENGTH,
-            use_rotary_positional_embeddings=True,
-            use_learned_positional_embeddings=False,
-        )
+        transformer = tiny_cogvideox_transformer(sizes)
     finally:
         torch.random.set_rng_state(state)
     # The CogVideoX-5b scheduler settings (v-prediction, zero terminal SNR, trailing spacing).
@@ -252,32 +261,14 @@ def tiny_cogvideox_pipeline(seed: int = 0, *, version: str = "1.0", scheduler: s
     the 5 latent frames of a 17-frame video to 6 at the front) and no patch bias.
     ``scheduler="dpm"`` swaps in ``CogVideoXDPMScheduler`` (the scheduler the checkpoints ship).
     """
-    from diffusers import CogVideoXDPMScheduler, CogVideoXPipeline, CogVideoXTransformer3DModel
+    from diffusers import CogVideoXDPMScheduler, CogVideoXPipeline
 
     components = tiny_cogvideox_components(seed)
     if version == "1.5":
         sizes = TinySizes()
         state = _seeded(seed + 1)
         try:
-            components["transformer"] = CogVideoXTransformer3DModel(
-                num_attention_heads=sizes.heads,
-                attention_head_dim=sizes.head_dim,
-                in_channels=sizes.latent_channels,
-                out_channels=sizes.latent_channels,
-                time_embed_dim=8,
-                text_embed_dim=sizes.text_dim,
-                num_layers=sizes.layers,
-                sample_width=TINY_WIDTH // 8,
-                sample_height=TINY_HEIGHT // 8,
-                sample_frames=TINY_NUM_FRAMES,
-                patch_size=2,
-                patch_size_t=2,
-                patch_bias=False,
-                temporal_compression_ratio=4,
-                max_text_seq_length=TINY_MAX_SEQUENCE_LENGTH,
-                use_rotary_positional_embeddings=True,
-                use_learned_positional_embeddings=False,
-            ).eval()
+            components["transformer"] = tiny_cogvideox_transformer(sizes, patch_size_t=2, patch_bias=False).eval()
         finally:
             torch.random.set_rng_state(state)
     elif version != "1.0":
@@ -291,29 +282,14 @@ def tiny_cogvideox_pipeline(seed: int = 0, *, version: str = "1.0", scheduler: s
 
 def tiny_cogvideox_i2v_pipeline(seed: int = 0):
     """A stock tiny ``CogVideoXImageToVideoPipeline`` (the transformer sees latents + image latents)."""
-    from diffusers import CogVideoXImageToVideoPipeline, CogVideoXTransformer3DModel
+    from diffusers import CogVideoXImageToVideoPipeline
 
     components = tiny_cogvideox_components(seed)
     sizes = TinySizes()
     state = _seeded(seed + 2)
     try:
-        components["transformer"] = CogVideoXTransformer3DModel(
-            num_attention_heads=sizes.heads,
-            attention_head_dim=sizes.head_dim,
-            in_channels=2 * sizes.latent_channels,
-            out_channels=sizes.latent_channels,
-            time_embed_dim=8,
-            text_embed_dim=sizes.text_dim,
-            num_layers=sizes.layers,
-            sample_width=TINY_WIDTH // 8,
-            sample_height=TINY_HEIGHT // 8,
-            sample_frames=TINY_NUM_FRAMES,
-            patch_size=2,
-            temporal_compression_ratio=4,
-            max_text_seq_length=TINY_MAX_SEQUENCE_LENGTH,
-            use_rotary_positional_embeddings=True,
-            use_learned_positional_embeddings=False,
-        ).eval()
+        # The image-to-video transformer sees the noisy latents and the image latents.
+        components["transformer"] = tiny_cogvideox_transformer(sizes, in_channels=2 * sizes.latent_channels).eval()
     finally:
         torch.random.set_rng_state(state)
     return _finish(CogVideoXImageToVideoPipeline(**components))
