@@ -11,6 +11,7 @@ from diffusers import CogVideoXDDIMScheduler, CogVideoXDPMScheduler, CogVideoXPi
 from geco_guide.loss.geco import GeCoLoss
 from geco_guide.sampler.guidance import (
     GuidanceConfig,
+    VPLevels,
     ddim_step,
     guided_step,
     renoise,
@@ -48,7 +49,7 @@ def test_guided_step_without_repeats_is_a_ddim_step():
     a_t, a_prev = torch.tensor(0.3, dtype=torch.float64), torch.tensor(0.6, dtype=torch.float64)
     z_prev, x0, records = guided_step(
         z, predict_x0=lambda z, grad: v_to_x0(z, v, a_t), decode_anchors=None, loss_fn=None,
-        alpha_t=a_t, alpha_prev=a_prev, repeats=0,
+        levels=VPLevels(a_t, a_prev), repeats=0,
     )
     assert records == []
     torch.testing.assert_close(x0, a_t.sqrt().float() * z - (1 - a_t).sqrt().float() * v)
@@ -70,7 +71,7 @@ def test_fast_mode_update_is_the_normalised_gradient_through_sqrt_alpha():
 
     z_prev, _, records = guided_step(
         z, predict_x0=predict, decode_anchors=lambda x: x, loss_fn=lambda x: ((x - target) ** 2).sum(),
-        alpha_t=a_t, alpha_prev=a_prev, repeats=1, eta=0.5, denoiser_grad=False,
+        levels=VPLevels(a_t, a_prev), repeats=1, eta=0.5, denoiser_grad=False,
     )
     g = 2 * 0.5**0.5 * (v_to_x0(z, v, a_t) - target)
     z_upd = z - 0.5 * g / g.norm()
@@ -85,7 +86,7 @@ def test_time_travel_renoises_back_to_t_with_the_generator():
     a_t, a_prev = torch.tensor(0.4, dtype=torch.float64), torch.tensor(0.7, dtype=torch.float64)
     kwargs = dict(
         predict_x0=lambda z, g: v_to_x0(z, v, a_t), decode_anchors=lambda x: x, loss_fn=lambda x: (x**2).sum(),
-        alpha_t=a_t, alpha_prev=a_prev, repeats=1, eta=1.0, time_travel=True,
+        levels=VPLevels(a_t, a_prev), repeats=1, eta=1.0, time_travel=True,
     )
     out1 = guided_step(z, generator=torch.Generator().manual_seed(5), **kwargs)[0]
     out2 = guided_step(z, generator=torch.Generator().manual_seed(5), **kwargs)[0]

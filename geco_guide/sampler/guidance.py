@@ -311,9 +311,7 @@ def guided_step(
     predict_x0: Callable[[Tensor, bool], Tensor],
     decode_anchors: Callable[[Tensor], Tensor],
     loss_fn: Callable[[Tensor], Any],
-    alpha_t: Tensor | float | None = None,
-    alpha_prev: Tensor | float | None = None,
-    levels: NoiseLevels | None = None,
+    levels: NoiseLevels,
     repeats: int = 0,
     eta: float = PAPER_ETA,
     time_travel: bool = False,
@@ -335,8 +333,6 @@ def guided_step(
             prediction, which runs under ``torch.no_grad``.
         decode_anchors: ``x0 -> frames [B, S, 3, H, W]`` in ``[0, 1]`` (differentiable).
         loss_fn: ``frames -> GeCoResult`` (``.loss``, ``.scalars()``) or a scalar tensor.
-        alpha_t, alpha_prev: cumulative alphas of this step and of the next table entry
-            (the final alpha after the last step): shorthand for ``levels=VPLevels(alpha_t, alpha_prev)``.
         levels: the step's :class:`NoiseLevels` (:class:`VPLevels` or :class:`FlowLevels`);
             ``predict_x0`` must agree with it (``x0 = levels.to_x0(z, model_output)``).
         repeats: ``R_t``; 0 makes this a plain DDIM step.
@@ -354,10 +350,6 @@ def guided_step(
         ``(z_prev, x0, records)``: the latents at the next level (fp32; the guided ``z_t`` when
         ``take_step=False``), the final clean estimate and one record per update.
     """
-    if levels is None:
-        if alpha_t is None or alpha_prev is None:
-            raise ValueError("guided_step needs levels=... or alpha_t and alpha_prev")
-        levels = VPLevels(alpha_t, alpha_prev)
     z = z.detach().float()
     records: list[GuidanceRecord] = []
     for r in range(repeats):

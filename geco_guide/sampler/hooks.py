@@ -39,6 +39,8 @@ Denoiser caches (FirstBlockCache, FasterCache, ...) are not supported while guid
 
 from __future__ import annotations
 
+import contextlib
+
 import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -361,31 +363,27 @@ class GeCoGuidanceHandle:
 
         faithful = config.denoiser_grad
         denoisers = {id(c.module): c.module for c in calls}.values()
-        with frozen(*adapter.frozen_modules(pipe), *denoisers, self.geometry_estimator, self.flow_estimator):
-            contexts = [gradient_checkpointing(m, faithful and config.gradient_checkpointing) for m in denoisers]
-            for ctx in contexts:
-                ctx.__enter__()
-            try:
-                z, _, _ = guided_step(
-                    sample,
-                    predict_x0=predict_x0,
-                    decode_anchors=decode_anchors,
-                    loss_fn=state.loss_fn,
-                    levels=levels,
-                    repeats=repeats,
-                    eta=state.schedule.eta,
-                    time_travel=state.schedule.time_travel_at(i),
-                    denoiser_grad=faithful,
-                    generator=state.generator,
-                    eps=config.grad_eps,
-                    step=i,
-                    t=int(timestep),
-                    on_record=lambda record: self.log.append(record.to_dict()),
-                    take_step=False,
-                )
-            finally:
-                for ctx in reversed(contexts):
-                    ctx.__exit__(None, None, None)
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(frozen(*adapter.frozen_modules(pipe), *denoisers, self.geometry_estimator, self.flow_estimator))
+            for module in denoisers:
+                stack.enter_context(gradient_checkpointing(module, faithful and config.gradient_checkpointing))
+            z, _, _ = guided_step(
+                sample,
+                predict_x0=predict_x0,
+                decode_anchors=decode_anchors,
+                loss_fn=state.loss_fn,
+                levels=levels,
+                repeats=repeats,
+                eta=state.schedule.eta,
+                time_travel=state.schedule.time_travel_at(i),
+                denoiser_grad=faithful,
+                generator=state.generator,
+                eps=config.grad_eps,
+                step=i,
+                t=int(timestep),
+                on_record=lambda record: self.log.append(record.to_dict()),
+                take_step=False,
+            )
         return z.to(sample.device), last["out"].to(sample.device)
 
 
