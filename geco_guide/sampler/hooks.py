@@ -40,7 +40,6 @@ Denoiser caches (FirstBlockCache, FasterCache, ...) are not supported while guid
 from __future__ import annotations
 
 import contextlib
-
 import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass, field
