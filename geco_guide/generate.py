@@ -26,19 +26,13 @@ from typing import Any
 import torch
 
 from .config import GeCoConfig, config_to_dict, load_config
-from .estimators import TINY_RANDOM, load_estimators
+from .estimators import TINY_RANDOM, load_estimators, resolve_device
 from .estimators.loading import WeightsNotFoundError
 from .files import write_json_atomic
 
 
 # --------------------------------------------------------------------------------------------
 # building the pipeline from a config
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
 
 
 @contextlib.contextmanager

@@ -47,8 +47,9 @@ import torch
 
 from geco_guide.config import GeCoConfig, config_to_dict, config_to_yaml, load_config
 from geco_guide.evaluate import PAPER_NAMES, evaluate_video, write_maps_video
+from geco_guide.estimators import resolve_device
 from geco_guide.files import write_bytes_atomic, write_json_atomic
-from geco_guide.generate import build_pipeline, generate, resolve_device, slugify, versions
+from geco_guide.generate import build_pipeline, generate, slugify, versions
 from geco_guide.loss.geco import CUES
 from geco_guide.video import read_video, side_by_side, write_video
 
