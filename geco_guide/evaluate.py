@@ -28,7 +28,7 @@ import math
 import os
 import re
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +39,7 @@ from .config import EstimatorsConfig, EvaluationConfig, GeCoConfig, load_config
 from .estimators import estimator_id, load_estimators
 from .estimators.base import Correspondences
 from .files import write_json_atomic, write_text_atomic
-from .loss.geco import CUES, PAIR_MODES, GeCoLoss, frame_pairs, geco_from_geometry
+from .loss.geco import CUES, PAIR_MODES, GeCoLoss, GeCoMaps, frame_pairs, geco_from_geometry
 from .loss.motion_stats import motion_statistics
 from .video import (
     IMAGE_SUFFIXES,
@@ -68,24 +68,18 @@ PAPER_NAMES = {
 
 
 @dataclass
-class EvaluationMaps:
-    """Per evaluated frame (``N`` of them, in time order), on the CPU.
+class EvaluationMaps(GeCoMaps):
+    """The frame maps of every evaluated frame (``N`` of them, in time order), on the CPU.
 
     Attributes:
+        motion, structure, fused: ``[N, H, W]`` the frame maps (mean over the frame's pairs),
+            with their ``*_valid`` masks, as in :class:`~geco_guide.loss.geco.GeCoMaps`.
         frames: ``[N, 3, H, W]`` the evaluated frames.
-        motion, structure, fused: ``[N, H, W]`` the frame maps (mean over the frame's pairs).
-        motion_valid, structure_valid, fused_valid: ``[N, H, W]`` bool validity.
 
     ``maps[k]`` is a dict of frame ``k``'s ``frame [3, H, W]`` and maps ``[H, W]``.
     """
 
     frames: Tensor
-    motion: Tensor
-    motion_valid: Tensor
-    structure: Tensor
-    structure_valid: Tensor
-    fused: Tensor
-    fused_valid: Tensor
 
     def __len__(self) -> int:
         return self.frames.shape[0]
@@ -94,7 +88,7 @@ class EvaluationMaps:
         return {"frame": self.frames[k], **{name: getattr(self, name)[k] for name in _MAP_FIELDS}}
 
 
-_MAP_FIELDS = ("motion", "motion_valid", "structure", "structure_valid", "fused", "fused_valid")
+_MAP_FIELDS = tuple(f.name for f in fields(GeCoMaps))
 
 
 @dataclass
@@ -280,7 +274,7 @@ def evaluate_video(
     evaluation_maps = None
     if maps:
         stacked = [torch.cat(parts) if parts[0].dtype == torch.bool else torch.cat(parts).float() for parts in zip(*kept_maps)]
-        evaluation_maps = EvaluationMaps(frames.clone(), *stacked)
+        evaluation_maps = EvaluationMaps(*stacked, frames=frames.clone())
     return EvaluationResult(
         **video_scores,
         total_motion=stats.total_motion,
