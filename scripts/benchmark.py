@@ -7,6 +7,25 @@ Subcommands:
 * ``estimators`` — VGGT ``estimate_geometry`` and UFM ``estimate_flow`` forward and
   forward+backward (gradient w.r.t. the input frames; parameters frozen), tiny and/or full-size
   architectures with random weights.
+* ``sampling`` — :class:`GeCoCogVideoXPipeline` sampling without and with GeCo guidance from the
+  same seed (one subprocess per arm): wall time, time per denoising step, a per-stage breakdown
+  of the guided arm (denoiser forward/backward, VAE slice decode forward/backward, VGGT and UFM
+  forward/backward, loss), denoiser pass counts and peak memory. ``--preset tiny`` (tiny random
+  models, 17x32x48) or ``--full-size`` (CogVideoX-5B transformer + VAE, VGGT-1B, UFM-Base, random
+  weights, random ``[1, 226, 4096]`` text embeddings instead of T5, 49x480x720; refused on CPU
+  without ``--allow-cpu``). ``--steps N < 50`` runs the paper's guidance schedule compressed to N
+  steps (step i takes R_t and time travel of paper step ``floor(i * 50 / N)``; the scheduler's
+  own N-step table) and extrapolates to 50 steps and the paper's 111 updates
+  (``extrapolated: true``).
+
+  Stage timing (:class:`StageProfiler`) wraps, on the instances only, ``transformer.forward``,
+  ``vae.decode``, ``geometry_estimator.estimate_geometry`` and ``flow_estimator.estimate_flow``:
+  forward = the call's duration; backward = from the first execution of an output's ``grad_fn``
+  (node pre-hook) to the gradient w.r.t. the last input (an identity autograd function on the
+  inputs). ``loss`` = the guided updates' own seconds (``guidance_log``) minus every stage
+  interval inside them: the GeCo loss math and its backward, resizing, the normalised update.
+  On CUDA every timing point synchronises the device, so CUDA timings include syncs added by
+  the harness.
 
 Every case (one workload in one mode) runs in its own subprocess (the internal ``worker``
 subcommand), so peak memory is per case: ``torch.cuda.max_memory_allocated`` on a GPU, peak RSS
@@ -22,6 +41,8 @@ Examples::
 
     python scripts/benchmark.py loss --frames 4 --height 480 --width 720 --repeats 3
     python scripts/benchmark.py estimators --size both --frames 2 --height 140 --width 210
+    python scripts/benchmark.py sampling --preset tiny --mode faithful --json out.json
+    python scripts/benchmark.py sampling --full-size --device cuda --mode fast --steps 10
 """
 
 from __future__ import annotations
@@ -353,6 +374,602 @@ def run_worker(spec: dict[str, Any]) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------------------------
+# Sampling: guided vs unguided CogVideoX denoising, per-stage breakdown
+# ----------------------------------------------------------------------------------------------
+
+#: Published ``THUDM/CogVideoX-5b`` configs (``transformer/config.json``, ``vae/config.json``,
+#: ``scheduler/scheduler_config.json``), written out so nothing is downloaded. The checkpoint ships
+#: ``CogVideoXDPMScheduler``; the GeCo pipeline samples with DDIM from the same settings.
+COGVIDEOX_5B_TRANSFORMER: dict[str, Any] = {
+    "activation_fn": "gelu-approximate",
+    "attention_bias": True,
+    "attention_head_dim": 64,
+    "dropout": 0.0,
+    "flip_sin_to_cos": True,
+    "freq_shift": 0,
+    "in_channels": 16,
+    "max_text_seq_length": 226,
+    "norm_elementwise_affine": True,
+    "norm_eps": 1e-5,
+    "num_attention_heads": 48,
+    "num_layers": 42,
+    "out_channels": 16,
+    "patch_size": 2,
+    "sample_frames": 49,
+    "sample_height": 60,
+    "sample_width": 90,
+    "spatial_interpolation_scale": 1.875,
+    "temporal_compression_ratio": 4,
+    "temporal_interpolation_scale": 1.0,
+    "text_embed_dim": 4096,
+    "time_embed_dim": 512,
+    "timestep_activation_fn": "silu",
+    "use_learned_positional_embeddings": False,
+    "use_rotary_positional_embeddings": True,
+}
+COGVIDEOX_5B_VAE: dict[str, Any] = {
+    "act_fn": "silu",
+    "block_out_channels": (128, 256, 256, 512),
+    "down_block_types": ("CogVideoXDownBlock3D",) * 4,
+    "force_upcast": True,
+    "in_channels": 3,
+    "latent_channels": 16,
+    "layers_per_block": 3,
+    "norm_eps": 1e-6,
+    "norm_num_groups": 32,
+    "out_channels": 3,
+    "sample_height": 480,
+    "sample_width": 720,
+    "scaling_factor": 0.7,
+    "temporal_compression_ratio": 4,
+    "up_block_types": ("CogVideoXUpBlock3D",) * 4,
+    "use_post_quant_conv": False,
+    "use_quant_conv": False,
+}
+COGVIDEOX_5B_SCHEDULER: dict[str, Any] = {
+    "beta_end": 0.012,
+    "beta_schedule": "scaled_linear",
+    "beta_start": 0.00085,
+    "clip_sample": False,
+    "num_train_timesteps": 1000,
+    "prediction_type": "v_prediction",
+    "rescale_betas_zero_snr": True,
+    "set_alpha_to_one": True,
+    "snr_shift_scale": 1.0,
+    "steps_offset": 0,
+    "timestep_spacing": "trailing",
+}
+#: The paper's setting: 49 frames of 480x720, 50 DDIM steps, CFG 6; T5 embeddings are [1, 226, 4096].
+FULL_SIZE_VIDEO = {"frames": 49, "height": 480, "width": 720}
+NOMINAL_STEPS = 50
+TEXT_EMBED_SHAPE = (1, 226, 4096)
+SAMPLING_MODES = ("faithful", "fast", "unguided")
+#: Breakdown stages (keys of the profiler) in report order.
+STAGES = ("denoiser", "vae_decode", "vggt", "ufm")
+GIB = 2**30
+
+
+def _init_weights_(model: torch.nn.Module, seed: int) -> None:
+    """Cheap random init of a model materialised with ``to_empty``: weight matrices / kernels
+    ``N(0, 1 / fan_in)``, other weights (norm scales) 1, biases and other 1-D tensors 0; buffers
+    must not exist (their values would be garbage)."""
+    device = next(model.parameters()).device
+    gen = torch.Generator(device=device).manual_seed(seed)
+    with torch.no_grad():
+        for name, param in model.named_parameters():
+            if param.ndim >= 2:
+                fan_in = param[0].numel()
+                param.normal_(0.0, fan_in**-0.5, generator=gen)
+            elif name.endswith("weight"):
+                param.fill_(1.0)
+            else:
+                param.zero_()
+    buffers = [name for name, _ in model.named_buffers()]
+    if buffers:
+        raise RuntimeError(f"{type(model).__name__} has buffers {buffers[:5]}; _init_weights_ cannot fill them")
+
+
+def build_full_size_components(device: str | torch.device, dtype: torch.dtype, seed: int = 0) -> dict[str, Any]:
+    """CogVideoX-5B transformer and VAE (random weights, ``dtype``, on ``device``), DDIM scheduler.
+
+    Built on the meta device and materialised with ``to_empty`` directly in ``dtype``; with
+    ``device="meta"`` nothing is allocated (for tests). No tokenizer or text encoder.
+    """
+    from diffusers import AutoencoderKLCogVideoX, CogVideoXDDIMScheduler, CogVideoXTransformer3DModel
+
+    with torch.device("meta"):
+        transformer = CogVideoXTransformer3DModel(**COGVIDEOX_5B_TRANSFORMER)
+        vae = AutoencoderKLCogVideoX(**COGVIDEOX_5B_VAE)
+    for i, model in enumerate((transformer, vae)):
+        model.to(dtype)
+        if torch.device(device).type != "meta":
+            model.to_empty(device=device)
+            _init_weights_(model, seed + i)
+        model.eval()
+    return {"tokenizer": None, "text_encoder": None, "vae": vae, "transformer": transformer,
+            "scheduler": CogVideoXDDIMScheduler(**COGVIDEOX_5B_SCHEDULER)}
+
+
+def compressed_paper_schedule(num_steps: int) -> tuple[list[int], list[int] | None]:
+    """The paper's 50-step guidance schedule compressed to ``num_steps`` steps.
+
+    Step ``i`` of ``num_steps`` takes ``R_t`` (and time travel) of paper step
+    ``floor(i * 50 / num_steps)``; the sampler uses the scheduler's own ``num_steps``-step
+    timestep table (trailing spacing), so the steps span the whole trajectory. Identity at 50.
+    """
+    from geco_guide.sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL, parse_repeats
+
+    paper = parse_repeats(PAPER_REPEATS)
+    index = [i * NOMINAL_STEPS // num_steps for i in range(num_steps)]
+    repeats = [paper[j] for j in index]
+    first, last = PAPER_TIME_TRAVEL
+    window = [i for i, j in enumerate(index) if first <= j <= last]
+    return repeats, ([window[0], window[-1]] if window else None)
+
+
+def _tensors(obj: Any) -> list[Tensor]:
+    """Tensors in a (nested) output: tensors, tuples/lists, dicts (diffusers outputs), dataclasses."""
+    if isinstance(obj, Tensor):
+        return [obj]
+    if isinstance(obj, (tuple, list)):
+        return [t for item in obj for t in _tensors(item)]
+    if isinstance(obj, dict):
+        return [t for item in obj.values() for t in _tensors(item)]
+    if hasattr(obj, "__dataclass_fields__"):
+        return [t for name in obj.__dataclass_fields__ for t in _tensors(getattr(obj, name))]
+    return []
+
+
+class _BackwardMark(torch.autograd.Function):
+    """Identity whose backward calls ``callback`` (the gradient w.r.t. a stage input is done)."""
+
+    @staticmethod
+    def forward(ctx, callback, x):  # type: ignore[override]
+        ctx.callback = callback
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, grad):  # type: ignore[override]
+        ctx.callback()
+        return None, grad
+
+
+class StageProfiler:
+    """Per-stage forward/backward times of a pipeline call, installed on the instances only.
+
+    ``wrap(obj, name, stage)`` replaces the bound method ``obj.name`` by a wrapper that times the
+    call (forward) and, when autograd is on, marks the backward: it starts at the first execution of
+    an output's ``grad_fn`` (a node pre-hook) and ends when the gradient w.r.t. the last stage
+    input is computed (an identity autograd function on every tensor input). The autograd engine
+    runs ready nodes in decreasing creation order, so the backward of a stage runs contiguously
+    between these two events. On CUDA every event synchronises the device (added by the harness).
+    """
+
+    def __init__(self, device: torch.device) -> None:
+        self.device = device
+        self.calls: list[dict[str, Any]] = []
+        self.update_starts: list[float] = []
+        self.loop_start: float | None = None
+        self.step_ends: list[float] = []
+
+    def now(self) -> float:
+        synchronize(self.device)
+        return time.perf_counter()
+
+    def reset(self) -> None:
+        self.calls, self.update_starts, self.loop_start, self.step_ends = [], [], None, []
+
+    def wrap(self, obj: Any, name: str, stage: str) -> None:
+        original = getattr(obj, name)
+
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            call: dict[str, Any] = {"stage": stage, "grad": torch.is_grad_enabled(),
+                                    "bwd_start": None, "bwd_end": None}
+
+            def mark(x: Any) -> Any:
+                if isinstance(x, Tensor) and x.requires_grad:
+                    return _BackwardMark.apply(lambda: self._bwd_end(call), x)
+                return x
+
+            if call["grad"]:
+                args = tuple(mark(a) for a in args)
+                kwargs = {k: mark(v) for k, v in kwargs.items()}
+            call["start"] = self.now()
+            out = original(*args, **kwargs)
+            call["end"] = self.now()
+            if call["grad"]:
+                nodes = {id(t.grad_fn): t.grad_fn for t in _tensors(out) if t.grad_fn is not None}
+                for node in nodes.values():
+                    node.register_prehook(lambda grad_outputs: self._bwd_start(call))
+            self.calls.append(call)
+            return out
+
+        setattr(obj, name, wrapper)
+
+    def _bwd_start(self, call: dict[str, Any]) -> None:
+        if call["bwd_start"] is None:
+            call["bwd_start"] = self.now()
+
+    def _bwd_end(self, call: dict[str, Any]) -> None:
+        call["bwd_end"] = self.now()
+
+    def wrap_predict_x0(self, pipe: Any) -> None:
+        """Mark the loop start and the start of every guided update (``predict_x0`` with grad on)."""
+        original = pipe.predict_x0
+
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            now = self.now()
+            if self.loop_start is None:
+                self.loop_start = now
+            if torch.is_grad_enabled():
+                self.update_starts.append(now)
+            return original(*args, **kwargs)
+
+        pipe.predict_x0 = wrapper
+
+    def on_step_end(self, pipe: Any, step: int, t: Any, callback_kwargs: dict[str, Any]) -> dict[str, Any]:
+        self.step_ends.append(self.now())
+        return {}
+
+    def intervals(self) -> list[dict[str, Any]]:
+        """Every timed interval: ``stage, kind (forward|backward), grad, start, end``."""
+        out = []
+        for call in self.calls:
+            out.append({"stage": call["stage"], "kind": "forward", "grad": call["grad"],
+                        "start": call["start"], "end": call["end"]})
+            if call["bwd_start"] is not None and call["bwd_end"] is not None:
+                out.append({"stage": call["stage"], "kind": "backward", "grad": True,
+                            "start": call["bwd_start"], "end": call["bwd_end"]})
+        return out
+
+
+def _union_seconds(spans: Sequence[tuple[float, float]]) -> float:
+    """Total length of the union of ``(start, end)`` spans (overlaps counted once)."""
+    total, current = 0.0, None
+    for start, end in sorted(spans):
+        if current is None or start > current[1]:
+            if current is not None:
+                total += current[1] - current[0]
+            current = [start, end]
+        else:
+            current[1] = max(current[1], end)
+    return total + (current[1] - current[0] if current is not None else 0.0)
+
+
+def summarize_profile(profiler: StageProfiler, update_seconds: Sequence[float]) -> dict[str, Any]:
+    """Stage seconds split by where they happened: ``update`` (inside a guided update), ``loop``
+    (the rest of the denoising loop: the final predictions of each step) and ``post`` (after the
+    loop: the final VAE decode); plus counts and the ``loss`` remainder of the updates."""
+    windows = [(s, s + d) for s, d in zip(profiler.update_starts, update_seconds)]
+    loop_end = profiler.step_ends[-1] if profiler.step_ends else float("inf")
+
+    def where(start: float) -> str:
+        if any(a <= start <= b for a, b in windows):
+            return "update"
+        return "loop" if start <= loop_end else "post"
+
+    spans: dict[tuple[str, str, str], list[tuple[float, float]]] = {}
+    counts: dict[tuple[str, str, str], int] = {}
+    for iv in profiler.intervals():
+        key = (iv["stage"], iv["kind"], where(iv["start"]))
+        spans.setdefault(key, []).append((iv["start"], iv["end"]))
+        counts[key] = counts.get(key, 0) + 1
+    seconds = {key: _union_seconds(value) for key, value in spans.items()}
+    in_updates = sum(v for (_, _, w), v in seconds.items() if w == "update")
+    return {
+        "seconds": {"/".join(k): v for k, v in sorted(seconds.items())},
+        "counts": {"/".join(k): v for k, v in sorted(counts.items())},
+        "denoiser_forwards_with_grad": sum(1 for c in profiler.calls if c["stage"] == "denoiser" and c["grad"]),
+        "updates_s": sum(update_seconds),
+        "attributed_in_updates_s": in_updates,
+        "loss_s": sum(update_seconds) - in_updates,
+    }
+
+
+def breakdown_of(profile: dict[str, Any], scale: dict[str, float] | None = None) -> dict[str, Any]:
+    """The report's breakdown: seconds per stage and counts, optionally with the ``update`` and
+    ``loop`` parts scaled (extrapolation to the nominal step count)."""
+    scale = scale or {"update": 1.0, "loop": 1.0, "post": 1.0}
+
+    def total(stage: str, kind: str, where: Sequence[str] = ("update", "loop", "post"), table: str = "seconds") -> float:
+        value = sum(scale[w] * profile[table].get(f"{stage}/{kind}/{w}", 0) for w in where)
+        return int(round(value)) if table == "counts" else value
+
+    return {
+        "denoiser_forward_s": total("denoiser", "forward"),
+        "denoiser_backward_s": total("denoiser", "backward"),
+        "vae_slice_decode_forward_s": total("vae_decode", "forward", ("update",)),
+        "vae_slice_decode_backward_s": total("vae_decode", "backward", ("update",)),
+        "vae_final_decode_s": total("vae_decode", "forward", ("loop", "post")),
+        "vggt_forward_s": total("vggt", "forward"),
+        "vggt_backward_s": total("vggt", "backward"),
+        "ufm_forward_s": total("ufm", "forward"),
+        "ufm_backward_s": total("ufm", "backward"),
+        "loss_s": scale["update"] * profile["loss_s"],
+        "guided_updates_s": scale["update"] * profile["updates_s"],
+        "counts": {
+            "denoiser_forwards": total("denoiser", "forward", table="counts"),
+            "denoiser_forwards_in_updates": total("denoiser", "forward", ("update",), table="counts"),
+            "denoiser_backwards": total("denoiser", "backward", table="counts"),
+            "vae_slice_decodes": total("vae_decode", "forward", ("update",), table="counts"),
+            "vggt_calls": total("vggt", "forward", table="counts"),
+            "ufm_calls": total("ufm", "forward", table="counts"),
+        },
+    }
+
+
+def default_anchors(num_frames: int, temporal_compression: int = 4) -> list[int]:
+    """Four anchors spread over the video: the last pixel frame of latents ``round(L * j / 4)``,
+    ``j = 1..4`` (``L`` = latents - 1). Gives the paper's (12, 24, 36, 48) at 49 frames and the tiny
+    preset's (4, 8, 12, 16) at 17; shorter videos get fewer (distinct) anchors."""
+    last = (num_frames - 1) // temporal_compression
+    return sorted({temporal_compression * max(1, round(last * j / 4)) for j in range(1, 5)})
+
+
+def _sampling_guidance(spec: dict[str, Any]) -> Any:
+    """The ``guidance=`` argument of an arm: ``False`` (unguided) or a :class:`GuidanceConfig`."""
+    from dataclasses import replace
+
+    from geco_guide.sampler.guidance import GuidanceConfig
+    from geco_guide.testing import tiny_guidance_config
+
+    if spec["arm"] == "unguided":
+        return False
+    repeats, time_travel = compressed_paper_schedule(spec["steps"])
+    base = tiny_guidance_config() if spec["preset"] == "tiny" else GuidanceConfig()
+    return replace(base, anchors=default_anchors(spec["frames"]), repeats=",".join(map(str, repeats)),
+                   time_travel=time_travel, denoiser_grad=spec["mode"] == "faithful")
+
+
+def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: torch.dtype) -> tuple[Any, dict[str, Any]]:
+    """The pipeline of a sampling case and its call kwargs (random text embeddings for full size)."""
+    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+
+    seed = spec["seed"]
+    if spec["preset"] == "tiny":
+        from geco_guide.testing import TINY_MAX_SEQUENCE_LENGTH, tiny_pipeline
+
+        pipe = tiny_pipeline(seed).to(device=device, dtype=dtype)
+        call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
+    else:
+        autocast = dtype if dtype != torch.float32 else None
+        ckpt = spec.get("estimator_checkpointing", False)
+        geometry = VGGT.random(VGGTConfig(), seed=seed, gradient_checkpointing=ckpt, autocast_dtype=autocast)
+        flow = UFM.random(UFMConfig(), seed=seed, gradient_checkpointing=ckpt, autocast_dtype=autocast)
+        pipe = GeCoCogVideoXPipeline(**build_full_size_components(device, dtype, seed),
+                                     geometry_estimator=geometry.eval(), flow_estimator=flow.eval())
+        pipe.to(device)
+        pipe.set_progress_bar_config(disable=True)
+        gen = torch.Generator().manual_seed(seed + 1000)
+        embeds = [torch.randn(*TEXT_EMBED_SHAPE, generator=gen).to(device, dtype) for _ in range(2)]
+        call = {"prompt_embeds": embeds[0], "negative_prompt_embeds": embeds[1],
+                "max_sequence_length": TEXT_EMBED_SHAPE[1]}
+    call.update(num_frames=spec["frames"], height=spec["height"], width=spec["width"], output_type="pt")
+    return pipe, call
+
+
+def run_sampling_worker(spec: dict[str, Any]) -> dict[str, Any]:
+    """One arm (guided or unguided) of a sampling benchmark in this process."""
+    device = torch.device(spec["device"])
+    dtype = getattr(torch, spec["dtype"])
+    if spec["threads"]:
+        torch.set_num_threads(spec["threads"])
+    baseline = peak_memory_bytes(device)
+    start = time.perf_counter()
+    pipe, call = build_sampling_pipeline(spec, device, dtype)
+    synchronize(device)
+    setup_s = time.perf_counter() - start
+    after_setup = peak_memory_bytes(device)
+
+    profiler = StageProfiler(device)
+    profiler.wrap(pipe.transformer, "forward", "denoiser")
+    profiler.wrap(pipe.vae, "decode", "vae_decode")
+    profiler.wrap(pipe.geometry_estimator, "estimate_geometry", "vggt")
+    profiler.wrap(pipe.flow_estimator, "estimate_flow", "ufm")
+    profiler.wrap_predict_x0(pipe)
+    guidance = _sampling_guidance(spec)
+
+    def sample(steps: int, guidance_arg: Any) -> Any:
+        return pipe(**call, num_inference_steps=steps, guidance=guidance_arg, guidance_scale=6.0,
+                    generator=torch.Generator().manual_seed(spec["seed"]), callback_on_step_end=profiler.on_step_end)
+
+    for _ in range(spec["warmup"]):  # 2 steps: with guidance, step 1 has updates (compressed schedule)
+        warm = _sampling_guidance({**spec, "steps": 2}) if guidance is not False else False
+        sample(2, warm)
+    profiler.reset()
+    load_avg_1m = os.getloadavg()[0]
+    cpu_start = time.process_time()
+    start = profiler.now()
+    out = sample(spec["steps"], guidance)
+    wall = profiler.now() - start
+    cpu_per_wall = (time.process_time() - cpu_start) / wall
+    peak = peak_memory_bytes(device)
+
+    log = out.guidance_log or []
+    profile = summarize_profile(profiler, [r["seconds"] for r in log])
+    loop_s = profiler.step_ends[-1] - profiler.loop_start
+    step_times = [b - a for a, b in zip([profiler.loop_start, *profiler.step_ends[:-1]], profiler.step_ends)]
+    frames = out.frames
+    return {
+        **spec,
+        "threads": torch.get_num_threads(),
+        "setup_s": setup_s,
+        "wall_s": wall,
+        "loop_s": loop_s,
+        "before_loop_s": profiler.loop_start - start,
+        "after_loop_s": start + wall - profiler.step_ends[-1],
+        "step_times_s": step_times,
+        "time_per_step_s": loop_s / len(step_times),
+        "guided_updates": len(log),
+        "update_seconds": [r["seconds"] for r in log],
+        "skipped_updates": sum(bool(r["skipped"]) for r in log),
+        "losses": [r["loss"] for r in log],
+        "profile": profile,
+        "breakdown": breakdown_of(profile),
+        "output_shape": list(frames.shape),
+        "output_finite": bool(torch.isfinite(frames).all()),
+        "memory_kind": memory_kind(device),
+        "baseline_gb": baseline / GIB,
+        "after_setup_gb": after_setup / GIB,
+        "peak_memory_gb": peak / GIB,
+        "load_avg_1m": load_avg_1m,
+        "cpu_per_wall": cpu_per_wall,
+        "guidance": None if guidance is False else {k: v for k, v in vars(guidance).items() if k != "loss"},
+    }
+
+
+def extrapolate_arm(arm: dict[str, Any], nominal: int, nominal_updates: int) -> dict[str, Any]:
+    """Times of ``arm`` extrapolated from its ``steps`` to ``nominal`` steps with
+    ``nominal_updates`` guided updates: the per-step part (final predictions, DDIM step) scales by
+    ``nominal / steps``, the per-update part by ``nominal_updates / updates``; the time before and
+    after the loop (text embeddings, latents, final decode) is kept."""
+    steps, updates = arm["steps"], arm["guided_updates"]
+    update_s = sum(arm["update_seconds"])
+    per_step = (arm["loop_s"] - update_s) / steps
+    per_update = update_s / updates if updates else 0.0
+    if nominal_updates and not updates:
+        raise ValueError(f"{steps} step(s) run no guided update: cannot extrapolate the guided time")
+    loop = nominal * per_step + nominal_updates * per_update
+    scale = {"update": nominal_updates / updates if updates else 0.0, "loop": nominal / steps, "post": 1.0}
+    return {
+        "wall_s": arm["before_loop_s"] + loop + arm["after_loop_s"],
+        "loop_s": loop,
+        "time_per_step_s": loop / nominal,
+        "guided_updates": nominal_updates,
+        "breakdown": breakdown_of(arm["profile"], scale),
+    }
+
+
+def sampling_report(args: argparse.Namespace) -> dict[str, Any]:
+    """Run the unguided and (unless ``--mode unguided``) the guided arm; build the JSON report."""
+    from geco_guide.sampler.schedule import PAPER_REPEATS, parse_repeats
+
+    device = torch.device(args.device)
+    if args.full_size and device.type == "cpu" and not args.allow_cpu:
+        raise SystemExit(
+            "sampling --full-size on CPU is refused: CogVideoX-5B + VGGT-1B + UFM-Base weights alone are "
+            "about 30 GiB in float32 (7.4 G parameters) and a 49x480x720 step would take hours; run it on a GPU "
+            "(--device cuda) or pass --allow-cpu to insist.")
+    preset = "full-size" if args.full_size else "tiny"
+    if preset == "tiny":
+        from geco_guide.testing import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH
+
+        video = {"frames": TINY_NUM_FRAMES, "height": TINY_HEIGHT, "width": TINY_WIDTH}
+    else:
+        video = dict(FULL_SIZE_VIDEO)
+    video.update({k: getattr(args, k) for k in ("frames", "height", "width") if getattr(args, k) is not None})
+    steps = args.steps or NOMINAL_STEPS
+    if steps > NOMINAL_STEPS or steps < 1:
+        raise SystemExit(f"--steps must be in [1, {NOMINAL_STEPS}], got {steps}")
+    dtype = args.dtype or ("bfloat16" if preset == "full-size" and device.type == "cuda" else "float32")
+    spec = {"workload": "sampling", "preset": preset, "mode": args.mode, "steps": steps, **video,
+            "device": args.device, "dtype": dtype, "threads": args.threads, "seed": args.seed,
+            "warmup": args.warmup, "estimator_checkpointing": args.estimator_checkpointing}
+    arms_to_run = ("unguided",) if args.mode == "unguided" else ("unguided", "guided")
+    arms = {}
+    for arm in arms_to_run:
+        case = {**spec, "arm": arm, "case": f"sampling-{preset}-{arm}"}
+        print(f"running {case['case']} ({args.mode}, {steps} steps) ...", file=sys.stderr, flush=True)
+        arms[arm] = run_case_subprocess(case)
+        print(f"  wall {arms[arm]['wall_s']:.4g} s, peak {arms[arm]['peak_memory_gb']:.3f} GiB",
+              file=sys.stderr, flush=True)
+
+    extrapolated = steps < NOMINAL_STEPS
+    paper_updates = sum(parse_repeats(PAPER_REPEATS))
+    guided = arms.get("guided")
+    main_arm = guided or arms["unguided"]
+    report: dict[str, Any] = {
+        "subcommand": "sampling",
+        "argv": sys.argv[1:],
+        "environment": environment_info(main_arm["threads"]),
+        "device": f"{device.type} ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else "cpu",
+        "mode": args.mode,
+        "preset": preset,
+        "steps": steps,
+        "nominal_steps": NOMINAL_STEPS,
+        "extrapolated": extrapolated,
+        "config": {**video, "dtype": dtype, "seed": args.seed, "warmup": args.warmup, "guidance_scale": 6.0,
+                   "estimator_checkpointing": args.estimator_checkpointing,
+                   "guidance": guided["guidance"] if guided else None,
+                   "schedule_note": "paper schedule compressed to the run's steps: step i takes R_t and time "
+                                    "travel of paper step floor(i*50/steps); scheduler's own steps-step table"},
+        "memory_kind": main_arm["memory_kind"],
+        "peak_memory_gb": main_arm["peak_memory_gb"],
+        "peak_memory_gb_unguided": arms["unguided"]["peak_memory_gb"],
+        "wall_time_s": {arm: r["wall_s"] for arm, r in arms.items()},
+        "time_per_step_s": {arm: r["time_per_step_s"] for arm, r in arms.items()},
+        "breakdown": main_arm["breakdown"],
+        "breakdown_unguided": arms["unguided"]["breakdown"],
+        "arms": arms,
+    }
+    ratio_basis = "measured"
+    if guided:
+        ratio = guided["wall_s"] / arms["unguided"]["wall_s"]
+    if extrapolated:
+        ext = {arm: extrapolate_arm(r, NOMINAL_STEPS, paper_updates if arm == "guided" else 0)
+               for arm, r in arms.items()}
+        report["extrapolated_to_nominal"] = {
+            "note": f"per-step and per-update times of the {steps}-step run scaled to {NOMINAL_STEPS} steps "
+                    f"and the paper's {paper_updates} guided updates (not measured)",
+            "wall_time_s": {arm: e["wall_s"] for arm, e in ext.items()},
+            "time_per_step_s": {arm: e["time_per_step_s"] for arm, e in ext.items()},
+            "breakdown": ext.get("guided", ext["unguided"])["breakdown"],
+        }
+        if guided:
+            ratio = ext["guided"]["wall_s"] / ext["unguided"]["wall_s"]
+            ratio_basis = "extrapolated"
+    report["ratio_guided_over_unguided"] = ratio if guided else None
+    report["ratio_basis"] = ratio_basis if guided else None
+    return report
+
+
+SAMPLING_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("arm", "arm", "{}"),
+    ("steps", "steps", "{}"),
+    ("updates", "guided_updates", "{}"),
+    ("wall (s)", "wall_s", "{:.4g}"),
+    ("per step (s)", "time_per_step_s", "{:.4g}"),
+    ("denoiser fwd", "denoiser_forward_s", "{:.3g}"),
+    ("denoiser bwd", "denoiser_backward_s", "{:.3g}"),
+    ("VAE slice fwd", "vae_slice_decode_forward_s", "{:.3g}"),
+    ("VAE slice bwd", "vae_slice_decode_backward_s", "{:.3g}"),
+    ("VAE final", "vae_final_decode_s", "{:.3g}"),
+    ("VGGT fwd", "vggt_forward_s", "{:.3g}"),
+    ("VGGT bwd", "vggt_backward_s", "{:.3g}"),
+    ("UFM fwd", "ufm_forward_s", "{:.3g}"),
+    ("UFM bwd", "ufm_backward_s", "{:.3g}"),
+    ("loss", "loss_s", "{:.3g}"),
+    ("fwd / bwd", "passes", "{}"),
+    ("peak mem (GiB)", "peak_memory_gb", "{:.3f}"),
+)
+
+
+def sampling_table(report: dict[str, Any]) -> str:
+    """Markdown table of the arms (measured; the extrapolated rows are marked ``(extrap.)``)."""
+    rows = []
+    for arm, r in report["arms"].items():
+        b = r["breakdown"]
+        rows.append({**r, **b, "passes": f"{b['counts']['denoiser_forwards']} / {b['counts']['denoiser_backwards']}"})
+    for arm, wall in report.get("extrapolated_to_nominal", {}).get("wall_time_s", {}).items():
+        ext = report["extrapolated_to_nominal"]
+        b = ext["breakdown"] if arm == ("guided" if "guided" in report["arms"] else "unguided") else {}
+        rows.append({"arm": f"{arm} (extrap.)", "steps": report["nominal_steps"], "wall_s": wall,
+                     "time_per_step_s": ext["time_per_step_s"][arm], **{k: v for k, v in b.items() if k != "counts"}})
+    ratio = report["ratio_guided_over_unguided"]
+    footer = f"\nguided / unguided wall time: {ratio:.3g} ({report['ratio_basis']})" if ratio else ""
+    return markdown_table(rows, SAMPLING_COLUMNS) + footer
+
+
+def run_sampling(args: argparse.Namespace) -> None:
+    report = sampling_report(args)
+    print(sampling_table(report))
+    if args.json:
+        path = Path(args.json)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(report, indent=2) + "\n")
+
+
+# ----------------------------------------------------------------------------------------------
 # Subcommands
 # ----------------------------------------------------------------------------------------------
 
@@ -422,6 +1039,35 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common_options(est, repeats=3)
     est.set_defaults(specs=estimator_specs)
 
+    samp = sub.add_parser("sampling", help="guided vs unguided CogVideoX sampling, same seed, per-stage breakdown")
+    size = samp.add_mutually_exclusive_group()
+    size.add_argument("--preset", choices=("tiny",), default="tiny",
+                      help="tiny random models (default; 17 frames of 32x48, runs anywhere)")
+    size.add_argument("--full-size", action="store_true",
+                      help="CogVideoX-5B transformer + VAE, VGGT-1B, UFM-Base with random weights, 49x480x720")
+    samp.add_argument("--mode", choices=SAMPLING_MODES, default="faithful",
+                      help="faithful: backprop through the denoiser (paper); fast: denoiser output held "
+                           "constant; unguided: only the unguided arm (default: faithful)")
+    samp.add_argument("--steps", type=int, default=None,
+                      help=f"denoising steps run (default {NOMINAL_STEPS}); fewer compress the paper schedule "
+                           f"and extrapolate the times to {NOMINAL_STEPS} steps")
+    samp.add_argument("--frames", type=int, default=None, help="frames (default: 17 tiny, 49 full size)")
+    samp.add_argument("--height", type=int, default=None, help="height (default: 32 tiny, 480 full size)")
+    samp.add_argument("--width", type=int, default=None, help="width (default: 48 tiny, 720 full size)")
+    samp.add_argument("--dtype", choices=("bfloat16", "float32"), default=None,
+                      help="transformer/VAE dtype; estimators autocast to it (default: bfloat16 for full size "
+                           "on CUDA, else float32)")
+    samp.add_argument("--estimator-checkpointing", action="store_true",
+                      help="gradient checkpointing in VGGT and UFM (less memory, more backward time)")
+    samp.add_argument("--allow-cpu", action="store_true",
+                      help="allow --full-size on CPU (the weights alone are ~30 GiB in float32)")
+    samp.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (default: cpu)")
+    samp.add_argument("--threads", type=int, default=None, help="torch.set_num_threads in both arms")
+    samp.add_argument("--warmup", type=int, default=1,
+                      help="untimed 2-step calls of the same arm before the timed one (default: 1)")
+    samp.add_argument("--seed", type=int, default=0, help="seed of weights, text embeddings and noise (default: 0)")
+    samp.add_argument("--json", metavar="PATH", help="also write the report as JSON to PATH")
+
     worker = sub.add_parser("worker", help="internal: run one case given as JSON, print its result as JSON")
     worker.add_argument("spec")
     return parser
@@ -430,7 +1076,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
     if args.command == "worker":
-        print(json.dumps(run_worker(json.loads(args.spec))))
+        spec = json.loads(args.spec)
+        print(json.dumps(run_sampling_worker(spec) if spec["workload"] == "sampling" else run_worker(spec)))
+    elif args.command == "sampling":
+        run_sampling(args)
     else:
         run_and_report(args.command, args.specs(args), args.json)
 

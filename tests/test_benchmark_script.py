@@ -76,3 +76,150 @@ def test_estimators_report(reports: dict[str, dict]) -> None:
         assert result["params_m"] > 0
     networks = {r["case"]: r["network"] for r in results}
     assert networks == {"vggt-tiny": "42x70", "ufm-tiny": "56x98"}
+
+
+# ---- sampling: guided vs unguided denoising ---------------------------------------------------
+
+BREAKDOWN_KEYS = {
+    "denoiser_forward_s", "denoiser_backward_s", "vae_slice_decode_forward_s", "vae_slice_decode_backward_s",
+    "vae_final_decode_s", "vggt_forward_s", "vggt_backward_s", "ufm_forward_s", "ufm_backward_s", "loss_s",
+    "guided_updates_s", "counts",
+}
+
+
+@pytest.fixture(scope="module")
+def sampling_report(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """2 steps of the tiny preset in fast mode (the compressed paper schedule gives R = 0, 2)."""
+    path = tmp_path_factory.mktemp("sampling") / "sampling.json"
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), "sampling", "--preset", "tiny", "--mode", "fast", "--steps", "2",
+         "--threads", "1", "--warmup", "0", "--json", str(path)],
+        capture_output=True, text=True, timeout=180,
+    )
+    assert proc.returncode == 0, proc.stderr
+    return {**json.loads(path.read_text()), "stdout": proc.stdout}
+
+
+def test_sampling_report(sampling_report: dict) -> None:
+    report = sampling_report
+    assert {"device", "mode", "ratio_guided_over_unguided", "peak_memory_gb", "breakdown", "steps",
+            "extrapolated", "config", "wall_time_s", "time_per_step_s"} <= set(report)
+    assert report["device"] == "cpu" and report["mode"] == "fast" and report["preset"] == "tiny"
+    assert report["steps"] == 2 and report["extrapolated"] is True and report["ratio_basis"] == "extrapolated"
+    assert report["config"]["guidance"]["repeats"] == "0,2" and report["config"]["guidance"]["denoiser_grad"] is False
+    assert report["ratio_guided_over_unguided"] > 0
+    assert report["peak_memory_gb"] > 0 and report["peak_memory_gb_unguided"] > 0
+    for arm in ("guided", "unguided"):
+        assert report["wall_time_s"][arm] > 0 and report["time_per_step_s"][arm] > 0
+        assert report["extrapolated_to_nominal"]["wall_time_s"][arm] > 0
+        assert len(report["arms"][arm]["step_times_s"]) == 2 and report["arms"][arm]["output_finite"]
+
+    breakdown = report["breakdown"]
+    assert set(breakdown) == BREAKDOWN_KEYS
+    for key in ("denoiser_forward_s", "vae_slice_decode_forward_s", "vae_slice_decode_backward_s",
+                "vae_final_decode_s", "vggt_forward_s", "vggt_backward_s", "ufm_forward_s", "ufm_backward_s",
+                "guided_updates_s"):
+        assert breakdown[key] > 0, key
+    # fast mode: the denoiser is never differentiated; 2 final predictions + 1 per guided update
+    assert breakdown["denoiser_backward_s"] == 0
+    counts = breakdown["counts"]
+    assert counts == {"denoiser_forwards": 4, "denoiser_forwards_in_updates": 2, "denoiser_backwards": 0,
+                      "vae_slice_decodes": 8, "vggt_calls": 2, "ufm_calls": 2}
+    # the stages inside the updates never add up to more than the updates themselves
+    profile = report["arms"]["guided"]["profile"]
+    assert 0 < profile["attributed_in_updates_s"] <= profile["updates_s"]
+
+    unguided = report["breakdown_unguided"]
+    assert unguided["counts"]["denoiser_forwards"] == 2 and unguided["guided_updates_s"] == 0
+    assert "| guided |" in report["stdout"] and "(extrap.)" in report["stdout"]
+
+
+def test_full_size_pipeline_on_meta() -> None:
+    """The --full-size parts build on the meta device (nothing allocated) with the published configs."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import benchmark
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    import torch
+
+    from geco_guide.estimators.ufm import UFM, UFMConfig
+    from geco_guide.estimators.vggt import VGGT, VGGTConfig
+    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+
+    components = benchmark.build_full_size_components("meta", torch.bfloat16)
+    transformer, vae = components["transformer"], components["vae"]
+    for model in (transformer, vae):
+        assert all(p.device.type == "meta" and p.dtype == torch.bfloat16 for p in model.parameters())
+    tc = transformer.config
+    assert (tc.num_attention_heads, tc.attention_head_dim, tc.num_layers, tc.in_channels, tc.out_channels) == (48, 64, 42, 16, 16)
+    assert (tc.text_embed_dim, tc.time_embed_dim, tc.patch_size, tc.max_text_seq_length) == (4096, 512, 2, 226)
+    assert (tc.sample_frames, tc.sample_height, tc.sample_width) == (49, 60, 90)
+    assert tc.use_rotary_positional_embeddings and not tc.use_learned_positional_embeddings
+    vc = vae.config
+    assert tuple(vc.block_out_channels) == (128, 256, 256, 512) and vc.latent_channels == 16
+    assert vc.layers_per_block == 3 and vc.scaling_factor == 0.7 and vc.temporal_compression_ratio == 4
+    # CogVideoX-5B: 5.57 B transformer parameters, 216 M in the VAE
+    assert sum(p.numel() for p in transformer.parameters()) == 5_570_283_072
+    assert sum(p.numel() for p in vae.parameters()) == 215_583_907
+
+    sc = components["scheduler"].config
+    assert (sc.prediction_type, sc.timestep_spacing, sc.rescale_betas_zero_snr) == ("v_prediction", "trailing", True)
+    with torch.device("meta"):
+        geometry, flow = VGGT(VGGTConfig()), UFM(UFMConfig())
+    assert 1.1e9 < sum(p.numel() for p in geometry.parameters()) < 1.2e9  # VGGT-1B
+    assert 4.0e8 < sum(p.numel() for p in flow.parameters()) < 4.5e8  # UFM-Base
+    pipe = GeCoCogVideoXPipeline(**components, geometry_estimator=geometry, flow_estimator=flow)
+    assert pipe.tokenizer is None and pipe.text_encoder is None
+    assert (pipe.vae_scale_factor_spatial, pipe.vae_scale_factor_temporal, pipe.vae_scaling_factor_image) == (8, 4, 0.7)
+
+
+def test_compressed_schedule() -> None:
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import benchmark
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    from geco_guide.sampler.schedule import PAPER_REPEATS, parse_repeats
+
+    assert benchmark.compressed_paper_schedule(50) == (parse_repeats(PAPER_REPEATS), [15, 20])
+    assert benchmark.compressed_paper_schedule(2) == ([0, 2], None)
+    assert benchmark.compressed_paper_schedule(10) == ([0, 3, 3, 3, 2, 2, 2, 2, 2, 2], [3, 4])
+
+
+def test_full_size_refused_on_cpu() -> None:
+    proc = subprocess.run([sys.executable, str(SCRIPT), "sampling", "--full-size", "--steps", "1"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and "--allow-cpu" in proc.stderr
+
+
+def test_stage_profiler_backward_intervals() -> None:
+    """Two chained stages: each gets one forward and one backward interval; the backward of the
+    later stage runs (and is attributed) before the earlier one's, without overlap."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import benchmark
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    import torch
+
+    first, second = torch.nn.Linear(8, 8), torch.nn.Linear(8, 8)
+    for p in [*first.parameters(), *second.parameters()]:
+        p.requires_grad_(False)
+    profiler = benchmark.StageProfiler(torch.device("cpu"))
+    profiler.wrap(first, "forward", "a")
+    profiler.wrap(second, "forward", "b")
+    x = torch.randn(4, 8, requires_grad=True)
+    with torch.no_grad():
+        second(first(x))  # no autograd: forward intervals only
+    y = second(torch.tanh(first(x))).square().sum()
+    (grad,) = torch.autograd.grad(y, x)
+    assert grad.shape == x.shape
+    calls = profiler.calls
+    assert [(c["stage"], c["grad"]) for c in calls] == [("a", False), ("b", False), ("a", True), ("b", True)]
+    assert all(c["bwd_start"] is None for c in calls[:2])
+    a, b = calls[2], calls[3]
+    assert b["bwd_start"] <= b["bwd_end"] <= a["bwd_start"] <= a["bwd_end"]
+    kinds = sorted((iv["stage"], iv["kind"]) for iv in profiler.intervals())
+    assert kinds == [("a", "backward"), ("a", "forward"), ("a", "forward"), ("b", "backward"), ("b", "forward"), ("b", "forward")]
+    assert benchmark._union_seconds([(0.0, 2.0), (1.0, 3.0), (5.0, 6.0)]) == 4.0
