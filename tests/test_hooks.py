@@ -19,6 +19,8 @@ from geco_guide.sampler.guidance import (
 from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide import testing as T
 
+from counting import CountingForward
+
 PROMPT = "a marble bust on a table"
 NUM_FRAMES = 9  # 3 latents at r=4 (2 at r=8, LTX)
 ANCHORS = [5, 8]  # both in the last latent: one causal chunk, the whole (short) video
@@ -184,15 +186,6 @@ def test_unipc_corrector_keeps_the_guided_update():
 
 
 # ---- up-front checks, errors, detach ------------------------------------------------------------
-
-
-class CountingForward:
-    def __init__(self, module):
-        self.n = 0
-        self.handle = module.register_forward_pre_hook(self)
-
-    def __call__(self, *args):
-        self.n += 1
 
 
 @pytest.mark.parametrize(

@@ -21,6 +21,8 @@ from geco_guide.sampler.guidance import (
 )
 from geco_guide.testing import TINY_ANCHORS, TINY_CALL_KWARGS, tiny_cogvideox_components, tiny_pipeline
 
+from counting import CountingForward
+
 PROMPT = "a marble bust on a table"
 
 
@@ -207,15 +209,6 @@ def test_callback_on_step_end_still_works(pipe):
     assert [s[0] for s in seen] == [0, 1, 2, 3]
     assert [s[1] for s in seen] == [int(t) for t in pipe.scheduler.timesteps]
     assert torch.count_nonzero(out.frames) == 0
-
-
-class CountingForward:
-    def __init__(self, module):
-        self.n = 0
-        self.handle = module.register_forward_pre_hook(self)
-
-    def __call__(self, *args):
-        self.n += 1
 
 
 @pytest.mark.parametrize(
