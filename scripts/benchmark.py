@@ -548,7 +548,6 @@ class StageProfiler:
     def __init__(self, device: torch.device) -> None:
         self.device = device
         self.calls: list[dict[str, Any]] = []
-        self.update_starts: list[float] = []
         self.loop_start: float | None = None
         self.step_ends: list[float] = []
 
@@ -557,7 +556,7 @@ class StageProfiler:
         return time.perf_counter()
 
     def reset(self) -> None:
-        self.calls, self.update_starts, self.loop_start, self.step_ends = [], [], None, []
+        self.calls, self.loop_start, self.step_ends = [], None, []
 
     def wrap(self, obj: Any, name: str, stage: str) -> None:
         original = getattr(obj, name)
@@ -594,15 +593,12 @@ class StageProfiler:
         call["bwd_end"] = self.now()
 
     def wrap_predict_x0(self, pipe: Any) -> None:
-        """Mark the loop start and the start of every guided update (``predict_x0`` with grad on)."""
+        """Mark the loop start: the first ``predict_x0`` call (every step makes at least one)."""
         original = pipe.predict_x0
 
         def wrapper(*args: Any, **kwargs: Any) -> Any:
-            now = self.now()
             if self.loop_start is None:
-                self.loop_start = now
-            if torch.is_grad_enabled():
-                self.update_starts.append(now)
+                self.loop_start = self.now()
             return original(*args, **kwargs)
 
         pipe.predict_x0 = wrapper
@@ -636,11 +632,30 @@ def _union_seconds(spans: Sequence[tuple[float, float]]) -> float:
     return total + (current[1] - current[0] if current is not None else 0.0)
 
 
-def summarize_profile(profiler: StageProfiler, update_seconds: Sequence[float]) -> dict[str, Any]:
+def update_windows(loop_start: float, step_ends: Sequence[float], log: Sequence[dict[str, Any]]) -> list[tuple[float, float]]:
+    """``(start, end)`` of every guided update from the step boundaries and the records.
+
+    A step's updates run back to back from its start (the previous step's end, or the loop start)
+    and each lasts its record's ``seconds``; the few microseconds of Python between them shift
+    the windows slightly early, so the step's final prediction still falls after the last one.
+    """
+    windows, start = [], None
+    step_starts = [loop_start, *step_ends]
+    current_step = None
+    for record in log:
+        if record["step"] != current_step:
+            current_step, start = record["step"], step_starts[record["step"]]
+        windows.append((start, start + record["seconds"]))
+        start += record["seconds"]
+    return windows
+
+
+def summarize_profile(profiler: StageProfiler, log: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Stage seconds split by where they happened: ``update`` (inside a guided update), ``loop``
     (the rest of the denoising loop: the final predictions of each step) and ``post`` (after the
     loop: the final VAE decode); plus counts and the ``loss`` remainder of the updates."""
-    windows = [(s, s + d) for s, d in zip(profiler.update_starts, update_seconds)]
+    update_seconds = [r["seconds"] for r in log]
+    windows = update_windows(profiler.loop_start, profiler.step_ends, log) if log else []
     loop_end = profiler.step_ends[-1] if profiler.step_ends else float("inf")
 
     def where(start: float) -> str:
@@ -786,7 +801,7 @@ def run_sampling_worker(spec: dict[str, Any]) -> dict[str, Any]:
     peak = peak_memory_bytes(device)
 
     log = out.guidance_log or []
-    profile = summarize_profile(profiler, [r["seconds"] for r in log])
+    profile = summarize_profile(profiler, log)
     loop_s = profiler.step_ends[-1] - profiler.loop_start
     step_times = [b - a for a, b in zip([profiler.loop_start, *profiler.step_ends[:-1]], profiler.step_ends)]
     frames = out.frames

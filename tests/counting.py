@@ -1,4 +1,8 @@
-"""Call counters for the tests' "nothing ran before the error" checks."""
+"""Counters for the tests: forward calls ("nothing ran before the error") and host syncs."""
+
+from collections import Counter
+
+from torch.utils._python_dispatch import TorchDispatchMode
 
 
 class CountingForward:
@@ -10,3 +14,28 @@ class CountingForward:
 
     def __call__(self, *args):
         self.n += 1
+
+
+class HostSyncCounter(TorchDispatchMode):
+    """Counts the ATen ops that make the host wait for the device on a GPU (``.item()``,
+    ``float(t)``, ``bool(t)``, ``torch.equal``, data-dependent shapes), also when running on CPU.
+
+    Device-to-host copies (``.cpu()``, ``.tolist()``) are not ops on CPU tensors and so are not
+    seen here.
+    """
+
+    SYNCING = frozenset({"_local_scalar_dense", "is_nonzero", "equal", "nonzero", "masked_select", "unique", "_unique2"})
+
+    def __init__(self):
+        super().__init__()
+        self.counts = Counter()
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func.overloadpacket.__name__
+        if name in self.SYNCING:
+            self.counts[name] += 1
+        return func(*args, **(kwargs or {}))

@@ -120,11 +120,13 @@ def test_sampling_report(sampling_report: dict) -> None:
                 "vae_final_decode_s", "vggt_forward_s", "vggt_backward_s", "ufm_forward_s", "ufm_backward_s",
                 "guided_updates_s"):
         assert breakdown[key] > 0, key
-    # fast mode: the denoiser is never differentiated; 2 final predictions + 1 per guided update
+    # fast mode: the denoiser is never differentiated and runs once per step (in step 1 inside the
+    # first update, whose prediction the second update and the DDIM step reuse); per update, one
+    # decode of anchor 4's 2-latent chunk and one of the other three 3-latent chunks together
     assert breakdown["denoiser_backward_s"] == 0
     counts = breakdown["counts"]
-    assert counts == {"denoiser_forwards": 4, "denoiser_forwards_in_updates": 2, "denoiser_backwards": 0,
-                      "vae_slice_decodes": 8, "vggt_calls": 2, "ufm_calls": 2}
+    assert counts == {"denoiser_forwards": 2, "denoiser_forwards_in_updates": 1, "denoiser_backwards": 0,
+                      "vae_slice_decodes": 4, "vggt_calls": 2, "ufm_calls": 2}
     # the stages inside the updates never add up to more than the updates themselves
     profile = report["arms"]["guided"]["profile"]
     assert 0 < profile["attributed_in_updates_s"] <= profile["updates_s"]
@@ -185,6 +187,17 @@ def test_compressed_schedule() -> None:
     assert benchmark.compressed_paper_schedule(50) == (parse_repeats(PAPER_REPEATS), [15, 20])
     assert benchmark.compressed_paper_schedule(2) == ([0, 2], None)
     assert benchmark.compressed_paper_schedule(10) == ([0, 3, 3, 3, 2, 2, 2, 2, 2, 2], [3, 4])
+
+
+def test_update_windows_run_back_to_back_from_each_step_start() -> None:
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import benchmark
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    log = [{"step": 1, "seconds": 0.5}, {"step": 1, "seconds": 0.25}, {"step": 2, "seconds": 1.0}]
+    windows = benchmark.update_windows(10.0, [11.0, 13.0, 16.0], log)
+    assert windows == [(11.0, 11.5), (11.5, 11.75), (13.0, 14.0)]
 
 
 def test_full_size_refused_on_cpu() -> None:

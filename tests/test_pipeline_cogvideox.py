@@ -21,7 +21,7 @@ from geco_guide.sampler.guidance import (
 )
 from geco_guide.testing import TINY_ANCHORS, TINY_CALL_KWARGS, tiny_cogvideox_components, tiny_pipeline
 
-from counting import CountingForward
+from counting import CountingForward, HostSyncCounter
 
 PROMPT = "a marble bust on a table"
 
@@ -73,13 +73,34 @@ def test_fast_mode_update_is_the_normalised_gradient_through_sqrt_alpha():
 
     z_prev, _, records = guided_step(
         z, predict_x0=predict, decode_anchors=lambda x: x, loss_fn=lambda x: ((x - target) ** 2).sum(),
-        levels=VPLevels(a_t, a_prev), repeats=1, eta=0.5, denoiser_grad=False,
+        levels=VPLevels(a_t, a_prev), repeats=2, eta=0.5, denoiser_grad=False,
     )
-    g = 2 * 0.5**0.5 * (v_to_x0(z, v, a_t) - target)
-    z_upd = z - 0.5 * g / g.norm()
+    z_upd, norms = z, []
+    for _ in range(2):
+        g = 2 * 0.5**0.5 * (v_to_x0(z_upd, v, a_t) - target)
+        z_upd, norms = z_upd - 0.5 * g / g.norm(), norms + [float(g.norm())]
     torch.testing.assert_close(z_prev, ddim_step(z_upd, v_to_x0(z_upd, v, a_t), a_t, a_prev))
-    assert seen == [False, False]  # one prediction per repeat + the final gradient-free one
-    assert len(records) == 1 and records[0].grad_norm == pytest.approx(float(g.norm()), rel=1e-5)
+    assert seen == [False]  # the one prediction serves both updates and the DDIM step
+    assert [r.grad_norm for r in records] == pytest.approx(norms, rel=1e-5)
+
+
+def test_fast_mode_predicts_again_after_each_time_travel():
+    z = torch.randn(1, 2, 2, 3, 3, generator=torch.Generator().manual_seed(2))
+    a_t, a_prev = torch.tensor(0.4, dtype=torch.float64), torch.tensor(0.7, dtype=torch.float64)
+    seen = []
+
+    def predict(z_in, grad):
+        seen.append(z_in.clone())
+        return v_to_x0(z_in, torch.sin(z_in), a_t)  # an output that depends on z
+
+    kwargs = dict(
+        decode_anchors=lambda x: x, loss_fn=lambda x: (x**2).sum(), levels=VPLevels(a_t, a_prev),
+        repeats=2, eta=1.0, time_travel=True, denoiser_grad=False,
+    )
+    z_prev, x0, _ = guided_step(z, predict_x0=predict, generator=torch.Generator().manual_seed(3), **kwargs)
+    # start, after the first re-noising (second update), after the second (final prediction)
+    assert len(seen) == 3 and torch.equal(seen[0], z)
+    torch.testing.assert_close(x0, v_to_x0(seen[2], torch.sin(seen[2]), a_t))
 
 
 def test_time_travel_renoises_back_to_t_with_the_generator():
@@ -172,7 +193,7 @@ def test_only_anchor_chunks_are_decoded_and_models_stay_frozen(pipe):
     original = pipe.vae.decode
 
     def counting_decode(z, *args, **kwargs):
-        calls.append(z.shape[2])
+        calls.append((z.shape[0], z.shape[2]))
         return original(z, *args, **kwargs)
 
     pipe.vae.decode = counting_decode
@@ -182,14 +203,34 @@ def test_only_anchor_chunks_are_decoded_and_models_stay_frozen(pipe):
         del pipe.vae.decode
     updates = len(out.guidance_log)
     assert updates == 5
-    # 4 anchors -> 4 chunks of <= 3 latents per update (chunk [0, 2) of anchor 4 has 2); never 5
-    assert len(calls) == 4 * updates
-    assert sorted(set(calls)) == [2, 3]
+    # 4 anchors -> 4 chunks of <= 3 latents per update, never all 5: chunk [0, 2) of anchor 4 alone,
+    # the three 3-latent chunks batched in one decode
+    assert calls == [(1, 2), (3, 3)] * updates
     for k, m in models.items():
         after = m.state_dict()
         assert all(torch.equal(before[k][n], after[n]) for n in after), k
         assert [p.requires_grad for p in m.parameters()] == flags[k], k
         assert all(p.grad is None for p in m.parameters()), k
+
+
+@pytest.mark.parametrize("denoiser_grad", [True, False])
+def test_denoiser_calls_per_mode_and_no_host_syncs_in_the_updates(pipe, denoiser_grad):
+    # tiny schedule: R = 0, 2, 2, 1 with time travel at step 2
+    counter = CountingForward(pipe.transformer)
+    try:
+        with HostSyncCounter() as unguided:
+            run(pipe, guidance=False, output_type="latent")
+        calls_unguided, counter.n = counter.n, 0
+        with HostSyncCounter() as guided:
+            out = run(pipe, guidance={"denoiser_grad": denoiser_grad}, output_type="latent")
+    finally:
+        counter.handle.remove()
+    assert len(out.guidance_log) == 5 and calls_unguided == 4
+    # faithful: one differentiated call per update + one final call per step; fast: one call per
+    # step, plus one after each of the two time-travel re-noisings of step 2
+    assert counter.n == (4 + 5 if denoiser_grad else 4 + 2)
+    # the updates add no op that waits for the device (the record's one read is a copy, unseen on CPU)
+    assert guided.counts == unguided.counts
 
 
 def test_cue_is_selectable(pipe):

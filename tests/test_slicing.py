@@ -67,10 +67,10 @@ class CountingVAE(torch.nn.Module):
         super().__init__()
         self.r = r
         self.scale = torch.nn.Parameter(torch.ones(()))
-        self.calls: list[int] = []
+        self.calls: list[tuple[int, int]] = []  # (batch, latents) of each decode
 
     def decode(self, z):  # z [B, C, F, h, w]
-        self.calls.append(z.shape[2])
+        self.calls.append((z.shape[0], z.shape[2]))
         frames = []
         for i in range(z.shape[2]):
             n = 1 if i == 0 else self.r
@@ -82,18 +82,21 @@ class CountingVAE(torch.nn.Module):
 
 def test_decode_anchor_frames_decodes_only_the_chunks_and_picks_the_anchor():
     vae = CountingVAE()
-    latents = torch.arange(5.0).view(1, 5, 1, 1, 1).expand(1, 5, 2, 2, 3) / 10  # latent k has value k/10
+    # latent k of video b has value k/10 + b/2 (two videos: the batched decode must keep them apart)
+    latents = torch.arange(5.0).view(1, 5, 1, 1, 1).expand(2, 5, 2, 2, 3) / 10 + torch.tensor([0.0, 0.5]).view(2, 1, 1, 1, 1)
     latents = latents.clone().requires_grad_(True)
     chunks = anchor_latent_chunks((2, 8, 12, 16), 17, 4, 3)
     frames = decode_anchor_frames(vae, latents, chunks, scaling_factor=1.0)
-    assert frames.shape == (1, 4, 3, 2, 3)
-    assert vae.calls == [2, 3, 3, 3]  # one short chunk per anchor, never the 5-latent video
+    assert frames.shape == (2, 4, 3, 2, 3)
+    # short chunks only, never the 5-latent video; the three 3-latent chunks of both videos in one call
+    assert vae.calls == [(2, 2), (6, 3)]
     # anchor 2 = latent 1, frame 1 of its group; anchors 8/12/16 = last frame of latents 2/3/4
     expected = torch.tensor([0.1 + 0.01, 0.2 + 0.03, 0.3 + 0.03, 0.4 + 0.03])
     torch.testing.assert_close(frames[0, :, 0, 0, 0], expected)
+    torch.testing.assert_close(frames[1, :, 0, 0, 0], expected + 0.5)
     frames.sum().backward()
-    assert latents.grad[0, 0].abs().sum() == 0  # latent 0 feeds no anchor
-    assert latents.grad[0, 4].abs().sum() > 0
+    assert latents.grad[:, 0].abs().sum() == 0  # latent 0 feeds no anchor
+    assert latents.grad[:, 4].abs().sum() > 0
 
 
 def test_shared_chunks_are_decoded_once():
@@ -101,7 +104,7 @@ def test_shared_chunks_are_decoded_once():
     latents = torch.zeros(1, 5, 2, 2, 2)
     chunks = anchor_latent_chunks((13, 14, 16), 17, 4, 3)  # 13 and 14 share latent 4
     decode_anchor_frames(vae, latents, chunks, 1.0)
-    assert vae.calls == [3]
+    assert vae.calls == [(1, 3)]
 
 
 def test_chunk_decode_of_the_whole_video_matches_a_full_decode():
@@ -116,3 +119,16 @@ def test_chunk_decode_of_the_whole_video_matches_a_full_decode():
     assert full.shape[1] == 9
     torch.testing.assert_close(frames[:, 1], full[:, 8])  # chunk [0, 3) is the whole video
     assert 0 <= frames.min() and frames.max() <= 1
+
+
+def test_batched_chunk_decode_matches_decoding_each_chunk_alone():
+    from geco_guide.testing import tiny_cogvideox_components
+
+    vae = tiny_cogvideox_components(0)["vae"].double()
+    latents = torch.randn(2, 5, 4, 4, 6, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    chunks = anchor_latent_chunks((4, 8, 12, 16), 17, 4, 3)
+    with torch.no_grad():
+        frames = decode_anchor_frames(vae, latents, chunks, vae.config.scaling_factor)
+        for k, chunk in enumerate(chunks):
+            alone = decode_chunk(vae, latents[:, chunk.start : chunk.stop], vae.config.scaling_factor)
+            torch.testing.assert_close(frames[:, k], alone[:, alone.shape[1] - 1 - chunk.from_end])

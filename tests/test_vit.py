@@ -51,13 +51,13 @@ def test_rope_matches_spec_formula_and_is_relative() -> None:
     rope = RotaryEmbedding2D(head_dim=16, base=100.0)
     pos = torch.randint(0, 9, (2, 5, 2))
     t = torch.randn(2, 3, 5, 16)
-    torch.testing.assert_close(rope.bind(pos)(t), _rope_reference(t, pos, 100.0), atol=1e-5, rtol=0)
+    torch.testing.assert_close(rope.bind(pos, 8)(t), _rope_reference(t, pos, 100.0), atol=1e-5, rtol=0)
     # q.k depends only on the position difference.
     q, k = torch.randn(1, 1, 1, 16), torch.randn(1, 1, 1, 16)
 
     def score(pq: list[int], pk: list[int]) -> torch.Tensor:
-        rq = rope.bind(torch.tensor([[pq]]))(q)
-        rk = rope.bind(torch.tensor([[pk]]))(k)
+        rq = rope.bind(torch.tensor([[pq]]), 10)(q)
+        rk = rope.bind(torch.tensor([[pk]]), 10)(k)
         return (rq * rk).sum()
 
     torch.testing.assert_close(score([1, 2], [3, 7]), score([4, 5], [6, 10]), atol=1e-5, rtol=0)
@@ -70,7 +70,7 @@ def test_attention_layout_qk_norm_and_rope_match_explicit_softmax() -> None:
     _randomise(attn)
     x = torch.randn(2, 6, dim)
     pos = torch.randint(0, 4, (1, 6, 2))
-    rope = RotaryEmbedding2D(dim // heads).bind(pos)
+    rope = RotaryEmbedding2D(dim // heads).bind(pos, 3)
     # Explicit computation from the spec: qkv features are [3][heads][head_dim].
     qkv = attn.qkv(x).view(2, 6, 3, heads, dim // heads)
     q, k, v = (qkv[:, :, i].transpose(1, 2) for i in range(3))

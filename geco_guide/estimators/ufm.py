@@ -684,7 +684,7 @@ class InfoSharing(nn.Module):
             x = self.proj_embed(x)
         view_ids = torch.arange(2, device=x.device).repeat_interleave(gh * gw)  # [2P]
         x = x + self.view_pos_table[view_ids].to(x.dtype)
-        rope = None if self.rope is None else self.rope.bind(_view_positions(gh, gw, x.device))
+        rope = None if self.rope is None else self.rope.bind(_view_positions(gh, gw, x.device), max(gh, gw) - 1)
         outputs = []
         for i, block in enumerate(self.self_attention_blocks):
             x = run_block(block, x, rope, self.gradient_checkpointing)

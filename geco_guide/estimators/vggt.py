@@ -249,10 +249,10 @@ class Aggregator(nn.Module):
         )  # [B, S, 1+R, C]
         x = torch.cat([special.reshape(b * s, -1, patches.shape[-1]).to(patches.dtype), patches], dim=1)
         t, c = x.shape[1:]
-        positions = _token_positions(h_img // self.patch_size, w_img // self.patch_size,
-                                     self.patch_start_idx, x.device)  # [1, T, 2]
-        frame_rope = self.rope.bind(positions)
-        global_rope = self.rope.bind(positions.repeat(1, s, 1))  # no per-frame offset
+        gh, gw = h_img // self.patch_size, w_img // self.patch_size
+        positions = _token_positions(gh, gw, self.patch_start_idx, x.device)  # [1, T, 2], 1-based patches
+        frame_rope = self.rope.bind(positions, max(gh, gw))
+        global_rope = self.rope.bind(positions.repeat(1, s, 1), max(gh, gw))  # no per-frame offset
         outputs: dict[int, Tensor] = {}
         for i, (frame_block, global_block) in enumerate(zip(self.frame_blocks, self.global_blocks)):
             x = run_block(frame_block, x.reshape(b * s, t, c), frame_rope, self.gradient_checkpointing)

@@ -149,7 +149,7 @@ class RotaryEmbedding2D:
     by the column (x) position; within a half of size ``D`` element ``i`` pairs with ``i + D/2``
     and has frequency ``base^(-2i/D)``. Angles are computed in float32.
 
-    Usage: ``rope = RotaryEmbedding2D(head_dim).bind(positions)`` with integer positions
+    Usage: ``rope = RotaryEmbedding2D(head_dim).bind(positions, max_position)`` with integer positions
     ``[N or 1, T, 2]`` as ``(y, x)``, then ``rope(q)`` for ``q [N, heads, T, head_dim]``.
     """
 
@@ -178,12 +178,16 @@ class RotaryEmbedding2D:
             self._tables[key] = (angles.cos(), angles.sin())
         return self._tables[key]
 
-    def bind(self, positions: Tensor) -> RopeFn:
-        """Return ``rope(t)`` rotating ``t [N, heads, T, head_dim]`` by ``positions [N|1, T, 2]``."""
+    def bind(self, positions: Tensor, max_position: int) -> RopeFn:
+        """Return ``rope(t)`` rotating ``t [N, heads, T, head_dim]`` by ``positions [N|1, T, 2]``.
+
+        ``max_position`` bounds the largest coordinate in ``positions``; the caller knows it from
+        the patch grid, and reading it from the tensor would wait for the GPU on every forward.
+        """
         if positions.ndim != 3 or positions.shape[-1] != 2:
             raise ValueError(f"positions must be [N, T, 2], got {list(positions.shape)}")
         positions = positions.long()
-        cos_t, sin_t = self._table(int(positions.max().item()), positions.device)
+        cos_t, sin_t = self._table(int(max_position), positions.device)
         # [N, 1, T, D] per axis, broadcast over heads.
         cos_y, sin_y = cos_t[positions[..., 0]].unsqueeze(1), sin_t[positions[..., 0]].unsqueeze(1)
         cos_x, sin_x = cos_t[positions[..., 1]].unsqueeze(1), sin_t[positions[..., 1]].unsqueeze(1)

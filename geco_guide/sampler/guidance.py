@@ -62,8 +62,10 @@ class GuidanceConfig:
         repeats: ``R_t`` per step, as runs ``"RxN,..."`` (see :mod:`.schedule`).
         eta: normalised step size of each update (>= 0).
         time_travel: inclusive ``[first, last]`` step window of time travel; empty/None disables.
-        denoiser_grad: ``True`` backpropagates through the denoiser (paper); ``False`` is the
-            fast mode that treats the model output as constant (``dx0/dz_t = sqrt(a_t)``).
+        denoiser_grad: ``True`` backpropagates through the denoiser at every update (paper);
+            ``False`` is the fast mode that holds the model output constant through the step
+            (``dx0/dz_t = sqrt(a_t)``), so the denoiser runs once per step as without guidance
+            (plus once after each time-travel re-noising).
         gradient_checkpointing: checkpoint the denoiser's blocks while differentiating it.
         grad_eps: ``eps`` of the normalised update.
         loss: the GeCo loss options; the structure cue only gives gradients with
@@ -213,6 +215,10 @@ class NoiseLevels:
         """Forward-diffuse from the ``prev`` level back to ``t``."""
         raise NotImplementedError
 
+    def shift_x0(self, x0: Tensor, dz: Tensor) -> Tensor:  # pragma: no cover - interface
+        """Clean estimate after the latents moved by ``dz`` with the model output held constant."""
+        raise NotImplementedError
+
 
 @dataclass(frozen=True)
 class VPLevels(NoiseLevels):
@@ -229,6 +235,9 @@ class VPLevels(NoiseLevels):
 
     def renoise(self, z_prev: Tensor, noise: Tensor) -> Tensor:
         return renoise(z_prev, self.alpha_t, self.alpha_prev, noise)
+
+    def shift_x0(self, x0: Tensor, dz: Tensor) -> Tensor:
+        return x0 + (self.alpha_t**0.5) * dz
 
 
 @dataclass(frozen=True)
@@ -247,6 +256,9 @@ class FlowLevels(NoiseLevels):
 
     def renoise(self, z_prev: Tensor, noise: Tensor) -> Tensor:
         return flow_renoise(z_prev, self.sigma_t, self.sigma_prev, noise)
+
+    def shift_x0(self, x0: Tensor, dz: Tensor) -> Tensor:
+        return x0 + dz
 
 
 @contextlib.contextmanager
@@ -299,10 +311,17 @@ class GuidanceRecord:
         return asdict(self)
 
 
-def _scalars(result: Any) -> tuple[Tensor, dict[str, float]]:
+def _loss_terms(result: Any) -> tuple[Tensor, dict[str, Tensor]]:
+    """The loss to differentiate and the scalars to record, as tensors (reading them is a host sync)."""
     if isinstance(result, Tensor):
-        return result, {"loss": float(result.detach())}
-    return result.loss, result.scalars()
+        return result, {"loss": result}
+    return result.loss, {name: getattr(result, name) for name in ("loss", "motion", "structure", "fused")}
+
+
+def _read_scalars(values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
+    """Plain floats of ``values`` (0-dim tensors) with one device-to-host copy for all of them."""
+    stacked = torch.stack([v.detach().to(device=device, dtype=torch.float32).reshape(()) for v in values.values()])
+    return dict(zip(values, stacked.tolist()))
 
 
 def guided_step(
@@ -327,18 +346,21 @@ def guided_step(
 
     Args:
         z: ``z_t`` (any float dtype; the update runs in fp32).
-        predict_x0: ``(z, differentiate_denoiser) -> x0`` in fp32. When the flag is False the
-            model output must be computed without gradients and treated as a constant
-            (so ``dx0/dz = sqrt(a_t)`` for v-prediction); it is always False for the final
-            prediction, which runs under ``torch.no_grad``.
+        predict_x0: ``(z, differentiate_denoiser) -> x0`` in fp32. It is called with True for
+            each update in faithful mode, and with False under ``torch.no_grad`` for the final
+            prediction and, in fast mode, for the one prediction the step's updates share.
         decode_anchors: ``x0 -> frames [B, S, 3, H, W]`` in ``[0, 1]`` (differentiable).
-        loss_fn: ``frames -> GeCoResult`` (``.loss``, ``.scalars()``) or a scalar tensor.
+        loss_fn: ``frames -> GeCoResult`` (``.loss``, ``.motion``, ``.structure``, ``.fused``)
+            or a scalar tensor.
         levels: the step's :class:`NoiseLevels` (:class:`VPLevels` or :class:`FlowLevels`);
             ``predict_x0`` must agree with it (``x0 = levels.to_x0(z, model_output)``).
         repeats: ``R_t``; 0 makes this a plain DDIM step.
         eta: normalised step size.
         time_travel: take the DDIM step with the update, then re-noise back to ``t``.
-        denoiser_grad: differentiate through the denoiser (paper) or hold its output constant.
+        denoiser_grad: differentiate through the denoiser at every update (paper), or hold its
+            output constant through the step (fast): ``x0`` then moves with ``z`` as
+            ``levels.shift_x0`` says (``sqrt(a_t)`` for v-prediction), and the denoiser runs once
+            per step as without guidance, plus once after each time-travel re-noising.
         generator: source of the time-travel noise.
         eps: of the normalised update.
         step, t: step index and timestep, for the records.
@@ -352,26 +374,37 @@ def guided_step(
     """
     z = z.detach().float()
     records: list[GuidanceRecord] = []
+    # Fast mode holds the model output constant, so one prediction serves every update of the step
+    # and the final DDIM step: (z, x0) of the last denoiser call, until time travel re-noises z.
+    held: tuple[Tensor, Tensor] | None = None
     for r in range(repeats):
         start = time.perf_counter()
         with torch.enable_grad():
             z_in = z.detach().requires_grad_(True)
-            x0 = predict_x0(z_in, denoiser_grad)
-            result = loss_fn(decode_anchors(x0))
-            loss, scalars = _scalars(result)
+            if denoiser_grad:
+                x0 = predict_x0(z_in, True)
+            else:
+                if held is None:
+                    with torch.no_grad():
+                        held = (z, predict_x0(z, False).float())
+                x0 = levels.shift_x0(held[1], z_in - held[0])
+            loss, terms = _loss_terms(loss_fn(decode_anchors(x0)))
             (grad,) = torch.autograd.grad(loss, z_in, allow_unused=True)
         if grad is None:
             grad = torch.zeros_like(z)
-        skipped = not bool(torch.isfinite(grad).all())
-        if skipped:  # a NaN gradient must never reach the latents
-            grad = torch.zeros_like(z)
+        # A NaN gradient must never reach the latents; torch.where keeps the check on the device.
+        finite = torch.isfinite(grad).all()
+        grad = torch.where(finite, grad, torch.zeros_like(grad))
         x0 = x0.detach().float()
         z_new, norm = normalized_update(z, grad, eta, eps)
         if time_travel:
             z_prev = levels.step(z, x0) + (z_new - z)
             z = levels.renoise(z_prev, randn_like(z, generator))
+            held = None
         else:
             z = z_new
+        # The update's only host sync: the record's numbers, read once the update is queued.
+        scalars = _read_scalars({**terms, "grad_norm": norm.mean(), "finite": finite}, z.device)
         record = GuidanceRecord(
             step=step,
             repeat=r,
@@ -380,16 +413,16 @@ def guided_step(
             motion=scalars.get("motion"),
             structure=scalars.get("structure"),
             fused=scalars.get("fused"),
-            grad_norm=float(norm.mean()),
+            grad_norm=scalars["grad_norm"],
             seconds=time.perf_counter() - start,
             time_travel=time_travel,
-            skipped=skipped,
+            skipped=not scalars["finite"],
         )
         records.append(record)
         if on_record is not None:
             on_record(record)
     with torch.no_grad():
-        x0 = predict_x0(z, False).float()
+        x0 = predict_x0(z, False).float() if held is None else levels.shift_x0(held[1], z - held[0])
         if not take_step:
             return z, x0, records
         z_prev = levels.step(z, x0)
@@ -405,5 +438,5 @@ def score_anchor_frames(video: Tensor, anchors: Sequence[int], loss_fn: Callable
     if bad:
         raise ValueError(f"anchors {bad} out of range for a {video.shape[1]}-frame video")
     with torch.no_grad():
-        loss, scalars = _scalars(loss_fn(video[:, list(anchors)].float()))
-    return scalars
+        _, terms = _loss_terms(loss_fn(video[:, list(anchors)].float()))
+    return _read_scalars(terms, video.device)
