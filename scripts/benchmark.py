@@ -179,6 +179,7 @@ COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("input", "input", "{}"),
     ("network input", "network", "{}"),
     ("params (M)", "params_m", "{:.1f}"),
+    ("trunk dtype", "dtype", "{}"),
     ("setup (s)", "setup_s", "{:.1f}"),
     ("median (s)", "time_median_s", "{:.4g}"),
     ("min (s)", "time_min_s", "{:.4g}"),
@@ -303,7 +304,7 @@ def vggt_workload(spec: dict[str, Any], device: torch.device) -> Workload:
     """``VGGT.estimate_geometry`` on ``[1, S, 3, H, W]``; the scalar sums the means of depth,
     confidence, K and extrinsics so backward runs through the depth and camera heads."""
     config = VGGTConfig.tiny() if spec["size"] == "tiny" else VGGTConfig()
-    model = VGGT.random(config, seed=spec["seed"]).to(device)
+    model = VGGT.random(config, seed=spec["seed"]).trunk_to(getattr(torch, spec["dtype"])).to(device)
     frames = _random_frames(spec, device)
 
     def scalar() -> Tensor:
@@ -313,7 +314,7 @@ def vggt_workload(spec: dict[str, Any], device: torch.device) -> Workload:
 
     plan = plan_preprocess(spec["height"], spec["width"], config.img_size, config.patch_size)
     info = {"input": "x".join(map(str, frames.shape)), "network": "{}x{}".format(*plan.network_hw),
-            "params_m": _num_params(model)}
+            "params_m": _num_params(model), "dtype": spec["dtype"]}
     return Workload(make_step(spec["mode"], scalar, [frames]), info)
 
 
@@ -321,7 +322,7 @@ def ufm_workload(spec: dict[str, Any], device: torch.device) -> Workload:
     """``UFM.estimate_flow`` on the ``S - 1`` adjacent pairs of ``[1, S, 3, H, W]`` in one batch;
     the scalar is mean flow + mean covisibility. Weights: ``UFM.random(config, seed)``."""
     config = UFMConfig.tiny() if spec["size"] == "tiny" else UFMConfig()
-    model = UFM.random(config, seed=spec["seed"]).to(device)
+    model = UFM.random(config, seed=spec["seed"]).trunk_to(getattr(torch, spec["dtype"])).to(device)
     frames = _random_frames(spec, device)
 
     def scalar() -> Tensor:
@@ -332,7 +333,7 @@ def ufm_workload(spec: dict[str, Any], device: torch.device) -> Workload:
     hw = (spec["height"], spec["width"])
     info = {"input": f"{spec['frames'] - 1} pair(s) {hw[0]}x{hw[1]}",
             "network": "{}x{}".format(*choose_resolution(config.inference_resolution, hw, hw)),
-            "params_m": _num_params(model)}
+            "params_m": _num_params(model), "dtype": spec["dtype"]}
     return Workload(make_step(spec["mode"], scalar, [frames]), info)
 
 
@@ -747,10 +748,10 @@ def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: t
         pipe = tiny_pipeline(seed).to(device=device, dtype=dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
     else:
-        autocast = dtype if dtype != torch.float32 else None
+        # trunks in the sampling dtype, heads float32: what generate's from_pretrained(dtype=...) builds
         ckpt = spec.get("estimator_checkpointing", False)
-        geometry = VGGT.random(VGGTConfig(), seed=seed, gradient_checkpointing=ckpt, autocast_dtype=autocast)
-        flow = UFM.random(UFMConfig(), seed=seed, gradient_checkpointing=ckpt, autocast_dtype=autocast)
+        geometry = VGGT.random(VGGTConfig(), seed=seed, gradient_checkpointing=ckpt).trunk_to(dtype)
+        flow = UFM.random(UFMConfig(), seed=seed, gradient_checkpointing=ckpt).trunk_to(dtype)
         pipe = GeCoCogVideoXPipeline(**build_full_size_components(device, dtype, seed),
                                      geometry_estimator=geometry.eval(), flow_estimator=flow.eval())
         pipe.to(device)
@@ -1005,7 +1006,8 @@ def loss_specs(args: argparse.Namespace) -> list[dict[str, Any]]:
 def estimator_specs(args: argparse.Namespace) -> list[dict[str, Any]]:
     """Cases of ``estimators``: VGGT and UFM per size, forward and forward+backward."""
     sizes = ("tiny", "full") if args.size == "both" else (args.size,)
-    base = {**common_spec(args), "frames": args.frames, "height": args.height, "width": args.width}
+    base = {**common_spec(args), "frames": args.frames, "height": args.height, "width": args.width,
+            "dtype": args.dtype}
     return [
         {**base, "workload": model, "case": f"{model}-{size}", "size": size, "mode": mode}
         for size in sizes for model in ("vggt", "ufm") for mode in MODES
@@ -1051,6 +1053,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="frames S; UFM gets the S - 1 adjacent pairs (default: 2)")
     est.add_argument("--height", type=int, default=140, help="input frame height (default: 140)")
     est.add_argument("--width", type=int, default=210, help="input frame width (default: 210)")
+    est.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32",
+                     help="storage dtype of the ViT trunks (trunk_to); heads stay float32 (default: float32)")
     _add_common_options(est, repeats=3)
     est.set_defaults(specs=estimator_specs)
 

@@ -445,3 +445,19 @@ def test_checkpointing_and_autocast_options(tiny: UFM) -> None:
     assert low.flow.dtype == torch.float32 and torch.allclose(
         low.flow, plain, atol=0.05 * plain.abs().max().item()
     )
+
+
+def test_trunk_to_bfloat16_keeps_heads_and_outputs_float32() -> None:
+    model = UFM.random(UFMConfig.tiny(), seed=0)
+    source = torch.rand(1, 3, 40, 60, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    target = torch.rand(1, 3, 40, 60, generator=torch.Generator().manual_seed(1))
+    ref = model.estimate_flow(source, target)
+    assert model.trunk_to(torch.bfloat16) is model
+    trunk = ("encoder.", "info_sharing.")
+    assert {p.dtype for n, p in model.named_parameters() if n.startswith(trunk)} == {torch.bfloat16}
+    assert {p.dtype for n, p in model.named_parameters() if not n.startswith(trunk)} == {torch.float32}
+    low = model.estimate_flow(source, target)
+    assert low.flow.dtype == low.covisibility.dtype == torch.float32
+    torch.testing.assert_close(low.flow, ref.flow, atol=0.05 * float(ref.flow.detach().abs().max()), rtol=0.05)
+    (grad,) = torch.autograd.grad(low.flow.mean(), source)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0

@@ -313,3 +313,18 @@ def test_from_pretrained_local_folder_and_errors(tmp_path: Path, tiny: VGGT, mon
         VGGT.from_pretrained("geco-guide-tests/no-such-vggt", cache_dir=tmp_path / "hub")
     message = str(err.value)
     assert "\n" not in message and "geco-guide-tests/no-such-vggt" in message
+
+
+def test_trunk_to_bfloat16_keeps_heads_and_outputs_float32() -> None:
+    model = VGGT.random(VGGTConfig.tiny(), seed=0)
+    frames = torch.rand(1, 2, 3, 28, 42, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    ref = model.estimate_geometry(frames)
+    assert model.trunk_to(torch.bfloat16) is model
+    assert {p.dtype for p in model.aggregator.parameters()} == {torch.bfloat16}
+    assert {p.dtype for n, p in model.named_parameters() if not n.startswith("aggregator.")} == {torch.float32}
+    low = model.estimate_geometry(frames)
+    for name in ("depth", "confidence", "intrinsics", "extrinsics"):
+        assert getattr(low, name).dtype == torch.float32, name
+    torch.testing.assert_close(low.depth, ref.depth, atol=0.05, rtol=0.05)
+    (grad,) = torch.autograd.grad(low.depth.mean(), frames)
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0

@@ -36,7 +36,8 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
 
     Args:
         estimators_cfg: :class:`~geco_guide.config.EstimatorsConfig` (``geometry`` / ``flow``: a
-            hub id, a local folder or ``tiny-random``; ``dtype``; ``init_seed`` of tiny models).
+            hub id, a local folder or ``tiny-random``; ``dtype`` of their trunks, the heads and
+            outputs stay float32; ``init_seed`` of tiny models).
         device: a torch device or ``"auto"``.
 
     Each estimator gets a ``geco_estimator_id`` attribute (the id it came from) so results can
@@ -53,13 +54,13 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
 
         tiny = tiny_estimators(estimators_cfg.init_seed)
     if estimators_cfg.geometry == TINY_RANDOM:
-        geometry = tiny[0].to(device=device, dtype=dtype)
+        geometry = tiny[0].to(device).trunk_to(dtype)
     else:
         from .vggt import VGGT
 
         geometry = VGGT.from_pretrained(estimators_cfg.geometry, dtype=dtype, device=device)
     if estimators_cfg.flow == TINY_RANDOM:
-        flow = tiny[1].to(device=device, dtype=dtype)
+        flow = tiny[1].to(device).trunk_to(dtype)
     else:
         from .ufm import UFM
 

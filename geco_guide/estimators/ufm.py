@@ -8,8 +8,8 @@ names follow the released ``model.safetensors`` so the checkpoint loads by key.
 
 Everything runs in float32 by default and keeps gradients, because GeCo differentiates its loss
 through UFM back to the decoded frames. Precision knobs: ``autocast_dtype`` (e.g.
-``torch.bfloat16``) runs the encoder and info-sharing under autocast; ``from_pretrained(dtype=...)``
-stores the model in that dtype. ``gradient_checkpointing`` recomputes the encoder's and the
+``torch.bfloat16``) runs the encoder and info-sharing under autocast; ``trunk_to(dtype)`` (and
+``from_pretrained(dtype=...)``) stores them in that dtype. The heads always run in float32. ``gradient_checkpointing`` recomputes the encoder's and the
 info-sharing transformer's block activations in backward.
 """
 
@@ -1138,7 +1138,7 @@ class UFM(nn.Module):
 
         ``config.json`` may be the upstream schema (translated by
         :meth:`UFMConfig.from_config_json`) or our section-5 schema. ``dtype`` applies to the
-        whole model; ``kwargs`` (``gradient_checkpointing``, ``autocast_dtype``) go to the
+        trunk (:meth:`trunk_to`); ``kwargs`` (``gradient_checkpointing``, ``autocast_dtype``) go to the
         constructor.
 
         Raises:
@@ -1154,7 +1154,15 @@ class UFM(nn.Module):
             model = cls(config, **kwargs)
         model.to_empty(device=device)  # every parameter and buffer is overwritten by the strict load
         model.load_checkpoint(load_weights(weights_path))
-        return model.to(dtype=dtype)
+        return model.trunk_to(dtype)
+
+    def trunk_to(self, dtype: torch.dtype) -> UFM:
+        """Store the encoder and info-sharing transformer (nearly all parameters and compute) in
+        ``dtype``, e.g. bfloat16 on a GPU; the DPT heads stay float32 and so do the outputs.
+        Returns ``self``."""
+        self.encoder.to(dtype)
+        self.info_sharing.to(dtype)
+        return self
 
     # -- network -----------------------------------------------------------------------------
 

@@ -12,7 +12,7 @@ Two entry points:
   back to the input size in the project's integer-pixel-centre convention.
 
 Precision knobs: ``autocast_dtype`` (e.g. ``torch.bfloat16``) runs the aggregator under autocast;
-``from_pretrained(dtype=...)`` stores the aggregator in that dtype. The camera and depth heads
+``trunk_to(dtype)`` (and ``from_pretrained(dtype=...)``) stores the aggregator in that dtype. The camera and depth heads
 always run in float32, as upstream does. ``gradient_checkpointing`` recomputes the trunk's block
 activations in backward.
 """
@@ -426,6 +426,12 @@ class VGGT(nn.Module):
         fc2.bias[6:9] = 1.0 / self.config.camera_head.num_iterations
         nn.init.normal_(self.depth_head.scratch.output_conv2[2].weight, std=0.02, generator=generator)
 
+    def trunk_to(self, dtype: torch.dtype) -> "VGGT":
+        """Store the aggregator (nearly all parameters and compute) in ``dtype``, e.g. bfloat16 on a
+        GPU; the camera and depth heads stay float32 and so do the outputs. Returns ``self``."""
+        self.aggregator.to(dtype)
+        return self
+
     @classmethod
     def random(cls, config: VGGTConfig | None = None, seed: int = 0, **kwargs: Any) -> "VGGT":
         """A randomly initialised model whose weights depend only on ``seed`` (global RNG untouched)."""
@@ -467,8 +473,7 @@ class VGGT(nn.Module):
         path = fetch_checkpoint_file(repo_id_or_local_dir, CHECKPOINT_FILES, model_name="VGGT",
                                      revision=revision, cache_dir=cache_dir)
         model = cls.from_state_dict(config, load_weights(path), **kwargs)
-        model.aggregator.to(dtype)
-        return model.to(device)
+        return model.trunk_to(dtype).to(device)
 
     # ---- inference ----------------------------------------------------------------------------
 
