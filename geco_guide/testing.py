@@ -183,6 +183,7 @@ def tiny_guidance_config(**changes: Any):
         time_travel=[2, 2],
         denoiser_grad=True,
         gradient_checkpointing=False,
+        vae_checkpointing=False,
     )
     return replace(base, **changes)
 

@@ -7,6 +7,9 @@ Subcommands:
 * ``estimators`` — VGGT ``estimate_geometry`` and UFM ``estimate_flow`` forward and
   forward+backward (gradient w.r.t. the input frames; parameters frozen), tiny and/or full-size
   architectures with random weights.
+* ``vae`` — the anchor decode of one guided update (:func:`decode_anchor_frames`: the paper's
+  3-latent causal chunks, equal-length chunks batched in one call) forward and forward+backward
+  w.r.t. the latents, through the CogVideoX-5B VAE (random weights) or the tiny one.
 * ``sampling`` — :class:`GeCoCogVideoXPipeline` sampling without and with GeCo guidance from the
   same seed (one subprocess per arm): wall time, time per denoising step, a per-stage breakdown
   of the guided arm (denoiser forward/backward, VAE slice decode forward/backward, VGGT and UFM
@@ -30,7 +33,8 @@ Subcommands:
 Every case (one workload in one mode) runs in its own subprocess (the internal ``worker``
 subcommand), so peak memory is per case: ``torch.cuda.max_memory_allocated`` on a GPU, peak RSS
 (``ru_maxrss``) on CPU, reported in total and as the increase over the child's post-import
-baseline. Each case also records the 1-minute load average at its start and its CPU time per
+baseline; the peak is then restarted after setup, so that the timed runs' own peak over the
+memory in use when they start (activations) is reported too. Each case also records the 1-minute load average at its start and its CPU time per
 wall-clock second: on a shared machine timings are only comparable at similar CPU shares.
 Results are printed as a Markdown table and written as JSON with ``--json PATH``.
 
@@ -41,6 +45,7 @@ Examples::
 
     python scripts/benchmark.py loss --frames 4 --height 480 --width 720 --repeats 3
     python scripts/benchmark.py estimators --size both --frames 2 --height 140 --width 210
+    python scripts/benchmark.py vae --size full --height 64 --width 96
     python scripts/benchmark.py sampling --preset tiny --mode faithful --json out.json
     python scripts/benchmark.py sampling --full-size --device cuda --mode fast --steps 10
 """
@@ -118,6 +123,31 @@ def peak_memory_bytes(device: torch.device) -> int:
     return peak if sys.platform == "darwin" else peak * 1024  # bytes on macOS, KiB on Linux
 
 
+def current_memory_bytes(device: torch.device) -> int | None:
+    """Memory in use now: CUDA ``memory_allocated`` on a GPU, else resident set size (Linux only)."""
+    if device.type == "cuda":
+        return torch.cuda.memory_allocated(device)
+    try:
+        status = Path("/proc/self/status").read_text()
+    except OSError:
+        return None
+    kib = next((line.split()[1] for line in status.splitlines() if line.startswith("VmRSS:")), None)
+    return int(kib) * 1024 if kib is not None else None
+
+
+def reset_peak_memory(device: torch.device) -> bool:
+    """Restart :func:`peak_memory_bytes` from the current use (CUDA peak stats; on Linux the
+    process's RSS high-water mark via ``/proc/self/clear_refs``). False where that is impossible."""
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+        return True
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        return False
+    return True
+
+
 def memory_kind(device: torch.device) -> str:
     """What :func:`peak_memory_bytes` measures on ``device``."""
     return "cuda_max_memory_allocated" if device.type == "cuda" else "peak_rss"
@@ -179,13 +209,16 @@ COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("input", "input", "{}"),
     ("network input", "network", "{}"),
     ("params (M)", "params_m", "{:.1f}"),
-    ("trunk dtype", "dtype", "{}"),
+    ("dtype", "dtype", "{}"),
+    ("checkpointing", "checkpointing", "{}"),
+    ("tiling", "tiling", "{}"),
     ("setup (s)", "setup_s", "{:.1f}"),
     ("median (s)", "time_median_s", "{:.4g}"),
     ("min (s)", "time_min_s", "{:.4g}"),
     ("peak mem (MiB)", "peak_mib", "{:.0f}"),
     ("after setup (MiB)", "after_setup_mib", "{:.0f}"),
     ("increase over import (MiB)", "peak_increase_mib", "{:.0f}"),
+    ("runs: peak over in use after setup (MiB)", "run_increase_mib", "{:.0f}"),
     ("load (1 min)", "load_avg_1m", "{:.1f}"),
     ("CPU/wall", "cpu_per_wall", "{:.2f}"),
 )
@@ -337,10 +370,62 @@ def ufm_workload(spec: dict[str, Any], device: torch.device) -> Workload:
     return Workload(make_step(spec["mode"], scalar, [frames]), info)
 
 
+def _tiles_like_full_size(height: int, width: int) -> dict[str, Any]:
+    """``enable_tiling`` arguments that cut a ``height x width`` video into the tiles the
+    CogVideoX VAE uses at 480x720 (half-size tiles, its default overlaps), so that a small
+    benchmark shows the tiles' effect at full size."""
+    return {"tile_sample_min_height": height // 2, "tile_sample_min_width": width // 2,
+            "tile_overlap_factor_height": 1 / 6, "tile_overlap_factor_width": 1 / 5}
+
+
+def vae_workload(spec: dict[str, Any], device: torch.device) -> Workload:
+    """The guided update's anchor decode alone: :func:`decode_anchor_frames` of seeded random
+    clean latents ``[1, L, C, H/8, W/8]`` (``spec["frames"] = 4L - 3`` pixel frames) at
+    :func:`default_anchors` with 3-latent chunks, through the CogVideoX-5B VAE (``full``) or the
+    tiny one, in ``spec["dtype"]``; the scalar is the frames' mean, back-propagated to the latents."""
+    from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames
+
+    dtype = getattr(torch, spec["dtype"])
+    if spec["size"] == "tiny":
+        from geco_guide.testing import tiny_cogvideox_components
+
+        vae = tiny_cogvideox_components(spec["seed"])["vae"].to(device=device, dtype=dtype)
+    else:
+        from diffusers import AutoencoderKLCogVideoX
+
+        vae = _materialise(AutoencoderKLCogVideoX, COGVIDEOX_5B_VAE, device, dtype, spec["seed"])
+    vae.requires_grad_(False)
+    if spec["vae_checkpointing"]:
+        vae.enable_gradient_checkpointing()
+    if spec["vae_tiling"]:
+        vae.enable_tiling(**_tiles_like_full_size(spec["height"], spec["width"]))
+    r = vae.config.temporal_compression_ratio
+    spatial = 2 ** (len(vae.config.block_out_channels) - 1)
+    chunks = anchor_latent_chunks(default_anchors(spec["frames"], r), spec["frames"], r, 3)
+    num_latents = (spec["frames"] - 1) // r + 1
+    gen = torch.Generator().manual_seed(spec["seed"])
+    shape = (1, num_latents, vae.config.latent_channels, spec["height"] // spatial, spec["width"] // spatial)
+    latents = torch.randn(*shape, generator=gen).to(device).requires_grad_()
+
+    def scalar() -> Tensor:
+        return decode_anchor_frames(vae, latents, chunks, vae.config.scaling_factor,
+                                    checkpoint_chunks=spec["vae_checkpointing"]).mean()
+
+    spans = {(c.start, c.stop) for c in chunks}
+    # checkpointed: one decode per chunk; otherwise equal-length chunks share a decode call
+    calls = len(spans) if spec["vae_checkpointing"] else len({stop - start for start, stop in spans})
+    info = {"input": "x".join(map(str, shape)),
+            "network": f"{len(spans)} chunks in {calls} decode call(s), anchors {[c.anchor for c in chunks]}",
+            "params_m": _num_params(vae), "dtype": spec["dtype"],
+            "checkpointing": spec["vae_checkpointing"], "tiling": spec["vae_tiling"]}
+    return Workload(make_step(spec["mode"], scalar, [latents]), info)
+
+
 WORKLOADS: dict[str, Callable[[dict[str, Any], torch.device], Workload]] = {
     "loss": loss_workload,
     "vggt": vggt_workload,
     "ufm": ufm_workload,
+    "vae": vae_workload,
 }
 
 
@@ -356,9 +441,14 @@ def run_worker(spec: dict[str, Any]) -> dict[str, Any]:
     synchronize(device)
     setup_s = time.perf_counter() - start
     after_setup = peak_memory_bytes(device)
+    # The peak of the runs alone: building a model can peak higher than running it (fp32
+    # random init before trunk_to(bfloat16), for one), which would hide the activations.
+    in_use = current_memory_bytes(device)
+    reset = in_use is not None and reset_peak_memory(device)
     load_avg_1m = os.getloadavg()[0]
     timing = time_callable(workload.step, device, spec["warmup"], spec["repeats"])
-    peak = peak_memory_bytes(device)
+    run_peak = peak_memory_bytes(device) if reset else None
+    peak = max(after_setup, run_peak) if reset else peak_memory_bytes(device)
     return {
         **spec,
         **workload.info,
@@ -370,6 +460,9 @@ def run_worker(spec: dict[str, Any]) -> dict[str, Any]:
         "after_setup_mib": after_setup / MIB,
         "peak_mib": peak / MIB,
         "peak_increase_mib": (peak - baseline) / MIB,
+        "in_use_after_setup_mib": in_use / MIB if reset else None,
+        "run_peak_mib": run_peak / MIB if reset else None,
+        "run_increase_mib": (run_peak - in_use) / MIB if reset else None,
         "load_avg_1m": load_avg_1m,
     }
 
@@ -478,17 +571,22 @@ def build_full_size_components(device: str | torch.device, dtype: torch.dtype, s
     """
     from diffusers import AutoencoderKLCogVideoX, CogVideoXDDIMScheduler, CogVideoXTransformer3DModel
 
-    with torch.device("meta"):
-        transformer = CogVideoXTransformer3DModel(**COGVIDEOX_5B_TRANSFORMER)
-        vae = AutoencoderKLCogVideoX(**COGVIDEOX_5B_VAE)
-    for i, model in enumerate((transformer, vae)):
-        model.to(dtype)
-        if torch.device(device).type != "meta":
-            model.to_empty(device=device)
-            _init_weights_(model, seed + i)
-        model.eval()
-    return {"tokenizer": None, "text_encoder": None, "vae": vae, "transformer": transformer,
+    return {"tokenizer": None, "text_encoder": None,
+            "vae": _materialise(AutoencoderKLCogVideoX, COGVIDEOX_5B_VAE, device, dtype, seed + 1),
+            "transformer": _materialise(CogVideoXTransformer3DModel, COGVIDEOX_5B_TRANSFORMER, device, dtype, seed),
             "scheduler": CogVideoXDDIMScheduler(**COGVIDEOX_5B_SCHEDULER)}
+
+
+def _materialise(cls: type, config: dict[str, Any], device: str | torch.device, dtype: torch.dtype, seed: int) -> Any:
+    """``cls(**config)`` built on the meta device, then allocated in ``dtype`` on ``device`` with
+    :func:`_init_weights_` (left on meta when ``device`` is meta), in eval mode."""
+    with torch.device("meta"):
+        model = cls(**config)
+    model.to(dtype)
+    if torch.device(device).type != "meta":
+        model.to_empty(device=device)
+        _init_weights_(model, seed)
+    return model.eval()
 
 
 def compressed_paper_schedule(num_steps: int) -> tuple[list[int], list[int] | None]:
@@ -748,6 +846,8 @@ def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: t
         pipe = tiny_pipeline(seed).to(device=device, dtype=dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
     else:
+        from geco_guide.config import GeCoConfig
+
         # trunks in the sampling dtype, heads float32: what generate's from_pretrained(dtype=...) builds
         ckpt = spec.get("estimator_checkpointing", False)
         geometry = VGGT.random(VGGTConfig(), seed=seed, gradient_checkpointing=ckpt).trunk_to(dtype)
@@ -755,6 +855,8 @@ def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: t
         pipe = GeCoCogVideoXPipeline(**build_full_size_components(device, dtype, seed),
                                      geometry_estimator=geometry.eval(), flow_estimator=flow.eval())
         pipe.to(device)
+        if GeCoConfig().model.vae_tiling:  # as generate with the CogVideoX-5B preset
+            pipe.vae.enable_tiling()
         pipe.set_progress_bar_config(disable=True)
         gen = torch.Generator().manual_seed(seed + 1000)
         embeds = [torch.randn(*TEXT_EMBED_SHAPE, generator=gen).to(device, dtype) for _ in range(2)]
@@ -1003,6 +1105,14 @@ def loss_specs(args: argparse.Namespace) -> list[dict[str, Any]]:
     return [{**base, "mode": mode} for mode in MODES]
 
 
+def vae_specs(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Cases of ``vae``: the anchor-chunk decode, forward and forward+backward."""
+    base = {**common_spec(args), "workload": "vae", "case": f"vae-{args.size}", "size": args.size,
+            "frames": args.frames, "height": args.height, "width": args.width, "dtype": args.dtype,
+            "vae_checkpointing": args.vae_checkpointing, "vae_tiling": args.vae_tiling}
+    return [{**base, "mode": mode} for mode in MODES]
+
+
 def estimator_specs(args: argparse.Namespace) -> list[dict[str, Any]]:
     """Cases of ``estimators``: VGGT and UFM per size, forward and forward+backward."""
     sizes = ("tiny", "full") if args.size == "both" else (args.size,)
@@ -1057,6 +1167,22 @@ def build_parser() -> argparse.ArgumentParser:
                      help="storage dtype of the ViT trunks (trunk_to); heads stay float32 (default: float32)")
     _add_common_options(est, repeats=3)
     est.set_defaults(specs=estimator_specs)
+
+    vae = sub.add_parser("vae", help="the anchor-chunk VAE decode of one guided update, forward / forward+backward")
+    vae.add_argument("--size", choices=("tiny", "full"), default="tiny",
+                     help="the tiny VAE or the CogVideoX-5B VAE architecture (random weights)")
+    vae.add_argument("--frames", type=int, default=49, help="video frames 4k+1, anchors spread as in sampling (default: 49)")
+    vae.add_argument("--height", type=int, default=480, help="video height, a multiple of 8 (default: 480)")
+    vae.add_argument("--width", type=int, default=720, help="video width, a multiple of 8 (default: 720)")
+    vae.add_argument("--dtype", choices=("float32", "bfloat16"), default="bfloat16",
+                     help="VAE dtype (default: bfloat16, as the pipeline on a GPU)")
+    vae.add_argument("--vae-checkpointing", action="store_true",
+                     help="guidance.vae_checkpointing: one checkpointed decode per chunk, and the VAE's own "
+                          "block checkpointing inside")
+    vae.add_argument("--vae-tiling", action="store_true",
+                     help="vae.enable_tiling with tiles of half the video size, as at 480x720")
+    _add_common_options(vae, repeats=1)
+    vae.set_defaults(specs=vae_specs)
 
     samp = sub.add_parser("sampling", help="guided vs unguided CogVideoX sampling, same seed, per-stage breakdown")
     size = samp.add_mutually_exclusive_group()

@@ -18,6 +18,7 @@ FAST = ["--threads", "1", "--warmup", "0", "--repeats", "1"]
 COMMANDS = {
     "loss": ["loss", "--frames", "2", "--height", "24", "--width", "32", *FAST],
     "estimators": ["estimators", "--size", "tiny", "--frames", "2", "--height", "28", "--width", "42", *FAST],
+    "vae": ["vae", "--size", "tiny", "--frames", "17", "--height", "32", "--width", "48", "--dtype", "float32", *FAST],
 }
 POSITIVE_KEYS = (
     "time_median_s", "time_min_s", "cpu_per_wall",
@@ -49,6 +50,9 @@ def _check_result(result: dict) -> None:
         assert result[key] > 0, (key, result)
     assert len(result["times_s"]) == result["repeats"] == 1
     assert result["peak_mib"] >= result["after_setup_mib"] >= result["baseline_mib"]
+    # Linux: the peak restarts after setup, so the runs' own peak is measured from what is in use
+    assert result["peak_mib"] >= result["run_peak_mib"] >= result["in_use_after_setup_mib"] > 0
+    assert result["run_increase_mib"] == pytest.approx(result["run_peak_mib"] - result["in_use_after_setup_mib"])
     assert result["memory_kind"] == "peak_rss" and result["threads"] == 1 and result["load_avg_1m"] >= 0
 
 
@@ -76,6 +80,16 @@ def test_estimators_report(reports: dict[str, dict]) -> None:
         assert result["params_m"] > 0
     networks = {r["case"]: r["network"] for r in results}
     assert networks == {"vggt-tiny": "42x70", "ufm-tiny": "56x98"}
+
+
+def test_vae_report(reports: dict[str, dict]) -> None:
+    results = reports["vae"]["results"]
+    assert [(r["case"], r["mode"]) for r in results] == [("vae-tiny", "forward"), ("vae-tiny", "forward_backward")]
+    for result in results:
+        _check_result(result)
+        # 17 frames -> 5 latents; anchors 4, 8, 12, 16: chunks [0, 2) alone and three 3-latent ones together
+        assert result["input"] == "1x5x4x4x6" and result["dtype"] == "float32"
+        assert result["network"] == "4 chunks in 2 decode call(s), anchors [4, 8, 12, 16]"
 
 
 # ---- sampling: guided vs unguided denoising ---------------------------------------------------

@@ -216,16 +216,18 @@ def test_only_anchor_chunks_are_decoded_and_models_stay_frozen(pipe):
 @pytest.mark.parametrize("denoiser_grad", [True, False])
 def test_denoiser_calls_per_mode_and_no_host_syncs_in_the_updates(pipe, denoiser_grad):
     # tiny schedule: R = 0, 2, 2, 1 with time travel at step 2
-    counter = CountingForward(pipe.transformer)
+    counter, text = CountingForward(pipe.transformer), CountingForward(pipe.text_encoder)
     try:
         with HostSyncCounter() as unguided:
             run(pipe, guidance=False, output_type="latent")
-        calls_unguided, counter.n = counter.n, 0
+        calls_unguided, counter.n, text.n = counter.n, 0, 0
         with HostSyncCounter() as guided:
             out = run(pipe, guidance={"denoiser_grad": denoiser_grad}, output_type="latent")
     finally:
         counter.handle.remove()
+        text.handle.remove()
     assert len(out.guidance_log) == 5 and calls_unguided == 4
+    assert text.n == 2  # prompt and negative prompt, encoded once for the whole call
     # faithful: one differentiated call per update + one final call per step; fast: one call per
     # step, plus one after each of the two time-travel re-noisings of step 2
     assert counter.n == (4 + 5 if denoiser_grad else 4 + 2)
@@ -307,7 +309,9 @@ def test_from_pretrained_takes_estimators_and_builds_ddim_from_dpm(tmp_path, pip
 def test_gradient_checkpointing_gives_the_same_update(pipe):
     cfg = {"repeats": "0x2,1x1,0x1", "time_travel": []}
     plain = run(pipe, seed=4, output_type="latent", guidance={**cfg, "gradient_checkpointing": False})
-    ckpt = run(pipe, seed=4, output_type="latent", guidance={**cfg, "gradient_checkpointing": True})
-    assert not pipe.transformer.is_gradient_checkpointing  # restored after the call
+    ckpt = run(pipe, seed=4, output_type="latent",
+               guidance={**cfg, "gradient_checkpointing": True, "vae_checkpointing": True})
+    # restored after the call
+    assert not pipe.transformer.is_gradient_checkpointing and not pipe.vae.is_gradient_checkpointing
     torch.testing.assert_close(ckpt.frames, plain.frames, rtol=1e-4, atol=1e-5)
     assert ckpt.guidance_log[0]["grad_norm"] == pytest.approx(plain.guidance_log[0]["grad_norm"], rel=1e-4)

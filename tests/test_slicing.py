@@ -132,3 +132,21 @@ def test_batched_chunk_decode_matches_decoding_each_chunk_alone():
         for k, chunk in enumerate(chunks):
             alone = decode_chunk(vae, latents[:, chunk.start : chunk.stop], vae.config.scaling_factor)
             torch.testing.assert_close(frames[:, k], alone[:, alone.shape[1] - 1 - chunk.from_end])
+
+
+def test_checkpointed_chunks_give_the_same_frames_and_gradient():
+    from geco_guide.testing import tiny_cogvideox_components
+
+    vae = tiny_cogvideox_components(0)["vae"].double().requires_grad_(False)
+    latents = torch.randn(1, 5, 4, 4, 6, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    weights = torch.randn(1, 4, 3, 32, 48, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    chunks = anchor_latent_chunks((4, 8, 12, 16), 17, 4, 3)
+    results = []
+    for checkpoint_chunks in (False, True):
+        z = latents.clone().requires_grad_(True)
+        frames = decode_anchor_frames(vae, z, chunks, vae.config.scaling_factor, checkpoint_chunks=checkpoint_chunks)
+        (grad,) = torch.autograd.grad((frames * weights).sum(), z)
+        results.append((frames.detach(), grad))
+    torch.testing.assert_close(results[1][0], results[0][0])
+    torch.testing.assert_close(results[1][1], results[0][1])
+    assert results[0][1].abs().sum() > 0

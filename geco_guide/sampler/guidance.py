@@ -67,6 +67,11 @@ class GuidanceConfig:
             (``dx0/dz_t = sqrt(a_t)``), so the denoiser runs once per step as without guidance
             (plus once after each time-travel re-noising).
         gradient_checkpointing: checkpoint the denoiser's blocks while differentiating it.
+        vae_checkpointing: decode the anchor chunks one at a time in checkpointed regions, with
+            the VAE's own block checkpointing inside (where the VAE supports it): the backward
+            then holds one chunk's decode instead of all of them, for extra forward decodes.
+            The CogVideoX-5B VAE needs it at 480x720 (docs/benchmarks.md); ``False`` batches the
+            chunks in one decode and keeps everything (fastest, for small videos).
         grad_eps: ``eps`` of the normalised update.
         loss: the GeCo loss options; the structure cue only gives gradients with
             ``loss.geometry_grad=True`` (default), since it depends on the frames only through
@@ -81,6 +86,7 @@ class GuidanceConfig:
     time_travel: Optional[list[int]] = field(default_factory=lambda: list(PAPER_TIME_TRAVEL))
     denoiser_grad: bool = True
     gradient_checkpointing: bool = True
+    vae_checkpointing: bool = True
     grad_eps: float = 1e-8
     loss: GeCoLossConfig = field(default_factory=_guidance_loss_default)
 

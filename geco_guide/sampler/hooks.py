@@ -358,7 +358,8 @@ class GeCoGuidanceHandle:
 
         def decode_anchors(x0: Tensor) -> Tensor:
             latents = adapter.frames_first(pipe, x0, state.geometry)
-            return decode_anchor_frames(None, latents, state.chunks, 1.0, decode=lambda c: adapter.decode(pipe, c))
+            return decode_anchor_frames(None, latents, state.chunks, 1.0, decode=lambda c: adapter.decode(pipe, c),
+                                        checkpoint_chunks=config.vae_checkpointing)
 
         faithful = config.denoiser_grad
         denoisers = {id(c.module): c.module for c in calls}.values()
@@ -366,6 +367,7 @@ class GeCoGuidanceHandle:
             stack.enter_context(frozen(*adapter.frozen_modules(pipe), *denoisers, self.geometry_estimator, self.flow_estimator))
             for module in denoisers:
                 stack.enter_context(gradient_checkpointing(module, faithful and config.gradient_checkpointing))
+            stack.enter_context(gradient_checkpointing(pipe.vae, config.vae_checkpointing))
             z, _, _ = guided_step(
                 sample,
                 predict_x0=predict_x0,

@@ -355,7 +355,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             loss_fn = GeCoLoss(geometry_estimator, flow_estimator, config.loss)
 
             def decode_anchors(x0: Tensor) -> Tensor:
-                return decode_anchor_frames(self.vae, x0[:, additional_frames:], chunks, self.vae_scaling_factor_image)
+                return decode_anchor_frames(self.vae, x0[:, additional_frames:], chunks, self.vae_scaling_factor_image,
+                                            checkpoint_chunks=config.vae_checkpointing)
 
         guidance_log: list[dict[str, Any]] = []
 
@@ -365,6 +366,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         with (
             frozen(*models),
             gradient_checkpointing(self.transformer, checkpointing),
+            gradient_checkpointing(self.vae, config.enabled and config.vae_checkpointing),
             self.progress_bar(total=num_inference_steps) as progress_bar,
         ):
             for i, t in enumerate(timesteps):

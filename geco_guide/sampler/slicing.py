@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+from torch.utils.checkpoint import checkpoint
 
 
 def check_num_frames(num_frames: int, temporal_compression: int) -> int:
@@ -150,14 +151,20 @@ def decode_anchor_frames(
     chunks: Sequence[AnchorChunk],
     scaling_factor: float,
     decode: Callable[[Tensor], Tensor] | None = None,
+    checkpoint_chunks: bool = False,
 ) -> Tensor:
     """Decode only the anchor frames, each from its causal chunk, through the frozen VAE.
 
-    Chunks of the same length are stacked along the batch and decoded in one call (the paper's
-    anchors give four chunks of three latents: one call instead of four), which keeps the GPU
-    busy with one large decode instead of several small ones; chunks shared by several anchors
-    are decoded once. Batching is exact for the VAEs supported here: they normalise and convolve
-    each video separately.
+    Chunks shared by several anchors are decoded once. By default chunks of the same length are
+    stacked along the batch and decoded in one call (the paper's anchors give four chunks of
+    three latents: one call instead of four), which is fastest; batching is exact for the VAEs
+    supported here, which normalise and convolve each video separately. But a differentiated
+    decode keeps every activation of every chunk until the backward: for the CogVideoX-5B VAE at
+    480x720 that is far more than a GPU holds (see docs/benchmarks.md). ``checkpoint_chunks``
+    decodes one chunk per call, each in its own checkpointed region: the forward keeps only the
+    chunk's latents, and the backward re-decodes the chunks one at a time (autograd finishes the
+    last-created region before it starts the previous one), for one extra forward decode per
+    chunk.
 
     Args:
         vae: a causal video VAE with ``decode(z [B, C, F, h, w]).sample -> [B, 3, T, H, W]``
@@ -168,6 +175,8 @@ def decode_anchor_frames(
         decode: optional ``latents [N, F', C, h, w] -> frames [N, T, 3, H, W] in [0, 1]`` to use
             instead of :func:`decode_chunk` (other pipelines' layouts); it must treat the
             ``N`` videos of a batch independently.
+        checkpoint_chunks: one checkpointed decode per chunk when gradients are enabled
+            (memory of one chunk's decode instead of all of them; one more forward each).
 
     Returns:
         ``[B, S, 3, H, W]`` fp32 frames in ``[0, 1]``, one per chunk, in order.
@@ -181,10 +190,14 @@ def decode_anchor_frames(
     decode = decode or (lambda z: decode_chunk(vae, z, scaling_factor))
     spans = sorted({(chunk.start, chunk.stop) for chunk in chunks})
     decoded: dict[tuple[int, int], Tensor] = {}
-    for length in sorted({stop - start for start, stop in spans}):
-        group = [span for span in spans if span[1] - span[0] == length]
-        video = decode(torch.cat([latents[:, start:stop] for start, stop in group]))  # [len(group)*B, T, 3, H, W]
-        decoded.update(zip(group, video.unflatten(0, (len(group), batch))))
+    if checkpoint_chunks and torch.is_grad_enabled():
+        for start, stop in spans:
+            decoded[(start, stop)] = checkpoint(decode, latents[:, start:stop], use_reentrant=False)
+    else:
+        for length in sorted({stop - start for start, stop in spans}):
+            group = [span for span in spans if span[1] - span[0] == length]
+            video = decode(torch.cat([latents[:, start:stop] for start, stop in group]))  # [len(group)*B, T, 3, H, W]
+            decoded.update(zip(group, video.unflatten(0, (len(group), batch))))
     frames = []
     for chunk in chunks:
         video = decoded[(chunk.start, chunk.stop)]
