@@ -40,9 +40,7 @@ class ModelConfig:
     dtype: str = "bfloat16"
     device: str = "auto"  # auto = cuda if available, else cpu
     init_seed: int = 0  # weights seed of tiny-random models
-    # Spatial tiles: needed for the differentiated anchor decode of CogVideoX-5B at 480x720 to fit
-    # next to the rest on an 80 GB GPU (docs/benchmarks.md); it also tiles the final decode.
-    vae_tiling: bool = True
+    vae_tiling: bool = False
     vae_slicing: bool = False
 
 

@@ -831,8 +831,9 @@ def _sampling_guidance(spec: dict[str, Any]) -> Any:
         return False
     repeats, time_travel = compressed_paper_schedule(spec["steps"])
     base = tiny_guidance_config() if spec["preset"] == "tiny" else GuidanceConfig()
+    chunk_latents = spec["chunk_latents"] or base.chunk_latents
     return replace(base, anchors=default_anchors(spec["frames"]), repeats=",".join(map(str, repeats)),
-                   time_travel=time_travel, denoiser_grad=spec["mode"] == "faithful")
+                   time_travel=time_travel, denoiser_grad=spec["mode"] == "faithful", chunk_latents=chunk_latents)
 
 
 def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: torch.dtype) -> tuple[Any, dict[str, Any]]:
@@ -846,8 +847,6 @@ def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: t
         pipe = tiny_pipeline(seed).to(device=device, dtype=dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
     else:
-        from geco_guide.config import GeCoConfig
-
         # trunks in the sampling dtype, heads float32: what generate's from_pretrained(dtype=...) builds
         ckpt = spec.get("estimator_checkpointing", False)
         geometry = VGGT.random(VGGTConfig(), seed=seed, gradient_checkpointing=ckpt).trunk_to(dtype)
@@ -855,8 +854,6 @@ def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: t
         pipe = GeCoCogVideoXPipeline(**build_full_size_components(device, dtype, seed),
                                      geometry_estimator=geometry.eval(), flow_estimator=flow.eval())
         pipe.to(device)
-        if GeCoConfig().model.vae_tiling:  # as generate with the CogVideoX-5B preset
-            pipe.vae.enable_tiling()
         pipe.set_progress_bar_config(disable=True)
         gen = torch.Generator().manual_seed(seed + 1000)
         embeds = [torch.randn(*TEXT_EMBED_SHAPE, generator=gen).to(device, dtype) for _ in range(2)]
@@ -982,7 +979,8 @@ def sampling_report(args: argparse.Namespace) -> dict[str, Any]:
     dtype = args.dtype or ("bfloat16" if preset == "full-size" and device.type == "cuda" else "float32")
     spec = {"workload": "sampling", "preset": preset, "mode": args.mode, "steps": steps, **video,
             "device": args.device, "dtype": dtype, "threads": args.threads, "seed": args.seed,
-            "warmup": args.warmup, "estimator_checkpointing": args.estimator_checkpointing}
+            "warmup": args.warmup, "estimator_checkpointing": args.estimator_checkpointing,
+            "chunk_latents": args.chunk_latents}
     arms_to_run = ("unguided",) if args.mode == "unguided" else ("unguided", "guided")
     arms = {}
     for arm in arms_to_run:
@@ -1204,6 +1202,8 @@ def build_parser() -> argparse.ArgumentParser:
                            "on CUDA, else float32)")
     samp.add_argument("--estimator-checkpointing", action="store_true",
                       help="gradient checkpointing in VGGT and UFM (less memory, more backward time)")
+    samp.add_argument("--chunk-latents", type=int, default=None,
+                      help="latents per anchor chunk (default: the paper's 3; 2 decodes 5 frames per anchor instead of 9)")
     samp.add_argument("--allow-cpu", action="store_true",
                       help="allow --full-size on CPU (the weights alone are ~30 GiB in float32)")
     samp.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (default: cpu)")
