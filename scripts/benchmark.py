@@ -76,6 +76,8 @@ from geco_guide.loss.geco import PAIR_MODES, GeCoLossConfig, frame_pairs, geco_f
 from geco_guide.synthetic import default_intrinsics, orbit_cameras
 
 MODES = ("forward", "forward_backward")
+#: ``--rss-exact``: allocations from 64 KiB up are mapped on their own and unmapped when freed.
+RSS_EXACT_MMAP_THRESHOLD = 64 * 1024
 MIB = 2**20
 
 # ----------------------------------------------------------------------------------------------
@@ -160,7 +162,12 @@ def run_case_subprocess(spec: dict[str, Any]) -> dict[str, Any]:
     stderr.
     """
     command = [sys.executable, str(Path(__file__).resolve()), "worker", json.dumps(spec)]
-    proc = subprocess.run(command, capture_output=True, text=True)
+    env = dict(os.environ)
+    if spec.get("rss_exact"):
+        # glibc otherwise raises its mmap threshold to 32 MiB after the first large free and keeps
+        # freed blocks below it in the heap, so peak RSS overstates the live tensors.
+        env["MALLOC_MMAP_THRESHOLD_"] = str(RSS_EXACT_MMAP_THRESHOLD)
+    proc = subprocess.run(command, capture_output=True, text=True, env=env)
     if proc.returncode != 0:
         raise RuntimeError(f"case {spec['case']} / {spec['mode']} failed:\n{proc.stderr}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -854,6 +861,8 @@ def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: t
         pipe = GeCoCogVideoXPipeline(**build_full_size_components(device, dtype, seed),
                                      geometry_estimator=geometry.eval(), flow_estimator=flow.eval())
         pipe.to(device)
+        if spec["vae_tiling"]:  # generate's model.vae_tiling
+            pipe.vae.enable_tiling()
         pipe.set_progress_bar_config(disable=True)
         gen = torch.Generator().manual_seed(seed + 1000)
         embeds = [torch.randn(*TEXT_EMBED_SHAPE, generator=gen).to(device, dtype) for _ in range(2)]
@@ -980,7 +989,7 @@ def sampling_report(args: argparse.Namespace) -> dict[str, Any]:
     spec = {"workload": "sampling", "preset": preset, "mode": args.mode, "steps": steps, **video,
             "device": args.device, "dtype": dtype, "threads": args.threads, "seed": args.seed,
             "warmup": args.warmup, "estimator_checkpointing": args.estimator_checkpointing,
-            "chunk_latents": args.chunk_latents}
+            "chunk_latents": args.chunk_latents, "vae_tiling": args.vae_tiling, "rss_exact": args.rss_exact}
     arms_to_run = ("unguided",) if args.mode == "unguided" else ("unguided", "guided")
     arms = {}
     for arm in arms_to_run:
@@ -1005,7 +1014,8 @@ def sampling_report(args: argparse.Namespace) -> dict[str, Any]:
         "nominal_steps": NOMINAL_STEPS,
         "extrapolated": extrapolated,
         "config": {**video, "dtype": dtype, "seed": args.seed, "warmup": args.warmup, "guidance_scale": 6.0,
-                   "estimator_checkpointing": args.estimator_checkpointing,
+                   "estimator_checkpointing": args.estimator_checkpointing, "vae_tiling": args.vae_tiling,
+                   "rss_exact": args.rss_exact,
                    "guidance": guided["guidance"] if guided else None,
                    "schedule_note": "paper schedule compressed to the run's steps: step i takes R_t and time "
                                     "travel of paper step floor(i*50/steps); scheduler's own steps-step table"},
@@ -1093,7 +1103,7 @@ def run_sampling(args: argparse.Namespace) -> None:
 def common_spec(args: argparse.Namespace) -> dict[str, Any]:
     """Options every case shares."""
     return {"device": args.device, "threads": args.threads, "warmup": args.warmup,
-            "repeats": args.repeats, "seed": args.seed}
+            "repeats": args.repeats, "seed": args.seed, "rss_exact": args.rss_exact}
 
 
 def loss_specs(args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -1130,6 +1140,14 @@ def _add_common_options(parser: argparse.ArgumentParser, repeats: int) -> None:
     parser.add_argument("--repeats", type=int, default=repeats, help=f"timed runs (default: {repeats})")
     parser.add_argument("--seed", type=int, default=0, help="seed of weights and inputs (default: 0)")
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON to PATH")
+    _add_rss_exact_option(parser)
+
+
+def _add_rss_exact_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--rss-exact", action="store_true",
+                        help="CPU memory: run the workers with glibc's MALLOC_MMAP_THRESHOLD_="
+                             f"{RSS_EXACT_MMAP_THRESHOLD}, so that freed tensors leave the resident set at once "
+                             "and peak RSS follows the live tensors (slower: every allocation maps fresh pages)")
 
 
 def _frame_count(value: str) -> int:
@@ -1202,6 +1220,8 @@ def build_parser() -> argparse.ArgumentParser:
                            "on CUDA, else float32)")
     samp.add_argument("--estimator-checkpointing", action="store_true",
                       help="gradient checkpointing in VGGT and UFM (less memory, more backward time)")
+    samp.add_argument("--vae-tiling", action="store_true",
+                      help="full size: the VAE's spatial tiles (generate's model.vae_tiling), both arms")
     samp.add_argument("--chunk-latents", type=int, default=None,
                       help="latents per anchor chunk (default: the paper's 3; 2 decodes 5 frames per anchor instead of 9)")
     samp.add_argument("--allow-cpu", action="store_true",
@@ -1212,6 +1232,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help="untimed 2-step calls of the same arm before the timed one (default: 1)")
     samp.add_argument("--seed", type=int, default=0, help="seed of weights, text embeddings and noise (default: 0)")
     samp.add_argument("--json", metavar="PATH", help="also write the report as JSON to PATH")
+    _add_rss_exact_option(samp)
 
     worker = sub.add_parser("worker", help="internal: run one case given as JSON, print its result as JSON")
     worker.add_argument("spec")

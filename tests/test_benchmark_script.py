@@ -19,7 +19,7 @@ COMMANDS = {
     "loss": ["loss", "--frames", "2", "--height", "24", "--width", "32", *FAST],
     "estimators": ["estimators", "--size", "tiny", "--frames", "2", "--height", "28", "--width", "42", *FAST],
     "vae": ["vae", "--size", "tiny", "--frames", "17", "--height", "32", "--width", "48", "--dtype", "float32",
-            "--vae-checkpointing", *FAST],
+            "--vae-checkpointing", "--rss-exact", *FAST],
 }
 POSITIVE_KEYS = (
     "time_median_s", "time_min_s", "cpu_per_wall",
@@ -90,7 +90,7 @@ def test_vae_report(reports: dict[str, dict]) -> None:
         _check_result(result)
         # 17 frames -> 5 latents; anchors 4, 8, 12, 16 -> 4 chunks, each decoded alone when checkpointed
         assert result["input"] == "1x5x4x4x6" and result["dtype"] == "float32"
-        assert result["checkpointing"] is True and result["tiling"] is False
+        assert result["checkpointing"] is True and result["tiling"] is False and result["rss_exact"] is True
         assert result["network"] == "4 chunks in 4 decode call(s), anchors [4, 8, 12, 16]"
 
 

@@ -9,8 +9,9 @@ names follow the released ``model.safetensors`` so the checkpoint loads by key.
 Everything runs in float32 by default and keeps gradients, because GeCo differentiates its loss
 through UFM back to the decoded frames. Precision knobs: ``autocast_dtype`` (e.g.
 ``torch.bfloat16``) runs the encoder and info-sharing under autocast; ``trunk_to(dtype)`` (and
-``from_pretrained(dtype=...)``) stores them in that dtype. The heads always run in float32. ``gradient_checkpointing`` recomputes the encoder's and the
-info-sharing transformer's block activations in backward.
+``from_pretrained(dtype=...)``) stores them in that dtype. The heads always run in float32.
+``gradient_checkpointing`` recomputes the encoder's and the info-sharing transformer's block
+activations in backward.
 """
 
 from __future__ import annotations
@@ -1138,8 +1139,8 @@ class UFM(nn.Module):
 
         ``config.json`` may be the upstream schema (translated by
         :meth:`UFMConfig.from_config_json`) or our section-5 schema. ``dtype`` applies to the
-        trunk (:meth:`trunk_to`); ``kwargs`` (``gradient_checkpointing``, ``autocast_dtype``) go to the
-        constructor.
+        trunk (:meth:`trunk_to`); ``kwargs`` (``gradient_checkpointing``, ``autocast_dtype``) go
+        to the constructor.
 
         Raises:
             WeightsNotFoundError: the files are neither in the folder nor reachable / cached.

@@ -12,9 +12,9 @@ Two entry points:
   back to the input size in the project's integer-pixel-centre convention.
 
 Precision knobs: ``autocast_dtype`` (e.g. ``torch.bfloat16``) runs the aggregator under autocast;
-``trunk_to(dtype)`` (and ``from_pretrained(dtype=...)``) stores the aggregator in that dtype. The camera and depth heads
-always run in float32, as upstream does. ``gradient_checkpointing`` recomputes the trunk's block
-activations in backward.
+``trunk_to(dtype)`` (and ``from_pretrained(dtype=...)``) stores the aggregator in that dtype. The
+camera and depth heads always run in float32, as upstream does. ``gradient_checkpointing``
+recomputes the trunk's block activations in backward.
 """
 
 from __future__ import annotations

@@ -149,8 +149,8 @@ class RotaryEmbedding2D:
     by the column (x) position; within a half of size ``D`` element ``i`` pairs with ``i + D/2``
     and has frequency ``base^(-2i/D)``. Angles are computed in float32.
 
-    Usage: ``rope = RotaryEmbedding2D(head_dim).bind(positions, max_position)`` with integer positions
-    ``[N or 1, T, 2]`` as ``(y, x)``, then ``rope(q)`` for ``q [N, heads, T, head_dim]``.
+    Usage: ``rope = RotaryEmbedding2D(head_dim).bind(positions, max_position)`` with integer
+    positions ``[N or 1, T, 2]`` as ``(y, x)``, then ``rope(q)`` for ``q [N, heads, T, head_dim]``.
     """
 
     def __init__(self, head_dim: int, base: float = 100.0) -> None:
