@@ -34,8 +34,9 @@ Every case (one workload in one mode) runs in its own subprocess (the internal `
 subcommand), so peak memory is per case: ``torch.cuda.max_memory_allocated`` on a GPU, peak RSS
 (``ru_maxrss``) on CPU, reported in total and as the increase over the child's post-import
 baseline; the peak is then restarted after setup, so that the timed runs' own peak over the
-memory in use when they start (activations) is reported too. Each case also records the 1-minute load average at its start and its CPU time per
-wall-clock second: on a shared machine timings are only comparable at similar CPU shares.
+memory in use when they start (activations) is reported too. Each case also records the
+1-minute load average at its start and its CPU time per wall-clock second: on a shared machine
+timings are only comparable at similar CPU shares.
 Results are printed as a Markdown table and written as JSON with ``--json PATH``.
 
 A new benchmark adds a workload builder to :data:`WORKLOADS` and a subcommand that lists its
