@@ -841,7 +841,8 @@ def _sampling_guidance(spec: dict[str, Any]) -> Any:
     base = tiny_guidance_config() if spec["preset"] == "tiny" else GuidanceConfig()
     chunk_latents = spec["chunk_latents"] or base.chunk_latents
     return replace(base, anchors=default_anchors(spec["frames"]), repeats=",".join(map(str, repeats)),
-                   time_travel=time_travel, denoiser_grad=spec["mode"] == "faithful", chunk_latents=chunk_latents)
+                   time_travel=time_travel, denoiser_grad=spec["mode"] == "faithful", chunk_latents=chunk_latents,
+                   gradient_checkpointing=base.gradient_checkpointing and not spec.get("no_denoiser_checkpointing"))
 
 
 def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: torch.dtype) -> tuple[Any, dict[str, Any]]:
@@ -990,7 +991,8 @@ def sampling_report(args: argparse.Namespace) -> dict[str, Any]:
     spec = {"workload": "sampling", "preset": preset, "mode": args.mode, "steps": steps, **video,
             "device": args.device, "dtype": dtype, "threads": args.threads, "seed": args.seed,
             "warmup": args.warmup, "estimator_checkpointing": args.estimator_checkpointing,
-            "chunk_latents": args.chunk_latents, "vae_tiling": args.vae_tiling, "rss_exact": args.rss_exact}
+            "chunk_latents": args.chunk_latents, "vae_tiling": args.vae_tiling, "rss_exact": args.rss_exact,
+            "no_denoiser_checkpointing": args.no_denoiser_checkpointing}
     arms_to_run = ("unguided",) if args.mode == "unguided" else ("unguided", "guided")
     arms = {}
     for arm in arms_to_run:
@@ -1225,6 +1227,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="full size: the VAE's spatial tiles (generate's model.vae_tiling), both arms")
     samp.add_argument("--chunk-latents", type=int, default=None,
                       help="latents per anchor chunk (default: the paper's 3; 2 decodes 5 frames per anchor instead of 9)")
+    samp.add_argument("--no-denoiser-checkpointing", action="store_true",
+                      help="faithful mode: backpropagate through the transformer without gradient checkpointing "
+                           "(guidance.gradient_checkpointing=false: one forward less per update, more memory)")
     samp.add_argument("--allow-cpu", action="store_true",
                       help="allow --full-size on CPU (the weights alone are ~30 GiB in float32)")
     samp.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (default: cpu)")
