@@ -16,18 +16,29 @@ initialised offline models of :mod:`geco_guide.testing` instead of loading weigh
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Optional
 
+import yaml
 from omegaconf import DictConfig, OmegaConf, StringNode
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
+from .loss.checks import non_finite_fields
 from .loss.geco import GeCoLossConfig
 from .sampler.guidance import GuidanceConfig
 
 DTYPES = ("float32", "float16", "bfloat16")
+# Upper bounds of options whose absurd values overflow the latents to NaN/inf after minutes of
+# sampling (a black video): refused at once instead. CFG scales in use are 1-20 (CogVideoX: 6);
+# an update of eta moves the latents by eta in L2 norm, about the norm of the whole latent
+# video at 480x720 (~1e3) for the bound (the paper: 3).
+MAX_GUIDANCE_SCALE = 100.0
+MAX_ETA = 1000.0
+# torch.Generator.manual_seed takes 64-bit seeds, signed or unsigned.
+SEED_RANGE = (-(2**63), 2**64 - 1)
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 
 
@@ -173,12 +184,12 @@ def load_config(
     cfg = OmegaConf.structured(GeCoConfig)
     if preset is not None:
         p = preset_path(preset)
-        cfg = _merge(cfg, OmegaConf.load(p), str(p))
+        cfg = _merge(cfg, _load_yaml(p), str(p))
     if path is not None:
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"config file {str(p)!r} does not exist")
-        cfg = _merge(cfg, OmegaConf.load(p), str(p))
+        cfg = _merge(cfg, _load_yaml(p), str(p))
     if overrides:
         bad = [o for o in overrides if "=" not in o]
         if bad:
@@ -186,6 +197,19 @@ def load_config(
         for item in overrides:
             cfg = _merge(cfg, _parse_override(cfg, item), "command line")
     return to_config(cfg)
+
+
+def _load_yaml(path: Path) -> DictConfig:
+    """A config file's sections; ValueError naming the file (and the YAML error's line) if it is
+    not UTF-8 YAML holding a mapping."""
+    try:
+        loaded = OmegaConf.load(path)
+    except (yaml.YAMLError, UnicodeDecodeError) as err:
+        reason = " ".join(str(err).split())  # YAML errors span several lines
+        raise ValueError(f"config file {str(path)!r} is not valid UTF-8 YAML: {reason}") from None
+    if not isinstance(loaded, DictConfig):
+        raise ValueError(f"config file {str(path)!r} must hold a mapping of sections (model:, sampling:, ...)")
+    return loaded
 
 
 def _parse_override(cfg: DictConfig, item: str) -> DictConfig:
@@ -247,6 +271,9 @@ def _require(cond: bool, key: str, message: str) -> None:
 
 def validate_config(cfg: GeCoConfig) -> None:
     """Semantic checks beyond types; ValueError naming the key."""
+    for key, value in non_finite_fields(cfg):  # every float option of every section; first one
+        raise ValueError(f"invalid value for config key {key!r}: must be a finite number, got {value}")
+    _require(SEED_RANGE[0] <= cfg.seed <= SEED_RANGE[1], "seed", f"must be a 64-bit integer, got {cfg.seed}")
     _require(bool(cfg.model.id), "model.id", "must be a hub id, a local folder or 'tiny-random'")
     _require(cfg.model.dtype in DTYPES, "model.dtype", f"must be one of {DTYPES}, got {cfg.model.dtype!r}")
     _require(cfg.estimators.dtype in DTYPES, "estimators.dtype", f"must be one of {DTYPES}, got {cfg.estimators.dtype!r}")
@@ -260,7 +287,11 @@ def validate_config(cfg: GeCoConfig) -> None:
     )
     s = cfg.sampling
     _require(s.num_inference_steps >= 1, "sampling.num_inference_steps", f"must be >= 1, got {s.num_inference_steps}")
-    _require(s.guidance_scale >= 0, "sampling.guidance_scale", f"must be >= 0, got {s.guidance_scale}")
+    _require(
+        0 <= s.guidance_scale <= MAX_GUIDANCE_SCALE,
+        "sampling.guidance_scale",
+        f"must be in [0, {MAX_GUIDANCE_SCALE:g}], got {s.guidance_scale}",
+    )
     _require(s.fps >= 1, "sampling.fps", f"must be >= 1, got {s.fps}")
     _require(s.max_sequence_length >= 1, "sampling.max_sequence_length", f"must be >= 1, got {s.max_sequence_length}")
     for key in ("height", "width"):
@@ -272,7 +303,7 @@ def validate_config(cfg: GeCoConfig) -> None:
         f"the CogVideoX VAE makes 8k+1 frames (e.g. 9, 17, 49), got {s.num_frames}",
     )
     g = cfg.guidance
-    _require(g.eta >= 0, "guidance.eta", f"must be >= 0, got {g.eta}")
+    _require(0 <= g.eta <= MAX_ETA, "guidance.eta", f"must be in [0, {MAX_ETA:g}], got {g.eta}")
     _require(g.grad_eps > 0, "guidance.grad_eps", f"must be > 0, got {g.grad_eps}")
     _require(g.chunk_latents >= 2, "guidance.chunk_latents", f"must be >= 2, got {g.chunk_latents}")
     try:
@@ -284,6 +315,12 @@ def validate_config(cfg: GeCoConfig) -> None:
     except ValueError as err:
         raise ValueError(f"invalid value for config key 'guidance.anchors': {err}") from None
     _require(bool(cfg.output.dir), "output.dir", "must not be empty")
+    name = cfg.output.name
+    _require(
+        name is None or not re.search(r"[/\\]", name),
+        "output.name",
+        f"must be a file name without folders (the files go to output.dir), got {name!r}",
+    )
 
 
 def config_to_dict(cfg: GeCoConfig) -> dict[str, Any]:

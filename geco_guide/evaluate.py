@@ -39,6 +39,7 @@ from .config import EstimatorsConfig, EvaluationConfig, GeCoConfig, load_config
 from .estimators import estimator_id, load_estimators
 from .estimators.base import Correspondences
 from .files import write_json_atomic, write_text_atomic
+from .loss.checks import check_frame_values
 from .loss.geco import CUES, PAIR_MODES, GeCoLoss, GeCoMaps, frame_pairs, geco_from_geometry
 from .loss.motion_stats import motion_statistics
 from .video import (
@@ -227,9 +228,12 @@ def evaluate_video(
 
     Raises:
         VideoReadError: unreadable input or fewer than 2 frames (a ValueError).
+        ValueError: evaluated frames with NaN/inf values or outside ``[0, 1]``, naming them.
     """
     cfg, estimators_cfg = _split_config(config)
     clip, source = _load_frames(video, fps, cfg)
+    # NaN pixels would score NaN (or 0.0 once masked), 0-255 frames garbage: refuse them, by index.
+    check_frame_values(clip.frames, "video" if source is None else source, indices=clip.indices)
     if geometry is None or flow is None:
         loaded = load_estimators(estimators_cfg, cfg.device)
         geometry = geometry if geometry is not None else loaded[0]

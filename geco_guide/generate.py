@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import platform
 import re
@@ -29,6 +30,7 @@ from .config import GeCoConfig, config_to_dict, load_config
 from .estimators import TINY_RANDOM, load_estimators, resolve_device
 from .estimators.loading import WeightsNotFoundError
 from .files import write_json_atomic
+from .loss.checks import NonFiniteFramesError, check_frame_values
 
 
 # --------------------------------------------------------------------------------------------
@@ -97,8 +99,8 @@ def load_video_pipeline(cfg: GeCoConfig, geometry_estimator=None, flow_estimator
                 raise
             raise WeightsNotFoundError(
                 f"CogVideoX weights {model_id!r} are not available: not in the local Hugging Face cache and the hub "
-                f"cannot be reached (offline?). Download them once with `huggingface-cli download {model_id}` "
-                f"or pass a local folder: model.id=/path/to/{model_id.split('/')[-1]}"
+                f"cannot be reached (offline?). Download them once with `hf download {model_id}` (huggingface_hub "
+                f"< 0.34: `huggingface-cli download`) or pass a local folder: model.id=/path/to/{model_id.split('/')[-1]}"
             ) from None
     if cfg.model.vae_tiling:
         pipe.vae.enable_tiling()
@@ -106,6 +108,24 @@ def load_video_pipeline(cfg: GeCoConfig, geometry_estimator=None, flow_estimator
         pipe.vae.enable_slicing()
     pipe.to(device)
     return pipe
+
+
+def check_device(name: str) -> None:
+    """ValueError (one line) unless this torch can use device ``name`` (``auto`` always works).
+
+    Checked before any model loads: otherwise a missing CUDA shows as a traceback from ``.to()``.
+    """
+    try:
+        device = resolve_device(name)
+    except RuntimeError as err:  # e.g. "cuda:x"
+        raise ValueError(f"invalid device {name!r}: {err}") from None
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if (device.index or 0) >= count:
+            found = "this torch has no CUDA support or no GPU" if count == 0 else f"only {count} CUDA device(s)"
+            raise ValueError(f"device {name!r} is not available ({found}); use model.device=cpu or auto")
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"device {name!r} is not available on this machine; use model.device=cpu or auto")
 
 
 def build_pipeline(cfg: GeCoConfig):
@@ -133,6 +153,18 @@ def output_paths(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = N
     else:
         video = Path(cfg.output.dir) / f"{name}.mp4"
     return video, video.with_suffix(".json")
+
+
+def check_output_location(video: Path) -> None:
+    """ValueError (one line) if ``video``'s folder cannot exist because a file is in the way.
+
+    Checked before the models load, so that a bad ``--out`` does not fail after sampling.
+    """
+    for parent in video.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ValueError(f"cannot write {str(video)!r}: {str(parent)!r} is a file, not a folder")
+            return
 
 
 def versions() -> dict[str, str]:
@@ -172,9 +204,12 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
 
     if not prompt or not prompt.strip():
         raise ValueError("prompt must not be empty")
+    video_path, sidecar_path = output_paths(cfg, prompt, out)
+    check_output_location(video_path)
     timings: dict[str, float] = {}
     start = time.perf_counter()
     if pipe is None:
+        check_device(cfg.model.device)
         pipe = build_pipeline(cfg)
     timings["load_s"] = time.perf_counter() - start
 
@@ -197,6 +232,12 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     )
     timings["sampling_s"] = time.perf_counter() - start
     frames = output.frames  # [1, F, 3, H, W] in [0, 1]
+    try:
+        check_frame_values(frames, "the sampled video")
+    except NonFiniteFramesError as err:  # the VAE's clamp would write NaN as black and score it 0
+        raise ValueError(
+            f"sampling diverged, nothing was written: {err} (lower sampling.guidance_scale or guidance.eta)"
+        ) from None
 
     scores = None
     if cfg.output.score_anchors:
@@ -205,7 +246,6 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
         scores = score_anchor_frames(frames, cfg.guidance.anchors, loss)
         timings["scoring_s"] = time.perf_counter() - start
 
-    video_path, sidecar_path = output_paths(cfg, prompt, out)
     start = time.perf_counter()
     write_video(video_path, frames[0], fps=s.fps)
     timings["write_video_s"] = time.perf_counter() - start
@@ -273,6 +313,11 @@ def main(argv: list[str] | None = None) -> int:
     log = result.sidecar["guidance_log"]
     if log:
         print(f"guidance: {len(log)} updates in {result.sidecar['timings']['guidance_s']:.1f} s")
+        idle = [r for r in log if r["skipped"] or not math.isfinite(r["loss"])]
+        if idle:  # a NaN decode or gradient leaves the latents unchanged (see GeCoLoss check_values)
+            steps = sorted({r["step"] for r in idle})
+            print(f"warning: {len(idle)} guidance update(s) moved nothing (non-finite loss or gradient) at steps "
+                  f"{steps}", file=sys.stderr)
     else:
         print("guidance: off")
     return 0

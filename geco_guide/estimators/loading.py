@@ -71,7 +71,8 @@ def fetch_checkpoint_file(
     raise WeightsNotFoundError(
         f"{model_name}: could not load weights for {repo_id!r} from the Hugging Face hub or its "
         f"local cache{reason}; download them where you have network "
-        f"(huggingface-cli download {repo_id}) and pass the local folder instead of the repo id"
+        f"(`hf download {repo_id}`; huggingface_hub < 0.34: `huggingface-cli download {repo_id}`) and pass the "
+        "local folder instead of the repo id"
     )
 
 

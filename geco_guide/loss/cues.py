@@ -15,12 +15,20 @@ from .geometry import MIN_DEPTH, check_tensor, local_depth_ratio, sample_at_proj
 
 
 def safe_norm(x: Tensor, dim: int) -> Tensor:
-    """Euclidean norm along ``dim`` whose gradient is finite (zero) where the norm is 0."""
-    squared = (x * x).sum(dim)
-    positive = squared > 0
+    """Euclidean norm along ``dim`` whose gradient is finite (zero) where the norm is 0.
+
+    Computed as ``a * sqrt(sum((x / a)^2))`` with ``a = max |x|`` (held constant: the gradient
+    is still ``x / norm``), so entries above ``sqrt(float max)`` (~1e19 in fp32) do not
+    overflow to an infinite norm.
+    """
+    scale = x.detach().abs().amax(dim)
+    positive = scale > 0
     # The double where keeps sqrt's infinite slope at 0 out of the backward pass.
+    scale = torch.where(positive, scale, torch.ones_like(scale))
+    unit = x / scale.unsqueeze(dim)
+    squared = (unit * unit).sum(dim)
     safe = torch.where(positive, squared, torch.ones_like(squared))
-    return torch.where(positive, torch.sqrt(safe), torch.zeros_like(squared))
+    return torch.where(positive, scale * torch.sqrt(safe), torch.zeros_like(squared))
 
 
 def motion_residual(flow: Tensor, rigid_flow: Tensor, K_src: Tensor) -> Tensor:

@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..estimators.base import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry, check_frames
+from .checks import check_frame_values, non_finite_fields
 from .cues import fuse_cues, masked_mean, motion_residual, structure_residual
 from .geometry import check_tensor, relative_pose, resize_flow, rigid_flow
 
@@ -57,6 +58,8 @@ class GeCoLossConfig:
     geometry_grad: bool = True
 
     def __post_init__(self) -> None:
+        for key, value in non_finite_fields(self):  # the first one
+            raise ValueError(f"{key} must be a finite number, got {value}")
         if self.pairs not in PAIR_MODES:
             raise ValueError(f"pairs must be one of {PAIR_MODES}, got {self.pairs!r}")
         if self.cue not in CUES:
@@ -158,6 +161,39 @@ def _check_geometry(geometry: SceneGeometry) -> tuple[int, int, int, int]:
     return batch, frames, height, width
 
 
+def _without_non_finite(x: Tensor) -> Tensor:
+    """``x`` with NaN/inf entries set to 0 (zero gradient there), same shape."""
+    return torch.where(torch.isfinite(x), x, torch.zeros_like(x))
+
+
+# Largest |R R^T - I| entry of a rotation: fp32/bf16 rounding passes, non-rotations do not.
+ROTATION_TOLERANCE = 1e-2
+
+
+def _usable_cameras(intrinsics: Tensor, extrinsics: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Cameras safe to compute with, and which of them are real.
+
+    Args:
+        intrinsics: ``[B, S, 3, 3]``.
+        extrinsics: ``[B, S, 3, 4]``.
+
+    Returns:
+        ``(K [B, S, 3, 3], extrinsics [B, S, 3, 4], usable [B, S])``: a camera with a NaN/inf
+        entry, a singular K (which ``unproject`` could not invert) or an ``R`` that is not a
+        rotation (``invert_rigid`` assumes one; huge entries overflow) is replaced by the identity
+        camera and marked unusable, so its pairs are invalid instead of NaN (zero gradient).
+    """
+    eye = torch.eye(3, 4, dtype=extrinsics.dtype, device=extrinsics.device)
+    finite = torch.isfinite(intrinsics).flatten(-2).all(-1) & torch.isfinite(extrinsics).flatten(-2).all(-1)
+    K = torch.where(finite[..., None, None], intrinsics, eye[:, :3]).detach()
+    rotation = torch.where(finite[..., None, None], extrinsics, eye)[..., :3].detach()
+    gram_error = (rotation @ rotation.transpose(-1, -2) - eye[:, :3]).abs().flatten(-2).amax(-1)
+    # "<=" is False for NaN (inf - inf in an overflowing product).
+    usable = finite & (torch.linalg.det(K) != 0) & (gram_error <= ROTATION_TOLERANCE)
+    ok = usable[..., None, None]
+    return torch.where(ok, intrinsics, eye[:, :3]), torch.where(ok, extrinsics, eye), usable
+
+
 def _frame_average(pair_map: Tensor, pair_valid: Tensor, sources: Tensor, num_frames: int) -> tuple[Tensor, Tensor]:
     """Pixel-wise mean over the pairs of each source frame: ``[B, P, H, W]`` -> ``[B, S, H, W]``."""
     batch, _, height, width = pair_map.shape
@@ -204,20 +240,28 @@ def geco_from_geometry(
     def gather(x: Tensor, index: Tensor) -> Tensor:
         return x[:, index].reshape(batch * num_pairs, *x.shape[2:])
 
-    depth_src, depth_tgt = gather(geometry.depth, src), gather(geometry.depth, tgt)
-    K_src, K_tgt = gather(geometry.intrinsics, src), gather(geometry.intrinsics, tgt)
-    src_to_tgt = relative_pose(gather(geometry.extrinsics, src), gather(geometry.extrinsics, tgt))
+    # Estimator outputs may hold NaN/inf (e.g. an overflow): such pixels and cameras count as
+    # invalid, so they neither turn the scores into NaN nor reach grid_sample or the gradient.
+    depth = _without_non_finite(geometry.depth)  # 0: no depth, never valid
+    intrinsics, extrinsics, usable = _usable_cameras(geometry.intrinsics, geometry.extrinsics)
+    depth_src, depth_tgt = gather(depth, src), gather(depth, tgt)
+    K_src, K_tgt = gather(intrinsics, src), gather(intrinsics, tgt)
+    src_to_tgt = relative_pose(gather(extrinsics, src), gather(extrinsics, tgt))
+    pair_usable = (gather(usable, src) & gather(usable, tgt))[:, None, None]  # [B*P, 1, 1]
     flow = correspondences.flow.to(depth_src.dtype)
+    flow_finite = torch.isfinite(flow).all(dim=1)
 
     rigid, rigid_valid = rigid_flow(depth_src, K_src, K_tgt, src_to_tgt)
-    motion = motion_residual(flow, rigid, K_src)
-    covisible = correspondences.covisibility > config.covisibility_threshold
+    motion = motion_residual(_without_non_finite(flow), rigid, K_src)
+    covisible = _without_non_finite(correspondences.covisibility) > config.covisibility_threshold
     structure, structure_valid = structure_residual(
         depth_src, depth_tgt, K_src, K_tgt, src_to_tgt, tau=config.occlusion_tau, edge_tau=config.depth_edge_tau
     )
-    motion_valid = rigid_valid & covisible
+    motion_valid = rigid_valid & covisible & flow_finite & pair_usable
+    structure_valid = structure_valid & pair_usable
     if geometry.confidence is not None and config.confidence_percentile is not None:
-        trusted = gather(confidence_mask(geometry.confidence, config.confidence_percentile), src)
+        confidence = _without_non_finite(geometry.confidence)  # 0: no prediction, never trusted
+        trusted = gather(confidence_mask(confidence, config.confidence_percentile), src)
         motion_valid = motion_valid & trusted
         structure_valid = structure_valid & trusted
     fused, fused_valid = fuse_cues(motion, motion_valid, structure, structure_valid)
@@ -263,6 +307,11 @@ class GeCoLoss(nn.Module):
         geometry: a :class:`GeometryEstimator` (e.g. VGGT) giving depth, K, extrinsics.
         flow: a :class:`FlowEstimator` (e.g. UFM) giving flow and covisibility per pair.
         config: :class:`GeCoLossConfig` (or a dict of its fields); defaults if ``None``.
+        check_values: refuse frames that are not finite (:class:`NonFiniteFramesError`) or not in
+            ``[0, 1]`` with a ValueError naming them, at the cost of one device-to-host copy per
+            call. The samplers pass ``False``: their updates must not wait for the device, and a
+            non-finite decode then makes the scalars NaN (never a score of 0.0); its gradient is
+            zero or non-finite, and ``guided_step`` moves nothing with either.
 
     ``forward(frames [B, S, 3, H, W] in [0, 1]) -> GeCoResult``.
     """
@@ -272,6 +321,8 @@ class GeCoLoss(nn.Module):
         geometry: GeometryEstimator,
         flow: FlowEstimator,
         config: GeCoLossConfig | dict | None = None,
+        *,
+        check_values: bool = True,
     ) -> None:
         super().__init__()
         if not isinstance(geometry, GeometryEstimator):
@@ -285,6 +336,7 @@ class GeCoLoss(nn.Module):
                 raise ValueError(f"unknown GeCo loss option(s) {unknown}; known: {sorted(known)}")
             config = GeCoLossConfig(**config)
         self.config = config or GeCoLossConfig()
+        self.check_values = check_values
         # Registered as attributes (modules when they are modules) so .to() moves them.
         self.geometry = geometry
         self.flow = flow
@@ -309,12 +361,30 @@ class GeCoLoss(nn.Module):
         return Correspondences(flow=flow, covisibility=covisibility)
 
     def forward(self, frames: Tensor) -> GeCoResult:
+        """Raises ValueError for frames that are not finite or not in [0, 1] (see ``check_values``)."""
         check_frames(frames)
         if frames.shape[1] < 2:
             raise ValueError(f"frames must hold at least 2 frames, got {frames.shape[1]}")
+        if self.check_values:
+            check_frame_values(frames)
         frames = frames.float()
         with torch.set_grad_enabled(torch.is_grad_enabled() and self.config.geometry_grad):
             geometry = self.geometry.estimate_geometry(frames)
         pairs = frame_pairs(frames.shape[1], self.config.pairs)
         correspondences = self.estimate_correspondences(frames, pairs)
-        return geco_from_geometry(geometry, correspondences, pairs, self.config)
+        result = geco_from_geometry(geometry, correspondences, pairs, self.config)
+        if not self.check_values:
+            _nan_unless_finite(result, frames)
+        return result
+
+
+def _nan_unless_finite(result: GeCoResult, frames: Tensor) -> None:
+    """Set the scalars of ``result`` to NaN if ``frames`` hold NaN/inf, without a host sync.
+
+    Non-finite depth and flow are masked as invalid pixels, so a NaN decode would otherwise score
+    as consistent as can be.
+    """
+    finite = torch.isfinite(frames.detach()).all()
+    for name in ("loss", "motion", "structure", "fused"):
+        value = getattr(result, name)
+        setattr(result, name, torch.where(finite, value, torch.full_like(value, float("nan"))))

@@ -132,6 +132,7 @@ def inside_image(uv: Tensor, height: int, width: int, slack: float = 1e-4) -> Te
     """``[B, ..., 2]`` -> bool mask of coordinates within ``[0, W-1] x [0, H-1]``.
 
     ``slack`` (pixels) absorbs rounding, so that e.g. an identity pose keeps border pixels.
+    Non-finite coordinates are outside (every comparison with NaN is False).
     """
     u, v = uv[..., 0], uv[..., 1]
     return (u >= -slack) & (u <= width - 1 + slack) & (v >= -slack) & (v <= height - 1 + slack)
@@ -184,15 +185,32 @@ def rigid_flow(
     return flow.permute(0, 3, 1, 2), valid
 
 
+def sampling_coordinates(uv: Tensor, height: int, width: int) -> Tensor:
+    """Pixel coordinates ``uv [B, ..., 2]`` made safe for ``grid_sample``, same shape.
+
+    ``grid_sample``'s backward crashes the process (segmentation fault) on a NaN grid with
+    ``padding_mode="border"`` (a PyTorch defect), and NaN/inf coordinates come from any
+    non-finite depth, camera or flow upstream. A point with a non-finite coordinate goes to
+    ``(-1, -1)`` and finite coordinates are clamped to ``[-1, W] x [-1, H]``, so the grid is
+    finite and bounded; :func:`inside_image` is False for exactly the same points before and
+    after (it is False for NaN), so callers' in-image masks mark these samples invalid. In-image
+    points keep their coordinates and gradients.
+    """
+    finite = torch.isfinite(uv).all(dim=-1, keepdim=True)
+    safe = torch.where(finite, uv, torch.full_like(uv, -1.0))
+    return torch.minimum(safe.clamp_min(-1.0), uv.new_tensor([float(width), float(height)]))
+
+
 def sample_bilinear(image: Tensor, uv: Tensor) -> Tensor:
     """Sample ``image [B, C, H, W]`` at pixel coordinates ``uv [B, ..., 2]``.
 
-    Integer coordinates are pixel centres; outside the image the border value is used (callers
-    mask out-of-image samples). Returns ``[B, C, ...]``.
+    Integer coordinates are pixel centres; outside the image (and at non-finite coordinates,
+    see :func:`sampling_coordinates`) the border value is used: callers mask samples that
+    :func:`inside_image` rejects. Returns ``[B, C, ...]``.
     """
     height, width = image.shape[-2:]
     batch = uv.shape[0]
-    flat = uv.reshape(batch, 1, -1, 2)
+    flat = sampling_coordinates(uv, height, width).reshape(batch, 1, -1, 2)
     scale = uv.new_tensor([2.0 / max(width - 1, 1), 2.0 / max(height - 1, 1)])
     grid = flat * scale - 1.0
     sampled = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)

@@ -295,7 +295,9 @@ class GeCoGuidanceHandle:
             config.anchors, geometry.num_frames, geometry.temporal_compression, config.chunk_latents
         )
         check_scheduler(self.pipe.scheduler)
-        loss_fn = GeCoLoss(self.geometry_estimator, self.flow_estimator, config.loss)
+        # No frame check: it would make each update wait for the device; a NaN decode gives
+        # NaN scalars and no update instead (GeCoLoss check_values).
+        loss_fn = GeCoLoss(self.geometry_estimator, self.flow_estimator, config.loss, check_values=False)
         self._state = _CallState(geometry, chunks, args.get("generator"), loss_fn, config)
 
     def _pre_hook(self, module, args, kwargs):

@@ -1,0 +1,84 @@
+"""Value checks at the public entry points: finite frames in ``[0, 1]``, finite options.
+
+A NaN pixel would otherwise make every cue of its pairs invalid, so a corrupt clip would score
+0.0, "perfectly consistent"; frames in 0-255 or ``[-1, 1]`` would be scored as if they were
+``[0, 1]`` images. Both are errors, raised once where frames enter (``GeCoLoss``,
+``evaluate_video``, the end of ``generate``), naming the frames.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import fields, is_dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+# Tolerated excursion outside [0, 1]: float rounding of resampled frames, while 0-255 or [-1, 1]
+# frames are far outside it.
+FRAME_RANGE_SLACK = 1e-3
+
+
+class NonFiniteFramesError(ValueError):
+    """Frames hold NaN or inf values (a corrupt input or a diverged decode)."""
+
+
+def _frame_list(positions: list[int], indices: Sequence[int] | None) -> list[int]:
+    return [int(indices[p]) if indices is not None else p for p in positions]
+
+
+def check_frame_values(frames: Tensor, name: str = "frames", indices: Sequence[int] | None = None) -> None:
+    """Raise a ValueError naming the frames unless ``frames`` are finite and in ``[0, 1]``.
+
+    Args:
+        frames: ``[S, 3, H, W]`` or ``[B, S, 3, H, W]`` (a frame is bad if it is in any video).
+        name: what the message calls the tensor.
+        indices: ``S`` frame numbers to report (e.g. in the source video); default ``0..S-1``.
+
+    Raises:
+        NonFiniteFramesError: a frame holds NaN or inf.
+        ValueError: a frame has values outside ``[0, 1]`` (beyond :data:`FRAME_RANGE_SLACK`).
+
+    One device-to-host copy (two numbers per frame); no copy of the frames.
+    """
+    if frames.numel() == 0:
+        raise ValueError(f"{name} must not be empty, got shape {list(frames.shape)}")
+    per_frame = frames.detach().flatten(-3)  # [..., S, 3*H*W]
+    per_frame = per_frame.reshape(-1, *per_frame.shape[-2:])  # [B, S, N]
+    # amin/amax propagate NaN, and an inf shows in one of them: no isfinite copy of the frames.
+    low, high = torch.stack((per_frame.amin(dim=(0, 2)), per_frame.amax(dim=(0, 2)))).float().cpu()
+    finite = torch.isfinite(low) & torch.isfinite(high)
+    if not bool(finite.all()):
+        bad = _frame_list((~finite).nonzero().flatten().tolist(), indices)
+        raise NonFiniteFramesError(f"{name} must be finite: frame(s) {bad} hold NaN or inf values")
+    outside = (low < -FRAME_RANGE_SLACK) | (high > 1.0 + FRAME_RANGE_SLACK)
+    if bool(outside.any()):
+        bad = _frame_list(outside.nonzero().flatten().tolist(), indices)
+        raise ValueError(
+            f"{name} must be float RGB in [0, 1]: frame(s) {bad} hold values in "
+            f"[{float(low.min()):.4g}, {float(high.max()):.4g}] (divide 0-255 frames by 255, map [-1, 1] "
+            "frames with x / 2 + 0.5, clamp resampled ones)"
+        )
+
+
+def non_finite_fields(obj: Any, prefix: str = "") -> list[tuple[str, float]]:
+    """``(dotted key, value)`` of every NaN or infinite float of a dataclass, in nested dataclasses,
+    lists and dicts too (``prefix`` starts the keys, e.g. ``"guidance."``)."""
+    found: list[tuple[str, float]] = []
+    for f in fields(obj):
+        value, key = getattr(obj, f.name), f"{prefix}{f.name}"
+        if is_dataclass(value):
+            found.extend(non_finite_fields(value, f"{key}."))
+        elif isinstance(value, dict):
+            found.extend((f"{key}.{name}", v) for name, v in value.items() if _non_finite(v))
+        elif isinstance(value, (list, tuple)):
+            found.extend((f"{key}[{i}]", v) for i, v in enumerate(value) if _non_finite(v))
+        elif _non_finite(value):
+            found.append((key, value))
+    return found
+
+
+def _non_finite(value: Any) -> bool:
+    return isinstance(value, float) and not math.isfinite(value)

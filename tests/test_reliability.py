@@ -1,0 +1,283 @@
+"""Reliability (issue 13): non-finite and absurd values end in a finite result or one clear
+ValueError, never a crash (grid_sample's backward segfaults on a NaN grid) and never a silent
+0.0 score; config and CLI mistakes are one line, found before any model loads."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from geco_guide import generate as generate_module
+from geco_guide.config import load_config
+from geco_guide.estimators.base import Correspondences, SceneGeometry
+from geco_guide.estimators.loading import fetch_checkpoint_file
+from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
+from geco_guide.evaluate import evaluate_video
+from geco_guide.generate import generate, load_video_pipeline, main
+from geco_guide.loss.checks import NonFiniteFramesError, check_frame_values, non_finite_fields
+from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig, frame_pairs, geco_from_geometry
+from geco_guide.loss.geometry import inside_image, sample_bilinear
+from geco_guide.synthetic import inject_deformation, rigid_clip
+from geco_guide.testing import tiny_estimators
+
+BAD_VALUES = (math.nan, math.inf, -math.inf, 1e30, -1e30)
+
+
+@pytest.fixture(scope="module")
+def clip():
+    return inject_deformation(rigid_clip(num_frames=3, height=12, width=16), amplitude=2.0)
+
+
+# --------------------------------------------------------------------------------------------
+# 1. crashes: no non-finite grid reaches grid_sample, the loss stays finite forward and backward
+
+
+def test_sample_bilinear_with_non_finite_coordinates_is_finite_forward_and_backward():
+    image = torch.rand(1, 2, 6, 8, dtype=torch.float64, requires_grad=True)
+    points = [[2.5, 3.0], [math.nan, 1.0], [math.inf, 2.0], [1.0, -math.inf], [1e30, 2.0], [3.4e38, -3.4e38]]
+    uv = torch.tensor([points], dtype=torch.float64, requires_grad=True)
+    samples = sample_bilinear(image, uv)  # segfaulted in backward before (NaN grid, border padding)
+    samples.sum().backward()
+    assert torch.isfinite(samples).all() and torch.isfinite(image.grad).all() and torch.isfinite(uv.grad).all()
+    assert inside_image(uv.detach(), 6, 8).tolist() == [[True, False, False, False, False, False]]
+    expected = image.detach()[0, :, 3, 2:4].mean(-1)  # (2.5, 3.0): halfway between two pixel centres
+    torch.testing.assert_close(samples.detach()[0, :, 0], expected)
+    assert uv.grad[0, 0].abs().sum() > 0 and (uv.grad[0, 1:4] == 0).all()  # no gradient through NaN/inf
+
+
+def _leaf_inputs(clip, pairs):
+    geometry, corr = clip.geometry(torch.float32), clip.pair_correspondences(pairs, torch.float32)
+    confidence = torch.rand(geometry.depth.shape, generator=torch.Generator().manual_seed(0)) + 0.1
+    return {
+        "depth": geometry.depth, "intrinsics": geometry.intrinsics, "extrinsics": geometry.extrinsics,
+        "confidence": confidence, "flow": corr.flow, "covisibility": corr.covisibility,
+    }
+
+
+@pytest.mark.parametrize("value", BAD_VALUES)
+@pytest.mark.parametrize("name", ["depth", "intrinsics", "extrinsics", "confidence", "flow", "covisibility"])
+def test_geco_from_geometry_is_finite_forward_and_backward_for_any_input_value(clip, name, value):
+    """Property: a NaN/inf/huge entry anywhere in the estimators' outputs (a few random entries
+    of one input) gives finite scores and finite gradients for every input, or a ValueError."""
+    pairs = frame_pairs(clip.num_frames, "all")
+    for seed in range(3):
+        inputs = {k: v.clone() for k, v in _leaf_inputs(clip, pairs).items()}
+        flat = inputs[name].view(-1)
+        positions = torch.randint(flat.numel(), (1 + seed,), generator=torch.Generator().manual_seed(seed))
+        flat[positions] = value
+        leaves = {k: v.requires_grad_(k != "covisibility") for k, v in inputs.items()}
+        geometry = SceneGeometry(leaves["depth"], leaves["intrinsics"], leaves["extrinsics"], leaves["confidence"])
+        try:
+            result = geco_from_geometry(geometry, Correspondences(leaves["flow"], leaves["covisibility"]), pairs)
+        except ValueError:
+            continue
+        scalars = torch.stack([result.loss, result.motion, result.structure, result.fused])
+        assert torch.isfinite(scalars).all(), (name, value, seed, scalars)
+        assert all(torch.isfinite(m).all() for m in (result.pair_maps.fused, result.frame_maps.fused))
+        scalars.sum().backward()
+        for key, leaf in leaves.items():
+            assert leaf.grad is None or torch.isfinite(leaf.grad).all(), (name, value, seed, key)
+
+
+def test_a_non_finite_camera_invalidates_its_pairs_only(clip):
+    pairs = frame_pairs(clip.num_frames, "adjacent")  # (0, 1), (1, 2)
+    geometry = clip.geometry(torch.float32)
+    extrinsics = geometry.extrinsics.clone()
+    extrinsics[0, 2, 0, 3] = math.nan
+    result = geco_from_geometry(replace(geometry, extrinsics=extrinsics), clip.pair_correspondences(pairs), pairs)
+    assert result.pair_maps.fused_valid[0, 0].any() and not result.pair_maps.fused_valid[0, 1].any()
+
+
+# --------------------------------------------------------------------------------------------
+# 2. silent lies: non-finite or out-of-range frames are refused where frames enter
+
+
+@pytest.fixture(scope="module")
+def tiny_loss():
+    return GeCoLoss(*tiny_estimators(0), GeCoLossConfig(flow_downscale=0.5))
+
+
+@pytest.mark.parametrize("value", BAD_VALUES + (255.0, -0.5))
+def test_geco_loss_refuses_bad_frames_forward_and_backward(clip, tiny_loss, value):
+    frames = clip.frames[None].float().clone()
+    frames[0, 1, 2, 3, 4] = value
+    frames.requires_grad_(True)
+    expected = NonFiniteFramesError if not math.isfinite(value) else ValueError
+    with pytest.raises(expected, match=r"frame\(s\) \[1\]"):
+        tiny_loss(frames).loss.backward()
+
+
+def test_geco_loss_on_good_frames_is_finite_forward_and_backward(clip, tiny_loss):
+    frames = clip.frames[None].float().clone().requires_grad_(True)
+    result = tiny_loss(frames)
+    result.loss.backward()
+    assert all(math.isfinite(v) for v in result.scalars().values()) and torch.isfinite(frames.grad).all()
+
+
+def test_sampler_mode_gives_nan_scalars_and_no_update_for_nan_frames(clip, tiny_loss):
+    """The samplers' loss (check_values=False: no host sync per update) never scores a NaN decode
+    as consistent, and its gradient moves nothing (guided_step drops a non-finite one)."""
+    sampler_loss = GeCoLoss(tiny_loss.geometry, tiny_loss.flow, tiny_loss.config, check_values=False)
+    frames = clip.frames[None].float().clone()
+    frames[0, 1, :, :4] = math.nan
+    frames.requires_grad_(True)
+    result = sampler_loss(frames)
+    assert all(math.isnan(v) for v in result.scalars().values())
+    (grad,) = torch.autograd.grad(result.loss, frames, allow_unused=True)
+    assert grad is None or (grad == 0).all() or not torch.isfinite(grad).all()
+
+
+def test_frame_check_names_frames_and_ranges():
+    frames = torch.rand(2, 4, 3, 5, 6)
+    check_frame_values(frames)
+    check_frame_values(frames.clamp(0, 1) + 5e-4)  # float rounding is tolerated
+    bad = frames.clone()
+    bad[1, 2, 0, 0, 0] = math.nan
+    with pytest.raises(NonFiniteFramesError, match=r"clip must be finite: frame\(s\) \[2\]"):
+        check_frame_values(bad, "clip")
+    with pytest.raises(ValueError, match=r"in \[0, 1\]: frame\(s\) \[0, 1, 2, 3\].*255"):
+        check_frame_values(frames * 255)
+    with pytest.raises(ValueError, match=r"frame\(s\) \[10, 30\]"):  # reported as source-video indices
+        check_frame_values(torch.full((2, 3, 4, 4), -1.0), indices=[10, 30])
+
+
+@pytest.mark.parametrize("value, message", [(math.nan, "must be finite"), (255.0, r"in \[0, 1\]")])
+def test_evaluate_video_refuses_bad_frames_naming_the_frame(clip, value, message):
+    frames = clip.frames.float().clone()
+    frames[2, 0, 1, 1] = value
+    with pytest.raises(ValueError, match=rf"{message}.*frame\(s\) \[2\]"):
+        evaluate_video(frames, geometry=OracleGeometry(clip), flow=OracleFlow(clip), fps=8)
+
+
+def _stub_pipe(frames: torch.Tensor):
+    """Stands in for the video pipeline: returns ``frames`` as the sampled video."""
+    return lambda **kwargs: SimpleNamespace(frames=frames, guidance_log=[])
+
+
+def test_generate_refuses_a_diverged_video_and_writes_nothing(tmp_path: Path):
+    cfg = load_config(preset="tiny", overrides=[f"output.dir={tmp_path}"])
+    frames = torch.rand(1, 17, 3, 32, 48)
+    frames[0, 5:] = math.nan
+    with pytest.raises(ValueError, match=r"sampling diverged, nothing was written.*frame\(s\) \[5, 6,"):
+        generate(cfg, "a cat", pipe=_stub_pipe(frames))
+    assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------------------
+# config: every float option refuses NaN/inf naming its key; absurd magnitudes are refused
+
+
+def _float_keys(obj, prefix=""):
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        if is_dataclass(value):
+            yield from _float_keys(value, f"{prefix}{f.name}.")
+        elif isinstance(value, float):
+            yield f"{prefix}{f.name}"
+
+
+def test_every_float_option_refuses_nan_and_inf_naming_the_key():
+    keys = list(_float_keys(load_config(preset="tiny")))
+    expected = {"guidance.eta", "sampling.guidance_scale", "guidance.loss.occlusion_tau", "evaluation.window_seconds"}
+    assert expected <= set(keys)
+    for key in keys:
+        for value in ("nan", "inf", "-inf"):
+            with pytest.raises(ValueError, match=key.replace(".", r"\.")):
+                load_config(preset="tiny", overrides=[f"{key}={value}"])
+
+
+def test_non_finite_fields_walks_nested_dataclasses_lists_and_dicts():
+    @dataclass
+    class Inner:
+        rates: dict = field(default_factory=lambda: {"a": 1.0, "b": math.inf})
+
+    @dataclass
+    class Outer:
+        x: float = math.nan
+        xs: list = field(default_factory=lambda: [1, -math.inf])
+        inner: Inner = field(default_factory=Inner)
+        name: str = "nan"
+
+    found = non_finite_fields(Outer(), "cfg.")
+    assert [key for key, _ in found] == ["cfg.x", "cfg.xs[1]", "cfg.inner.rates.b"]
+
+
+def test_loss_config_refuses_non_finite_values():
+    with pytest.raises(ValueError, match="occlusion_tau must be a finite number"):
+        GeCoLossConfig(occlusion_tau=math.inf)
+    with pytest.raises(ValueError, match="depth_edge_tau must be a finite number"):
+        GeCoLossConfig(depth_edge_tau=math.nan)
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("guidance.eta=1e30", "guidance.eta"),
+        ("sampling.guidance_scale=1e30", "sampling.guidance_scale"),
+        ("seed=18446744073709551616", "seed"),  # 2**64: torch.Generator would overflow after loading
+        ("output.name=../../x", "output.name"),
+    ],
+)
+def test_absurd_values_are_refused_naming_the_key(override, key):
+    with pytest.raises(ValueError, match=rf"'{key}'"):
+        load_config(preset="tiny", overrides=[override])
+
+
+# --------------------------------------------------------------------------------------------
+# CLI: one line, before any model loads
+
+
+@pytest.fixture
+def no_loading(monkeypatch):
+    """Fail loudly if generate gets as far as loading models."""
+    def refuse(cfg):
+        raise AssertionError("models were loaded")
+    monkeypatch.setattr(generate_module, "build_pipeline", refuse)
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "\n" not in err and "Traceback" not in err, err
+    return err
+
+
+@pytest.mark.parametrize("overrides", [["sampling.guidance_scale=1e30", "--no-guidance"], ["guidance.eta=inf"]])
+def test_cli_absurd_values_are_one_line_and_write_nothing(tmp_path: Path, capsys, no_loading, overrides):
+    rc = main(["--preset", "tiny", "--prompt", "a cat", f"output.dir={tmp_path}", *overrides])
+    assert rc == 2 and list(tmp_path.iterdir()) == []
+    assert overrides[0].split("=")[0] in _one_error_line(capsys)
+
+
+@pytest.mark.parametrize("content", [b"sampling: [1, 2\n", b"model:\n  id: \xff\xfe\n", b"- a list\n"])
+def test_cli_bad_config_file_is_one_line_naming_the_file(tmp_path: Path, capsys, no_loading, content):
+    path = tmp_path / "bad.yaml"
+    path.write_bytes(content)
+    assert main(["--config", str(path), "--prompt", "a cat"]) == 2
+    assert str(path) in _one_error_line(capsys)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cli_cuda_without_cuda_is_one_line_before_loading(tmp_path: Path, capsys, no_loading):
+    assert main(["--preset", "tiny", "--prompt", "a cat", f"output.dir={tmp_path}", "model.device=cuda"]) == 2
+    assert "'cuda' is not available" in _one_error_line(capsys)
+
+
+def test_cli_out_under_a_file_is_one_line_before_loading(tmp_path: Path, capsys, no_loading):
+    (tmp_path / "file").write_text("x")
+    assert main(["--preset", "tiny", "--prompt", "a cat", "--out", str(tmp_path / "file" / "run.mp4")]) == 2
+    assert "is a file, not a folder" in _one_error_line(capsys)
+
+
+def test_offline_errors_name_the_hf_command(monkeypatch, tmp_path: Path):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    with pytest.raises(FileNotFoundError, match="`hf download geco-test-missing/VGGT-nothing`"):
+        fetch_checkpoint_file("geco-test-missing/VGGT-nothing", ["model.safetensors"], model_name="VGGT",
+                              cache_dir=tmp_path)
+    cfg = load_config(preset="tiny", overrides=["model.id=geco-test-missing/CogVideoX-nothing"])
+    with pytest.raises(FileNotFoundError, match="`hf download geco-test-missing/CogVideoX-nothing`"):
+        load_video_pipeline(cfg)
