@@ -16,6 +16,7 @@ initialised offline models of :mod:`geco_guide.testing` instead of loading weigh
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
@@ -94,30 +95,55 @@ class OutputConfig:
 
 
 def _evaluation_loss_default() -> GeCoLossConfig:
-    # The metric runs the flow estimator at full resolution (guidance halves it to save time).
-    return GeCoLossConfig(pairs="center", flow_downscale=1.0)
+    # The GeCo-Eval script: every ordered pair of a window, full-resolution frames into the flow
+    # estimator (guidance halves them to save time).
+    return GeCoLossConfig(pairs="all", flow_downscale=1.0)
+
+
+#: Native frame rate of each video model (GeCo paper, supplement "Frame rate of evaluated
+#: models"; the Wan 2.1 checkpoints, not in the paper, export at 16 fps like Wan 2.2). GeCo-Eval
+#: times its windows with these rates, not with the rate written in the file.
+PAPER_MODEL_FPS = {
+    "sora-2": 30.0,
+    "veo-3.1": 24.0,
+    "wan2.2-t2v-a14b": 16.0,
+    "wan2.1-t2v-1.3b": 16.0,
+    "wan2.1-t2v-14b": 16.0,
+    "hunyuanvideo": 24.0,
+    "cogvideox1.5-5b": 16.0,
+    "cogvideox-5b": 16.0,
+    "cogvideox-2b": 16.0,
+    "ltx-video": 30.0,
+}
 
 
 @dataclass
 class EvaluationConfig:
-    """How a video is scored (GeCo paper protocol: windows of about 3 s at <= 8 fps).
+    """How a video is scored: the GeCo-Eval protocol (paper, section "Evaluation protocol", and
+    its published evaluation script).
 
     Attributes:
-        window_seconds: target duration of an evaluation window; the sampled frames are split
-            into ``round(duration / window_seconds)`` (at least 1) windows of near-equal length.
-        max_fps: frames are subsampled with an integer stride to at most this rate.
+        window_seconds: length of an evaluation window; ``ceil(duration / window_seconds)``
+            windows of this length cover the clip, overlapping (:func:`geco_guide.video.evaluation_windows`).
+        max_windows: more windows than this are replaced by exactly ``max_windows`` equal windows
+            tiling the clip (the script's ``max_windows=4``).
+        max_fps: frames are sampled inside each window on a time grid at ``min(max_fps, fps)``.
         default_fps: frame rate of inputs that carry none (frame folders, gifs without timing).
+        model_fps: native frame rate per model name (``--model NAME``): it replaces the file's
+            rate, as the paper evaluates every model at its native rate.
         flow_batch_size: frame pairs per flow-estimator call (bounds memory; any value gives the
             same numbers).
         device: where the estimators run (``auto`` = cuda if available, else cpu).
-        loss: the metric's :class:`GeCoLossConfig`: frame pairs within a window (``center``,
-            the paper's protocol; ``all``; ``adjacent``), covisibility threshold, occlusion tau,
-            confidence percentile, ...; full-resolution flow (``flow_downscale=1.0``).
+        loss: the metric's :class:`GeCoLossConfig`: frame pairs within a window (``all``, the
+            script's; ``center``; ``adjacent``), covisibility threshold, occlusion tau,
+            confidence percentile, ...; full-resolution flow input (``flow_downscale=1.0``).
     """
 
     window_seconds: float = 3.0
+    max_windows: int = 4
     max_fps: float = 8.0
     default_fps: float = 8.0
+    model_fps: dict[str, float] = field(default_factory=lambda: dict(PAPER_MODEL_FPS))
     flow_batch_size: int = 16
     device: str = "auto"
     loss: GeCoLossConfig = field(default_factory=_evaluation_loss_default)
@@ -125,14 +151,26 @@ class EvaluationConfig:
     def __post_init__(self) -> None:
         if not self.window_seconds > 0:
             raise ValueError(f"window_seconds must be > 0, got {self.window_seconds}")
+        if self.max_windows < 1:
+            raise ValueError(f"max_windows must be >= 1, got {self.max_windows}")
         if not self.max_fps > 0:
             raise ValueError(f"max_fps must be > 0, got {self.max_fps}")
         if not self.default_fps > 0:
             raise ValueError(f"default_fps must be > 0, got {self.default_fps}")
+        bad = {name: fps for name, fps in self.model_fps.items() if not (fps > 0 and math.isfinite(fps))}
+        if bad:
+            raise ValueError(f"model_fps must map model names to finite rates > 0, got {bad}")
         if self.flow_batch_size < 1:
             raise ValueError(f"flow_batch_size must be >= 1, got {self.flow_batch_size}")
         if not (self.device in ("auto", "cpu", "mps") or self.device.startswith("cuda")):
             raise ValueError(f"device must be auto, cpu, mps or cuda[:N], got {self.device!r}")
+
+    def fps_of_model(self, name: str) -> float:
+        """The native frame rate of model ``name``; ValueError listing the known names."""
+        if name not in self.model_fps:
+            raise ValueError(f"unknown model {name!r} for its frame rate; known: {sorted(self.model_fps)} "
+                             "(add one with evaluation.model_fps.NAME=FPS, or pass --fps)")
+        return float(self.model_fps[name])
 
 
 @dataclass

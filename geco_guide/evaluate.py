@@ -3,13 +3,16 @@
     python -m geco_guide.evaluate clip.mp4 --maps                 # VGGT-1B + UFM-Base from the hub
     python -m geco_guide.evaluate videos/ --vggt /data/VGGT-1B --ufm /data/UFM-Base --out scores
     python -m geco_guide.evaluate --preset tiny clip.mp4 frames/   # tiny random models, CPU, offline
+    python -m geco_guide.evaluate clip.mp4 --model cogvideox-5b    # timed at the model's native 16 fps
 
-The paper's protocol (:class:`~geco_guide.config.EvaluationConfig`): frames are subsampled with an
-integer stride to at most 8 fps, split into windows of about 3 s covering the clip, and GeCo
-runs on each window with centre pairs (or all pairs). A frame's map is the pixel-wise mean over
-its pairs, its score the mean over valid pixels; window and video scores are means over frames
-with valid pixels (frame-weighted). Total Motion / Mean Motion come from the flow between
-consecutive sampled frames of the whole clip.
+The GeCo-Eval protocol (:class:`~geco_guide.config.EvaluationConfig`, the paper and its published
+evaluation script): the clip, timed at the model's native frame rate (``--model``), ``--fps`` or
+the file's, is covered by ``ceil(T / 3 s)`` overlapping windows of 3 s (more than 4 -> exactly 4
+equal windows), each sampled on a time grid at ``min(8, fps)`` fps; GeCo runs on each window with
+every ordered frame pair. A frame's map is the pixel-wise mean over its pairs, its score the mean
+over valid pixels, a window's score the mean over its frames, and the clip's the windows'
+frame-weighted mean. Total Motion / Mean Motion come from the flow between consecutive frames of
+the whole clip's time grid.
 
 Per video: ``<out>/<stem>.geco.json`` and with ``--maps`` ``<out>/<stem>.maps.mp4`` (source |
 motion | structure | fused on the fixed colour scale of :data:`geco_guide.video.MAP_RANGE`, with
@@ -30,7 +33,7 @@ import re
 import sys
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
@@ -46,12 +49,14 @@ from .video import (
     IMAGE_SUFFIXES,
     VIDEO_SUFFIXES,
     VideoFrames,
+    Window,
     colorbar,
     colorize,
     evaluation_windows,
     frame_files,
+    motion_grid,
     read_frames,
-    resample_indices,
+    sampled_rate,
     side_by_side,
     text_strip,
     text_scale,
@@ -99,14 +104,17 @@ class EvaluationResult:
     Attributes:
         motion, structure, fused: M_motion, M_struct, M_geo: means of the frame scores over
             evaluated frames with valid pixels (frame-weighted over windows); NaN if none.
-        total_motion: Total Motion (%) over consecutive sampled frames.
-        mean_motion: Mean Motion (%/s).
-        frame_scores: per evaluated frame ``{index, time_s, window, motion, structure, fused}``
-            (source frame index; a score is ``None`` when the frame has no valid pixel).
-        windows: per window ``{start_s, end_s, frames, motion, structure, fused}`` (``frames``:
+        total_motion: Total Motion (%): the flow magnitude over the image diagonal, summed over
+            consecutive frames of the clip's time grid (:func:`geco_guide.video.motion_grid`).
+        mean_motion: Mean Motion (%/s): Total Motion over the clip's duration.
+        frame_scores: per evaluated frame and window ``{index, time_s, window, motion, structure,
+            fused}`` (source frame index; a score is ``None`` when the frame has no valid pixel;
+            overlapping windows score a frame once each).
+        windows: per window ``{start_s, length_s, frames, motion, structure, fused}`` (``frames``:
             source indices).
         num_frames: frames in the source video.
-        fps: the source frame rate; sampled_fps: the rate of the evaluated frames.
+        fps: the frame rate the protocol used; fps_source: where it came from (``--fps``,
+            ``model <name>``, ``file``, ``default``); sampled_fps: the windows' sampling rate.
         estimators: ``{geometry, flow}`` ids.
         config: the :class:`EvaluationConfig` used, as a dict.
         source: the input path, ``None`` for a tensor.
@@ -122,6 +130,7 @@ class EvaluationResult:
     windows: list[dict[str, Any]]
     num_frames: int
     fps: float
+    fps_source: str
     sampled_fps: float
     estimators: dict[str, str]
     config: dict[str, Any]
@@ -138,6 +147,8 @@ class EvaluationResult:
             "num_frames": self.num_frames,
             "num_evaluated_frames": len(self.frame_scores),
             "fps": self.fps,
+            "fps_source": self.fps_source,
+            "duration_s": self.num_frames / self.fps,
             "sampled_fps": self.sampled_fps,
             "windows": self.windows,
             "frame_scores": self.frame_scores,
@@ -189,19 +200,61 @@ def _split_config(config: EvaluationConfig | GeCoConfig | None) -> tuple[Evaluat
     raise ValueError(f"config must be an EvaluationConfig or a GeCoConfig, got {type(config).__name__}")
 
 
+def _protocol_frames(cfg: EvaluationConfig) -> Callable[[int, float], list[int]]:
+    """The frame selector of the protocol: every window's frames and the motion grid."""
+
+    def select(num_frames: int, fps: float) -> list[int]:
+        if num_frames < 2:
+            return list(range(num_frames))
+        windows = evaluation_windows(num_frames, fps, cfg.window_seconds, cfg.max_windows, cfg.max_fps)
+        return sorted({i for w in windows for i in w.indices} | set(motion_grid(num_frames, fps, cfg.max_fps)))
+
+    return select
+
+
+def protocol_fps(fps: float | None, model: str | None, cfg: EvaluationConfig) -> tuple[float | None, str]:
+    """The frame rate the protocol uses and why: ``fps`` (``--fps``) over the model's native rate
+    (``--model``, :attr:`EvaluationConfig.model_fps`) over the file's (``None`` here: read later)."""
+    if fps is not None:
+        if not (fps > 0 and math.isfinite(fps)):
+            raise ValueError(f"fps must be a finite number > 0, got {fps}")
+        return float(fps), "--fps"
+    if model is not None:
+        return cfg.fps_of_model(model), f"model {model}"
+    return None, "file"  # replaced by the reader's answer: file or default
+
+
 def _load_frames(video: str | os.PathLike | Tensor, fps: float | None, cfg: EvaluationConfig) -> tuple[VideoFrames, str | None]:
+    select = _protocol_frames(cfg)
     if isinstance(video, Tensor):
         if video.ndim != 4 or video.shape[1] != 3 or not video.is_floating_point():
             raise ValueError(f"video must be a float [S, 3, H, W] tensor in [0, 1], got {list(video.shape)} {video.dtype}")
-        if fps is None or not fps > 0:
-            raise ValueError(f"fps (> 0) is required when video is a tensor, got {fps}")
+        if fps is None:
+            raise ValueError("fps (> 0) is required when video is a tensor")
         if video.shape[0] < 2:
             raise ValueError(f"video must hold at least 2 frames, got {video.shape[0]}")
-        indices, sampled_fps = resample_indices(video.shape[0], fps, cfg.max_fps)
-        frames = video.detach()[indices].float().cpu()
-        return VideoFrames(frames, indices, float(fps), sampled_fps, video.shape[0]), None
-    clip = read_frames(video, fps=fps, default_fps=cfg.default_fps, max_fps=cfg.max_fps, min_frames=2)
+        indices = select(video.shape[0], fps)
+        return VideoFrames(video.detach()[indices].float().cpu(), indices, float(fps), video.shape[0]), None
+    clip = read_frames(video, fps=fps, default_fps=cfg.default_fps, select=select, min_frames=2)
     return clip, str(video)
+
+
+def _window_record(window: Window, rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """A window's scores: the mean over its frames with valid pixels, per cue."""
+    return {
+        "start_s": window.start_s,
+        "length_s": window.length_s,
+        "frames": list(window.indices),
+        **{name: _number(_mean([r[name] for r in rows if r[name] is not None])) for name in CUES},
+    }
+
+
+def _clip_score(windows: list[dict[str, Any]], name: str) -> float:
+    """Windows' scores of cue ``name`` averaged with their frame counts as weights (the script's
+    frame-weighted mean), over windows with a score."""
+    scored = [(w[name], len(w["frames"])) for w in windows if w[name] is not None]
+    total = sum(weight for _, weight in scored)
+    return sum(value * weight for value, weight in scored) / total if total else math.nan
 
 
 @torch.no_grad()
@@ -212,26 +265,39 @@ def evaluate_video(
     flow: Any = None,
     config: EvaluationConfig | GeCoConfig | None = None,
     fps: float | None = None,
+    model: str | None = None,
     maps: bool = False,
 ) -> EvaluationResult:
-    """GeCo scores of a video under the paper's protocol (windows of ~3 s at <= 8 fps).
+    """GeCo scores of a video under the GeCo-Eval protocol (:class:`EvaluationConfig`).
+
+    The clip is covered by overlapping windows of ~3 s (at most 4), each sampled at
+    ``min(8, fps)`` fps; GeCo runs on each window (all ordered pairs by default); a frame's score
+    is the mean of its map over valid pixels, a window's the mean over its frames, the clip's the
+    windows' frame-weighted mean. Total / Mean Motion come from consecutive frames of the clip's
+    time grid.
 
     Args:
         video: a path (mp4 or another ffmpeg format, gif, folder of png/jpg frames) or frames
-            ``[S, 3, H, W]`` in ``[0, 1]`` (then ``fps`` is required).
+            ``[S, 3, H, W]`` in ``[0, 1]`` (then ``fps`` or ``model`` is required).
         geometry, flow: a :class:`GeometryEstimator` / :class:`FlowEstimator`; built from the
             config's estimators when ``None`` (pass them to score many videos with one load).
         config: an :class:`EvaluationConfig`, or a whole :class:`GeCoConfig` (its ``evaluation``
             and ``estimators``); ``None``: defaults (VGGT-1B + UFM-Base).
-        fps: the source frame rate, overriding the file's (a folder's default: 8).
+        fps: the source frame rate, overriding everything else.
+        model: a model name of ``config.model_fps`` (e.g. ``cogvideox-5b``): its native frame
+            rate replaces the file's (the paper's protocol); ``fps`` still wins.
         maps: keep the per-frame maps (:class:`EvaluationMaps`) for :func:`write_maps_video`.
 
     Raises:
         VideoReadError: unreadable input or fewer than 2 frames (a ValueError).
-        ValueError: evaluated frames with NaN/inf values or outside ``[0, 1]``, naming them.
+        ValueError: evaluated frames with NaN/inf values or outside ``[0, 1]``, naming them; an
+            unknown ``model``.
     """
     cfg, estimators_cfg = _split_config(config)
-    clip, source = _load_frames(video, fps, cfg)
+    rate, fps_source = protocol_fps(fps, model, cfg)
+    clip, source = _load_frames(video, rate, cfg)
+    if rate is None:
+        fps_source = clip.fps_source  # the file's rate, or default_fps for inputs without one
     # NaN pixels would score NaN (or 0.0 once masked), 0-255 frames garbage: refuse them, by index.
     check_frame_values(clip.frames, "video" if source is None else source, indices=clip.indices)
     if geometry is None or flow is None:
@@ -240,54 +306,55 @@ def evaluate_video(
         flow = flow if flow is not None else loaded[1]
     device = _estimator_device(geometry, flow)
     metric = GeCoLoss(geometry, flow, cfg.loss)
-    frames, times = clip.frames, [i / clip.fps for i in clip.indices]
+    position = {index: k for k, index in enumerate(clip.indices)}
+
+    def frames_of(indices: list[int]) -> Tensor:
+        return clip.frames[[position[i] for i in indices]]
 
     frame_scores: list[dict[str, Any]] = []
     windows: list[dict[str, Any]] = []
     kept_maps: list[list[Tensor]] = []
-    for w, positions in enumerate(evaluation_windows(len(clip.indices), clip.sampled_fps, cfg.window_seconds)):
-        window_frames = frames[positions][None].to(device)
-        scene = geometry.estimate_geometry(window_frames)
-        pairs = frame_pairs(len(positions), cfg.loss.pairs)
-        correspondences = _pair_correspondences(metric, frames[positions], pairs, cfg.flow_batch_size, device)
+    kept_frames: list[Tensor] = []
+    for w, window in enumerate(evaluation_windows(clip.num_frames, clip.fps, cfg.window_seconds, cfg.max_windows, cfg.max_fps)):
+        window_frames = frames_of(window.indices)
+        scene = geometry.estimate_geometry(window_frames[None].to(device))
+        pairs = frame_pairs(len(window.indices), cfg.loss.pairs)
+        correspondences = _pair_correspondences(metric, window_frames, pairs, cfg.flow_batch_size, device)
         result = geco_from_geometry(scene, correspondences, pairs, cfg.loss)
-        for k, position in enumerate(positions):
+        rows = []
+        for k, index in enumerate(window.indices):
             scores = {
                 name: float(result.frame_scores[name][0, k]) if bool(result.frame_has_valid[name][0, k]) else None
-                for name in ("motion", "structure", "fused")
+                for name in CUES
             }
-            frame_scores.append({"index": clip.indices[position], "time_s": times[position], "window": w, **scores})
-        window_rows = frame_scores[-len(positions) :]
-        windows.append(
-            {
-                "start_s": times[positions[0]],
-                "end_s": times[positions[-1]],
-                "frames": [clip.indices[p] for p in positions],
-                **{name: _number(_mean([r[name] for r in window_rows if r[name] is not None])) for name in CUES},
-            }
-        )
+            rows.append({"index": index, "time_s": index / clip.fps, "window": w, **scores})
+        frame_scores.extend(rows)
+        windows.append(_window_record(window, rows))
         if maps:
             kept_maps.append([getattr(result.frame_maps, name)[0].cpu() for name in _MAP_FIELDS])
+            kept_frames.append(window_frames)
 
-    steps = [(k, k + 1) for k in range(len(clip.indices) - 1)]
-    consecutive = _pair_correspondences(metric, frames, steps, cfg.flow_batch_size, device)
+    grid = motion_grid(clip.num_frames, clip.fps, cfg.max_fps)
+    steps = [(k, k + 1) for k in range(len(grid) - 1)]
+    consecutive = _pair_correspondences(metric, frames_of(grid), steps, cfg.flow_batch_size, device)
     stats = motion_statistics(
-        consecutive.flow.float(), consecutive.covisibility > cfg.loss.covisibility_threshold, clip.sampled_fps
+        consecutive.flow.float(), consecutive.covisibility > cfg.loss.covisibility_threshold,
+        duration_s=clip.num_frames / clip.fps,
     )
-    video_scores = {name: _mean([r[name] for r in frame_scores if r[name] is not None]) for name in CUES}
     evaluation_maps = None
     if maps:
         stacked = [torch.cat(parts) if parts[0].dtype == torch.bool else torch.cat(parts).float() for parts in zip(*kept_maps)]
-        evaluation_maps = EvaluationMaps(*stacked, frames=frames.clone())
+        evaluation_maps = EvaluationMaps(*stacked, frames=torch.cat(kept_frames))
     return EvaluationResult(
-        **video_scores,
+        **{name: _clip_score(windows, name) for name in CUES},
         total_motion=stats.total_motion,
         mean_motion=stats.mean_motion,
         frame_scores=frame_scores,
         windows=windows,
         num_frames=clip.num_frames,
         fps=clip.fps,
-        sampled_fps=clip.sampled_fps,
+        fps_source=fps_source,
+        sampled_fps=sampled_rate(clip.fps, cfg.max_fps),
         estimators={"geometry": estimator_id(geometry), "flow": estimator_id(flow)},
         config=asdict(cfg),
         source=source,
@@ -383,7 +450,7 @@ def _one_line(err: BaseException) -> str:
 
 CSV_COLUMNS = (
     "name", "path", "fused", "motion", "structure", "total_motion", "mean_motion",
-    "num_frames", "fps", "sampled_fps", "num_windows", "json", "error",
+    "num_frames", "fps", "fps_source", "sampled_fps", "num_windows", "json", "error",
 )
 SUMMARY_KEYS = ("fused", "motion", "structure", "total_motion", "mean_motion")
 
@@ -420,10 +487,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
     p.add_argument("--vggt", default=None, metavar="ID_OR_DIR", help="geometry estimator: hub id or local folder")
     p.add_argument("--ufm", default=None, metavar="ID_OR_DIR", help="flow estimator: hub id or local folder")
-    p.add_argument("--fps", type=float, default=None, help="source frame rate, overriding the file's")
+    p.add_argument("--model", default=None, metavar="NAME",
+                   help="the video model that made the inputs (e.g. cogvideox-5b): its native frame rate "
+                        "(evaluation.model_fps, the paper's table) replaces the file's")
+    p.add_argument("--fps", type=float, default=None, help="source frame rate, overriding --model and the file's")
     p.add_argument("--out", default=None, help="output folder (default: the config's output.dir)")
     p.add_argument("--maps", action="store_true", help="also write <stem>.maps.mp4 with the heat maps")
-    p.add_argument("--pairs", choices=PAIR_MODES, default=None, help="frame pairs per window (default: center)")
+    p.add_argument("--pairs", choices=PAIR_MODES, default=None,
+                   help="frame pairs per window: all (default, the paper's script: n(n-1) flow pairs for n frames), "
+                        "center (2(n-1)) or adjacent (n-1)")
     return p
 
 
@@ -441,9 +513,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if not videos:
             raise ValueError("no input video given")
-        if args.fps is not None and not args.fps > 0:
-            raise ValueError(f"--fps must be > 0, got {args.fps}")
+        if args.fps is not None and not (args.fps > 0 and math.isfinite(args.fps)):
+            raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
         cfg = load_config(args.config, args.preset, overrides)
+        if args.model is not None:
+            cfg.evaluation.fps_of_model(args.model)  # an unknown name fails before the estimators load
         geometry, flow = load_estimators(cfg.estimators, cfg.evaluation.device)
     except (ValueError, FileNotFoundError) as err:  # WeightsNotFoundError is a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)
@@ -456,7 +530,8 @@ def main(argv: list[str] | None = None) -> int:
         row: dict[str, Any] = {"name": item.name, "path": str(item.path), "error": item.error}
         if item.error is None:
             try:
-                result = evaluate_video(item.path, geometry=geometry, flow=flow, config=cfg, fps=args.fps, maps=args.maps)
+                result = evaluate_video(item.path, geometry=geometry, flow=flow, config=cfg, fps=args.fps,
+                                        model=args.model, maps=args.maps)
                 json_path = write_json_atomic(out / f"{item.name}.geco.json", result.to_dict())
                 maps_note = ""
                 if args.maps:
@@ -465,12 +540,14 @@ def main(argv: list[str] | None = None) -> int:
                 row["error"] = _one_line(err)
             else:
                 row.update({key: _number(getattr(result, key)) for key in SUMMARY_KEYS})
-                row.update(num_frames=result.num_frames, fps=result.fps, sampled_fps=result.sampled_fps,
+                row.update(num_frames=result.num_frames, fps=result.fps, fps_source=result.fps_source,
+                           sampled_fps=result.sampled_fps,
                            num_windows=len(result.windows), json=str(json_path))
                 print(
                     f"{item.name}: M_geo={result.fused:.4f} M_motion={result.motion:.4f} M_struct={result.structure:.4f} "
                     f"TM={result.total_motion:.2f}% MM={result.mean_motion:.2f}%/s "
-                    f"({len(result.frame_scores)} frames at {result.sampled_fps:g} fps, {len(result.windows)} windows) "
+                    f"({len(result.windows)} windows at {result.sampled_fps:g} fps, source {result.fps:g} fps "
+                    f"from {result.fps_source}) "
                     f"-> {json_path}{maps_note}"
                 )
         if row["error"] is not None:

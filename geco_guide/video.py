@@ -3,8 +3,10 @@
 * Files: :func:`write_video` / :func:`read_video` (mp4 through imageio-ffmpeg) and
   :func:`read_frames` (mp4 and other ffmpeg formats, gif, folders of png/jpg frames, subsampled
   while decoding). Unreadable inputs raise a one-line :class:`VideoReadError`.
-* Sampling (pure functions): :func:`resample_indices` (integer stride to at most ``max_fps``) and
-  :func:`evaluation_windows` (near-equal windows of about ``window_seconds``).
+* Sampling (pure functions, the GeCo-Eval protocol): :func:`evaluation_windows` (overlapping
+  windows of ``window_seconds`` covering the clip, at most ``max_windows``), each sampled on a
+  time grid at ``min(max_fps, fps)`` by :func:`time_grid_indices`; :func:`motion_grid` (the
+  frames of Total / Mean Motion).
 * Rendering: :func:`colorize` (viridis lookup table over the FIXED range :data:`MAP_RANGE`, so maps
   of different videos are comparable), :func:`colorbar` (its legend with tick labels),
   :func:`draw_text` (a built-in 3x5 bitmap font) and :func:`side_by_side` (labelled panels).
@@ -21,6 +23,7 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -124,52 +127,80 @@ def read_video(path: str | os.PathLike) -> tuple[torch.Tensor, float]:
 # the metric's frame sampling (pure functions)
 
 
-def resample_indices(num_frames: int, fps: float, max_fps: float | None = None) -> tuple[list[int], float]:
-    """Source frames to evaluate: every ``stride``-th frame, ``stride = ceil(fps / max_fps)``.
-
-    An integer stride keeps the sampled frames evenly spaced in time (nearest-frame resampling to
-    exactly ``max_fps`` would jitter). The stride never exceeds ``num_frames - 1``, so a clip of
-    at least 2 frames always yields at least 2 (its first and last, at worst).
-
-    Args:
-        num_frames: frames in the source clip (>= 1).
-        fps: the source frame rate (> 0).
-        max_fps: upper bound of the sampled rate; ``None`` keeps every frame.
-
-    Returns:
-        ``(indices, sampled_fps)``: increasing 0-based source indices and their frame rate.
-    """
-    if num_frames < 1:
-        raise ValueError(f"num_frames must be >= 1, got {num_frames}")
-    if not fps > 0:
-        raise ValueError(f"fps must be > 0, got {fps}")
-    if max_fps is not None and not max_fps > 0:
-        raise ValueError(f"max_fps must be > 0, got {max_fps}")
-    stride = 1 if max_fps is None else max(1, math.ceil(fps / max_fps - 1e-6))  # 24/8 is exactly 3
-    stride = max(1, min(stride, num_frames - 1))
-    return list(range(0, num_frames, stride)), fps / stride
+def sampled_rate(fps: float, max_fps: float) -> float:
+    """The evaluation rate of a clip of ``fps``: ``min(max_fps, fps)`` (never upsampled)."""
+    if not fps > 0 or not max_fps > 0:
+        raise ValueError(f"fps and max_fps must be > 0, got {fps}, {max_fps}")
+    return min(float(max_fps), float(fps))
 
 
-def evaluation_windows(num_samples: int, sampled_fps: float, window_seconds: float) -> list[list[int]]:
-    """Split ``num_samples`` evenly spaced frames into windows of about ``window_seconds``.
+def time_grid_indices(num_frames: int, fps: float, start_s: float, length_s: float, rate: float) -> list[int]:
+    """Source frames nearest to the times ``start_s + k / rate``, ``k < max(2, floor(length_s * rate))``.
 
-    A window of ``window_seconds`` spans ``window_seconds * sampled_fps + 1`` frames; the clip
-    gets the nearest whole number of such windows (at least 1, at most ``num_samples // 2`` so
-    that every window has >= 2 frames), of near-equal length, covering every frame once. Equal
-    lengths keep a short leftover window (few frames, noisy scores) from weighing in on its own.
+    The GeCo-Eval script's sampling: times are clamped to the clip (the last frame starts at
+    ``num_frames / fps - 1 / fps``), rounded to the nearest frame (half to even) and de-duplicated;
+    fewer than 2 distinct frames fall back to the frames nearest the interval's two ends.
 
     Returns:
-        Per window, its consecutive positions in the sampled sequence (e.g. 80 frames at 8 fps,
-        3 s -> 3 windows of 27, 26, 27 frames).
+        Increasing 0-based source indices (at least 2 when ``num_frames >= 2``).
     """
-    if num_samples < 2:
-        raise ValueError(f"a clip needs at least 2 frames, got {num_samples}")
-    if not sampled_fps > 0 or not window_seconds > 0:
-        raise ValueError(f"sampled_fps and window_seconds must be > 0, got {sampled_fps}, {window_seconds}")
-    per_window = window_seconds * sampled_fps + 1
-    count = max(1, min(round(num_samples / per_window), num_samples // 2))
-    bounds = [round(k * num_samples / count) for k in range(count + 1)]
-    return [list(range(bounds[k], bounds[k + 1])) for k in range(count)]
+    if num_frames < 2:
+        raise ValueError(f"a clip needs at least 2 frames, got {num_frames}")
+    if not fps > 0 or not rate > 0 or not length_s > 0:
+        raise ValueError(f"fps, rate and length_s must be > 0, got {fps}, {rate}, {length_s}")
+    count = max(2, math.floor(length_s * rate + 1e-9))  # 3 s x 8 fps is 24 samples, not 23.999...
+    last_time = num_frames / fps - 1.0 / fps
+    indices = sorted({
+        min(num_frames - 1, max(0, round(min(max(start_s + k / rate, 0.0), last_time) * fps))) for k in range(count)
+    })
+    if len(indices) < 2:
+        ends = (round(start_s * fps), round((start_s + length_s) * fps))
+        indices = sorted({min(num_frames - 1, max(0, i)) for i in ends})
+    return indices
+
+
+@dataclass(frozen=True)
+class Window:
+    """One evaluation window: its start and length in seconds and its sampled source frames."""
+
+    start_s: float
+    length_s: float
+    indices: list[int]
+
+
+def evaluation_windows(num_frames: int, fps: float, window_seconds: float, max_windows: int,
+                       max_fps: float) -> list[Window]:
+    """The GeCo-Eval windows of a clip of ``num_frames`` frames at ``fps``.
+
+    The clip (duration ``T = num_frames / fps``) is covered by ``n = ceil(T / window_seconds)``
+    windows of ``window_seconds``, their starts evenly spaced from 0 to ``T - window_seconds``
+    (so they overlap unless ``T`` is a multiple of the length); a clip shorter than one window is
+    one window of ``T``; when ``n > max_windows``, exactly ``max_windows`` windows of
+    ``T / max_windows`` tile the clip. Each window samples its frames with
+    :func:`time_grid_indices` at ``min(max_fps, fps)``.
+
+    Examples: 49 frames at 16 fps (3.06 s) -> 2 windows starting at 0 and 0.0625 s, 24 frames
+    each; 10 s at 30 fps -> 4 windows of 3 s; 20 s -> 4 windows of 5 s.
+    """
+    if max_windows < 1:
+        raise ValueError(f"max_windows must be >= 1, got {max_windows}")
+    if not window_seconds > 0:
+        raise ValueError(f"window_seconds must be > 0, got {window_seconds}")
+    rate = sampled_rate(fps, max_fps)
+    duration = num_frames / fps
+    needed = math.ceil(duration / window_seconds - 1e-9)
+    if needed <= 1:
+        starts, length = [0.0], min(window_seconds, duration)
+    else:
+        count, length = (needed, window_seconds) if needed <= max_windows else (max_windows, duration / max_windows)
+        starts = [(duration - length) * k / (count - 1) for k in range(count)] if count > 1 else [0.0]
+    return [Window(start, length, time_grid_indices(num_frames, fps, start, length, rate)) for start in starts]
+
+
+def motion_grid(num_frames: int, fps: float, max_fps: float) -> list[int]:
+    """The frames Total / Mean Motion are measured on: the whole clip on the windows' time grid
+    (:func:`time_grid_indices` from 0 over the clip's duration at ``min(max_fps, fps)``)."""
+    return time_grid_indices(num_frames, fps, 0.0, num_frames / fps, sampled_rate(fps, max_fps))
 
 
 # --------------------------------------------------------------------------------------------
@@ -178,21 +209,25 @@ def evaluation_windows(num_samples: int, sampled_fps: float, window_seconds: flo
 
 @dataclass
 class VideoFrames:
-    """Frames read from a video, subsampled.
+    """Frames read from a video: the selected ones.
 
     Attributes:
-        frames: ``[N, 3, H, W]`` float in ``[0, 1]``, the sampled frames.
-        indices: the 0-based source index of each sampled frame.
-        fps: the source frame rate (from the file, the caller, or the default).
-        sampled_fps: the rate of the sampled frames.
+        frames: ``[N, 3, H, W]`` float in ``[0, 1]``, the selected frames in source order.
+        indices: the 0-based source index of each selected frame.
+        fps: the source frame rate; fps_source: where it came from (``caller``, ``file`` or
+            ``default``).
         num_frames: frames in the source.
     """
 
     frames: Tensor
     indices: list[int]
     fps: float
-    sampled_fps: float
     num_frames: int
+    fps_source: str = "caller"
+
+
+#: ``select(num_frames, fps) -> increasing source indices``: which frames :func:`read_frames` keeps.
+FrameSelector = Callable[[int, float], Sequence[int]]
 
 
 def _natural_key(path: Path) -> list:
@@ -233,13 +268,20 @@ def _stack(path: Path, images: list[Tensor]) -> Tensor:
     return torch.stack(images)
 
 
-def _read_folder(path: Path, fps: float, max_fps: float | None) -> tuple[list[Tensor], list[int], int]:
+def _selection(select: FrameSelector | None, count: int, fps: float, where: Path) -> list[int]:
+    indices = list(range(count)) if select is None else sorted(set(select(count, fps)))
+    if indices and not (0 <= indices[0] and indices[-1] < count):
+        raise ValueError(f"frame selection of {str(where)!r} is out of range [0, {count}): {indices[:3]}...")
+    return indices
+
+
+def _read_folder(path: Path, fps: float, select: FrameSelector | None) -> tuple[list[Tensor], list[int], int]:
     import imageio.v3 as iio
 
     files = frame_files(path)
     if not files:
         raise VideoReadError(f"cannot read video {str(path)!r}: the folder holds no {'/'.join(IMAGE_SUFFIXES)} frames")
-    indices, _ = resample_indices(len(files), fps, max_fps)
+    indices = _selection(select, len(files), fps, path) if len(files) >= 2 else [0]
     images = []
     for i in indices:
         try:
@@ -260,35 +302,55 @@ def _file_fps(meta: dict) -> float | None:
     return None
 
 
-def _read_file(path: Path, fps: float | None, default_fps: float, max_fps: float | None) -> tuple[list[Tensor], list[int], int, float]:
-    """Decode a file, keeping only what :func:`resample_indices` can select (frames on the stride
-    and the latest one, since the frame count is only known at the end): long videos never sit
-    in memory whole."""
+def _open_reader(path: Path):
     import imageio.v2 as imageio
 
-    kept: dict[int, np.ndarray] = {}
-    count = 0
+    return imageio.get_reader(path) if path.suffix.lower() == ".gif" else imageio.get_reader(path, format="FFMPEG")
+
+
+def _frame_count(reader) -> int | None:
+    """The container's frame count without decoding (ffmpeg counts packets), or None."""
     try:
-        if path.suffix.lower() == ".gif":
-            reader = imageio.get_reader(path)
-        else:
-            reader = imageio.get_reader(path, format="FFMPEG")
+        count = reader.count_frames() if hasattr(reader, "count_frames") else reader.get_length()
+    except Exception:  # no count in the container: decode to find out
+        return None
+    return int(count) if isinstance(count, (int, float)) and math.isfinite(count) and count > 0 else None
+
+
+def _read_file(path: Path, fps: float | None, default_fps: float, select: FrameSelector | None,
+               count: int | None = None) -> tuple[list[Tensor], list[int], int, float, str]:
+    """Decode a file, keeping only the selected frames: long videos never sit in memory whole.
+
+    The selection needs the frame count, taken from the container; if decoding finds another
+    count (a damaged index), the file is read a second time with the true count.
+    """
+    kept: dict[int, np.ndarray] = {}
+    decoded = 0
+    try:
+        reader = _open_reader(path)
         try:
-            source_fps = float(fps or _file_fps(reader.get_meta_data()) or default_fps)
-            stride = 1 if max_fps is None else max(1, math.ceil(source_fps / max_fps - 1e-6))
+            file_fps = _file_fps(reader.get_meta_data())
+            source_fps = float(fps or file_fps or default_fps)
+            fps_source = "caller" if fps else "file" if file_fps else "default"
+            count = count or _frame_count(reader)
+            wanted = None if count is None else set(_selection(select, count, source_fps, path))
             for index, frame in enumerate(reader):
-                if index and (index - 1) % stride:  # off the stride and no longer the latest
-                    del kept[index - 1]
-                kept[index] = np.asarray(frame)
-                count = index + 1
+                if wanted is None or index in wanted:
+                    kept[index] = np.asarray(frame)
+                decoded = index + 1
         finally:
             reader.close()
     except Exception as err:  # imageio/ffmpeg/pillow raise OSError, RuntimeError, IndexError, ...
         raise VideoReadError(f"cannot read video {str(path)!r}: {_error_reason(err)}") from err
-    if count == 0:
+    if decoded == 0:
         raise VideoReadError(f"cannot read video {str(path)!r}: it holds no frames")
-    indices, _ = resample_indices(count, source_fps, max_fps)
-    return [_to_float_chw(kept[i]) for i in indices], indices, count, source_fps
+    if decoded == count and wanted is not None:
+        indices = sorted(wanted)
+    else:
+        indices = _selection(select, decoded, source_fps, path) if decoded >= 2 else [0]
+    if any(i not in kept for i in indices):  # the container's count was wrong
+        return _read_file(path, fps, default_fps, select, count=decoded)
+    return [_to_float_chw(kept[i]) for i in indices], indices, decoded, source_fps, fps_source
 
 
 def read_frames(
@@ -296,18 +358,19 @@ def read_frames(
     *,
     fps: float | None = None,
     default_fps: float = DEFAULT_FPS,
-    max_fps: float | None = None,
+    select: FrameSelector | None = None,
     min_frames: int = 1,
 ) -> VideoFrames:
-    """Read a video file (mp4, mov, webm, gif, ...) or a folder of png/jpg frames, subsampled.
+    """Read the selected frames of a video file (mp4, mov, webm, gif, ...) or a folder of png/jpg
+    frames.
 
     Args:
         path: a video file, or a folder whose images (natural order: ``2.png`` < ``10.png``) are
             the frames.
         fps: the source frame rate, overriding the file's.
         default_fps: the rate of inputs that carry none (folders, gifs without timing).
-        max_fps: keep every ``stride``-th frame so the rate is at most this
-            (:func:`resample_indices`); ``None`` keeps every frame.
+        select: ``select(num_frames, fps)`` -> the source indices to keep (e.g. the evaluation
+            windows' frames); ``None`` keeps every frame.
         min_frames: fewer source frames than this is an error.
 
     Raises:
@@ -315,19 +378,18 @@ def read_frames(
             of different sizes, fewer than ``min_frames`` frames.
     """
     path = Path(path)
-    if fps is not None and not fps > 0:
-        raise ValueError(f"fps must be > 0, got {fps}")
+    if fps is not None and not (fps > 0 and math.isfinite(fps)):
+        raise ValueError(f"fps must be a finite number > 0, got {fps}")
     if path.is_dir():
-        source_fps = float(fps or default_fps)
-        images, indices, count = _read_folder(path, source_fps, max_fps)
+        source_fps, fps_source = (float(fps), "caller") if fps else (float(default_fps), "default")
+        images, indices, count = _read_folder(path, source_fps, select)
     elif path.is_file():
-        images, indices, count, source_fps = _read_file(path, fps, default_fps, max_fps)
+        images, indices, count, source_fps, fps_source = _read_file(path, fps, default_fps, select)
     else:
         raise VideoReadError(f"cannot read video {str(path)!r}: no such file or folder")
     if count < min_frames:
         raise VideoReadError(f"cannot use video {str(path)!r}: it has {count} frame(s), at least {min_frames} needed")
-    _, sampled_fps = resample_indices(count, source_fps, max_fps)
-    return VideoFrames(_stack(path, images), indices, source_fps, sampled_fps, count)
+    return VideoFrames(_stack(path, images), indices, source_fps, count, fps_source)
 
 
 # --------------------------------------------------------------------------------------------

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import hashlib
 import io
 import json
 import os
@@ -38,19 +37,20 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from datetime import datetime, timedelta, timezone
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from geco_guide.config import GeCoConfig, config_to_dict, config_to_yaml, load_config
 from geco_guide.evaluate import PAPER_NAMES, evaluate_video, write_maps_video
-from geco_guide.estimators import resolve_device
 from geco_guide.files import write_bytes_atomic, write_json_atomic
+from geco_guide.geco_eval import SUITE, select_prompts
 from geco_guide.generate import build_pipeline, generate, slugify, versions
 from geco_guide.loss.geco import CUES
+from geco_guide.plots import Panel, legend, limits
+from geco_guide.runs import PeakMemory, config_fingerprint, process_config, process_state, remove_temp_files, shard
 from geco_guide.video import read_video, side_by_side, write_video
 
 ARMS = ("unguided", "guided")
@@ -62,7 +62,6 @@ BOOTSTRAP_SEED = 0
 CI_LEVEL = 0.95
 MAX_SEED = 2**63 - 1
 SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
-MIB = 2**20
 
 
 class InputError(ValueError):
@@ -114,7 +113,13 @@ def _parse_prompt_line(line: str, where: str) -> Prompt:
 
 
 def read_prompts(path: str | os.PathLike) -> list[Prompt]:
-    """The prompts of a file; InputError naming the file and line for anything wrong."""
+    """The prompts of a file, or of the GeCo-Eval suite (``geco-eval[:SCENARIO][:CAMERA]``, ids
+    a1..d20); InputError naming the file and line for anything wrong."""
+    if str(path).startswith(SUITE) and not Path(path).exists():
+        try:
+            return [Prompt(p["id"], p["prompt"]) for p in select_prompts(str(path))]
+        except ValueError as err:
+            raise InputError(str(err)) from None
     path = Path(path)
     if not path.is_file():
         raise InputError(f"prompts file {str(path)!r} does not exist")
@@ -158,10 +163,6 @@ def plan_pairs(prompts: Sequence[Prompt], seeds: Sequence[int]) -> list[Pair]:
     return [Pair(prompt, seed) for prompt in prompts for seed in seeds]
 
 
-def config_fingerprint(cfg: GeCoConfig) -> str:
-    return hashlib.sha256(config_to_yaml(cfg).encode()).hexdigest()[:16]
-
-
 def check_output_folder(out: Path, cfg: GeCoConfig, pairs: Sequence[Pair]) -> None:
     """Refuse an output folder that holds results of another config or other prompt texts."""
     if out.exists() and not out.is_dir():
@@ -187,15 +188,6 @@ def check_output_folder(out: Path, cfg: GeCoConfig, pairs: Sequence[Pair]) -> No
 # files: atomic writes, pair folders
 
 
-def remove_temp_files(folder: Path, stems: Sequence[str]) -> None:
-    """Delete temporary files (``.<stem>.*``) that a killed run left behind in ``folder``."""
-    if not folder.is_dir():
-        return
-    for path in folder.iterdir():
-        if path.is_file() and any(path.name.startswith(f".{stem}.") for stem in stems):
-            path.unlink(missing_ok=True)
-
-
 def pair_dir(out: Path, pair: Pair) -> Path:
     return out / "pairs" / pair.name
 
@@ -208,50 +200,6 @@ def read_result(out: Path, pair: Pair) -> dict[str, Any] | None:
 
 # ----------------------------------------------------------------------------------------------
 # one pair
-
-
-class PeakMemory:
-    """Peak memory of a block, in MiB: CUDA ``max_memory_allocated`` on a GPU; on CPU the peak
-    resident set size, its high-water mark reset at entry on Linux (``/proc/self/clear_refs``),
-    else the process's lifetime peak (``kind`` says which)."""
-
-    def __init__(self, device: torch.device):
-        self.device = device
-        self.kind = "cuda_max_allocated"
-        self.peak_mib = 0.0
-
-    def __enter__(self) -> PeakMemory:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-            torch.cuda.reset_peak_memory_stats(self.device)
-        else:
-            try:
-                Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM (Linux >= 4.0)
-                self.kind = "cpu_peak_rss"
-            except OSError:
-                self.kind = "cpu_peak_rss_since_start"
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-            self.peak_mib = torch.cuda.max_memory_allocated(self.device) / MIB
-        else:
-            self.peak_mib = _peak_rss_bytes() / MIB
-
-
-def _peak_rss_bytes() -> int:
-    """``VmHWM`` of ``/proc/self/status`` (Linux), else ``ru_maxrss``."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    import resource
-
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak if sys.platform == "darwin" else peak * 1024  # bytes on macOS, KiB elsewhere
 
 
 def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps: bool) -> dict[str, Any]:
@@ -514,59 +462,6 @@ UNGUIDED_COLOR, GUIDED_COLOR = (60, 110, 200), (235, 125, 30)
 BETTER_COLOR, WORSE_COLOR, GREY = (40, 160, 70), (210, 50, 50), (170, 170, 170)
 
 
-def _limits(values: Sequence[float]) -> tuple[float, float]:
-    """Axis limits around ``values`` with a 6 % margin (a unit-width range around a constant)."""
-    low, high = min(values), max(values)
-    pad = 0.06 * (high - low) if high > low else max(abs(low) * 0.1, 1e-3)
-    return low - pad, high + pad
-
-
-def _text(draw: Any, xy: tuple[float, float], text: str, align: str) -> float:
-    """Draw black ``text`` with its box aligned at ``xy``: ``align`` is horizontal (``l``, ``m``,
-    ``r``) + vertical (``t``, ``m``, ``b``); works with bitmap fonts too. Returns the text width."""
-    left, top, right, bottom = draw.textbbox((0, 0), text)
-    width, height = right - left, bottom - top
-    x = xy[0] - {"l": 0, "m": width / 2, "r": width}[align[0]] - left
-    y = xy[1] - {"t": 0, "m": height / 2, "b": height}[align[1]] - top
-    draw.text((x, y), text, fill=(0, 0, 0))
-    return width
-
-
-@dataclass
-class Panel:
-    """One scatter panel: a pixel box on the canvas and data limits."""
-
-    box: tuple[int, int, int, int]  # left, top, right, bottom (the plot area)
-    xlim: tuple[float, float]
-    ylim: tuple[float, float]
-
-    def to_pixel(self, x: float, y: float) -> tuple[float, float]:
-        left, top, right, bottom = self.box
-        u = left + (x - self.xlim[0]) / (self.xlim[1] - self.xlim[0]) * (right - left)
-        v = bottom - (y - self.ylim[0]) / (self.ylim[1] - self.ylim[0]) * (bottom - top)
-        return u, v
-
-    def draw_axes(self, draw: Any, title: str, xlabel: str, ylabel: str) -> None:
-        left, top, right, bottom = self.box
-        draw.rectangle(self.box, outline=(0, 0, 0))
-        _text(draw, (left - 50, top - 44), title, "lt")
-        _text(draw, ((left + right) / 2, bottom + 24), xlabel, "mt")
-        _text(draw, (left - 50, top - 8), ylabel, "lb")
-        for t in (0.0, 0.5, 1.0):
-            x = self.xlim[0] + t * (self.xlim[1] - self.xlim[0])
-            y = self.ylim[0] + t * (self.ylim[1] - self.ylim[0])
-            u, _ = self.to_pixel(x, self.ylim[0])
-            _, v = self.to_pixel(self.xlim[0], y)
-            draw.line([(u, bottom), (u, bottom + 4)], fill=(0, 0, 0))
-            _text(draw, (u, bottom + 6), f"{x:.3g}", "mt")
-            draw.line([(left - 4, v), (left, v)], fill=(0, 0, 0))
-            _text(draw, (left - 6, v), f"{y:.3g}", "rm")
-
-    def dot(self, draw: Any, x: float, y: float, color: tuple[int, int, int], radius: int = 4) -> None:
-        u, v = self.to_pixel(x, y)
-        draw.ellipse([u - radius, v - radius, u + radius, v + radius], fill=color, outline=(0, 0, 0))
-
-
 def plot_png(results: Sequence[dict[str, Any]]) -> bytes:
     """``pareto.png``: left, guided vs unguided fused score per pair (below the diagonal: guidance
     helped); right, fused score vs Total Motion of both arms, each pair joined by a line."""
@@ -579,14 +474,14 @@ def plot_png(results: Sequence[dict[str, Any]]) -> bytes:
     fused = [rec["fused"] for pair in pairs for rec in pair] or [0.0]
     motion = [rec["total_motion"] for pair in pairs for rec in pair] or [0.0]
 
-    left = Panel((70, 80, 400, 360), _limits(fused), _limits(fused))
+    left = Panel((70, 80, 400, 360), limits(fused), limits(fused))
     left.draw_axes(draw, "fused score per pair (below the line: guidance helped)", "unguided fused", "guided fused")
     draw.line([left.to_pixel(left.xlim[0], left.ylim[0]), left.to_pixel(left.xlim[1], left.ylim[1])], fill=GREY)
     for unguided, guided in pairs:
         color = BETTER_COLOR if guided["fused"] < unguided["fused"] else WORSE_COLOR
         left.dot(draw, unguided["fused"], guided["fused"], color)
 
-    right = Panel((510, 80, 840, 360), _limits(motion), _limits(fused))
+    right = Panel((510, 80, 840, 360), limits(motion), limits(fused))
     right.draw_axes(draw, "fused score vs Total Motion (lower-right is better)", "Total Motion (%)", "fused")
     for unguided, guided in pairs:
         draw.line([right.to_pixel(unguided["total_motion"], unguided["fused"]),
@@ -594,19 +489,11 @@ def plot_png(results: Sequence[dict[str, Any]]) -> bytes:
     for unguided, guided in pairs:
         right.dot(draw, unguided["total_motion"], unguided["fused"], UNGUIDED_COLOR)
         right.dot(draw, guided["total_motion"], guided["fused"], GUIDED_COLOR)
-    _legend(draw, left, (("guidance lowered fused", BETTER_COLOR), ("guidance raised fused", WORSE_COLOR)))
-    _legend(draw, right, (("unguided", UNGUIDED_COLOR), ("guided", GUIDED_COLOR)))
+    legend(draw, left, (("guidance lowered fused", BETTER_COLOR), ("guidance raised fused", WORSE_COLOR)))
+    legend(draw, right, (("unguided", UNGUIDED_COLOR), ("guided", GUIDED_COLOR)))
     buffer = io.BytesIO()
     image.save(buffer, format="PNG")
     return buffer.getvalue()
-
-
-def _legend(draw: Any, panel: Panel, entries: Sequence[tuple[str, tuple[int, int, int]]]) -> None:
-    """Coloured dots with labels in a row below the panel's x label."""
-    u, v = panel.box[0], panel.box[3] + 48
-    for label, color in entries:
-        draw.ellipse([u - 4, v - 4, u + 4, v + 4], fill=color, outline=(0, 0, 0))
-        u += 9 + _text(draw, (u + 9, v), label, "lm") + 24
 
 
 def write_report(out: Path, pairs: Sequence[Pair], cfg: GeCoConfig, command: str) -> dict[str, Any]:
@@ -625,30 +512,6 @@ def write_report(out: Path, pairs: Sequence[Pair], cfg: GeCoConfig, command: str
 # processes: one, or many under `accelerate launch`
 
 
-def process_state(cfg: GeCoConfig) -> Any:
-    """accelerate's PartialState: rank and world size under ``accelerate launch`` (or torchrun),
-    else one process. ``cpu=True`` for a CPU run, without which accelerate ignores CPU launches.
-
-    The barrier at the end waits for the slowest shard, which may take hours: hence the long timeout.
-    """
-    from accelerate import PartialState
-
-    cpu = resolve_device(cfg.model.device).type == "cpu"
-    return PartialState(cpu=cpu, timeout=timedelta(days=7))
-
-
-def process_config(cfg: GeCoConfig, state: Any) -> GeCoConfig:
-    """The config of this process: with one GPU per process, its own GPU instead of ``cuda``."""
-    if state.num_processes > 1 and state.device.type == "cuda" and cfg.model.device in ("auto", "cuda"):
-        return replace(cfg, model=replace(cfg.model, device=str(state.device)))
-    return cfg
-
-
-def shard(pairs: Sequence[Pair], index: int, count: int) -> list[Pair]:
-    """Pairs of process ``index`` of ``count``, dealt round-robin."""
-    return list(pairs[index::count])
-
-
 # ----------------------------------------------------------------------------------------------
 # CLI
 
@@ -665,7 +528,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="scripts/ab_compare.py",
         description="A/B test of GeCo guidance: unguided vs guided video per prompt x seed, from the same noise.",
     )
-    p.add_argument("--prompts", required=True, help="text file: one prompt per line, or JSON lines {id, prompt}")
+    p.add_argument("--prompts", required=True,
+                   help="text file: one prompt per line, or JSON lines {id, prompt}; or the paper's suite: "
+                        "geco-eval, geco-eval:indoor, geco-eval:fast, geco-eval:outdoor:slow, ...")
     p.add_argument("--seeds", required=True, nargs="+", metavar="SEED", help="sampling seeds (integers)")
     p.add_argument("--out", required=True, help="output folder (reuse it to resume)")
     p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")

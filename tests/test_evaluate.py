@@ -55,26 +55,51 @@ def test_rigid_scene_scores_zero_and_deformation_scores_higher(evaluated):
         assert [row["index"] for row in result.frame_scores] == list(range(5))
         assert [row["time_s"] for row in result.frame_scores] == [k / 8 for k in range(5)]
         assert len(result.windows) == 1 and result.windows[0]["frames"] == list(range(5))
-        assert result.total_motion > 0 and result.mean_motion == pytest.approx(result.total_motion / (4 / 8))
+        assert result.total_motion > 0 and result.mean_motion == pytest.approx(result.total_motion / (5 / 8))
         assert result.estimators == {"geometry": "OracleGeometry", "flow": "OracleFlow"}
-        assert result.config["loss"]["pairs"] == "center" and result.config["loss"]["flow_downscale"] == 1.0
+        assert result.config["loss"]["pairs"] == "all" and result.config["loss"]["flow_downscale"] == 1.0
+        assert result.fps_source == "--fps" and result.config["max_windows"] == 4
     rigid, deformed = evaluated["rigid"], evaluated["deformed"]
     assert rigid.fused < 1e-4
     assert deformed.fused > 1e-3 and deformed.fused > 20 * rigid.fused
     assert deformed.motion > 20 * rigid.motion
 
 
-def test_windows_are_frame_weighted(clips):
+def test_overlapping_windows_are_frame_weighted(clips):
     clip = clips["deformed"]
-    cfg = EvaluationConfig(window_seconds=1.0, loss=GeCoLossConfig(pairs="all", flow_downscale=1.0))
-    result = evaluate_video(clip.frames, **oracle(clip), fps=2, config=cfg)  # windows of 3 frames: 5 -> 2 + 3
-    assert [w["frames"] for w in result.windows] == [[0, 1], [2, 3, 4]]
-    assert [(w["start_s"], w["end_s"]) for w in result.windows] == [(0.0, 0.5), (1.0, 2.0)]
-    assert [row["window"] for row in result.frame_scores] == [0, 0, 1, 1, 1]
-    fused = [row["fused"] for row in result.frame_scores]
-    assert result.fused == pytest.approx(sum(fused) / len(fused))
-    assert result.fused == pytest.approx((2 * result.windows[0]["fused"] + 3 * result.windows[1]["fused"]) / 5)
-    assert result.config["loss"]["pairs"] == "all" and result.mean_motion == pytest.approx(result.total_motion / 2)
+    cfg = EvaluationConfig(window_seconds=1.0, loss=GeCoLossConfig(pairs="center", flow_downscale=1.0))
+    # 5 frames at 4 fps = 1.25 s: ceil(1.25 / 1) = 2 windows of 1 s starting at 0 and 0.25 s
+    result = evaluate_video(clip.frames, **oracle(clip), fps=4, config=cfg)
+    assert [w["frames"] for w in result.windows] == [[0, 1, 2, 3], [1, 2, 3, 4]]
+    assert [(w["start_s"], w["length_s"]) for w in result.windows] == [(0.0, 1.0), (0.25, 1.0)]
+    assert [row["window"] for row in result.frame_scores] == [0] * 4 + [1] * 4
+    assert [row["index"] for row in result.frame_scores] == [0, 1, 2, 3, 1, 2, 3, 4]
+    for w, window in enumerate(result.windows):
+        rows = [row["fused"] for row in result.frame_scores if row["window"] == w]
+        assert window["fused"] == pytest.approx(sum(rows) / len(rows))
+    assert result.fused == pytest.approx((4 * result.windows[0]["fused"] + 4 * result.windows[1]["fused"]) / 8)
+    assert result.config["loss"]["pairs"] == "center" and result.mean_motion == pytest.approx(result.total_motion / 1.25)
+
+
+def test_total_motion_of_a_known_flow():
+    """A constant 2 px/frame flow on a 30x40 clip (diagonal 50) of 17 frames at 16 fps (1.0625 s):
+    the motion grid takes floor(1.0625 * 8) = 8 frames (0, 2, ..., 14), so 7 steps of 4 px = 8 %
+    of the diagonal each."""
+    from geco_guide.estimators.base import Correspondences
+
+    clip = rigid_clip(num_frames=17, height=30, width=40)
+    lookup = OracleFlow(clip).lookup  # which clip frame an image is
+
+    class ConstantFlow:
+        def estimate_flow(self, source, target):
+            steps = torch.tensor([float(j - i) for i, j in zip(lookup.indices(source), lookup.indices(target))])
+            flow = torch.zeros(len(steps), 2, *source.shape[-2:])
+            flow[:, 0] = 2.0 * steps[:, None, None]
+            return Correspondences(flow=flow, covisibility=torch.ones(len(steps), *source.shape[-2:]))
+
+    result = evaluate_video(clip.frames, geometry=OracleGeometry(clip), flow=ConstantFlow(), fps=16)
+    assert result.total_motion == pytest.approx(7 * 8.0, rel=1e-5)
+    assert result.mean_motion == pytest.approx(56.0 / (17 / 16), rel=1e-5)  # over the clip's duration
 
 
 def test_mp4_round_trip_with_oracle_of_the_decoded_frames(tmp_path: Path, clips, evaluated):
@@ -92,7 +117,7 @@ def test_mp4_round_trip_with_oracle_of_the_decoded_frames(tmp_path: Path, clips,
 def test_to_dict_is_strict_json(evaluated):
     loaded = json.loads(json.dumps(evaluated["rigid"].to_dict(), allow_nan=False))
     assert {"motion", "structure", "fused", "total_motion", "mean_motion", "frame_scores", "windows",
-            "estimators", "config", "num_frames", "fps", "sampled_fps"} <= set(loaded)
+            "estimators", "config", "num_frames", "fps", "fps_source", "duration_s", "sampled_fps"} <= set(loaded)
     assert loaded["paper_names"]["fused"] == "M_geo" and "maps" not in loaded
 
 
@@ -151,10 +176,11 @@ def test_evaluation_config_section():
     cfg = load_config(preset="tiny")
     e = cfg.evaluation
     assert (e.window_seconds, e.max_fps, e.device) == (3.0, 8.0, "cpu")
-    assert e.loss.flow_downscale == 1.0 and e.loss.pairs == "center" and e.loss.covisibility_threshold == 0.5
+    assert e.loss.flow_downscale == 1.0 and e.loss.pairs == "all" and e.loss.covisibility_threshold == 0.5
+    assert e.max_windows == 4 and e.model_fps["cogvideox-5b"] == 16.0 and e.model_fps["sora-2"] == 30.0
     assert cfg.guidance.loss.flow_downscale == 0.5  # guidance keeps its own loss settings
-    cfg = load_config(preset="cogvideox-5b", overrides=["evaluation.loss.pairs=all", "evaluation.loss.occlusion_tau=0.05"])
-    assert cfg.evaluation.loss.pairs == "all" and cfg.evaluation.loss.occlusion_tau == 0.05
+    cfg = load_config(preset="cogvideox-5b", overrides=["evaluation.loss.pairs=center", "evaluation.loss.occlusion_tau=0.05"])
+    assert cfg.evaluation.loss.pairs == "center" and cfg.evaluation.loss.occlusion_tau == 0.05
 
 
 @pytest.mark.parametrize(

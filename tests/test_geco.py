@@ -166,13 +166,14 @@ def test_bad_inputs_to_geco_loss(rigid):
 def test_motion_statistics():
     flow = torch.zeros(4, 2, 30, 40)
     flow[:, 0] = 5.0  # 5 px per step on a 30x40 image (diagonal 50)
-    stats = motion_statistics(flow, None, fps=8.0)
+    stats = motion_statistics(flow, None, duration_s=5 / 8)  # 5 frames at 8 fps: S = 0.625 s
     assert stats.per_step.tolist() == pytest.approx([0.1] * 4)
     assert stats.total_motion == pytest.approx(40.0)
-    assert stats.mean_motion == pytest.approx(40.0 / 0.5)
+    assert stats.mean_motion == pytest.approx(40.0 / 0.625)
     valid = torch.zeros(4, 30, 40, dtype=torch.bool)
     valid[:, :10] = True
     flow[:, 0, 10:] = 100.0  # ignored outside the valid pixels
-    assert motion_statistics(flow, valid, fps=8.0).total_motion == pytest.approx(40.0)
-    with pytest.raises(ValueError, match="fps"):
-        motion_statistics(flow, None, fps=0)
+    assert motion_statistics(flow, valid, duration_s=0.625).total_motion == pytest.approx(40.0)
+    for bad in (0.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="duration_s"):
+            motion_statistics(flow, None, duration_s=bad)

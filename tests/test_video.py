@@ -19,12 +19,14 @@ from geco_guide.video import (
     draw_text,
     evaluation_windows,
     label_height,
+    motion_grid,
     panel_layout,
     read_frames,
     read_video,
-    resample_indices,
+    sampled_rate,
     side_by_side,
     text_mask,
+    time_grid_indices,
     write_video,
 )
 
@@ -93,46 +95,65 @@ def test_uint8_and_value_clipping(tmp_path: Path):
 # --- the metric's sampling -----------------------------------------------------------------
 
 
-def test_resample_indices_to_at_most_max_fps():
-    indices, fps = resample_indices(240, 24.0, 8.0)  # 10 s at 24 fps
-    assert fps == 8.0 and indices == list(range(0, 240, 3))
-    assert resample_indices(300, 30.0, 8.0)[1] == 7.5  # integer stride 4: evenly spaced frames
-    assert resample_indices(100, 23.976, 8.0)[1] == pytest.approx(7.992)
-    assert resample_indices(10, 8.0, 8.0) == (list(range(10)), 8.0)
-    assert resample_indices(10, 6.0, 8.0) == (list(range(10)), 6.0)  # never upsampled
-    assert resample_indices(10, 24.0, None) == (list(range(10)), 24.0)
-    assert resample_indices(2, 30.0, 8.0) == ([0, 1], 30.0)  # a 2-frame clip keeps both frames
-    assert resample_indices(3, 60.0, 8.0) == ([0, 2], 30.0)
+def test_time_grid_takes_the_nearest_frames_at_most_max_fps():
+    assert sampled_rate(24.0, 8.0) == 8.0 and sampled_rate(6.0, 8.0) == 6.0  # never upsampled
+    # 3 s at 8 fps from 24 fps: 24 samples, every third frame
+    assert time_grid_indices(240, 24.0, 0.0, 3.0, 8.0) == list(range(0, 72, 3))
+    # 30 fps: k * 3.75 rounded half to even (7.5 -> 8, 22.5 -> 22), as numpy's rint in the script
+    assert time_grid_indices(300, 30.0, 0.0, 1.0, 8.0) == [0, 4, 8, 11, 15, 19, 22, 26]
+    # times past the clip are clamped to its last frame and de-duplicated
+    assert time_grid_indices(10, 8.0, 0.5, 3.0, 8.0) == list(range(4, 10))
+    assert time_grid_indices(2, 30.0, 0.0, 0.01, 8.0) == [0, 1]  # at least 2 frames
     with pytest.raises(ValueError):
-        resample_indices(0, 8.0, 8.0)
+        time_grid_indices(1, 8.0, 0.0, 3.0, 8.0)
     with pytest.raises(ValueError):
-        resample_indices(5, 0.0, 8.0)
+        time_grid_indices(5, 0.0, 0.0, 3.0, 8.0)
 
 
-def test_windows_of_about_three_seconds_cover_the_clip():
-    indices, fps = resample_indices(240, 24.0, 8.0)
-    windows = evaluation_windows(len(indices), fps, 3.0)
-    assert [len(w) for w in windows] == [27, 26, 27]  # ~3.25 s each at 8 fps
-    assert [k for w in windows for k in w] == list(range(80))  # every frame once, in order
-    assert all((len(w) - 1) / fps == pytest.approx(3.0, abs=0.4) for w in windows)
-    assert [len(w) for w in evaluation_windows(49, 8.0, 3.0)] == [24, 25]  # CogVideoX: 49 frames, 6 s
-    assert evaluation_windows(17, 8.0, 3.0) == [list(range(17))]  # shorter than a window: one window
-    assert [len(w) for w in evaluation_windows(5, 8.0, 0.01)] == [2, 3]  # >= 2 frames per window
+def test_windows_follow_the_geco_eval_script():
+    # CogVideoX at its native 16 fps: 49 frames = 3.06 s -> 2 overlapping 3 s windows
+    windows = evaluation_windows(49, 16.0, 3.0, 4, 8.0)
+    assert [w.start_s for w in windows] == [0.0, 0.0625] and [w.length_s for w in windows] == [3.0, 3.0]
+    assert windows[0].indices == list(range(0, 48, 2)) and windows[1].indices == list(range(1, 49, 2))
+    # 10 s at 30 fps -> ceil(10 / 3) = 4 windows of 3 s, starts evenly spaced, the last ends the clip
+    windows = evaluation_windows(300, 30.0, 3.0, 4, 8.0)
+    assert [round(w.start_s, 4) for w in windows] == [0.0, 2.3333, 4.6667, 7.0]
+    assert all(len(w.indices) == 24 for w in windows) and windows[-1].indices[-1] == 296
+    # more than 4 windows needed -> exactly 4 equal windows tiling the clip (20 s: 5 s each)
+    windows = evaluation_windows(600, 30.0, 3.0, 4, 8.0)
+    assert [w.start_s for w in windows] == [0.0, 5.0, 10.0, 15.0] and {w.length_s for w in windows} == {5.0}
+    assert [len(w.indices) for w in windows] == [40] * 4
+    # shorter than a window: one window over the whole clip
+    windows = evaluation_windows(17, 8.0, 3.0, 4, 8.0)
+    assert len(windows) == 1 and windows[0].indices == list(range(17)) and windows[0].length_s == 17 / 8
     with pytest.raises(ValueError):
-        evaluation_windows(1, 8.0, 3.0)
+        evaluation_windows(49, 16.0, 3.0, 0, 8.0)
+
+
+def test_motion_grid_spans_the_clip_at_the_evaluation_rate():
+    assert motion_grid(49, 16.0, 8.0) == list(range(0, 48, 2))  # 3.06 s -> 24 samples
+    assert motion_grid(9, 8.0, 8.0) == list(range(9))
 
 
 # --- reading any video -----------------------------------------------------------------------
 
 
-def test_read_frames_subsamples_files_while_decoding(tmp_path: Path):
+def test_read_frames_keeps_the_selected_frames_while_decoding(tmp_path: Path):
     video = smooth_video(frames=13).clamp(0, 1)
     path = write_video(tmp_path / "a.mp4", video, fps=24)
-    clip = read_frames(path, max_fps=8)
-    assert clip.indices == [0, 3, 6, 9, 12] and clip.fps == 24.0 and clip.sampled_fps == 8.0 and clip.num_frames == 13
+    asked = []
+
+    def every_third(count: int, fps: float) -> list[int]:
+        asked.append((count, fps))
+        return list(range(0, count, 3))
+
+    clip = read_frames(path, select=every_third)
+    assert asked == [(13, 24.0)]  # the count comes from the container, before decoding
+    assert clip.indices == [0, 3, 6, 9, 12] and clip.fps == 24.0 and clip.num_frames == 13
+    assert clip.fps_source == "file" and clip.frames.shape[0] == 5
     assert (clip.frames - video[clip.indices]).abs().mean() < 0.02
-    clip = read_frames(path, fps=4.0, max_fps=8)  # the caller's rate wins over the file's
-    assert clip.indices == list(range(13)) and clip.fps == 4.0
+    clip = read_frames(path, fps=4.0)  # the caller's rate wins over the file's
+    assert clip.indices == list(range(13)) and clip.fps == 4.0 and clip.fps_source == "caller"
 
 
 def test_read_gif_and_frame_folder(tmp_path: Path):
@@ -150,7 +171,7 @@ def test_read_gif_and_frame_folder(tmp_path: Path):
         imageio.imwrite(folder / name, data[k])
     (folder / "readme.txt").write_text("not a frame")
     clip = read_frames(folder)
-    assert clip.fps == 8.0 and clip.num_frames == 4 and clip.indices == order
+    assert clip.fps == 8.0 and clip.fps_source == "default" and clip.num_frames == 4 and clip.indices == order
     assert (clip.frames - video).abs().mean() < 0.03
     assert read_frames(folder, fps=2.0).fps == 2.0
 

@@ -3,8 +3,8 @@
 A geometric-consistency score is only meaningful next to the amount of motion: a still video is
 trivially consistent. For consecutive frames ``t -> t+1``,
 ``m_t = mean over valid pixels of |flow_t| / image diagonal``; Total Motion ``TM = sum_t m_t``
-(reported in %), Mean Motion ``MM = TM / duration`` (% per second), where the duration is the
-time spanned by the frames, ``(S - 1) / fps``.
+(reported in %), Mean Motion ``MM = TM / S`` (% per second), where ``S`` is the clip's duration in
+seconds (supplement, "Motion magnitude").
 """
 
 from __future__ import annotations
@@ -27,20 +27,20 @@ class MotionStats:
     mean_motion: float
 
 
-def motion_statistics(flow: Tensor, valid: Tensor | None, fps: float) -> MotionStats:
+def motion_statistics(flow: Tensor, valid: Tensor | None, duration_s: float) -> MotionStats:
     """Total and Mean Motion of a clip from the flow of its consecutive frame pairs.
 
     Args:
         flow: ``[T, 2, H, W]`` flow from frame ``t`` to ``t+1`` (``T = S - 1`` pairs), pixels.
         valid: ``[T, H, W]`` bool pixels to average over (e.g. co-visible), or ``None`` for all.
-        fps: frame rate of the frames the flow was computed on.
+        duration_s: the clip's duration ``S`` in seconds (frames / native frame rate).
 
     Returns:
         :class:`MotionStats`.
     """
     check_tensor(flow, "flow", (None, 2, None, None))
-    if fps <= 0:
-        raise ValueError(f"fps must be > 0, got {fps}")
+    if not (duration_s > 0 and math.isfinite(duration_s)):
+        raise ValueError(f"duration_s must be a finite number > 0, got {duration_s}")
     steps, _, height, width = flow.shape
     if steps == 0:
         raise ValueError("flow must hold at least one frame pair")
@@ -50,4 +50,4 @@ def motion_statistics(flow: Tensor, valid: Tensor | None, fps: float) -> MotionS
     else:
         per_step = masked_mean(magnitude, valid, dims=(-2, -1))
     total = 100.0 * float(per_step.sum())
-    return MotionStats(per_step=per_step, total_motion=total, mean_motion=total / (steps / fps))
+    return MotionStats(per_step=per_step, total_motion=total, mean_motion=total / duration_s)

@@ -208,3 +208,11 @@ def decode_anchor_frames(
             )
         frames.append(video[:, video.shape[1] - 1 - chunk.from_end])
     return torch.stack(frames, dim=1).float()
+
+
+def default_anchors(num_frames: int, temporal_compression: int) -> list[int]:
+    """Anchor frames at the quarter points of a video: the last pixel frame of latents
+    ``round(L * j / 4)``, ``j = 1..4`` (``L`` = latents - 1). The paper's (12, 24, 36, 48) at 49
+    frames with ``r = 4``; (20, 40, 60, 80) for Wan's 81; shorter videos get fewer (distinct)."""
+    last = check_num_frames(num_frames, temporal_compression) - 1
+    return sorted({temporal_compression * max(1, round(last * j / 4)) for j in range(1, 5)})

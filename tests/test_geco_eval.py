@@ -1,0 +1,137 @@
+"""GeCo-Eval: the prompt suite, the model registry, and the benchmark runner end to end (tiny)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from geco_guide import geco_eval
+from geco_guide.evaluate import main as evaluate_main
+from geco_guide.geco_eval import MODELS, load_prompts, main, select_prompts
+from geco_guide.sampler.slicing import default_anchors
+
+TINY_RUN = ["--preset", "tiny", "--models", "cogvideox-5b", "wan2.1-t2v-1.3b", "--seeds", "0", "--limit", "1", "--guided"]
+
+
+def test_the_suite_is_the_papers_80_prompts():
+    prompts = load_prompts()
+    assert len(prompts) == 80 and [p["id"] for p in prompts[:3]] == ["a1", "a2", "a3"] and prompts[-1]["id"] == "d20"
+    assert {p["scenario"] for p in prompts} == set(geco_eval.SCENARIOS)
+    indoor_fast = load_prompts("indoor", "fast")
+    assert [p["id"] for p in indoor_fast] == [f"b{k}" for k in range(11, 21)]
+    assert select_prompts("geco-eval:fast:indoor") == indoor_fast and len(select_prompts("geco-eval:slow")) == 40
+    with pytest.raises(ValueError, match="unknown scenario"):
+        load_prompts("underwater")
+    with pytest.raises(ValueError, match="unknown filter"):
+        select_prompts("geco-eval:underwater")
+
+
+def test_registry_anchors_and_frame_rates():
+    cfg_fps = {"cogvideox-5b": 16.0, "ltx-video": 30.0, "hunyuanvideo": 24.0}
+    from geco_guide.config import EvaluationConfig
+
+    assert {name: EvaluationConfig().fps_of_model(name) for name in cfg_fps} == cfg_fps
+    assert set(MODELS) <= set(EvaluationConfig().model_fps)  # every model has its native rate
+    assert default_anchors(49, 4) == [12, 24, 36, 48]  # the paper's
+    assert default_anchors(81, 4) == [20, 40, 60, 80] and default_anchors(161, 8) == [40, 80, 120, 160]
+    for model in MODELS.values():
+        assert (model.call["num_frames"] - 1) % model.temporal_compression == 0
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("geco-eval") / "bench"
+    assert main([*TINY_RUN, "--out", str(out)]) == 0
+    return out
+
+
+def test_tiny_run_writes_videos_results_and_a_consistent_report(tiny_run: Path):
+    out = tiny_run
+    arms = ["cogvideox-5b", "cogvideox-5b-guided", "wan2.1-t2v-1.3b", "wan2.1-t2v-1.3b-guided"]
+    assert sorted(p.name for p in (out / "videos").iterdir()) == sorted(arms)
+    results = {arm: json.loads((out / "videos" / arm / "a1-s0.json").read_text()) for arm in arms}
+    for arm, result in results.items():
+        assert (out / "videos" / arm / "a1-s0.mp4").is_file()
+        assert result["evaluation"]["fps"] == 16.0 and result["evaluation"]["fps_source"].startswith("model ")
+        assert result["guided"] == arm.endswith("guided") and (result["guidance_updates"] > 0) == result["guided"]
+    rows = list(csv.DictReader((out / "results.csv").open()))
+    assert len(rows) == 4
+    for row in rows:
+        arm = row["model"] + ("-guided" if row["guided"] == "True" else "")
+        for metric in ("fused", "motion", "structure", "total_motion", "mean_motion"):
+            assert float(row[metric]) == pytest.approx(results[arm][metric])
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["videos"] == 4 and summary["missing"] == []
+    stats = summary["arms"]["wan2.1-t2v-1.3b"]["groups"]
+    assert stats["all"]["fused"]["mean"] == pytest.approx(results["wan2.1-t2v-1.3b"]["fused"])
+    assert stats["object-centric"]["fused"]["n"] == 1 and "indoor" not in stats
+    report = (out / "report.md").read_text()
+    assert "## cogvideox-5b-guided" in report and "fused (M_geo)" in report
+    assert (out / "pareto.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_rerun_resumes_and_a_redone_video_is_identical(tiny_run: Path, tmp_path: Path, capsys):
+    out = tmp_path / "bench"
+    shutil.copytree(tiny_run, out)
+    result = out / "videos" / "wan2.1-t2v-1.3b-guided" / "a1-s0.json"
+    before = json.loads(result.read_text())
+    result.unlink()  # as after a kill before the job finished
+    (out / "videos" / "cogvideox-5b" / "a1-s0.mp4").unlink()  # a finished job whose video was deleted
+    assert main([*TINY_RUN, "--out", str(out)]) == 0
+    text = capsys.readouterr()
+    assert "2 of 4 videos already done" in text.out and "a1-s0.mp4 is missing" in text.err
+    after = json.loads(result.read_text())
+    for metric in ("fused", "motion", "structure", "total_motion"):
+        assert after[metric] == before[metric]  # same seed, same device: the same video
+    assert main([*TINY_RUN, "--out", str(out)]) == 0 and "4 of 4 videos already done" in capsys.readouterr().out
+
+
+def test_score_existing_videos_at_the_models_native_rate(tiny_run: Path, tmp_path: Path):
+    downloads = tmp_path / "sora"
+    (downloads / "a1").mkdir(parents=True)
+    shutil.copy(tiny_run / "videos" / "cogvideox-5b" / "a1-s0.mp4", downloads / "a1" / "take.mp4")
+    out = tmp_path / "scores"
+    assert main(["--preset", "tiny", "--videos", f"sora-2={downloads}", "--limit", "1", "--out", str(out)]) == 0
+    result = json.loads((out / "videos" / "sora-2" / "a1-s0.json").read_text())
+    assert result["evaluation"]["fps"] == 30.0 and result["evaluation"]["fps_source"] == "model sora-2"
+    assert result["generation_s"] is None and result["video"] == str(downloads / "a1" / "take.mp4")
+
+
+def test_bad_inputs_are_one_line_before_any_model_loads(tmp_path: Path, tiny_run: Path, monkeypatch, capsys):
+    def no_loading(*args, **kwargs):
+        raise AssertionError("a model was loaded")
+
+    monkeypatch.setattr(geco_eval, "load_model", no_loading)
+    monkeypatch.setattr(geco_eval, "load_estimators", no_loading)
+    cases = [
+        (["--models", "sora-3"], "unknown model 'sora-3'"),
+        (["--models", "cogvideox-5b", "--limit", "0"], "--limit must be >= 1"),
+        (["--videos", f"veo-3.1={tmp_path / 'none'}"], "no such folder"),
+        (["--videos", "nonsense"], "NAME=DIR"),
+        ([], "nothing to do"),
+        (["--models", "cogvideox-5b", "--seeds", "0", "0"], "distinct"),
+    ]
+    for args, message in cases:
+        assert main(["--preset", "tiny", *args, "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+    # a folder made with another config is refused
+    assert main([*TINY_RUN, "--out", str(tiny_run), "evaluation.loss.pairs=center"]) == 2
+    assert "another config" in capsys.readouterr().err
+
+
+def test_evaluate_cli_uses_the_models_native_rate(tiny_run: Path, tmp_path: Path, capsys):
+    video = tiny_run / "videos" / "wan2.1-t2v-1.3b" / "a1-s0.mp4"
+    out = tmp_path / "scores"
+    assert evaluate_main([str(video), "--preset", "tiny", "--model", "ltx-video", "--out", str(out)]) == 0
+    scored = json.loads((out / "a1-s0.geco.json").read_text())
+    assert scored["fps"] == 30.0 and scored["fps_source"] == "model ltx-video"
+    assert evaluate_main([str(video), "--preset", "tiny", "--model", "ltx-video", "--fps", "12", "--out", str(out)]) == 0
+    assert json.loads((out / "a1-s0.geco.json").read_text())["fps_source"] == "--fps"
+    capsys.readouterr()
+    assert evaluate_main([str(video), "--preset", "tiny", "--model", "nope"]) == 2
+    assert "unknown model 'nope'" in capsys.readouterr().err
