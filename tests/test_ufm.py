@@ -19,16 +19,9 @@ from geco_guide.estimators.ufm import (
     sinusoid_view_table,
 )
 
-FIXTURES = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures"
-FIXTURE = FIXTURES / "ufm_tiny.pt"
-needs_fixture = pytest.mark.skipif(
-    not FIXTURE.is_file(), reason=f"parity fixture {FIXTURE} absent (only in the shared workspace)"
-)
-
-
 @pytest.fixture(scope="module")
-def fx() -> dict:
-    return torch.load(FIXTURE, weights_only=False)
+def fx(ufm_fixture) -> dict:
+    return ufm_fixture
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +42,6 @@ def assert_close(ours: torch.Tensor, ref: torch.Tensor, name: str) -> None:
 # ---------------------------------------------------------------------------------------------
 
 
-@needs_fixture
 @pytest.mark.parametrize("route", ["config_dict", "config_json"])
 def test_parity_with_reference(fx: dict, route: str) -> None:
     if route == "config_dict":
@@ -205,7 +197,6 @@ def test_ufm_base_layout_on_meta() -> None:
 # ---------------------------------------------------------------------------------------------
 
 
-@needs_fixture
 def test_alias_names_load(fx: dict) -> None:
     reference = UFM.from_state_dict(fx["config"], fx["state_dict"])
     by_stored: dict[str, list[str]] = {}
@@ -226,7 +217,6 @@ def test_alias_names_load(fx: dict) -> None:
     UFM.from_state_dict(fx["config"], full)
 
 
-@needs_fixture
 def test_readable_errors_on_bad_checkpoints(fx: dict) -> None:
     broken = dict(fx["state_dict"])
     broken.pop("info_sharing.norm.weight")
@@ -274,7 +264,6 @@ def test_missing_repo_offline_is_one_line(tmp_path: Path, monkeypatch: pytest.Mo
 # ---------------------------------------------------------------------------------------------
 
 
-@needs_fixture
 @pytest.mark.parametrize(
     ("path", "value", "field"),
     [

@@ -18,16 +18,12 @@ from geco_guide.estimators.vggt import (
 )
 from geco_guide.estimators.vit import imagenet_normalise
 
-FIXTURES = Path(__file__).parents[1].parent / "shared" / "fixtures"
 OUTPUT_NAMES = ("depth", "depth_conf", "pose_enc", "extrinsic", "intrinsic")
 
 
 @pytest.fixture(scope="module")
-def fixture() -> dict:
-    path = FIXTURES / "vggt_tiny.pt"
-    if not path.is_file():
-        pytest.skip(f"fixture {path} not available (expected ../shared/fixtures beside the repo)")
-    return torch.load(path, weights_only=False)
+def fixture(vggt_fixture) -> dict:
+    return vggt_fixture
 
 
 @pytest.fixture(scope="module")
@@ -328,3 +324,12 @@ def test_trunk_to_bfloat16_keeps_heads_and_outputs_float32() -> None:
     torch.testing.assert_close(low.depth, ref.depth, atol=0.05, rtol=0.05)
     (grad,) = torch.autograd.grad(low.depth.mean(), frames)
     assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+
+
+def test_fixtures_match_the_shared_copies():
+    """tests/fixtures/*.pt are copies of the workspace's ../shared/fixtures (absent in a user's clone)."""
+    shared = Path(__file__).resolve().parents[2] / "shared" / "fixtures"
+    if not shared.is_dir():
+        pytest.skip(f"{shared} is not beside this checkout; the copies in tests/fixtures are used")
+    for name in ("vggt_tiny.pt", "ufm_tiny.pt"):
+        assert (shared / name).read_bytes() == (Path(__file__).parent / "fixtures" / name).read_bytes(), name

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import pytest
 import torch
@@ -20,7 +19,6 @@ from geco_guide.estimators.vit import (
     resize_pos_embed,
 )
 
-FIXTURES = Path(__file__).parents[1].parent / "shared" / "fixtures"
 
 
 def _randomise(module: torch.nn.Module, seed: int = 0) -> None:
@@ -105,11 +103,8 @@ def test_resize_pos_embed_variants() -> None:
     assert (classic - reg).abs().max() > 1e-3  # the two variants really differ
 
 
-def test_dinov2_matches_vggt_fixture_tokens() -> None:
-    path = FIXTURES / "vggt_tiny.pt"
-    if not path.is_file():
-        pytest.skip(f"fixture {path} not available (expected ../shared/fixtures beside the repo)")
-    fx = torch.load(path, weights_only=False)
+def test_dinov2_matches_vggt_fixture_tokens(vggt_fixture) -> None:
+    fx = vggt_fixture
     cfg = fx["config"]
     dino = DinoV2(cfg["embed_dim"], cfg["dino"]["depth"], cfg["dino"]["num_heads"], cfg["dino"]["mlp_ratio"],
                   img_size=cfg["img_size"], patch_size=cfg["patch_size"],

@@ -1,0 +1,30 @@
+"""Shared test fixtures: the VGGT / UFM parity fixtures (spec section 7), shipped in tests/fixtures/.
+
+They are copies of ``../shared/fixtures/*.pt`` (tiny configurations, state dicts under upstream key
+names, inputs, reference outputs), kept in the repository so that every clone runs the parity
+tests; ``test_fixtures_match_the_shared_copies`` notices when the shared ones change.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+FIXTURES = Path(__file__).resolve().parent / "fixtures"
+
+
+def load_parity_fixture(name: str) -> dict:
+    """``tests/fixtures/<name>.pt`` (a dict; see the spec's section 7 for its layout)."""
+    return torch.load(FIXTURES / f"{name}.pt", weights_only=False)
+
+
+@pytest.fixture(scope="session")
+def vggt_fixture() -> dict:
+    return load_parity_fixture("vggt_tiny")
+
+
+@pytest.fixture(scope="session")
+def ufm_fixture() -> dict:
+    return load_parity_fixture("ufm_tiny")
