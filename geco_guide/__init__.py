@@ -25,6 +25,7 @@ _EXPORTS = {
     "UFMConfig": "geco_guide.estimators.ufm",
     "attach_geco_guidance": "geco_guide.sampler.hooks",
     "evaluate_video": "geco_guide.evaluate",
+    "load_prompts": "geco_guide.geco_eval",
 }
 
 __all__ = sorted(_EXPORTS)
@@ -34,6 +35,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .estimators.ufm import UFM, UFMConfig
     from .estimators.vggt import VGGT, VGGTConfig
     from .evaluate import evaluate_video
+    from .geco_eval import load_prompts
     from .loss.geco import GeCoLoss, GeCoLossConfig, GeCoResult, geco_from_geometry
     from .loss.motion_stats import motion_statistics
 

@@ -29,7 +29,7 @@ from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBase
 
 from .loss.checks import non_finite_fields
 from .loss.geco import GeCoLossConfig
-from .sampler.guidance import GuidanceConfig
+from .sampler.guidance import GuidanceConfig, paper_guidance_config
 
 DTYPES = ("float32", "float16", "bfloat16")
 # Upper bounds of options whose absurd values overflow the latents to NaN/inf after minutes of
@@ -83,6 +83,7 @@ class SamplingConfig:
     negative_prompt: Optional[str] = None
     use_dynamic_cfg: bool = False
     max_sequence_length: int = 226
+    scheduler: Optional[str] = "ddim"  # ddim | dpm (CogVideoX's DDIM / DPM from the checkpoint's config) | null: as shipped
 
 
 @dataclass
@@ -178,7 +179,7 @@ class GeCoConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     estimators: EstimatorsConfig = field(default_factory=EstimatorsConfig)
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
-    guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
+    guidance: GuidanceConfig = field(default_factory=paper_guidance_config)  # the paper's experiment (motion cue)
     output: OutputConfig = field(default_factory=OutputConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     seed: int = 0
@@ -340,7 +341,11 @@ def validate_config(cfg: GeCoConfig) -> None:
         "sampling.num_frames",
         f"the CogVideoX VAE makes 8k+1 frames (e.g. 9, 17, 49), got {s.num_frames}",
     )
+    _require(s.scheduler in (None, "ddim", "dpm"), "sampling.scheduler", f"must be ddim, dpm or null, got {s.scheduler!r}")
     g = cfg.guidance
+    _require(g.enabled is False or g.loss.cue != "structure" or g.loss.geometry_grad, "guidance.loss.geometry_grad",
+             "must be true with guidance.loss.cue=structure (the structure cue reaches the frames only through the "
+             "geometry estimator)")
     _require(0 <= g.eta <= MAX_ETA, "guidance.eta", f"must be in [0, {MAX_ETA:g}], got {g.eta}")
     _require(g.grad_eps > 0, "guidance.grad_eps", f"must be > 0, got {g.grad_eps}")
     _require(g.chunk_latents >= 2, "guidance.chunk_latents", f"must be >= 2, got {g.chunk_latents}")

@@ -38,6 +38,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
+from . import __version__
 from .config import EstimatorsConfig, EvaluationConfig, GeCoConfig, load_config
 from .estimators import estimator_id, load_estimators
 from .estimators.base import Correspondences
@@ -481,6 +482,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m geco_guide.evaluate",
         description="Score videos with GeCo (M_motion, M_struct, M_geo, Total/Mean Motion).",
     )
+    p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
     p.add_argument("inputs", nargs="+", metavar="VIDEO|DIR|key=value",
                    help="video files (mp4, gif, ...), folders of frames or of videos; key=value config overrides")
     p.add_argument("--preset", default=None, help="a preset in geco_guide/configs/ (tiny: tiny random models, CPU)")

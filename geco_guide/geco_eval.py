@@ -43,6 +43,7 @@ from typing import Any
 
 import torch
 
+from . import __version__
 from .config import GeCoConfig, config_to_dict, config_to_yaml, load_config
 from .estimators import TINY_RANDOM, load_estimators, resolve_device
 from .estimators.loading import WeightsNotFoundError
@@ -506,6 +507,7 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="python -m geco_guide.geco_eval",
                 description="GeCo-Eval: generate the paper's 80 prompts with video models and score them with GeCo.")
+    p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
     p.add_argument("--models", nargs="+", default=[], metavar="NAME", help=f"models to generate with: {', '.join(MODELS)}")
     p.add_argument("--videos", nargs="+", default=[], metavar="NAME=DIR",
                    help="score existing videos: DIR/<prompt_id>-s<seed>.mp4 or DIR/<prompt_id>/*.mp4, timed at "

@@ -62,7 +62,8 @@ def _dtype_kwarg() -> str:
 
 
 def load_video_pipeline(cfg: GeCoConfig, geometry_estimator=None, flow_estimator=None):
-    """The GeCoCogVideoXPipeline of ``cfg.model`` on its device (estimators attached, DDIM).
+    """The GeCoCogVideoXPipeline of ``cfg.model`` on its device (estimators attached, the scheduler
+    of ``sampling.scheduler``: DDIM in the presets, see :func:`choose_scheduler`).
 
     Raises:
         WeightsNotFoundError: one line naming the model id and how to pass a local folder, when
@@ -102,6 +103,7 @@ def load_video_pipeline(cfg: GeCoConfig, geometry_estimator=None, flow_estimator
                 f"cannot be reached (offline?). Download them once with `hf download {model_id}` (huggingface_hub "
                 f"< 0.34: `huggingface-cli download`) or pass a local folder: model.id=/path/to/{model_id.split('/')[-1]}"
             ) from None
+    pipe.geco_scheduler_note = choose_scheduler(pipe, cfg.sampling.scheduler)
     if cfg.model.vae_tiling:
         pipe.vae.enable_tiling()
     if cfg.model.vae_slicing:
@@ -126,6 +128,30 @@ def check_device(name: str) -> None:
             raise ValueError(f"device {name!r} is not available ({found}); use model.device=cpu or auto")
     elif device.type == "mps" and not torch.backends.mps.is_available():
         raise ValueError(f"device {name!r} is not available on this machine; use model.device=cpu or auto")
+
+
+SCHEDULERS = {"ddim": "CogVideoXDDIMScheduler", "dpm": "CogVideoXDPMScheduler"}
+
+
+def choose_scheduler(pipe, name: str | None) -> str:
+    """Give ``pipe`` the scheduler ``sampling.scheduler`` names; returns the sidecar's note.
+
+    ``ddim`` / ``dpm``: CogVideoX's DDIM / DPM scheduler built from the checkpoint's scheduler
+    config (the paper samples with deterministic DDIM, and CogVideoX-5B ships DPM); ``None``: the
+    checkpoint's own scheduler, untouched. The pipeline itself never replaces a scheduler.
+    """
+    shipped = type(pipe.scheduler).__name__
+    if name is None:
+        return f"{shipped} (the checkpoint's)"
+    if name not in SCHEDULERS:
+        raise ValueError(f"sampling.scheduler must be one of {sorted(SCHEDULERS)} or null, got {name!r}")
+    import diffusers
+
+    cls = getattr(diffusers, SCHEDULERS[name])
+    if type(pipe.scheduler) is cls:
+        return f"{cls.__name__} (sampling.scheduler={name}, the checkpoint's)"
+    pipe.scheduler = cls.from_config(pipe.scheduler.config)
+    return f"{cls.__name__} (sampling.scheduler={name}, built from the checkpoint's {shipped} config)"
 
 
 def build_pipeline(cfg: GeCoConfig):
@@ -259,7 +285,7 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
         "fps": s.fps,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "config": config_to_dict(cfg),
-        "scheduler": getattr(pipe, "scheduler_note", type(pipe.scheduler).__name__),
+        "scheduler": getattr(pipe, "geco_scheduler_note", None) or type(pipe.scheduler).__name__,
         "device": str(pipe.device),
         "versions": versions(),
         "timings": timings,
@@ -281,7 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--prompt", required=True, help="text prompt")
     p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
-    p.add_argument("--preset", default=None, help="a preset shipped in geco_guide/configs/ (tiny, cogvideox-5b)")
+    p.add_argument("--preset", default=None, help="a preset shipped in geco_guide/configs/ (tiny, cogvideox-5b, cogvideox-5b-fused)")
     p.add_argument("--seed", type=int, default=None, help="sampling seed (overrides the config's seed)")
     p.add_argument("--no-guidance", action="store_true", help="sample without GeCo guidance")
     p.add_argument("--out", default=None, help="output .mp4 path or folder (sidecar next to it, .json)")

@@ -21,8 +21,9 @@ def test_schema_defaults_are_the_paper():
     assert g.repeats == "0x3,3x17,2x30" and g.eta == 3.0 and g.time_travel == [15, 20]
     assert g.denoiser_grad and g.enabled
     assert isinstance(g.loss, GeCoLossConfig)
-    assert g.loss.cue == "fused" and g.loss.pairs == "adjacent" and g.loss.flow_downscale == 0.5
-    assert g.loss.geometry_grad
+    # the paper's experiment (issue 12): residual motion, depth and cameras constant in the update
+    assert g.loss.cue == "motion" and g.loss.pairs == "adjacent" and g.loss.flow_downscale == 0.5
+    assert not g.loss.geometry_grad and s.scheduler == "ddim"
 
 
 def test_presets_load_and_paper_preset_equals_schema_defaults():
@@ -74,7 +75,7 @@ def test_unknown_keys_in_yaml_are_rejected(tmp_path: Path):
         ("model.dtype=float8", "model.dtype"),
         ("model.device=tpu", "model.device"),
         ("guidance.anchors=[8]", "guidance.anchors"),
-        ("guidance.repeats=1x5", "guidance.repeats"),
+        ("guidance.repeats=1,1,1,1,1", "guidance.repeats"),  # per step: exact (runs such as 1x5 are scaled)
         ("guidance.time_travel=[3,9]", "guidance.time_travel"),
     ],
 )

@@ -135,3 +135,16 @@ def test_evaluate_cli_uses_the_models_native_rate(tiny_run: Path, tmp_path: Path
     capsys.readouterr()
     assert evaluate_main([str(video), "--preset", "tiny", "--model", "nope"]) == 2
     assert "unknown model 'nope'" in capsys.readouterr().err
+
+
+def test_console_scripts_and_version(capsys):
+    from importlib.metadata import entry_points
+
+    import geco_guide
+
+    scripts = {ep.name: ep.value for ep in entry_points(group="console_scripts") if ep.name.startswith("geco-")}
+    assert scripts == {"geco-generate": "geco_guide.generate:main", "geco-evaluate": "geco_guide.evaluate:main",
+                       "geco-eval": "geco_guide.geco_eval:main"}
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0 and capsys.readouterr().out.strip() == f"geco_guide {geco_guide.__version__}"

@@ -76,3 +76,28 @@ def test_output_paths(tmp_path: Path):
     cfg = load_config(preset="tiny", overrides=[f"output.dir={tmp_path}"])
     video, sidecar = output_paths(cfg, "A Marble Bust, on a table!")
     assert video == tmp_path / "a-marble-bust-on-a-table-seed0.mp4" and sidecar == video.with_suffix(".json")
+
+
+@pytest.mark.parametrize(
+    "choice, cls, note",
+    [
+        ("ddim", "CogVideoXDDIMScheduler", "built from the checkpoint's CogVideoXDPMScheduler config"),
+        ("dpm", "CogVideoXDPMScheduler", "sampling.scheduler=dpm, the checkpoint's"),
+        ("null", "CogVideoXDPMScheduler", "(the checkpoint's)"),
+    ],
+)
+def test_scheduler_is_chosen_by_the_config_and_named_in_the_sidecar(choice, cls, note):
+    # issue 12: the pipeline keeps the scheduler it is given; the config (the presets: ddim) chooses
+    from diffusers import CogVideoXDPMScheduler
+
+    from geco_guide.generate import choose_scheduler
+    from geco_guide.testing import tiny_pipeline
+
+    cfg = load_config(preset="tiny", overrides=[f"sampling.scheduler={choice}"])
+    pipe = tiny_pipeline(0)
+    pipe.scheduler = CogVideoXDPMScheduler.from_config(pipe.scheduler.config)  # as CogVideoX-5B ships
+    text = choose_scheduler(pipe, cfg.sampling.scheduler)
+    assert type(pipe.scheduler).__name__ == cls and text.startswith(cls) and note in text
+    assert load_config(preset="cogvideox-5b").sampling.scheduler == "ddim"
+    with pytest.raises(ValueError, match="sampling.scheduler"):
+        load_config(preset="tiny", overrides=["sampling.scheduler=euler"])

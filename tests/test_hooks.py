@@ -7,7 +7,7 @@ import copy
 import pytest
 import torch
 
-from geco_guide.loss.geco import GeCoLoss
+from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig
 from geco_guide.sampler.adapters import keep_update
 from geco_guide.sampler.guidance import (
     FlowLevels,
@@ -195,7 +195,10 @@ def test_unipc_corrector_keeps_the_guided_update():
         ("ltx", dict(anchors=[8, 16]), {}, "out of range for a 9-frame video"),  # r = 8
         ("cogvideox", dict(anchors=[0, 8]), {}, "latent 0"),
         ("cogvideox", {}, dict(num_frames=13), "even number of latents"),
-        ("hunyuan", dict(repeats="0x3,1x2"), {}, "covers 5 steps but the sampler runs 4"),
+        # (runs are scaled to other step counts since issue 12; a per-step list must match)
+        ("hunyuan", dict(repeats=[0, 0, 0, 1, 1]), {}, "covers 5 steps but the sampler runs 4"),
+        ("cogvideox", dict(loss=GeCoLossConfig(cue="structure", geometry_grad=False)), {},
+         "geometry_grad=true"),
     ],
 )
 def test_bad_calls_are_rejected_before_any_denoising_step(family, changes, call, match, estimators):
@@ -269,3 +272,69 @@ def test_ltx_guidance_rescale_is_rebuilt_and_wrong_combinations_fail_loudly(esti
         monkeypatch.setattr(LTXAdapter, "combine", lambda self, pipe, parts, weights: parts[1].float())
         with pytest.raises(ValueError, match="cannot rebuild the model output"):
             run(pipe, guidance_rescale=0.7)
+
+
+# ---- issue 12: the wrapped scheduler.step keeps the scheduler's call contract ------------------
+
+
+def test_wrapped_step_keeps_the_signature_pipelines_inspect(estimators):
+    import inspect
+
+    pipe = T.tiny_cogvideox_pipeline(0, scheduler="dpm")
+    before = inspect.signature(pipe.scheduler.step)
+    assert {"eta", "generator"} <= set(before.parameters)
+    g = torch.Generator().manual_seed(0)
+    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry=estimators[0], flow=estimators[1]):
+        assert inspect.signature(pipe.scheduler.step) == before
+        # diffusers' prepare_extra_step_kwargs decides from the signature what to pass
+        assert pipe.prepare_extra_step_kwargs(g, 0.5) == {"eta": 0.5, "generator": g}
+
+
+def test_stochastic_scheduler_noise_comes_from_the_calls_generator(estimators):
+    # CogVideoXDPMScheduler (the scheduler CogVideoX-5B ships) draws noise at every step: with the
+    # hook attached, the call's generator must still be what determines the video, not the global RNG
+    pipe = T.tiny_cogvideox_pipeline(0, scheduler="dpm")
+    config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=False)
+    with attach_geco_guidance(pipe, config, geometry=estimators[0], flow=estimators[1]) as handle:
+        torch.manual_seed(100)
+        a = run(pipe, seed=3, output_type="latent")
+        torch.manual_seed(200)
+        b = run(pipe, seed=3, output_type="latent")
+        c = run(pipe, seed=4, output_type="latent")
+        assert len(handle.log) == 2
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_eta_reaches_a_ddim_scheduler_through_the_hook(estimators):
+    from diffusers import DDIMScheduler
+
+    pipe = T.tiny_cogvideox_pipeline(0)
+    pipe.scheduler = DDIMScheduler.from_config(pipe.scheduler.config)  # honours eta (CogVideoX's DDIM ignores it)
+    config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=False)
+    with attach_geco_guidance(pipe, config, geometry=estimators[0], flow=estimators[1]) as handle:
+        deterministic = run(pipe, seed=3, output_type="latent", eta=0.0)
+        torch.manual_seed(100)
+        a = run(pipe, seed=3, output_type="latent", eta=1.0)
+        torch.manual_seed(200)
+        b = run(pipe, seed=3, output_type="latent", eta=1.0)
+        assert len(handle.log) == 2
+    assert not torch.equal(a, deterministic)  # eta reached the step: it added noise ...
+    assert torch.equal(a, b)  # ... drawn from the call's generator
+
+
+def test_denoiser_cache_is_refused_before_any_denoising_step(estimators):
+    # issue 12: with guidance on, a cache would count the guidance's denoiser calls as steps
+    from diffusers import FasterCacheConfig
+
+    pipe = T.tiny_cogvideox_pipeline(0)
+    pipe.transformer.enable_cache(FasterCacheConfig(
+        spatial_attention_block_skip_range=2, spatial_attention_timestep_skip_range=(-1, 901),
+        unconditional_batch_skip_range=2, attention_weight_callback=lambda _: 0.5,
+        current_timestep_callback=lambda: pipe.current_timestep, is_guidance_distilled=False,
+    ))
+    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry=estimators[0], flow=estimators[1]):
+        counter = CountingForward(pipe.transformer)
+        with pytest.raises(ValueError, match="FasterCache cache enabled") as err:
+            run(pipe)
+    counter.handle.remove()
+    assert counter.n == 0 and "\n" not in str(err.value)

@@ -12,7 +12,7 @@ adjacent pairs this is the mean over pairs of the per-pair means.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 
 import torch
 import torch.nn.functional as F
@@ -370,6 +370,12 @@ class GeCoLoss(nn.Module):
         frames = frames.float()
         with torch.set_grad_enabled(torch.is_grad_enabled() and self.config.geometry_grad):
             geometry = self.geometry.estimate_geometry(frames)
+        if not self.config.geometry_grad:
+            # Depth and cameras are constants of the update (the paper's experiment): detached even
+            # if the estimator enabled gradients inside, so the rigid flow of the motion cue depends
+            # on the frames only through the flow estimator's input.
+            geometry = replace(geometry, **{f.name: getattr(geometry, f.name).detach() for f in fields(geometry)
+                                            if isinstance(getattr(geometry, f.name), Tensor)})
         pairs = frame_pairs(frames.shape[1], self.config.pairs)
         correspondences = self.estimate_correspondences(frames, pairs)
         result = geco_from_geometry(geometry, correspondences, pairs, self.config)

@@ -11,12 +11,13 @@ from .guidance import (
     ddim_step,
     guided_step,
     normalized_update,
+    paper_guidance_config,
     renoise,
     resolve_guidance_config,
     score_anchor_frames,
     v_to_x0,
 )
-from .schedule import GuidanceSchedule, paper_schedule, parse_repeats
+from .schedule import GuidanceSchedule, paper_schedule, parse_repeats, scale_schedule
 from .slicing import AnchorChunk, anchor_latent_chunks, check_num_frames, decode_anchor_frames
 
 _LAZY = {
@@ -48,10 +49,12 @@ __all__ = [
     "decode_anchor_frames",
     "guided_step",
     "normalized_update",
+    "paper_guidance_config",
     "paper_schedule",
     "parse_repeats",
     "renoise",
     "resolve_guidance_config",
+    "scale_schedule",
     "score_anchor_frames",
     "v_to_x0",
 ]

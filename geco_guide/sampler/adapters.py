@@ -290,6 +290,22 @@ def noise_levels(scheduler, timestep, counter: int) -> NoiseLevels:
     )
 
 
+def check_no_denoiser_cache(modules) -> None:
+    """ValueError (one line) naming the cache of a denoiser that has a diffusers cache enabled
+    (pyramid attention broadcast, FasterCache, First Block Cache, ...): guidance runs the denoiser
+    ``R_t + 1`` times per step and differentiates it, which such caches count as steps or cannot
+    recompute."""
+    for module in modules:
+        config = getattr(module, "_cache_config", None)
+        if config is not None:
+            name = type(config).__name__.removesuffix("Config")
+            raise ValueError(
+                f"GeCo guidance cannot run with the {type(module).__name__}'s {name} cache enabled (guidance runs and "
+                f"differentiates the denoiser several times per step, which the cache cannot follow): call "
+                f"disable_cache() on it, or sample with guidance off"
+            )
+
+
 def check_scheduler(scheduler) -> None:
     """ValueError unless :func:`noise_levels` supports ``scheduler``."""
     if not (is_flow_scheduler(scheduler) or is_vp_vprediction_scheduler(scheduler)):

@@ -40,7 +40,7 @@ import torch
 from torch import Tensor, nn
 
 from ..loss.geco import GeCoLossConfig
-from .schedule import PAPER_ETA, PAPER_REPEATS, PAPER_TIME_TRAVEL, GuidanceSchedule
+from .schedule import PAPER_ETA, PAPER_REPEATS, PAPER_TIME_TRAVEL, GuidanceSchedule, scale_schedule
 from .slicing import anchor_latent_chunks
 
 PAPER_ANCHORS = (12, 24, 36, 48)
@@ -53,15 +53,20 @@ def _guidance_loss_default() -> GeCoLossConfig:
 
 @dataclass
 class GuidanceConfig:
-    """GeCo guidance options (defaults = the paper, for 50 DDIM steps of a 49-frame video).
+    """GeCo guidance options (defaults: the paper's schedule for 50 DDIM steps of a 49-frame video,
+    with the method section's fused loss; :func:`paper_guidance_config` is the paper's experiment,
+    the residual motion cue without gradients through the geometry estimator).
 
     Attributes:
         enabled: ``False`` samples without guidance (plain deterministic DDIM).
         anchors: 0-based pixel frames decoded and scored during guidance.
         chunk_latents: latents per causal chunk decoded for each anchor (ending at its latent).
-        repeats: ``R_t`` per step, as runs ``"RxN,..."`` (see :mod:`.schedule`).
+        repeats: ``R_t`` per step, as runs ``"RxN,..."`` (see :mod:`.schedule`). Runs written for
+            another step count are scaled to the sampler's, phases in proportion (with a
+            warning); an explicit per-step list must match exactly.
         eta: normalised step size of each update (>= 0).
         time_travel: inclusive ``[first, last]`` step window of time travel; empty/None disables.
+            Scaled with the runs of ``repeats``.
         denoiser_grad: ``True`` backpropagates through the denoiser at every update (paper);
             ``False`` is the fast mode that holds the model output constant through the step
             (``dx0/dz_t = sqrt(a_t)``), so the denoiser runs once per step as without guidance
@@ -75,7 +80,8 @@ class GuidanceConfig:
         grad_eps: ``eps`` of the normalised update.
         loss: the GeCo loss options; the structure cue only gives gradients with
             ``loss.geometry_grad=True`` (default), since it depends on the frames only through
-            the geometry estimator.
+            the geometry estimator: ``cue="structure"`` with ``geometry_grad=False`` is refused
+            before any denoising step.
     """
 
     enabled: bool = True
@@ -91,15 +97,37 @@ class GuidanceConfig:
     loss: GeCoLossConfig = field(default_factory=_guidance_loss_default)
 
     def schedule(self, num_steps: int) -> GuidanceSchedule:
-        """The validated :class:`GuidanceSchedule` for ``num_steps`` steps."""
-        return GuidanceSchedule.build(self.repeats, num_steps, self.eta, self.time_travel)
+        """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see
+        :func:`~geco_guide.sampler.schedule.scale_schedule`)."""
+        repeats, time_travel = scale_schedule(self.repeats, self.time_travel, num_steps)
+        return GuidanceSchedule.build(repeats, num_steps, self.eta, time_travel)
+
+    def check_loss(self) -> None:
+        """ValueError (one line) for a loss that cannot give an update."""
+        loss = self.loss
+        if self.enabled and getattr(loss, "cue", None) == "structure" and not getattr(loss, "geometry_grad", True):
+            raise ValueError(
+                "guidance.loss.cue='structure' needs guidance.loss.geometry_grad=true: the structure cue reaches the "
+                "frames only through the geometry estimator, so without its gradient there is no update "
+                "(use cue=motion or fused, or geometry_grad=true)"
+            )
 
     def validate(self, num_steps: int, num_frames: int, temporal_compression: int) -> GuidanceSchedule:
         """Check everything against a run; ValueError naming the problem. Returns the schedule."""
+        self.check_loss()
         if not self.grad_eps > 0:
             raise ValueError(f"guidance grad_eps must be > 0, got {self.grad_eps}")
         anchor_latent_chunks(self.anchors, num_frames, temporal_compression, self.chunk_latents)
         return self.schedule(num_steps)
+
+
+def paper_guidance_config() -> GuidanceConfig:
+    """The paper's guidance experiment (supplement; the published code's ``residual_motion`` loss):
+    the residual motion cue on adjacent pairs of the anchors, flow input x0.5, depth and cameras
+    constants of the update (``geometry_grad=False``: the update reaches the frames through the flow
+    estimator only). ``GuidanceConfig()`` differs only in the loss: the method section's fused
+    ``M_geo`` with gradients through the geometry estimator too."""
+    return GuidanceConfig(loss=GeCoLossConfig(cue="motion", pairs="adjacent", flow_downscale=0.5, geometry_grad=False))
 
 
 def resolve_guidance_config(

@@ -29,17 +29,21 @@ output the pipeline passed: an output the calls cannot reproduce fails loudly in
 with a wrong prediction.
 
 Compared with ``GeCoCogVideoXPipeline``: the same guided step, schedule, time travel, fast and
-faithful modes, anchors and loss. Differences: the pipeline's own scheduler takes the step (for
-CogVideoX with ``CogVideoXDDIMScheduler`` that is the same DDIM step), and the latents between
-steps are whatever the pipeline keeps (stock CogVideoX rounds them to the model dtype after every
-step, which in bf16 swallows most of a guidance update: use ``GeCoCogVideoXPipeline`` there; Wan,
-HunyuanVideo and LTX keep fp32 latents). The guided sample reaches the scheduler in fp32.
-Denoiser caches (FirstBlockCache, FasterCache, ...) are not supported while guiding.
+faithful modes, anchors and loss, and in both the pipeline's own scheduler takes the step from
+the guided sample. The difference: the latents between steps are whatever the pipeline keeps
+(stock CogVideoX rounds them to the model dtype after every step; in bf16 that keeps an update on
+average but adds rounding noise of 30-80 % of its norm, ``scripts/measure_bf16_update.py``:
+``GeCoCogVideoXPipeline`` keeps fp32 latents while guiding; Wan, HunyuanVideo and LTX keep fp32
+latents). The guided sample reaches the scheduler in fp32.
+Denoiser caches (FirstBlockCache, FasterCache, ...) are refused while guiding, with one line
+naming the cache, before any denoising step. The wrapped ``step`` shows the original signature,
+so pipelines still pass ``eta`` and ``generator`` to it.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -54,6 +58,7 @@ from .adapters import (
     CallGeometry,
     PipelineAdapter,
     adapter_for,
+    check_no_denoiser_cache,
     check_scheduler,
     fit_combination,
     keep_update,
@@ -244,9 +249,14 @@ class GeCoGuidanceHandle:
         original = scheduler.step
         signature = inspect.signature(original)
 
+        @functools.wraps(original)
         def step(*args, **kwargs):
             return self._step(scheduler, original, signature, args, kwargs)
 
+        # functools.wraps keeps the name and docstring; the explicit signature keeps what pipelines
+        # inspect to decide which extra arguments to pass (``prepare_extra_step_kwargs``: ``eta``,
+        # ``generator``): a bare (*args, **kwargs) would make them silently drop both.
+        step.__signature__ = signature  # type: ignore[attr-defined]
         step._geco_handle = self  # type: ignore[attr-defined]
         scheduler.step = step
         self._schedulers.append((scheduler, previous))
@@ -289,6 +299,8 @@ class GeCoGuidanceHandle:
         if not config.enabled:
             return
         self.adapter.check(self.pipe, geometry)
+        config.check_loss()
+        check_no_denoiser_cache(self.adapter.denoisers(self.pipe))
         if not config.grad_eps > 0:
             raise ValueError(f"guidance grad_eps must be > 0, got {config.grad_eps}")
         chunks = anchor_latent_chunks(

@@ -1,14 +1,20 @@
 """GeCoCogVideoXPipeline: diffusers' CogVideoXPipeline with GeCo geometric-consistency guidance.
 
-The denoising loop below is the whole sampler, readable top to bottom: classifier-free guided
-v-prediction, its clean estimate ``x0 = sqrt(a_t) z_t - sqrt(1 - a_t) v``, and a deterministic
-DDIM step ``z_prev = A z_t + B x0``, with ``R_t`` GeCo updates of ``z_t`` before the step
-(:func:`geco_guide.sampler.guidance.guided_step`). Noise levels come from the scheduler's
-``alphas_cumprod`` at the entries of its timestep table. With guidance off the loop reproduces
-the stock ``CogVideoXPipeline`` with ``CogVideoXDDIMScheduler`` bit for bit (fp32 models).
+The denoising loop below is the stock ``CogVideoXPipeline`` loop, readable top to bottom, with one
+addition: at a step with ``R_t > 0`` the latents get ``R_t`` GeCo updates before the step
+(:func:`geco_guide.sampler.guidance.guided_step`, the same guided step the pipeline hooks use),
+and the pipeline's own scheduler then takes the step from the guided latents with the model
+output recomputed there, exactly as the hooks hand it to ``scheduler.step``. Noise levels come
+from the scheduler's ``alphas_cumprod`` with the scheduler's own rule (``t`` and
+``t - num_train_timesteps // num_inference_steps``, :func:`.adapters.noise_levels`).
 
-Latents are kept in fp32 between steps whatever the model dtype (the stock pipeline rounds them
-to the model dtype after every step; guidance updates are far below bf16 resolution).
+A drop-in ``CogVideoXPipeline``: with guidance off the call is the stock call in every respect
+(any scheduler, any frame count the stock pipeline accepts, latents rounded to the model dtype
+after each step as stock does), so the output is the stock output bit for bit. With guidance on,
+what guidance needs is checked up front (``4k+1`` frames, a v-prediction VP scheduler, the
+estimators, no denoiser cache), and the latents are kept in fp32 between steps whatever the model
+dtype (the stock pipeline rounds them to the model dtype: in bf16 an update survives on average
+but with rounding noise of 30-80 % of its norm, ``scripts/measure_bf16_update.py``).
 """
 
 from __future__ import annotations
@@ -21,27 +27,30 @@ from functools import partial
 from typing import Any
 
 import torch
-from diffusers import CogVideoXPipeline
+from diffusers import CogVideoXDPMScheduler, CogVideoXPipeline
 from diffusers.callbacks import MultiPipelineCallbacks, PipelineCallback
 from diffusers.pipelines.cogvideo.pipeline_cogvideox import retrieve_timesteps
 from diffusers.pipelines.cogvideo.pipeline_output import CogVideoXPipelineOutput
-from diffusers.schedulers import CogVideoXDDIMScheduler
 from diffusers.utils import logging
 from torch import Tensor, nn
 
 from ..estimators.base import FlowEstimator, GeometryEstimator
 from ..loss.geco import GeCoLoss
+from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .guidance import (
     GuidanceConfig,
     GuidanceRecord,
-    VPLevels,
     frozen,
     gradient_checkpointing,
     guided_step,
     resolve_guidance_config,
-    v_to_x0,
 )
 from .slicing import anchor_latent_chunks, check_num_frames, decode_anchor_frames
+
+try:
+    from diffusers.pipelines.cogvideo.pipeline_cogvideox import XLA_AVAILABLE
+except ImportError:  # pragma: no cover
+    XLA_AVAILABLE = False
 
 logger = logging.get_logger(__name__)
 
@@ -64,13 +73,16 @@ class GeCoCogVideoXPipelineOutput(CogVideoXPipelineOutput):
 class GeCoCogVideoXPipeline(CogVideoXPipeline):
     r"""Text-to-video CogVideoX with training-free GeCo geometric-consistency guidance.
 
-    Components: the stock ``tokenizer``, ``text_encoder``, ``vae``, ``transformer``, ``scheduler``,
-    plus the optional ``geometry_estimator`` (e.g. VGGT) and ``flow_estimator`` (e.g. UFM), and
-    ``guidance_config``: the default :class:`GuidanceConfig` (a dict of its fields works too).
+    Components: the stock ``tokenizer``, ``text_encoder``, ``vae``, ``transformer``, ``scheduler``
+    (any of them may be ``None``, as in the stock pipeline), plus the optional
+    ``geometry_estimator`` (e.g. VGGT) and ``flow_estimator`` (e.g. UFM), and ``guidance_config``:
+    the default :class:`GuidanceConfig` (a dict of its fields works too), kept in the pipeline's
+    config so that ``save_pretrained`` / ``from_pretrained`` round-trip it.
 
-    The sampler is deterministic DDIM (as in the paper). CogVideoX checkpoints may ship
-    ``CogVideoXDPMScheduler``; any other scheduler is replaced at construction by a
-    ``CogVideoXDDIMScheduler`` built from the same scheduler config (``self.scheduler_note``).
+    The scheduler is the one given, kept as is: the paper samples with deterministic DDIM, so
+    choose ``CogVideoXDDIMScheduler.from_config(pipe.scheduler.config)`` for its setting (the
+    ``cogvideox-5b`` preset of ``geco_guide.generate`` does, and logs it). Guidance works with
+    any variance-preserving v-prediction scheduler (CogVideoX's DDIM and DPM, diffusers' DDIM).
 
     Example::
 
@@ -78,9 +90,14 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             "THUDM/CogVideoX-5b", torch_dtype=torch.bfloat16,
             geometry_estimator=VGGT.from_pretrained("facebook/VGGT-1B"),
             flow_estimator=UFM.from_pretrained(...))
+        pipe.scheduler = CogVideoXDDIMScheduler.from_config(pipe.scheduler.config)  # the paper's sampler
         out = pipe("a marble bust on a turntable", generator=torch.Generator().manual_seed(0))
         out.frames, out.guidance_log
     """
+
+    _optional_components = ["geometry_estimator", "flow_estimator"]
+    _exclude_from_cpu_offload = ["geometry_estimator", "flow_estimator"]
+    _estimator_names = ("geometry_estimator", "flow_estimator")
 
     def __init__(
         self,
@@ -93,30 +110,70 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         flow_estimator: FlowEstimator | None = None,
         guidance_config: GuidanceConfig | Mapping[str, Any] | None = None,
     ):
-        note = "CogVideoXDDIMScheduler"
-        if not isinstance(scheduler, CogVideoXDDIMScheduler):
-            note = f"CogVideoXDDIMScheduler built from the {type(scheduler).__name__} config (the paper samples with DDIM)"
-            logger.info("GeCoCogVideoXPipeline: using %s", note)
-            scheduler = CogVideoXDDIMScheduler.from_config(scheduler.config)
         super().__init__(tokenizer=tokenizer, text_encoder=text_encoder, vae=vae, transformer=transformer, scheduler=scheduler)
-        # Plain attributes, not diffusers components: they are not diffusers/transformers models
-        # (save_pretrained/offloading leave them alone); from_pretrained passes them through.
-        self.geometry_estimator = geometry_estimator
-        self.flow_estimator = flow_estimator
-        self.scheduler_note = note
+        # Optional components: in ``components``, moved by ``to()`` (device only) and placed on the
+        # execution device by ``enable_model_cpu_offload`` / ``enable_sequential_cpu_offload``.
+        self.register_modules(geometry_estimator=geometry_estimator, flow_estimator=flow_estimator)
         self.guidance_config = resolve_guidance_config(None, guidance_config)
+        # in model_index.json, so that save_pretrained/from_pretrained keep the guidance settings
+        self.register_to_config(guidance_config=asdict(self.guidance_config))
+
+    @property
+    def scheduler_note(self) -> str:
+        """The scheduler's class name (the sidecar's ``scheduler``)."""
+        return type(self.scheduler).__name__
+
+    @contextlib.contextmanager
+    def _estimators_hidden(self):
+        """The estimators out of sight of DiffusionPipeline's ``to``/``save_pretrained`` for a moment."""
+        saved = {name: getattr(self, name, None) for name in self._estimator_names}
+        self.register_modules(**{name: None for name in saved})
+        try:
+            yield saved
+        finally:
+            self.register_modules(**saved)
+
+    def _model_components(self) -> list[nn.Module]:
+        names = [n for n in self._get_signature_keys(self)[0] if n not in self._estimator_names]
+        return [m for m in (getattr(self, n, None) for n in names) if isinstance(m, nn.Module)]
+
+    @property
+    def device(self) -> torch.device:
+        """As :attr:`DiffusionPipeline.device`, from the diffusers/transformers models only (the
+        estimators are plain ``nn.Module`` s and follow the pipeline's device)."""
+        modules = self._model_components()
+        for module in modules:
+            if module.device.type not in ("cpu", "meta"):
+                return module.device
+        return modules[0].device if modules else torch.device("cpu")
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """As :attr:`DiffusionPipeline.dtype`, from the diffusers/transformers models only."""
+        modules = self._model_components()
+        return modules[0].dtype if modules else torch.float32
 
     def to(self, *args, **kwargs):
-        """As :meth:`DiffusionPipeline.to`; the estimators follow the device (they keep their dtype)."""
-        pipe = super().to(*args, **kwargs)
+        """As :meth:`DiffusionPipeline.to`; the estimators follow the device but keep their dtype
+        (bf16 trunks with fp32 heads: a pipeline-wide dtype cast would round the heads)."""
+        with self._estimators_hidden() as estimators:
+            pipe = super().to(*args, **kwargs)
         device = kwargs.get("device")
         if device is None:
             device = next((a for a in args if isinstance(a, (str, torch.device))), None)
         if device is not None:
-            for estimator in (self.geometry_estimator, self.flow_estimator):
+            for estimator in estimators.values():
                 if isinstance(estimator, nn.Module):
                     estimator.to(device)
         return pipe
+
+    def save_pretrained(self, save_directory, *args, **kwargs):
+        """As :meth:`DiffusionPipeline.save_pretrained`, with the guidance config in
+        ``model_index.json``. The estimators' weights are not written (they load from their own
+        checkpoints): pass them to ``from_pretrained(..., geometry_estimator=..., flow_estimator=...)``."""
+        self.register_to_config(guidance_config=asdict(self.guidance_config))  # as it is now
+        with self._estimators_hidden():
+            return super().save_pretrained(save_directory, *args, **kwargs)
 
     # ------------------------------------------------------------------------------------------
     # checks
@@ -131,10 +188,14 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         geometry_estimator: Any,
         flow_estimator: Any,
     ):
-        """Validate a call before any denoising step; ValueError naming the problem.
+        """Validate what guidance needs, before any denoising step; ValueError naming the problem.
 
-        Returns the guidance schedule and anchor chunks (``(None, None)`` without guidance).
+        Nothing is checked without guidance (the stock pipeline's own checks apply). Returns the
+        guidance schedule and anchor chunks (``(None, None)`` without guidance).
         """
+        if not guidance.enabled:
+            return None, None
+        guidance.check_loss()
         multiple = self.vae_scale_factor_spatial * self.transformer.config.patch_size
         if height % multiple or width % multiple:
             raise ValueError(
@@ -151,18 +212,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 f"{num_frames}-frame video from an even number of latents (it decodes them to {r * num_latents} "
                 f"frames). Use {2 * r}k+1 frames, e.g. {num_frames + r} or 49."
             )
-        if not isinstance(self.scheduler, CogVideoXDDIMScheduler):
-            raise ValueError(
-                f"GeCoCogVideoXPipeline samples with DDIM; got scheduler {type(self.scheduler).__name__}. Use "
-                "pipe.scheduler = CogVideoXDDIMScheduler.from_config(pipe.scheduler.config)"
-            )
-        if self.scheduler.config.prediction_type != "v_prediction":
-            raise ValueError(
-                f"GeCoCogVideoXPipeline expects a v-prediction model, scheduler has prediction_type="
-                f"{self.scheduler.config.prediction_type!r}"
-            )
-        if not guidance.enabled:
-            return None, None
+        check_scheduler(self.scheduler)
+        check_no_denoiser_cache([self.transformer])
         schedule = guidance.validate(num_steps, num_frames, self.vae_scale_factor_temporal)
         chunks = anchor_latent_chunks(
             guidance.anchors, num_frames, self.vae_scale_factor_temporal, guidance.chunk_latents
@@ -183,45 +234,49 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         return schedule, chunks
 
     # ------------------------------------------------------------------------------------------
-    # the model, as the guided step sees it
+    # the model, as the stock loop and the guided step see it
 
-    def predict_x0(
+    def model_output(
         self,
         z: Tensor,
-        differentiate: bool,
         *,
         t: Tensor,
-        alpha_t: Tensor,
         prompt_embeds: Tensor,
         image_rotary_emb: Any,
         attention_kwargs: dict | None,
         do_classifier_free_guidance: bool,
     ) -> Tensor:
-        """CFG-combined v-prediction of the transformer at ``t`` -> fp32 clean estimate ``x0``.
+        """The CFG-combined model output (fp32) at latents ``z``: the stock loop's ``noise_pred``."""
+        latent_model_input = z.to(prompt_embeds.dtype)
+        latent_model_input = torch.cat([latent_model_input] * 2) if do_classifier_free_guidance else latent_model_input
+        latent_model_input = self.scheduler.scale_model_input(latent_model_input, t)
+        timestep = t.expand(latent_model_input.shape[0])
+        with self.transformer.cache_context("cond_uncond"):
+            noise_pred = self.transformer(
+                hidden_states=latent_model_input,
+                encoder_hidden_states=prompt_embeds,
+                timestep=timestep,
+                image_rotary_emb=image_rotary_emb,
+                attention_kwargs=attention_kwargs,
+                return_dict=False,
+            )[0]
+        noise_pred = noise_pred.float()
+        if do_classifier_free_guidance:
+            noise_pred_uncond, noise_pred_text = noise_pred.chunk(2)
+            noise_pred = noise_pred_uncond + self.guidance_scale * (noise_pred_text - noise_pred_uncond)
+        return noise_pred
+
+    def predict_x0(self, z: Tensor, differentiate: bool, *, levels, last: dict[str, Tensor], **model_kwargs) -> Tensor:
+        """Clean estimate ``x0`` (fp32) of the model output at ``z``, for the guided step.
 
         With ``differentiate=False`` the transformer runs without gradients, so ``x0`` depends
-        on ``z`` only through ``sqrt(a_t) z`` (the fast mode).
+        on ``z`` only through ``sqrt(a_t) z`` (the fast mode). ``last["out"]`` keeps the model
+        output of the last call: the output the scheduler's step gets at the guided latents.
         """
         with torch.set_grad_enabled(differentiate and torch.is_grad_enabled()):
-            latent_model_input = z.to(prompt_embeds.dtype)
-            latent_model_input = torch.cat([latent_model_input] * 2) if do_classifier_free_guidance else latent_model_input
-            latent_model_input = self.scheduler.scale_model_input(latent_model_input, t)
-            timestep = t.expand(latent_model_input.shape[0])
-            cache = getattr(self.transformer, "cache_context", None)
-            with cache("cond_uncond") if cache is not None else contextlib.nullcontext():
-                v = self.transformer(
-                    hidden_states=latent_model_input,
-                    encoder_hidden_states=prompt_embeds,
-                    timestep=timestep,
-                    image_rotary_emb=image_rotary_emb,
-                    attention_kwargs=attention_kwargs,
-                    return_dict=False,
-                )[0]
-            v = v.float()
-            if do_classifier_free_guidance:
-                v_uncond, v_text = v.chunk(2)
-                v = v_uncond + self.guidance_scale * (v_text - v_uncond)
-        return v_to_x0(z, v, alpha_t)
+            out = self.model_output(z, **model_kwargs)
+        last["out"] = out.detach()
+        return levels.to_x0(z, out)
 
     # ------------------------------------------------------------------------------------------
 
@@ -260,9 +315,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 ``self.guidance_config`` (e.g. ``{"eta": 2.0, "loss": {"cue": "motion"}}``),
                 ``False`` to sample without guidance, or ``None`` for the default.
             geometry_estimator, flow_estimator: override the pipeline's estimators for this call.
-            eta: the DDIM eta of the stock signature; the sampler is deterministic DDIM
-                (``CogVideoXDDIMScheduler.step`` ignores it too). The GeCo step size is
-                ``guidance.eta``.
+            eta: the scheduler's eta, passed to its ``step`` as in the stock pipeline (DDIM noise;
+                ``CogVideoXDDIMScheduler`` ignores it). The GeCo step size is ``guidance.eta``.
 
         Returns:
             :class:`GeCoCogVideoXPipelineOutput` (``frames``, ``guidance_log``, ``guidance``) or
@@ -316,11 +370,10 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         if do_classifier_free_guidance:
             prompt_embeds = torch.cat([negative_prompt_embeds, prompt_embeds], dim=0)
 
-        # 4. Timestep table: noise levels are always looked up at its entries
-        timesteps, num_inference_steps = retrieve_timesteps(self.scheduler, num_inference_steps, device, timesteps)
+        # 4. Timesteps
+        timestep_device = "cpu" if XLA_AVAILABLE else device
+        timesteps, num_inference_steps = retrieve_timesteps(self.scheduler, num_inference_steps, timestep_device, timesteps)
         self._num_timesteps = len(timesteps)
-        alphas_cumprod = self.scheduler.alphas_cumprod
-        final_alpha_cumprod = self.scheduler.final_alpha_cumprod
 
         # 5. Latents (CogVideoX 1.5 pads latent frames to a multiple of patch_size_t)
         latent_frames = (num_frames - 1) // self.vae_scale_factor_temporal + 1
@@ -340,16 +393,23 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             generator,
             latents,
         )
-        latents = latents.float()  # fp32 master copy of z_t
+        # With guidance the latents stay fp32 between steps (an update is far below bf16 resolution);
+        # without, they are rounded to the model dtype after each step, as the stock pipeline does.
+        keep_fp32 = config.enabled
+        if keep_fp32:
+            latents = latents.float()
 
-        # 6. Rotary embeddings
+        # 6. Extra step kwargs (eta, generator), as the stock pipeline
+        extra_step_kwargs = self.prepare_extra_step_kwargs(generator, eta)
+
+        # 7. Rotary embeddings
         image_rotary_emb = (
             self._prepare_rotary_positional_embeddings(height, width, latents.size(1), device)
             if self.transformer.config.use_rotary_positional_embeddings
             else None
         )
 
-        # 7. Guidance parts: anchors decoded from short causal chunks, the GeCo loss
+        # 8. Guidance parts: anchors decoded from short causal chunks, the GeCo loss
         loss_fn = decode_anchors = None
         if config.enabled:
             # No frame check: it would make each update wait for the device; a NaN decode gives
@@ -362,55 +422,80 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
         guidance_log: list[dict[str, Any]] = []
 
-        # 8. Denoising loop
+        # 9. Denoising loop
+        num_warmup_steps = max(len(timesteps) - num_inference_steps * self.scheduler.order, 0)
+        step_values = [int(v) for v in timesteps.tolist()]  # host copies: the guided steps add no device sync
         models = (self.text_encoder, self.transformer, self.vae, geometry_estimator, flow_estimator)
         checkpointing = config.enabled and config.denoiser_grad and config.gradient_checkpointing
         with (
-            frozen(*models),
+            frozen(*models) if config.enabled else contextlib.nullcontext(),
             gradient_checkpointing(self.transformer, checkpointing),
             gradient_checkpointing(self.vae, config.enabled and config.vae_checkpointing),
             self.progress_bar(total=num_inference_steps) as progress_bar,
         ):
+            old_pred_original_sample = None  # for DPM-solver++
             for i, t in enumerate(timesteps):
                 if self.interrupt:
                     continue
                 self._current_timestep = t
-                alpha_t = alphas_cumprod[int(t)]
-                alpha_prev = alphas_cumprod[int(timesteps[i + 1])] if i + 1 < len(timesteps) else final_alpha_cumprod
                 if use_dynamic_cfg:
                     self._guidance_scale = 1 + guidance_scale * (
                         (1 - math.cos(math.pi * ((num_inference_steps - t.item()) / num_inference_steps) ** 5.0)) / 2
                     )
-                predict = partial(
-                    self.predict_x0,
+                model_kwargs = dict(
                     t=t,
-                    alpha_t=alpha_t,
                     prompt_embeds=prompt_embeds,
                     image_rotary_emb=image_rotary_emb,
                     attention_kwargs=attention_kwargs,
                     do_classifier_free_guidance=do_classifier_free_guidance,
                 )
+                repeats = schedule.repeats_at(i) if config.enabled else 0
+                if repeats == 0:
+                    noise_pred = self.model_output(latents, **model_kwargs)
+                    sample = latents
+                else:
+                    # R_t GeCo updates of z_t; the scheduler then steps from the guided z_t with the
+                    # model output there (the hooks' path: one guided step for both)
+                    levels = noise_levels(self.scheduler, step_values[i], i)
+                    last: dict[str, Tensor] = {}
 
-                def on_record(record: GuidanceRecord) -> None:
-                    guidance_log.append(record.to_dict())
-                    progress_bar.set_postfix(loss=f"{record.loss:.4f}", refresh=False)
+                    def on_record(record: GuidanceRecord) -> None:
+                        guidance_log.append(record.to_dict())
+                        progress_bar.set_postfix(loss=f"{record.loss:.4f}", refresh=False)
 
-                latents, _, _ = guided_step(
-                    latents,
-                    predict_x0=predict,
-                    decode_anchors=decode_anchors,
-                    loss_fn=loss_fn,
-                    levels=VPLevels(alpha_t, alpha_prev),
-                    repeats=schedule.repeats_at(i) if config.enabled else 0,
-                    eta=config.eta,
-                    time_travel=config.enabled and schedule.time_travel_at(i),
-                    denoiser_grad=config.denoiser_grad,
-                    generator=generator,
-                    eps=config.grad_eps,
-                    step=i,
-                    t=int(t),
-                    on_record=on_record,
-                )
+                    sample, _, _ = guided_step(
+                        latents,
+                        predict_x0=partial(self.predict_x0, levels=levels, last=last, **model_kwargs),
+                        decode_anchors=decode_anchors,
+                        loss_fn=loss_fn,
+                        levels=levels,
+                        repeats=repeats,
+                        eta=config.eta,
+                        time_travel=schedule.time_travel_at(i),
+                        denoiser_grad=config.denoiser_grad,
+                        generator=generator,
+                        eps=config.grad_eps,
+                        step=i,
+                        t=step_values[i],
+                        on_record=on_record,
+                        take_step=False,
+                    )
+                    noise_pred = last["out"]
+
+                # compute the previous noisy sample x_t -> x_t-1, with the pipeline's own scheduler
+                if not isinstance(self.scheduler, CogVideoXDPMScheduler):
+                    latents = self.scheduler.step(noise_pred, t, sample, **extra_step_kwargs, return_dict=False)[0]
+                else:
+                    latents, old_pred_original_sample = self.scheduler.step(
+                        noise_pred,
+                        old_pred_original_sample,
+                        t,
+                        timesteps[i - 1] if i > 0 else None,
+                        sample,
+                        **extra_step_kwargs,
+                        return_dict=False,
+                    )
+                latents = latents.float() if keep_fp32 else latents.to(prompt_embeds.dtype)
 
                 if callback_on_step_end is not None:
                     callback_kwargs = {}
@@ -421,20 +506,22 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                             "negative_prompt_embeds": negative_prompt_embeds,
                         }[k]
                     callback_outputs = callback_on_step_end(self, i, t, callback_kwargs)
-                    latents = callback_outputs.pop("latents", latents).float()
+                    latents = callback_outputs.pop("latents", latents)
+                    latents = latents.float() if keep_fp32 else latents
                     prompt_embeds = callback_outputs.pop("prompt_embeds", prompt_embeds)
                     negative_prompt_embeds = callback_outputs.pop("negative_prompt_embeds", negative_prompt_embeds)
 
-                progress_bar.update()
+                if i == len(timesteps) - 1 or ((i + 1) > num_warmup_steps and (i + 1) % self.scheduler.order == 0):
+                    progress_bar.update()
 
         self._current_timestep = None
 
         if not output_type == "latent":
             latents = latents[:, additional_frames:]
-            video = self.decode_latents(latents.to(self.vae.dtype))
+            video = self.decode_latents(latents.to(self.vae.dtype) if keep_fp32 else latents)
             video = self.video_processor.postprocess_video(video=video, output_type=output_type)
         else:
-            video = latents.to(prompt_embeds.dtype)
+            video = latents.to(prompt_embeds.dtype) if keep_fp32 else latents
 
         self.maybe_free_model_hooks()
 

@@ -4,10 +4,21 @@ Steps are 0-based indices into the sampler's timestep table (step 0 is the noisi
 repeat schedule is written compactly as comma-separated ``RxN`` runs ("R repeats for N steps"),
 so the paper's schedule (R = 0 for steps 0-2, 3 for 3-19, 2 for 20-49) is ``"0x3,3x17,2x30"``;
 a plain ``R`` counts as one step, and an explicit list of per-step ints is accepted too.
+
+Other step counts (:func:`scale_schedule`): a schedule written as runs (``"0x3,3x17,2x30"``) is a
+list of phases, and for a sampler with another number of steps each phase boundary ``b`` of the
+``N`` steps it was written for moves to ``round(b * M / N)`` (half up) of the ``M`` steps, phases
+that shrink to nothing disappear, and the time-travel window ``[first, last]`` (the steps
+``[first, last + 1)``) scales the same way, keeping at least one step; a warning names the result.
+The paper's 50-step schedule at 25 steps is ``"0x2,3x8,2x15"`` with time travel ``[8, 10]``. A
+schedule given per step (a list of ints, or a string without runs such as ``"0,2,2,1"``) is kept
+exactly and must match the step count.
 """
 
 from __future__ import annotations
 
+import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -43,6 +54,61 @@ def parse_repeats(spec: str | Sequence[int]) -> list[int]:
     if any(r < 0 for r in repeats):
         raise ValueError(f"repeats must be >= 0, got {repeats}")
     return repeats
+
+
+def _runs(spec: str) -> list[tuple[int, int]]:
+    runs = []
+    for part in spec.replace(" ", "").split(","):
+        value, _, count = part.partition("x")
+        runs.append((int(value), int(count) if count else 1))
+    return runs
+
+
+def scale_schedule(
+    repeats: str | Sequence[int], time_travel: Sequence[int] | None, num_steps: int
+) -> tuple[str | Sequence[int], Sequence[int] | None]:
+    """``(repeats, time_travel)`` for ``num_steps`` steps: runs scaled in proportion (module docstring).
+
+    Per-step schedules, schedules that already cover ``num_steps`` and malformed ones come back
+    unchanged (:meth:`GuidanceSchedule.build` then accepts or rejects them). Warns when it scales.
+    """
+    if not isinstance(repeats, str) or "x" not in repeats or num_steps < 1:
+        return repeats, time_travel
+    parse_repeats(repeats)  # malformed specs raise here, with their message
+    runs = _runs(repeats)
+    total = sum(n for _, n in runs)
+    if total == num_steps:
+        return repeats, time_travel
+
+    def at(boundary: int) -> int:
+        return int(math.floor(boundary * num_steps / total + 0.5))
+
+    scaled, start, end = [], 0, 0
+    for r, n in runs:
+        end += n
+        count = at(end) - at(start)
+        if count > 0:
+            if scaled and scaled[-1][0] == r:
+                scaled[-1] = (r, scaled[-1][1] + count)
+            else:
+                scaled.append((r, count))
+        start = end
+    new_repeats = ",".join(f"{r}x{n}" for r, n in scaled)
+    new_window = time_travel
+    if time_travel is not None and len(time_travel) == 2:
+        first, last = (int(x) for x in time_travel)
+        if 0 <= first <= last < total:  # (an invalid window is left for build() to reject)
+            new_first = min(at(first), num_steps - 1)
+            new_window = [new_first, max(new_first, min(at(last + 1) - 1, num_steps - 1))]
+    warnings.warn(
+        f"guidance schedule written for {total} steps, the sampler runs {num_steps}: repeats {repeats!r} -> "
+        f"{new_repeats!r}, time_travel {list(time_travel) if time_travel else None} -> "
+        f"{list(new_window) if new_window else None} (phases scaled in proportion; give one R_t per step to set "
+        "them exactly)",
+        UserWarning,
+        stacklevel=3,
+    )
+    return new_repeats, new_window
 
 
 @dataclass(frozen=True)
