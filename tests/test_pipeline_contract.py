@@ -22,6 +22,7 @@ from diffusers import (
     PyramidAttentionBroadcastConfig,
 )
 
+from geco_guide.sampler.guidance import GuidanceConfig
 from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 from geco_guide.testing import (
@@ -308,3 +309,26 @@ def test_save_load_round_trips_the_guidance_config(tmp_path, estimators):
     assert bare.geometry_estimator is None and bare.guidance_config == ours.guidance_config
     with pytest.raises(ValueError, match="geometry_estimator and flow_estimator"):
         call(bare, 4)
+    # a config assigned later (object or dict of changes) is what is saved; repr() still works
+    ours.guidance_config = {"eta": 0.5}
+    assert isinstance(ours.guidance_config, GuidanceConfig) and ours.guidance_config.eta == 0.5
+    assert "guidance_config" in repr(ours)
+    ours.save_pretrained(tmp_path / "again")
+    assert GeCoCogVideoXPipeline.from_pretrained(tmp_path / "again").guidance_config.eta == 0.5
+
+
+def test_model_cpu_offload_with_guidance(estimators):
+    # mirrors test_model_cpu_offload_forward_pass / test_cpu_offload_forward_pass_twice: accelerate's
+    # model offload hooks (device="cpu" here, so it runs without an accelerator) change nothing,
+    # the estimators (excluded from offload) are placed on the execution device. Sequential offload
+    # fails in this environment for the stock pipeline too (accelerate vs torch 2.13), so it is not
+    # tested here.
+    _, plain = pair(estimators)
+    _, offloaded = pair(estimators)
+    offloaded.enable_model_cpu_offload(device="cpu")
+    for guidance in ({"denoiser_grad": True}, {"denoiser_grad": False}):
+        ref = call(plain, 0, guidance=guidance)
+        once, twice = call(offloaded, 0, guidance=guidance), call(offloaded, 0, guidance=guidance)
+        assert torch.equal(once.frames, ref.frames) and torch.equal(twice.frames, ref.frames)
+        assert len(once.guidance_log) == 2
+    assert {p.device.type for p in offloaded.geometry_estimator.parameters()} == {"cpu"}

@@ -114,9 +114,17 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         # Optional components: in ``components``, moved by ``to()`` (device only) and placed on the
         # execution device by ``enable_model_cpu_offload`` / ``enable_sequential_cpu_offload``.
         self.register_modules(geometry_estimator=geometry_estimator, flow_estimator=flow_estimator)
-        self.guidance_config = resolve_guidance_config(None, guidance_config)
-        # in model_index.json, so that save_pretrained/from_pretrained keep the guidance settings
-        self.register_to_config(guidance_config=asdict(self.guidance_config))
+        self.guidance_config = guidance_config  # a GuidanceConfig, and its dict in the config (__setattr__)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name == "guidance_config":
+            # The attribute is a GuidanceConfig (a dict or None is resolved over the defaults); the
+            # pipeline's config keeps its plain dict, for model_index.json and repr().
+            value = resolve_guidance_config(None, value)
+            object.__setattr__(self, name, value)
+            self.register_to_config(guidance_config=asdict(value))
+            return
+        super().__setattr__(name, value)
 
     @property
     def scheduler_note(self) -> str:
@@ -171,7 +179,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         """As :meth:`DiffusionPipeline.save_pretrained`, with the guidance config in
         ``model_index.json``. The estimators' weights are not written (they load from their own
         checkpoints): pass them to ``from_pretrained(..., geometry_estimator=..., flow_estimator=...)``."""
-        self.register_to_config(guidance_config=asdict(self.guidance_config))  # as it is now
+        self.register_to_config(guidance_config=asdict(self.guidance_config))  # as it is now (edited in place?)
         with self._estimators_hidden():
             return super().save_pretrained(save_directory, *args, **kwargs)
 
