@@ -97,8 +97,8 @@ class OutputConfig:
 
 def _evaluation_loss_default() -> GeCoLossConfig:
     # The GeCo-Eval script: every ordered pair of a window, full-resolution frames into the flow
-    # estimator (guidance halves them to save time).
-    return GeCoLossConfig(pairs="all", flow_downscale=1.0)
+    # estimator (guidance halves them to save time), its structure-cue occlusion rule.
+    return GeCoLossConfig(pairs="all", flow_downscale=1.0, structure_occlusion="covisibility")
 
 
 #: Native frame rate of each video model (GeCo paper, supplement "Frame rate of evaluated

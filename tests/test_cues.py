@@ -41,6 +41,28 @@ def test_structure_residual_flags_a_depth_mismatch_and_masks_occlusion():
     assert not valid_near.any()
 
 
+def test_script_occlusion_rule_keeps_covisible_pixels_the_depth_test_calls_occluded():
+    d_src, d_tgt, K_src, K_tgt, pose = _pair_inputs()
+    _, valid = structure_residual(d_src, d_tgt, K_src, K_tgt, pose)
+    near = d_tgt * 0.9  # every source point hidden by a closer target surface
+    covisible = torch.zeros_like(valid)
+    covisible[..., :7] = True  # the flow estimator calls the left half co-visible
+    s, kept = structure_residual(d_src, near, K_src, K_tgt, pose, keep_occluded=covisible)
+    assert kept.equal(valid & covisible)  # occluded by depth, kept where co-visible only
+    assert s[kept].min() > 0.08  # and scored against the closer surface, as the script does
+    # through the metric: the config's structure_occlusion selects the rule
+    clip = rigid_clip(num_frames=2, height=10, width=14)
+    depth = torch.cat((clip.depth[:1], clip.depth[1:] * 0.9))[None]
+    geometry = SceneGeometry(depth=depth, intrinsics=clip.intrinsics[None], extrinsics=clip.extrinsics[None])
+    corr = Correspondences(flow=torch.zeros(1, 2, 10, 14), covisibility=torch.ones(1, 10, 14))
+    for rule, any_valid in (("depth", False), ("covisibility", True)):
+        config = GeCoLossConfig(structure_occlusion=rule, confidence_percentile=None, depth_edge_tau=None)
+        result = geco_from_geometry(geometry, corr, [(0, 1)], config)
+        assert bool(result.pair_maps.structure_valid.any()) == any_valid
+    with pytest.raises(ValueError, match="structure_occlusion"):
+        GeCoLossConfig(structure_occlusion="both")
+
+
 def test_structure_residual_edge_test_drops_samples_that_straddle_a_depth_edge():
     d_src, d_tgt, K_src, K_tgt, pose = _pair_inputs()
     stepped = d_tgt.clone()

@@ -178,6 +178,7 @@ def test_evaluation_config_section():
     assert (e.window_seconds, e.max_fps, e.device) == (3.0, 8.0, "cpu")
     assert e.loss.flow_downscale == 1.0 and e.loss.pairs == "all" and e.loss.covisibility_threshold == 0.5
     assert e.max_windows == 4 and e.model_fps["cogvideox-5b"] == 16.0 and e.model_fps["sora-2"] == 30.0
+    assert e.loss.structure_occlusion == "covisibility" and cfg.guidance.loss.structure_occlusion == "depth"
     assert cfg.guidance.loss.flow_downscale == 0.5  # guidance keeps its own loss settings
     cfg = load_config(preset="cogvideox-5b", overrides=["evaluation.loss.pairs=center", "evaluation.loss.occlusion_tau=0.05"])
     assert cfg.evaluation.loss.pairs == "center" and cfg.evaluation.loss.occlusion_tau == 0.05

@@ -57,6 +57,7 @@ def structure_residual(
     src_to_tgt: Tensor,
     tau: float = 0.02,
     edge_tau: float | None = None,
+    keep_occluded: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Depth reprojection error of the source depth against the target depth.
 
@@ -71,6 +72,9 @@ def structure_residual(
             depths a bilinear sample there mixes differ by more than a factor ``1 + edge_tau``):
             such a sample blends two surfaces and is comparable to neither. ``None`` (default)
             keeps them, as the paper does.
+        keep_occluded: ``[B, H, W]`` bool, pixels to keep even where the occlusion test fails
+            (the GeCo-Eval script keeps every pixel the flow estimator calls co-visible); ``None``
+            lets the depth test alone decide.
 
     Returns:
         ``s [B, H, W] = |D_tgt(p') - z_proj| / D_src`` (0 where invalid) and ``valid [B, H, W]``
@@ -87,6 +91,8 @@ def structure_residual(
         valid = valid & (samples[:, 1] <= 1.0 + edge_tau)
     denom = torch.where(valid, depth_src, torch.ones_like(depth_src))
     occluded = (z_proj - depth_at_proj) / denom > tau
+    if keep_occluded is not None:
+        occluded = occluded & ~keep_occluded
     valid = valid & ~occluded
     s = torch.where(valid, (depth_at_proj - z_proj).abs() / denom, torch.zeros_like(depth_src))
     return s, valid

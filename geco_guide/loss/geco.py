@@ -25,6 +25,7 @@ from .geometry import check_tensor, relative_pose, resize_flow, rigid_flow
 
 PAIR_MODES = ("adjacent", "center", "all")
 CUES = ("fused", "motion", "structure")
+STRUCTURE_OCCLUSION = ("depth", "covisibility")
 
 
 @dataclass
@@ -46,6 +47,10 @@ class GeCoLossConfig:
             ``None`` keeps them as the paper does. See :func:`structure_residual`.
         geometry_grad: let gradients flow through the geometry estimator. Without it the
             structure cue gives no gradient at all and the motion cue only through the flow.
+        structure_occlusion: which pixels the structure cue drops as occluded: ``depth`` (the
+            paper: where the reprojected point lies behind the target surface by more than
+            ``occlusion_tau``) or ``covisibility`` (the GeCo-Eval script: the depth test only for
+            pixels the flow estimator does not call co-visible; co-visible pixels always count).
     """
 
     pairs: str = "adjacent"
@@ -56,6 +61,7 @@ class GeCoLossConfig:
     occlusion_tau: float = 0.02
     depth_edge_tau: float | None = 0.1
     geometry_grad: bool = True
+    structure_occlusion: str = "depth"
 
     def __post_init__(self) -> None:
         for key, value in non_finite_fields(self):  # the first one
@@ -72,6 +78,8 @@ class GeCoLossConfig:
             raise ValueError(f"flow_downscale must be in (0, 1], got {self.flow_downscale}")
         if self.occlusion_tau <= 0.0:
             raise ValueError(f"occlusion_tau must be > 0, got {self.occlusion_tau}")
+        if self.structure_occlusion not in STRUCTURE_OCCLUSION:
+            raise ValueError(f"structure_occlusion must be one of {STRUCTURE_OCCLUSION}, got {self.structure_occlusion!r}")
         if self.depth_edge_tau is not None and self.depth_edge_tau <= 0.0:
             raise ValueError(f"depth_edge_tau must be > 0 or None, got {self.depth_edge_tau}")
 
@@ -255,7 +263,8 @@ def geco_from_geometry(
     motion = motion_residual(_without_non_finite(flow), rigid, K_src)
     covisible = _without_non_finite(correspondences.covisibility) > config.covisibility_threshold
     structure, structure_valid = structure_residual(
-        depth_src, depth_tgt, K_src, K_tgt, src_to_tgt, tau=config.occlusion_tau, edge_tau=config.depth_edge_tau
+        depth_src, depth_tgt, K_src, K_tgt, src_to_tgt, tau=config.occlusion_tau, edge_tau=config.depth_edge_tau,
+        keep_occluded=covisible if config.structure_occlusion == "covisibility" else None,
     )
     motion_valid = rigid_valid & covisible & flow_finite & pair_usable
     structure_valid = structure_valid & pair_usable
