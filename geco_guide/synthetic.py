@@ -5,13 +5,16 @@ and infinite planes with smooth procedural textures. :func:`render_clip` moves a
 it and returns a :class:`SyntheticClip`: frames, z-depth, intrinsics, camera-from-world
 extrinsics, and ground-truth correspondences (flow and covisibility) for any frame pair.
 
-Two artifact injectors turn a rigid clip into one with a known inconsistency:
+Artifacts with known ground truth turn a rigid clip into an inconsistent one:
 
 * :func:`inject_deformation` — a temporally smooth thin-plate-spline warp of an image region
   (affine + ``r^2 log r`` basis, feathered weight, exponential moving average over time), as in
-  the GeCo paper's WarpBench;
+  the GeCo paper's WarpBench, with the maths of :mod:`geco_guide.warp`;
 * :func:`occlusion_swap_clip` — an object that is visible, then hidden behind an occluder, then
-  re-revealed as a different object, as in the paper's OccluBench.
+  re-revealed as a different object, as in the paper's OccluBench, in 3D (a pillar's parallax);
+* :func:`with_warp` / :func:`with_overlay` — the benchmark builders' edits
+  (:mod:`geco_guide.warp`, :mod:`geco_guide.occlusion`) applied to a synthetic clip with their
+  exact ground truth, so oracle estimators can score them.
 
 Everything uses the conventions of :mod:`geco_guide.loss.geometry`.
 """
@@ -35,6 +38,17 @@ from .loss.geometry import (
     sample_bilinear,
     transform_points,
     unproject,
+)
+from .occlusion import OBJECT, OCCLUDER, OcclusionResult
+
+# thin_plate_spline is part of this module's interface (the deformation injector's maths).
+from .warp import (  # noqa: F401
+    WarpResult,
+    backward_warp,
+    control_displacements,
+    raised_cosine,
+    thin_plate_spline,
+    warp_fields,
 )
 
 _NO_HIT = float("inf")
@@ -147,6 +161,35 @@ def default_intrinsics(height: int, width: int, fov_x_deg: float = 60.0, dtype=t
 
 
 @dataclass
+class Overlay:
+    """Image-space layers over a rendered scene (:mod:`geco_guide.occlusion`'s composite).
+
+    Attributes:
+        labels: ``[S, H, W]`` int64, the layer each pixel shows (0: the scene).
+        offsets: ``[L, S, 2]`` each layer's translation in each frame (row 0 unused).
+    """
+
+    labels: Tensor
+    offsets: Tensor
+
+    def correspondences(self, scene_flow: Tensor, scene_visible: Tensor, source: int, target: int) -> tuple[Tensor, Tensor]:
+        """The clip's flow ``[2, H, W]`` and covisibility ``[H, W]`` from the scene's: a layer
+        pixel moves with its layer; any pixel is covisible only where the target shows the
+        same layer at its destination (nearest pixel)."""
+        height, width = scene_flow.shape[-2:]
+        labels = self.labels[source]
+        layer_flow = (self.offsets[:, target] - self.offsets[:, source]).to(scene_flow.dtype)  # [L, 2]
+        on_layer = labels > 0
+        flow = torch.where(on_layer[None], layer_flow[labels].permute(2, 0, 1), scene_flow)
+        destination = pixel_grid(height, width, dtype=flow.dtype) + flow.permute(1, 2, 0)
+        u = destination[..., 0].round().long().clamp(0, width - 1)
+        v = destination[..., 1].round().long().clamp(0, height - 1)
+        same = inside_image(destination, height, width) & (self.labels[target][v, u] == labels)
+        visible = same & (on_layer | (scene_visible > 0.5))
+        return flow, visible.to(scene_flow.dtype)
+
+
+@dataclass
 class SyntheticClip:
     """A rendered clip with its ground truth (no batch dimension).
 
@@ -159,6 +202,7 @@ class SyntheticClip:
         mask: ``[S, H, W]`` bool ground-truth artifact mask (all False for a clean clip).
         warp: ``[S, H, W, 2]`` backward warp of each frame, ``frame(p)`` shows the content of the
             unwarped frame at ``p + warp(p)``; zeros for a clean clip.
+        overlay: image-space layers composited over the scene (:func:`with_overlay`), or ``None``.
     """
 
     frames: Tensor
@@ -168,6 +212,7 @@ class SyntheticClip:
     scenes: list[Scene]
     mask: Tensor
     warp: Tensor
+    overlay: Overlay | None = None
 
     @property
     def num_frames(self) -> int:
@@ -193,8 +238,14 @@ class SyntheticClip:
 
         For a warped clip the content at source pixel ``p`` comes from ``q = p + warp_s(p)``; it
         moves rigidly to ``q'`` and is shown in the target at ``r`` with ``r + warp_t(r) = q'``
-        (solved by fixed-point iteration).
+        (solved by fixed-point iteration). An overlay's layers move by their own offsets and hide
+        what lies under them.
         """
+        flow, visible = self._scene_correspondences(source, target)
+        return (flow, visible) if self.overlay is None else self.overlay.correspondences(flow, visible, source, target)
+
+    def _scene_correspondences(self, source: int, target: int) -> tuple[Tensor, Tensor]:
+        """Flow ``[2, H, W]`` and covisibility ``[H, W]`` of the (possibly warped) scene alone."""
         flow, visible = self.rigid_correspondences(source, target)
         if not self.warp.any():
             return flow, visible
@@ -353,30 +404,6 @@ def rigid_clip(num_frames: int = 5, height: int = 48, width: int = 64, scene: Sc
 # --- deformation (WarpBench-style) -------------------------------------------------------------
 
 
-def _tps_kernel(r2: Tensor) -> Tensor:
-    """``U(r) = r^2 log r`` written in terms of ``r^2`` (0 at the origin)."""
-    return torch.where(r2 > 0, 0.5 * r2 * torch.log(r2.clamp_min(1e-30)), torch.zeros_like(r2))
-
-
-def thin_plate_spline(controls: Tensor, values: Tensor, points: Tensor) -> Tensor:
-    """Interpolate ``values [C, D]`` given at ``controls [C, 2]`` to ``points [N, 2]``.
-
-    Solves the standard thin-plate system (kernel ``r^2 log r`` plus an affine part) exactly.
-    """
-    n = controls.shape[0]
-    kernel = _tps_kernel(torch.cdist(controls, controls).square())
-    affine = torch.cat((torch.ones(n, 1, dtype=controls.dtype), controls), dim=1)
-    system = torch.zeros(n + 3, n + 3, dtype=controls.dtype)
-    system[:n, :n] = kernel
-    system[:n, n:] = affine
-    system[n:, :n] = affine.T
-    rhs = torch.cat((values, torch.zeros(3, values.shape[1], dtype=values.dtype)))
-    coeffs = torch.linalg.solve(system, rhs)
-    basis = _tps_kernel(torch.cdist(points, controls).square())
-    points_affine = torch.cat((torch.ones(points.shape[0], 1, dtype=points.dtype), points), dim=1)
-    return basis @ coeffs[:n] + points_affine @ coeffs[n:]
-
-
 def inject_deformation(
     clip: SyntheticClip,
     *,
@@ -400,31 +427,48 @@ def inject_deformation(
         The clip with warped frames, ``warp`` set and ``mask`` = warp length > 0.1 px.
     """
     _, _, height, width = clip.frames.shape
-    dtype = clip.depth.dtype
     cu, cv = center if center is not None else ((width - 1) / 2, (height - 1) / 2)
     radius = radius if radius is not None else min(height, width) / 4
     generator = torch.Generator().manual_seed(seed)
-    offsets = torch.tensor([(du, dv) for du in (-0.5, 0.0, 0.5) for dv in (-0.5, 0.0, 0.5)], dtype=dtype)
-    controls = torch.tensor([cu, cv], dtype=dtype) + radius * offsets
-    grid = pixel_grid(height, width, dtype=dtype)
-    dist = (grid - grid.new_tensor([cu, cv])).norm(dim=-1) / radius
-    feather = (0.5 + 0.5 * torch.cos(math.pi * dist.clamp(max=1.0))) * (dist < 1)  # smooth to 0 at the rim
-    state = torch.zeros(controls.shape[0], 2, dtype=dtype)
-    warps = []
-    for _ in range(clip.num_frames):
-        target = amplitude * torch.randn(controls.shape[0], 2, generator=generator, dtype=dtype)
-        state = smoothing * state + (1 - smoothing) * target
-        field_ = thin_plate_spline(controls, state, grid.reshape(-1, 2)).reshape(height, width, 2)
-        warps.append(field_ * feather[..., None])
-    warp = torch.stack(warps)
-    coords = grid[None] + warp
-    frames = torch.stack(
-        [sample_bilinear(clip.frames[k][None].to(dtype), coords[k][None])[0] for k in range(clip.num_frames)]
-    ).to(clip.frames.dtype)
-    return replace(clip, frames=frames, warp=warp, mask=warp.norm(dim=-1) > 0.1)
+    # A fixed 3x3 grid of controls over the disc keeps this injector's documented warp; the
+    # benchmark builder (geco_guide.warp.warp_clip) samples them by farthest-point sampling.
+    offsets = torch.tensor([(du, dv) for du in (-0.5, 0.0, 0.5) for dv in (-0.5, 0.0, 0.5)], dtype=torch.float64)
+    controls = torch.tensor([cu, cv], dtype=torch.float64) + radius * offsets
+    dist = (pixel_grid(height, width, dtype=torch.float64) - controls.new_tensor([cu, cv])).norm(dim=-1)
+    feather = raised_cosine(radius - dist, radius)  # 1 at the centre, smoothly 0 at the rim
+    displacements = control_displacements(controls.shape[0], clip.num_frames, amplitude, generator)
+    warp = warp_fields(controls, displacements, feather, height, width, smoothing).to(clip.depth.dtype)
+    return replace(clip, frames=backward_warp(clip.frames, warp), warp=warp, mask=warp.norm(dim=-1) > 0.1)
+
+
+def with_warp(clip: SyntheticClip, warped: WarpResult) -> SyntheticClip:
+    """``clip`` edited by :func:`geco_guide.warp.warp_clip` / :func:`~geco_guide.warp.warp_one_frame`
+    (run on ``clip.frames``): its frames, warp and mask, so the ground truth follows the warp."""
+    return replace(clip, frames=warped.frames, warp=warped.displacement.to(clip.depth.dtype), mask=warped.mask)
 
 
 # --- occlusion inconsistency (OccluBench-style) ------------------------------------------------
+
+#: Camera-space depth of an occlusion edit's layers, as fractions of the median scene depth in the
+#: object's region: both in front of the scene, the occluder nearer.
+LAYER_DEPTH = {OCCLUDER: 0.5, OBJECT: 0.8}
+
+
+def with_overlay(clip: SyntheticClip, edit: OcclusionResult) -> SyntheticClip:
+    """``clip`` edited by :func:`geco_guide.occlusion.composite_occlusion` (run on ``clip.frames``).
+
+    The layers become flat sprites at constant camera depths (:data:`LAYER_DEPTH`): their depth
+    replaces the scene's where they show, and the correspondences follow their offsets, so an
+    oracle answers exactly for the composite.
+    """
+    left, top, right, bottom = edit.region
+    reference = clip.depth[:, top:bottom, left:right]
+    reference = float(reference[reference > 0].median()) if (reference > 0).any() else float(clip.depth.max())
+    depth = clip.depth.clone()
+    for layer, fraction in LAYER_DEPTH.items():
+        depth[edit.labels == layer] = fraction * reference
+    return replace(clip, frames=edit.frames.to(clip.frames.dtype), depth=depth, mask=edit.mask,
+                   overlay=Overlay(edit.labels, edit.offsets))
 
 
 def occlusion_swap_clip(num_frames: int = 9, height: int = 48, width: int = 64) -> SyntheticClip:
