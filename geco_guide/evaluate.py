@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import torch
+from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
 from . import __version__
@@ -43,6 +44,7 @@ from .config import EstimatorsConfig, EvaluationConfig, GeCoConfig, load_config
 from .estimators import estimator_id, load_estimators
 from .estimators.base import Correspondences
 from .files import write_json_atomic, write_text_atomic
+from .generate import check_device
 from .loss.checks import check_frame_values
 from .loss.geco import CUES, PAIR_MODES, GeCoLoss, GeCoMaps, frame_pairs, geco_from_geometry
 from .loss.motion_stats import motion_statistics
@@ -504,15 +506,33 @@ def build_parser() -> argparse.ArgumentParser:
 _OVERRIDE = re.compile(r"^[A-Za-z_][\w.]*=")
 
 
+def _is_config_key(key: str) -> bool:
+    """Whether ``key`` (dotted) names a config option, or an entry of a free mapping such as
+    ``evaluation.model_fps.<model>``."""
+    node: Any = OmegaConf.structured(GeCoConfig)
+    for part in key.split("."):
+        if not isinstance(node, DictConfig):
+            return False
+        if part not in node:
+            return OmegaConf.get_type(node) is dict
+        node = node[part]
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)  # options may follow the inputs
     # key=value arguments are overrides unless they name an existing file.
     overrides = [a for a in args.inputs if _OVERRIDE.match(a) and not Path(a).exists()]
     videos = [a for a in args.inputs if a not in overrides]
+    # Neither an input nor an option (a=b.mp4): a missing file, or a mistyped key.
+    strays = [a for a in overrides if not _is_config_key(a.partition("=")[0])]
     for option, key in ((args.vggt, "estimators.geometry"), (args.ufm, "estimators.flow"), (args.pairs, "evaluation.loss.pairs")):
         if option is not None:
             overrides.append(f"{key}={option}")
     try:
+        if strays:
+            raise ValueError(f"{strays[0]!r} is neither an existing file nor a config override "
+                             f"({strays[0].partition('=')[0]!r} is not a config key)")
         if not videos:
             raise ValueError("no input video given")
         if args.fps is not None and not (args.fps > 0 and math.isfinite(args.fps)):
@@ -520,6 +540,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_config(args.config, args.preset, overrides)
         if args.model is not None:
             cfg.evaluation.fps_of_model(args.model)  # an unknown name fails before the estimators load
+        check_device(cfg.evaluation.device, "evaluation.device")
         geometry, flow = load_estimators(cfg.estimators, cfg.evaluation.device)
     except (ValueError, FileNotFoundError) as err:  # WeightsNotFoundError is a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)

@@ -48,11 +48,13 @@ from .config import GeCoConfig, config_to_dict, config_to_yaml, load_config
 from .estimators import TINY_RANDOM, load_estimators, resolve_device
 from .estimators.loading import WeightsNotFoundError
 from .evaluate import PAPER_NAMES, evaluate_video
-from .generate import _quiet_hub_logs
-from .files import write_bytes_atomic, write_json_atomic, write_text_atomic
+from .generate import _quiet_hub_logs, check_device
+from .files import WriteError, remove_temp_files, write_bytes_atomic, write_json_atomic, write_text_atomic
 from .loss.geco import CUES
 from .plots import Panel, legend, limits
-from .runs import PeakMemory, config_fingerprint, process_config, process_state, remove_temp_files, shard
+from .runs import (
+    PeakMemory, check_output_folder, config_fingerprint, process_config, process_state, read_finished, shard,
+)
 from .sampler.slicing import default_anchors
 from .video import VIDEO_SUFFIXES, write_video
 
@@ -234,21 +236,11 @@ def job_paths(out: Path, job: Job) -> tuple[Path, Path]:
     return folder / f"{job.name}.mp4", folder / f"{job.name}.json"
 
 
-def read_job_result(out: Path, job: Job) -> dict[str, Any] | None:
+def read_job_result(out: Path, job: Job, warn: bool = True) -> dict[str, Any] | None:
     """A finished job's result, or None. A damaged result JSON, or a generated video that is gone,
     means the job is redone (with a warning naming the file)."""
     video, path = job_paths(out, job)
-    if not path.is_file():
-        return None
-    try:
-        result = json.loads(path.read_text(encoding="utf-8"))
-    except (ValueError, UnicodeDecodeError):
-        print(f"warning: {path} is damaged; the job is redone", file=sys.stderr)
-        return None
-    if job.video is None and not video.is_file():
-        print(f"warning: {video} is missing; the job is redone", file=sys.stderr)
-        return None
-    return result
+    return read_finished(path, [video] if job.video is None else [], f"job {job.arm}/{job.name}", warn=warn)
 
 
 PROMPT_FILE_ID = re.compile(r"^(?P<id>[a-d]\d{1,2})-s(?P<seed>\d+)$")
@@ -481,7 +473,7 @@ def write_report(out: Path, jobs: Sequence[Job], cfg: GeCoConfig, command: str) 
     remove_temp_files(out, REPORT_STEMS)
     results, missing = [], []
     for job in jobs:
-        result = read_job_result(out, job)
+        result = read_job_result(out, job, warn=False)  # run_jobs warned
         if result is None:
             missing.append(f"{job.arm}/{job.name}")
         else:
@@ -568,44 +560,32 @@ def plan(args: argparse.Namespace) -> tuple[GeCoConfig, list[Job]]:
     return cfg, jobs
 
 
-def check_output_folder(out: Path, cfg: GeCoConfig) -> None:
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {str(out)!r} exists and is not a folder")
-    run_file = out / "run.json"
-    if run_file.is_file():
-        try:
-            previous = json.loads(run_file.read_text(encoding="utf-8"))["config_sha"]
-        except (ValueError, KeyError, UnicodeDecodeError):
-            raise ValueError(f"{run_file} is damaged; remove it to reuse the folder with this config") from None
-        if previous != config_fingerprint(cfg):
-            raise ValueError(f"{out} holds results of another config (run.json: {previous}, now: "
-                             f"{config_fingerprint(cfg)}); use a new --out folder or the same config")
-
-
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         cfg, jobs = plan(args)
         out = Path(args.out)
         check_output_folder(out, cfg)
+        check_device(cfg.model.device)
+        check_device(cfg.evaluation.device, "evaluation.device")
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    state = process_state(cfg)
-    tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
-    if state.is_main_process:
-        write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
     try:
+        state = process_state(cfg)
+        tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
+        if state.is_main_process:
+            write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
         run_jobs(shard(jobs, state.process_index, state.num_processes), out, process_config(cfg, state),
                  args.weights_map, tag)
-    except FileNotFoundError as err:  # weights not available (WeightsNotFoundError)
+        state.wait_for_everyone()
+        if not state.is_main_process:
+            return 0
+        command = shlex.join(["python", "-m", "geco_guide.geco_eval", *(sys.argv[1:] if argv is None else argv)])
+        summary = write_report(out, jobs, cfg, command)
+    except (FileNotFoundError, WriteError) as err:  # weights not available (WeightsNotFoundError), disk full
         print(f"error: {err}", file=sys.stderr)
         return 2
-    state.wait_for_everyone()
-    if not state.is_main_process:
-        return 0
-    command = shlex.join(["python", "-m", "geco_guide.geco_eval", *(sys.argv[1:] if argv is None else argv)])
-    summary = write_report(out, jobs, cfg, command)
     print(f"{summary['videos']} videos scored ({len(summary['missing'])} missing); report: {out / 'report.md'}")
     return 0 if not summary["missing"] else 1
 

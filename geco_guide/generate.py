@@ -29,7 +29,7 @@ import torch
 from .config import GeCoConfig, config_to_dict, load_config
 from .estimators import TINY_RANDOM, load_estimators, resolve_device
 from .estimators.loading import WeightsNotFoundError
-from .files import write_json_atomic
+from .files import WriteError, write_json_atomic
 from .loss.checks import NonFiniteFramesError, check_frame_values
 
 
@@ -112,22 +112,23 @@ def load_video_pipeline(cfg: GeCoConfig, geometry_estimator=None, flow_estimator
     return pipe
 
 
-def check_device(name: str) -> None:
-    """ValueError (one line) unless this torch can use device ``name`` (``auto`` always works).
+def check_device(name: str, key: str = "model.device") -> None:
+    """ValueError (one line, naming the config ``key``) unless this torch can use device ``name``
+    (``auto`` always works).
 
     Checked before any model loads: otherwise a missing CUDA shows as a traceback from ``.to()``.
     """
     try:
         device = resolve_device(name)
     except RuntimeError as err:  # e.g. "cuda:x"
-        raise ValueError(f"invalid device {name!r}: {err}") from None
+        raise ValueError(f"invalid device {name!r} ({key}): {err}") from None
     if device.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if (device.index or 0) >= count:
             found = "this torch has no CUDA support or no GPU" if count == 0 else f"only {count} CUDA device(s)"
-            raise ValueError(f"device {name!r} is not available ({found}); use model.device=cpu or auto")
+            raise ValueError(f"device {name!r} is not available ({found}); use {key}=cpu or auto")
     elif device.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"device {name!r} is not available on this machine; use model.device=cpu or auto")
+        raise ValueError(f"device {name!r} is not available on this machine; use {key}=cpu or auto")
 
 
 SCHEDULERS = {"ddim": "CogVideoXDDIMScheduler", "dpm": "CogVideoXDPMScheduler"}
@@ -325,7 +326,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = load_config(args.config, args.preset, overrides)
         result = generate(cfg, args.prompt, out=args.out)
-    except (ValueError, FileNotFoundError) as err:  # WeightsNotFoundError is a FileNotFoundError
+    except (ValueError, FileNotFoundError, WriteError) as err:  # WeightsNotFoundError: a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(f"wrote video:   {result.video_path}")

@@ -1,7 +1,9 @@
 """Long runs over many videos (the A/B script, GeCo-Eval): resumable, shardable, measured.
 
-* :func:`config_fingerprint` pins an output folder to one config (``run.json``).
-* :func:`remove_temp_files` deletes what a killed run left of its atomic writes.
+* :func:`config_fingerprint` pins an output folder to one config (``run.json``,
+  :func:`check_output_folder`).
+* :func:`read_finished` reads a finished unit's result file: a damaged one, or one whose outputs
+  are gone, means the unit is redone (with a warning naming the file).
 * :class:`PeakMemory` measures the peak memory of a block (CUDA, or peak RSS on CPU).
 * :func:`process_state` / :func:`process_config` / :func:`shard`: one process, or many under
   ``accelerate launch`` with the jobs dealt round-robin.
@@ -10,6 +12,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import sys
 from collections.abc import Sequence
 from dataclasses import replace
@@ -30,13 +33,40 @@ def config_fingerprint(cfg: GeCoConfig) -> str:
     return hashlib.sha256(config_to_yaml(cfg).encode()).hexdigest()[:16]
 
 
-def remove_temp_files(folder: Path, stems: Sequence[str]) -> None:
-    """Delete temporary files (``.<stem>.*``) that a killed run left behind in ``folder``."""
-    if not folder.is_dir():
+def check_output_folder(out: Path, cfg: GeCoConfig) -> None:
+    """ValueError (one line) unless ``out`` is a folder to create, or one whose ``run.json`` pins
+    ``cfg``; a damaged ``run.json`` is named."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {str(out)!r} exists and is not a folder")
+    run_file = out / "run.json"
+    if not run_file.is_file():
         return
-    for path in folder.iterdir():
-        if path.is_file() and any(path.name.startswith(f".{stem}.") for stem in stems):
-            path.unlink(missing_ok=True)
+    try:
+        previous = json.loads(run_file.read_text(encoding="utf-8"))["config_sha"]
+    except (ValueError, KeyError, TypeError):  # UnicodeDecodeError is a ValueError
+        raise ValueError(f"{run_file} is damaged; remove it to reuse the folder with this config") from None
+    if previous != config_fingerprint(cfg):
+        raise ValueError(f"{out} holds results of another config (run.json: {previous}, now: "
+                         f"{config_fingerprint(cfg)}); use a new --out folder or the same config")
+
+
+def read_finished(path: Path, outputs: Sequence[Path], unit: str, warn: bool = True) -> dict[str, Any] | None:
+    """The JSON object in ``path`` if the unit of work it records (``unit``, e.g. ``pair a-s0``) is
+    finished, else None: no file, a damaged one (not a JSON object), or one of its ``outputs``
+    missing. The last two mean the unit is redone; with ``warn`` a warning names the file."""
+    if not path.is_file():
+        return None
+    try:
+        result = json.loads(path.read_text(encoding="utf-8"))
+    except ValueError:  # UnicodeDecodeError is a ValueError
+        result = None
+    problem = f"{path} is damaged" if not isinstance(result, dict) else next(
+        (f"{output} is missing" for output in outputs if not output.is_file()), None)
+    if problem is None:
+        return result
+    if warn:
+        print(f"warning: {problem}; {unit} is redone", file=sys.stderr)
+    return None
 
 
 class PeakMemory:

@@ -12,8 +12,8 @@
   :func:`draw_text` (a built-in 3x5 bitmap font) and :func:`side_by_side` (labelled panels).
 
 Frames are float ``[S, 3, H, W]`` (or ``[S, H, W, 3]`` on input) in ``[0, 1]``, RGB. Writes are
-atomic: the file is written under a temporary name in the same folder and moved into place with
-``os.replace``, so a reader never sees a half-written video.
+atomic: the file is written under a temporary name in the same folder, checked (readable, every
+frame there) and moved into place with ``os.replace``, so a reader never sees a half-written video.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .files import atomic_path
+from .files import WriteError, atomic_path
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".gif")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -76,7 +76,15 @@ def _to_uint8_hwc(frames) -> np.ndarray:
 def write_video(path: str | os.PathLike, frames, fps: float = 8) -> Path:
     """Write ``frames`` (``[S, 3, H, W]`` or ``[S, H, W, 3]``, float in [0, 1] or uint8) as an
     H.264 mp4 (yuv420p; an odd height/width is padded by one repeated row/column), atomically.
-    Returns the path."""
+    Returns the path.
+
+    The written file is checked before it takes its name: ffmpeg can fail while writing the
+    trailer (a full disk) without the writer raising, which leaves an unreadable file.
+
+    Raises:
+        WriteError: one line naming ``path`` (disk full, ffmpeg failed, the file does not hold
+            ``S`` readable frames); nothing is left under its name or as a temporary file.
+    """
     import imageio.v2 as imageio
 
     if not fps > 0:
@@ -93,7 +101,33 @@ def write_video(path: str | os.PathLike, frames, fps: float = 8) -> Path:
                 writer.append_data(frame)
         finally:
             writer.close()
+        problem = _written_video_problem(tmp, len(data))
+        if problem:
+            raise WriteError(f"cannot write {str(path)!r}: {problem}")
     return path
+
+
+def _written_video_problem(path: Path, expected_frames: int) -> str | None:
+    """Why the mp4 at ``path`` is not a readable video of ``expected_frames`` frames, or None.
+
+    ffmpeg counts its packets without decoding (``-c copy``): about 0.1 s for any size, and it
+    fails on a file without its index (``moov atom not found``), as a truncated one is.
+    """
+    import subprocess
+
+    import imageio_ffmpeg
+
+    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-v", "error", "-i", str(path), "-map", "0:v:0",
+               "-c", "copy", "-f", "null", "-", "-progress", "pipe:1", "-nostats"]
+    proc = subprocess.run(command, capture_output=True, text=True, errors="replace")
+    if proc.returncode != 0:
+        lines = [line.strip() for line in proc.stderr.splitlines() if line.strip()]
+        return f"the written file is not a readable video ({lines[0] if lines else f'ffmpeg exit {proc.returncode}'})"
+    counts = re.findall(r"^frame=(\d+)$", proc.stdout, flags=re.MULTILINE)
+    written = int(counts[-1]) if counts else 0
+    if written != expected_frames:
+        return f"the written file holds {written} frame(s), not {expected_frames}"
+    return None
 
 
 def read_video(path: str | os.PathLike) -> tuple[torch.Tensor, float]:
@@ -291,14 +325,40 @@ def _read_folder(path: Path, fps: float, select: FrameSelector | None) -> tuple[
     return images, indices, len(files)
 
 
-def _file_fps(meta: dict) -> float | None:
-    """Frame rate from imageio metadata: ffmpeg's ``fps``, or a gif's ``duration`` (ms per frame)."""
+#: Frame rates a GIF's centisecond delay is read back to when it is not exact (see :func:`gif_rate`).
+COMMON_RATES = (5.0, 6.0, 8.0, 10.0, 12.0, 15.0, 16.0, 24.0, 25.0, 30.0, 50.0, 60.0)
+
+
+def gif_rate(delay_ms: float) -> float:
+    """The frame rate a GIF frame delay of ``delay_ms`` most plausibly encodes.
+
+    GIF stores delays in whole centiseconds, so a writer rounds ``100 / fps`` down or to nearest:
+    8 fps (12.5 cs) is stored as 12 or 13 cs, which read literally is 8.33 or 7.69 fps. Rule: a
+    delay of ``d`` cs whose rate ``100 / d`` is a whole number is exact (10 cs -> 10 fps, 4 cs ->
+    25 fps); otherwise the rate is the one of :data:`COMMON_RATES` whose exact delay rounds to
+    ``d`` (down or to nearest) and lies closest to ``100 / d`` (12 and 13 cs -> 8 fps, 3 cs -> 30,
+    6 cs -> 16, 7 cs -> 15); with no such rate, ``100 / d`` as is (9 cs -> 11.1 fps). A delay
+    that is not whole centiseconds (not from a GIF) is taken literally. Centiseconds cannot tell
+    24 from 25 fps (4 cs) nor, from writers that round down (Pillow), 15 from 16 fps (6 cs): give
+    the rate (``--fps``) for those.
+    """
+    literal = 1000.0 / delay_ms
+    centiseconds = delay_ms / 10.0
+    if centiseconds != round(centiseconds) or literal == round(literal):
+        return literal
+    encodes = [rate for rate in COMMON_RATES if centiseconds in (math.floor(100 / rate), math.floor(100 / rate + 0.5))]
+    return min(encodes, key=lambda rate: abs(rate - literal), default=literal)
+
+
+def _file_fps(meta: dict, gif: bool) -> float | None:
+    """Frame rate from imageio metadata: ffmpeg's ``fps``, or a gif's ``duration`` (ms per frame,
+    read by :func:`gif_rate`)."""
     fps = meta.get("fps")
     if fps and math.isfinite(fps) and fps > 0:
         return float(fps)
     duration = meta.get("duration")
-    if duration and duration > 0:
-        return 1000.0 / float(duration)
+    if gif and duration and duration > 0:
+        return gif_rate(float(duration))
     return None
 
 
@@ -329,7 +389,7 @@ def _read_file(path: Path, fps: float | None, default_fps: float, select: FrameS
     try:
         reader = _open_reader(path)
         try:
-            file_fps = _file_fps(reader.get_meta_data())
+            file_fps = _file_fps(reader.get_meta_data(), path.suffix.lower() == ".gif")
             source_fps = float(fps or file_fps or default_fps)
             fps_source = "caller" if fps else "file" if file_fps else "default"
             count = count or _frame_count(reader)

@@ -17,10 +17,13 @@ the config's ``evaluation`` protocol. ``<out>/pairs/<id>-s<seed>/`` then holds `
 ``--maps`` the maps videos, and last ``result.json``, whose presence marks the pair complete.
 
 Every file is written atomically, so killing the run at any moment loses at most the pair in
-progress and never leaves a truncated file; a rerun skips complete pairs. Under ``accelerate
-launch`` the pairs are dealt round-robin to the processes; at the end the main process rebuilds
-``results.csv`` (one row per pair and arm), ``summary.json``, ``report.md`` and ``pareto.png`` from
-the pairs' ``result.json`` files. ``run.json`` pins the config: reusing an output folder with a
+progress and never leaves a truncated file; a rerun skips complete pairs and redoes, with a
+warning naming the file, a pair whose ``result.json`` is damaged or whose videos or sidecars are
+gone. ``--maps`` on a resumed folder also makes the maps of complete pairs that have none (their
+videos are scored again; only the estimators load). Under ``accelerate launch`` the pairs are
+dealt round-robin to the processes; at the end the main process rebuilds ``results.csv`` (one row
+per pair and arm), ``summary.json``, ``report.md`` and ``pareto.png`` from the pairs'
+``result.json`` files; scores that are not finite are left out of its statistics and named. ``run.json`` pins the config: reusing an output folder with a
 different config is refused.
 """
 
@@ -45,17 +48,23 @@ import numpy as np
 
 from geco_guide.config import GeCoConfig, config_to_dict, config_to_yaml, load_config
 from geco_guide.evaluate import PAPER_NAMES, evaluate_video, write_maps_video
-from geco_guide.files import write_bytes_atomic, write_json_atomic
+from geco_guide.estimators import load_estimators, resolve_device
+from geco_guide.files import WriteError, remove_temp_files, write_bytes_atomic, write_json_atomic
 from geco_guide.geco_eval import SUITE, select_prompts
-from geco_guide.generate import build_pipeline, generate, slugify, versions
+from geco_guide.generate import build_pipeline, check_device, generate, slugify, versions
 from geco_guide.loss.geco import CUES
 from geco_guide.plots import Panel, legend, limits
-from geco_guide.runs import PeakMemory, config_fingerprint, process_config, process_state, remove_temp_files, shard
+from geco_guide.runs import (
+    PeakMemory, check_output_folder as check_run_folder, config_fingerprint, process_config, process_state, read_finished,
+    shard,
+)
 from geco_guide.video import read_video, side_by_side, write_video
 
 ARMS = ("unguided", "guided")
 METRICS = (*CUES, "total_motion", "mean_motion")
 UNIT_STEMS = ("unguided", "guided", "side_by_side", "unguided_maps", "guided_maps", "result")
+#: What a complete pair holds besides result.json: a pair missing one of them is redone.
+PAIR_OUTPUTS = (*(f"{arm}{ext}" for arm in ARMS for ext in (".mp4", ".json")), "side_by_side.mp4")
 REPORT_STEMS = ("results", "summary", "report", "pareto", "run")
 BOOTSTRAP_RESAMPLES = 10_000
 BOOTSTRAP_SEED = 0
@@ -125,7 +134,11 @@ def read_prompts(path: str | os.PathLike) -> list[Prompt]:
         raise InputError(f"prompts file {str(path)!r} does not exist")
     prompts: list[Prompt] = []
     first_line: dict[str, int] = {}
-    for number, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise InputError(f"prompts file {str(path)!r} is not UTF-8 text (byte {err.start}: {err.reason})") from None
+    for number, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
@@ -165,21 +178,12 @@ def plan_pairs(prompts: Sequence[Prompt], seeds: Sequence[int]) -> list[Pair]:
 
 def check_output_folder(out: Path, cfg: GeCoConfig, pairs: Sequence[Pair]) -> None:
     """Refuse an output folder that holds results of another config or other prompt texts."""
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {str(out)!r} exists and is not a folder")
-    run_file = out / "run.json"
-    if run_file.is_file():
-        previous = json.loads(run_file.read_text())["config_sha"]
-        if previous != config_fingerprint(cfg):
-            raise InputError(
-                f"{out} holds results of another config (run.json: {previous}, now: {config_fingerprint(cfg)}); "
-                "use a new --out folder or the same config"
-            )
+    check_run_folder(out, cfg)
     for pair in pairs:
-        result = read_result(out, pair)
-        if result is not None and result["prompt"] != pair.prompt.text:
+        result = read_finished(pair_dir(out, pair) / "result.json", [], f"pair {pair.name}", warn=False)
+        if result is not None and result.get("prompt") != pair.prompt.text:
             raise InputError(
-                f"{pair_dir(out, pair)} was made for the prompt {result['prompt']!r}, not {pair.prompt.text!r}; "
+                f"{pair_dir(out, pair)} was made for the prompt {result.get('prompt')!r}, not {pair.prompt.text!r}; "
                 "give this prompt another id or use a new --out folder"
             )
 
@@ -192,10 +196,11 @@ def pair_dir(out: Path, pair: Pair) -> Path:
     return out / "pairs" / pair.name
 
 
-def read_result(out: Path, pair: Pair) -> dict[str, Any] | None:
-    """The pair's ``result.json``, or None when the pair is not complete."""
-    path = pair_dir(out, pair) / "result.json"
-    return json.loads(path.read_text()) if path.is_file() else None
+def read_result(out: Path, pair: Pair, warn: bool = False) -> dict[str, Any] | None:
+    """The pair's ``result.json``, or None when the pair is not complete: no result, a damaged one or
+    one of :data:`PAIR_OUTPUTS` missing (with ``warn``, a warning names the file: the pair is redone)."""
+    folder = pair_dir(out, pair)
+    return read_finished(folder / "result.json", [folder / name for name in PAIR_OUTPUTS], f"pair {pair.name}", warn)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -232,6 +237,20 @@ def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps
     return record
 
 
+def has_maps(out: Path, pair: Pair) -> bool:
+    return all((pair_dir(out, pair) / f"{arm}_maps.mp4").is_file() for arm in ARMS)
+
+
+def add_maps(cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], geometry: Any, flow: Any) -> None:
+    """The maps videos of a pair completed without ``--maps``: both videos are scored again with
+    maps (deterministic: the scores in ``result.json`` stay), then ``result.json`` names them."""
+    folder = pair_dir(out, pair)
+    for arm in ARMS:
+        evaluation = evaluate_video(folder / f"{arm}.mp4", geometry=geometry, flow=flow, config=cfg.evaluation, maps=True)
+        result["arms"][arm]["maps_video"] = write_maps_video(evaluation, folder / f"{arm}_maps.mp4").name
+    write_json_atomic(folder / "result.json", result)
+
+
 def write_side_by_side(folder: Path, fps: float) -> None:
     """``side_by_side.mp4``: the two arms' videos next to each other, labelled."""
     videos = [read_video(folder / f"{arm}.mp4")[0] for arm in ARMS]
@@ -259,13 +278,24 @@ def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool) -> d
 
 
 def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag: str) -> None:
-    """Run the pairs of this process that are not complete yet (models load only if needed)."""
-    todo = [pair for pair in pairs if read_result(out, pair) is None]
+    """Run the pairs of this process that are not complete yet, and with ``maps`` make the maps of
+    complete pairs that have none (models load only if needed: for maps alone, the estimators)."""
+    finished = {pair.name: read_result(out, pair, warn=True) for pair in pairs}
+    todo = [pair for pair in pairs if finished[pair.name] is None]
+    unmapped = [pair for pair in pairs if maps and finished[pair.name] is not None and not has_maps(out, pair)]
     print(f"{tag}{len(pairs) - len(todo)} of {len(pairs)} pairs already complete", flush=True)
-    if not todo:
+    if not todo and not unmapped:
         return
-    pipe = build_pipeline(cfg)
-    pipe.set_progress_bar_config(disable=not sys.stderr.isatty())
+    if todo:
+        pipe = build_pipeline(cfg)
+        pipe.set_progress_bar_config(disable=not sys.stderr.isatty())
+        geometry, flow = pipe.geometry_estimator, pipe.flow_estimator
+    else:
+        geometry, flow = load_estimators(cfg.estimators, resolve_device(cfg.model.device))
+    if unmapped:
+        print(f"{tag}making the maps of {len(unmapped)} complete pair(s) that have none", flush=True)
+    for pair in unmapped:
+        add_maps(cfg, pair, out, finished[pair.name], geometry, flow)
     for index, pair in enumerate(todo, start=1):
         result = run_pair(pipe, cfg, pair, out, maps)
         unguided, guided = (result["arms"][arm] for arm in ARMS)
@@ -323,6 +353,14 @@ def _finite_mean(values: Sequence[float]) -> float | None:
     return float(np.mean(finite)) if finite else None
 
 
+def non_finite_scores(results: Sequence[dict[str, Any]]) -> dict[str, list[str]]:
+    """``{pair: ["unguided fused", ...]}`` for the pairs with a NaN/inf score (a video without valid
+    pixels), which the means, differences and counts leave out."""
+    found = {r["pair"]: [f"{arm} {metric}" for arm in ARMS for metric in METRICS
+                         if not np.isfinite(r["arms"][arm][metric])] for r in results}
+    return {pair: scores for pair, scores in found.items() if scores}
+
+
 def summarize(results: Sequence[dict[str, Any]], pairs: Sequence[Pair], cfg: GeCoConfig) -> dict[str, Any]:
     """Everything ``summary.json`` and ``report.md`` say, from the complete pairs' results."""
     done = {r["pair"] for r in results}
@@ -332,6 +370,7 @@ def summarize(results: Sequence[dict[str, Any]], pairs: Sequence[Pair], cfg: GeC
         "pairs": len(results),
         "pairs_planned": len(pairs),
         "missing_pairs": [p.name for p in pairs if p.name not in done],
+        "non_finite_scores": non_finite_scores(results),
         "prompts": len({p.prompt.id for p in pairs}),
         "seeds": sorted({p.seed for p in pairs}),
         "arms": {arm: arm_summary(results, arm) for arm in ARMS} if results else {},
@@ -378,6 +417,14 @@ def _fmt(value: float | None, digits: int = 4) -> str:
     return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}g}"
 
 
+def _non_finite_note(found: dict[str, list[str]]) -> list[str]:
+    if not found:
+        return []
+    listed = "; ".join(f"{pair} ({', '.join(scores)})" for pair, scores in found.items())
+    return [f"**Non-finite scores** in {len(found)} pair(s), left out of the means, differences and counts "
+            f"(no valid pixels to measure): {listed}", ""]
+
+
 def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     return lines + ["| " + " | ".join(row) + " |" for row in rows]
@@ -417,6 +464,7 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
         "",
         *_table(["metric", "unguided", "guided", "guided - unguided", f"{level}% CI (paired bootstrap)"], rows),
         "",
+        *_non_finite_note(summary["non_finite_scores"]),
         f"Guidance lowered the fused score in **{lowered['count']} of {lowered['n']}** pairs "
         f"({share}). Bootstrap: {summary['bootstrap']['resamples']} resamples of "
         f"the pairs, seed {summary['bootstrap']['seed']}. Total/Mean Motion measure how much the video "
@@ -554,6 +602,7 @@ def validate_inputs(args: argparse.Namespace) -> Inputs:
     cfg = load_config(args.config, args.preset, args.overrides)
     if not cfg.guidance.enabled:
         raise InputError("guidance.enabled=false leaves nothing to compare: the guided arm needs guidance")
+    check_device(cfg.model.device)
     pairs = plan_pairs(prompts, seeds)
     out = Path(args.out)
     check_output_folder(out, cfg, pairs)
@@ -570,18 +619,18 @@ def main(argv: list[str] | None = None) -> int:
     cfg, pairs, out = inputs.cfg, inputs.pairs, inputs.out
     state = process_state(cfg)
     tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
-    if state.is_main_process:
-        write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
     try:
+        if state.is_main_process:
+            write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
         run_shard(process_config(cfg, state), shard(pairs, state.process_index, state.num_processes), out, args.maps, tag)
-    except FileNotFoundError as err:  # weights not available (WeightsNotFoundError)
+        state.wait_for_everyone()
+        if not state.is_main_process:
+            return 0
+        command = shlex.join(["python", *sys.argv] if argv is None else ["scripts/ab_compare.py", *argv])
+        summary = write_report(out, pairs, cfg, command)
+    except (ValueError, FileNotFoundError, WriteError) as err:  # diverged sampling, weights not there, disk full
         print(f"error: {err}", file=sys.stderr)
         return 2
-    state.wait_for_everyone()
-    if not state.is_main_process:
-        return 0
-    command = shlex.join(["python", *sys.argv] if argv is None else ["scripts/ab_compare.py", *argv])
-    summary = write_report(out, pairs, cfg, command)
     fused = summary["paired_differences"]["fused"]
     ci = f"[{_fmt(fused['ci95'][0])}, {_fmt(fused['ci95'][1])}]" if fused["ci95"] else "undefined"
     print(f"{summary['pairs']} pairs: fused guided - unguided = {_fmt(fused['mean_diff'])}, 95% CI {ci}; "

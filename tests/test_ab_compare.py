@@ -10,6 +10,7 @@ import csv
 import importlib.util
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -19,6 +20,7 @@ from pathlib import Path
 import imageio.v2 as imageio
 import numpy as np
 import pytest
+import torch
 
 from geco_guide.video import panel_layout, read_video
 
@@ -188,6 +190,31 @@ def test_sharded_run_matches_the_single_process_run(reference: Path, prompts_fil
     _assert_same_scores(_rows(out), _rows(reference))
 
 
+def test_rerun_redoes_a_damaged_pair_and_maps_the_complete_ones(reference: Path, prompts_file: Path, tmp_path: Path):
+    """A resumed folder with ``--maps``: the pair whose result.json is damaged is redone (a warning
+    names the file), the complete pair gets its maps without being generated again."""
+    out = tmp_path / "resumed"
+    shutil.copytree(reference, out)
+    damaged = out / "pairs" / "bridge-s0" / "result.json"
+    damaged.write_text('{"pair": "bridge-s0", "arms": {')  # e.g. edited by hand
+    complete = out / "pairs" / "a-marble-bust-s0"
+    video = (complete / "guided.mp4").read_bytes()
+    rerun = subprocess.run([*_command(prompts_file, out), "--maps"], env=_env(), capture_output=True, text=True,
+                           timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    assert f"warning: {damaged} is damaged; pair bridge-s0 is redone" in rerun.stderr
+    assert "1 of 2 pairs already complete" in rerun.stdout
+    assert "making the maps of 1 complete pair(s) that have none" in rerun.stdout
+    for pair in PAIRS:
+        result = json.loads((out / "pairs" / pair / "result.json").read_text())
+        for arm in ("unguided", "guided"):
+            assert result["arms"][arm]["maps_video"] == f"{arm}_maps.mp4"
+            assert read_video(out / "pairs" / pair / f"{arm}_maps.mp4")[0].shape[0] > 1
+    assert (complete / "guided.mp4").read_bytes() == video  # scored again for the maps, not generated again
+    _assert_same_scores(_rows(out), _rows(reference))
+    assert not _temporaries(out)
+
+
 # ----------------------------------------------------------------------------------------------
 # statistics and report on hand-made results
 
@@ -232,6 +259,38 @@ def test_a_video_without_valid_pixels_is_left_out_of_the_statistics():
     assert summary["guidance_lowered_fused"] == {"count": 0, "n": 0, "fraction": None}
     assert "in **0 of 0** pairs (-)" in ab.report_markdown(summary, results, "", "cmd")
     assert ab.plot_png(results).startswith(b"\x89PNG")
+
+
+def test_non_finite_scores_are_counted_and_named():
+    cfg = ab.load_config(preset="tiny")
+    results = [_result("nan-s0", float("nan"), 0.1), _result("ok-s0", 0.2, 0.1)]
+    pairs = ab.plan_pairs([ab.Prompt("nan", "nan"), ab.Prompt("ok", "ok")], [0])
+    summary = ab.summarize(results, pairs, cfg)
+    assert summary["non_finite_scores"] == {"nan-s0": ["unguided fused", "unguided motion", "unguided structure"]}
+    assert summary["arms"]["unguided"]["fused"] == pytest.approx(0.2)  # the finite one: not a NaN mean
+    assert summary["paired_differences"]["fused"]["n"] == 1
+    report = ab.report_markdown(summary, results, "", "cmd")
+    assert ("**Non-finite scores** in 1 pair(s), left out of the means, differences and counts (no valid pixels "
+            "to measure): nan-s0 (unguided fused, unguided motion, unguided structure)") in report
+    assert "Non-finite" not in ab.report_markdown(ab.summarize(results[1:], pairs[1:], cfg), results[1:], "", "cmd")
+
+
+def test_a_pair_with_a_deleted_video_or_a_damaged_result_is_not_complete(tmp_path: Path, capsys):
+    pair = ab.Pair(ab.Prompt("cat", "a cat"), 0)
+    folder = ab.pair_dir(tmp_path, pair)
+    result = _result(pair.name, 0.2, 0.1)
+    ab.write_json_atomic(folder / "result.json", result)
+    for name in ab.PAIR_OUTPUTS:
+        (folder / name).write_bytes(b"")
+    assert ab.read_result(tmp_path, pair, warn=True) == result and capsys.readouterr().err == ""
+    (folder / "guided.mp4").unlink()
+    assert ab.read_result(tmp_path, pair) is None and capsys.readouterr().err == ""  # the report reads quietly
+    assert ab.read_result(tmp_path, pair, warn=True) is None
+    assert capsys.readouterr().err == f"warning: {folder / 'guided.mp4'} is missing; pair cat-s0 is redone\n"
+    (folder / "guided.mp4").write_bytes(b"")
+    (folder / "result.json").write_bytes(b"\xff{")
+    assert ab.read_result(tmp_path, pair, warn=True) is None
+    assert capsys.readouterr().err == f"warning: {folder / 'result.json'} is damaged; pair cat-s0 is redone\n"
 
 
 def test_shards_cover_every_pair_once():
@@ -299,8 +358,33 @@ def test_reusing_an_output_folder_for_other_work_is_refused(tmp_path, capsys, no
     assert "holds results of another config" in err and "\n" not in err
 
 
+def test_a_damaged_run_file_or_a_non_utf8_prompts_file_is_one_line_naming_it(tmp_path, capsys, no_models):
+    prompts = _write(tmp_path / "p.txt", "a cat\n")
+    out = tmp_path / "out"
+    argv = ["--seeds", "0", "--out", str(out), "--preset", "tiny"]
+    (out / "pairs" / "a-cat-s0").mkdir(parents=True)
+    (out / "pairs" / "a-cat-s0" / "result.json").write_text("{")  # damaged: redone later, no reason to stop
+    (out / "run.json").write_text('{"config_sha": ')
+    assert ab.main(["--prompts", str(prompts), *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"error: {out / 'run.json'} is damaged; remove it to reuse the folder with this config"
+    (tmp_path / "latin1.txt").write_bytes("a caf\xe9\n".encode("latin-1"))
+    assert ab.main(["--prompts", str(tmp_path / "latin1.txt"), *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"error: prompts file {str(tmp_path / 'latin1.txt')!r} is not UTF-8 text (byte 5: invalid continuation byte)"
+
+
 def test_missing_argument_is_one_line(capsys):
     with pytest.raises(SystemExit) as exit_info:
         ab.main(["--prompts", "p.txt", "--out", "o"])
     err = capsys.readouterr().err.strip()
     assert exit_info.value.code == 2 and err.startswith("error:") and "--seeds" in err and "\n" not in err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cuda_without_cuda_is_one_line(tmp_path, capsys, no_models):
+    prompts = _write(tmp_path / "p.txt", "a cat\n")
+    argv = ["--prompts", str(prompts), "--out", str(tmp_path / "out"), "--preset", "tiny", "model.device=cuda", "--seeds", "0"]
+    assert ab.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "device 'cuda' is not available" in err and "\n" not in err

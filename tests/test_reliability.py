@@ -4,7 +4,11 @@ ValueError, never a crash (grid_sample's backward segfaults on a NaN grid) and n
 
 from __future__ import annotations
 
+import errno
+import json
 import math
+import os
+import sys
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from types import SimpleNamespace
@@ -12,18 +16,22 @@ from types import SimpleNamespace
 import pytest
 import torch
 
+from geco_guide import evaluate as evaluate_module
 from geco_guide import generate as generate_module
 from geco_guide.config import load_config
 from geco_guide.estimators.base import Correspondences, SceneGeometry
 from geco_guide.estimators.loading import fetch_checkpoint_file
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.evaluate import evaluate_video
+from geco_guide.evaluate import main as evaluate_main
+from geco_guide.files import WriteError, remove_temp_files, write_json_atomic
 from geco_guide.generate import generate, load_video_pipeline, main
 from geco_guide.loss.checks import NonFiniteFramesError, check_frame_values, non_finite_fields
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig, frame_pairs, geco_from_geometry
 from geco_guide.loss.geometry import inside_image, sample_bilinear
 from geco_guide.synthetic import inject_deformation, rigid_clip
 from geco_guide.testing import tiny_estimators
+from geco_guide.video import write_video
 
 BAD_VALUES = (math.nan, math.inf, -math.inf, 1e30, -1e30)
 
@@ -281,3 +289,118 @@ def test_offline_errors_name_the_hf_command(monkeypatch, tmp_path: Path):
     cfg = load_config(preset="tiny", overrides=["model.id=geco-test-missing/CogVideoX-nothing"])
     with pytest.raises(FileNotFoundError, match="`hf download geco-test-missing/CogVideoX-nothing`"):
         load_video_pipeline(cfg)
+
+
+# --------------------------------------------------------------------------------------------
+# 3. atomic writes under a full disk: one line naming the file, nothing truncated, no temporaries
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="RLIMIT_FSIZE semantics of Linux")
+def test_ffmpeg_failing_on_a_full_disk_is_caught_before_the_rename(tmp_path: Path):
+    """A real failure: a file size limit kills ffmpeg mid-file (as a full disk makes it fail on the
+    trailer); imageio's writer returns normally, and the truncated file must not take the name."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    target = tmp_path / "v.mp4"
+    resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, hard))  # ffmpeg inherits it; noise frames are ~300 kB
+    try:
+        with pytest.raises(WriteError, match=rf"^cannot write '{target}': the written file is not a readable video"):
+            write_video(target, torch.rand(20, 3, 64, 96), fps=8)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_full_disk_while_writing_a_file_is_one_line_naming_it(tmp_path: Path, monkeypatch):
+    target = write_json_atomic(tmp_path / "result.json", {"ok": True})
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    with pytest.raises(WriteError, match=rf"^cannot write '{target}': \[Errno 28\] No space left on device$"):
+        write_json_atomic(target, {"ok": False})
+    assert json.loads(target.read_text()) == {"ok": True} and [p.name for p in tmp_path.iterdir()] == ["result.json"]
+
+
+def test_the_next_write_removes_the_temporaries_a_killed_write_left(tmp_path: Path):
+    stale = [tmp_path / ".v.k2j4_x9a.tmp.mp4", tmp_path / ".v.abcdefgh.tmp.mp4"]  # kill -9 during write_video
+    others = [tmp_path / ".v.b.abcdefgh.tmp.mp4", tmp_path / ".v.abcdefgh.tmp.json", tmp_path / ".vv.abcdefgh.tmp.mp4"]
+    for path in stale + others:  # temporaries of v.b.mp4, v.json, vv.mp4: another file's, maybe being written
+        path.write_bytes(b"")
+    write_video(tmp_path / "v.mp4", torch.rand(2, 3, 8, 8), fps=8)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["v.mp4", *(p.name for p in others)])
+    remove_temp_files(tmp_path, ["v"])  # what the A/B script and GeCo-Eval do for a unit's files
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".v.b.abcdefgh.tmp.mp4", ".vv.abcdefgh.tmp.mp4", "v.mp4"]
+
+
+@pytest.fixture
+def truncating_writer(monkeypatch):
+    """imageio's writer, made to leave a truncated file without raising: ffmpeg on a full disk."""
+    import imageio.v2 as imageio
+
+    real_get_writer = imageio.get_writer
+
+    class Writer:
+        def __init__(self, path, **kwargs):
+            self.path, self.inner = Path(path), real_get_writer(path, **kwargs)
+
+        def append_data(self, frame):
+            self.inner.append_data(frame)
+
+        def close(self):
+            self.inner.close()
+            self.path.write_bytes(self.path.read_bytes()[:100])
+
+    monkeypatch.setattr(imageio, "get_writer", Writer)
+
+
+def test_cli_full_disk_is_one_line_naming_the_video_and_writes_nothing(tmp_path: Path, capsys, monkeypatch,
+                                                                       truncating_writer):
+    frames = torch.rand(1, 9, 3, 32, 48)
+    monkeypatch.setattr(generate_module, "build_pipeline", lambda cfg: _stub_pipe(frames))
+    out = tmp_path / "clip.mp4"
+    assert main(["--preset", "tiny", "--prompt", "a cat", "--out", str(out), "output.score_anchors=false"]) == 2
+    assert f"cannot write '{out}'" in _one_error_line(capsys)
+    assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------------------------
+# 4. evaluate's CLI: inputs that look like options, devices, before any model loads
+
+
+@pytest.fixture
+def no_estimators(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("estimators were loaded")
+    monkeypatch.setattr(evaluate_module, "load_estimators", refuse)
+
+
+def test_evaluate_names_a_missing_input_that_looks_like_an_override(tmp_path: Path, capsys, no_estimators):
+    assert evaluate_main(["--preset", "tiny", "a=b.mp4", "--out", str(tmp_path)]) == 2
+    err = _one_error_line(capsys)
+    assert "'a=b.mp4' is neither an existing file nor a config override ('a' is not a config key)" in err
+    # real overrides, free mapping entries included, are still overrides
+    assert evaluate_main(["--preset", "tiny", "evaluation.model_fps.mine=12", "evaluation.max_fps=4"]) == 2
+    assert "no input video given" in _one_error_line(capsys)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_evaluate_cuda_without_cuda_is_one_line_before_loading(tmp_path: Path, capsys, no_estimators):
+    video = write_video(tmp_path / "v.mp4", torch.rand(3, 3, 16, 16), fps=8)
+    assert evaluate_main([str(video), "--preset", "tiny", "evaluation.device=cuda", "--out", str(tmp_path)]) == 2
+    err = _one_error_line(capsys)
+    assert "'cuda' is not available" in err and "use evaluation.device=cpu or auto" in err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+@pytest.mark.parametrize("override", ["model.device=cuda", "evaluation.device=cuda"])
+def test_geco_eval_cuda_without_cuda_is_one_line_before_loading(tmp_path: Path, capsys, monkeypatch, override):
+    from geco_guide import geco_eval
+
+    monkeypatch.setattr(geco_eval, "process_state", lambda cfg: pytest.fail("the run started"))
+    argv = ["--preset", "tiny", "--models", "cogvideox-5b", "--limit", "1", "--out", str(tmp_path / "x"), override]
+    assert geco_eval.main(argv) == 2
+    assert f"use {override.split('=')[0]}=cpu or auto" in _one_error_line(capsys)
+    assert not (tmp_path / "x").exists()

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from geco_guide.files import WriteError
 from geco_guide.video import (
     GLYPH_HEIGHT,
     INVALID_COLOR,
@@ -18,6 +19,7 @@ from geco_guide.video import (
     colorize,
     draw_text,
     evaluation_windows,
+    gif_rate,
     label_height,
     motion_grid,
     panel_layout,
@@ -67,6 +69,70 @@ def test_failed_encode_cleans_up(tmp_path: Path, monkeypatch):
     monkeypatch.setattr(imageio, "get_writer", broken_writer)
     with pytest.raises(RuntimeError, match="exploded"):
         write_video(tmp_path / "x.mp4", smooth_video(), fps=8)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.fixture
+def failing_writer(monkeypatch):
+    """imageio's writer, made to fail at the end as ffmpeg does on a full disk: ``mode="trailer"``
+    truncates the file at close without raising (ffmpeg's exit status is not checked by imageio),
+    ``mode="write"`` raises ENOSPC from ``append_data``."""
+    import errno
+
+    import imageio.v2 as imageio
+
+    real_get_writer = imageio.get_writer
+    mode = {"mode": None}  # the first write succeeds until a test sets the mode
+
+    class Writer:
+        def __init__(self, path, **kwargs):
+            self.path, self.inner = Path(path), real_get_writer(path, **kwargs)
+
+        def append_data(self, frame):
+            if mode["mode"] == "write":
+                raise OSError(errno.ENOSPC, "No space left on device\n\nFFMPEG COMMAND: ...")
+            self.inner.append_data(frame)
+
+        def close(self):
+            self.inner.close()
+            if mode["mode"] == "trailer":
+                self.path.write_bytes(self.path.read_bytes()[: self.path.stat().st_size // 2])
+
+    monkeypatch.setattr(imageio, "get_writer", Writer)
+    return mode
+
+
+@pytest.mark.parametrize("mode, reason", [("trailer", "not a readable video"), ("write", "No space left on device")])
+def test_a_failing_writer_is_one_line_naming_the_file_and_leaves_nothing(tmp_path: Path, failing_writer, mode, reason):
+    target = write_video(tmp_path / "v.mp4", smooth_video(), fps=8)
+    old = target.read_bytes()
+    failing_writer["mode"] = mode
+    with pytest.raises(WriteError, match=rf"^cannot write '{target}': .*{reason}") as info:
+        write_video(target, smooth_video(frames=6), fps=8)
+    assert "\n" not in str(info.value)
+    assert target.read_bytes() == old and [p.name for p in tmp_path.iterdir()] == ["v.mp4"]
+
+
+def test_a_written_video_with_missing_frames_is_refused(tmp_path: Path, monkeypatch):
+    import imageio.v2 as imageio
+
+    real_get_writer = imageio.get_writer
+
+    class DroppingWriter:  # an encoder that silently loses the last frame
+        def __init__(self, path, **kwargs):
+            self.inner, self.frames = real_get_writer(path, **kwargs), []
+
+        def append_data(self, frame):
+            self.frames.append(frame)
+
+        def close(self):
+            for frame in self.frames[:-1]:
+                self.inner.append_data(frame)
+            self.inner.close()
+
+    monkeypatch.setattr(imageio, "get_writer", DroppingWriter)
+    with pytest.raises(WriteError, match="holds 4 frame\\(s\\), not 5"):
+        write_video(tmp_path / "v.mp4", smooth_video(frames=5), fps=8)
     assert list(tmp_path.iterdir()) == []
 
 
@@ -174,6 +240,24 @@ def test_read_gif_and_frame_folder(tmp_path: Path):
     assert clip.fps == 8.0 and clip.fps_source == "default" and clip.num_frames == 4 and clip.indices == order
     assert (clip.frames - video).abs().mean() < 0.03
     assert read_frames(folder, fps=2.0).fps == 2.0
+
+
+@pytest.mark.parametrize(
+    "delay_ms, fps",
+    [(100, 10.0), (40, 25.0), (50, 20.0), (120, 8.0), (130, 8.0), (30, 30.0), (60, 16.0), (70, 15.0),
+     (170, 6.0), (90, 100 / 9), (125, 8.0), (33.3, 1000 / 33.3)],
+)
+def test_gif_delays_are_read_as_the_rate_they_encode(delay_ms, fps):
+    assert gif_rate(delay_ms) == pytest.approx(fps)
+
+
+@pytest.mark.parametrize("fps", [8, 10, 12, 16, 30])  # 24 and 15 fps store the delays of 25 and 16
+def test_a_gif_written_at_a_common_rate_is_read_at_that_rate(tmp_path: Path, fps):
+    import imageio.v2 as imageio
+
+    data = (smooth_video(frames=3).permute(0, 2, 3, 1).numpy() * 255).astype(np.uint8)
+    imageio.mimsave(tmp_path / "a.gif", list(data), duration=1000 / fps, loop=0)  # stored in whole centiseconds
+    assert read_frames(tmp_path / "a.gif").fps == fps
 
 
 def test_read_frames_errors_are_one_line_video_read_errors(tmp_path: Path):
