@@ -2,7 +2,8 @@
 
     python -m geco_guide.robustness --out robustness            # CPU, offline, about a minute
 
-On synthetic scenes with exact depth, cameras and flow (:mod:`geco_guide.synthetic`), Gaussian
+The metric is scored as :mod:`geco_guide.evaluate` scores it (the evaluation protocol's loss
+options). On synthetic scenes with exact depth, cameras and flow (:mod:`geco_guide.synthetic`), Gaussian
 noise is added to one input at a time, as the paper does on TartanAir with ground truth:
 
 * depth, multiplicatively in log space, ``D exp(sigma n)`` (so errors scale with distance;
@@ -20,7 +21,7 @@ from __future__ import annotations
 import argparse
 import io
 import sys
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,7 @@ import torch
 from PIL import Image, ImageDraw
 
 from .benchmarks import scene_track
+from .config import EvaluationConfig
 from .estimators.base import Correspondences, SceneGeometry
 from .files import write_bytes_atomic, write_json_atomic
 from .loss.geco import GeCoLossConfig, frame_pairs, geco_from_geometry
@@ -81,13 +83,13 @@ def run_sweep(num_frames: int = 9, height: int = 48, width: int = 64, seed: int 
               depth_sigmas=DEPTH_SIGMAS, flow_sigmas=FLOW_SIGMAS, config: GeCoLossConfig | None = None) -> dict[str, Any]:
     """The whole study as a JSON-ready dict: per input (``depth``, ``flow``) the sigmas, per task
     (``warp``, ``occlusion``) each cue's AP per sigma, and the rigid clip's fused score per sigma.
-    ``config``: the metric's options (default: every ordered pair)."""
-    config = config or GeCoLossConfig(pairs="all")
+    ``config``: the metric's options (default: the evaluation protocol's, every ordered pair)."""
+    config = config or EvaluationConfig().loss
     pair_list = frame_pairs(num_frames, config.pairs)
     clips = sweep_clips(num_frames, height, width, seed)
     exact = {name: (clip.geometry(torch.float64), clip.pair_correspondences(pair_list, torch.float64)) for name, clip in clips.items()}
     report: dict[str, Any] = {"scene": {"num_frames": num_frames, "height": height, "width": width, "seed": seed},
-                              "loss": {"pairs": config.pairs, "depth_edge_tau": config.depth_edge_tau}}
+                              "loss": asdict(config)}
     for noisy_input, sigmas in (("depth", depth_sigmas), ("flow", flow_sigmas)):
         generator = torch.Generator().manual_seed(seed)
         rows: dict[str, Any] = {"sigmas": list(sigmas), "warp": {c: [] for c in CUES}, "occlusion": {c: [] for c in CUES},
@@ -156,7 +158,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--size must be at least 3 frames of 8x8, got {args.size}")
         report = run_sweep(frames, height, width, args.seed, _sigmas(args.depth_sigmas, "--depth-sigmas"),
                            _sigmas(args.flow_sigmas, "--flow-sigmas"),
-                           GeCoLossConfig(pairs=args.pairs, depth_edge_tau=None if args.no_depth_edges else 0.1))
+                           replace(EvaluationConfig().loss, pairs=args.pairs,
+                                   depth_edge_tau=None if args.no_depth_edges else EvaluationConfig().loss.depth_edge_tau))
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

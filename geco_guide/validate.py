@@ -28,6 +28,7 @@ import argparse
 import io
 import math
 import sys
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -252,8 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     estimator_ids = {"geometry": "oracle", "flow": "oracle"} if args.oracle else {
         "geometry": estimator_id(estimators[0]), "flow": estimator_id(estimators[1])}
     report = {"summary": summary, "clips": records, "errors": errors, "estimators": estimator_ids,
-              "loss": {k: getattr(cfg.evaluation.loss, k) for k in ("pairs", "covisibility_threshold", "confidence_percentile",
-                                                                    "occlusion_tau", "depth_edge_tau")}}
+              "loss": asdict(cfg.evaluation.loss)}
     write_json_atomic(out / "validation.json", report)
     table = markdown_table(summary) if summary else "No clip could be scored.\n"
     write_text_atomic(out / "validation.md", f"# GeCo validation ({estimator_ids['geometry']} + {estimator_ids['flow']})\n\n{table}")
