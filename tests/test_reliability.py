@@ -404,3 +404,21 @@ def test_geco_eval_cuda_without_cuda_is_one_line_before_loading(tmp_path: Path, 
     assert geco_eval.main(argv) == 2
     assert f"use {override.split('=')[0]}=cpu or auto" in _one_error_line(capsys)
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("changes, key", [
+    ({"eta": float("inf")}, "eta"), ({"eta": 1e30}, "eta"), ({"eta": -1.0}, "eta"),
+    ({"grad_eps": float("nan")}, "grad_eps"), ({"grad_eps": 0.0}, "grad_eps"), ({"chunk_latents": 1}, "chunk_latents"),
+])
+def test_guidance_config_refuses_bad_values_in_the_python_api_and_the_hook(changes, key):
+    """The library path (GuidanceConfig, attach_geco_guidance with a dict) checks what the CLI checks."""
+    from geco_guide.sampler import GuidanceConfig
+    from geco_guide.sampler.hooks import attach_geco_guidance
+    from geco_guide.testing import tiny_estimators, tiny_wan_pipeline
+
+    with pytest.raises(ValueError, match=key):
+        GuidanceConfig(**changes)
+    vggt, ufm = tiny_estimators(0)
+    pipe = tiny_wan_pipeline(0)
+    with pytest.raises(ValueError, match=key):
+        attach_geco_guidance(pipe, changes, geometry=vggt, flow=ufm)

@@ -39,11 +39,16 @@ from typing import Any, Optional
 import torch
 from torch import Tensor, nn
 
+from ..loss.checks import non_finite_fields
 from ..loss.geco import GeCoLossConfig
 from .schedule import PAPER_ETA, PAPER_REPEATS, PAPER_TIME_TRAVEL, GuidanceSchedule, scale_schedule
 from .slicing import anchor_latent_chunks
 
 PAPER_ANCHORS = (12, 24, 36, 48)
+# An update of eta moves the latents by eta in L2 norm; 1000 is about the norm of the whole latent
+# video at 480x720 (the paper: 3). Larger values only overflow the latents to NaN/inf after
+# minutes of sampling (a black video), so they are refused at once.
+MAX_ETA = 1000.0
 
 
 def _guidance_loss_default() -> GeCoLossConfig:
@@ -96,6 +101,16 @@ class GuidanceConfig:
     grad_eps: float = 1e-8
     loss: GeCoLossConfig = field(default_factory=_guidance_loss_default)
 
+    def __post_init__(self) -> None:
+        for key, value in non_finite_fields(self):  # the first one
+            raise ValueError(f"{key} must be a finite number, got {value}")
+        if not 0 <= self.eta <= MAX_ETA:
+            raise ValueError(f"eta must be in [0, {MAX_ETA:g}], got {self.eta}")
+        if not self.grad_eps > 0:
+            raise ValueError(f"grad_eps must be > 0, got {self.grad_eps}")
+        if self.chunk_latents < 2:
+            raise ValueError(f"chunk_latents must be >= 2, got {self.chunk_latents}")
+
     def schedule(self, num_steps: int) -> GuidanceSchedule:
         """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see
         :func:`~geco_guide.sampler.schedule.scale_schedule`)."""
@@ -115,8 +130,6 @@ class GuidanceConfig:
     def validate(self, num_steps: int, num_frames: int, temporal_compression: int) -> GuidanceSchedule:
         """Check everything against a run; ValueError naming the problem. Returns the schedule."""
         self.check_loss()
-        if not self.grad_eps > 0:
-            raise ValueError(f"guidance grad_eps must be > 0, got {self.grad_eps}")
         anchor_latent_chunks(self.anchors, num_frames, temporal_compression, self.chunk_latents)
         return self.schedule(num_steps)
 
