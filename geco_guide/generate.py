@@ -26,6 +26,7 @@ from typing import Any
 
 import torch
 
+from . import __version__
 from .config import GeCoConfig, config_to_dict, load_config
 from .estimators import TINY_RANDOM, load_estimators, resolve_device
 from .estimators.loading import WeightsNotFoundError
@@ -306,6 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m geco_guide.generate",
         description="Generate a video with GeCo geometric-consistency guidance (CogVideoX).",
     )
+    p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
     p.add_argument("--prompt", required=True, help="text prompt")
     p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
     p.add_argument("--preset", default=None, help="a preset shipped in geco_guide/configs/ (tiny, cogvideox-5b, cogvideox-5b-fused)")

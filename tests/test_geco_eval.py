@@ -145,6 +145,9 @@ def test_console_scripts_and_version(capsys):
     scripts = {ep.name: ep.value for ep in entry_points(group="console_scripts") if ep.name.startswith("geco-")}
     assert scripts == {"geco-generate": "geco_guide.generate:main", "geco-evaluate": "geco_guide.evaluate:main",
                        "geco-eval": "geco_guide.geco_eval:main"}
-    with pytest.raises(SystemExit) as exit_info:
-        main(["--version"])
-    assert exit_info.value.code == 0 and capsys.readouterr().out.strip() == f"geco_guide {geco_guide.__version__}"
+    from geco_guide.generate import main as generate_main
+
+    for cli in (main, evaluate_main, generate_main):
+        with pytest.raises(SystemExit) as exit_info:
+            cli(["--version"])
+        assert exit_info.value.code == 0 and capsys.readouterr().out.strip() == f"geco_guide {geco_guide.__version__}"
