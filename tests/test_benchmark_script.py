@@ -252,3 +252,112 @@ def test_stage_profiler_backward_intervals() -> None:
     kinds = sorted((iv["stage"], iv["kind"]) for iv in profiler.intervals())
     assert kinds == [("a", "backward"), ("a", "forward"), ("a", "forward"), ("b", "backward"), ("b", "forward"), ("b", "forward")]
     assert benchmark._union_seconds([(0.0, 2.0), (1.0, 3.0), (5.0, 6.0)]) == 4.0
+
+
+# ---- cost: FLOPs and memory on fake tensors ----------------------------------------------------
+
+
+def _benchmark_module():
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import benchmark
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    return benchmark
+
+
+def test_cost_tracker_counts_flops_and_live_memory() -> None:
+    """On real tensors: a matmul's FLOPs, and memory that follows allocations and frees."""
+    import torch
+
+    benchmark = _benchmark_module()
+    tracker = benchmark.CostTracker()
+    with tracker.mode():
+        a = torch.ones(1024)  # 4 KiB
+        b = a * 2  # 8 KiB live
+        del a  # 4 KiB
+        c = b + 1  # 8 KiB again
+        x, y = torch.ones(4, 8), torch.ones(8, 16)
+        z = x @ y
+    assert tracker.flops[("other", "forward")] == 2 * 4 * 8 * 16
+    assert tracker.peak == 8192 + 4 * (32 + 128 + 64)
+    assert tracker.current == 8192 + 4 * (32 + 128 + 64)
+    del b, c, x, y, z
+    assert tracker.current == 0
+
+
+def test_cost_schedule_counts_at_paper_schedule() -> None:
+    """The real guided_step driven by counting stubs: 111 updates; faithful makes 111
+    differentiated denoiser calls and 50 without gradients, fast 67 (docs/benchmarks.md)."""
+    from geco_guide.sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
+
+    benchmark = _benchmark_module()
+    settings = {"preset": "full", "frames": 49, "steps": 50, "repeats": PAPER_REPEATS,
+                "time_travel": list(PAPER_TIME_TRAVEL), "chunk_latents": None, "vae_checkpointing": None,
+                "denoiser_checkpointing": None}
+    faithful = benchmark.count_schedule_calls("faithful", settings)
+    fast = benchmark.count_schedule_calls("fast", settings)
+    assert faithful == {"steps": 50, "updates": 111, "denoiser_cfg": 50, "denoiser_grad": 111, "time_travel_updates": 17}
+    assert fast == {"steps": 50, "updates": 111, "denoiser_cfg": 67, "denoiser_grad": 0, "time_travel_updates": 17}
+    no_tt = benchmark.count_schedule_calls("fast", {**settings, "time_travel": None})
+    assert no_tt["denoiser_cfg"] == 50 and no_tt["updates"] == 111
+    assert benchmark.count_schedule_calls("unguided", settings)["denoiser_cfg"] == 50
+
+
+def test_cost_tiny_denoiser_step_equals_independent_count() -> None:
+    """The cost model's FLOPs of one tiny CFG denoiser call (fake tensors, through the pipeline)
+    equal FlopCounterMode's on real tensors with the math attention backend (attention as bmm)."""
+    import torch
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from geco_guide.testing import (
+        TINY_HEIGHT,
+        TINY_MAX_SEQUENCE_LENGTH,
+        TINY_NUM_FRAMES,
+        TINY_WIDTH,
+        tiny_pipeline,
+    )
+
+    benchmark = _benchmark_module()
+    settings = {"preset": "tiny", "frames": TINY_NUM_FRAMES, "height": TINY_HEIGHT, "width": TINY_WIDTH,
+                "dtype": "float32", "seed": 0, "vae_tiling": False, "estimator_checkpointing": False,
+                "chunk_latents": None, "vae_checkpointing": None, "denoiser_checkpointing": None}
+    trace = benchmark.trace_cost(settings, "unguided")
+    cfg = trace["stages"]["denoiser_cfg"]
+    assert cfg["calls"] == 1 and "backward" not in cfg
+
+    pipe = tiny_pipeline(0)
+    config = pipe.transformer.config
+    latents = torch.randn(2, (TINY_NUM_FRAMES - 1) // 4 + 1, config.in_channels, TINY_HEIGHT // 8, TINY_WIDTH // 8)
+    text = torch.randn(2, TINY_MAX_SEQUENCE_LENGTH, config.text_embed_dim)
+    rotary = (pipe._prepare_rotary_positional_embeddings(TINY_HEIGHT, TINY_WIDTH, latents.shape[1], torch.device("cpu"))
+              if config.use_rotary_positional_embeddings else None)
+    counter = FlopCounterMode(display=False)
+    with torch.no_grad(), sdpa_kernel(SDPBackend.MATH), counter:
+        pipe.transformer(hidden_states=latents, encoder_hidden_states=text, timestep=torch.tensor([500, 500]),
+                         image_rotary_emb=rotary, return_dict=False)
+    assert counter.get_total_flops() > 0
+    assert cfg["forward"]["flops"] == counter.get_total_flops()
+
+
+def test_cost_report_tiny(tmp_path: Path) -> None:
+    """`cost --preset tiny` writes the documented keys; guided costs more than unguided."""
+    path = tmp_path / "cost.json"
+    proc = subprocess.run([sys.executable, str(SCRIPT), "cost", "--preset", "tiny", "--mode", "fast",
+                           "--threads", "1", "--json", str(path)], check=False, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(path.read_text())
+    assert {"mode", "flops_unguided", "flops_guided", "flops_ratio_guided_over_unguided", "peak_memory_gb",
+            "per_stage", "settings"} <= set(report)
+    assert report["mode"] == "fast" and report["settings"]["preset"] == "tiny"
+    assert report["flops_guided"] > report["flops_unguided"] > 0
+    assert report["flops_ratio_guided_over_unguided"] == pytest.approx(report["flops_guided"] / report["flops_unguided"])
+    assert report["peak_memory_gb"] > report["weights_gb"]["transformer"] > 0
+    stages = report["per_stage"]
+    # tiny schedule 0,2,2,1 with time travel in step 2: 5 updates; fast mode differentiates no denoiser
+    assert report["counts"]["updates"] == 5 and stages["denoiser"]["flops"] == 0
+    for name in ("anchor_decode", "vggt", "ufm"):
+        assert stages[name]["count"] == 5 and stages[name]["flops_forward"] > 0 and stages[name]["flops_backward"] > 0
+    assert sum(s["flops"] for s in stages.values()) == report["flops_guided"]
