@@ -4,6 +4,7 @@
     python -m geco_guide.benchmarks warp clip.mp4 --mask object.png --out bench/warp-clip
     python -m geco_guide.benchmarks occlusion clip.mp4 --object duck.png --out bench/occlusion
     python -m geco_guide.benchmarks warp synthetic --out bench/synthetic-warp --seeds 0 1 2   # offline, exact ground truth
+    python -m geco_guide.benchmarks occlusion synthetic-3d --out bench/synthetic-occlusion-3d
 
 Each clip becomes a folder ``<out>/<name>-s<seed>/`` holding
 
@@ -15,8 +16,9 @@ Each clip becomes a folder ``<out>/<name>-s<seed>/`` holding
 * ``meta.json`` (written last: a folder without it is incomplete): the kind, mode, anomalous
   frame, phases, every parameter, the seed and the source.
 
-``synthetic`` renders :func:`geco_guide.synthetic.rigid_clip` instead of reading a video; such
-folders record it, and :func:`oracle_clip` rebuilds their exact depth, cameras and flow, so
+``synthetic`` renders :func:`geco_guide.synthetic.rigid_clip` instead of reading a video, and
+``synthetic-3d`` is :func:`geco_guide.synthetic.occlusion_swap_clip` (an occlusion edit made in
+3D: the re-revealed box is a real surface the flow can follow); such folders record it, and :func:`oracle_clip` rebuilds their exact depth, cameras and flow, so
 ``python -m geco_guide.validate --oracle`` can score them with ground-truth estimators.
 Everything is deterministic from the seed and written atomically.
 """
@@ -27,7 +29,7 @@ import argparse
 import io
 import json
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -43,12 +45,19 @@ from .occlusion import (
     composite_occlusion,
     default_region,
 )
-from .synthetic import SyntheticClip, rigid_clip, with_overlay, with_warp
+from .synthetic import (
+    SyntheticClip,
+    occlusion_swap_clip,
+    rigid_clip,
+    with_overlay,
+    with_warp,
+)
 from .video import VIDEO_SUFFIXES, read_frames
 from .warp import WarpParams, WarpResult, warp_clip, warp_one_frame
 
 KINDS = ("warp", "occlusion")
-SYNTHETIC = "synthetic"
+SYNTHETIC = "synthetic"  # the gallery scene (rigid_clip): any edit
+SYNTHETIC_3D = "synthetic-3d"  # occlusion_swap_clip: an occlusion inconsistency built in 3D
 
 
 @dataclass
@@ -114,9 +123,10 @@ def read_mask(path: str | Path, num_frames: int, height: int, width: int) -> Ten
 
 def load_clip(source: str, max_frames: int, synthetic_size: tuple[int, int, int]) -> tuple[Tensor, SyntheticClip | None]:
     """Frames ``[S, 3, H, W]`` of ``source`` (at most ``max_frames``, evenly spaced), and the
-    synthetic clip when ``source`` is ``synthetic`` (``synthetic_size``: frames, height, width)."""
-    if source == SYNTHETIC:
-        clip = rigid_clip(*synthetic_size)
+    synthetic clip when ``source`` is ``synthetic`` / ``synthetic-3d`` (``synthetic_size``:
+    frames, height, width)."""
+    if source in (SYNTHETIC, SYNTHETIC_3D):
+        clip = (rigid_clip if source == SYNTHETIC else occlusion_swap_clip)(*synthetic_size)
         return clip.frames.float(), clip
 
     def evenly(count: int, fps: float) -> list[int]:
@@ -187,6 +197,8 @@ def oracle_clip(bench: Benchmark) -> SyntheticClip:
     if spec is None:
         raise ValueError(f"{str(bench.path)!r} was built from {bench.meta.get('source')!r}, not a synthetic scene: "
                          "oracle estimators need its ground truth")
+    if spec["scene"] == SYNTHETIC_3D:
+        return replace(occlusion_swap_clip(spec["num_frames"], spec["height"], spec["width"]), frames=bench.frames)
     clip = rigid_clip(spec["num_frames"], spec["height"], spec["width"])
     if bench.kind == "warp":
         edit = WarpResult(bench.frames, bench.truth["displacement"].double(), bench.truth["mask"], torch.empty(0, 2))
@@ -224,7 +236,12 @@ def build_one(kind: str, source: str, frames: Tensor, synthetic: SyntheticClip |
     meta: dict[str, Any] = {"kind": kind, "source": source, "seed": seed, "num_frames": num_frames,
                             "height": height, "width": width}
     if synthetic is not None:
-        meta["synthetic"] = {"scene": "gallery", "num_frames": num_frames, "height": height, "width": width}
+        meta["synthetic"] = {"scene": source, "num_frames": num_frames, "height": height, "width": width}
+    if source == SYNTHETIC_3D:  # the edit is part of the scene: only the ground truth to write
+        if kind != "occlusion":
+            raise ValueError(f"{SYNTHETIC_3D} is an occlusion scene; warp the gallery scene '{SYNTHETIC}' instead")
+        meta.update(mode="clip", anomalous_frame=None, params={}, scene="synthetic.occlusion_swap_clip")
+        return frames, {"mask": synthetic.mask}, meta
     if kind == "warp":
         mask = read_mask(args.mask, num_frames, height, width) if args.mask else None
         params = WarpParams(num_controls=args.controls, amplitude=args.amplitude, beta=args.beta,
@@ -250,7 +267,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m geco_guide.benchmarks",
                                 description="Build WarpBench/OccluBench-style clips with ground truth.")
     p.add_argument("kind", choices=KINDS)
-    p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|synthetic")
+    p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|synthetic|synthetic-3d",
+                   help="clips to edit; synthetic: the gallery scene with exact ground truth; synthetic-3d "
+                        "(occlusion only): a pillar hides a wall region that re-appears with another box, in 3D")
     p.add_argument("--out", required=True, help="output folder (one sub-folder per clip and seed)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="one clip per input and seed")
     p.add_argument("--max-frames", type=int, default=20, help="frames kept per input, evenly spaced (paper: 20)")
@@ -279,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.max_frames < 3:
                 raise ValueError(f"--max-frames must be >= 3, got {args.max_frames}")
             frames, synthetic = load_clip(source, args.max_frames, tuple(args.synthetic_size))
-            stem = SYNTHETIC if synthetic is not None else Path(source).stem or Path(source).name
+            stem = source if synthetic is not None else Path(source).stem or Path(source).name
             for seed in args.seeds:
                 edited, truth, meta = build_one(args.kind, source, frames, synthetic, seed, args)
                 folder = Path(args.out) / f"{stem}-s{seed}"
