@@ -156,8 +156,11 @@ def write_benchmark(folder: Path, frames: Tensor, truth: dict[str, Tensor], meta
     """Write one clip's folder (frames, ``truth.npz``, then ``meta.json``), atomically per file."""
     if (folder / "meta.json").exists():
         (folder / "meta.json").unlink()  # rebuilding: incomplete until the new meta lands
-    for k, frame in enumerate(frames):
-        write_bytes_atomic(folder / "frames" / f"{k:05d}.png", _png(frame))
+    names = [f"{k:05d}.png" for k in range(frames.shape[0])]
+    for name, frame in zip(names, frames):
+        write_bytes_atomic(folder / "frames" / name, _png(frame))
+    for stale in {p.name for p in (folder / "frames").glob("*.png")} - set(names):  # a longer earlier build
+        (folder / "frames" / stale).unlink()
     write_bytes_atomic(folder / "truth.npz", _npz(truth))
     return write_json_atomic(folder / "meta.json", meta)
 

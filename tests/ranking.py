@@ -1,5 +1,5 @@
 """The package's ranking statistics, importable by the tests as ``ranking``."""
 
-from geco_guide.ranking import average_precision, best_threshold_iou_f1, spearman
+from geco_guide.ranking import average_precision, spearman
 
-__all__ = ["average_precision", "best_threshold_iou_f1", "spearman"]
+__all__ = ["average_precision", "spearman"]
