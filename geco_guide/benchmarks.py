@@ -29,6 +29,7 @@ import argparse
 import io
 import json
 import sys
+import zipfile
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -174,8 +175,13 @@ def load_benchmark(folder: str | Path) -> Benchmark:
     meta = json.loads(meta_path.read_text())
     if meta.get("kind") not in KINDS:
         raise ValueError(f"{str(meta_path)!r}: kind must be one of {KINDS}, got {meta.get('kind')!r}")
-    with np.load(folder / "truth.npz") as data:
-        truth = {key: torch.from_numpy(data[key]) for key in data.files}
+    try:
+        with np.load(folder / "truth.npz") as data:
+            truth = {key: torch.from_numpy(data[key]) for key in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        raise ValueError(f"{str(folder)!r}: cannot read truth.npz ({err})") from None
+    if "mask" not in truth:
+        raise ValueError(f"{str(folder)!r}: truth.npz holds no mask")
     frames = read_frames(folder / "frames").frames
     if frames.shape[0] != truth["mask"].shape[0] or tuple(frames.shape[-2:]) != tuple(truth["mask"].shape[-2:]):
         raise ValueError(f"{str(folder)!r}: frames {list(frames.shape)} do not match the truth {list(truth['mask'].shape)}")
