@@ -1725,6 +1725,86 @@ def run_cost(args: argparse.Namespace) -> None:
 
 
 # ----------------------------------------------------------------------------------------------
+# GeCo-Eval: what scoring one video costs under each pair mode
+# ----------------------------------------------------------------------------------------------
+
+#: The H200 sampling run whose estimator calls give the per-call times of the full-size estimate.
+H200_FAST_RUN = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "sampling_full_h200_fast.json"
+
+
+def _counting(estimator: Any, method: str, counts: dict[str, int], calls: str, items: str, dim: int) -> None:
+    """Count ``estimator.method``'s calls and the size of its first argument along ``dim``."""
+    original = getattr(estimator, method)
+
+    def wrapper(first: Tensor, *args: Any, **kwargs: Any) -> Any:
+        counts[calls] += 1
+        counts[items] += first.shape[dim]
+        return original(first, *args, **kwargs)
+
+    setattr(estimator, method, wrapper)
+
+
+def geco_eval_cost(args: argparse.Namespace) -> dict[str, Any]:
+    """Score one random clip of ``args.frames`` frames at ``args.fps`` with the tiny estimators
+    under each pair mode (estimator calls counted, wall time measured), and scale the counts to
+    VGGT-1B / UFM-Base on an H200 with per-call times of the measured full-size sampling run."""
+    from geco_guide.config import load_config
+    from geco_guide.estimators import load_estimators
+    from geco_guide.evaluate import evaluate_video
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    video = torch.rand(args.frames, 3, args.height, args.width, generator=torch.Generator().manual_seed(args.seed))
+    geometry, flow = load_estimators(load_config(preset="tiny").estimators, "cpu")
+    counts = {"vggt_calls": 0, "vggt_frames": 0, "ufm_calls": 0, "ufm_pairs": 0}
+    _counting(geometry, "estimate_geometry", counts, "vggt_calls", "vggt_frames", dim=1)
+    _counting(flow, "estimate_flow", counts, "ufm_calls", "ufm_pairs", dim=0)
+    h200 = json.loads(H200_FAST_RUN.read_text())["arms"]["guided"]
+    seconds, calls = h200["profile"]["seconds"], h200["profile"]["counts"]
+    # guidance's UFM call holds the anchors' adjacent pairs, its VGGT call the anchors
+    anchors = len(h200["guidance"]["anchors"])
+    ufm_pair_s = seconds["ufm/forward/update"] / (calls["ufm/forward/update"] * (anchors - 1))
+    vggt_frame_s = seconds["vggt/forward/update"] / (calls["vggt/forward/update"] * anchors)
+    modes = {}
+    for pairs in args.pairs:
+        cfg = load_config(preset="tiny", overrides=[f"evaluation.loss.pairs={pairs}"])
+        evaluate_video(video, geometry=geometry, flow=flow, config=cfg, fps=args.fps)  # warm-up
+        counts.update(dict.fromkeys(counts, 0))
+        start = time.perf_counter()
+        result = evaluate_video(video, geometry=geometry, flow=flow, config=cfg, fps=args.fps)
+        wall = time.perf_counter() - start
+        estimate = counts["ufm_pairs"] * ufm_pair_s + counts["vggt_frames"] * vggt_frame_s
+        modes[pairs] = {**counts, "windows": len(result.windows), "tiny_cpu_wall_s": wall,
+                        "h200_estimate_s": estimate, "h200_estimate_suite_h": estimate * args.videos / 3600}
+    return {
+        "subcommand": "geco-eval", "argv": sys.argv[1:], "environment": environment_info(torch.get_num_threads()),
+        "clip": {"frames": args.frames, "fps": args.fps, "height": args.height, "width": args.width},
+        "videos_per_model": args.videos, "modes": modes,
+        "h200_per_call": {"ufm_pair_s": ufm_pair_s, "vggt_frame_s": vggt_frame_s, "source": H200_FAST_RUN.name},
+        "estimate_note": ("UFM's network runs at a fixed working resolution whatever the input size, so its "
+                          "per-pair time from the H200 guidance run (forward with autograd bookkeeping) "
+                          "applies; VGGT is scaled per frame from 4-frame calls, a lower bound for 24-frame "
+                          "windows (its global attention grows with the square of the frames). Generation "
+                          "not included."),
+    }
+
+
+def run_geco_eval_cost(args: argparse.Namespace) -> None:
+    report = geco_eval_cost(args)
+    header = "| pairs | windows | VGGT calls (frames) | UFM calls (pairs) | tiny CPU wall (s) | H200 estimate per video (s) | per model, {} videos (h) |"
+    lines = [header.format(report["videos_per_model"]), "|---|---|---|---|---|---|---|"]
+    for pairs, m in report["modes"].items():
+        lines.append(f"| {pairs} | {m['windows']} | {m['vggt_calls']} ({m['vggt_frames']}) | {m['ufm_calls']} "
+                     f"({m['ufm_pairs']}) | {m['tiny_cpu_wall_s']:.3g} | {m['h200_estimate_s']:.3g} | "
+                     f"{m['h200_estimate_suite_h']:.3g} |")
+    print("\n".join(lines))
+    if args.json:
+        path = Path(args.json)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(report, indent=2) + "\n")
+
+
+# ----------------------------------------------------------------------------------------------
 # Subcommands
 # ----------------------------------------------------------------------------------------------
 
@@ -1896,6 +1976,18 @@ def build_parser() -> argparse.ArgumentParser:
     cost.add_argument("--seed", type=int, default=0, help="seed (shapes only; default: 0)")
     cost.add_argument("--json", metavar="PATH", help="also write the report as JSON to PATH")
 
+    geval = sub.add_parser("geco-eval", help="estimator calls and time of scoring one video under each pair mode "
+                                             "(tiny on CPU, estimated at full size on an H200)")
+    geval.add_argument("--frames", type=int, default=49, help="frames of the clip (default: 49, CogVideoX)")
+    geval.add_argument("--fps", type=float, default=16.0, help="its native frame rate (default: 16, CogVideoX)")
+    geval.add_argument("--height", type=int, default=32, help="height of the tiny run (default: 32)")
+    geval.add_argument("--width", type=int, default=48, help="width of the tiny run (default: 48)")
+    geval.add_argument("--pairs", nargs="+", choices=PAIR_MODES, default=["all", "center", "adjacent"])
+    geval.add_argument("--videos", type=int, default=320, help="videos per model (default: 320 = 80 prompts x 4 seeds)")
+    geval.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
+    geval.add_argument("--seed", type=int, default=0, help="seed of the random clip (default: 0)")
+    geval.add_argument("--json", metavar="PATH", help="also write the report as JSON to PATH")
+
     worker = sub.add_parser("worker", help="internal: run one case given as JSON, print its result as JSON")
     worker.add_argument("spec")
     return parser
@@ -1910,6 +2002,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         run_sampling(args)
     elif args.command == "cost":
         run_cost(args)
+    elif args.command == "geco-eval":
+        run_geco_eval_cost(args)
     else:
         run_and_report(args.command, args.specs(args), args.json)
 

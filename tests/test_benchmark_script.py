@@ -361,3 +361,16 @@ def test_cost_report_tiny(tmp_path: Path) -> None:
     for name in ("anchor_decode", "vggt", "ufm"):
         assert stages[name]["count"] == 5 and stages[name]["flops_forward"] > 0 and stages[name]["flops_backward"] > 0
     assert sum(s["flops"] for s in stages.values()) == report["flops_guided"]
+
+
+def test_geco_eval_cost_counts_the_estimator_calls_of_each_pair_mode(tmp_path: Path):
+    """9 frames at 8 fps (1.125 s): one window of floor(1.125 * 8) = 9 frames and a motion grid of
+    the same 9 frames, so all pairs = 9 * 8 + 8 UFM pairs, adjacent = 8 + 8, one VGGT call."""
+    out = tmp_path / "geco_eval.json"
+    proc = subprocess.run([sys.executable, str(SCRIPT), "geco-eval", "--frames", "9", "--fps", "8", "--pairs", "all",
+                           "adjacent", "--threads", "1", "--json", str(out)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    modes = json.loads(out.read_text())["modes"]
+    assert (modes["all"]["ufm_pairs"], modes["adjacent"]["ufm_pairs"]) == (80, 16)
+    assert modes["all"]["vggt_calls"] == 1 and modes["all"]["vggt_frames"] == 9 and modes["all"]["windows"] == 1
+    assert modes["all"]["h200_estimate_s"] > modes["adjacent"]["h200_estimate_s"] > 0
