@@ -388,3 +388,13 @@ def test_cuda_without_cuda_is_one_line(tmp_path, capsys, no_models):
     assert ab.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert "device 'cuda' is not available" in err and "\n" not in err
+
+
+def test_the_geco_eval_suite_as_prompts(tmp_path, capsys, no_models):
+    prompts = ab.read_prompts("geco-eval:indoor:fast")
+    assert [p.id for p in prompts] == [f"b{k}" for k in range(11, 21)] and prompts[0].text.startswith(("A", "T", "I"))
+    assert len(ab.read_prompts("geco-eval")) == 80
+    assert ab.main(["--prompts", "geco-eval:underwater", "--seeds", "0", "--out", str(tmp_path / "o"),
+                    "--preset", "tiny"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown filter 'underwater'" in err and err.count("\n") == 1
