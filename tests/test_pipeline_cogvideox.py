@@ -267,7 +267,7 @@ def test_callback_on_step_end_still_works(pipe):
         # (runs like "0x1,2x2,1x1" are scaled to other step counts; a per-step list must match)
         (dict(num_inference_steps=5, guidance={"repeats": [0, 2, 2, 1]}), "covers 4 steps but the sampler runs 5"),
         (dict(guidance={"loss": {"cue": "structure", "geometry_grad": False}}), "geometry_grad=true"),
-        (dict(guidance={"eta": -1.0}), "eta must be >= 0"),
+        (dict(guidance={"eta": -1.0}), r"eta must be in \[0, 1000\]"),
         (dict(guidance={"time_travel": [3, 4]}), "time_travel"),
     ],
 )
