@@ -282,7 +282,14 @@ def test_cli_out_under_a_file_is_one_line_before_loading(tmp_path: Path, capsys,
 
 
 def test_offline_errors_name_the_hf_command(monkeypatch, tmp_path: Path):
+    import diffusers.utils.constants
+    import huggingface_hub.constants
+
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    # both libraries read the variable once, at import: without these no request is refused and
+    # each one waits for its network timeout
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
+    monkeypatch.setattr(diffusers.utils.constants, "HF_HUB_OFFLINE", True, raising=False)
     with pytest.raises(FileNotFoundError, match="`hf download geco-test-missing/VGGT-nothing`"):
         fetch_checkpoint_file("geco-test-missing/VGGT-nothing", ["model.safetensors"], model_name="VGGT",
                               cache_dir=tmp_path)
