@@ -34,10 +34,10 @@ from torch import Tensor
 from .config import load_config
 from .estimators import estimator_id, load_estimators
 from .estimators.base import SceneGeometry
-from .evaluate import EvaluationMaps, _estimator_device, _pair_correspondences
+from .evaluate import EvaluationMaps, score_frames
 from .files import atomic_path, write_bytes_atomic, write_json_atomic
 from .loss.cues import fuse_cues, masked_mean, structure_residual
-from .loss.geco import GeCoLoss, GeCoLossConfig, GeCoMaps, geco_from_geometry
+from .loss.geco import GeCoLossConfig, GeCoMaps
 from .loss.geometry import relative_pose, sample_at_projection
 from .video import (
     colorbar,
@@ -86,12 +86,9 @@ def frame_maps(frames: Tensor, window: list[int], geometry: Any, flow: Any, conf
                two_way: bool = True, flow_batch_size: int = 16) -> GeCoMaps:
     """Maps ``[1, H, W]`` of frame ``window[0]`` of ``frames [S, 3, H, W]`` against the other
     frames of ``window``: the pixel-wise mean over the pairs ``window[0] -> window[k]``."""
-    local = frames[window]
-    device = _estimator_device(geometry, flow)
-    scene = geometry.estimate_geometry(local[None].to(device))
     pairs = [(0, k) for k in range(1, len(window))]
-    correspondences = _pair_correspondences(GeCoLoss(geometry, flow, config), local, pairs, flow_batch_size, device)
-    maps = geco_from_geometry(scene, correspondences, pairs, config).pair_maps
+    scene, result = score_frames(frames[window], geometry, flow, config, pairs, flow_batch_size)
+    maps = result.pair_maps
     if two_way:
         structure_valid = maps.structure_valid & seen_back(scene, pairs, config)
         fused, fused_valid = fuse_cues(maps.motion, maps.motion_valid, maps.structure, structure_valid)

@@ -42,11 +42,11 @@ from torch import Tensor
 from . import __version__
 from .config import EstimatorsConfig, EvaluationConfig, GeCoConfig, load_config
 from .estimators import estimator_id, load_estimators
-from .estimators.base import Correspondences
+from .estimators.base import Correspondences, SceneGeometry
 from .files import write_json_atomic, write_text_atomic
 from .generate import check_device
 from .loss.checks import check_frame_values
-from .loss.geco import CUES, PAIR_MODES, GeCoLoss, GeCoMaps, frame_pairs, geco_from_geometry
+from .loss.geco import CUES, PAIR_MODES, GeCoLoss, GeCoLossConfig, GeCoMaps, GeCoResult, frame_pairs, geco_from_geometry
 from .loss.motion_stats import motion_statistics
 from .video import (
     IMAGE_SUFFIXES,
@@ -168,7 +168,7 @@ def _mean(values: list[float]) -> float:
     return sum(values) / len(values) if values else math.nan
 
 
-def _estimator_device(*estimators: Any) -> torch.device:
+def estimator_device(*estimators: Any) -> torch.device:
     """Where the estimators' weights live (frames go there); CPU for weightless ones (oracles)."""
     for estimator in estimators:
         if isinstance(estimator, torch.nn.Module):
@@ -177,7 +177,7 @@ def _estimator_device(*estimators: Any) -> torch.device:
     return torch.device("cpu")
 
 
-def _pair_correspondences(metric: GeCoLoss, frames: Tensor, pairs: list[tuple[int, int]], batch_size: int, device: torch.device) -> Correspondences:
+def pair_correspondences(metric: GeCoLoss, frames: Tensor, pairs: list[tuple[int, int]], batch_size: int, device: torch.device) -> Correspondences:
     """Flow + covisibility of ``pairs`` of ``frames [S, 3, H, W]``, ``batch_size`` pairs per
     estimator call; only the frames a batch uses are moved to ``device``.
     Returns flow ``[P, 2, H, W]`` and covisibility ``[P, H, W]`` on ``device``."""
@@ -191,6 +191,19 @@ def _pair_correspondences(metric: GeCoLoss, frames: Tensor, pairs: list[tuple[in
         flows.append(result.flow)
         covis.append(result.covisibility)
     return Correspondences(flow=torch.cat(flows), covisibility=torch.cat(covis))
+
+
+@torch.no_grad()
+def score_frames(frames: Tensor, geometry: Any, flow: Any, config: GeCoLossConfig,
+                 pairs: list[tuple[int, int]] | None = None, flow_batch_size: int = 16) -> tuple[SceneGeometry, GeCoResult]:
+    """GeCo of one clip ``frames [S, 3, H, W]`` in ``[0, 1]`` (a batch of 1) over ``pairs``
+    (default: ``config.pairs``): one geometry call, the flow ``flow_batch_size`` pairs per call.
+    Returns the estimated geometry and the :class:`GeCoResult`."""
+    device = estimator_device(geometry, flow)
+    pairs = pairs if pairs is not None else frame_pairs(frames.shape[0], config.pairs)
+    scene = geometry.estimate_geometry(frames[None].to(device))
+    correspondences = pair_correspondences(GeCoLoss(geometry, flow, config), frames, pairs, flow_batch_size, device)
+    return scene, geco_from_geometry(scene, correspondences, pairs, config)
 
 
 def _split_config(config: EvaluationConfig | GeCoConfig | None) -> tuple[EvaluationConfig, EstimatorsConfig]:
@@ -307,7 +320,7 @@ def evaluate_video(
         loaded = load_estimators(estimators_cfg, cfg.device)
         geometry = geometry if geometry is not None else loaded[0]
         flow = flow if flow is not None else loaded[1]
-    device = _estimator_device(geometry, flow)
+    device = estimator_device(geometry, flow)
     metric = GeCoLoss(geometry, flow, cfg.loss)
     position = {index: k for k, index in enumerate(clip.indices)}
 
@@ -320,10 +333,7 @@ def evaluate_video(
     kept_frames: list[Tensor] = []
     for w, window in enumerate(evaluation_windows(clip.num_frames, clip.fps, cfg.window_seconds, cfg.max_windows, cfg.max_fps)):
         window_frames = frames_of(window.indices)
-        scene = geometry.estimate_geometry(window_frames[None].to(device))
-        pairs = frame_pairs(len(window.indices), cfg.loss.pairs)
-        correspondences = _pair_correspondences(metric, window_frames, pairs, cfg.flow_batch_size, device)
-        result = geco_from_geometry(scene, correspondences, pairs, cfg.loss)
+        _, result = score_frames(window_frames, geometry, flow, cfg.loss, flow_batch_size=cfg.flow_batch_size)
         rows = []
         for k, index in enumerate(window.indices):
             scores = {
@@ -339,7 +349,7 @@ def evaluate_video(
 
     grid = motion_grid(clip.num_frames, clip.fps, cfg.max_fps)
     steps = [(k, k + 1) for k in range(len(grid) - 1)]
-    consecutive = _pair_correspondences(metric, frames_of(grid), steps, cfg.flow_batch_size, device)
+    consecutive = pair_correspondences(metric, frames_of(grid), steps, cfg.flow_batch_size, device)
     stats = motion_statistics(
         consecutive.flow.float(), consecutive.covisibility > cfg.loss.covisibility_threshold,
         duration_s=clip.num_frames / clip.fps,

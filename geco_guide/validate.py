@@ -41,14 +41,10 @@ from .benchmarks import Benchmark, find_benchmarks, load_benchmark, oracle_clip
 from .config import load_config
 from .estimators import estimator_id, load_estimators
 from .estimators.oracle import OracleFlow, OracleGeometry
-from .evaluate import _estimator_device, _pair_correspondences
+from .evaluate import score_frames
 from .files import write_bytes_atomic, write_json_atomic, write_text_atomic
 from .loss.geco import (
-    GeCoLoss,
-    GeCoLossConfig,
     GeCoResult,
-    frame_pairs,
-    geco_from_geometry,
 )
 from .ranking import average_precision, best_threshold_iou_f1, spearman
 from .video import colorize, side_by_side
@@ -56,18 +52,6 @@ from .video import colorize, side_by_side
 CUES = ("structure", "motion", "fused")  # the paper's row order
 CUE_NAMES = {"structure": "Structure M_struct", "motion": "Motion M_motion", "fused": "Fused M_geo"}
 GRID_ROWS = 4
-
-
-@torch.no_grad()
-def score_clip(frames: Tensor, geometry: Any, flow: Any, config: GeCoLossConfig, flow_batch_size: int = 16) -> GeCoResult:
-    """GeCo of a whole clip ``frames [S, 3, H, W]`` (batch of 1), the flow estimated
-    ``flow_batch_size`` pairs at a time as :func:`geco_guide.evaluate.evaluate_video` does."""
-    device = _estimator_device(geometry, flow)
-    metric = GeCoLoss(geometry, flow, config)
-    scene = geometry.estimate_geometry(frames[None].to(device))
-    pairs = frame_pairs(frames.shape[0], config.pairs)
-    correspondences = _pair_correspondences(metric, frames, pairs, flow_batch_size, device)
-    return geco_from_geometry(scene, correspondences, pairs, config)
 
 
 def cue_map(result: GeCoResult, cue: str) -> tuple[Tensor, Tensor]:
@@ -239,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
                 geometry, flow = OracleGeometry(clip), OracleFlow(clip)
             else:
                 geometry, flow = estimators
-            result = score_clip(bench.frames, geometry, flow, cfg.evaluation.loss, cfg.evaluation.flow_batch_size)
+            _, result = score_frames(bench.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
             record = validate_clip(bench, result)
             if not args.no_grids:
                 record["grid"] = str(write_png(out / "grids" / f"{record['clip']}.png", grid_image(bench, result, grid_frames(bench, record))))

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from geco_guide import benchmarks, robustness, validate
+from geco_guide.evaluate import score_frames
 from geco_guide.benchmarks import load_benchmark, oracle_clip
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.loss.geco import GeCoLossConfig
@@ -189,7 +190,7 @@ def test_a_wrong_mask_fails_the_tasks(built):
     for kind, task in (("warp-clip", "task2"), ("occlusion", "task3")):
         bench = load_benchmark(built / kind / "synthetic-s0")
         clip = oracle_clip(bench)
-        result = validate.score_clip(bench.frames, OracleGeometry(clip), OracleFlow(clip), GeCoLossConfig(pairs="all"))
+        _, result = score_frames(bench.frames, OracleGeometry(clip), OracleFlow(clip), GeCoLossConfig(pairs="all"))
         right = validate.summarise([validate.validate_clip(bench, result)])[task]["fused"]["ap"]
         shifted = torch.roll(bench.truth["mask"], shifts=bench.frames.shape[-1] // 2, dims=-1)
         wrong = replace(bench, truth={**bench.truth, "mask": shifted})
