@@ -204,6 +204,10 @@ def test_shared_estimator_loader_builds_tiny_models():
     geometry, flow = load_estimators(EstimatorsConfig(geometry="tiny-random", flow="tiny-random"), "cpu")
     assert geometry.geco_estimator_id == "tiny-random(seed=0)" and flow.geco_estimator_id == "tiny-random(seed=0)"
     assert not any(p.requires_grad for p in geometry.parameters()) and not geometry.training
+    assert not geometry.gradient_checkpointing and not flow.gradient_checkpointing
+    cfg = load_config(preset="tiny", overrides=["estimators.gradient_checkpointing=true"])
+    geometry, flow = load_estimators(cfg.estimators, "cpu")
+    assert geometry.gradient_checkpointing and flow.gradient_checkpointing
 
 
 # --- CLI ----------------------------------------------------------------------------------

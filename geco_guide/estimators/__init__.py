@@ -37,7 +37,8 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
     Args:
         estimators_cfg: :class:`~geco_guide.config.EstimatorsConfig` (``geometry`` / ``flow``: a
             hub id, a local folder or ``tiny-random``; ``dtype`` of their trunks, the heads and
-            outputs stay float32; ``init_seed`` of tiny models).
+            outputs stay float32; ``gradient_checkpointing`` of their trunks; ``init_seed`` of
+            tiny models).
         device: a torch device or ``"auto"``.
 
     Each estimator gets a ``geco_estimator_id`` attribute (the id it came from) so results can
@@ -67,6 +68,7 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
         flow = UFM.from_pretrained(estimators_cfg.flow, dtype=dtype, device=device)
     for model, name in ((geometry, estimators_cfg.geometry), (flow, estimators_cfg.flow)):
         model.eval().requires_grad_(False)
+        model.gradient_checkpointing = estimators_cfg.gradient_checkpointing
         suffix = f"(seed={estimators_cfg.init_seed})" if name == TINY_RANDOM else ""
         model.geco_estimator_id = f"{name}{suffix}"
     return geometry, flow
