@@ -5,8 +5,8 @@ Sections: ``model`` (the CogVideoX checkpoint), ``estimators`` (geometry + flow 
 step size, time travel, and ``guidance.loss``, which *is* :class:`GeCoLossConfig`), ``output``,
 ``evaluation`` (:class:`EvaluationConfig`: how ``python -m geco_guide.evaluate`` samples a video,
 with the metric's own ``evaluation.loss``) and ``seed``. Defaults are the GeCo paper's CogVideoX-5b setting; the presets are
-``geco_guide/configs/<name>.yaml`` (shipped inside the package, so ``--preset`` works after a plain
-``pip install``).
+the checkout's ``configs/<name>.yaml``, installed as the package data ``geco_guide/configs`` (so
+``--preset`` works after a plain ``pip install``).
 
 ``load_config(path, preset, overrides)`` merges schema <- YAML <- ``key=value`` overrides and
 validates: an unknown key or an invalid value raises a ValueError naming the key.
@@ -38,7 +38,10 @@ DTYPES = ("float32", "float16", "bfloat16")
 MAX_GUIDANCE_SCALE = 100.0
 # torch.Generator.manual_seed takes 64-bit seeds, signed or unsigned.
 SEED_RANGE = (-(2**63), 2**64 - 1)
-CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+# Installed: the package data geco_guide/configs; in a checkout (also an editable install): the
+# top-level configs/ that the wheel copies it from.
+CONFIG_DIR = next((d for d in (Path(__file__).resolve().parent / "configs", Path(__file__).resolve().parents[1] / "configs")
+                   if d.is_dir()), Path(__file__).resolve().parent / "configs")
 
 
 @dataclass
@@ -187,7 +190,7 @@ class GeCoConfig:
 
 
 def preset_path(name: str) -> Path:
-    """``geco_guide/configs/<name>.yaml``; ValueError listing the presets if there is none."""
+    """``<name>.yaml`` of :data:`CONFIG_DIR`; ValueError listing the presets if there is none."""
     path = CONFIG_DIR / f"{name}.yaml"
     if not path.is_file():
         known = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))

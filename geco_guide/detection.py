@@ -187,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--one-way", action="store_true", help="structure occlusion test in one direction only")
     p.add_argument("--format", nargs="+", choices=FORMATS, default=["mp4"], dest="formats")
     p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the input's)")
-    p.add_argument("--preset", default=None, help="a preset in geco_guide/configs/ (tiny: tiny random models, CPU)")
+    p.add_argument("--preset", default=None, help="a preset of configs/ (tiny: tiny random models, CPU)")
     p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
     p.add_argument("--vggt", default=None, metavar="ID_OR_DIR", help="geometry estimator: hub id or local folder")
     p.add_argument("--ufm", default=None, metavar="ID_OR_DIR", help="flow estimator: hub id or local folder")

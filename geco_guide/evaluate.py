@@ -497,7 +497,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
     p.add_argument("inputs", nargs="+", metavar="VIDEO|DIR|key=value",
                    help="video files (mp4, gif, ...), folders of frames or of videos; key=value config overrides")
-    p.add_argument("--preset", default=None, help="a preset in geco_guide/configs/ (tiny: tiny random models, CPU)")
+    p.add_argument("--preset", default=None, help="a preset of configs/ (tiny: tiny random models, CPU)")
     p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
     p.add_argument("--vggt", default=None, metavar="ID_OR_DIR", help="geometry estimator: hub id or local folder")
     p.add_argument("--ufm", default=None, metavar="ID_OR_DIR", help="flow estimator: hub id or local folder")

@@ -310,7 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
     p.add_argument("--prompt", required=True, help="text prompt")
     p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
-    p.add_argument("--preset", default=None, help="a preset shipped in geco_guide/configs/ (tiny, cogvideox-5b, cogvideox-5b-fused)")
+    p.add_argument("--preset", default=None, help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
     p.add_argument("--seed", type=int, default=None, help="sampling seed (overrides the config's seed)")
     p.add_argument("--no-guidance", action="store_true", help="sample without GeCo guidance")
     p.add_argument("--out", default=None, help="output .mp4 path or folder (sidecar next to it, .json)")

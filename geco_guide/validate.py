@@ -187,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 description="Score benchmark clips on the paper's three detection tasks.")
     p.add_argument("inputs", nargs="+", metavar="DIR|key=value", help="benchmark folders; key=value config overrides")
     p.add_argument("--oracle", action="store_true", help="ground-truth estimators (clips built from 'synthetic')")
-    p.add_argument("--preset", default=None, help="a preset in geco_guide/configs/ (tiny: tiny random models, CPU)")
+    p.add_argument("--preset", default=None, help="a preset of configs/ (tiny: tiny random models, CPU)")
     p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
     p.add_argument("--vggt", default=None, metavar="ID_OR_DIR", help="geometry estimator: hub id or local folder")
     p.add_argument("--ufm", default=None, metavar="ID_OR_DIR", help="flow estimator: hub id or local folder")

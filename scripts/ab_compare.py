@@ -582,7 +582,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", required=True, nargs="+", metavar="SEED", help="sampling seeds (integers)")
     p.add_argument("--out", required=True, help="output folder (reuse it to resume)")
     p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
-    p.add_argument("--preset", default=None, help="a preset shipped in geco_guide/configs/ (tiny, cogvideox-5b)")
+    p.add_argument("--preset", default=None, help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
     p.add_argument("--maps", action="store_true", help="also write each arm's GeCo maps video")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.eta=2.0")
     return p
