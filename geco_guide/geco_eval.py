@@ -48,7 +48,7 @@ from .config import GeCoConfig, config_to_dict, config_to_yaml, load_config
 from .estimators import TINY_RANDOM, load_estimators, resolve_device
 from .estimators.loading import WeightsNotFoundError
 from .evaluate import PAPER_NAMES, evaluate_video
-from .generate import _quiet_hub_logs, check_device
+from .generate import _quiet_hub_logs, check_device, pipeline_from_pretrained
 from .files import WriteError, remove_temp_files, write_bytes_atomic, write_json_atomic, write_text_atomic
 from .loss.geco import CUES
 from .plots import Panel, legend, limits
@@ -182,24 +182,12 @@ def load_model(model: VideoModel, cfg: GeCoConfig, weights: str | None = None) -
     else:
         import diffusers
 
-        from .generate import _dtype_kwarg
-
-        source = weights or model.hub_id
         if weights is not None and not Path(weights).expanduser().is_dir():
             raise WeightsNotFoundError(f"{model.name}: local folder {weights!r} does not exist")
-        try:
-            with _quiet_hub_logs():
-                pipe = getattr(diffusers, model.pipeline).from_pretrained(
-                    str(Path(source).expanduser()) if weights else source, **{_dtype_kwarg(): getattr(torch, cfg.model.dtype)}
-                )
-        except (OSError, ValueError) as err:
-            if isinstance(err, ValueError) and type(err).__name__ != "HFValidationError":
-                raise
-            raise WeightsNotFoundError(
-                f"{model.name} weights {model.hub_id!r} are not available: not in the local Hugging Face cache and "
-                f"the hub cannot be reached (offline?). Download them once with `hf download {model.hub_id}` or pass a "
-                f"local folder: --weights {model.name}=/path/to/{model.hub_id.split('/')[-1]}"
-            ) from None
+        pipe = pipeline_from_pretrained(
+            getattr(diffusers, model.pipeline), weights or model.hub_id, model.name,
+            f"--weights {model.name}=/path/to/{model.hub_id.split('/')[-1]}", dtype=getattr(torch, cfg.model.dtype),
+        )
         if cfg.model.vae_tiling and hasattr(pipe.vae, "enable_tiling"):
             pipe.vae.enable_tiling()
     pipe.set_progress_bar_config(disable=True)

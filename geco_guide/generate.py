@@ -62,6 +62,33 @@ def _dtype_kwarg() -> str:
     return "dtype" if hasattr(pipeline_utils, "_resolve_dtype") else "torch_dtype"
 
 
+def pipeline_from_pretrained(cls, model_id: str, name: str, folder_hint: str, *, dtype: torch.dtype,
+                             revision: str | None = None, **kwargs: Any):
+    """``cls.from_pretrained`` of a hub id or a local folder, in ``dtype``.
+
+    Raises:
+        WeightsNotFoundError: one line naming ``model_id``, the ``hf download`` command and
+            ``folder_hint`` (how to pass a local folder), when the folder does not exist or the
+            weights are neither in the hub cache nor reachable.
+    """
+    path = Path(model_id).expanduser()
+    if _looks_like_path(model_id) and not path.is_dir():
+        raise WeightsNotFoundError(f"{name}: local folder {model_id!r} does not exist (pass an existing folder or a "
+                                   f"hub id: {folder_hint})")
+    try:
+        with _quiet_hub_logs():
+            return cls.from_pretrained(str(path) if path.is_dir() else model_id, revision=revision,
+                                       **{_dtype_kwarg(): dtype}, **kwargs)
+    except (OSError, ValueError) as err:
+        if isinstance(err, ValueError) and type(err).__name__ != "HFValidationError":
+            raise
+        raise WeightsNotFoundError(
+            f"{name} weights {model_id!r} are not available: not in the local Hugging Face cache and the hub "
+            f"cannot be reached (offline?). Download them once with `hf download {model_id}` (huggingface_hub "
+            f"< 0.34: `huggingface-cli download`) or pass a local folder: {folder_hint}"
+        ) from None
+
+
 def load_video_pipeline(cfg: GeCoConfig, geometry_estimator=None, flow_estimator=None):
     """The GeCoCogVideoXPipeline of ``cfg.model`` on its device (estimators attached, the scheduler
     of ``sampling.scheduler``: DDIM in the presets, see :func:`choose_scheduler`).
@@ -85,25 +112,10 @@ def load_video_pipeline(cfg: GeCoConfig, geometry_estimator=None, flow_estimator
             for model in (pipe.text_encoder, pipe.transformer, pipe.vae):
                 model.to(dtype)
     else:
-        if _looks_like_path(model_id) and not Path(model_id).expanduser().is_dir():
-            raise WeightsNotFoundError(
-                f"CogVideoX: local folder {model_id!r} does not exist (pass an existing folder or a hub id such "
-                "as 'THUDM/CogVideoX-5b' with model.id=...)"
-            )
-        source = str(Path(model_id).expanduser()) if Path(model_id).expanduser().is_dir() else model_id
-        try:
-            with _quiet_hub_logs():
-                pipe = GeCoCogVideoXPipeline.from_pretrained(
-                    source, revision=cfg.model.revision, **{_dtype_kwarg(): dtype}, **extra
-                )
-        except (OSError, ValueError) as err:
-            if isinstance(err, ValueError) and type(err).__name__ != "HFValidationError":
-                raise
-            raise WeightsNotFoundError(
-                f"CogVideoX weights {model_id!r} are not available: not in the local Hugging Face cache and the hub "
-                f"cannot be reached (offline?). Download them once with `hf download {model_id}` (huggingface_hub "
-                f"< 0.34: `huggingface-cli download`) or pass a local folder: model.id=/path/to/{model_id.split('/')[-1]}"
-            ) from None
+        pipe = pipeline_from_pretrained(
+            GeCoCogVideoXPipeline, model_id, "CogVideoX", f"model.id=/path/to/{model_id.split('/')[-1]}",
+            dtype=dtype, revision=cfg.model.revision, **extra,
+        )
     pipe.geco_scheduler_note = choose_scheduler(pipe, cfg.sampling.scheduler)
     if cfg.model.vae_tiling:
         pipe.vae.enable_tiling()

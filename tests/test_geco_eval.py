@@ -151,3 +151,24 @@ def test_console_scripts_and_version(capsys):
         with pytest.raises(SystemExit) as exit_info:
             cli(["--version"])
         assert exit_info.value.code == 0 and capsys.readouterr().out.strip() == f"geco_guide {geco_guide.__version__}"
+
+
+def test_unavailable_weights_are_one_line_naming_the_repo_and_the_weights_option(monkeypatch, tmp_path: Path):
+    import diffusers.utils.constants
+    import huggingface_hub.constants
+
+    from geco_guide.config import load_config
+    from geco_guide.estimators.loading import WeightsNotFoundError
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))  # an empty cache
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
+    monkeypatch.setattr(diffusers.utils.constants, "HF_HUB_OFFLINE", True, raising=False)
+    cfg = load_config(overrides=["model.device=cpu"])
+    with pytest.raises(WeightsNotFoundError) as err:
+        geco_eval.load_model(MODELS["ltx-video"], cfg)
+    message = str(err.value)
+    assert "\n" not in message and "`hf download Lightricks/LTX-Video`" in message
+    assert "--weights ltx-video=/path/to/LTX-Video" in message
+    with pytest.raises(WeightsNotFoundError, match="local folder"):
+        geco_eval.load_model(MODELS["ltx-video"], cfg, weights=str(tmp_path / "missing"))
