@@ -1000,7 +1000,7 @@ def sampling_report(args: argparse.Namespace) -> dict[str, Any]:
     else:
         video = dict(FULL_SIZE_VIDEO)
     video.update({k: getattr(args, k) for k in ("frames", "height", "width") if getattr(args, k) is not None})
-    steps = args.steps or NOMINAL_STEPS
+    steps = NOMINAL_STEPS if args.steps is None else args.steps  # 0 is an error, not the default
     if steps > NOMINAL_STEPS or steps < 1:
         raise SystemExit(f"--steps must be in [1, {NOMINAL_STEPS}], got {steps}")
     dtype = args.dtype or ("bfloat16" if preset == "full-size" and device.type == "cuda" else "float32")
@@ -1698,13 +1698,17 @@ def run_cost(args: argparse.Namespace) -> None:
 
         video = {"frames": TINY_NUM_FRAMES, "height": TINY_HEIGHT, "width": TINY_WIDTH}
         base = tiny_guidance_config()
-        repeats, time_travel, steps, dtype = base.repeats, base.time_travel, args.steps or 4, args.dtype or "float32"
+        repeats, time_travel, dtype = base.repeats, base.time_travel, args.dtype or "float32"
+        steps = 4 if args.steps is None else args.steps
         if args.paper_schedule:
-            repeats, time_travel, steps = PAPER_REPEATS, list(PAPER_TIME_TRAVEL), args.steps or NOMINAL_STEPS
+            repeats, time_travel = PAPER_REPEATS, list(PAPER_TIME_TRAVEL)
+            steps = NOMINAL_STEPS if args.steps is None else args.steps
     else:
         video = dict(FULL_SIZE_VIDEO)
         repeats, time_travel = PAPER_REPEATS, list(PAPER_TIME_TRAVEL)
-        steps, dtype = args.steps or NOMINAL_STEPS, args.dtype or "bfloat16"
+        steps, dtype = NOMINAL_STEPS if args.steps is None else args.steps, args.dtype or "bfloat16"
+    if steps < 1:
+        raise SystemExit(f"--steps must be >= 1, got {steps}")
     video.update({k: getattr(args, k) for k in ("frames", "height", "width") if getattr(args, k) is not None})
     settings = {"preset": args.preset, **video, "dtype": dtype, "steps": steps, "repeats": repeats,
                 "time_travel": None if args.no_time_travel else time_travel, "seed": args.seed,

@@ -374,3 +374,10 @@ def test_geco_eval_cost_counts_the_estimator_calls_of_each_pair_mode(tmp_path: P
     assert (modes["all"]["ufm_pairs"], modes["adjacent"]["ufm_pairs"]) == (80, 16)
     assert modes["all"]["vggt_calls"] == 1 and modes["all"]["vggt_frames"] == 9 and modes["all"]["windows"] == 1
     assert modes["all"]["h200_estimate_s"] > modes["adjacent"]["h200_estimate_s"] > 0
+
+
+@pytest.mark.parametrize("command", [["sampling", "--steps", "0"], ["cost", "--preset", "tiny", "--steps", "0"]])
+def test_zero_steps_is_one_error_line(command):
+    """--steps 0 used to run the default 50 steps (0 is falsy)."""
+    proc = subprocess.run([sys.executable, str(SCRIPT), *command], capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0 and proc.stderr.strip().count("\n") == 0 and "--steps must be" in proc.stderr
