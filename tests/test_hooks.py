@@ -338,3 +338,19 @@ def test_denoiser_cache_is_refused_before_any_denoising_step(estimators):
             run(pipe)
     counter.handle.remove()
     assert counter.n == 0 and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("family, faithful", [("wan", True), ("cogvideox", False)])
+def test_model_cpu_offload_with_the_hook_gives_the_same_video(family, faithful, estimators):
+    """accelerate's model offload hooks (device="cpu", so it runs without an accelerator) on a
+    pipeline that the guidance hook guides: every model still runs where its inputs are, the
+    differentiated denoiser re-runs (faithful) through the offload hook too, same frames."""
+    config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=faithful)
+    plain, offloaded = BUILDERS[family](0), BUILDERS[family](0)
+    offloaded.enable_model_cpu_offload(device="cpu")
+    videos = []
+    for pipe in (plain, offloaded):
+        with attach_geco_guidance(pipe, config, geometry=estimators[0], flow=estimators[1]) as handle:
+            videos.append(run(pipe))
+        assert len(handle.log) == 2
+    assert torch.equal(videos[0], videos[1])
