@@ -413,6 +413,17 @@ def write_maps_video(result: EvaluationResult, path: str | os.PathLike) -> Path:
     return write_video(path, render_maps(result), fps=result.sampled_fps)
 
 
+def write_detection_video(video: str | os.PathLike, stem: Path, geometry: Any, flow: Any, cfg: GeCoConfig) -> Path:
+    """``<stem>.detection.mp4``: the per-frame detection maps of every frame of ``video``
+    (:mod:`geco_guide.detection`, its defaults: a 20-frame window centred on the frame)."""
+    from .detection import detection_maps, frame_scores, render_detection, write_detection
+
+    clip = read_frames(video, default_fps=cfg.evaluation.default_fps, min_frames=2)
+    maps = detection_maps(clip.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
+    (path,) = write_detection(render_detection(maps, frame_scores(maps)), stem, ["mp4"], clip.fps)
+    return path
+
+
 # --------------------------------------------------------------------------------------------
 # CLI
 
@@ -507,6 +518,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=None, help="source frame rate, overriding --model and the file's")
     p.add_argument("--out", default=None, help="output folder (default: the config's output.dir)")
     p.add_argument("--maps", action="store_true", help="also write <stem>.maps.mp4 with the heat maps")
+    p.add_argument("--detection", action="store_true",
+                   help="also write <stem>.detection.mp4: every frame's own maps against a window of 20 frames "
+                        "around it (python -m geco_guide.detection for the window, anchor and formats)")
     p.add_argument("--pairs", choices=PAIR_MODES, default=None,
                    help="frame pairs per window: all (default, the paper's script: n(n-1) flow pairs for n frames), "
                         "center (2(n-1)) or adjacent (n-1)")
@@ -569,6 +583,8 @@ def main(argv: list[str] | None = None) -> int:
                 maps_note = ""
                 if args.maps:
                     maps_note = f", maps {write_maps_video(result, out / f'{item.name}.maps.mp4')}"
+                if args.detection:
+                    maps_note += f", detection maps {write_detection_video(item.path, out / item.name, geometry, flow, cfg)}"
             except Exception as err:  # one bad input must not stop the others
                 row["error"] = _one_line(err)
             else:

@@ -270,3 +270,13 @@ def test_cli_exit_codes(tmp_path: Path, capsys):
     assert main([str(tmp_path / "bad.mp4"), "--preset", "tiny", "evaluation.max_fps=-1"]) == 2
     err = capsys.readouterr().err.strip()
     assert "evaluation.max_fps" in err and "\n" not in err
+
+
+def test_cli_detection_view_writes_every_frames_own_maps(tmp_path: Path, capsys):
+    rigid = rigid_clip(num_frames=6, height=32, width=48)
+    video = write_video(tmp_path / "deformed.mp4", inject_deformation(rigid).frames, fps=8)
+    out = tmp_path / "out"
+    assert main([str(video), "--preset", "tiny", "--out", str(out), "--detection"]) == 0
+    assert "detection maps" in capsys.readouterr().out
+    rendered, fps = read_video(out / "deformed.detection.mp4")
+    assert rendered.shape[0] == 6 and fps == pytest.approx(8.0)  # one map row per source frame
