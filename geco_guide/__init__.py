@@ -15,10 +15,10 @@ _EXPORTS = {
     "GeCoResult": "geco_guide.loss.geco",
     "geco_from_geometry": "geco_guide.loss.geco",
     "motion_statistics": "geco_guide.loss.motion_stats",
-    "SceneGeometry": "geco_guide.estimators.base",
-    "Correspondences": "geco_guide.estimators.base",
-    "GeometryEstimator": "geco_guide.estimators.base",
-    "FlowEstimator": "geco_guide.estimators.base",
+    "SceneGeometry": "geco_guide.types",
+    "Correspondences": "geco_guide.types",
+    "GeometryEstimator": "geco_guide.types",
+    "FlowEstimator": "geco_guide.types",
     "VGGT": "geco_guide.estimators.vggt",
     "VGGTConfig": "geco_guide.estimators.vggt",
     "UFM": "geco_guide.estimators.ufm",
@@ -31,13 +31,13 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .estimators.base import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry
     from .estimators.ufm import UFM, UFMConfig
     from .estimators.vggt import VGGT, VGGTConfig
     from .evaluate import evaluate_video
     from .geco_eval import load_prompts
     from .loss.geco import GeCoLoss, GeCoLossConfig, GeCoResult, geco_from_geometry
     from .loss.motion_stats import motion_statistics
+    from .types import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry
 
 
 def __getattr__(name: str):

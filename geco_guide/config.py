@@ -25,11 +25,15 @@ from typing import Any, Optional
 
 import yaml
 from omegaconf import DictConfig, OmegaConf, StringNode
-from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
+from omegaconf.errors import (
+    ConfigAttributeError,
+    ConfigKeyError,
+    OmegaConfBaseException,
+)
 
-from .loss.checks import non_finite_fields
 from .loss.geco import GeCoLossConfig
 from .sampler.guidance import GuidanceConfig, paper_guidance_config
+from .types import non_finite_fields
 
 DTYPES = ("float32", "float16", "bfloat16")
 # CFG scales in use are 1-20 (CogVideoX: 6); absurd ones only overflow the latents to NaN/inf

@@ -33,12 +33,12 @@ from torch import Tensor
 
 from .config import load_config
 from .estimators import estimator_id, load_estimators
-from .estimators.base import SceneGeometry
 from .evaluate import EvaluationMaps, score_frames
 from .files import atomic_path, write_bytes_atomic, write_json_atomic
+from .geometry import relative_pose, sample_at_projection
 from .loss.cues import fuse_cues, masked_mean, structure_residual
 from .loss.geco import GeCoLossConfig, GeCoMaps
-from .loss.geometry import relative_pose, sample_at_projection
+from .types import SceneGeometry
 from .video import (
     colorbar,
     colorize,

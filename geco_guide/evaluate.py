@@ -42,12 +42,20 @@ from torch import Tensor
 from . import __version__
 from .config import EstimatorsConfig, EvaluationConfig, GeCoConfig, load_config
 from .estimators import estimator_id, load_estimators
-from .estimators.base import Correspondences, SceneGeometry
 from .files import write_json_atomic, write_text_atomic
 from .generate import check_device
-from .loss.checks import check_frame_values
-from .loss.geco import CUES, PAIR_MODES, GeCoLoss, GeCoLossConfig, GeCoMaps, GeCoResult, frame_pairs, geco_from_geometry
+from .loss.geco import (
+    CUES,
+    PAIR_MODES,
+    GeCoLoss,
+    GeCoLossConfig,
+    GeCoMaps,
+    GeCoResult,
+    frame_pairs,
+    geco_from_geometry,
+)
 from .loss.motion_stats import motion_statistics
+from .types import Correspondences, SceneGeometry, check_frame_values
 from .video import (
     IMAGE_SUFFIXES,
     VIDEO_SUFFIXES,
@@ -61,8 +69,8 @@ from .video import (
     read_frames,
     sampled_rate,
     side_by_side,
-    text_strip,
     text_scale,
+    text_strip,
     write_video,
 )
 
@@ -416,7 +424,12 @@ def write_maps_video(result: EvaluationResult, path: str | os.PathLike) -> Path:
 def write_detection_video(video: str | os.PathLike, stem: Path, geometry: Any, flow: Any, cfg: GeCoConfig) -> Path:
     """``<stem>.detection.mp4``: the per-frame detection maps of every frame of ``video``
     (:mod:`geco_guide.detection`, its defaults: a 20-frame window centred on the frame)."""
-    from .detection import detection_maps, frame_scores, render_detection, write_detection
+    from .detection import (
+        detection_maps,
+        frame_scores,
+        render_detection,
+        write_detection,
+    )
 
     clip = read_frames(video, default_fps=cfg.evaluation.default_fps, min_frames=2)
     maps = detection_maps(clip.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)

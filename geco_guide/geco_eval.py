@@ -48,12 +48,24 @@ from .config import GeCoConfig, config_to_dict, config_to_yaml, load_config
 from .estimators import TINY_RANDOM, load_estimators, resolve_device
 from .estimators.loading import WeightsNotFoundError
 from .evaluate import PAPER_NAMES, evaluate_video
+from .files import (
+    WriteError,
+    remove_temp_files,
+    write_bytes_atomic,
+    write_json_atomic,
+    write_text_atomic,
+)
 from .generate import _quiet_hub_logs, check_device, pipeline_from_pretrained
-from .files import WriteError, remove_temp_files, write_bytes_atomic, write_json_atomic, write_text_atomic
 from .loss.geco import CUES
 from .plots import Panel, legend, limits
 from .runs import (
-    PeakMemory, check_output_folder, config_fingerprint, process_config, process_state, read_finished, shard,
+    PeakMemory,
+    check_output_folder,
+    config_fingerprint,
+    process_config,
+    process_state,
+    read_finished,
+    shard,
 )
 from .sampler.slicing import default_anchors
 from .video import VIDEO_SUFFIXES, write_video

@@ -31,8 +31,7 @@ from .config import GeCoConfig, config_to_dict, load_config
 from .estimators import TINY_RANDOM, load_estimators, resolve_device
 from .estimators.loading import WeightsNotFoundError
 from .files import WriteError, write_json_atomic
-from .loss.checks import NonFiniteFramesError, check_frame_values
-
+from .types import NonFiniteFramesError, check_frame_values
 
 # --------------------------------------------------------------------------------------------
 # building the pipeline from a config

@@ -30,13 +30,13 @@ from PIL import Image, ImageDraw
 
 from .benchmarks import scene_track
 from .config import EvaluationConfig
-from .estimators.base import Correspondences, SceneGeometry
 from .files import write_bytes_atomic, write_json_atomic
 from .loss.geco import GeCoLossConfig, frame_pairs, geco_from_geometry
 from .occlusion import OcclusionParams, composite_occlusion, default_region
 from .plots import Panel, legend
 from .ranking import average_precision
 from .synthetic import SyntheticClip, rigid_clip, with_overlay, with_warp
+from .types import Correspondences, SceneGeometry
 from .warp import WarpParams, warp_clip
 
 DEPTH_SIGMAS = (0.0, 0.01, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0)

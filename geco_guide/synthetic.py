@@ -16,7 +16,7 @@ Artifacts with known ground truth turn a rigid clip into an inconsistent one:
   (:mod:`geco_guide.warp`, :mod:`geco_guide.occlusion`) applied to a synthetic clip with their
   exact ground truth, so oracle estimators can score them.
 
-Everything uses the conventions of :mod:`geco_guide.loss.geometry`.
+Everything uses the conventions of :mod:`geco_guide.geometry`.
 """
 
 from __future__ import annotations
@@ -28,8 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .estimators.base import Correspondences, SceneGeometry
-from .loss.geometry import (
+from .geometry import (
     inside_image,
     invert_rigid,
     pixel_grid,
@@ -40,6 +39,7 @@ from .loss.geometry import (
     unproject,
 )
 from .occlusion import OBJECT, OCCLUDER, OcclusionResult
+from .types import Correspondences, SceneGeometry
 
 # thin_plate_spline is part of this module's interface (the deformation injector's maths).
 from .warp import (  # noqa: F401

@@ -380,7 +380,12 @@ def tiny_ltx_pipeline(seed: int = 0):
     """A stock tiny ``LTXPipeline``: packed latent tokens, ``AutoencoderKLLTXVideo`` with 8x temporal
     and 8x spatial compression (as LTX-Video's 8 x 32 x 32, scaled down), per-channel latent
     mean/std, a non-causal decoder, and the LTX-Video scheduler settings (dynamic shifting)."""
-    from diffusers import AutoencoderKLLTXVideo, FlowMatchEulerDiscreteScheduler, LTXPipeline, LTXVideoTransformer3DModel
+    from diffusers import (
+        AutoencoderKLLTXVideo,
+        FlowMatchEulerDiscreteScheduler,
+        LTXPipeline,
+        LTXVideoTransformer3DModel,
+    )
 
     tokenizer = tiny_tokenizer()
     channels = 8

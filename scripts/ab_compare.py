@@ -47,16 +47,34 @@ from typing import Any
 import numpy as np
 
 from geco_guide.config import GeCoConfig, config_to_dict, config_to_yaml, load_config
-from geco_guide.evaluate import PAPER_NAMES, evaluate_video, write_maps_video
 from geco_guide.estimators import load_estimators, resolve_device
-from geco_guide.files import WriteError, remove_temp_files, write_bytes_atomic, write_json_atomic
+from geco_guide.evaluate import PAPER_NAMES, evaluate_video, write_maps_video
+from geco_guide.files import (
+    WriteError,
+    remove_temp_files,
+    write_bytes_atomic,
+    write_json_atomic,
+)
 from geco_guide.geco_eval import SUITE, select_prompts
-from geco_guide.generate import build_pipeline, check_device, generate, slugify, versions
+from geco_guide.generate import (
+    build_pipeline,
+    check_device,
+    generate,
+    slugify,
+    versions,
+)
 from geco_guide.loss.geco import CUES
 from geco_guide.plots import Panel, legend, limits
 from geco_guide.runs import (
-    PeakMemory, check_output_folder as check_run_folder, config_fingerprint, process_config, process_state, read_finished,
+    PeakMemory,
+    config_fingerprint,
+    process_config,
+    process_state,
+    read_finished,
     shard,
+)
+from geco_guide.runs import (
+    check_output_folder as check_run_folder,
 )
 from geco_guide.video import read_video, side_by_side, write_video
 

@@ -83,11 +83,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from geco_guide.estimators.base import Correspondences, SceneGeometry
 from geco_guide.estimators.ufm import UFM, UFMConfig, choose_resolution
 from geco_guide.estimators.vggt import VGGT, VGGTConfig, plan_preprocess
-from geco_guide.loss.geco import PAIR_MODES, GeCoLossConfig, frame_pairs, geco_from_geometry
+from geco_guide.loss.geco import (
+    PAIR_MODES,
+    GeCoLossConfig,
+    frame_pairs,
+    geco_from_geometry,
+)
 from geco_guide.synthetic import default_intrinsics, orbit_cameras
+from geco_guide.types import Correspondences, SceneGeometry
 
 MODES = ("forward", "forward_backward")
 #: ``--rss-exact``: allocations from 64 KiB up are mapped on their own and unmapped when freed.
@@ -590,7 +595,11 @@ def build_full_size_components(device: str | torch.device, dtype: torch.dtype, s
     Built on the meta device and materialised with ``to_empty`` directly in ``dtype``; with
     ``device="meta"`` nothing is allocated (for tests). No tokenizer or text encoder.
     """
-    from diffusers import AutoencoderKLCogVideoX, CogVideoXDDIMScheduler, CogVideoXTransformer3DModel
+    from diffusers import (
+        AutoencoderKLCogVideoX,
+        CogVideoXDDIMScheduler,
+        CogVideoXTransformer3DModel,
+    )
 
     return {"tokenizer": None, "text_encoder": None,
             "vae": _materialise(AutoencoderKLCogVideoX, COGVIDEOX_5B_VAE, device, dtype, seed + 1),
@@ -617,7 +626,11 @@ def compressed_paper_schedule(num_steps: int) -> tuple[list[int], list[int] | No
     ``floor(i * 50 / num_steps)``; the sampler uses the scheduler's own ``num_steps``-step
     timestep table (trailing spacing), so the steps span the whole trajectory. Identity at 50.
     """
-    from geco_guide.sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL, parse_repeats
+    from geco_guide.sampler.schedule import (
+        PAPER_REPEATS,
+        PAPER_TIME_TRAVEL,
+        parse_repeats,
+    )
 
     paper = parse_repeats(PAPER_REPEATS)
     index = [i * NOMINAL_STEPS // num_steps for i in range(num_steps)]

@@ -1,11 +1,16 @@
 import pytest
 import torch
 
-from geco_guide.estimators.base import Correspondences, SceneGeometry
-from geco_guide.loss.cues import fuse_cues, masked_mean, motion_residual, structure_residual
+from geco_guide.geometry import relative_pose, rigid_flow
+from geco_guide.loss.cues import (
+    fuse_cues,
+    masked_mean,
+    motion_residual,
+    structure_residual,
+)
 from geco_guide.loss.geco import GeCoLossConfig, frame_pairs, geco_from_geometry
-from geco_guide.loss.geometry import relative_pose, rigid_flow
 from geco_guide.synthetic import inject_deformation, rigid_clip
+from geco_guide.types import Correspondences, SceneGeometry
 
 
 def _pair_inputs(dtype=torch.float64):

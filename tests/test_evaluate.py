@@ -15,8 +15,14 @@ import geco_guide
 from geco_guide.config import EstimatorsConfig, EvaluationConfig, load_config
 from geco_guide.estimators import load_estimators
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
+from geco_guide.evaluate import (
+    MAP_PANELS,
+    evaluate_video,
+    main,
+    render_maps,
+    write_maps_video,
+)
 from geco_guide.loss.geco import GeCoLossConfig
-from geco_guide.evaluate import MAP_PANELS, evaluate_video, main, render_maps, write_maps_video
 from geco_guide.synthetic import inject_deformation, rigid_clip
 from geco_guide.video import (
     VIRIDIS,
@@ -28,7 +34,6 @@ from geco_guide.video import (
     text_scale,
     write_video,
 )
-
 
 H, W = 32, 48
 
@@ -85,7 +90,7 @@ def test_total_motion_of_a_known_flow():
     """A constant 2 px/frame flow on a 30x40 clip (diagonal 50) of 17 frames at 16 fps (1.0625 s):
     the motion grid takes floor(1.0625 * 8) = 8 frames (0, 2, ..., 14), so 7 steps of 4 px = 8 %
     of the diagonal each."""
-    from geco_guide.estimators.base import Correspondences
+    from geco_guide.types import Correspondences
 
     clip = rigid_clip(num_frames=17, height=30, width=40)
     lookup = OracleFlow(clip).lookup  # which clip frame an image is

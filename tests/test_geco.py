@@ -1,14 +1,19 @@
 import pytest
 import torch
+from ranking import average_precision, spearman
 
-from geco_guide.estimators.base import Correspondences, SceneGeometry
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.estimators.ufm import UFM, UFMConfig
 from geco_guide.estimators.vggt import VGGT, VGGTConfig
-from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig, frame_pairs, geco_from_geometry
+from geco_guide.loss.geco import (
+    GeCoLoss,
+    GeCoLossConfig,
+    frame_pairs,
+    geco_from_geometry,
+)
 from geco_guide.loss.motion_stats import motion_statistics
 from geco_guide.synthetic import inject_deformation, occlusion_swap_clip, rigid_clip
-from ranking import average_precision, spearman
+from geco_guide.types import Correspondences, SceneGeometry
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from geco_guide.loss import geometry as geo
+from geco_guide import geometry as geo
 from geco_guide.synthetic import default_intrinsics, look_at
 
 

@@ -6,7 +6,9 @@ import copy
 
 import pytest
 import torch
+from counting import CountingForward
 
+from geco_guide import testing as T
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig
 from geco_guide.sampler.adapters import keep_update
 from geco_guide.sampler.guidance import (
@@ -17,9 +19,6 @@ from geco_guide.sampler.guidance import (
     score_anchor_frames,
 )
 from geco_guide.sampler.hooks import attach_geco_guidance
-from geco_guide import testing as T
-
-from counting import CountingForward
 
 PROMPT = "a marble bust on a table"
 NUM_FRAMES = 9  # 3 latents at r=4 (2 at r=8, LTX)

@@ -6,6 +6,7 @@ import copy
 
 import pytest
 import torch
+from counting import CountingForward, HostSyncCounter
 from diffusers import CogVideoXDDIMScheduler, CogVideoXDPMScheduler, CogVideoXPipeline
 
 from geco_guide.loss.geco import GeCoLoss
@@ -19,9 +20,12 @@ from geco_guide.sampler.guidance import (
     score_anchor_frames,
     v_to_x0,
 )
-from geco_guide.testing import TINY_ANCHORS, TINY_CALL_KWARGS, tiny_cogvideox_components, tiny_pipeline
-
-from counting import CountingForward, HostSyncCounter
+from geco_guide.testing import (
+    TINY_ANCHORS,
+    TINY_CALL_KWARGS,
+    tiny_cogvideox_components,
+    tiny_pipeline,
+)
 
 PROMPT = "a marble bust on a table"
 

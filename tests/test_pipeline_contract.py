@@ -12,6 +12,7 @@ import warnings
 
 import pytest
 import torch
+from counting import CountingForward
 from diffusers import (
     CogVideoXDDIMScheduler,
     CogVideoXDPMScheduler,
@@ -33,8 +34,6 @@ from geco_guide.testing import (
     tiny_estimators,
     tiny_guidance_config,
 )
-
-from counting import CountingForward
 
 PROMPT = "a marble bust on a table"
 # guidance on the last two of 4 steps, no time travel: short and deterministic

@@ -19,18 +19,28 @@ import torch
 from geco_guide import evaluate as evaluate_module
 from geco_guide import generate as generate_module
 from geco_guide.config import load_config
-from geco_guide.estimators.base import Correspondences, SceneGeometry
 from geco_guide.estimators.loading import fetch_checkpoint_file
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.evaluate import evaluate_video
 from geco_guide.evaluate import main as evaluate_main
 from geco_guide.files import WriteError, remove_temp_files, write_json_atomic
 from geco_guide.generate import generate, load_video_pipeline, main
-from geco_guide.loss.checks import NonFiniteFramesError, check_frame_values, non_finite_fields
-from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig, frame_pairs, geco_from_geometry
-from geco_guide.loss.geometry import inside_image, sample_bilinear
+from geco_guide.geometry import inside_image, sample_bilinear
+from geco_guide.loss.geco import (
+    GeCoLoss,
+    GeCoLossConfig,
+    frame_pairs,
+    geco_from_geometry,
+)
 from geco_guide.synthetic import inject_deformation, rigid_clip
 from geco_guide.testing import tiny_estimators
+from geco_guide.types import (
+    Correspondences,
+    NonFiniteFramesError,
+    SceneGeometry,
+    check_frame_values,
+    non_finite_fields,
+)
 from geco_guide.video import write_video
 
 BAD_VALUES = (math.nan, math.inf, -math.inf, 1e30, -1e30)

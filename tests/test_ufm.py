@@ -9,7 +9,6 @@ from pathlib import Path
 import pytest
 import torch
 
-from geco_guide.estimators.base import FlowEstimator
 from geco_guide.estimators.loading import CheckpointMismatchError, WeightsNotFoundError
 from geco_guide.estimators.ufm import (
     UFM,
@@ -18,6 +17,8 @@ from geco_guide.estimators.ufm import (
     region_size,
     sinusoid_view_table,
 )
+from geco_guide.types import FlowEstimator
+
 
 @pytest.fixture(scope="module")
 def fx(ufm_fixture) -> dict:

@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from geco_guide import benchmarks, robustness, validate
-from geco_guide.evaluate import score_frames
 from geco_guide.benchmarks import load_benchmark, oracle_clip
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
+from geco_guide.evaluate import score_frames
+from geco_guide.geometry import pixel_grid, sample_bilinear
 from geco_guide.loss.geco import GeCoLossConfig
-from geco_guide.loss.geometry import pixel_grid, sample_bilinear
 from geco_guide.occlusion import (
     OBJECT,
     OCCLUDER,

@@ -7,7 +7,6 @@ from pathlib import Path
 import pytest
 import torch
 
-from geco_guide.estimators.base import GeometryEstimator
 from geco_guide.estimators.loading import CheckpointMismatchError, WeightsNotFoundError
 from geco_guide.estimators.vggt import (
     VGGT,
@@ -17,6 +16,7 @@ from geco_guide.estimators.vggt import (
     unmap_intrinsics,
 )
 from geco_guide.estimators.vit import imagenet_normalise
+from geco_guide.types import GeometryEstimator
 
 OUTPUT_NAMES = ("depth", "depth_conf", "pose_enc", "extrinsic", "intrinsic")
 

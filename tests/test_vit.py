@@ -8,7 +8,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from geco_guide.estimators.dpt import FusionBlock, ResidualConvUnit, add_position_embedding
+from geco_guide.estimators.dpt import (
+    FusionBlock,
+    ResidualConvUnit,
+    add_position_embedding,
+)
 from geco_guide.estimators.vit import (
     Attention,
     Block,
@@ -18,7 +22,6 @@ from geco_guide.estimators.vit import (
     imagenet_normalise,
     resize_pos_embed,
 )
-
 
 
 def _randomise(module: torch.nn.Module, seed: int = 0) -> None:

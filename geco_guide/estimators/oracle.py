@@ -12,8 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..loss.geometry import resize_flow, resize_intrinsics
-from .base import Correspondences, SceneGeometry, check_frames
+from ..geometry import resize_flow, resize_intrinsics
+from ..types import Correspondences, SceneGeometry, check_frames
 
 
 class _ClipLookup:

@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .base import Correspondences
+from ..types import Correspondences
 from .dpt import FusionBlock, resample_layer
 from .loading import (
     CheckpointMismatchError,

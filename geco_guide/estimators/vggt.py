@@ -7,7 +7,7 @@ Two entry points:
 
 * :meth:`VGGT.forward_raw` — network-size images ``[B, S, 3, H, W]`` in ``[0, 1]`` (H, W multiples
   of the patch size) to the reference outputs (depth, confidence, pose encoding, K, extrinsics).
-* :meth:`VGGT.estimate_geometry` — the :class:`~geco_guide.estimators.base.GeometryEstimator`
+* :meth:`VGGT.estimate_geometry` — the :class:`~geco_guide.types.GeometryEstimator`
   protocol: frames of any size, differentiable resize/crop to the network size, outputs mapped
   back to the input size in the project's integer-pixel-centre convention.
 
@@ -28,10 +28,19 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from geco_guide.estimators.base import SceneGeometry, check_frames
-from geco_guide.estimators.dpt import FusionBlock, add_position_embedding, resample_layer
-from geco_guide.estimators.loading import fetch_checkpoint_file, load_state_dict_checked, load_weights
-from geco_guide.estimators.vit import (
+from ..geometry import crop_intrinsics, resize_intrinsics
+from ..types import SceneGeometry, check_frames
+from .dpt import (
+    FusionBlock,
+    add_position_embedding,
+    resample_layer,
+)
+from .loading import (
+    fetch_checkpoint_file,
+    load_state_dict_checked,
+    load_weights,
+)
+from .vit import (
     Block,
     DinoV2,
     Mlp,
@@ -41,7 +50,6 @@ from geco_guide.estimators.vit import (
     init_weights_,
     run_block,
 )
-from geco_guide.loss.geometry import crop_intrinsics, resize_intrinsics
 
 # Checkpoint parts we never build (spec 3.6 / 6); the DINO mask token is unused at inference.
 IGNORED_CHECKPOINT_PREFIXES = ("point_head.", "track_head.", "aggregator.patch_embed.mask_token")

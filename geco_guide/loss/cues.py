@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .geometry import MIN_DEPTH, check_tensor, local_depth_ratio, sample_at_projection
+from ..geometry import MIN_DEPTH, check_tensor, local_depth_ratio, sample_at_projection
 
 
 def safe_norm(x: Tensor, dim: int) -> Tensor:

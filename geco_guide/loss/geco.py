@@ -18,10 +18,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..estimators.base import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry, check_frames
-from .checks import check_frame_values, non_finite_fields
+from ..geometry import check_tensor, relative_pose, resize_flow, rigid_flow
+from ..types import (
+    Correspondences,
+    FlowEstimator,
+    GeometryEstimator,
+    SceneGeometry,
+    check_frame_values,
+    check_frames,
+    non_finite_fields,
+)
 from .cues import fuse_cues, masked_mean, motion_residual, structure_residual
-from .geometry import check_tensor, relative_pose, resize_flow, rigid_flow
 
 PAIR_MODES = ("adjacent", "center", "all")
 CUES = ("fused", "motion", "structure")

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
+from ..geometry import check_tensor
 from .cues import masked_mean, safe_norm
-from .geometry import check_tensor
 
 
 @dataclass

@@ -18,7 +18,12 @@ from .guidance import (
     v_to_x0,
 )
 from .schedule import GuidanceSchedule, paper_schedule, parse_repeats, scale_schedule
-from .slicing import AnchorChunk, anchor_latent_chunks, check_num_frames, decode_anchor_frames
+from .slicing import (
+    AnchorChunk,
+    anchor_latent_chunks,
+    check_num_frames,
+    decode_anchor_frames,
+)
 
 _LAZY = {
     "GeCoCogVideoXPipeline": "pipeline_cogvideox",

@@ -39,9 +39,15 @@ from typing import Any, Optional
 import torch
 from torch import Tensor, nn
 
-from ..loss.checks import non_finite_fields
 from ..loss.geco import GeCoLossConfig
-from .schedule import PAPER_ETA, PAPER_REPEATS, PAPER_TIME_TRAVEL, GuidanceSchedule, scale_schedule
+from ..types import non_finite_fields
+from .schedule import (
+    PAPER_ETA,
+    PAPER_REPEATS,
+    PAPER_TIME_TRAVEL,
+    GuidanceSchedule,
+    scale_schedule,
+)
 from .slicing import anchor_latent_chunks
 
 PAPER_ANCHORS = (12, 24, 36, 48)

@@ -52,8 +52,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from ..estimators.base import FlowEstimator, GeometryEstimator
 from ..loss.geco import GeCoLoss
+from ..types import FlowEstimator, GeometryEstimator
 from .adapters import (
     CallGeometry,
     PipelineAdapter,
@@ -64,7 +64,13 @@ from .adapters import (
     keep_update,
     noise_levels,
 )
-from .guidance import GuidanceConfig, frozen, gradient_checkpointing, guided_step, resolve_guidance_config
+from .guidance import (
+    GuidanceConfig,
+    frozen,
+    gradient_checkpointing,
+    guided_step,
+    resolve_guidance_config,
+)
 from .schedule import GuidanceSchedule
 from .slicing import AnchorChunk, anchor_latent_chunks, decode_anchor_frames
 

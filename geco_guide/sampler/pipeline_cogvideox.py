@@ -34,8 +34,8 @@ from diffusers.pipelines.cogvideo.pipeline_output import CogVideoXPipelineOutput
 from diffusers.utils import logging
 from torch import Tensor, nn
 
-from ..estimators.base import FlowEstimator, GeometryEstimator
 from ..loss.geco import GeCoLoss
+from ..types import FlowEstimator, GeometryEstimator
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .guidance import (
     GuidanceConfig,
