@@ -246,32 +246,6 @@ def sample_at_projection(
     return z_proj, samples, valid
 
 
-def reproject_depth(
-    depth_src: Tensor,
-    depth_tgt: Tensor,
-    K_src: Tensor,
-    K_tgt: Tensor,
-    src_to_tgt: Tensor,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Where each source pixel lands in the target view, and what the target depth says there.
-
-    Args:
-        depth_src: ``[B, H, W]`` source z-depth.
-        depth_tgt: ``[B, H_t, W_t]`` target z-depth.
-        K_src, K_tgt: ``[B, 3, 3]`` intrinsics of the two views.
-        src_to_tgt: ``[B, 4, 4]`` relative pose.
-
-    Returns:
-        ``z_proj [B, H, W]`` z of each source point in the target camera,
-        ``depth_at_proj [B, H, W]`` the target depth sampled bilinearly at the projection, and
-        ``valid [B, H, W]``: both depths > 0 and the projection inside the target image.
-    """
-    check_tensor(depth_tgt, "depth_tgt", (depth_src.shape[0], None, None))
-    z_proj, samples, valid = sample_at_projection(depth_src, K_src, K_tgt, src_to_tgt, depth_tgt[:, None])
-    depth_at_proj = samples[:, 0]
-    return z_proj, depth_at_proj, valid & (depth_at_proj > MIN_DEPTH)
-
-
 def local_depth_ratio(depth: Tensor) -> Tensor:
     """``[B, H, W]`` -> ``[B, H, W]`` max/min depth over each pixel's 3x3 neighbourhood.
 

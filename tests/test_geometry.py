@@ -71,15 +71,15 @@ def test_sample_bilinear_puts_pixel_centres_at_integers():
     torch.testing.assert_close(geo.sample_bilinear(image, uv)[0, 0], torch.tensor([0.0, 11.0, 5.5, 4.0], dtype=torch.float64))
 
 
-def test_reproject_depth_of_a_consistent_plane_is_exact_where_valid():
+def test_depth_sampled_at_the_projection_of_a_consistent_plane_is_exact_where_valid():
     # A fronto-parallel plane: z is constant in both views after a pure sideways shift.
     K = default_intrinsics(12, 16)[None]
     depth = torch.full((1, 12, 16), 4.0, dtype=torch.float64)
     pose = torch.eye(4, dtype=torch.float64)[None]
     pose[0, 0, 3] = 0.2
-    z_proj, depth_at, valid = geo.reproject_depth(depth, depth, K, K, pose)
+    z_proj, samples, valid = geo.sample_at_projection(depth, K, K, pose, depth[:, None])
     assert valid.any() and not valid.all()
-    torch.testing.assert_close(z_proj[valid], depth_at[valid])
+    torch.testing.assert_close(z_proj[valid], samples[:, 0][valid])
 
 
 def test_resized_intrinsics_follow_pixel_centres():
@@ -109,12 +109,12 @@ def test_gradcheck_rigid_flow():
     assert torch.autograd.gradcheck(lambda d, k, p: geo.rigid_flow(d, k, k, p)[0], (depth, K, pose))
 
 
-def test_gradcheck_reproject_depth():
+def test_gradcheck_sample_at_projection():
     depth, K, extr_src, extr_tgt = _camera_pair()
     src = depth[:, :4, :5].clone().requires_grad_(True)
     tgt = (depth + 0.1).clone().requires_grad_(True)
     pose = geo.relative_pose(extr_src, extr_tgt)
-    assert torch.autograd.gradcheck(lambda s, t: geo.reproject_depth(s, t, K, K, pose)[:2], (src, tgt))
+    assert torch.autograd.gradcheck(lambda s, t: geo.sample_at_projection(s, K, K, pose, t[:, None])[:2], (src, tgt))
 
 
 @pytest.mark.parametrize(
@@ -124,7 +124,7 @@ def test_gradcheck_reproject_depth():
         (lambda d, K, p: geo.rigid_flow(d, K[0], K, p), "K_src"),
         (lambda d, K, p: geo.rigid_flow(d, K, K, p[:, :3]), "src_to_tgt"),
         (lambda d, K, p: geo.rigid_flow(d.long(), K, K, p), "depth_src"),
-        (lambda d, K, p: geo.reproject_depth(d, d[0], K, K, p), "depth_tgt"),
+        (lambda d, K, p: geo.sample_at_projection(d, K, K, p, d), "target_maps"),
         (lambda d, K, p: geo.relative_pose(p[:, :3], p), "extr_tgt"),
     ],
 )

@@ -131,11 +131,6 @@ def anchor_latent_chunks(
     return chunks
 
 
-def decoded_frame_count(num_latents: int, temporal_compression: int) -> int:
-    """Frames a causal VAE decodes ``num_latents`` latents into."""
-    return 1 + temporal_compression * (num_latents - 1)
-
-
 def decode_chunk(vae, latents: Tensor, scaling_factor: float) -> Tensor:
     """Decode ``latents [B, F, C, h, w]`` (diffusers CogVideoX layout) to ``[B, T, 3, H, W]`` in [0, 1]."""
     param = next(vae.parameters(), None)
