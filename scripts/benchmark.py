@@ -409,7 +409,13 @@ def vae_workload(spec: dict[str, Any], device: torch.device) -> Workload:
     clean latents ``[1, L, C, H/8, W/8]`` (``spec["frames"] = 4L - 3`` pixel frames) at
     :func:`default_anchors` with 3-latent chunks, through the CogVideoX-5B VAE (``full``) or the
     tiny one, in ``spec["dtype"]``; the scalar is the frames' mean, back-propagated to the latents."""
-    from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames
+    from functools import partial
+
+    from geco_guide.sampler.slicing import (
+        anchor_latent_chunks,
+        decode_anchor_frames,
+        decode_chunk,
+    )
 
     dtype = getattr(torch, spec["dtype"])
     if spec["size"] == "tiny":
@@ -434,8 +440,8 @@ def vae_workload(spec: dict[str, Any], device: torch.device) -> Workload:
     latents = torch.randn(*shape, generator=gen).to(device).requires_grad_()
 
     def scalar() -> Tensor:
-        return decode_anchor_frames(vae, latents, chunks, vae.config.scaling_factor,
-                                    checkpoint_chunks=spec["vae_checkpointing"]).mean()
+        return decode_anchor_frames(partial(decode_chunk, vae, scaling_factor=vae.config.scaling_factor), latents,
+                                    chunks, checkpoint_chunks=spec["vae_checkpointing"]).mean()
 
     spans = {(c.start, c.stop) for c in chunks}
     # checkpointed: one decode per chunk; otherwise equal-length chunks share a decode call

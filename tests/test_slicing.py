@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import pytest
 import torch
 
@@ -86,7 +88,7 @@ def test_decode_anchor_frames_decodes_only_the_chunks_and_picks_the_anchor():
     latents = torch.arange(5.0).view(1, 5, 1, 1, 1).expand(2, 5, 2, 2, 3) / 10 + torch.tensor([0.0, 0.5]).view(2, 1, 1, 1, 1)
     latents = latents.clone().requires_grad_(True)
     chunks = anchor_latent_chunks((2, 8, 12, 16), 17, 4, 3)
-    frames = decode_anchor_frames(vae, latents, chunks, scaling_factor=1.0)
+    frames = decode_anchor_frames(partial(decode_chunk, vae, scaling_factor=1.0), latents, chunks)
     assert frames.shape == (2, 4, 3, 2, 3)
     # short chunks only, never the 5-latent video; the three 3-latent chunks of both videos in one call
     assert vae.calls == [(2, 2), (6, 3)]
@@ -103,7 +105,7 @@ def test_shared_chunks_are_decoded_once():
     vae = CountingVAE()
     latents = torch.zeros(1, 5, 2, 2, 2)
     chunks = anchor_latent_chunks((13, 14, 16), 17, 4, 3)  # 13 and 14 share latent 4
-    decode_anchor_frames(vae, latents, chunks, 1.0)
+    decode_anchor_frames(partial(decode_chunk, vae, scaling_factor=1.0), latents, chunks)
     assert vae.calls == [(1, 3)]
 
 
@@ -115,7 +117,7 @@ def test_chunk_decode_of_the_whole_video_matches_a_full_decode():
     with torch.no_grad():
         full = decode_chunk(vae, latents, vae.config.scaling_factor)
         chunks = anchor_latent_chunks((4, 8), 9, 4, 3)
-        frames = decode_anchor_frames(vae, latents, chunks, vae.config.scaling_factor)
+        frames = decode_anchor_frames(partial(decode_chunk, vae, scaling_factor=vae.config.scaling_factor), latents, chunks)
     assert full.shape[1] == 9
     torch.testing.assert_close(frames[:, 1], full[:, 8])  # chunk [0, 3) is the whole video
     assert 0 <= frames.min() and frames.max() <= 1
@@ -128,7 +130,7 @@ def test_batched_chunk_decode_matches_decoding_each_chunk_alone():
     latents = torch.randn(2, 5, 4, 4, 6, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     chunks = anchor_latent_chunks((4, 8, 12, 16), 17, 4, 3)
     with torch.no_grad():
-        frames = decode_anchor_frames(vae, latents, chunks, vae.config.scaling_factor)
+        frames = decode_anchor_frames(partial(decode_chunk, vae, scaling_factor=vae.config.scaling_factor), latents, chunks)
         for k, chunk in enumerate(chunks):
             alone = decode_chunk(vae, latents[:, chunk.start : chunk.stop], vae.config.scaling_factor)
             torch.testing.assert_close(frames[:, k], alone[:, alone.shape[1] - 1 - chunk.from_end])
@@ -144,7 +146,8 @@ def test_checkpointed_chunks_give_the_same_frames_and_gradient():
     results = []
     for checkpoint_chunks in (False, True):
         z = latents.clone().requires_grad_(True)
-        frames = decode_anchor_frames(vae, z, chunks, vae.config.scaling_factor, checkpoint_chunks=checkpoint_chunks)
+        frames = decode_anchor_frames(partial(decode_chunk, vae, scaling_factor=vae.config.scaling_factor), z, chunks,
+                                      checkpoint_chunks=checkpoint_chunks)
         (grad,) = torch.autograd.grad((frames * weights).sum(), z)
         results.append((frames.detach(), grad))
     torch.testing.assert_close(results[1][0], results[0][0])

@@ -378,7 +378,7 @@ class GeCoGuidanceHandle:
 
         def decode_anchors(x0: Tensor) -> Tensor:
             latents = adapter.frames_first(pipe, x0, state.geometry)
-            return decode_anchor_frames(None, latents, state.chunks, 1.0, decode=lambda c: adapter.decode(pipe, c),
+            return decode_anchor_frames(functools.partial(adapter.decode, pipe), latents, state.chunks,
                                         checkpoint_chunks=config.vae_checkpointing)
 
         faithful = config.denoiser_grad

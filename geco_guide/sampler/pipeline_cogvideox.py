@@ -45,7 +45,12 @@ from .guidance import (
     guided_step,
     resolve_guidance_config,
 )
-from .slicing import anchor_latent_chunks, check_num_frames, decode_anchor_frames
+from .slicing import (
+    anchor_latent_chunks,
+    check_num_frames,
+    decode_anchor_frames,
+    decode_chunk,
+)
 
 try:
     from diffusers.pipelines.cogvideo.pipeline_cogvideox import XLA_AVAILABLE
@@ -425,8 +430,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             loss_fn = GeCoLoss(geometry_estimator, flow_estimator, config.loss, check_values=False)
 
             def decode_anchors(x0: Tensor) -> Tensor:
-                return decode_anchor_frames(self.vae, x0[:, additional_frames:], chunks, self.vae_scaling_factor_image,
-                                            checkpoint_chunks=config.vae_checkpointing)
+                return decode_anchor_frames(partial(decode_chunk, self.vae, scaling_factor=self.vae_scaling_factor_image),
+                                            x0[:, additional_frames:], chunks, checkpoint_chunks=config.vae_checkpointing)
 
         guidance_log: list[dict[str, Any]] = []
 

@@ -141,14 +141,12 @@ def decode_chunk(vae, latents: Tensor, scaling_factor: float) -> Tensor:
 
 
 def decode_anchor_frames(
-    vae,
+    decode: Callable[[Tensor], Tensor],
     latents: Tensor,
     chunks: Sequence[AnchorChunk],
-    scaling_factor: float,
-    decode: Callable[[Tensor], Tensor] | None = None,
     checkpoint_chunks: bool = False,
 ) -> Tensor:
-    """Decode only the anchor frames, each from its causal chunk, through the frozen VAE.
+    """Decode only the anchor frames, each from its causal chunk, through a frozen VAE.
 
     Chunks shared by several anchors are decoded once. By default chunks of the same length are
     stacked along the batch and decoded in one call (the paper's anchors give four chunks of
@@ -162,14 +160,12 @@ def decode_anchor_frames(
     chunk.
 
     Args:
-        vae: a causal video VAE with ``decode(z [B, C, F, h, w]).sample -> [B, 3, T, H, W]``
-            in ``[-1, 1]`` (ignored when ``decode`` is given).
+        decode: ``latents [N, F', C, h, w] -> frames [N, T, 3, H, W]`` in ``[0, 1]``, treating
+            the ``N`` videos of a batch independently: :func:`decode_chunk` of a CogVideoX VAE
+            (``functools.partial(decode_chunk, vae, scaling_factor=...)``), or a pipeline
+            adapter's decode for other layouts.
         latents: ``[B, F, C, h, w]`` clean-latent estimate (differentiable).
         chunks: from :func:`anchor_latent_chunks`.
-        scaling_factor: the VAE's latent scaling factor (latents are divided by it).
-        decode: optional ``latents [N, F', C, h, w] -> frames [N, T, 3, H, W] in [0, 1]`` to use
-            instead of :func:`decode_chunk` (other pipelines' layouts); it must treat the
-            ``N`` videos of a batch independently.
         checkpoint_chunks: one checkpointed decode per chunk when gradients are enabled
             (memory of one chunk's decode instead of all of them; one more forward each).
 
@@ -182,7 +178,6 @@ def decode_anchor_frames(
     for chunk in chunks:
         if chunk.stop > num_latents:
             raise ValueError(f"anchor {chunk.anchor} needs latent {chunk.latent} but latents has only {num_latents}")
-    decode = decode or (lambda z: decode_chunk(vae, z, scaling_factor))
     spans = sorted({(chunk.start, chunk.stop) for chunk in chunks})
     decoded: dict[tuple[int, int], Tensor] = {}
     if checkpoint_chunks and torch.is_grad_enabled():
