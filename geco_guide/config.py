@@ -36,6 +36,8 @@ from .sampler.guidance import GuidanceConfig, paper_guidance_config
 from .types import non_finite_fields
 
 DTYPES = ("float32", "float16", "bfloat16")
+# Frames per latent of the CogVideoX VAE, whose pipeline the sampling section configures.
+COGVIDEOX_TEMPORAL_COMPRESSION = 4
 # CFG scales in use are 1-20 (CogVideoX: 6); absurd ones only overflow the latents to NaN/inf
 # after minutes of sampling (a black video), so they are refused at once (guidance.eta likewise,
 # in GuidanceConfig).
@@ -353,17 +355,14 @@ def validate_config(cfg: GeCoConfig) -> None:
     )
     _require(s.scheduler in (None, "ddim", "dpm"), "sampling.scheduler", f"must be ddim, dpm or null, got {s.scheduler!r}")
     g = cfg.guidance
-    _require(g.enabled is False or g.loss.cue != "structure" or g.loss.geometry_grad, "guidance.loss.geometry_grad",
-             "must be true with guidance.loss.cue=structure (the structure cue reaches the frames only through the "
-             "geometry estimator)")
-    try:
-        g.schedule(s.num_inference_steps)
-    except ValueError as err:
-        raise ValueError(f"invalid guidance schedule (guidance.repeats / guidance.time_travel): {err}") from None
-    try:
-        g.validate(s.num_inference_steps, s.num_frames, 4)
-    except ValueError as err:
-        raise ValueError(f"invalid value for config key 'guidance.anchors': {err}") from None
+    # GuidanceConfig's own checks against this run, each error named by its key
+    for check, key in ((g.check_loss, "guidance.loss.geometry_grad"),
+                       (lambda: g.schedule(s.num_inference_steps), "guidance.repeats / guidance.time_travel"),
+                       (lambda: g.anchor_chunks(s.num_frames, COGVIDEOX_TEMPORAL_COMPRESSION), "guidance.anchors")):
+        try:
+            check()
+        except ValueError as err:
+            raise ValueError(f"invalid value for config key {key!r}: {err}") from None
     _require(bool(cfg.output.dir), "output.dir", "must not be empty")
     name = cfg.output.name
     _require(

@@ -48,7 +48,7 @@ from .schedule import (
     GuidanceSchedule,
     scale_schedule,
 )
-from .slicing import anchor_latent_chunks
+from .slicing import AnchorChunk, anchor_latent_chunks
 
 PAPER_ANCHORS = (12, 24, 36, 48)
 # An update of eta moves the latents by eta in L2 norm; 1000 is about the norm of the whole latent
@@ -133,11 +133,18 @@ class GuidanceConfig:
                 "(use cue=motion or fused, or geometry_grad=true)"
             )
 
-    def validate(self, num_steps: int, num_frames: int, temporal_compression: int) -> GuidanceSchedule:
-        """Check everything against a run; ValueError naming the problem. Returns the schedule."""
+    def anchor_chunks(self, num_frames: int, temporal_compression: int) -> list[AnchorChunk]:
+        """The causal latent chunk of each anchor of a ``num_frames`` video (ValueError for anchors
+        the video cannot contain)."""
+        return anchor_latent_chunks(self.anchors, num_frames, temporal_compression, self.chunk_latents)
+
+    def validate(self, num_steps: int, num_frames: int,
+                 temporal_compression: int) -> tuple[GuidanceSchedule, list[AnchorChunk]]:
+        """Check everything against a run; ValueError naming the problem. Returns the schedule
+        and the anchors' chunks."""
         self.check_loss()
-        anchor_latent_chunks(self.anchors, num_frames, temporal_compression, self.chunk_latents)
-        return self.schedule(num_steps)
+        chunks = self.anchor_chunks(num_frames, temporal_compression)
+        return self.schedule(num_steps), chunks
 
 
 def paper_guidance_config() -> GuidanceConfig:

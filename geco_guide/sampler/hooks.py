@@ -72,7 +72,7 @@ from .guidance import (
     resolve_guidance_config,
 )
 from .schedule import GuidanceSchedule
-from .slicing import AnchorChunk, anchor_latent_chunks, decode_anchor_frames
+from .slicing import AnchorChunk, decode_anchor_frames
 
 __all__ = ["GeCoGuidanceHandle", "attach_geco_guidance"]
 
@@ -307,11 +307,7 @@ class GeCoGuidanceHandle:
         self.adapter.check(self.pipe, geometry)
         config.check_loss()
         check_no_denoiser_cache(self.adapter.denoisers(self.pipe))
-        if not config.grad_eps > 0:
-            raise ValueError(f"guidance grad_eps must be > 0, got {config.grad_eps}")
-        chunks = anchor_latent_chunks(
-            config.anchors, geometry.num_frames, geometry.temporal_compression, config.chunk_latents
-        )
+        chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
         check_scheduler(self.pipe.scheduler)
         # No frame check: it would make each update wait for the device; a NaN decode gives
         # NaN scalars and no update instead (GeCoLoss check_values).

@@ -46,7 +46,6 @@ from .guidance import (
     resolve_guidance_config,
 )
 from .slicing import (
-    anchor_latent_chunks,
     check_num_frames,
     decode_anchor_frames,
     decode_chunk,
@@ -227,10 +226,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             )
         check_scheduler(self.scheduler)
         check_no_denoiser_cache([self.transformer])
-        schedule = guidance.validate(num_steps, num_frames, self.vae_scale_factor_temporal)
-        chunks = anchor_latent_chunks(
-            guidance.anchors, num_frames, self.vae_scale_factor_temporal, guidance.chunk_latents
-        )
+        schedule, chunks = guidance.validate(num_steps, num_frames, self.vae_scale_factor_temporal)
         missing = [
             name
             for name, est, proto in (
