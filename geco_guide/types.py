@@ -19,9 +19,9 @@ frames.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass, fields, is_dataclass
-from typing import Any, Protocol, runtime_checkable
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields, is_dataclass, replace
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import torch
 from torch import Tensor
@@ -150,3 +150,37 @@ def non_finite_fields(obj: Any, prefix: str = "") -> list[tuple[str, float]]:
 
 def _non_finite(value: Any) -> bool:
     return isinstance(value, float) and not math.isfinite(value)
+
+
+T = TypeVar("T")
+
+
+def merge_dataclass(obj: T, changes: Mapping[str, Any], path: str = "") -> T:
+    """``obj`` (a dataclass instance) with ``changes`` (a nested mapping, e.g. parsed JSON/YAML)
+    applied: a mapping merges into a dataclass field, a list takes the field's sequence type
+    (tuple or list), a list of mappings becomes a list of the default elements' dataclass. An
+    unknown key raises ValueError naming where it is (``path`` prefixes the names)."""
+    if not hasattr(changes, "keys"):  # a dict or an omegaconf DictConfig
+        raise ValueError(f"{path or 'config'} must be a mapping, got {type(changes).__name__}")
+    known = {f.name for f in fields(obj)}
+    unknown = sorted(set(changes) - known)
+    if unknown:
+        names = [f"{path}.{key}" if path else key for key in unknown]
+        raise ValueError(f"{path or 'config'}: unknown key(s) {names}; known: {sorted(known)}")
+    updates = {}
+    for key, value in dict(changes).items():
+        current, where = getattr(obj, key), f"{path}.{key}" if path else key
+        if is_dataclass(current):
+            value = merge_dataclass(current, value, where)
+        elif isinstance(value, Sequence) and not isinstance(value, str):
+            items = list(value)
+            if isinstance(current, (list, tuple)) and current and is_dataclass(current[0]):
+                element = type(current[0])
+                items = [merge_dataclass(element(**{f.name: getattr(current[0], f.name) for f in fields(element)}),
+                                         item, f"{where}[{k}]") for k, item in enumerate(items)]
+            value = tuple(items) if isinstance(current, tuple) else items
+        updates[key] = value
+    try:
+        return replace(obj, **updates)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path or 'config'}: {err}") from None

@@ -99,3 +99,23 @@ def test_string_overrides_are_taken_verbatim():
     assert cfg.guidance.repeats == "0x2"  # not YAML's hex 2
     assert cfg.guidance.schedule(2).repeats == (0, 0)
     assert cfg.output.name == "0x5" and cfg.guidance.time_travel == []
+
+
+def test_merge_dataclass_is_the_one_dict_to_config_merger():
+    """GuidanceConfig dicts, VGGTConfig.from_dict and UFMConfig.from_dict all go through it."""
+    from geco_guide.estimators.ufm import UFMConfig
+    from geco_guide.estimators.vggt import VGGTConfig
+    from geco_guide.sampler import GuidanceConfig
+    from geco_guide.types import merge_dataclass
+
+    merged = merge_dataclass(GuidanceConfig(), {"eta": 2.0, "anchors": (4, 8), "loss": {"cue": "motion"}}, "guidance")
+    assert merged.eta == 2.0 and merged.anchors == [4, 8] and merged.loss.cue == "motion"  # list stays a list
+    assert merged.loss.pairs == GuidanceConfig().loss.pairs  # untouched nested keys keep their values
+    tiny = VGGTConfig.tiny()
+    assert VGGTConfig.from_dict(tiny.to_dict()) == tiny  # JSON lists become the config's tuples again
+    adaptors = UFMConfig.from_dict({"uncertainty_adaptors": [{"name": "non_occluded_mask", "type": "mask"}]}).uncertainty_adaptors
+    assert type(adaptors[0]).__name__ == "UFMAdaptorSpec" and adaptors[0].type == "mask"
+    with pytest.raises(ValueError, match=r"loss: unknown key\(s\) \['guidance.loss.cues'\]"):
+        merge_dataclass(GuidanceConfig(), {"loss": {"cues": "motion"}}, "guidance")
+    with pytest.raises(ValueError, match="guidance.loss must be a mapping"):
+        merge_dataclass(GuidanceConfig(), {"loss": 3}, "guidance")

@@ -20,7 +20,7 @@ import json
 import os
 from collections.abc import Mapping, Sequence
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..types import Correspondences
+from ..types import Correspondences, merge_dataclass
 from .dpt import FusionBlock, resample_layer
 from .loading import (
     CheckpointMismatchError,
@@ -172,25 +172,10 @@ class UFMConfig:
     def from_dict(cls, d: Mapping[str, Any]) -> UFMConfig:
         """Build from a section-5 dict (as in the fixtures' ``config``); absent keys keep the
         UFM-Base defaults, unknown keys raise ``ValueError`` naming them."""
-        top = dict(_checked_mapping(d, cls, "config"))
-        sections = {
-            "encoder": UFMEncoderConfig,
-            "info_sharing": UFMInfoSharingConfig,
-            "flow_head": UFMHeadConfig,
-            "flow_adaptor": UFMFlowAdaptorConfig,
-            "uncertainty_head": UFMHeadConfig,
-        }
-        for name, section_cls in sections.items():
-            if name in top:
-                top[name] = section_cls(**_checked_mapping(top[name], section_cls, name))
-        if "uncertainty_adaptors" in top:
-            top["uncertainty_adaptors"] = [
-                UFMAdaptorSpec(**_checked_mapping(a, UFMAdaptorSpec, "uncertainty_adaptors[]"))
-                for a in top["uncertainty_adaptors"]
-            ]
-        if "inference_resolution" in top:
+        top = dict(d) if hasattr(d, "keys") else d
+        if hasattr(top, "keys") and "inference_resolution" in top:
             top["inference_resolution"] = _resolution_list(top["inference_resolution"])
-        config = cls(**top)
+        config = merge_dataclass(cls(), top)
         config.validate()
         return config
 
@@ -346,16 +331,6 @@ class UFMConfig:
 def _check(ok: bool, name: str, value: Any, requirement: str) -> None:
     if not ok:
         raise ValueError(f"UFM config field {name} = {value!r}: {requirement}")
-
-
-def _checked_mapping(d: Any, cls: type, where: str) -> Mapping[str, Any]:
-    """Return ``d`` after checking it is a mapping whose keys are fields of dataclass ``cls``."""
-    if not isinstance(d, Mapping):
-        raise ValueError(f"UFM config field {where} must be a mapping, got {type(d).__name__}")
-    unknown = sorted(set(d) - {f.name for f in fields(cls)})
-    if unknown:
-        raise ValueError(f"UFM config field {where}: unknown key(s) {unknown}")
-    return d
 
 
 def _resolution_list(value: Any) -> list[list[int]]:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Any, Mapping
 
 import torch
@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..geometry import crop_intrinsics, resize_intrinsics
-from ..types import SceneGeometry, check_frames
+from ..types import SceneGeometry, check_frames, merge_dataclass
 from .dpt import (
     FusionBlock,
     add_position_embedding,
@@ -109,22 +109,7 @@ class VGGTConfig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "VGGTConfig":
         """Build from the section-5.1 dict (nested sub-dicts; missing keys keep defaults)."""
-        nested = {"dino": DinoConfig, "aggregator": AggregatorConfig,
-                  "camera_head": CameraHeadConfig, "depth_head": DepthHeadConfig}
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown VGGT config keys: {sorted(unknown)}")
-        kwargs: dict[str, Any] = {}
-        for key, value in d.items():
-            if key in nested:
-                sub_known = {f.name for f in fields(nested[key])}
-                bad = set(value) - sub_known
-                if bad:
-                    raise ValueError(f"unknown VGGT config keys in {key!r}: {sorted(bad)}")
-                value = nested[key](**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items()})
-            kwargs[key] = value
-        return cls(**kwargs)
+        return merge_dataclass(cls(), d)
 
     def to_dict(self) -> dict[str, Any]:
         """The section-5.1 dict (lists for sequences), inverse of :meth:`from_dict`."""

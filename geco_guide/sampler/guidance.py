@@ -33,14 +33,14 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Optional
 
 import torch
 from torch import Tensor, nn
 
 from ..loss.geco import GeCoLossConfig
-from ..types import non_finite_fields
+from ..types import merge_dataclass, non_finite_fields
 from .schedule import (
     PAPER_ETA,
     PAPER_REPEATS,
@@ -172,27 +172,8 @@ def resolve_guidance_config(
     if isinstance(override, GuidanceConfig):
         return override
     if hasattr(override, "keys"):  # dict or omegaconf DictConfig
-        return _merge_dataclass(base, dict(override), "guidance")
+        return merge_dataclass(base, override, "guidance")
     raise ValueError(f"guidance must be a GuidanceConfig, a dict, True/False or None, got {type(override).__name__}")
-
-
-def _merge_dataclass(obj, changes: dict, path: str):
-    known = {f.name for f in fields(obj)}
-    unknown = sorted(set(changes) - known)
-    if unknown:
-        raise ValueError(f"unknown option(s) {[f'{path}.{k}' for k in unknown]}; known: {sorted(known)}")
-    updates = {}
-    for key, value in changes.items():
-        current = getattr(obj, key)
-        if is_dataclass(current) and hasattr(value, "keys"):
-            value = _merge_dataclass(current, dict(value), f"{path}.{key}")
-        elif isinstance(value, Sequence) and not isinstance(value, str):
-            value = list(value)
-        updates[key] = value
-    try:
-        return replace(obj, **updates)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{path}: {err}") from err
 
 
 # --------------------------------------------------------------------------------------------
