@@ -293,3 +293,35 @@ def resize_flow(flow: Tensor, size: tuple[int, int]) -> Tensor:
     resized = F.interpolate(flow, size=size, mode="bilinear", align_corners=False)
     ratio = flow.new_tensor([size[1] / width, size[0] / height]).view(1, 2, 1, 1)
     return resized * ratio
+
+
+def quaternion_to_matrix(quat: Tensor) -> Tensor:
+    """Scalar-last quaternion ``[..., 4]`` (x, y, z, w; any norm) -> rotation ``[..., 3, 3]``."""
+    x, y, z, w = quat.unbind(-1)
+    s = 2.0 / (quat * quat).sum(-1)
+    rows = (
+        1 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w),
+        s * (x * y + z * w), 1 - s * (x * x + z * z), s * (y * z - x * w),
+        s * (x * z - y * w), s * (y * z + x * w), 1 - s * (x * x + y * y),
+    )
+    return torch.stack(rows, dim=-1).unflatten(-1, (3, 3))
+
+
+def pose_encoding_to_cameras(pose_enc: Tensor, image_hw: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """VGGT's pose encoding ``[..., 9]`` (t, quat xyzw, fov_h, fov_w) -> camera-from-world
+    extrinsics ``[..., 3, 4]`` and K ``[..., 3, 3]``.
+
+    K is in pixels of the ``image_hw`` network input with the principal point at ``(W/2, H/2)``
+    (continuous pixel convention, as the reference produces it: centres at ``i + 0.5``; subtract
+    0.5 from the principal point for this module's integer-centre convention).
+    """
+    height, width = image_hw
+    t, quat, fov_h, fov_w = pose_enc[..., :3], pose_enc[..., 3:7], pose_enc[..., 7], pose_enc[..., 8]
+    extrinsics = torch.cat([quaternion_to_matrix(quat), t.unsqueeze(-1)], dim=-1)
+    fy = (height / 2.0) / torch.tan(fov_h / 2.0)
+    fx = (width / 2.0) / torch.tan(fov_w / 2.0)
+    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
+    intrinsics = torch.stack(
+        [fx, zero, zero + width / 2.0, zero, fy, zero + height / 2.0, zero, zero, one], dim=-1
+    ).unflatten(-1, (3, 3))
+    return extrinsics, intrinsics

@@ -333,3 +333,18 @@ def test_fixtures_match_the_shared_copies():
         pytest.skip(f"{shared} is not beside this checkout; the copies in tests/fixtures are used")
     for name in ("vggt_tiny.pt", "ufm_tiny.pt"):
         assert (shared / name).read_bytes() == (Path(__file__).parent / "fixtures" / name).read_bytes(), name
+
+
+def test_lifecycle_and_pose_decode_live_in_one_place() -> None:
+    """VGGT and UFM share FrozenEstimator's construction, loading, trunk dtype and checkpointing;
+    the pose-encoding decode is camera math in geco_guide.geometry."""
+    from geco_guide import geometry
+    from geco_guide.estimators import vggt
+    from geco_guide.estimators.base import FrozenEstimator
+    from geco_guide.estimators.ufm import UFM
+
+    for cls in (VGGT, UFM):
+        assert issubclass(cls, FrozenEstimator)
+        for name in ("random", "from_state_dict", "from_pretrained", "trunk_to", "gradient_checkpointing"):
+            assert name not in vars(cls), f"{cls.__name__} redefines {name}"
+    assert vggt.pose_encoding_to_cameras is geometry.pose_encoding_to_cameras

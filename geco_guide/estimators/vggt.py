@@ -15,30 +15,39 @@ Precision knobs: ``autocast_dtype`` (e.g. ``torch.bfloat16``) runs the aggregato
 ``trunk_to(dtype)`` (and ``from_pretrained(dtype=...)``) stores the aggregator in that dtype. The
 camera and depth heads always run in float32, as upstream does. ``gradient_checkpointing``
 recomputes the trunk's block activations in backward.
+
+The configuration dataclasses live in :mod:`geco_guide.estimators.vggt_config`, the pose
+decode in :mod:`geco_guide.geometry`, the lifecycle (construction, loading, ``trunk_to``,
+checkpointing, freezing) in :class:`~geco_guide.estimators.base.FrozenEstimator`; their names
+are importable from here too.
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
-from dataclasses import asdict, dataclass, field
-from typing import Any, Mapping
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..geometry import crop_intrinsics, resize_intrinsics
-from ..types import SceneGeometry, check_frames, merge_dataclass
-from .dpt import (
-    FusionBlock,
-    add_position_embedding,
-    resample_layer,
+from ..geometry import (
+    crop_intrinsics,
+    pose_encoding_to_cameras,
+    quaternion_to_matrix,
+    resize_intrinsics,
 )
-from .loading import (
-    fetch_checkpoint_file,
-    load_state_dict_checked,
-    load_weights,
+from ..types import SceneGeometry, check_frames
+from .base import FrozenEstimator
+from .dpt import FusionBlock, add_position_embedding, resample_layer
+from .vggt_config import (
+    AggregatorConfig,
+    CameraHeadConfig,
+    DepthHeadConfig,
+    DinoConfig,
+    VGGTConfig,
 )
 from .vit import (
     Block,
@@ -51,6 +60,20 @@ from .vit import (
     run_block,
 )
 
+__all__ = [
+    "VGGT",
+    "VGGTConfig",
+    "AggregatorConfig",
+    "CameraHeadConfig",
+    "DepthHeadConfig",
+    "DinoConfig",
+    "PreprocessPlan",
+    "plan_preprocess",
+    "pose_encoding_to_cameras",
+    "quaternion_to_matrix",
+    "unmap_intrinsics",
+]
+
 # Checkpoint parts we never build (spec 3.6 / 6); the DINO mask token is unused at inference.
 IGNORED_CHECKPOINT_PREFIXES = ("point_head.", "track_head.", "aggregator.patch_embed.mask_token")
 CHECKPOINT_FILES = ("model.safetensors", "model.pt")
@@ -58,83 +81,8 @@ POSE_ENCODING_DIM = 9
 
 
 # --------------------------------------------------------------------------------------------
-# Configuration (spec 5.1)
-
-
-@dataclass
-class DinoConfig:
-    depth: int = 24
-    num_heads: int = 16
-    mlp_ratio: float = 4.0
-
-
-@dataclass
-class AggregatorConfig:
-    depth: int = 24
-    num_heads: int = 16
-    mlp_ratio: float = 4.0
-    qk_norm: bool = True
-    rope_freq: float = 100.0
-
-
-@dataclass
-class CameraHeadConfig:
-    trunk_depth: int = 4
-    num_heads: int = 16
-    mlp_ratio: float = 4.0
-    num_iterations: int = 4
-
-
-@dataclass
-class DepthHeadConfig:
-    features: int = 256
-    out_channels: tuple[int, int, int, int] = (256, 512, 1024, 1024)
-    intermediate_layer_idx: tuple[int, int, int, int] = (4, 11, 17, 23)
-
-
-@dataclass
-class VGGTConfig:
-    """Architecture of a VGGT model; defaults are VGGT-1B. ``img_size`` is also the network
-    input width used by :meth:`VGGT.estimate_geometry`."""
-
-    patch_size: int = 14
-    img_size: int = 518
-    embed_dim: int = 1024
-    num_register_tokens: int = 4
-    dino: DinoConfig = field(default_factory=DinoConfig)
-    aggregator: AggregatorConfig = field(default_factory=AggregatorConfig)
-    camera_head: CameraHeadConfig = field(default_factory=CameraHeadConfig)
-    depth_head: DepthHeadConfig = field(default_factory=DepthHeadConfig)
-
-    @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "VGGTConfig":
-        """Build from the section-5.1 dict (nested sub-dicts; missing keys keep defaults)."""
-        return merge_dataclass(cls(), d)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The section-5.1 dict (lists for sequences), inverse of :meth:`from_dict`."""
-        d = asdict(self)
-        for k in ("out_channels", "intermediate_layer_idx"):
-            d["depth_head"][k] = list(d["depth_head"][k])
-        return d
-
-    @classmethod
-    def tiny(cls) -> "VGGTConfig":
-        """The public fixture's sizes: 1.1 M parameters, 70-pixel-wide network input."""
-        return cls(
-            img_size=70,
-            embed_dim=64,
-            num_register_tokens=4,
-            dino=DinoConfig(depth=2, num_heads=4),
-            aggregator=AggregatorConfig(depth=5, num_heads=4),
-            camera_head=CameraHeadConfig(trunk_depth=1, num_heads=4),
-            depth_head=DepthHeadConfig(features=32, out_channels=(16, 24, 32, 48),
-                                       intermediate_layer_idx=(0, 2, 3, 4)),
-        )
-
-
-# --------------------------------------------------------------------------------------------
-# Preprocessing geometry (spec 3.1) and pose encoding (spec 1.3)
+# Preprocessing geometry (spec 3.1); the pose encoding (spec 1.3) is decoded by
+# geometry.pose_encoding_to_cameras
 
 
 @dataclass(frozen=True)
@@ -165,36 +113,6 @@ def plan_preprocess(height: int, width: int, target_width: int = 518, patch_size
         crop_top=crop_top,
         network_hw=(min(new_h, target_width), target_width),
     )
-
-
-def quaternion_to_matrix(quat: Tensor) -> Tensor:
-    """Scalar-last quaternion ``[..., 4]`` (x, y, z, w; any norm) -> rotation ``[..., 3, 3]``."""
-    x, y, z, w = quat.unbind(-1)
-    s = 2.0 / (quat * quat).sum(-1)
-    rows = (
-        1 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w),
-        s * (x * y + z * w), 1 - s * (x * x + z * z), s * (y * z - x * w),
-        s * (x * z - y * w), s * (y * z + x * w), 1 - s * (x * x + y * y),
-    )
-    return torch.stack(rows, dim=-1).unflatten(-1, (3, 3))
-
-
-def pose_encoding_to_cameras(pose_enc: Tensor, image_hw: tuple[int, int]) -> tuple[Tensor, Tensor]:
-    """``[..., 9]`` (t, quat xyzw, fov_h, fov_w) -> extrinsics ``[..., 3, 4]``, K ``[..., 3, 3]``.
-
-    K is in pixels of the ``image_hw`` network input with the principal point at ``(W/2, H/2)``
-    (continuous pixel convention, as the reference produces it).
-    """
-    height, width = image_hw
-    t, quat, fov_h, fov_w = pose_enc[..., :3], pose_enc[..., 3:7], pose_enc[..., 7], pose_enc[..., 8]
-    extrinsics = torch.cat([quaternion_to_matrix(quat), t.unsqueeze(-1)], dim=-1)
-    fy = (height / 2.0) / torch.tan(fov_h / 2.0)
-    fx = (width / 2.0) / torch.tan(fov_w / 2.0)
-    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
-    intrinsics = torch.stack(
-        [fx, zero, zero + width / 2.0, zero, fy, zero + height / 2.0, zero, zero, one], dim=-1
-    ).unflatten(-1, (3, 3))
-    return extrinsics, intrinsics
 
 
 # --------------------------------------------------------------------------------------------
@@ -368,19 +286,32 @@ class DepthHead(nn.Module):
         return y[:, :, 0].exp().unsqueeze(-1), 1 + y[:, :, 1].exp()
 
 
-class VGGT(nn.Module):
+class VGGT(FrozenEstimator):
     """VGGT aggregator + camera head + depth head; frozen, eval mode.
 
     ``VGGT(config)`` draws a random initialisation from the global torch RNG (use
     :meth:`random` for a seeded one) that gives sane outputs: depth ~1, confidence ~2, near
-    identity rotations and a field of view of ~1 rad.
+    identity rotations and a field of view of ~1 rad. The trunk (:meth:`trunk_to`,
+    :attr:`gradient_checkpointing`) is the aggregator, DINO embedder included.
+
+    The checkpoint carries no architecture, so :meth:`from_pretrained`'s ``config`` defaults to
+    VGGT-1B; ``point_head.*``, ``track_head.*`` and the DINO ``mask_token`` are ignored when
+    loading, any other missing, unexpected or mis-shaped key raises ``CheckpointMismatchError``.
     """
 
-    def __init__(self, config: VGGTConfig | None = None, *, gradient_checkpointing: bool = False,
-                 autocast_dtype: torch.dtype | None = None) -> None:
-        """``config`` None = VGGT-1B."""
+    config_class = VGGTConfig
+    model_name = "VGGT"
+    default_repo_id = "facebook/VGGT-1B"
+    checkpoint_files = CHECKPOINT_FILES
+    ignored_checkpoint_prefixes = IGNORED_CHECKPOINT_PREFIXES
+    trunk_modules = ("aggregator",)
+    checkpointed_modules = ("aggregator", "aggregator.patch_embed")
+
+    def __init__(self, config: VGGTConfig | Mapping[str, Any] | None = None, *,
+                 gradient_checkpointing: bool = False, autocast_dtype: torch.dtype | None = None) -> None:
+        """``config``: a :class:`VGGTConfig` or section-5.1 dict; None = VGGT-1B."""
         super().__init__()
-        self.config = config = VGGTConfig() if config is None else config
+        self.config = config = self.resolve_config(config)
         depth = config.aggregator.depth
         layer_idx = tuple(config.depth_head.intermediate_layer_idx)
         if not all(0 <= i < depth for i in layer_idx):
@@ -388,21 +319,7 @@ class VGGT(nn.Module):
         self.aggregator = Aggregator(config, keep_layers=(*layer_idx, depth - 1))
         self.camera_head = CameraHead(2 * config.embed_dim, config.camera_head)
         self.depth_head = DepthHead(2 * config.embed_dim, config.patch_size, config.depth_head)
-        self.autocast_dtype = autocast_dtype
-        self.gradient_checkpointing = gradient_checkpointing
-        self.reset_parameters()
-        self.requires_grad_(False)
-        self.eval()
-
-    @property
-    def gradient_checkpointing(self) -> bool:
-        """Recompute the DINO and aggregator blocks' activations in backward."""
-        return self.aggregator.gradient_checkpointing
-
-    @gradient_checkpointing.setter
-    def gradient_checkpointing(self, value: bool) -> None:
-        self.aggregator.gradient_checkpointing = bool(value)
-        self.aggregator.patch_embed.gradient_checkpointing = bool(value)
+        self._finish_init(gradient_checkpointing=gradient_checkpointing, autocast_dtype=autocast_dtype)
 
     # ---- construction -----------------------------------------------------------------------
 
@@ -418,55 +335,6 @@ class VGGT(nn.Module):
         fc2.bias.zero_()
         fc2.bias[6:9] = 1.0 / self.config.camera_head.num_iterations
         nn.init.normal_(self.depth_head.scratch.output_conv2[2].weight, std=0.02, generator=generator)
-
-    def trunk_to(self, dtype: torch.dtype) -> "VGGT":
-        """Store the aggregator (nearly all parameters and compute) in ``dtype``, e.g. bfloat16 on a
-        GPU; the camera and depth heads stay float32 and so do the outputs. Returns ``self``."""
-        self.aggregator.to(dtype)
-        return self
-
-    @classmethod
-    def random(cls, config: VGGTConfig | None = None, seed: int = 0, **kwargs: Any) -> "VGGT":
-        """A randomly initialised model whose weights depend only on ``seed`` (global RNG untouched)."""
-        with torch.device("meta"):
-            model = cls(config, **kwargs)
-        model.to_empty(device="cpu")
-        model.reset_parameters(torch.Generator().manual_seed(seed))
-        return model
-
-    @classmethod
-    def from_state_dict(cls, config: VGGTConfig | Mapping[str, Any] | None,
-                        state_dict: Mapping[str, Tensor], **kwargs: Any) -> "VGGT":
-        """Build from ``config`` (a :class:`VGGTConfig` or section-5.1 dict) and load strictly.
-
-        ``point_head.*``, ``track_head.*`` and the DINO ``mask_token`` are ignored; any other
-        missing, unexpected or mis-shaped key raises ``CheckpointMismatchError``.
-        """
-        if config is not None and not isinstance(config, VGGTConfig):
-            config = VGGTConfig.from_dict(config)
-        with torch.device("meta"):
-            model = cls(config, **kwargs)
-        model.to_empty(device="cpu")  # no buffers: every tensor is overwritten by the load
-        load_state_dict_checked(model, state_dict, model_name="VGGT",
-                                ignore_prefixes=IGNORED_CHECKPOINT_PREFIXES)
-        return model
-
-    @classmethod
-    def from_pretrained(cls, repo_id_or_local_dir: str | os.PathLike = "facebook/VGGT-1B", *,
-                        config: VGGTConfig | Mapping[str, Any] | None = None,
-                        dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu",
-                        revision: str | None = None, cache_dir: str | os.PathLike | None = None,
-                        **kwargs: Any) -> "VGGT":
-        """Load ``model.safetensors`` (or ``model.pt``) from a hub repo id or a local folder.
-
-        The checkpoint carries no architecture, so ``config`` defaults to VGGT-1B. ``dtype``
-        applies to the aggregator only; the heads stay float32. Raises ``WeightsNotFoundError``
-        (one line) when the weights are unavailable offline.
-        """
-        path = fetch_checkpoint_file(repo_id_or_local_dir, CHECKPOINT_FILES, model_name="VGGT",
-                                     revision=revision, cache_dir=cache_dir)
-        model = cls.from_state_dict(config, load_weights(path), **kwargs)
-        return model.trunk_to(dtype).to(device)
 
     # ---- inference ----------------------------------------------------------------------------
 
