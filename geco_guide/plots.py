@@ -1,4 +1,5 @@
-"""Scatter plots drawn with Pillow (already a dependency through imageio): no matplotlib.
+"""Scatter plots drawn with Pillow's ImageDraw and its default font (Pillow is a declared
+dependency): no matplotlib.
 
 A :class:`Panel` maps data to a pixel box with axes, ticks and labels; :func:`legend` adds a
 row of coloured dots with labels. Used by the A/B report and the GeCo-Eval report.

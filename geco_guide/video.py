@@ -9,7 +9,8 @@
   frames of Total / Mean Motion).
 * Rendering: :func:`colorize` (viridis lookup table over the FIXED range :data:`MAP_RANGE`, so maps
   of different videos are comparable), :func:`colorbar` (its legend with tick labels),
-  :func:`draw_text` (a built-in 3x5 bitmap font) and :func:`side_by_side` (labelled panels).
+  :func:`draw_text` / :func:`text_strip` (Pillow's default font, sized by :func:`text_scale`) and
+  :func:`side_by_side` (labelled panels).
 
 Frames are float ``[S, 3, H, W]`` (or ``[S, H, W, 3]`` on input) in ``[0, 1]``, RGB. Writes are
 atomic: the file is written under a temporary name in the same folder, checked (readable, every
@@ -18,12 +19,13 @@ frame there) and moved into place with ``os.replace``, so a reader never sees a 
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -496,85 +498,132 @@ def colorize(values: Tensor, valid: Tensor | None = None, value_range: tuple[flo
 
 
 # --------------------------------------------------------------------------------------------
-# text: a 3x5 bitmap font (upper case, digits, a little punctuation)
+# text: Pillow's default font (Aileron Regular, anti-aliased), scaled with the video
 
-_GLYPHS = {
-    "0": "111101101101111", "1": "010110010010111", "2": "111001111100111", "3": "111001011001111",
-    "4": "101101111001001", "5": "111100111001111", "6": "111100111101111", "7": "111001001010010",
-    "8": "111101111101111", "9": "111101111001111",
-    "A": "010101111101101", "B": "110101110101110", "C": "011100100100011", "D": "110101101101110",
-    "E": "111100110100111", "F": "111100110100100", "G": "011100101101011", "H": "101101111101101",
-    "I": "111010010010111", "J": "001001001101010", "K": "101101110101101", "L": "100100100100111",
-    "M": "101111111101101", "N": "110101101101101", "O": "010101101101010", "P": "110101110100100",
-    "Q": "010101101110011", "R": "110101110101101", "S": "011100010001110", "T": "111010010010010",
-    "U": "101101101101111", "V": "101101101101010", "W": "101101111111101", "X": "101101010101101",
-    "Y": "101101010010010", "Z": "111001010100111",
-    " ": "000000000000000", ".": "000000000000010", ",": "000000000010100", "-": "000000111000000",
-    "_": "000000000000111", ":": "000010000010000", "/": "001001010100100", "%": "101001010100101",
-    "(": "010100100100010", ")": "010001001001010", "<": "001010100010001", ">": "100010001010100",
-    "=": "000111000111000", "+": "000010111010000", "|": "010010010010010", "?": "111001010000010",
-}
-GLYPH_HEIGHT, GLYPH_WIDTH = 5, 3
+#: Font size in pixels per unit of :func:`text_scale` (text next to a 480-pixel-high video is
+#: drawn at 4 x 9 = 36 pixels).
+FONT_SIZE = 9
+#: The smallest size :func:`text_strip` shrinks a line to so that it fits its width.
+MIN_FONT_SIZE = 7
+
+
+@functools.cache
+def _font(size: int) -> tuple[Any, int]:
+    """``(font, upscale)`` for text of ``size`` pixels: Pillow's default font at that size, or,
+    in a Pillow without sizes for it (before 10.1, or built without FreeType), its fixed bitmap
+    font and the integer factor the drawn text is enlarged by."""
+    from PIL import ImageFont
+
+    try:
+        font = ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1: load_default takes no size
+        font = ImageFont.load_default()
+    if isinstance(font, ImageFont.FreeTypeFont):
+        return font, 1
+    return font, max(1, round(size / FONT_SIZE))  # its 11-pixel lines stand in for FONT_SIZE ones
+
+
+def _line_height(font: Any) -> int:
+    if hasattr(font, "getmetrics"):
+        ascent, descent = font.getmetrics()
+        return ascent + descent
+    return font.getbbox("Ag|")[3]
+
+
+def _ascent(size: int) -> int:
+    """Rows from the top of a line of text at ``size`` pixels to its baseline."""
+    font, upscale = _font(size)
+    return (font.getmetrics()[0] if hasattr(font, "getmetrics") else font.getbbox("A")[3]) * upscale
+
+
+def _coverage(text: str, size: int) -> Tensor:
+    """``[line height, width]`` float coverage in [0, 1] of ``text`` drawn at ``size`` pixels
+    (anti-aliased; the same text and size always give the same pixels)."""
+    from PIL import Image, ImageDraw
+
+    font, upscale = _font(size)
+    height = _line_height(font)
+    width = 0
+    if text:
+        width = max(math.ceil(font.getlength(text)), font.getbbox(text)[2])
+    if width == 0:
+        return torch.zeros(height * upscale, 0)
+    image = Image.new("L", (width, height), 0)
+    ImageDraw.Draw(image).text((0, 0), text, fill=255, font=font)
+    mask = torch.from_numpy(np.asarray(image, dtype=np.float32) / 255.0)
+    return mask.repeat_interleave(upscale, 0).repeat_interleave(upscale, 1)
 
 
 def text_scale(size: int) -> int:
-    """Integer pixel scale of text next to an image of ``size`` pixels (its height)."""
+    """Integer scale of text next to an image of ``size`` pixels (its height)."""
     return max(1, size // 120)
 
 
 def text_mask(text: str, scale: int = 1) -> Tensor:
-    """``[5 * scale, (4 * len - 1) * scale]`` bool pixels of ``text`` (lower case is drawn as
-    upper case, unknown characters as ``?``)."""
-    if not text:
-        return torch.zeros(GLYPH_HEIGHT * scale, 0, dtype=torch.bool)
-    columns = []
-    for k, char in enumerate(text.upper()):
-        bits = _GLYPHS.get(char, _GLYPHS["?"])
-        glyph = torch.tensor([c == "1" for c in bits]).view(GLYPH_HEIGHT, GLYPH_WIDTH)
-        columns.append(glyph if k == 0 else torch.cat((torch.zeros(GLYPH_HEIGHT, 1, dtype=torch.bool), glyph), 1))
-    mask = torch.cat(columns, dim=1)
-    return mask.repeat_interleave(scale, 0).repeat_interleave(scale, 1)
+    """``[line height, width]`` float coverage in [0, 1] of one line of ``text`` in Pillow's
+    default font at ``FONT_SIZE * scale`` pixels. The height is the font's line height (ascent +
+    descent) whatever the text, so lines of one scale share a baseline; the width grows with the
+    text. Characters the font lacks are drawn as its placeholder box."""
+    return _coverage(text, FONT_SIZE * scale)
 
 
-def draw_text(image: Tensor, text: str, x: int, y: int, scale: int = 1, color: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Tensor:
-    """``image [3, H, W]`` with ``text`` drawn, top-left corner at column ``x``, row ``y``
-    (clipped at the image border). Returns a new tensor."""
+def _blend(image: Tensor, mask: Tensor, x: int, y: int, color: tuple[float, float, float]) -> Tensor:
     out = image.clone()
-    mask = text_mask(text, scale)
     height, width = out.shape[-2:]
-    h = max(0, min(mask.shape[0], height - y))
-    w = max(0, min(mask.shape[1], width - x))
-    if x < 0 or y < 0 or h == 0 or w == 0:
+    top, left = max(0, y), max(0, x)
+    bottom, right = min(height, y + mask.shape[0]), min(width, x + mask.shape[1])
+    if bottom <= top or right <= left:
         return out
-    region = out[:, y : y + h, x : x + w]
-    colour = out.new_tensor(color)[:, None, None].expand_as(region)
-    out[:, y : y + h, x : x + w] = torch.where(mask[:h, :w].to(out.device), colour, region)
+    alpha = mask[top - y : bottom - y, left - x : right - x].to(out.device, out.dtype)
+    region = out[:, top:bottom, left:right]
+    colour = out.new_tensor(color)[:, None, None]
+    out[:, top:bottom, left:right] = region * (1 - alpha) + colour * alpha
     return out
 
 
-def text_strip(text: str, width: int, scale: int) -> Tensor:
-    """``[3, label_height(scale), width]``: one line of white ``text`` on black, left-aligned."""
-    strip = torch.zeros(3, label_height(scale), width)
-    return draw_text(strip, text, 2 * scale, 3 * scale, scale)
+def draw_text(image: Tensor, text: str, x: int, y: int, scale: int = 1, color: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Tensor:
+    """``image [3, H, W]`` with ``text`` (:func:`text_mask`) blended in ``color``, the top-left
+    corner of its line at column ``x``, row ``y`` (clipped at the image border). Returns a new
+    tensor."""
+    return _blend(image, text_mask(text, scale), x, y, color)
 
 
 def label_height(scale: int) -> int:
-    """Height of a :func:`text_strip`: the text with margins of ``3 * scale`` above and
-    ``2 * scale`` below (an even height, which yuv420p video needs)."""
-    return (GLYPH_HEIGHT + 5) * scale
+    """Height of a :func:`text_strip`: a line of text with ``scale`` pixels above and below,
+    rounded up to an even height (which yuv420p video needs)."""
+    font, upscale = _font(FONT_SIZE * scale)
+    height = _line_height(font) * upscale + 2 * scale
+    return height + height % 2
+
+
+def text_strip(text: str, width: int, scale: int) -> Tensor:
+    """``[3, label_height(scale), width]``: one line of white ``text`` on black, left-aligned.
+
+    A line too long for the width is drawn smaller (down to :data:`MIN_FONT_SIZE` pixels) on the
+    same baseline; what still does not fit is cut at the right border.
+    """
+    margin, size = 2 * scale, FONT_SIZE * scale
+    mask = text_mask(text, scale)
+    while mask.shape[1] > width - 2 * margin and size > MIN_FONT_SIZE:
+        size -= 1
+        mask = _coverage(text, size)
+    strip = torch.zeros(3, label_height(scale), width)
+    baseline = scale + _ascent(FONT_SIZE * scale)
+    return _blend(strip, mask, margin, baseline - _ascent(size), (1.0, 1.0, 1.0))
 
 
 def colorbar(width: int, scale: int = 1, value_range: tuple[float, float] = MAP_RANGE, ticks: int = 5) -> Tensor:
-    """Legend of :func:`colorize`: ``[3, h, width]``, a grey ``N/A`` swatch (invalid pixels), then
-    the colour bar over ``value_range`` with ``ticks`` labelled ticks; the last reads ``0.2+``
-    because larger values are clipped to its colour."""
+    """Legend of :func:`colorize`: ``[3, h, width]`` (``h`` even), a grey ``N/A`` swatch (invalid
+    pixels), then the colour bar over ``value_range`` with ``ticks`` labelled ticks; the last
+    reads ``0.2+`` because larger values are clipped to its colour. Labels are as in a
+    :func:`text_strip` under the bar."""
     margin, bar_h, tick_h = 2 * scale, 4 * scale, 2 * scale
-    text_y = margin + bar_h + tick_h + 3 * scale  # as in a text strip under the bar
-    legend = torch.zeros(3, margin + bar_h + tick_h + label_height(scale), width)  # even height
+    text_y = margin + bar_h + tick_h + scale  # the line's place in a text strip under the bar
+    legend = torch.zeros(3, margin + bar_h + tick_h + label_height(scale), width)
     swatch_w = text_mask("N/A", scale).shape[1]
     legend[:, margin : margin + bar_h, margin : margin + swatch_w] = torch.tensor(INVALID_COLOR)[:, None, None]
     legend = draw_text(legend, "N/A", margin, text_y, scale)
-    left = 2 * margin + swatch_w + 3 * scale
+    left = 2 * margin + swatch_w + 4 * scale
     right = width - margin - text_mask("0.2+", scale).shape[1] // 2  # room for the last label
     if right - left < 2:
         return legend
@@ -586,8 +635,8 @@ def colorbar(width: int, scale: int = 1, value_range: tuple[float, float] = MAP_
         x = left + round(k * (right - left - 1) / (ticks - 1))
         legend[:, margin + bar_h : margin + bar_h + tick_h, x : x + scale] = 1.0
         label = f"{value:g}" + ("+" if k == ticks - 1 else "")
-        x_text = min(max(0, x - text_mask(label, scale).shape[1] // 2), width - text_mask(label, scale).shape[1])
-        legend = draw_text(legend, label, x_text, text_y, scale)
+        label_w = text_mask(label, scale).shape[1]
+        legend = draw_text(legend, label, min(max(0, x - label_w // 2), width - label_w), text_y, scale)
     return legend
 
 
@@ -617,8 +666,8 @@ def side_by_side(videos: list[Tensor], labels: list[str]) -> Tensor:
     """Labelled panels in a row: ``[S_i, 3, H_i, W_i]`` each -> ``[S, 3, H', W']``.
 
     Panels are resized (bilinear) to the tallest height keeping their aspect ratio; a shorter
-    video holds its last frame, so ``S = max S_i``. Each label is drawn above its panel with the
-    built-in font. Layout: :func:`panel_layout`.
+    video holds its last frame, so ``S = max S_i``. Each label is drawn above its panel
+    (:func:`text_strip`). Layout: :func:`panel_layout`.
     """
     if not videos or len(videos) != len(labels):
         raise ValueError(f"need one label per video, got {len(videos)} videos and {len(labels)} labels")

@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 import torch
 
+from geco_guide import video
 from geco_guide.files import WriteError
 from geco_guide.video import (
-    GLYPH_HEIGHT,
+    FONT_SIZE,
     INVALID_COLOR,
     MAP_RANGE,
+    MIN_FONT_SIZE,
     VIRIDIS,
     VideoReadError,
     colorbar,
@@ -28,6 +30,8 @@ from geco_guide.video import (
     sampled_rate,
     side_by_side,
     text_mask,
+    text_scale,
+    text_strip,
     time_grid_indices,
     write_video,
 )
@@ -307,16 +311,74 @@ def test_colorize_uses_a_fixed_clipped_range():
 
 
 def test_text_and_legend():
-    assert text_mask("AB", 1).shape == (GLYPH_HEIGHT, 7) and text_mask("AB", 3).shape == (15, 21)
-    assert torch.equal(text_mask("a"), text_mask("A")) and torch.equal(text_mask("~"), text_mask("?"))
-    image = draw_text(torch.zeros(3, 10, 8), "HELLO", 2, 3)  # clipped at the border, not an error
-    assert image.shape == (3, 10, 8) and image.max() == 1.0 and image[:, :3].max() == 0.0
+    from PIL import ImageFont
+
+    def line_height(size):
+        ascent, descent = ImageFont.load_default(size=size).getmetrics()
+        return ascent + descent
+
+    # masks: one line of Pillow's default font at FONT_SIZE * scale, as high as the font's line
+    ab = text_mask("AB", 1)
+    assert ab.dtype == torch.float32 and ab.shape == (line_height(FONT_SIZE), ab.shape[1]) and ab.shape[1] > 0
+    assert text_mask("AB", 3).shape[0] == line_height(3 * FONT_SIZE) and text_mask("AB", 3).shape[1] > 2 * ab.shape[1]
+    assert 0.0 <= ab.min() and ab.max() <= 1.0 and ab.max() > 0.8 and torch.equal(ab, text_mask("AB", 1))  # deterministic
+    assert text_mask("ABC").shape[1] > ab.shape[1] and text_mask("ABC").shape[0] == ab.shape[0]  # one line height
+    assert text_mask("").shape == (ab.shape[0], 0) and text_mask(" ").max() == 0.0
+    assert not torch.equal(text_mask("a"), text_mask("A"))  # lower case is its own
+    for unknown in ("~", "\u4e2d"):  # a character the font lacks is drawn (its placeholder), no error
+        mask = text_mask(unknown)
+        assert mask.shape[0] == ab.shape[0] and mask.shape[1] > 0 and mask.max() > 0.5
+    # drawing: blended in the colour at (x, y), clipped at every border
+    image = draw_text(torch.zeros(3, 10, 8), "HELLO", 2, 3)
+    assert image.shape == (3, 10, 8) and image[:, :3].max() == 0.0 and image[:, :, :2].max() == 0.0
+    assert torch.allclose(image[:, 3:, 2:], text_mask("HELLO")[:7, :6].expand(3, -1, -1))
+    red = draw_text(torch.zeros(3, 10, 8), "HELLO", -3, -4, color=(1.0, 0.0, 0.0))
+    rows = text_mask("HELLO").shape[0] - 4  # the line's rows left inside the image
+    assert torch.allclose(red[0, :rows], text_mask("HELLO")[4:, 3:11]) and red[0, rows:].max() == 0.0
+    assert red[1:].max() == 0.0 and red[0].max() > 0.5
+    assert torch.equal(draw_text(torch.ones(3, 4, 4), "HELLO", 5, 0), torch.ones(3, 4, 4))  # all outside
+    # strips: even heights (yuv420p), text shrunk to fit the width down to MIN_FONT_SIZE
+    for scale in range(1, 9):
+        assert label_height(scale) % 2 == 0 and label_height(scale) >= line_height(FONT_SIZE * scale)
+        assert text_strip("GUIDED", 300, scale).shape == (3, label_height(scale), 300)
+    assert text_scale(32) == 1 and text_scale(480) == 4
+    strip = text_strip("STRUCTURE", 48, 1)  # a 32x48 panel's label
+    assert text_mask("STRUCTURE").shape[1] > 48 - 4 and strip[:, :, -2:].max() == 0.0 and strip.max() > 0.8
+    line = "T=0.12S FUSED 0.002 MOTION 0.002 STRUCTURE 0.002"  # the score line under four 32x48 panels
+    assert text_strip(line, 198, 1)[:, :, -2:].max() == 0.0
+    guided, strip = text_mask("GUIDED", 2), text_strip("GUIDED", 300, 2)  # it fits: full size, 2 * scale from
+    rows, columns = 2 + guided.shape[0], 4 + guided.shape[1]  # the left, scale from the top
+    assert torch.allclose(strip[:, 2:rows, 4:columns], guided.expand(3, -1, -1))
+    assert strip[:, :2].max() == 0.0 and strip[:, rows:].max() == 0.0 and strip[:, :, columns:].max() == 0.0
+    assert MIN_FONT_SIZE <= FONT_SIZE
+    # the legend
     legend = colorbar(200, scale=1)
-    assert legend.shape[0] == 3 and legend.shape[2] == 200
+    assert legend.shape[0] == 3 and legend.shape[2] == 200 and legend.shape[1] % 2 == 0
+    assert all(colorbar(300, scale).shape[1] % 2 == 0 for scale in range(1, 5))
     bar = legend[:, 3]
     assert (bar - torch.tensor(INVALID_COLOR)[:, None]).abs().amax(0).lt(1e-6).any()  # the N/A swatch
     assert any(torch.allclose(bar[:, x], VIRIDIS[0]) for x in range(200))
     assert any(torch.allclose(bar[:, x], VIRIDIS[-1]) for x in range(200))
+    assert legend[:, 2 + 4 + 2 :].max() > 0.8  # the tick labels under the bar
+
+
+def test_without_font_sizes_the_bitmap_font_is_enlarged(monkeypatch):
+    """A Pillow whose default font takes no size (before 10.1, or no FreeType) still draws text."""
+    from PIL import ImageFont
+
+    def load_default(*args, **kwargs):
+        if args or kwargs:
+            raise TypeError("load_default() takes 0 positional arguments")
+        return ImageFont.load_default_imagefont()
+
+    monkeypatch.setattr(ImageFont, "load_default", load_default)
+    video._font.cache_clear()
+    try:
+        one, three = text_mask("AB", 1), text_mask("AB", 3)
+        assert one.shape[1] > 0 and one.max() == 1.0 and three.shape == (one.shape[0] * 3, one.shape[1] * 3)
+        assert label_height(3) % 2 == 0 and text_strip("AB", 60, 3).shape == (3, label_height(3), 60)
+    finally:
+        video._font.cache_clear()
 
 
 def test_side_by_side_layout():
@@ -328,7 +390,9 @@ def test_side_by_side_layout():
     top = boxes[0][0]
     assert torch.equal(out[:, :, top:, :48], a)
     assert torch.equal(out[2, :, top:, 50:], out[1, :, top:, 50:])  # held
-    assert out[0, :, :top, :48].max() == 1.0  # the label is drawn
+    assert torch.equal(out[:, :, :top, :48], text_strip("unguided", 48, 1).expand(4, -1, -1, -1))  # the labels
+    assert torch.equal(out[:, :, :top, 50:], text_strip("guided", 32, 1).expand(4, -1, -1, -1))
+    assert out[0, :, :top, :48].max() > 0.8 and out[:, :, :, 48:50].max() == 0.0  # drawn; a black gap
     with pytest.raises(ValueError, match="one label per video"):
         side_by_side([a], ["x", "y"])
     with pytest.raises(ValueError, match=r"videos\[0\]"):
