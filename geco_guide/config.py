@@ -11,7 +11,7 @@ the checkout's ``configs/<name>.yaml``, installed as the package data ``geco_gui
 ``load_config(path, preset, overrides)`` merges schema <- YAML <- ``key=value`` overrides and
 validates: an unknown key or an invalid value raises a ValueError naming the key.
 The special id ``"tiny-random"`` (for the model and each estimator) builds the tiny, randomly
-initialised offline models of :mod:`geco_guide.testing` instead of loading weights.
+initialised offline models of :mod:`geco_guide.tiny` instead of loading weights.
 """
 
 from __future__ import annotations

@@ -120,7 +120,7 @@ class VideoModel:
         pipeline: the diffusers pipeline class.
         call: the documented default call settings (frames, size, steps, CFG, ...).
         temporal_compression: frames per latent of the VAE (anchors of guided runs).
-        tiny: the tiny random family of ``--preset tiny`` (:mod:`geco_guide.testing`).
+        tiny: the tiny random family of ``--preset tiny`` (:mod:`geco_guide.tiny`).
     """
 
     name: str
@@ -160,14 +160,14 @@ MODELS: dict[str, VideoModel] = {
 
 
 def _tiny_pipeline(family: str, seed: int) -> Any:
-    from . import testing
+    from . import tiny
 
     builders = {
-        "cogvideox": lambda: testing.tiny_cogvideox_pipeline(seed),
-        "cogvideox1.5": lambda: testing.tiny_cogvideox_pipeline(seed, version="1.5"),
-        "wan": lambda: testing.tiny_wan_pipeline(seed),
-        "hunyuan": lambda: testing.tiny_hunyuan_pipeline(seed),
-        "ltx": lambda: testing.tiny_ltx_pipeline(seed),
+        "cogvideox": lambda: tiny.tiny_cogvideox_pipeline(seed),
+        "cogvideox1.5": lambda: tiny.tiny_cogvideox_pipeline(seed, version="1.5"),
+        "wan": lambda: tiny.tiny_wan_pipeline(seed),
+        "hunyuan": lambda: tiny.tiny_hunyuan_pipeline(seed),
+        "ltx": lambda: tiny.tiny_ltx_pipeline(seed),
     }
     return builders[family]()
 
@@ -177,7 +177,7 @@ def call_settings(model: VideoModel, cfg: GeCoConfig, pipe: Any) -> dict[str, An
     family's (17 frames of 32x48, the config's step count)."""
     if cfg.model.id != TINY_RANDOM:
         return dict(model.call)
-    from .testing import tiny_call_kwargs
+    from .tiny import tiny_call_kwargs
 
     return tiny_call_kwargs(pipe, num_inference_steps=cfg.sampling.num_inference_steps,
                             guidance_scale=cfg.sampling.guidance_scale)

@@ -103,7 +103,7 @@ def load_video_pipeline(cfg: GeCoConfig, geometry_estimator=None, flow_estimator
     model_id = cfg.model.id
     extra = dict(geometry_estimator=geometry_estimator, flow_estimator=flow_estimator, guidance_config=cfg.guidance)
     if model_id == TINY_RANDOM:
-        from .testing import tiny_cogvideox_components
+        from .tiny import tiny_cogvideox_components
 
         components = tiny_cogvideox_components(cfg.model.init_seed)
         pipe = GeCoCogVideoXPipeline(**components, **extra)

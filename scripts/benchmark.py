@@ -419,7 +419,7 @@ def vae_workload(spec: dict[str, Any], device: torch.device) -> Workload:
 
     dtype = getattr(torch, spec["dtype"])
     if spec["size"] == "tiny":
-        from geco_guide.testing import tiny_cogvideox_components
+        from geco_guide.tiny import tiny_cogvideox_components
 
         vae = tiny_cogvideox_components(spec["seed"])["vae"].to(device=device, dtype=dtype)
     else:
@@ -868,7 +868,7 @@ def _sampling_guidance(spec: dict[str, Any]) -> Any:
     from dataclasses import replace
 
     from geco_guide.sampler.guidance import GuidanceConfig
-    from geco_guide.testing import tiny_guidance_config
+    from geco_guide.tiny import tiny_guidance_config
 
     if spec["arm"] == "unguided":
         return False
@@ -886,7 +886,7 @@ def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: t
 
     seed = spec["seed"]
     if spec["preset"] == "tiny":
-        from geco_guide.testing import TINY_MAX_SEQUENCE_LENGTH, tiny_pipeline
+        from geco_guide.tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_pipeline
 
         pipe = tiny_pipeline(seed).to(device=device, dtype=dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
@@ -1013,7 +1013,7 @@ def sampling_report(args: argparse.Namespace) -> dict[str, Any]:
             "(--device cuda) or pass --allow-cpu to insist.")
     preset = "full-size" if args.full_size else "tiny"
     if preset == "tiny":
-        from geco_guide.testing import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH
+        from geco_guide.tiny import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH
 
         video = {"frames": TINY_NUM_FRAMES, "height": TINY_HEIGHT, "width": TINY_WIDTH}
     else:
@@ -1355,7 +1355,7 @@ def build_cost_pipeline(settings: dict[str, Any], fake_mode: Any) -> tuple[Any, 
 
     dtype = getattr(torch, settings["dtype"])
     if settings["preset"] == "tiny":
-        from geco_guide.testing import TINY_MAX_SEQUENCE_LENGTH, tiny_pipeline
+        from geco_guide.tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_pipeline
 
         pipe = tiny_pipeline(settings["seed"]).to(dtype=dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
@@ -1385,7 +1385,7 @@ def _cost_guidance(settings: dict[str, Any], mode: str, repeats: str, time_trave
     from dataclasses import replace
 
     from geco_guide.sampler.guidance import GuidanceConfig
-    from geco_guide.testing import tiny_guidance_config
+    from geco_guide.tiny import tiny_guidance_config
 
     if mode == "unguided":
         return False
@@ -1708,7 +1708,7 @@ def run_cost(args: argparse.Namespace) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.preset == "tiny":
-        from geco_guide.testing import (
+        from geco_guide.tiny import (
             TINY_HEIGHT,
             TINY_NUM_FRAMES,
             TINY_WIDTH,

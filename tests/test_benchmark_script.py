@@ -311,7 +311,7 @@ def test_cost_tiny_denoiser_step_equals_independent_count() -> None:
     from torch.nn.attention import SDPBackend, sdpa_kernel
     from torch.utils.flop_counter import FlopCounterMode
 
-    from geco_guide.testing import (
+    from geco_guide.tiny import (
         TINY_HEIGHT,
         TINY_MAX_SEQUENCE_LENGTH,
         TINY_NUM_FRAMES,

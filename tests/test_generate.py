@@ -91,7 +91,7 @@ def test_scheduler_is_chosen_by_the_config_and_named_in_the_sidecar(choice, cls,
     from diffusers import CogVideoXDPMScheduler
 
     from geco_guide.generate import choose_scheduler
-    from geco_guide.testing import tiny_pipeline
+    from geco_guide.tiny import tiny_pipeline
 
     cfg = load_config(preset="tiny", overrides=[f"sampling.scheduler={choice}"])
     pipe = tiny_pipeline(0)

@@ -8,7 +8,7 @@ import pytest
 import torch
 from counting import CountingForward
 
-from geco_guide import testing as T
+from geco_guide import tiny as T
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig
 from geco_guide.sampler.adapters import keep_update
 from geco_guide.sampler.guidance import (

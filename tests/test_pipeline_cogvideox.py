@@ -20,7 +20,7 @@ from geco_guide.sampler.guidance import (
     score_anchor_frames,
     v_to_x0,
 )
-from geco_guide.testing import (
+from geco_guide.tiny import (
     TINY_ANCHORS,
     TINY_CALL_KWARGS,
     tiny_cogvideox_components,

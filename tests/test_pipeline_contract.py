@@ -26,7 +26,7 @@ from diffusers import (
 from geco_guide.sampler.guidance import GuidanceConfig
 from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
-from geco_guide.testing import (
+from geco_guide.tiny import (
     TINY_CALL_KWARGS,
     TinySizes,
     tiny_cogvideox_components,

@@ -33,7 +33,7 @@ from geco_guide.loss.geco import (
     geco_from_geometry,
 )
 from geco_guide.synthetic import inject_deformation, rigid_clip
-from geco_guide.testing import tiny_estimators
+from geco_guide.tiny import tiny_estimators
 from geco_guide.types import (
     Correspondences,
     NonFiniteFramesError,
@@ -431,7 +431,7 @@ def test_guidance_config_refuses_bad_values_in_the_python_api_and_the_hook(chang
     """The library path (GuidanceConfig, attach_geco_guidance with a dict) checks what the CLI checks."""
     from geco_guide.sampler import GuidanceConfig
     from geco_guide.sampler.hooks import attach_geco_guidance
-    from geco_guide.testing import tiny_estimators, tiny_wan_pipeline
+    from geco_guide.tiny import tiny_estimators, tiny_wan_pipeline
 
     with pytest.raises(ValueError, match=key):
         GuidanceConfig(**changes)

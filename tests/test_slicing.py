@@ -110,7 +110,7 @@ def test_shared_chunks_are_decoded_once():
 
 
 def test_chunk_decode_of_the_whole_video_matches_a_full_decode():
-    from geco_guide.testing import tiny_cogvideox_components
+    from geco_guide.tiny import tiny_cogvideox_components
 
     vae = tiny_cogvideox_components(0)["vae"]
     latents = torch.randn(1, 3, 4, 4, 6, generator=torch.Generator().manual_seed(0))
@@ -124,7 +124,7 @@ def test_chunk_decode_of_the_whole_video_matches_a_full_decode():
 
 
 def test_batched_chunk_decode_matches_decoding_each_chunk_alone():
-    from geco_guide.testing import tiny_cogvideox_components
+    from geco_guide.tiny import tiny_cogvideox_components
 
     vae = tiny_cogvideox_components(0)["vae"].double()
     latents = torch.randn(2, 5, 4, 4, 6, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
@@ -137,7 +137,7 @@ def test_batched_chunk_decode_matches_decoding_each_chunk_alone():
 
 
 def test_checkpointed_chunks_give_the_same_frames_and_gradient():
-    from geco_guide.testing import tiny_cogvideox_components
+    from geco_guide.tiny import tiny_cogvideox_components
 
     vae = tiny_cogvideox_components(0)["vae"].double().requires_grad_(False)
     latents = torch.randn(1, 5, 4, 4, 6, generator=torch.Generator().manual_seed(2), dtype=torch.float64)

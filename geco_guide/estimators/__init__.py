@@ -2,7 +2,7 @@
 
 :func:`load_estimators` is shared by ``python -m geco_guide.generate`` and
 ``python -m geco_guide.evaluate``: hub ids, local folders, or ``tiny-random`` for the tiny,
-randomly initialised offline models of :mod:`geco_guide.testing`. This module stays light (no
+randomly initialised offline models of :func:`tiny_estimators`. This module stays light (no
 model code is imported until an estimator is built), because every ``geco_guide.estimators.*``
 import runs it.
 """
@@ -31,6 +31,15 @@ def estimator_id(estimator: Any) -> str:
     return getattr(estimator, "geco_estimator_id", None) or type(estimator).__name__
 
 
+def tiny_estimators(seed: int = 0) -> tuple[Any, Any]:
+    """Tiny random ``(VGGT, UFM)`` estimators (geometry, flow) of the real architectures, seeded:
+    what the ``tiny-random`` ids load (offline, CPU, seconds)."""
+    from .ufm import UFM, UFMConfig
+    from .vggt import VGGT, VGGTConfig
+
+    return VGGT.random(VGGTConfig.tiny(), seed=seed), UFM.random(UFMConfig.tiny(), seed=seed)
+
+
 def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device = "auto") -> tuple[Any, Any]:
     """``(geometry, flow)`` of ``estimators_cfg``: frozen, in eval mode, on ``device``.
 
@@ -51,8 +60,6 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
     device = resolve_device(device)
     tiny = None
     if TINY_RANDOM in (estimators_cfg.geometry, estimators_cfg.flow):
-        from ..testing import tiny_estimators
-
         tiny = tiny_estimators(estimators_cfg.init_seed)
     if estimators_cfg.geometry == TINY_RANDOM:
         geometry = tiny[0].to(device).trunk_to(dtype)

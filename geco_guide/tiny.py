@@ -1,4 +1,5 @@
-"""Tiny, randomly initialised, offline stand-ins for the real models (tests, docs, CPU demos).
+"""Tiny, randomly initialised, offline stand-ins for the real models: the ``tiny`` preset and the
+``tiny-random`` ids, GeCo-Eval's ``--preset tiny``, the tests and the runnable examples.
 
 :func:`tiny_pipeline` returns a ready :class:`GeCoCogVideoXPipeline` whose every component is
 built here from a seed: a word-level T5-style tokenizer made with the ``tokenizers`` library, a
@@ -14,6 +15,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
+
+from .estimators import tiny_estimators
 
 # Tiny sampling settings that fit the tiny models (17 frames = 5 latents, 32x48 pixels).
 TINY_NUM_FRAMES = 17
@@ -159,14 +162,6 @@ def tiny_cogvideox_components(seed: int = 0, sizes: TinySizes | None = None) -> 
         "transformer": transformer,
         "scheduler": scheduler,
     }
-
-
-def tiny_estimators(seed: int = 0) -> tuple[Any, Any]:
-    """Tiny random ``(VGGT, UFM)`` estimators (geometry, flow), seeded."""
-    from .estimators.ufm import UFM, UFMConfig
-    from .estimators.vggt import VGGT, VGGTConfig
-
-    return VGGT.random(VGGTConfig.tiny(), seed=seed), UFM.random(UFMConfig.tiny(), seed=seed)
 
 
 def tiny_guidance_config(**changes: Any):
