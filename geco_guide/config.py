@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
@@ -33,7 +33,7 @@ from omegaconf.errors import (
 
 from .loss.geco import GeCoLossConfig
 from .sampler.guidance import GuidanceConfig, paper_guidance_config
-from .types import non_finite_fields
+from .types import OptionError, non_finite_fields
 
 DTYPES = ("float32", "float16", "bfloat16")
 # Frames per latent of the CogVideoX VAE, whose pipeline the sampling section configures.
@@ -161,20 +161,20 @@ class EvaluationConfig:
 
     def __post_init__(self) -> None:
         if not self.window_seconds > 0:
-            raise ValueError(f"window_seconds must be > 0, got {self.window_seconds}")
+            raise OptionError("window_seconds", f"must be > 0, got {self.window_seconds}")
         if self.max_windows < 1:
-            raise ValueError(f"max_windows must be >= 1, got {self.max_windows}")
+            raise OptionError("max_windows", f"must be >= 1, got {self.max_windows}")
         if not self.max_fps > 0:
-            raise ValueError(f"max_fps must be > 0, got {self.max_fps}")
+            raise OptionError("max_fps", f"must be > 0, got {self.max_fps}")
         if not self.default_fps > 0:
-            raise ValueError(f"default_fps must be > 0, got {self.default_fps}")
+            raise OptionError("default_fps", f"must be > 0, got {self.default_fps}")
         bad = {name: fps for name, fps in self.model_fps.items() if not (fps > 0 and math.isfinite(fps))}
         if bad:
-            raise ValueError(f"model_fps must map model names to finite rates > 0, got {bad}")
+            raise OptionError("model_fps", f"must map model names to finite rates > 0, got {bad}")
         if self.flow_batch_size < 1:
-            raise ValueError(f"flow_batch_size must be >= 1, got {self.flow_batch_size}")
+            raise OptionError("flow_batch_size", f"must be >= 1, got {self.flow_batch_size}")
         if not (self.device in ("auto", "cpu", "mps") or self.device.startswith("cuda")):
-            raise ValueError(f"device must be auto, cpu, mps or cuda[:N], got {self.device!r}")
+            raise OptionError("device", f"must be auto, cpu, mps or cuda[:N], got {self.device!r}")
 
     def fps_of_model(self, name: str) -> float:
         """The native frame rate of model ``name``; ValueError listing the known names."""
@@ -294,25 +294,21 @@ def to_config(cfg: DictConfig | dict | GeCoConfig) -> GeCoConfig:
         obj = OmegaConf.to_object(cfg)
     except OmegaConfBaseException as err:
         raise _key_error(err, "config") from None
-    except ValueError as err:  # dataclass __post_init__ checks (guidance.loss, evaluation)
-        raise ValueError(f"invalid value for config key {_invalid_key(cfg, err)!r}: {err}") from None
+    except OptionError as err:  # a dataclass's own value check (__post_init__)
+        raise ValueError(f"invalid value for config key '{_section_of(cfg)}.{err.key}': {err}") from None
     validate_config(obj)
     return obj
 
 
-def _invalid_key(cfg: DictConfig, err: ValueError) -> str:
-    """The key whose ``__post_init__`` check raised ``err``: the section is found by building the
-    checked sections one by one (the same field name, e.g. ``pairs``, lives in several), the
-    field by the message's first word."""
-    name = str(err).split(" ", 1)[0]
-    sections = (("guidance.loss", GeCoLossConfig), ("guidance", GuidanceConfig), ("evaluation.loss", GeCoLossConfig),
-                ("evaluation", EvaluationConfig))
-    for section, schema in sections:
+def _section_of(cfg: DictConfig) -> str:
+    """Which checked section of ``cfg`` fails its dataclass's checks: built one by one, innermost
+    first, since the same dataclass (GeCoLossConfig) sits in two places."""
+    for section in ("guidance.loss", "guidance", "evaluation.loss", "evaluation"):
         try:
             OmegaConf.to_object(OmegaConf.select(cfg, section))
-        except ValueError:
-            return f"{section}.{name}" if name in {f.name for f in fields(schema)} else section
-    return "?"
+        except OptionError:
+            return section
+    raise AssertionError("no section fails its checks")  # to_object of the whole config did
 
 
 def _require(cond: bool, key: str, message: str) -> None:

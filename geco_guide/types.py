@@ -89,6 +89,16 @@ def check_frames(frames: Tensor, name: str = "frames") -> None:
 FRAME_RANGE_SLACK = 1e-3
 
 
+class OptionError(ValueError):
+    """An invalid value of a config dataclass's option ``key`` (a field name, dotted below the
+    dataclass for nested ones): the message starts with the key, and ``key`` lets a caller that
+    knows where the dataclass sits name the full config key without parsing the message."""
+
+    def __init__(self, key: str, problem: str):
+        super().__init__(f"{key} {problem}")
+        self.key = key
+
+
 class NonFiniteFramesError(ValueError):
     """Frames hold NaN or inf values (a corrupt input or a diverged decode)."""
 

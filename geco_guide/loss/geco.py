@@ -23,6 +23,7 @@ from ..types import (
     Correspondences,
     FlowEstimator,
     GeometryEstimator,
+    OptionError,
     SceneGeometry,
     check_frame_values,
     check_frames,
@@ -72,23 +73,23 @@ class GeCoLossConfig:
 
     def __post_init__(self) -> None:
         for key, value in non_finite_fields(self):  # the first one
-            raise ValueError(f"{key} must be a finite number, got {value}")
+            raise OptionError(key, f"must be a finite number, got {value}")
         if self.pairs not in PAIR_MODES:
-            raise ValueError(f"pairs must be one of {PAIR_MODES}, got {self.pairs!r}")
+            raise OptionError("pairs", f"must be one of {PAIR_MODES}, got {self.pairs!r}")
         if self.cue not in CUES:
-            raise ValueError(f"cue must be one of {CUES}, got {self.cue!r}")
+            raise OptionError("cue", f"must be one of {CUES}, got {self.cue!r}")
         if not 0.0 <= self.covisibility_threshold < 1.0:
-            raise ValueError(f"covisibility_threshold must be in [0, 1), got {self.covisibility_threshold}")
+            raise OptionError("covisibility_threshold", f"must be in [0, 1), got {self.covisibility_threshold}")
         if self.confidence_percentile is not None and not 0.0 <= self.confidence_percentile < 100.0:
-            raise ValueError(f"confidence_percentile must be in [0, 100) or None, got {self.confidence_percentile}")
+            raise OptionError("confidence_percentile", f"must be in [0, 100) or None, got {self.confidence_percentile}")
         if not 0.0 < self.flow_downscale <= 1.0:
-            raise ValueError(f"flow_downscale must be in (0, 1], got {self.flow_downscale}")
+            raise OptionError("flow_downscale", f"must be in (0, 1], got {self.flow_downscale}")
         if self.occlusion_tau <= 0.0:
-            raise ValueError(f"occlusion_tau must be > 0, got {self.occlusion_tau}")
+            raise OptionError("occlusion_tau", f"must be > 0, got {self.occlusion_tau}")
         if self.structure_occlusion not in STRUCTURE_OCCLUSION:
-            raise ValueError(f"structure_occlusion must be one of {STRUCTURE_OCCLUSION}, got {self.structure_occlusion!r}")
+            raise OptionError("structure_occlusion", f"must be one of {STRUCTURE_OCCLUSION}, got {self.structure_occlusion!r}")
         if self.depth_edge_tau is not None and self.depth_edge_tau <= 0.0:
-            raise ValueError(f"depth_edge_tau must be > 0 or None, got {self.depth_edge_tau}")
+            raise OptionError("depth_edge_tau", f"must be > 0 or None, got {self.depth_edge_tau}")
 
 
 def frame_pairs(num_frames: int, mode: str) -> list[tuple[int, int]]:

@@ -40,7 +40,7 @@ import torch
 from torch import Tensor, nn
 
 from ..loss.geco import GeCoLossConfig
-from ..types import merge_dataclass, non_finite_fields
+from ..types import OptionError, merge_dataclass, non_finite_fields
 from .schedule import (
     PAPER_ETA,
     PAPER_REPEATS,
@@ -109,13 +109,13 @@ class GuidanceConfig:
 
     def __post_init__(self) -> None:
         for key, value in non_finite_fields(self):  # the first one
-            raise ValueError(f"{key} must be a finite number, got {value}")
+            raise OptionError(key, f"must be a finite number, got {value}")
         if not 0 <= self.eta <= MAX_ETA:
-            raise ValueError(f"eta must be in [0, {MAX_ETA:g}], got {self.eta}")
+            raise OptionError("eta", f"must be in [0, {MAX_ETA:g}], got {self.eta}")
         if not self.grad_eps > 0:
-            raise ValueError(f"grad_eps must be > 0, got {self.grad_eps}")
+            raise OptionError("grad_eps", f"must be > 0, got {self.grad_eps}")
         if self.chunk_latents < 2:
-            raise ValueError(f"chunk_latents must be >= 2, got {self.chunk_latents}")
+            raise OptionError("chunk_latents", f"must be >= 2, got {self.chunk_latents}")
 
     def schedule(self, num_steps: int) -> GuidanceSchedule:
         """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see
