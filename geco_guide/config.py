@@ -33,6 +33,7 @@ from omegaconf.errors import (
 
 from .loss.geco import GeCoLossConfig
 from .sampler.guidance import GuidanceConfig, paper_guidance_config
+from .sampler.slicing import check_paired_latent_frames
 from .types import OptionError, non_finite_fields
 
 DTYPES = ("float32", "float16", "bfloat16")
@@ -344,11 +345,10 @@ def validate_config(cfg: GeCoConfig) -> None:
     for key in ("height", "width"):
         value = getattr(s, key)
         _require(value > 0 and value % 16 == 0, f"sampling.{key}", f"must be a positive multiple of 16, got {value}")
-    _require(
-        s.num_frames >= 1 and (s.num_frames - 1) % 8 == 0,
-        "sampling.num_frames",
-        f"the CogVideoX VAE makes 8k+1 frames (e.g. 9, 17, 49), got {s.num_frames}",
-    )
+    try:
+        check_paired_latent_frames(s.num_frames, COGVIDEOX_TEMPORAL_COMPRESSION)
+    except ValueError as err:
+        raise ValueError(f"invalid value for config key 'sampling.num_frames': {err}") from None
     _require(s.scheduler in (None, "ddim", "dpm"), "sampling.scheduler", f"must be ddim, dpm or null, got {s.scheduler!r}")
     g = cfg.guidance
     # GuidanceConfig's own checks against this run, each error named by its key

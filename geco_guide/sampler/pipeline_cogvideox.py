@@ -47,6 +47,7 @@ from .guidance import (
 )
 from .slicing import (
     check_num_frames,
+    check_paired_latent_frames,
     decode_anchor_frames,
     decode_chunk,
 )
@@ -214,16 +215,10 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 f"height and width must be multiples of {multiple} (VAE factor {self.vae_scale_factor_spatial} x "
                 f"patch size {self.transformer.config.patch_size}), got height={height}, width={width}"
             )
-        num_latents = check_num_frames(num_frames, self.vae_scale_factor_temporal)
-        if num_latents % 2 == 0 and getattr(self.vae, "num_latent_frames_batch_size", None) == 2:
-            # The CogVideoX VAE decodes latents in pairs and keeps the causal first frame only when
-            # the count is odd: an even count decodes to 4*n frames instead of 1 + 4*(n-1).
-            r = self.vae_scale_factor_temporal
-            raise ValueError(
-                f"num_frames={num_frames} gives {num_latents} latent frames; the CogVideoX VAE cannot make a "
-                f"{num_frames}-frame video from an even number of latents (it decodes them to {r * num_latents} "
-                f"frames). Use {2 * r}k+1 frames, e.g. {num_frames + r} or 49."
-            )
+        if getattr(self.vae, "num_latent_frames_batch_size", None) == 2:
+            check_paired_latent_frames(num_frames, self.vae_scale_factor_temporal)
+        else:
+            check_num_frames(num_frames, self.vae_scale_factor_temporal)
         check_scheduler(self.scheduler)
         check_no_denoiser_cache([self.transformer])
         schedule, chunks = guidance.validate(num_steps, num_frames, self.vae_scale_factor_temporal)

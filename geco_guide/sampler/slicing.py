@@ -36,6 +36,21 @@ def check_num_frames(num_frames: int, temporal_compression: int) -> int:
     return (num_frames - 1) // temporal_compression + 1
 
 
+def check_paired_latent_frames(num_frames: int, temporal_compression: int) -> int:
+    """:func:`check_num_frames` for a VAE that decodes latents in pairs (CogVideoX's): it keeps the
+    causal first frame only when the latent count is odd, so an even count would decode to
+    ``r * n`` frames instead of ``1 + r * (n - 1)``; the video needs ``2r k + 1`` frames."""
+    num_latents = check_num_frames(num_frames, temporal_compression)
+    if num_latents % 2 == 0:
+        r = temporal_compression
+        raise ValueError(
+            f"num_frames={num_frames} gives {num_latents} latent frames; the CogVideoX VAE cannot make a "
+            f"{num_frames}-frame video from an even number of latents (it decodes them to {r * num_latents} "
+            f"frames). Use {2 * r}k+1 frames, e.g. {num_frames + r} or 49."
+        )
+    return num_latents
+
+
 def pixel_to_latent(frame: int, temporal_compression: int) -> int:
     """Latent frame whose decode produces pixel frame ``frame`` (0-based)."""
     if frame < 0:
