@@ -40,15 +40,16 @@ def check_paired_latent_frames(num_frames: int, temporal_compression: int) -> in
     """:func:`check_num_frames` for a VAE that decodes latents in pairs (CogVideoX's): it keeps the
     causal first frame only when the latent count is odd, so an even count would decode to
     ``r * n`` frames instead of ``1 + r * (n - 1)``; the video needs ``2r k + 1`` frames."""
-    num_latents = check_num_frames(num_frames, temporal_compression)
-    if num_latents % 2 == 0:
-        r = temporal_compression
-        raise ValueError(
-            f"num_frames={num_frames} gives {num_latents} latent frames; the CogVideoX VAE cannot make a "
-            f"{num_frames}-frame video from an even number of latents (it decodes them to {r * num_latents} "
-            f"frames). Use {2 * r}k+1 frames, e.g. {num_frames + r} or 49."
-        )
-    return num_latents
+    step = 2 * temporal_compression
+    if num_frames < 1 or (num_frames - 1) % step:
+        nearest = step * max(1, round((num_frames - 1) / step)) + 1
+        why = ""
+        if num_frames > 1 and (num_frames - 1) % temporal_compression == 0:
+            why = (f": {num_frames} frames are {(num_frames - 1) // temporal_compression + 1} latents, and from an even "
+                   f"number of latents it decodes {num_frames + temporal_compression - 1} frames")
+        raise ValueError(f"num_frames={num_frames} cannot be produced: the CogVideoX VAE makes {step}k+1 frames "
+                         f"({temporal_compression}*k + 1 with an odd number of latents), e.g. {nearest} or 49{why}")
+    return check_num_frames(num_frames, temporal_compression)
 
 
 def pixel_to_latent(frame: int, temporal_compression: int) -> int:
