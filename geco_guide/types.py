@@ -74,6 +74,13 @@ class FlowEstimator(Protocol):
         ...
 
 
+def missing_estimators(geometry: Any, flow: Any) -> list[str]:
+    """Which of ``"geometry"`` / ``"flow"`` is not a :class:`GeometryEstimator` /
+    :class:`FlowEstimator` (``[]`` when both are): the one protocol check of every entry point."""
+    pairs = (("geometry", geometry, GeometryEstimator), ("flow", flow, FlowEstimator))
+    return [name for name, estimator, protocol in pairs if not isinstance(estimator, protocol)]
+
+
 def check_frames(frames: Tensor, name: str = "frames") -> None:
     """Raise a ValueError naming ``name`` unless it is a floating ``[B, S, 3, H, W]`` tensor."""
     if not isinstance(frames, torch.Tensor):

@@ -27,6 +27,7 @@ from ..types import (
     SceneGeometry,
     check_frame_values,
     check_frames,
+    missing_estimators,
     non_finite_fields,
 )
 from .cues import fuse_cues, masked_mean, motion_residual, structure_residual
@@ -342,10 +343,10 @@ class GeCoLoss(nn.Module):
         check_values: bool = True,
     ) -> None:
         super().__init__()
-        if not isinstance(geometry, GeometryEstimator):
-            raise ValueError(f"geometry must implement estimate_geometry(frames), got {type(geometry).__name__}")
-        if not isinstance(flow, FlowEstimator):
-            raise ValueError(f"flow must implement estimate_flow(source, target), got {type(flow).__name__}")
+        required = {"geometry": (geometry, "estimate_geometry(frames)"), "flow": (flow, "estimate_flow(source, target)")}
+        for name in missing_estimators(geometry, flow):
+            estimator, method = required[name]
+            raise ValueError(f"{name} must implement {method}, got {type(estimator).__name__}")
         if isinstance(config, dict):
             known = {f.name for f in fields(GeCoLossConfig)}
             unknown = sorted(set(config) - known)

@@ -53,7 +53,7 @@ import torch
 from torch import Tensor, nn
 
 from ..loss.geco import GeCoLoss
-from ..types import FlowEstimator, GeometryEstimator
+from ..types import FlowEstimator, GeometryEstimator, missing_estimators
 from .adapters import (
     CallGeometry,
     PipelineAdapter,
@@ -433,11 +433,7 @@ def attach_geco_guidance(
     """
     adapter = adapter_for(pipe)
     config = resolve_guidance_config(None, config)
-    missing = [
-        name
-        for name, est, proto in (("geometry", geometry, GeometryEstimator), ("flow", flow, FlowEstimator))
-        if not isinstance(est, proto)
-    ]
+    missing = missing_estimators(geometry, flow)
     if missing:
         raise ValueError(
             f"GeCo guidance needs the {' and '.join(missing)} estimator(s): "

@@ -35,7 +35,7 @@ from diffusers.utils import logging
 from torch import Tensor, nn
 
 from ..loss.geco import GeCoLoss
-from ..types import FlowEstimator, GeometryEstimator
+from ..types import FlowEstimator, GeometryEstimator, missing_estimators
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .guidance import (
     GuidanceConfig,
@@ -222,14 +222,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         check_scheduler(self.scheduler)
         check_no_denoiser_cache([self.transformer])
         schedule, chunks = guidance.validate(num_steps, num_frames, self.vae_scale_factor_temporal)
-        missing = [
-            name
-            for name, est, proto in (
-                ("geometry_estimator", geometry_estimator, GeometryEstimator),
-                ("flow_estimator", flow_estimator, FlowEstimator),
-            )
-            if not isinstance(est, proto)
-        ]
+        missing = [f"{name}_estimator" for name in missing_estimators(geometry_estimator, flow_estimator)]
         if missing:
             raise ValueError(
                 f"GeCo guidance needs {' and '.join(missing)}: pass them to from_pretrained(..., "
