@@ -1,6 +1,5 @@
 import pytest
 import torch
-from ranking import average_precision, spearman
 
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.estimators.ufm import UFM, UFMConfig
@@ -12,6 +11,7 @@ from geco_guide.loss.geco import (
     geco_from_geometry,
 )
 from geco_guide.loss.motion_stats import motion_statistics
+from geco_guide.ranking import average_precision, spearman
 from geco_guide.synthetic import inject_deformation, occlusion_swap_clip, rigid_clip
 from geco_guide.types import Correspondences, SceneGeometry
 
