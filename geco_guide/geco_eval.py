@@ -55,7 +55,7 @@ from .files import (
     write_json_atomic,
     write_text_atomic,
 )
-from .generate import _quiet_hub_logs, check_device, pipeline_from_pretrained
+from .generate import check_device, pipeline_from_pretrained, quiet_hub_logs
 from .loss.geco import CUES
 from .plots import Panel, legend, limits
 from .runs import (
@@ -304,7 +304,7 @@ class Generator:
         generator = torch.Generator(device="cpu").manual_seed(job.seed)
         start = time.perf_counter()
         try:
-            with PeakMemory(pipe.device) as memory, _quiet_hub_logs():  # no prompt-truncation warnings
+            with PeakMemory(pipe.device) as memory, quiet_hub_logs():  # no prompt-truncation warnings
                 output = pipe(prompt=job.prompt["prompt"], generator=generator, output_type="pt", **self.call, **extra)
         finally:
             if handle is not None:

@@ -38,7 +38,7 @@ from .types import NonFiniteFramesError, check_frame_values
 
 
 @contextlib.contextmanager
-def _quiet_hub_logs():
+def quiet_hub_logs():
     """diffusers/transformers print several lines while failing to reach the hub; keep one error."""
     from diffusers.utils import logging as dlogging
 
@@ -75,7 +75,7 @@ def pipeline_from_pretrained(cls, model_id: str, name: str, folder_hint: str, *,
         raise WeightsNotFoundError(f"{name}: local folder {model_id!r} does not exist (pass an existing folder or a "
                                    f"hub id: {folder_hint})")
     try:
-        with _quiet_hub_logs():
+        with quiet_hub_logs():
             return cls.from_pretrained(str(path) if path.is_dir() else model_id, revision=revision,
                                        **{_dtype_kwarg(): dtype}, **kwargs)
     except (OSError, ValueError) as err:

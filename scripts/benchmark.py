@@ -83,6 +83,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from geco_guide.config import COGVIDEOX_TEMPORAL_COMPRESSION
 from geco_guide.estimators.ufm import UFM, UFMConfig, choose_resolution
 from geco_guide.estimators.vggt import VGGT, VGGTConfig, plan_preprocess
 from geco_guide.loss.geco import (
@@ -91,6 +92,7 @@ from geco_guide.loss.geco import (
     frame_pairs,
     geco_from_geometry,
 )
+from geco_guide.sampler.slicing import default_anchors
 from geco_guide.synthetic import default_intrinsics, orbit_cameras
 from geco_guide.types import Correspondences, SceneGeometry
 
@@ -855,14 +857,6 @@ def breakdown_of(profile: dict[str, Any], scale: dict[str, float] | None = None)
     }
 
 
-def default_anchors(num_frames: int, temporal_compression: int = 4) -> list[int]:
-    """Four anchors spread over the video: the last pixel frame of latents ``round(L * j / 4)``,
-    ``j = 1..4`` (``L`` = latents - 1). Gives the paper's (12, 24, 36, 48) at 49 frames and the tiny
-    preset's (4, 8, 12, 16) at 17; shorter videos get fewer (distinct) anchors."""
-    last = (num_frames - 1) // temporal_compression
-    return sorted({temporal_compression * max(1, round(last * j / 4)) for j in range(1, 5)})
-
-
 def _sampling_guidance(spec: dict[str, Any]) -> Any:
     """The ``guidance=`` argument of an arm: ``False`` (unguided) or a :class:`GuidanceConfig`."""
     from dataclasses import replace
@@ -875,7 +869,8 @@ def _sampling_guidance(spec: dict[str, Any]) -> Any:
     repeats, time_travel = compressed_paper_schedule(spec["steps"])
     base = tiny_guidance_config() if spec["preset"] == "tiny" else GuidanceConfig()
     chunk_latents = spec["chunk_latents"] or base.chunk_latents
-    return replace(base, anchors=default_anchors(spec["frames"]), repeats=",".join(map(str, repeats)),
+    anchors = default_anchors(spec["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
+    return replace(base, anchors=anchors, repeats=",".join(map(str, repeats)),
                    time_travel=time_travel, denoiser_grad=spec["mode"] == "faithful", chunk_latents=chunk_latents,
                    gradient_checkpointing=base.gradient_checkpointing and not spec.get("no_denoiser_checkpointing"))
 
@@ -1392,7 +1387,8 @@ def _cost_guidance(settings: dict[str, Any], mode: str, repeats: str, time_trave
     base = tiny_guidance_config() if settings["preset"] == "tiny" else GuidanceConfig()
     changes = {k: settings[k] for k in ("chunk_latents", "vae_checkpointing", "denoiser_checkpointing")
                if settings.get(k) is not None}
-    return replace(base, anchors=default_anchors(settings["frames"]), repeats=repeats, time_travel=time_travel,
+    anchors = default_anchors(settings["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
+    return replace(base, anchors=anchors, repeats=repeats, time_travel=time_travel,
                    denoiser_grad=mode == "faithful",
                    chunk_latents=changes.get("chunk_latents", base.chunk_latents),
                    vae_checkpointing=changes.get("vae_checkpointing", base.vae_checkpointing),
