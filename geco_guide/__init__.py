@@ -23,20 +23,22 @@ _EXPORTS = {
     "VGGTConfig": "geco_guide.estimators.vggt",
     "UFM": "geco_guide.estimators.ufm",
     "UFMConfig": "geco_guide.estimators.ufm",
+    "TinyDecoder": "geco_guide.estimators.tiny_decoder",
     "attach_geco_guidance": "geco_guide.sampler.hooks",
-    "evaluate_video": "geco_guide.evaluate",
-    "load_prompts": "geco_guide.geco_eval",
+    "evaluate_video": "geco_guide.metric.evaluate",
+    "load_prompts": "geco_guide.bench.geco_eval",
 }
 
 __all__ = sorted(_EXPORTS)
 
 if TYPE_CHECKING:  # pragma: no cover
+    from .bench.geco_eval import load_prompts
+    from .estimators.tiny_decoder import TinyDecoder
     from .estimators.ufm import UFM, UFMConfig
     from .estimators.vggt import VGGT, VGGTConfig
-    from .evaluate import evaluate_video
-    from .geco_eval import load_prompts
     from .loss.geco import GeCoLoss, GeCoLossConfig, GeCoResult, geco_from_geometry
     from .loss.motion_stats import motion_statistics
+    from .metric.evaluate import evaluate_video
     from .types import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry
 
 

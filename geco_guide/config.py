@@ -16,7 +16,6 @@ initialised offline models of :mod:`geco_guide.tiny` instead of loading weights.
 
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -31,8 +30,9 @@ from omegaconf.errors import (
     OmegaConfBaseException,
 )
 
-from .loss.geco import GeCoLossConfig
-from .sampler.guidance import GuidanceConfig, paper_guidance_config
+from .estimators import EstimatorsConfig
+from .metric.protocol import EvaluationConfig
+from .sampler.config import GuidanceConfig, paper_guidance_config
 from .sampler.slicing import check_paired_latent_frames
 from .types import OptionError, non_finite_fields
 
@@ -65,23 +65,6 @@ class ModelConfig:
 
 
 @dataclass
-class EstimatorsConfig:
-    """The frozen GeCo backbones: hub ids or local folders, or ``tiny-random``.
-
-    ``dtype`` is the storage dtype of their ViT trunks (``trunk_to``): bfloat16 halves their
-    memory and speeds them up on a GPU; the heads, outputs and the GeCo loss stay float32.
-    ``gradient_checkpointing`` recomputes their trunks' blocks in the guidance backward: less
-    activation memory (about 6 GiB at 480x720 in the cost model) for one more trunk forward.
-    """
-
-    geometry: str = "facebook/VGGT-1B"
-    flow: str = "infinity1096/UFM-Base"
-    dtype: str = "bfloat16"
-    gradient_checkpointing: bool = False
-    init_seed: int = 0
-
-
-@dataclass
 class SamplingConfig:
     """Stock CogVideoX sampling arguments (paper: 50 DDIM steps, CFG 6, 49 x 480 x 720)."""
 
@@ -104,85 +87,6 @@ class OutputConfig:
     dir: str = "outputs"
     name: Optional[str] = None  # default: prompt slug + seed
     score_anchors: bool = True  # GeCo scores of the final video's anchor frames in the sidecar
-
-
-def _evaluation_loss_default() -> GeCoLossConfig:
-    # The GeCo-Eval script: every ordered pair of a window, full-resolution frames into the flow
-    # estimator (guidance halves them to save time), its structure-cue occlusion rule.
-    return GeCoLossConfig(pairs="all", flow_downscale=1.0, structure_occlusion="covisibility")
-
-
-#: Native frame rate of each video model (GeCo paper, supplement "Frame rate of evaluated
-#: models"; the Wan 2.1 checkpoints, not in the paper, export at 16 fps like Wan 2.2). GeCo-Eval
-#: times its windows with these rates, not with the rate written in the file.
-PAPER_MODEL_FPS = {
-    "sora-2": 30.0,
-    "veo-3.1": 24.0,
-    "wan2.2-t2v-a14b": 16.0,
-    "wan2.1-t2v-1.3b": 16.0,
-    "wan2.1-t2v-14b": 16.0,
-    "hunyuanvideo": 24.0,
-    "cogvideox1.5-5b": 16.0,
-    "cogvideox-5b": 16.0,
-    "cogvideox-2b": 16.0,
-    "ltx-video": 30.0,
-}
-
-
-@dataclass
-class EvaluationConfig:
-    """How a video is scored: the GeCo-Eval protocol (paper, section "Evaluation protocol", and
-    its published evaluation script).
-
-    Attributes:
-        window_seconds: length of an evaluation window; ``ceil(duration / window_seconds)``
-            windows of this length cover the clip, overlapping (:func:`geco_guide.video.evaluation_windows`).
-        max_windows: more windows than this are replaced by exactly ``max_windows`` equal windows
-            tiling the clip (the script's ``max_windows=4``).
-        max_fps: frames are sampled inside each window on a time grid at ``min(max_fps, fps)``.
-        default_fps: frame rate of inputs that carry none (frame folders, gifs without timing).
-        model_fps: native frame rate per model name (``--model NAME``): it replaces the file's
-            rate, as the paper evaluates every model at its native rate.
-        flow_batch_size: frame pairs per flow-estimator call (bounds memory; any value gives the
-            same numbers).
-        device: where the estimators run (``auto`` = cuda if available, else cpu).
-        loss: the metric's :class:`GeCoLossConfig`: frame pairs within a window (``all``, the
-            script's; ``center``; ``adjacent``), covisibility threshold, occlusion tau,
-            confidence percentile, ...; full-resolution flow input (``flow_downscale=1.0``).
-    """
-
-    window_seconds: float = 3.0
-    max_windows: int = 4
-    max_fps: float = 8.0
-    default_fps: float = 8.0
-    model_fps: dict[str, float] = field(default_factory=lambda: dict(PAPER_MODEL_FPS))
-    flow_batch_size: int = 16
-    device: str = "auto"
-    loss: GeCoLossConfig = field(default_factory=_evaluation_loss_default)
-
-    def __post_init__(self) -> None:
-        if not self.window_seconds > 0:
-            raise OptionError("window_seconds", f"must be > 0, got {self.window_seconds}")
-        if self.max_windows < 1:
-            raise OptionError("max_windows", f"must be >= 1, got {self.max_windows}")
-        if not self.max_fps > 0:
-            raise OptionError("max_fps", f"must be > 0, got {self.max_fps}")
-        if not self.default_fps > 0:
-            raise OptionError("default_fps", f"must be > 0, got {self.default_fps}")
-        bad = {name: fps for name, fps in self.model_fps.items() if not (fps > 0 and math.isfinite(fps))}
-        if bad:
-            raise OptionError("model_fps", f"must map model names to finite rates > 0, got {bad}")
-        if self.flow_batch_size < 1:
-            raise OptionError("flow_batch_size", f"must be >= 1, got {self.flow_batch_size}")
-        if not (self.device in ("auto", "cpu", "mps") or self.device.startswith("cuda")):
-            raise OptionError("device", f"must be auto, cpu, mps or cuda[:N], got {self.device!r}")
-
-    def fps_of_model(self, name: str) -> float:
-        """The native frame rate of model ``name``; ValueError listing the known names."""
-        if name not in self.model_fps:
-            raise ValueError(f"unknown model {name!r} for its frame rate; known: {sorted(self.model_fps)} "
-                             "(add one with evaluation.model_fps.NAME=FPS, or pass --fps)")
-        return float(self.model_fps[name])
 
 
 @dataclass

@@ -165,10 +165,12 @@ def tiny_cogvideox_components(seed: int = 0, sizes: TinySizes | None = None) -> 
 
 
 def tiny_guidance_config(**changes: Any):
-    """A short guidance schedule for the tiny models and a few steps (default: 4 steps)."""
+    """A short guidance schedule for the tiny models and a few steps (default: 4 steps), with the
+    fused loss (the cues all get gradients, so the tests see every path)."""
     from dataclasses import replace
 
-    from .sampler.guidance import GuidanceConfig
+    from .loss.presets import fused_guidance_loss
+    from .sampler.config import GuidanceConfig
 
     base = GuidanceConfig(
         anchors=list(TINY_ANCHORS),
@@ -179,6 +181,7 @@ def tiny_guidance_config(**changes: Any):
         denoiser_grad=True,
         gradient_checkpointing=False,
         vae_checkpointing=False,
+        loss=fused_guidance_loss(),
     )
     return replace(base, **changes)
 

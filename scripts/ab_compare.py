@@ -46,26 +46,8 @@ from typing import Any
 
 import numpy as np
 
-from geco_guide.config import GeCoConfig, config_to_dict, config_to_yaml, load_config
-from geco_guide.estimators import load_estimators, resolve_device
-from geco_guide.evaluate import PAPER_NAMES, evaluate_video, write_maps_video
-from geco_guide.files import (
-    WriteError,
-    remove_temp_files,
-    write_bytes_atomic,
-    write_json_atomic,
-)
-from geco_guide.geco_eval import SUITE, select_prompts
-from geco_guide.generate import (
-    build_pipeline,
-    check_device,
-    generate,
-    slugify,
-    versions,
-)
-from geco_guide.loss.geco import CUES
-from geco_guide.plots import Panel, legend, limits
-from geco_guide.runs import (
+from geco_guide.bench.geco_eval import SUITE, select_prompts
+from geco_guide.bench.runs import (
     PeakMemory,
     config_fingerprint,
     process_config,
@@ -73,10 +55,22 @@ from geco_guide.runs import (
     read_finished,
     shard,
 )
-from geco_guide.runs import (
-    check_output_folder as check_run_folder,
+from geco_guide.bench.runs import check_output_folder as check_run_folder
+from geco_guide.cli.generate import build_pipeline, generate, slugify, versions
+from geco_guide.config import GeCoConfig, config_to_dict, config_to_yaml, load_config
+from geco_guide.estimators import load_estimators
+from geco_guide.io.devices import check_device, resolve_device
+from geco_guide.io.files import (
+    WriteError,
+    remove_temp_files,
+    write_bytes_atomic,
+    write_json_atomic,
 )
-from geco_guide.video import read_video, side_by_side, write_video
+from geco_guide.io.plots import Panel, legend, limits
+from geco_guide.io.video import read_video, write_video
+from geco_guide.loss.geco import CUES
+from geco_guide.metric.evaluate import PAPER_NAMES, evaluate_video, write_maps_video
+from geco_guide.metric.render import side_by_side
 
 ARMS = ("unguided", "guided")
 METRICS = (*CUES, "total_motion", "mean_motion")

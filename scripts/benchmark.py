@@ -83,6 +83,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from geco_guide.bench.synthetic import default_intrinsics, orbit_cameras
 from geco_guide.config import COGVIDEOX_TEMPORAL_COMPRESSION
 from geco_guide.estimators.ufm import UFM, UFMConfig, choose_resolution
 from geco_guide.estimators.vggt import VGGT, VGGTConfig, plan_preprocess
@@ -93,7 +94,6 @@ from geco_guide.loss.geco import (
     geco_from_geometry,
 )
 from geco_guide.sampler.slicing import default_anchors
-from geco_guide.synthetic import default_intrinsics, orbit_cameras
 from geco_guide.types import Correspondences, SceneGeometry
 
 MODES = ("forward", "forward_backward")
@@ -861,13 +861,14 @@ def _sampling_guidance(spec: dict[str, Any]) -> Any:
     """The ``guidance=`` argument of an arm: ``False`` (unguided) or a :class:`GuidanceConfig`."""
     from dataclasses import replace
 
-    from geco_guide.sampler.guidance import GuidanceConfig
+    from geco_guide.sampler.config import fused_guidance_config
     from geco_guide.tiny import tiny_guidance_config
 
     if spec["arm"] == "unguided":
         return False
     repeats, time_travel = compressed_paper_schedule(spec["steps"])
-    base = tiny_guidance_config() if spec["preset"] == "tiny" else GuidanceConfig()
+    # the fused loss (gradients through VGGT too): the costlier of the two presets, what was measured
+    base = tiny_guidance_config() if spec["preset"] == "tiny" else fused_guidance_config()
     chunk_latents = spec["chunk_latents"] or base.chunk_latents
     anchors = default_anchors(spec["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
     return replace(base, anchors=anchors, repeats=",".join(map(str, repeats)),
@@ -1379,12 +1380,13 @@ def _cost_guidance(settings: dict[str, Any], mode: str, repeats: str, time_trave
     """The guidance of a cost trace or count: the preset's config with the run's settings."""
     from dataclasses import replace
 
-    from geco_guide.sampler.guidance import GuidanceConfig
+    from geco_guide.sampler.config import fused_guidance_config
     from geco_guide.tiny import tiny_guidance_config
 
     if mode == "unguided":
         return False
-    base = tiny_guidance_config() if settings["preset"] == "tiny" else GuidanceConfig()
+    # the fused loss (gradients through VGGT too): the costlier of the two presets, what was measured
+    base = tiny_guidance_config() if settings["preset"] == "tiny" else fused_guidance_config()
     changes = {k: settings[k] for k in ("chunk_latents", "vae_checkpointing", "denoiser_checkpointing")
                if settings.get(k) is not None}
     anchors = default_anchors(settings["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
@@ -1406,7 +1408,7 @@ def trace_cost(settings: dict[str, Any], mode: str) -> dict[str, Any]:
 
     from torch._subclasses.fake_tensor import FakeTensorMode, unset_fake_temporarily
 
-    import geco_guide.sampler.guidance as guidance_module
+    import geco_guide.sampler.config as guidance_module
     import geco_guide.sampler.pipeline_cogvideox as pipeline_module
 
     _register_cpu_sdpa_flops()
@@ -1475,7 +1477,8 @@ def count_schedule_calls(mode: str, settings: dict[str, Any]) -> dict[str, int]:
     guidance schedule of the preset with the run's time travel): the real :func:`guided_step`
     driven by counting stubs (R_t = 0 steps make the pipeline's single CFG call). Returns
     ``steps``, ``updates``, ``denoiser_cfg`` (calls without gradients) and ``denoiser_grad``."""
-    from geco_guide.sampler.guidance import VPLevels, guided_step
+    from geco_guide.sampler.levels import VPLevels
+    from geco_guide.sampler.step import guided_step
 
     steps = settings["steps"]
     counts = {"steps": steps, "updates": 0, "denoiser_cfg": 0, "denoiser_grad": 0, "time_travel_updates": 0}
@@ -1769,7 +1772,7 @@ def geco_eval_cost(args: argparse.Namespace) -> dict[str, Any]:
     VGGT-1B / UFM-Base on an H200 with per-call times of the measured full-size sampling run."""
     from geco_guide.config import load_config
     from geco_guide.estimators import load_estimators
-    from geco_guide.evaluate import evaluate_video
+    from geco_guide.metric.evaluate import evaluate_video
 
     if args.threads:
         torch.set_num_threads(args.threads)

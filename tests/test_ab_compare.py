@@ -22,7 +22,8 @@ import numpy as np
 import pytest
 import torch
 
-from geco_guide.video import panel_layout, read_video
+from geco_guide.io.video import read_video
+from geco_guide.metric.render import panel_layout
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "ab_compare.py"

@@ -8,7 +8,7 @@ import pytest
 
 from geco_guide.config import GeCoConfig, config_to_dict, load_config, to_config
 from geco_guide.loss.geco import GeCoLossConfig
-from geco_guide.sampler.guidance import GuidanceConfig
+from geco_guide.sampler.config import GuidanceConfig
 
 
 def test_schema_defaults_are_the_paper():

@@ -1,6 +1,7 @@
 import pytest
 import torch
 
+from geco_guide.bench.synthetic import inject_deformation, rigid_clip
 from geco_guide.geometry import relative_pose, rigid_flow
 from geco_guide.loss.cues import (
     fuse_cues,
@@ -9,7 +10,6 @@ from geco_guide.loss.cues import (
     structure_residual,
 )
 from geco_guide.loss.geco import GeCoLossConfig, frame_pairs, geco_from_geometry
-from geco_guide.synthetic import inject_deformation, rigid_clip
 from geco_guide.types import Correspondences, SceneGeometry
 
 

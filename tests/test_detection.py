@@ -5,14 +5,14 @@ import json
 import pytest
 import torch
 
-from geco_guide import detection
-from geco_guide.config import EvaluationConfig
-from geco_guide.detection import detection_maps, frame_scores, window_indices
+from geco_guide.bench.ranking import average_precision
+from geco_guide.bench.synthetic import occlusion_swap_clip, rigid_clip, with_warp
+from geco_guide.bench.warp import WarpParams, warp_one_frame
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
-from geco_guide.ranking import average_precision
-from geco_guide.synthetic import occlusion_swap_clip, rigid_clip, with_warp
-from geco_guide.video import write_video
-from geco_guide.warp import WarpParams, warp_one_frame
+from geco_guide.io.video import write_video
+from geco_guide.metric import detection
+from geco_guide.metric.detection import detection_maps, frame_scores, window_indices
+from geco_guide.metric.protocol import EvaluationConfig
 
 LOSS = EvaluationConfig().loss
 

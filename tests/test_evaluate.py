@@ -12,27 +12,26 @@ import pytest
 import torch
 
 import geco_guide
-from geco_guide.config import EstimatorsConfig, EvaluationConfig, load_config
-from geco_guide.estimators import load_estimators
+from geco_guide.bench.synthetic import inject_deformation, rigid_clip
+from geco_guide.config import load_config
+from geco_guide.estimators import EstimatorsConfig, load_estimators
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
-from geco_guide.evaluate import (
+from geco_guide.io.video import VideoReadError, read_video, write_video
+from geco_guide.loss.geco import GeCoLossConfig
+from geco_guide.metric.evaluate import (
     MAP_PANELS,
     evaluate_video,
     main,
     render_maps,
     write_maps_video,
 )
-from geco_guide.loss.geco import GeCoLossConfig
-from geco_guide.synthetic import inject_deformation, rigid_clip
-from geco_guide.video import (
+from geco_guide.metric.protocol import EvaluationConfig
+from geco_guide.metric.render import (
     VIRIDIS,
-    VideoReadError,
     colorize,
     label_height,
     panel_layout,
-    read_video,
     text_scale,
-    write_video,
 )
 
 H, W = 32, 48

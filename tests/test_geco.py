@@ -1,6 +1,12 @@
 import pytest
 import torch
 
+from geco_guide.bench.ranking import average_precision, spearman
+from geco_guide.bench.synthetic import (
+    inject_deformation,
+    occlusion_swap_clip,
+    rigid_clip,
+)
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.estimators.ufm import UFM, UFMConfig
 from geco_guide.estimators.vggt import VGGT, VGGTConfig
@@ -11,8 +17,6 @@ from geco_guide.loss.geco import (
     geco_from_geometry,
 )
 from geco_guide.loss.motion_stats import motion_statistics
-from geco_guide.ranking import average_precision, spearman
-from geco_guide.synthetic import inject_deformation, occlusion_swap_clip, rigid_clip
 from geco_guide.types import Correspondences, SceneGeometry
 
 

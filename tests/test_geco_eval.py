@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from geco_guide import geco_eval
-from geco_guide.evaluate import main as evaluate_main
-from geco_guide.geco_eval import MODELS, load_prompts, main, select_prompts
+from geco_guide.bench import geco_eval
+from geco_guide.bench.geco_eval import MODELS, load_prompts, main, select_prompts
+from geco_guide.metric.evaluate import main as evaluate_main
 from geco_guide.sampler.slicing import default_anchors
 
 TINY_RUN = ["--preset", "tiny", "--models", "cogvideox-5b", "wan2.1-t2v-1.3b", "--seeds", "0", "--limit", "1", "--guided"]
@@ -32,7 +32,7 @@ def test_the_suite_is_the_papers_80_prompts():
 
 def test_registry_anchors_and_frame_rates():
     cfg_fps = {"cogvideox-5b": 16.0, "ltx-video": 30.0, "hunyuanvideo": 24.0}
-    from geco_guide.config import EvaluationConfig
+    from geco_guide.metric.protocol import EvaluationConfig
 
     assert {name: EvaluationConfig().fps_of_model(name) for name in cfg_fps} == cfg_fps
     assert set(MODELS) <= set(EvaluationConfig().model_fps)  # every model has its native rate
@@ -145,7 +145,7 @@ def test_console_scripts_and_version(capsys):
     scripts = {ep.name: ep.value for ep in entry_points(group="console_scripts") if ep.name.startswith("geco-")}
     assert scripts == {"geco-generate": "geco_guide.generate:main", "geco-evaluate": "geco_guide.evaluate:main",
                        "geco-eval": "geco_guide.geco_eval:main"}
-    from geco_guide.generate import main as generate_main
+    from geco_guide.cli.generate import main as generate_main
 
     for cli in (main, evaluate_main, generate_main):
         with pytest.raises(SystemExit) as exit_info:

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from geco_guide import geometry as geo
-from geco_guide.synthetic import default_intrinsics, look_at
+from geco_guide.bench.synthetic import default_intrinsics, look_at
 
 
 def _camera_pair(dtype=torch.float64):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import sysconfig
 import venv
 from pathlib import Path
 
@@ -29,25 +30,32 @@ def test_the_package_list_names_every_package():
     assert listed == found | {"geco_guide.configs"}
 
 
+def run(command: list, **kwargs) -> subprocess.CompletedProcess:
+    """``subprocess.run`` that fails with the child's stderr (not only its exit code)."""
+    out = subprocess.run([str(c) for c in command], capture_output=True, text=True, timeout=300, **kwargs)
+    assert out.returncode == 0, f"{command[0]} exited {out.returncode}:\n{out.stderr[-4000:]}"
+    return out
+
+
 def test_a_built_wheel_runs_the_tiny_preset_outside_the_checkout(tmp_path: Path):
     wheels = tmp_path / "wheels"
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", str(wheels),
-                    str(ROOT)], check=True, capture_output=True, timeout=300)
+    run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", wheels, ROOT])
     (wheel,) = wheels.glob("geco_guide-*.whl")
     env_dir = tmp_path / "venv"
-    venv.create(env_dir, system_site_packages=True, with_pip=True)  # torch & co. from this environment
+    venv.create(env_dir, with_pip=True)
     python = env_dir / "bin" / "python"
-    subprocess.run([python, "-m", "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)], check=True,
-                   capture_output=True, timeout=300)
+    # torch & co. from the environment running the tests (a user's venv or the base interpreter), as
+    # plain paths: the .pth files there (this checkout's editable install) are not run
+    site = run([python, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"]).stdout.strip()
+    paths = dict.fromkeys(sysconfig.get_paths()[key] for key in ("purelib", "platlib"))
+    (Path(site) / "host-environment.pth").write_text("".join(f"{p}\n" for p in paths))
+    run([python, "-m", "pip", "install", "-q", "--no-deps", "--no-index", wheel])
     work = tmp_path / "elsewhere"
     work.mkdir()
     probe = ("import geco_guide, geco_guide.config as c; print(geco_guide.__file__); print(c.CONFIG_DIR); "
              "print(len(geco_guide.load_prompts()))")
-    lines = subprocess.run([python, "-c", probe], cwd=work, check=True, capture_output=True, text=True,
-                           timeout=120).stdout.split()
+    lines = run([python, "-c", probe], cwd=work).stdout.split()
     assert lines[0].startswith(str(env_dir)) and lines[1].startswith(str(env_dir)) and lines[2] == "80"
-    out = subprocess.run([env_dir / "bin" / "geco-generate", "--preset", "tiny", "--prompt", "a marble bust",
-                          "--out", str(work / "bust.mp4"), "output.score_anchors=false"],
-                         cwd=work, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr
+    run([env_dir / "bin" / "geco-generate", "--preset", "tiny", "--prompt", "a marble bust",
+         "--out", work / "bust.mp4", "output.score_anchors=false"], cwd=work)
     assert (work / "bust.mp4").is_file() and (work / "bust.json").is_file()

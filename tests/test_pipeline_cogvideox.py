@@ -10,16 +10,9 @@ from counting import CountingForward, HostSyncCounter
 from diffusers import CogVideoXDDIMScheduler, CogVideoXDPMScheduler, CogVideoXPipeline
 
 from geco_guide.loss.geco import GeCoLoss
-from geco_guide.sampler.guidance import (
-    GuidanceConfig,
-    VPLevels,
-    ddim_step,
-    guided_step,
-    renoise,
-    resolve_guidance_config,
-    score_anchor_frames,
-    v_to_x0,
-)
+from geco_guide.sampler.config import GuidanceConfig, resolve_guidance_config
+from geco_guide.sampler.levels import VPLevels, ddim_step, renoise, v_to_x0
+from geco_guide.sampler.step import guided_step, loss_terms, score_anchor_frames
 from geco_guide.tiny import (
     TINY_ANCHORS,
     TINY_CALL_KWARGS,
@@ -49,14 +42,25 @@ def scores(pipe, frames):
 # ---- the guided step on its own ---------------------------------------------------------------
 
 
+def ddim_guided(z, predict, levels, objective, repeats, **kwargs):
+    """guided_step, then the deterministic DDIM step a sampler takes from its result: ``(z_prev,
+    x0, updates)``."""
+    updates = []
+    z, out = guided_step(z, predict, levels, objective, repeats, on_update=updates.append, **kwargs)
+    x0 = levels.to_x0(z, out)
+    return levels.step(z, x0), x0, updates
+
+
+def squared(target=0.0):
+    """The objective ``x0 -> (||x0 - target||^2, terms)``."""
+    return lambda x: loss_terms(((x - target) ** 2).sum())
+
+
 def test_guided_step_without_repeats_is_a_ddim_step():
     z = torch.randn(1, 3, 2, 4, 4)
     v = torch.randn_like(z)
     a_t, a_prev = torch.tensor(0.3, dtype=torch.float64), torch.tensor(0.6, dtype=torch.float64)
-    z_prev, x0, records = guided_step(
-        z, predict_x0=lambda z, grad: v_to_x0(z, v, a_t), decode_anchors=None, loss_fn=None,
-        levels=VPLevels(a_t, a_prev), repeats=0,
-    )
+    z_prev, x0, records = ddim_guided(z, lambda z, grad: v, VPLevels(a_t, a_prev), None, 0, eta=3.0)
     assert records == []
     torch.testing.assert_close(x0, a_t.sqrt().float() * z - (1 - a_t).sqrt().float() * v)
     eps = ((z - a_t.sqrt().float() * x0) / (1 - a_t).sqrt().float())
@@ -73,19 +77,17 @@ def test_fast_mode_update_is_the_normalised_gradient_through_sqrt_alpha():
 
     def predict(z_in, grad):
         seen.append(grad)
-        return v_to_x0(z_in, v, a_t)
+        return v
 
-    z_prev, _, records = guided_step(
-        z, predict_x0=predict, decode_anchors=lambda x: x, loss_fn=lambda x: ((x - target) ** 2).sum(),
-        levels=VPLevels(a_t, a_prev), repeats=2, eta=0.5, denoiser_grad=False,
-    )
+    z_prev, _, records = ddim_guided(z, predict, VPLevels(a_t, a_prev), squared(target), 2, eta=0.5,
+                                     denoiser_grad=False)
     z_upd, norms = z, []
     for _ in range(2):
         g = 2 * 0.5**0.5 * (v_to_x0(z_upd, v, a_t) - target)
         z_upd, norms = z_upd - 0.5 * g / g.norm(), norms + [float(g.norm())]
     torch.testing.assert_close(z_prev, ddim_step(z_upd, v_to_x0(z_upd, v, a_t), a_t, a_prev))
     assert seen == [False]  # the one prediction serves both updates and the DDIM step
-    assert [r.grad_norm for r in records] == pytest.approx(norms, rel=1e-5)
+    assert [float(r.terms["grad_norm"]) for r in records] == pytest.approx(norms, rel=1e-5)
 
 
 def test_fast_mode_predicts_again_after_each_time_travel():
@@ -95,13 +97,10 @@ def test_fast_mode_predicts_again_after_each_time_travel():
 
     def predict(z_in, grad):
         seen.append(z_in.clone())
-        return v_to_x0(z_in, torch.sin(z_in), a_t)  # an output that depends on z
+        return torch.sin(z_in)  # an output that depends on z
 
-    kwargs = dict(
-        decode_anchors=lambda x: x, loss_fn=lambda x: (x**2).sum(), levels=VPLevels(a_t, a_prev),
-        repeats=2, eta=1.0, time_travel=True, denoiser_grad=False,
-    )
-    z_prev, x0, _ = guided_step(z, predict_x0=predict, generator=torch.Generator().manual_seed(3), **kwargs)
+    z_prev, x0, _ = ddim_guided(z, predict, VPLevels(a_t, a_prev), squared(), 2, eta=1.0, time_travel=True,
+                                denoiser_grad=False, generator=torch.Generator().manual_seed(3))
     # start, after the first re-noising (second update), after the second (final prediction)
     assert len(seen) == 3 and torch.equal(seen[0], z)
     torch.testing.assert_close(x0, v_to_x0(seen[2], torch.sin(seen[2]), a_t))
@@ -111,13 +110,11 @@ def test_time_travel_renoises_back_to_t_with_the_generator():
     z = torch.randn(1, 2, 2, 3, 3)
     v = torch.zeros_like(z)
     a_t, a_prev = torch.tensor(0.4, dtype=torch.float64), torch.tensor(0.7, dtype=torch.float64)
-    kwargs = dict(
-        predict_x0=lambda z, g: v_to_x0(z, v, a_t), decode_anchors=lambda x: x, loss_fn=lambda x: (x**2).sum(),
-        levels=VPLevels(a_t, a_prev), repeats=1, eta=1.0, time_travel=True,
-    )
-    out1 = guided_step(z, generator=torch.Generator().manual_seed(5), **kwargs)[0]
-    out2 = guided_step(z, generator=torch.Generator().manual_seed(5), **kwargs)[0]
-    out3 = guided_step(z, generator=torch.Generator().manual_seed(6), **kwargs)[0]
+    kwargs = dict(predict=lambda z, g: v, levels=VPLevels(a_t, a_prev), objective=squared(), repeats=1, eta=1.0,
+                  time_travel=True)
+    out1 = ddim_guided(z, generator=torch.Generator().manual_seed(5), **kwargs)[0]
+    out2 = ddim_guided(z, generator=torch.Generator().manual_seed(5), **kwargs)[0]
+    out3 = ddim_guided(z, generator=torch.Generator().manual_seed(6), **kwargs)[0]
     assert torch.equal(out1, out2) and not torch.equal(out1, out3)
     # by hand: DDIM step with the update, re-noise to t, then the final DDIM step
     x0 = v_to_x0(z, v, a_t)

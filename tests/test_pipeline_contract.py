@@ -23,7 +23,7 @@ from diffusers import (
     PyramidAttentionBroadcastConfig,
 )
 
-from geco_guide.sampler.guidance import GuidanceConfig
+from geco_guide.sampler.config import GuidanceConfig
 from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 from geco_guide.tiny import (

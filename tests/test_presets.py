@@ -1,4 +1,4 @@
-"""Issue 12: the two CogVideoX-5b presets (the paper's experiment and the fused loss), whether the
+"""The two CogVideoX-5b presets (the paper's experiment and the fused loss), whether the
 update's gradient reaches the geometry estimator, and the structure cue without it."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import torch
 
 from geco_guide.config import config_to_dict, load_config
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig
-from geco_guide.sampler.guidance import GuidanceConfig, paper_guidance_config
+from geco_guide.sampler.config import GuidanceConfig, fused_guidance_config, paper_guidance_config
 from geco_guide.tiny import tiny_estimators
 from geco_guide.types import SceneGeometry
 
@@ -34,9 +34,10 @@ def test_paper_preset_is_the_papers_experiment_and_fused_differs_only_in_the_los
     assert (fused.guidance.loss.cue, fused.guidance.loss.geometry_grad) == ("fused", True)
     a, b = _flatten(config_to_dict(paper)), _flatten(config_to_dict(fused))
     assert {k for k in a if a[k] != b[k]} == {"guidance.loss.cue", "guidance.loss.geometry_grad"}
-    # the Python API: paper_guidance_config() is the preset's guidance, GuidanceConfig() the fused one
-    assert paper_guidance_config() == paper.guidance
-    assert GuidanceConfig() == fused.guidance
+    # the Python API: GuidanceConfig() (and paper_guidance_config()) is the CLI default, the paper's
+    # experiment; fused_guidance_config() the fused preset's
+    assert paper_guidance_config() == paper.guidance == GuidanceConfig() == load_config().guidance
+    assert fused_guidance_config() == fused.guidance
 
 
 class _GradProbe:

@@ -1,12 +1,12 @@
 import torch
 
-from geco_guide.geometry import pixel_grid, sample_bilinear
-from geco_guide.synthetic import (
+from geco_guide.bench.synthetic import (
     inject_deformation,
     occlusion_swap_clip,
     rigid_clip,
     thin_plate_spline,
 )
+from geco_guide.geometry import pixel_grid, sample_bilinear
 
 
 def _photometric_error(clip, i, j):

@@ -7,22 +7,19 @@ from dataclasses import replace
 import pytest
 import torch
 
-from geco_guide import benchmarks, robustness, validate
-from geco_guide.benchmarks import load_benchmark, oracle_clip
-from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
-from geco_guide.evaluate import score_frames
-from geco_guide.geometry import pixel_grid, sample_bilinear
-from geco_guide.loss.geco import GeCoLossConfig
-from geco_guide.occlusion import (
+from geco_guide.bench import datasets as benchmarks
+from geco_guide.bench import robustness, validate
+from geco_guide.bench.datasets import load_benchmark, oracle_clip
+from geco_guide.bench.occlusion import (
     OBJECT,
     OCCLUDER,
     OcclusionParams,
     composite_occlusion,
     occlusion_phases,
 )
-from geco_guide.ranking import average_precision, best_threshold_iou_f1, spearman
-from geco_guide.synthetic import rigid_clip, with_warp
-from geco_guide.warp import (
+from geco_guide.bench.ranking import average_precision, best_threshold_iou_f1, spearman
+from geco_guide.bench.synthetic import rigid_clip, with_warp
+from geco_guide.bench.warp import (
     WarpParams,
     central_mask,
     farthest_point_sampling,
@@ -31,6 +28,10 @@ from geco_guide.warp import (
     warp_fields,
     warp_one_frame,
 )
+from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
+from geco_guide.geometry import pixel_grid, sample_bilinear
+from geco_guide.loss.geco import GeCoLossConfig
+from geco_guide.metric.evaluate import score_frames
 
 SIZE = ["7", "32", "48"]  # frames, height, width of the synthetic clips
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import pytest
@@ -326,13 +327,18 @@ def test_trunk_to_bfloat16_keeps_heads_and_outputs_float32() -> None:
     assert torch.isfinite(grad).all() and grad.abs().sum() > 0
 
 
-def test_fixtures_match_the_shared_copies():
-    """tests/fixtures/*.pt are copies of the workspace's ../shared/fixtures (absent in a user's clone)."""
-    shared = Path(__file__).resolve().parents[2] / "shared" / "fixtures"
-    if not shared.is_dir():
-        pytest.skip(f"{shared} is not beside this checkout; the copies in tests/fixtures are used")
-    for name in ("vggt_tiny.pt", "ufm_tiny.pt"):
-        assert (shared / name).read_bytes() == (Path(__file__).parent / "fixtures" / name).read_bytes(), name
+# The parity fixtures' contents: a fixture edited by accident (re-saved, regenerated) fails here
+# instead of silently moving the reference the parity tests compare against.
+FIXTURE_SHA256 = {
+    "vggt_tiny.pt": "d7259dc6cfd6591aad1b7e3987ce1a2136fa4521f2c80def364c3c0e426367b0",
+    "ufm_tiny.pt": "399a2898cded3fbb1433fdff10fab74843d5b59e113570f44ff54189578b56f5",
+    "tiny_decoder.pt": "9722e3bc1c7fdec6fe94ef292b2d0d59b3890e9cf491bb774df06512b535325a",
+}
+
+
+def test_parity_fixtures_are_the_reference_files():
+    for name, digest in FIXTURE_SHA256.items():
+        assert hashlib.sha256((Path(__file__).parent / "fixtures" / name).read_bytes()).hexdigest() == digest, name
 
 
 def test_lifecycle_and_pose_decode_live_in_one_place() -> None:

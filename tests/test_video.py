@@ -8,32 +8,36 @@ import numpy as np
 import pytest
 import torch
 
-from geco_guide import video
-from geco_guide.files import WriteError
-from geco_guide.video import (
+from geco_guide.io import video
+from geco_guide.io.files import WriteError
+from geco_guide.io.video import (
+    VideoReadError,
+    gif_rate,
+    read_frames,
+    read_video,
+    write_video,
+)
+from geco_guide.metric.protocol import (
+    evaluation_windows,
+    motion_grid,
+    sampled_rate,
+    time_grid_indices,
+)
+from geco_guide.metric.render import (
     FONT_SIZE,
     INVALID_COLOR,
     MAP_RANGE,
     MIN_FONT_SIZE,
     VIRIDIS,
-    VideoReadError,
     colorbar,
     colorize,
     draw_text,
-    evaluation_windows,
-    gif_rate,
     label_height,
-    motion_grid,
     panel_layout,
-    read_frames,
-    read_video,
-    sampled_rate,
     side_by_side,
     text_mask,
     text_scale,
     text_strip,
-    time_grid_indices,
-    write_video,
 )
 
 

@@ -1,22 +1,11 @@
-"""Everything that knows about diffusion: anchor slicing, the guidance schedule, the
-model-agnostic guided step, the CogVideoX pipeline and the hooks that guide other diffusers video
-pipelines (both imported lazily: they pull in diffusers)."""
+"""Everything that knows about diffusion: guidance options and presets, the guidance schedule,
+anchor slicing, noise-level arithmetic, the model-agnostic guided step and the guidance context,
+the CogVideoX pipeline and the hooks that guide other diffusers video pipelines (both imported
+lazily: they pull in diffusers)."""
 
-from .guidance import (
-    FlowLevels,
-    GuidanceConfig,
-    GuidanceRecord,
-    NoiseLevels,
-    VPLevels,
-    ddim_step,
-    guided_step,
-    normalized_update,
-    paper_guidance_config,
-    renoise,
-    resolve_guidance_config,
-    score_anchor_frames,
-    v_to_x0,
-)
+from .config import GuidanceConfig, fused_guidance_config, paper_guidance_config, resolve_guidance_config
+from .context import GuidanceContext
+from .levels import FlowLevels, NoiseLevels, VPLevels, ddim_step, renoise, v_to_x0
 from .schedule import GuidanceSchedule, paper_schedule, parse_repeats, scale_schedule
 from .slicing import (
     AnchorChunk,
@@ -24,6 +13,7 @@ from .slicing import (
     check_num_frames,
     decode_anchor_frames,
 )
+from .step import GuidanceRecord, guided_step, normalized_update, score_anchor_frames
 
 _LAZY = {
     "GeCoCogVideoXPipeline": "pipeline_cogvideox",
@@ -46,6 +36,7 @@ __all__ = [
     "GeCoCogVideoXPipeline",
     "GeCoCogVideoXPipelineOutput",
     "GuidanceConfig",
+    "GuidanceContext",
     "GuidanceRecord",
     "GuidanceSchedule",
     "anchor_latent_chunks",
@@ -53,6 +44,7 @@ __all__ = [
     "ddim_step",
     "decode_anchor_frames",
     "guided_step",
+    "fused_guidance_config",
     "normalized_update",
     "paper_guidance_config",
     "paper_schedule",

@@ -28,7 +28,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .guidance import FlowLevels, NoiseLevels, VPLevels
+from .levels import FlowLevels, NoiseLevels, VPLevels
 from .slicing import decode_chunk
 
 

@@ -14,8 +14,8 @@ removes them again, leaving the pipeline exactly as it was:
    states, CFG batch layout. They also validate the ``R_t`` schedule against the scheduler's
    timestep table before the first denoiser call.
 3. ``pipe.scheduler.step`` is wrapped (an instance attribute). At a step with ``R_t > 0`` the
-   wrapper runs the shared :func:`~geco_guide.sampler.guidance.guided_step` on the ``sample`` the
-   pipeline is about to step: it predicts ``x0`` from the captured model output (fast mode) or by
+   wrapper runs the shared guidance (:class:`~geco_guide.sampler.context.GuidanceContext`) on the
+   ``sample`` the pipeline is about to step: it predicts ``x0`` from the captured model output (fast mode) or by
    re-running the captured denoiser calls with gradients, both CFG branches (faithful mode),
    decodes the anchor chunks, and updates ``z_t`` (time travel included). It then hands the
    original ``step`` the guided sample and the model output re-computed there, after telling a
@@ -31,10 +31,9 @@ with a wrong prediction.
 Compared with ``GeCoCogVideoXPipeline``: the same guided step, schedule, time travel, fast and
 faithful modes, anchors and loss, and in both the pipeline's own scheduler takes the step from
 the guided sample. The difference: the latents between steps are whatever the pipeline keeps
-(stock CogVideoX rounds them to the model dtype after every step; in bf16 that keeps an update on
-average but adds rounding noise of 30-80 % of its norm, ``scripts/measure_bf16_update.py``:
-``GeCoCogVideoXPipeline`` keeps fp32 latents while guiding; Wan, HunyuanVideo and LTX keep fp32
-latents). The guided sample reaches the scheduler in fp32.
+(stock CogVideoX rounds them to the model dtype after every step, which adds rounding noise to an
+update, measured in docs/guidance.md; ``GeCoCogVideoXPipeline`` keeps fp32 latents while guiding;
+Wan, HunyuanVideo and LTX keep fp32 latents). The guided sample reaches the scheduler in fp32.
 Denoiser caches (FirstBlockCache, FasterCache, ...) are refused while guiding, with one line
 naming the cache, before any denoising step. The wrapped ``step`` shows the original signature,
 so pipelines still pass ``eta`` and ``generator`` to it.
@@ -42,7 +41,6 @@ so pipelines still pass ``eta`` and ``generator`` to it.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import inspect
 from collections.abc import Mapping
@@ -52,7 +50,6 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from ..loss.geco import GeCoLoss
 from ..types import FlowEstimator, GeometryEstimator, missing_estimators
 from .adapters import (
     CallGeometry,
@@ -64,15 +61,9 @@ from .adapters import (
     keep_update,
     noise_levels,
 )
-from .guidance import (
-    GuidanceConfig,
-    frozen,
-    gradient_checkpointing,
-    guided_step,
-    resolve_guidance_config,
-)
-from .schedule import GuidanceSchedule
-from .slicing import AnchorChunk, decode_anchor_frames
+from .config import GuidanceConfig, resolve_guidance_config
+from .context import GuidanceContext
+from .slicing import AnchorChunk
 
 __all__ = ["GeCoGuidanceHandle", "attach_geco_guidance"]
 
@@ -90,11 +81,10 @@ class _Call:
 @dataclass
 class _CallState:
     geometry: CallGeometry
-    chunks: list[AnchorChunk] | None
+    chunks: list[AnchorChunk]
     generator: Any
-    loss_fn: Any
     config: GuidanceConfig
-    schedule: GuidanceSchedule | None = None
+    context: GuidanceContext | None = None  # from the first denoiser call on (it fixes the schedule)
     counter: int = 0
     calls: list[_Call] = field(default_factory=list)
 
@@ -309,19 +299,23 @@ class GeCoGuidanceHandle:
         check_no_denoiser_cache(self.adapter.denoisers(self.pipe))
         chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
         check_scheduler(self.pipe.scheduler)
-        # No frame check: it would make each update wait for the device; a NaN decode gives
-        # NaN scalars and no update instead (GeCoLoss check_values).
-        loss_fn = GeCoLoss(self.geometry_estimator, self.flow_estimator, config.loss, check_values=False)
-        self._state = _CallState(geometry, chunks, args.get("generator"), loss_fn, config)
+        self._state = _CallState(geometry, chunks, args.get("generator"), config)
 
     def _pre_hook(self, module, args, kwargs):
         state = self._state
         if state is None or self._replaying:
             return None
-        if state.schedule is None:  # first denoiser call of this pipeline call
-            self._patch_scheduler(self.pipe.scheduler)
-            check_scheduler(self.pipe.scheduler)
-            state.schedule = state.config.schedule(len(self.pipe.scheduler.timesteps))
+        if state.context is None:  # first denoiser call of this pipeline call
+            pipe, adapter = self.pipe, self.adapter
+            self._patch_scheduler(pipe.scheduler)
+            check_scheduler(pipe.scheduler)
+            state.context = GuidanceContext(
+                state.config, state.config.schedule(len(pipe.scheduler.timesteps)), state.chunks,
+                decode_chunk=functools.partial(adapter.decode, pipe),
+                latent_frames=functools.partial(adapter.frames_first, pipe, geometry=state.geometry),
+                geometry_estimator=self.geometry_estimator, flow_estimator=self.flow_estimator,
+                generator=state.generator, log=self.log,
+            )
         return None
 
     def _post_hook(self, module, args, kwargs, output):
@@ -339,69 +333,38 @@ class GeCoGuidanceHandle:
         i = state.counter
         state.counter += 1
         calls, state.calls = state.calls, []
-        schedule = state.schedule
+        schedule = state.context.schedule if state.context is not None else None
         repeats = schedule.repeats_at(i) if schedule is not None and i < schedule.num_steps else 0
         if repeats == 0:
             return original(*args, **kwargs)
         model_output = bound.arguments["model_output"]
         sample = bound.arguments["sample"]
         timestep = bound.arguments["timestep"]
-        new_sample, new_output = self._guide(scheduler, state, i, repeats, timestep, sample, model_output, calls)
+        new_sample, new_output = self._guide(scheduler, state.context, i, timestep, sample, model_output, calls)
         keep_update(scheduler, sample, new_sample)
         bound.arguments["model_output"] = new_output.to(model_output.dtype)
         # fp32 (or the pipeline's fp64): a low-precision copy would round the update away
         bound.arguments["sample"] = new_sample.double() if sample.dtype == torch.float64 else new_sample
         return original(*bound.args, **bound.kwargs)
 
-    def _guide(self, scheduler, state: _CallState, i: int, repeats: int, timestep, sample, model_output, calls):
-        pipe, adapter, config = self.pipe, self.adapter, state.config
-        levels = noise_levels(scheduler, timestep, i)
+    def _guide(self, scheduler, context: GuidanceContext, i: int, timestep, sample, model_output, calls):
+        pipe, adapter = self.pipe, self.adapter
         replay = _Replay(pipe, adapter, calls, sample, model_output)
         start = sample.detach().float()
-        last: dict[str, Tensor] = {}
 
-        def predict_x0(z: Tensor, differentiate: bool) -> Tensor:
+        def predict(z: Tensor, differentiate: bool) -> Tensor:
             if not differentiate and torch.equal(z, start):
-                out = model_output.float()  # the pipeline's own prediction at this very sample
-            else:
-                self._replaying = True
-                try:
-                    out = replay(z, differentiate)
-                finally:
-                    self._replaying = False
-            last["out"] = out.detach()
-            return levels.to_x0(z, out)
+                return model_output.float()  # the pipeline's own prediction at this very sample
+            self._replaying = True
+            try:
+                return replay(z, differentiate)
+            finally:
+                self._replaying = False
 
-        def decode_anchors(x0: Tensor) -> Tensor:
-            latents = adapter.frames_first(pipe, x0, state.geometry)
-            return decode_anchor_frames(functools.partial(adapter.decode, pipe), latents, state.chunks,
-                                        checkpoint_chunks=config.vae_checkpointing)
-
-        faithful = config.denoiser_grad
         denoisers = {id(c.module): c.module for c in calls}.values()
-        with contextlib.ExitStack() as stack:
-            stack.enter_context(frozen(*adapter.frozen_modules(pipe), *denoisers, self.geometry_estimator, self.flow_estimator))
-            for module in denoisers:
-                stack.enter_context(gradient_checkpointing(module, faithful and config.gradient_checkpointing))
-            stack.enter_context(gradient_checkpointing(pipe.vae, config.vae_checkpointing))
-            z, _, _ = guided_step(
-                sample,
-                predict_x0=predict_x0,
-                decode_anchors=decode_anchors,
-                loss_fn=state.loss_fn,
-                levels=levels,
-                repeats=repeats,
-                eta=state.schedule.eta,
-                time_travel=state.schedule.time_travel_at(i),
-                denoiser_grad=faithful,
-                generator=state.generator,
-                eps=config.grad_eps,
-                step=i,
-                t=int(timestep),
-                on_record=lambda record: self.log.append(record.to_dict()),
-                take_step=False,
-            )
-        return z.to(sample.device), last["out"].to(sample.device)
+        with context.models(denoisers, pipe.vae, adapter.frozen_modules(pipe)):
+            z, out = context.guide(sample, predict, noise_levels(scheduler, timestep, i), i, int(timestep))
+        return z.to(sample.device), out.to(sample.device)
 
 
 def attach_geco_guidance(

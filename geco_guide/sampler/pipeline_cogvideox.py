@@ -2,9 +2,9 @@
 
 The denoising loop below is the stock ``CogVideoXPipeline`` loop, readable top to bottom, with one
 addition: at a step with ``R_t > 0`` the latents get ``R_t`` GeCo updates before the step
-(:func:`geco_guide.sampler.guidance.guided_step`, the same guided step the pipeline hooks use),
-and the pipeline's own scheduler then takes the step from the guided latents with the model
-output recomputed there, exactly as the hooks hand it to ``scheduler.step``. Noise levels come
+(:meth:`GuidanceContext.guide <geco_guide.sampler.context.GuidanceContext.guide>`, the same
+guidance the pipeline hooks use), and the pipeline's own scheduler then takes the step from the
+guided latents with the model output there, exactly as the hooks hand it to ``scheduler.step``. Noise levels come
 from the scheduler's ``alphas_cumprod`` with the scheduler's own rule (``t`` and
 ``t - num_train_timesteps // num_inference_steps``, :func:`.adapters.noise_levels`).
 
@@ -13,8 +13,8 @@ A drop-in ``CogVideoXPipeline``: with guidance off the call is the stock call in
 after each step as stock does), so the output is the stock output bit for bit. With guidance on,
 what guidance needs is checked up front (``4k+1`` frames, a v-prediction VP scheduler, the
 estimators, no denoiser cache), and the latents are kept in fp32 between steps whatever the model
-dtype (the stock pipeline rounds them to the model dtype: in bf16 an update survives on average
-but with rounding noise of 30-80 % of its norm, ``scripts/measure_bf16_update.py``).
+dtype (the stock pipeline rounds them to the model dtype, which adds rounding noise to an update:
+measured in docs/guidance.md, "Latent precision").
 """
 
 from __future__ import annotations
@@ -34,21 +34,13 @@ from diffusers.pipelines.cogvideo.pipeline_output import CogVideoXPipelineOutput
 from diffusers.utils import logging
 from torch import Tensor, nn
 
-from ..loss.geco import GeCoLoss
 from ..types import FlowEstimator, GeometryEstimator, missing_estimators
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
-from .guidance import (
-    GuidanceConfig,
-    GuidanceRecord,
-    frozen,
-    gradient_checkpointing,
-    guided_step,
-    resolve_guidance_config,
-)
+from .config import GuidanceConfig, resolve_guidance_config
+from .context import GuidanceContext
 from .slicing import (
     check_num_frames,
     check_paired_latent_frames,
-    decode_anchor_frames,
     decode_chunk,
 )
 
@@ -101,6 +93,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
     """
 
     _optional_components = ["geometry_estimator", "flow_estimator"]
+    #: What one guided call's guidance is made of; profilers substitute a subclass.
+    guidance_context_class = GuidanceContext
     _exclude_from_cpu_offload = ["geometry_estimator", "flow_estimator"]
     _estimator_names = ("geometry_estimator", "flow_estimator")
 
@@ -263,17 +257,11 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             noise_pred = noise_pred_uncond + self.guidance_scale * (noise_pred_text - noise_pred_uncond)
         return noise_pred
 
-    def predict_x0(self, z: Tensor, differentiate: bool, *, levels, last: dict[str, Tensor], **model_kwargs) -> Tensor:
-        """Clean estimate ``x0`` (fp32) of the model output at ``z``, for the guided step.
-
-        With ``differentiate=False`` the transformer runs without gradients, so ``x0`` depends
-        on ``z`` only through ``sqrt(a_t) z`` (the fast mode). ``last["out"]`` keeps the model
-        output of the last call: the output the scheduler's step gets at the guided latents.
-        """
+    def predict(self, z: Tensor, differentiate: bool, **model_kwargs) -> Tensor:
+        """The model output at ``z`` for the guided step: through the transformer's graph when
+        ``differentiate`` (faithful mode), else without gradients."""
         with torch.set_grad_enabled(differentiate and torch.is_grad_enabled()):
-            out = self.model_output(z, **model_kwargs)
-        last["out"] = out.detach()
-        return levels.to_x0(z, out)
+            return self.model_output(z, **model_kwargs)
 
     # ------------------------------------------------------------------------------------------
 
@@ -406,30 +394,25 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             else None
         )
 
-        # 8. Guidance parts: anchors decoded from short causal chunks, the GeCo loss
-        loss_fn = decode_anchors = None
+        # 8. Guidance: anchors decoded from short causal chunks, the GeCo loss, the log
+        geco = None
         if config.enabled:
-            # No frame check: it would make each update wait for the device; a NaN decode gives
-            # NaN scalars and no update instead (GeCoLoss check_values).
-            loss_fn = GeCoLoss(geometry_estimator, flow_estimator, config.loss, check_values=False)
-
-            def decode_anchors(x0: Tensor) -> Tensor:
-                return decode_anchor_frames(partial(decode_chunk, self.vae, scaling_factor=self.vae_scaling_factor_image),
-                                            x0[:, additional_frames:], chunks, checkpoint_chunks=config.vae_checkpointing)
-
-        guidance_log: list[dict[str, Any]] = []
+            geco = self.guidance_context_class(
+                config, schedule, chunks,
+                decode_chunk=partial(decode_chunk, self.vae, scaling_factor=self.vae_scaling_factor_image),
+                latent_frames=lambda x0: x0[:, additional_frames:],
+                geometry_estimator=geometry_estimator, flow_estimator=flow_estimator, generator=generator,
+            )
 
         # 9. Denoising loop
         num_warmup_steps = max(len(timesteps) - num_inference_steps * self.scheduler.order, 0)
         step_values = [int(v) for v in timesteps.tolist()]  # host copies: the guided steps add no device sync
-        models = (self.text_encoder, self.transformer, self.vae, geometry_estimator, flow_estimator)
-        checkpointing = config.enabled and config.denoiser_grad and config.gradient_checkpointing
         with (
-            frozen(*models) if config.enabled else contextlib.nullcontext(),
-            gradient_checkpointing(self.transformer, checkpointing),
-            gradient_checkpointing(self.vae, config.enabled and config.vae_checkpointing),
+            geco.models([self.transformer], self.vae, [self.text_encoder]) if geco else contextlib.nullcontext(),
             self.progress_bar(total=num_inference_steps) as progress_bar,
         ):
+            if geco:
+                geco.on_record = lambda record: progress_bar.set_postfix(loss=f"{record.loss:.4f}", refresh=False)
             old_pred_original_sample = None  # for DPM-solver++
             for i, t in enumerate(timesteps):
                 if self.interrupt:
@@ -446,38 +429,14 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                     attention_kwargs=attention_kwargs,
                     do_classifier_free_guidance=do_classifier_free_guidance,
                 )
-                repeats = schedule.repeats_at(i) if config.enabled else 0
-                if repeats == 0:
+                if geco is None or schedule.repeats_at(i) == 0:
                     noise_pred = self.model_output(latents, **model_kwargs)
                     sample = latents
                 else:
                     # R_t GeCo updates of z_t; the scheduler then steps from the guided z_t with the
-                    # model output there (the hooks' path: one guided step for both)
+                    # model output there (the hooks' path: one guidance for both)
                     levels = noise_levels(self.scheduler, step_values[i], i)
-                    last: dict[str, Tensor] = {}
-
-                    def on_record(record: GuidanceRecord) -> None:
-                        guidance_log.append(record.to_dict())
-                        progress_bar.set_postfix(loss=f"{record.loss:.4f}", refresh=False)
-
-                    sample, _, _ = guided_step(
-                        latents,
-                        predict_x0=partial(self.predict_x0, levels=levels, last=last, **model_kwargs),
-                        decode_anchors=decode_anchors,
-                        loss_fn=loss_fn,
-                        levels=levels,
-                        repeats=repeats,
-                        eta=config.eta,
-                        time_travel=schedule.time_travel_at(i),
-                        denoiser_grad=config.denoiser_grad,
-                        generator=generator,
-                        eps=config.grad_eps,
-                        step=i,
-                        t=step_values[i],
-                        on_record=on_record,
-                        take_step=False,
-                    )
-                    noise_pred = last["out"]
+                    sample, noise_pred = geco.guide(latents, partial(self.predict, **model_kwargs), levels, i, step_values[i])
 
                 # compute the previous noisy sample x_t -> x_t-1, with the pipeline's own scheduler
                 if not isinstance(self.scheduler, CogVideoXDPMScheduler):
@@ -526,6 +485,6 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             return (video,)
         return GeCoCogVideoXPipelineOutput(
             frames=video,
-            guidance_log=guidance_log,
+            guidance_log=geco.log if geco else [],
             guidance=asdict(config) if config.enabled else None,
         )

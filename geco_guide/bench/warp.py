@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .geometry import pixel_grid, sample_bilinear
+from ..geometry import pixel_grid, sample_bilinear
 
 
 @dataclass(frozen=True)

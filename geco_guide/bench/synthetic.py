@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .geometry import (
+from ..geometry import (
     inside_image,
     invert_rigid,
     pixel_grid,
@@ -38,11 +38,11 @@ from .geometry import (
     transform_points,
     unproject,
 )
+from ..types import Correspondences, SceneGeometry
 from .occlusion import OBJECT, OCCLUDER, OcclusionResult
-from .types import Correspondences, SceneGeometry
 
 # thin_plate_spline is part of this module's interface (the deformation injector's maths).
-from .warp import (  # noqa: F401
+from .warp import (
     WarpResult,
     backward_warp,
     control_displacements,

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .geometry import pixel_grid
+from ..geometry import pixel_grid
 
 SCENE, OCCLUDER, OBJECT = 0, 1, 2  # layer labels, back to front
 

@@ -22,8 +22,8 @@ from typing import Any, TypeVar
 
 import torch
 
-from .config import GeCoConfig, config_to_yaml
-from .estimators import resolve_device
+from ..config import GeCoConfig, config_to_yaml
+from ..io.devices import resolve_device
 
 MIB = 2**20
 T = TypeVar("T")

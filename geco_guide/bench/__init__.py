@@ -1,0 +1,1 @@
+"""The benchmarks: GeCo-Eval, WarpBench/OccluBench, synthetic scenes, the detection tasks' statistics, robustness sweeps."""

@@ -1,0 +1,321 @@
+"""Build WarpBench- and OccluBench-style benchmarks from any static-scene clip.
+
+    python -m geco_guide.benchmarks warp clip.mp4 frames/ --out bench/warp --mode frame --seeds 0 1 2
+    python -m geco_guide.benchmarks warp clip.mp4 --mask object.png --out bench/warp-clip
+    python -m geco_guide.benchmarks occlusion clip.mp4 --object duck.png --out bench/occlusion
+    python -m geco_guide.benchmarks warp synthetic --out bench/synthetic-warp --seeds 0 1 2   # offline, exact ground truth
+    python -m geco_guide.benchmarks occlusion synthetic-3d --out bench/synthetic-occlusion-3d
+
+Each clip becomes a folder ``<out>/<name>-s<seed>/`` holding
+
+* ``frames/00000.png ...``: the edited clip (lossless);
+* ``truth.npz``: ``mask [S, H, W]`` (the artifact), and for a warp ``displacement [S, H, W, 2]``
+  (``Ū_t``: frame ``t`` at ``p`` shows the source at ``p + Ū_t(p)``) and ``magnitude [S, H, W]``;
+  for an occlusion edit ``labels [S, H, W]`` and ``offsets [3, S, 2]`` (see
+  :class:`~geco_guide.occlusion.OcclusionResult`);
+* ``meta.json`` (written last: a folder without it is incomplete): the kind, mode, anomalous
+  frame, phases, every parameter, the seed and the source.
+
+``synthetic`` renders :func:`geco_guide.synthetic.rigid_clip` instead of reading a video, and
+``synthetic-3d`` is :func:`geco_guide.synthetic.occlusion_swap_clip` (an occlusion edit made in
+3D: the re-revealed box is a real surface the flow can follow); such folders record it, and :func:`oracle_clip` rebuilds their exact depth, cameras and flow, so
+``python -m geco_guide.validate --oracle`` can score them with ground-truth estimators.
+Everything is deterministic from the seed and written atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import sys
+import zipfile
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image
+from torch import Tensor
+
+from ..io.files import write_bytes_atomic, write_json_atomic
+from ..io.video import VIDEO_SUFFIXES, read_frames
+from .occlusion import (
+    OcclusionParams,
+    OcclusionResult,
+    composite_occlusion,
+    default_region,
+)
+from .synthetic import (
+    SyntheticClip,
+    occlusion_swap_clip,
+    rigid_clip,
+    with_overlay,
+    with_warp,
+)
+from .warp import WarpParams, WarpResult, warp_clip, warp_one_frame
+
+KINDS = ("warp", "occlusion")
+SYNTHETIC = "synthetic"  # the gallery scene (rigid_clip): any edit
+SYNTHETIC_3D = "synthetic-3d"  # occlusion_swap_clip: an occlusion inconsistency built in 3D
+
+
+@dataclass
+class Benchmark:
+    """One built clip, loaded.
+
+    Attributes:
+        path: its folder.
+        meta: ``meta.json``.
+        frames: ``[S, 3, H, W]`` float32 in ``[0, 1]``.
+        truth: ``truth.npz`` as tensors (``mask`` bool ``[S, H, W]``, ...).
+    """
+
+    path: Path
+    meta: dict[str, Any]
+    frames: Tensor
+    truth: dict[str, Tensor]
+
+    @property
+    def kind(self) -> str:
+        return self.meta["kind"]
+
+
+# --------------------------------------------------------------------------------------------
+# inputs
+
+
+def read_image(path: str | Path) -> Tensor:
+    """An image file -> ``[3, H, W]`` float32 in ``[0, 1]`` (one-line error if unreadable)."""
+    try:
+        with Image.open(path) as image:
+            array = np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0
+    except (OSError, ValueError) as err:
+        raise ValueError(f"cannot read image {str(path)!r}: {err}") from None
+    return torch.from_numpy(array).permute(2, 0, 1).contiguous()
+
+
+def read_object(path: str | Path) -> Tensor:
+    """The object to paste, ``[3, H, W]``: an image, or the middle frame of a video / frame folder
+    (an object that changes over time would be a second artifact)."""
+    path = Path(path)
+    if path.is_dir() or path.suffix.lower() in VIDEO_SUFFIXES:
+        frames = read_frames(path).frames
+        return frames[frames.shape[0] // 2]
+    return read_image(path)
+
+
+def read_mask(path: str | Path, num_frames: int, height: int, width: int) -> Tensor:
+    """A mask image (``[H, W]``) or a folder / video of per-frame masks (``[S, H, W]``), bool,
+    resized (nearest) to the clip; white (> 0.5) is foreground."""
+    path = Path(path)
+    if path.is_dir() or path.suffix.lower() in VIDEO_SUFFIXES:
+        masks = read_frames(path).frames.mean(1, keepdim=True)
+        if masks.shape[0] != num_frames:
+            raise ValueError(f"mask {str(path)!r} has {masks.shape[0]} frames, the clip {num_frames}")
+    else:
+        masks = read_image(path).mean(0, keepdim=True)[None]
+    masks = torch.nn.functional.interpolate(masks, size=(height, width), mode="nearest")[:, 0] > 0.5
+    if not masks.flatten(1).any(1).all():
+        raise ValueError(f"mask {str(path)!r} is empty (in at least one frame)")
+    return masks[0] if masks.shape[0] == 1 else masks
+
+
+def load_clip(source: str, max_frames: int, synthetic_size: tuple[int, int, int]) -> tuple[Tensor, SyntheticClip | None]:
+    """Frames ``[S, 3, H, W]`` of ``source`` (at most ``max_frames``, evenly spaced), and the
+    synthetic clip when ``source`` is ``synthetic`` / ``synthetic-3d`` (``synthetic_size``:
+    frames, height, width)."""
+    if source in (SYNTHETIC, SYNTHETIC_3D):
+        clip = (rigid_clip if source == SYNTHETIC else occlusion_swap_clip)(*synthetic_size)
+        return clip.frames.float(), clip
+
+    def evenly(count: int, fps: float) -> list[int]:
+        return sorted({round(k * (count - 1) / max(max_frames - 1, 1)) for k in range(min(count, max_frames))})
+
+    return read_frames(source, select=evenly, min_frames=3).frames, None
+
+
+# --------------------------------------------------------------------------------------------
+# folders
+
+
+def _png(frame: Tensor) -> bytes:
+    array = (frame.detach().float().clamp(0, 1).permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(array).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def _npz(arrays: dict[str, Tensor]) -> bytes:
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **{k: v.detach().cpu().numpy() for k, v in arrays.items()})
+    return buffer.getvalue()
+
+
+def write_benchmark(folder: Path, frames: Tensor, truth: dict[str, Tensor], meta: dict[str, Any]) -> Path:
+    """Write one clip's folder (frames, ``truth.npz``, then ``meta.json``), atomically per file."""
+    if (folder / "meta.json").exists():
+        (folder / "meta.json").unlink()  # rebuilding: incomplete until the new meta lands
+    names = [f"{k:05d}.png" for k in range(frames.shape[0])]
+    for name, frame in zip(names, frames):
+        write_bytes_atomic(folder / "frames" / name, _png(frame))
+    for stale in {p.name for p in (folder / "frames").glob("*.png")} - set(names):  # a longer earlier build
+        (folder / "frames" / stale).unlink()
+    write_bytes_atomic(folder / "truth.npz", _npz(truth))
+    return write_json_atomic(folder / "meta.json", meta)
+
+
+def load_benchmark(folder: str | Path) -> Benchmark:
+    """Read a folder written by :func:`write_benchmark` (one-line error if incomplete)."""
+    folder = Path(folder)
+    meta_path = folder / "meta.json"
+    if not meta_path.is_file():
+        raise ValueError(f"{str(folder)!r} is not a built benchmark clip (no meta.json)")
+    meta = json.loads(meta_path.read_text())
+    if meta.get("kind") not in KINDS:
+        raise ValueError(f"{str(meta_path)!r}: kind must be one of {KINDS}, got {meta.get('kind')!r}")
+    try:
+        with np.load(folder / "truth.npz") as data:
+            truth = {key: torch.from_numpy(data[key]) for key in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        raise ValueError(f"{str(folder)!r}: cannot read truth.npz ({err})") from None
+    if "mask" not in truth:
+        raise ValueError(f"{str(folder)!r}: truth.npz holds no mask")
+    frames = read_frames(folder / "frames").frames
+    if frames.shape[0] != truth["mask"].shape[0] or tuple(frames.shape[-2:]) != tuple(truth["mask"].shape[-2:]):
+        raise ValueError(f"{str(folder)!r}: frames {list(frames.shape)} do not match the truth {list(truth['mask'].shape)}")
+    return Benchmark(folder, meta, frames, truth)
+
+
+def find_benchmarks(root: str | Path) -> list[Path]:
+    """``root`` itself if it is a clip folder, else its clip sub-folders (sorted); error if none."""
+    root = Path(root)
+    if (root / "meta.json").is_file():
+        return [root]
+    found = sorted(p for p in root.iterdir() if (p / "meta.json").is_file()) if root.is_dir() else []
+    if not found:
+        raise ValueError(f"{str(root)!r} holds no built benchmark clip (folders with meta.json)")
+    return found
+
+
+def oracle_clip(bench: Benchmark) -> SyntheticClip:
+    """The exact ground truth of a clip built from ``synthetic``: the rendered scene with the
+    recorded edit applied (error for clips built from real footage)."""
+    spec = bench.meta.get("synthetic")
+    if spec is None:
+        raise ValueError(f"{str(bench.path)!r} was built from {bench.meta.get('source')!r}, not a synthetic scene: "
+                         "oracle estimators need its ground truth")
+    if spec["scene"] == SYNTHETIC_3D:
+        return replace(occlusion_swap_clip(spec["num_frames"], spec["height"], spec["width"]), frames=bench.frames)
+    clip = rigid_clip(spec["num_frames"], spec["height"], spec["width"])
+    if bench.kind == "warp":
+        edit = WarpResult(bench.frames, bench.truth["displacement"].double(), bench.truth["mask"], torch.empty(0, 2))
+        return with_warp(clip, edit)
+    edit = OcclusionResult(bench.frames, bench.truth["labels"].long(), bench.truth["offsets"].double(),
+                           bench.truth["mask"], tuple(bench.meta["region"]), tuple(bench.meta["phases"]))
+    return with_overlay(clip, edit)
+
+
+# --------------------------------------------------------------------------------------------
+# builders
+
+
+def scene_track(clip: SyntheticClip, region: tuple[int, int, int, int]) -> Tensor:
+    """``[S, 2]`` the scene's motion at the region's centre since frame 0 (its true flow), so an
+    object pasted there stays on the surface it replaces."""
+    left, top, right, bottom = region
+    u, v = (left + right - 1) // 2, (top + bottom - 1) // 2
+    rows = [torch.zeros(2, dtype=torch.float64)]
+    rows += [clip.rigid_correspondences(0, t)[0][:, v, u].double() for t in range(1, clip.num_frames)]
+    return torch.stack(rows)
+
+
+def build_warp(frames: Tensor, mask: Tensor | None, params: WarpParams, mode: str) -> tuple[WarpResult, dict[str, Tensor]]:
+    """The warp of ``mode`` (``clip``: every frame, ``frame``: one random frame) and its truth arrays."""
+    result = (warp_clip if mode == "clip" else warp_one_frame)(frames, mask, params)
+    truth = {"mask": result.mask, "displacement": result.displacement.float(), "magnitude": result.magnitude.float()}
+    return result, truth
+
+
+def build_one(kind: str, source: str, frames: Tensor, synthetic: SyntheticClip | None, seed: int,
+              args: argparse.Namespace) -> tuple[Tensor, dict[str, Tensor], dict[str, Any]]:
+    """Edit one clip: ``(frames, truth, meta)``."""
+    num_frames, _, height, width = frames.shape
+    meta: dict[str, Any] = {"kind": kind, "source": source, "seed": seed, "num_frames": num_frames,
+                            "height": height, "width": width}
+    if synthetic is not None:
+        meta["synthetic"] = {"scene": source, "num_frames": num_frames, "height": height, "width": width}
+    if source == SYNTHETIC_3D:  # the edit is part of the scene: only the ground truth to write
+        if kind != "occlusion":
+            raise ValueError(f"{SYNTHETIC_3D} is an occlusion scene; warp the gallery scene '{SYNTHETIC}' instead")
+        meta.update(mode="clip", anomalous_frame=None, params={}, scene="synthetic.occlusion_swap_clip")
+        return frames, {"mask": synthetic.mask}, meta
+    if kind == "warp":
+        mask = read_mask(args.mask, num_frames, height, width) if args.mask else None
+        params = WarpParams(num_controls=args.controls, amplitude=args.amplitude, beta=args.beta,
+                            feather_px=args.feather, mask_threshold=args.mask_threshold, seed=seed)
+        result, truth = build_warp(frames, mask, params, args.mode)
+        meta.update(mode=args.mode, anomalous_frame=result.anomalous_frame, params=asdict(params),
+                    mask=args.mask or "central ellipse", controls=result.controls.tolist())
+        return result.frames, truth, meta
+    params = OcclusionParams(region=tuple(args.region) if args.region else None, seed=seed)
+    image = read_object(args.object) if args.object else None
+    alpha = read_image(args.object_mask).mean(0) if args.object_mask else None
+    region = params.region or default_region(height, width, params.region_fraction)
+    track = scene_track(synthetic, region) if synthetic is not None else None
+    result = composite_occlusion(frames, params, image, alpha, track)
+    truth = {"mask": result.mask, "labels": result.labels.to(torch.int16), "offsets": result.offsets}
+    meta.update(mode="clip", anomalous_frame=None, params=asdict(params), region=list(result.region),
+                phases=list(result.phases), object=args.object or "procedural", object_mask=args.object_mask or "ellipse",
+                region_track="scene flow" if track is not None else "fixed in the image")
+    return result.frames, truth, meta
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m geco_guide.benchmarks",
+                                description="Build WarpBench/OccluBench-style clips with ground truth.")
+    p.add_argument("kind", choices=KINDS)
+    p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|synthetic|synthetic-3d",
+                   help="clips to edit; synthetic: the gallery scene with exact ground truth; synthetic-3d "
+                        "(occlusion only): a pillar hides a wall region that re-appears with another box, in 3D")
+    p.add_argument("--out", required=True, help="output folder (one sub-folder per clip and seed)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="one clip per input and seed")
+    p.add_argument("--max-frames", type=int, default=20, help="frames kept per input, evenly spaced (paper: 20)")
+    p.add_argument("--synthetic-size", type=int, nargs=3, default=(9, 48, 64), metavar=("FRAMES", "H", "W"))
+    warp = p.add_argument_group("warp")
+    warp.add_argument("--mode", choices=("clip", "frame"), default="clip",
+                      help="clip: warp every frame (Task 2); frame: replace one random frame (Task 1)")
+    warp.add_argument("--mask", default=None, help="foreground mask image, or folder/video of per-frame masks")
+    warp.add_argument("--controls", type=int, default=WarpParams.num_controls)
+    warp.add_argument("--amplitude", type=float, default=WarpParams.amplitude, help="control displacement std (px)")
+    warp.add_argument("--beta", type=float, default=WarpParams.beta, help="EMA factor over time")
+    warp.add_argument("--feather", type=float, default=None, help="feather width in px")
+    warp.add_argument("--mask-threshold", type=float, default=WarpParams.mask_threshold, help="artifact: |U| > this (px)")
+    occ = p.add_argument_group("occlusion")
+    occ.add_argument("--object", default=None, help="the re-revealed object: an image, or a video / frame folder (its middle frame); default procedural")
+    occ.add_argument("--object-mask", default=None, help="its alpha mask image (default: an ellipse)")
+    occ.add_argument("--region", type=int, nargs=4, default=None, metavar=("LEFT", "TOP", "RIGHT", "BOTTOM"))
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    failed = 0
+    for source in args.inputs:
+        try:
+            if args.max_frames < 3:
+                raise ValueError(f"--max-frames must be >= 3, got {args.max_frames}")
+            frames, synthetic = load_clip(source, args.max_frames, tuple(args.synthetic_size))
+            stem = source if synthetic is not None else Path(source).stem or Path(source).name
+            for seed in args.seeds:
+                edited, truth, meta = build_one(args.kind, source, frames, synthetic, seed, args)
+                folder = Path(args.out) / f"{stem}-s{seed}"
+                write_benchmark(folder, edited, truth, meta)
+                note = f", anomalous frame {meta['anomalous_frame']}" if meta["anomalous_frame"] is not None else ""
+                print(f"{folder}: {args.kind} ({meta['mode']}), {int(truth['mask'].sum())} artifact pixels{note}")
+        except (ValueError, OSError, RuntimeError) as err:  # one bad input must not stop the others
+            failed += 1
+            print(f"error: {source}: {str(err).splitlines()[0] if str(err) else type(err).__name__}", file=sys.stderr)
+    return 1 if failed == len(args.inputs) else 0
+

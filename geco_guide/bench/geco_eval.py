@@ -1,0 +1,592 @@
+"""GeCo-Eval, the paper's benchmark: ``python -m geco_guide.geco_eval --models ... --out DIR``.
+
+    python -m geco_guide.geco_eval --models cogvideox-5b wan2.1-t2v-1.3b --seeds 0 1 2 3 --out bench
+    python -m geco_guide.geco_eval --models cogvideox-5b --guided --scenario indoor --out bench
+    python -m geco_guide.geco_eval --videos sora-2=downloads/sora --out bench
+    python -m geco_guide.geco_eval --preset tiny --models cogvideox-5b wan2.1-t2v-1.3b --limit 2 --out bench-tiny
+
+The suite is the paper's 80 prompts (supplement, "List of Text Prompt"; shipped as
+``geco_guide/bench/data/geco_eval_prompts.jsonl``): four scenarios (object-centric, indoor, outdoor,
+appearance-complex) x slow / fast camera x 10. Each job is one (model, prompt, seed, guided?):
+the model generates the video at its documented default settings (:data:`MODELS`), written at its
+native frame rate, and :func:`geco_guide.evaluate.evaluate_video` scores it with the GeCo-Eval
+protocol (the config's ``evaluation`` section, the model's native rate from
+``evaluation.model_fps``). ``--videos NAME=DIR`` scores videos that exist already.
+
+``DIR/videos/<model>[-guided]/<prompt_id>-s<seed>.mp4`` holds each video, ``.json`` beside it its
+scores and timings (written last: its presence marks the job done, so a killed run resumes where
+it stopped). The report is rebuilt from every job's JSON at the end: ``results.csv`` (one row per
+video), ``summary.json`` and ``report.md`` (per model: all, per scenario, slow vs fast; mean and
+standard deviation of each score, as the paper's tables) and ``pareto.png`` (fused score vs Mean
+Motion, one point per model; one panel per scenario). ``run.json`` pins the config. Under
+``accelerate launch`` the jobs are dealt round-robin to the processes and the main process writes
+the report once all are done.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import re
+import shlex
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from datetime import datetime, timezone
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .. import __version__
+from ..cli.generate import pipeline_from_pretrained, quiet_hub_logs
+from ..config import GeCoConfig, config_to_dict, config_to_yaml, load_config
+from ..estimators import TINY_RANDOM, load_estimators
+from ..estimators.loading import WeightsNotFoundError
+from ..io.devices import check_device, resolve_device
+from ..io.files import (
+    WriteError,
+    remove_temp_files,
+    write_bytes_atomic,
+    write_json_atomic,
+    write_text_atomic,
+)
+from ..io.plots import Panel, legend, limits
+from ..io.video import VIDEO_SUFFIXES, write_video
+from ..loss.geco import CUES
+from ..metric.evaluate import PAPER_NAMES, evaluate_video
+from ..sampler.slicing import default_anchors
+from .runs import (
+    PeakMemory,
+    check_output_folder,
+    config_fingerprint,
+    process_config,
+    process_state,
+    read_finished,
+    shard,
+)
+
+SCENARIOS = ("object-centric", "indoor", "outdoor", "appearance-complex")
+CAMERAS = ("slow", "fast")
+METRICS = (*CUES, "total_motion", "mean_motion")
+REPORT_STEMS = ("results", "summary", "report", "pareto", "run")
+SUITE = "geco-eval"
+
+
+# ----------------------------------------------------------------------------------------------
+# the prompt suite
+
+
+def load_prompts(scenario: str | None = None, camera: str | None = None) -> list[dict[str, str]]:
+    """The GeCo-Eval prompts (``id``, ``scenario``, ``camera``, ``prompt``), optionally of one
+    scenario and/or camera speed, in the paper's order (a1..a20, b1..., c1..., d1...)."""
+    if scenario is not None and scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; known: {list(SCENARIOS)}")
+    if camera is not None and camera not in CAMERAS:
+        raise ValueError(f"unknown camera speed {camera!r}; known: {list(CAMERAS)}")
+    text = resources.files("geco_guide.bench").joinpath("data/geco_eval_prompts.jsonl").read_text(encoding="utf-8")
+    prompts = [json.loads(line) for line in text.splitlines() if line.strip()]
+    return [p for p in prompts if scenario in (None, p["scenario"]) and camera in (None, p["camera"])]
+
+
+def select_prompts(spec: str) -> list[dict[str, str]]:
+    """``geco-eval``, ``geco-eval:indoor``, ``geco-eval:fast`` or ``geco-eval:indoor:fast``."""
+    name, *filters = spec.split(":")
+    if name != SUITE:
+        raise ValueError(f"a prompt suite is named {SUITE}[:SCENARIO][:CAMERA], got {spec!r}")
+    scenario = next((f for f in filters if f in SCENARIOS), None)
+    camera = next((f for f in filters if f in CAMERAS), None)
+    unknown = [f for f in filters if f not in SCENARIOS + CAMERAS]
+    if unknown:
+        raise ValueError(f"unknown filter {unknown[0]!r} in {spec!r}; scenarios {list(SCENARIOS)}, cameras {list(CAMERAS)}")
+    return load_prompts(scenario, camera)
+
+
+# ----------------------------------------------------------------------------------------------
+# the models
+
+
+@dataclass(frozen=True)
+class VideoModel:
+    """A text-to-video model as GeCo-Eval runs it.
+
+    Attributes:
+        name: the registry name (also the key of ``evaluation.model_fps``, its native rate).
+        hub_id: the diffusers checkpoint (``--weights NAME=DIR`` replaces it with a folder).
+        pipeline: the diffusers pipeline class.
+        call: the documented default call settings (frames, size, steps, CFG, ...).
+        temporal_compression: frames per latent of the VAE (anchors of guided runs).
+        tiny: the tiny random family of ``--preset tiny`` (:mod:`geco_guide.tiny`).
+    """
+
+    name: str
+    hub_id: str
+    pipeline: str
+    call: dict[str, Any] = field(hash=False)
+    temporal_compression: int
+    tiny: str
+
+
+#: Defaults from each model card / diffusers' pipeline documentation. Guided runs use the
+#: config's guidance schedule, written for 50 steps (other counts are scaled, see README).
+MODELS: dict[str, VideoModel] = {
+    m.name: m
+    for m in (
+        VideoModel("cogvideox-2b", "THUDM/CogVideoX-2b", "CogVideoXPipeline",
+                   dict(num_frames=49, height=480, width=720, num_inference_steps=50, guidance_scale=6.0), 4, "cogvideox"),
+        VideoModel("cogvideox-5b", "THUDM/CogVideoX-5b", "CogVideoXPipeline",
+                   dict(num_frames=49, height=480, width=720, num_inference_steps=50, guidance_scale=6.0), 4, "cogvideox"),
+        VideoModel("cogvideox1.5-5b", "THUDM/CogVideoX1.5-5B", "CogVideoXPipeline",
+                   dict(num_frames=81, height=768, width=1360, num_inference_steps=50, guidance_scale=6.0), 4,
+                   "cogvideox1.5"),
+        VideoModel("wan2.1-t2v-1.3b", "Wan-AI/Wan2.1-T2V-1.3B-Diffusers", "WanPipeline",
+                   dict(num_frames=81, height=480, width=832, num_inference_steps=50, guidance_scale=5.0), 4, "wan"),
+        VideoModel("wan2.1-t2v-14b", "Wan-AI/Wan2.1-T2V-14B-Diffusers", "WanPipeline",
+                   dict(num_frames=81, height=720, width=1280, num_inference_steps=50, guidance_scale=5.0), 4, "wan"),
+        VideoModel("wan2.2-t2v-a14b", "Wan-AI/Wan2.2-T2V-A14B-Diffusers", "WanPipeline",
+                   dict(num_frames=81, height=720, width=1280, num_inference_steps=40, guidance_scale=4.0,
+                        guidance_scale_2=3.0), 4, "wan"),
+        VideoModel("hunyuanvideo", "hunyuanvideo-community/HunyuanVideo", "HunyuanVideoPipeline",
+                   dict(num_frames=129, height=720, width=1280, num_inference_steps=50, guidance_scale=6.0), 4,
+                   "hunyuan"),
+        VideoModel("ltx-video", "Lightricks/LTX-Video", "LTXPipeline",
+                   dict(num_frames=161, height=480, width=704, num_inference_steps=50, guidance_scale=3.0), 8, "ltx"),
+    )
+}
+
+
+def _tiny_pipeline(family: str, seed: int) -> Any:
+    from .. import tiny
+
+    builders = {
+        "cogvideox": lambda: tiny.tiny_cogvideox_pipeline(seed),
+        "cogvideox1.5": lambda: tiny.tiny_cogvideox_pipeline(seed, version="1.5"),
+        "wan": lambda: tiny.tiny_wan_pipeline(seed),
+        "hunyuan": lambda: tiny.tiny_hunyuan_pipeline(seed),
+        "ltx": lambda: tiny.tiny_ltx_pipeline(seed),
+    }
+    return builders[family]()
+
+
+def call_settings(model: VideoModel, cfg: GeCoConfig, pipe: Any) -> dict[str, Any]:
+    """The model's call arguments; with tiny random weights (``model.id=tiny-random``) the tiny
+    family's (17 frames of 32x48, the config's step count)."""
+    if cfg.model.id != TINY_RANDOM:
+        return dict(model.call)
+    from ..tiny import tiny_call_kwargs
+
+    return tiny_call_kwargs(pipe, num_inference_steps=cfg.sampling.num_inference_steps,
+                            guidance_scale=cfg.sampling.guidance_scale)
+
+
+def load_model(model: VideoModel, cfg: GeCoConfig, weights: str | None = None) -> Any:
+    """The stock diffusers pipeline of ``model`` on the config's device and dtype.
+
+    Raises:
+        WeightsNotFoundError: one line naming the repo and how to pass a local folder.
+    """
+    if cfg.model.id == TINY_RANDOM:
+        pipe = _tiny_pipeline(model.tiny, cfg.model.init_seed)
+    else:
+        import diffusers
+
+        if weights is not None and not Path(weights).expanduser().is_dir():
+            raise WeightsNotFoundError(f"{model.name}: local folder {weights!r} does not exist")
+        pipe = pipeline_from_pretrained(
+            getattr(diffusers, model.pipeline), weights or model.hub_id, model.name,
+            f"--weights {model.name}=/path/to/{model.hub_id.split('/')[-1]}", dtype=getattr(torch, cfg.model.dtype),
+        )
+        if cfg.model.vae_tiling and hasattr(pipe.vae, "enable_tiling"):
+            pipe.vae.enable_tiling()
+    pipe.set_progress_bar_config(disable=True)
+    return pipe.to(resolve_device(cfg.model.device))
+
+
+# ----------------------------------------------------------------------------------------------
+# jobs
+
+
+@dataclass(frozen=True)
+class Job:
+    """One video: the unit of work, of resuming and of sharding. ``video`` is set for scoring an
+    existing file (``--videos``) and ``None`` for generating one."""
+
+    model: str
+    prompt: dict[str, str] = field(hash=False, compare=False)
+    seed: int
+    guided: bool = False
+    video: Path | None = None
+
+    @property
+    def arm(self) -> str:
+        return f"{self.model}-guided" if self.guided else self.model
+
+    @property
+    def name(self) -> str:
+        return f"{self.prompt['id']}-s{self.seed}"
+
+
+def job_paths(out: Path, job: Job) -> tuple[Path, Path]:
+    """``(video.mp4, result.json)`` of a job under ``out/videos/<arm>/``."""
+    folder = out / "videos" / job.arm
+    return folder / f"{job.name}.mp4", folder / f"{job.name}.json"
+
+
+def read_job_result(out: Path, job: Job, warn: bool = True) -> dict[str, Any] | None:
+    """A finished job's result, or None. A damaged result JSON, or a generated video that is gone,
+    means the job is redone (with a warning naming the file)."""
+    video, path = job_paths(out, job)
+    return read_finished(path, [video] if job.video is None else [], f"job {job.arm}/{job.name}", warn=warn)
+
+
+PROMPT_FILE_ID = re.compile(r"^(?P<id>[a-d]\d{1,2})-s(?P<seed>\d+)$")
+
+
+def existing_video_jobs(name: str, folder: Path, prompts: Sequence[dict[str, str]]) -> list[Job]:
+    """Jobs for the videos of ``folder``: ``<prompt_id>-s<seed>.<ext>``, or ``<prompt_id>/*.<ext>``
+    (seeds numbered in file-name order); only prompts of the selection."""
+    if not folder.is_dir():
+        raise ValueError(f"--videos {name}={folder}: no such folder")
+    by_id = {p["id"]: p for p in prompts}
+    jobs: list[Job] = []
+    for path in sorted(folder.iterdir()):
+        match = PROMPT_FILE_ID.match(path.stem) if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES else None
+        if match and match["id"] in by_id:
+            jobs.append(Job(name, by_id[match["id"]], int(match["seed"]), video=path))
+        elif path.is_dir() and path.name in by_id:
+            files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES)
+            jobs.extend(Job(name, by_id[path.name], seed, video=p) for seed, p in enumerate(files))
+    if not jobs:
+        raise ValueError(f"--videos {name}={folder}: no video named <prompt_id>-s<seed>.mp4 or <prompt_id>/*.mp4 "
+                         "for the selected prompts")
+    return jobs
+
+
+def guidance_for(model: VideoModel, cfg: GeCoConfig, num_frames: int) -> Any:
+    """The config's guidance with anchors at the quarter points of this model's video."""
+    return replace(cfg.guidance, enabled=True, anchors=default_anchors(num_frames, model.temporal_compression))
+
+
+class Generator:
+    """Generates the videos of one model (and its guided twin), loading it once."""
+
+    def __init__(self, model: VideoModel, cfg: GeCoConfig, weights: str | None, estimators: tuple[Any, Any]):
+        self.model, self.cfg, self.estimators = model, cfg, estimators
+        self.pipe = load_model(model, cfg, weights)
+        self.call = call_settings(model, cfg, self.pipe)
+        self._guided_pipe: Any = None
+
+    def _guided(self) -> tuple[Any, dict[str, Any], Any]:
+        """``(pipeline, extra call arguments, hook handle or None)`` of a guided call: CogVideoX 1.0
+        through :class:`GeCoCogVideoXPipeline` (float32 latents between steps: the stock
+        pipeline's bf16 latents round updates away), the others through the hook."""
+        geometry, flow = self.estimators
+        guidance = guidance_for(self.model, self.cfg, self.call["num_frames"])
+        if self.model.tiny == "cogvideox":
+            if self._guided_pipe is None:
+                from ..sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+
+                self._guided_pipe = GeCoCogVideoXPipeline(**self.pipe.components, geometry_estimator=geometry,
+                                                          flow_estimator=flow)
+                self._guided_pipe.set_progress_bar_config(disable=True)
+            return self._guided_pipe, {"guidance": guidance}, None
+        from ..sampler.hooks import attach_geco_guidance
+
+        return self.pipe, {}, attach_geco_guidance(self.pipe, guidance, geometry=geometry, flow=flow)
+
+    def __call__(self, job: Job) -> tuple[torch.Tensor, float, float, int]:
+        """``(frames [F, 3, H, W] in [0, 1], sampling seconds, peak MiB, guidance updates)``."""
+        pipe, extra, handle = self._guided() if job.guided else (self.pipe, {}, None)
+        generator = torch.Generator(device="cpu").manual_seed(job.seed)
+        start = time.perf_counter()
+        try:
+            with PeakMemory(pipe.device) as memory, quiet_hub_logs():  # no prompt-truncation warnings
+                output = pipe(prompt=job.prompt["prompt"], generator=generator, output_type="pt", **self.call, **extra)
+        finally:
+            if handle is not None:
+                handle.detach()
+        seconds = time.perf_counter() - start
+        log = handle.log if handle is not None else getattr(output, "guidance_log", None) or []
+        frames = output.frames[0].float().cpu()
+        if not torch.isfinite(frames).all():
+            raise ValueError(f"{self.model.name} {job.name}: sampling produced non-finite frames; nothing was written")
+        return frames, seconds, memory.peak_mib, len(log)
+
+
+def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: tuple[Any, Any], generator: Generator | None) -> dict[str, Any]:
+    """Generate (unless the video exists) and score one job; its result JSON is written last."""
+    video, result_path = job_paths(out, job)
+    remove_temp_files(video.parent, (job.name,))
+    fps = cfg.evaluation.fps_of_model(job.model)
+    timing: dict[str, Any] = {"generation_s": None, "peak_memory_mib": None, "guidance_updates": 0}
+    if job.video is None:
+        frames, seconds, peak, updates = generator(job)
+        write_video(video, frames, fps=fps)
+        timing = {"generation_s": seconds, "peak_memory_mib": peak, "guidance_updates": updates}
+    source = job.video or video
+    start = time.perf_counter()
+    evaluation = evaluate_video(source, geometry=estimators[0], flow=estimators[1], config=cfg.evaluation, model=job.model)
+    result = {
+        "model": job.model, "guided": job.guided, "prompt_id": job.prompt["id"], "scenario": job.prompt["scenario"],
+        "camera": job.prompt["camera"], "seed": job.seed,
+        **{metric: evaluation.to_dict()[metric] for metric in METRICS},
+        **timing, "evaluation_s": time.perf_counter() - start,
+        "video": str(source if job.video is not None else video.relative_to(out)),
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "evaluation": evaluation.to_dict(),
+    }
+    write_json_atomic(result_path, result)
+    return result
+
+
+def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str, str], tag: str = "") -> None:
+    """Run the jobs not done yet, one model at a time (models and estimators load only if needed)."""
+    todo = [job for job in jobs if read_job_result(out, job) is None]
+    print(f"{tag}{len(jobs) - len(todo)} of {len(jobs)} videos already done", flush=True)
+    if not todo:
+        return
+    estimators = load_estimators(cfg.estimators, resolve_device(cfg.evaluation.device))
+    for name in dict.fromkeys(job.model for job in todo):
+        generator = None
+        if any(job.video is None for job in todo if job.model == name):
+            generator = Generator(MODELS[name], cfg, weights.get(name), estimators)
+        for job in (j for j in todo if j.model == name):
+            result = run_job(job, out, cfg, estimators, generator)
+            print(f"{tag}{job.arm}/{job.name}: fused {_fmt(result['fused'])}, TM {_fmt(result['total_motion'])} %",
+                  flush=True)
+        del generator
+
+
+# ----------------------------------------------------------------------------------------------
+# the report
+
+
+def _fmt(value: float | None, digits: int = 4) -> str:
+    return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
+
+
+def _stats(values: Sequence[float | None]) -> dict[str, Any]:
+    """Mean and sample standard deviation over the finite values, and their count."""
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    n = len(finite)
+    mean = sum(finite) / n if n else None
+    std = math.sqrt(sum((v - mean) ** 2 for v in finite) / (n - 1)) if n > 1 else None
+    return {"mean": mean, "std": std, "n": n}
+
+
+def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Per arm (model, guided or not): every metric's mean/std over all videos, per scenario and
+    per camera speed."""
+    arms: dict[str, Any] = {}
+    for arm in dict.fromkeys(f"{r['model']}-guided" if r["guided"] else r["model"] for r in results):
+        rows = [r for r in results if (f"{r['model']}-guided" if r["guided"] else r["model"]) == arm]
+        groups = {"all": rows,
+                  **{s: [r for r in rows if r["scenario"] == s] for s in SCENARIOS},
+                  **{c: [r for r in rows if r["camera"] == c] for c in CAMERAS}}
+        arms[arm] = {
+            "model": rows[0]["model"], "guided": rows[0]["guided"], "videos": len(rows),
+            "groups": {g: {m: _stats([r[m] for r in members]) for m in METRICS} for g, members in groups.items() if members},
+            "generation_s_mean": _stats([r["generation_s"] for r in rows])["mean"],
+            "peak_memory_mib_max": max((r["peak_memory_mib"] for r in rows if r["peak_memory_mib"] is not None), default=None),
+        }
+    return {"arms": arms, "videos": len(results), "paper_names": PAPER_NAMES}
+
+
+CSV_COLUMNS = ("model", "guided", "prompt_id", "scenario", "camera", "seed", *METRICS, "generation_s",
+               "evaluation_s", "peak_memory_mib", "guidance_updates", "video")
+
+
+def csv_text(results: Sequence[dict[str, Any]]) -> str:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for result in results:
+        writer.writerow({k: "" if result.get(k) is None else result[k] for k in CSV_COLUMNS})
+    return buffer.getvalue()
+
+
+def _cell(stats: dict[str, Any]) -> str:
+    if stats["mean"] is None:
+        return "-"
+    return _fmt(stats["mean"]) + ("" if stats["std"] is None else f" ± {_fmt(stats['std'], 3)}")
+
+
+def report_markdown(summary: dict[str, Any], missing: Sequence[str], config_yaml: str, command: str) -> str:
+    lines = ["# GeCo-Eval", "",
+             f"{summary['videos']} videos scored; command: `{command}`", "",
+             "Scores: mean ± standard deviation over videos (lower motion / structure / fused is more "
+             "consistent). TM = Total Motion (%), MM = Mean Motion (%/s): read the scores next to them, "
+             "a static video is trivially consistent.", ""]
+    if missing:
+        lines += [f"**Missing videos** (rerun the same command to finish them): {', '.join(missing[:20])}"
+                  + (" ..." if len(missing) > 20 else ""), ""]
+    header = ["group", "n", *(f"{m} ({PAPER_NAMES[m]})" if m in CUES else PAPER_NAMES[m] for m in METRICS)]
+    for arm, data in summary["arms"].items():
+        lines += [f"## {arm}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        for group, stats in data["groups"].items():
+            cells = [group, str(stats["fused"]["n"]), *(_cell(stats[m]) for m in METRICS)]
+            lines.append("| " + " | ".join(cells) + " |")
+        cost = f"sampling {_fmt(data['generation_s_mean'], 3)} s per video" if data["generation_s_mean"] is not None else ""
+        lines += ["", cost, ""] if cost else [""]
+    lines += ["![fused score vs Mean Motion per model](pareto.png)", "", "## Configuration", "", "```yaml",
+              config_yaml.rstrip(), "```"]
+    return "\n".join(lines) + "\n"
+
+
+COLORS = [(60, 110, 200), (235, 125, 30), (40, 160, 70), (210, 50, 50), (140, 90, 190), (120, 80, 60),
+          (220, 110, 180), (110, 110, 110), (180, 180, 40), (30, 170, 190)]
+
+
+def plot_png(summary: dict[str, Any]) -> bytes:
+    """``pareto.png``: fused score vs Mean Motion, one point per model (arm); left all prompts,
+    then one small panel per scenario."""
+    from PIL import Image, ImageDraw
+
+    groups = ("all", *SCENARIOS)
+    image = Image.new("RGB", (1500, 480), (255, 255, 255))
+    draw = ImageDraw.Draw(image)
+    arms = list(summary["arms"].items())
+    points = {g: [(data["groups"][g]["mean_motion"]["mean"], data["groups"][g]["fused"]["mean"], k)
+                  for k, (_, data) in enumerate(arms) if g in data["groups"]] for g in groups}
+    points = {g: [p for p in pts if p[0] is not None and p[1] is not None] for g, pts in points.items()}
+    for column, group in enumerate(groups):
+        xs = [p[0] for p in points[group]] or [0.0]
+        ys = [p[1] for p in points[group]] or [0.0]
+        left = 70 + column * 290
+        panel = Panel((left, 80, left + 220, 360), limits(xs), limits(ys))
+        panel.draw_axes(draw, group, "Mean Motion (%/s)", "fused")
+        for x, y, k in points[group]:
+            panel.dot(draw, x, y, COLORS[k % len(COLORS)])
+    legend(draw, Panel((70, 80, 1400, 380), (0, 1), (0, 1)),
+           [(arm, COLORS[k % len(COLORS)]) for k, (arm, _) in enumerate(arms)])
+    buffer = io.BytesIO()
+    image.save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def write_report(out: Path, jobs: Sequence[Job], cfg: GeCoConfig, command: str) -> dict[str, Any]:
+    """Rebuild the report files from the jobs' result JSON files; returns the summary."""
+    remove_temp_files(out, REPORT_STEMS)
+    results, missing = [], []
+    for job in jobs:
+        result = read_job_result(out, job, warn=False)  # run_jobs warned
+        if result is None:
+            missing.append(f"{job.arm}/{job.name}")
+        else:
+            results.append(result)
+    summary = {**summarize(results), "missing": missing, "config_sha": config_fingerprint(cfg),
+               "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    write_text_atomic(out / "results.csv", csv_text(results))
+    write_json_atomic(out / "summary.json", summary)
+    write_bytes_atomic(out / "pareto.png", plot_png(summary))
+    write_text_atomic(out / "report.md", report_markdown(summary, missing, config_to_yaml(cfg), command))
+    return summary
+
+
+# ----------------------------------------------------------------------------------------------
+# CLI
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"error: {message} (see --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="python -m geco_guide.geco_eval",
+                description="GeCo-Eval: generate the paper's 80 prompts with video models and score them with GeCo.")
+    p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
+    p.add_argument("--models", nargs="+", default=[], metavar="NAME", help=f"models to generate with: {', '.join(MODELS)}")
+    p.add_argument("--videos", nargs="+", default=[], metavar="NAME=DIR",
+                   help="score existing videos: DIR/<prompt_id>-s<seed>.mp4 or DIR/<prompt_id>/*.mp4, timed at "
+                        "NAME's native frame rate (evaluation.model_fps) unless --fps")
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3], help="sampling seeds (default: 0 1 2 3, the paper's 4)")
+    p.add_argument("--guided", action="store_true", help="also generate every video with GeCo guidance")
+    p.add_argument("--scenario", choices=SCENARIOS, default=None, help="only this scenario")
+    p.add_argument("--camera", choices=CAMERAS, default=None, help="only this camera speed")
+    p.add_argument("--limit", type=int, default=None, help="only the first N prompts of the selection")
+    p.add_argument("--weights", nargs="+", default=[], metavar="NAME=DIR", help="a local folder for a model's weights")
+    p.add_argument("--fps", type=float, default=None, help="frame rate of the --videos inputs (overrides the table)")
+    p.add_argument("--out", required=True, help="output folder (reuse it to resume)")
+    p.add_argument("--preset", default=None, help="a config preset (tiny: every model is a tiny random model, CPU, offline)")
+    p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. evaluation.loss.pairs=center")
+    return p
+
+
+def _pairs(values: Sequence[str], option: str) -> dict[str, str]:
+    parsed = {}
+    for value in values:
+        name, sep, path = value.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(f"{option} takes NAME=DIR, got {value!r}")
+        parsed[name] = path
+    return parsed
+
+
+def plan(args: argparse.Namespace) -> tuple[GeCoConfig, list[Job]]:
+    """Every check that needs no model: config, selection, model names, folders."""
+    cfg = load_config(args.config, args.preset, args.overrides)
+    unknown = [m for m in args.models if m not in MODELS]
+    if unknown:
+        raise ValueError(f"unknown model {unknown[0]!r}; known: {list(MODELS)}")
+    videos = _pairs(args.videos, "--videos")
+    weights = _pairs(args.weights, "--weights")
+    if not args.models and not videos:
+        raise ValueError("nothing to do: give --models and/or --videos NAME=DIR")
+    if args.limit is not None and args.limit < 1:
+        raise ValueError(f"--limit must be >= 1, got {args.limit}")
+    if len(set(args.seeds)) != len(args.seeds) or any(s < 0 for s in args.seeds):
+        raise ValueError(f"--seeds must be distinct non-negative integers, got {args.seeds}")
+    if args.fps is not None:
+        if not (args.fps > 0 and math.isfinite(args.fps)):
+            raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
+        cfg = replace(cfg, evaluation=replace(cfg.evaluation, model_fps={**cfg.evaluation.model_fps,
+                                                                         **{n: args.fps for n in videos}}))
+    for name in [*args.models, *videos]:
+        cfg.evaluation.fps_of_model(name)  # every model needs its native frame rate
+    prompts = load_prompts(args.scenario, args.camera)[: args.limit]
+    if not prompts:
+        raise ValueError("the selection holds no prompt")
+    jobs = [Job(m, p, s, guided) for m in args.models for guided in ((False, True) if args.guided else (False,))
+            for p in prompts for s in args.seeds]
+    for name, folder in videos.items():
+        jobs += existing_video_jobs(name, Path(folder), prompts)
+    args.weights_map = weights
+    return cfg, jobs
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        cfg, jobs = plan(args)
+        out = Path(args.out)
+        check_output_folder(out, cfg)
+        check_device(cfg.model.device)
+        check_device(cfg.evaluation.device, "evaluation.device")
+    except (ValueError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    try:
+        state = process_state(cfg)
+        tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
+        if state.is_main_process:
+            write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
+        run_jobs(shard(jobs, state.process_index, state.num_processes), out, process_config(cfg, state),
+                 args.weights_map, tag)
+        state.wait_for_everyone()
+        if not state.is_main_process:
+            return 0
+        command = shlex.join(["python", "-m", "geco_guide.geco_eval", *(sys.argv[1:] if argv is None else argv)])
+        summary = write_report(out, jobs, cfg, command)
+    except (FileNotFoundError, WriteError) as err:  # weights not available (WeightsNotFoundError), disk full
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(f"{summary['videos']} videos scored ({len(summary['missing'])} missing); report: {out / 'report.md'}")
+    return 0 if not summary["missing"] else 1
+

@@ -1,0 +1,176 @@
+"""How GeCo's detection degrades with noisy depth or flow (the paper's robustness study).
+
+    python -m geco_guide.robustness --out robustness            # CPU, offline, about a minute
+
+The metric is scored as :mod:`geco_guide.evaluate` scores it (the evaluation protocol's loss
+options). On synthetic scenes with exact depth, cameras and flow (:mod:`geco_guide.synthetic`), Gaussian
+noise is added to one input at a time, as the paper does on TartanAir with ground truth:
+
+* depth, multiplicatively in log space, ``D exp(sigma n)`` (so errors scale with distance;
+  ``sigma`` is about the relative error), ``sigma`` in :data:`DEPTH_SIGMAS`;
+* flow, additively in pixels, ``sigma`` in :data:`FLOW_SIGMAS`.
+
+At each level it reports every cue's ranking AP on a WarpBench-style clip (Task 2: every frame
+warped) and an OccluBench-style clip (Task 3: re-revealed frames), and the fused score of the
+clean rigid clip (the noise floor). Output: ``robustness.json`` and ``robustness.png`` (AP
+against sigma, one panel per input and task), written atomically. Deterministic from ``--seed``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import sys
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+from PIL import Image, ImageDraw
+
+from ..io.files import write_bytes_atomic, write_json_atomic
+from ..io.plots import Panel, legend
+from ..loss.geco import GeCoLossConfig, frame_pairs, geco_from_geometry
+from ..metric.protocol import EvaluationConfig
+from ..types import Correspondences, SceneGeometry
+from .datasets import scene_track
+from .occlusion import OcclusionParams, composite_occlusion, default_region
+from .ranking import average_precision
+from .synthetic import SyntheticClip, rigid_clip, with_overlay, with_warp
+from .warp import WarpParams, warp_clip
+
+DEPTH_SIGMAS = (0.0, 0.01, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0)
+FLOW_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0)
+CUES = ("structure", "motion", "fused")
+COLORS = {"structure": (31, 119, 180), "motion": (255, 127, 14), "fused": (44, 160, 44)}
+
+
+def noisy_depth(geometry: SceneGeometry, sigma: float, generator: torch.Generator) -> SceneGeometry:
+    """``depth [B, S, H, W] * exp(sigma n)``, ``n ~ N(0, 1)`` per pixel; cameras untouched."""
+    noise = torch.randn(geometry.depth.shape, generator=generator, dtype=torch.float64).to(geometry.depth.dtype)
+    return replace(geometry, depth=geometry.depth * torch.exp(sigma * noise))
+
+
+def noisy_flow(correspondences: Correspondences, sigma: float, generator: torch.Generator) -> Correspondences:
+    """``flow [N, 2, H, W] + sigma n`` pixels; covisibility untouched."""
+    noise = torch.randn(correspondences.flow.shape, generator=generator, dtype=torch.float64)
+    return replace(correspondences, flow=correspondences.flow + sigma * noise.to(correspondences.flow.dtype))
+
+
+def sweep_clips(num_frames: int, height: int, width: int, seed: int) -> dict[str, SyntheticClip]:
+    """The rigid clip and its two edits (built with the benchmark builders' code)."""
+    rigid = rigid_clip(num_frames, height, width)
+    warped = with_warp(rigid, warp_clip(rigid.frames, params=WarpParams(seed=seed)))
+    region = default_region(height, width, OcclusionParams.region_fraction)
+    edit = composite_occlusion(rigid.frames, OcclusionParams(seed=seed), region_track=scene_track(rigid, region))
+    return {"rigid": rigid, "warp": warped, "occlusion": with_overlay(rigid, edit)}
+
+
+def detection_ap(clip: SyntheticClip, geometry: SceneGeometry, correspondences: Correspondences,
+                 pairs: list[tuple[int, int]], config: GeCoLossConfig) -> dict[str, float]:
+    """Per cue, the mean over frames with artifact pixels of the frame map's ranking AP."""
+    result = geco_from_geometry(geometry, correspondences, pairs, config)
+    frames = [t for t in range(clip.num_frames) if bool(clip.mask[t].any())]
+    aps = {}
+    for cue in CUES:
+        values, valid = result.frame_maps.cue(cue)
+        maps = torch.where(valid, values, torch.zeros_like(values))[0]
+        aps[cue] = sum(average_precision(maps[t], clip.mask[t]) for t in frames) / len(frames)
+    return aps
+
+
+def run_sweep(num_frames: int = 9, height: int = 48, width: int = 64, seed: int = 0,
+              depth_sigmas=DEPTH_SIGMAS, flow_sigmas=FLOW_SIGMAS, config: GeCoLossConfig | None = None) -> dict[str, Any]:
+    """The whole study as a JSON-ready dict: per input (``depth``, ``flow``) the sigmas, per task
+    (``warp``, ``occlusion``) each cue's AP per sigma, and the rigid clip's fused score per sigma.
+    ``config``: the metric's options (default: the evaluation protocol's, every ordered pair)."""
+    config = config or EvaluationConfig().loss
+    pair_list = frame_pairs(num_frames, config.pairs)
+    clips = sweep_clips(num_frames, height, width, seed)
+    exact = {name: (clip.geometry(torch.float64), clip.pair_correspondences(pair_list, torch.float64)) for name, clip in clips.items()}
+    report: dict[str, Any] = {"scene": {"num_frames": num_frames, "height": height, "width": width, "seed": seed},
+                              "loss": asdict(config)}
+    for noisy_input, sigmas in (("depth", depth_sigmas), ("flow", flow_sigmas)):
+        generator = torch.Generator().manual_seed(seed)
+        rows: dict[str, Any] = {"sigmas": list(sigmas), "warp": {c: [] for c in CUES}, "occlusion": {c: [] for c in CUES},
+                                "rigid_fused": []}
+        for sigma in sigmas:
+            for name, clip in clips.items():
+                geometry, correspondences = exact[name]
+                if noisy_input == "depth":
+                    geometry = noisy_depth(geometry, sigma, generator)
+                else:
+                    correspondences = noisy_flow(correspondences, sigma, generator)
+                if name == "rigid":
+                    rows["rigid_fused"].append(float(geco_from_geometry(geometry, correspondences, pair_list, config).fused))
+                    continue
+                for cue, ap in detection_ap(clip, geometry, correspondences, pair_list, config).items():
+                    rows[name][cue].append(ap)
+        report[noisy_input] = rows
+    return report
+
+
+def plot(report: dict[str, Any]) -> bytes:
+    """PNG: AP against sigma, panels depth/flow x warp (Task 2)/occlusion (Task 3), one line per cue."""
+    image = Image.new("RGB", (760, 760), (255, 255, 255))
+    draw = ImageDraw.Draw(image)
+    for row, noisy_input in enumerate(("depth", "flow")):
+        sigmas = report[noisy_input]["sigmas"]
+        unit = "relative, log-space" if noisy_input == "depth" else "pixels"
+        for column, task in enumerate(("warp", "occlusion")):
+            left, top = 90 + column * 360, 80 + row * 350
+            panel = Panel((left, top, left + 260, top + 200), (min(sigmas), max(sigmas)), (0.0, 1.0))
+            title = f"{noisy_input} noise: {'Task 2 (warp)' if task == 'warp' else 'Task 3 (occlusion)'} AP"
+            panel.draw_axes(draw, title, f"sigma ({unit})", "AP")
+            for cue in CUES:
+                points = [panel.to_pixel(s, ap) for s, ap in zip(sigmas, report[noisy_input][task][cue])]
+                draw.line(points, fill=COLORS[cue], width=2)
+                for s, ap in zip(sigmas, report[noisy_input][task][cue]):
+                    panel.dot(draw, s, ap, COLORS[cue], radius=3)
+            if row == 1 and column == 0:
+                legend(draw, panel, [(cue, COLORS[cue]) for cue in CUES])
+    buffer = io.BytesIO()
+    image.save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def _sigmas(values: list[float], name: str) -> tuple[float, ...]:
+    if not values or any(not (v >= 0 and v < float("inf")) for v in values):
+        raise ValueError(f"{name} must be finite numbers >= 0, got {values}")
+    return tuple(sorted(values))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m geco_guide.robustness",
+                                description="Sweep Gaussian noise on depth and flow; plot each cue's detection AP.")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--size", type=int, nargs=3, default=(9, 48, 64), metavar=("FRAMES", "H", "W"))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--depth-sigmas", type=float, nargs="+", default=list(DEPTH_SIGMAS))
+    p.add_argument("--flow-sigmas", type=float, nargs="+", default=list(FLOW_SIGMAS))
+    p.add_argument("--pairs", choices=("all", "center", "adjacent"), default="all")
+    p.add_argument("--no-depth-edges", action="store_true",
+                   help="keep structure pixels on depth edges (depth_edge_tau=None, the paper's behaviour)")
+    args = p.parse_args(argv)
+    try:
+        frames, height, width = args.size
+        if frames < 3 or height < 8 or width < 8:
+            raise ValueError(f"--size must be at least 3 frames of 8x8, got {args.size}")
+        report = run_sweep(frames, height, width, args.seed, _sigmas(args.depth_sigmas, "--depth-sigmas"),
+                           _sigmas(args.flow_sigmas, "--flow-sigmas"),
+                           replace(EvaluationConfig().loss, pairs=args.pairs,
+                                   depth_edge_tau=None if args.no_depth_edges else EvaluationConfig().loss.depth_edge_tau))
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    write_json_atomic(out / "robustness.json", report)
+    write_bytes_atomic(out / "robustness.png", plot(report))
+    for noisy_input in ("depth", "flow"):
+        rows = report[noisy_input]
+        for k, sigma in enumerate(rows["sigmas"]):
+            cells = " ".join(f"{task}/{cue} {rows[task][cue][k]:.3f}" for task in ("warp", "occlusion") for cue in CUES)
+            print(f"{noisy_input} sigma={sigma:g}: {cells} rigid fused {rows['rigid_fused'][k]:.4f}")
+    print(f"wrote {out / 'robustness.json'} and {out / 'robustness.png'}")
+    return 0
+

@@ -1,0 +1,245 @@
+"""Score built benchmarks on the GeCo paper's three detection tasks.
+
+    python -m geco_guide.validate bench/synthetic-warp bench/synthetic-occlusion --oracle   # exact geometry, CPU
+    python -m geco_guide.validate bench/warp bench/occlusion                               # VGGT-1B + UFM-Base
+    python -m geco_guide.validate bench/warp --preset tiny                                 # tiny random models
+
+Each input is a folder made by :mod:`geco_guide.benchmarks` (one clip, or a folder of clips).
+GeCo runs on the whole clip (the config's ``evaluation.loss``: every ordered pair by default) and
+each cue's frame maps (motion, structure, fused; invalid pixels score 0) are judged against the
+ground truth:
+
+* Task 1, anomalous-frame detection (warp clips built with ``--mode frame``): is
+  ``argmax_t`` of the frame score the replaced frame? Accuracy over clips.
+* Task 2, deformation localisation (warp clips, frames with a warp): ranking AP, IoU and F1 at
+  the per-image best threshold, and Spearman's correlation with the displacement magnitude
+  over the frame's valid pixels; macro-averaged over frames.
+* Task 3, inconsistent-object localisation (occlusion clips, re-revealed frames with the object
+  in view): AP, IoU, F1 as above, macro-averaged over frames.
+
+Output (``--out``, default ``<first input>/validation``): ``validation.json`` (per clip, per
+frame and the means), ``validation.md`` (the paper's table layout) and ``grids/<clip>.png``
+(frame | ground truth | motion | structure | fused, one row per judged frame). Written atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import math
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image
+from torch import Tensor
+
+from ..config import load_config
+from ..estimators import estimator_id, load_estimators
+from ..estimators.oracle import OracleFlow, OracleGeometry
+from ..io.files import write_bytes_atomic, write_json_atomic, write_text_atomic
+from ..loss.geco import GeCoResult
+from ..metric.evaluate import score_frames
+from ..metric.render import colorize, side_by_side
+from .datasets import Benchmark, find_benchmarks, load_benchmark, oracle_clip
+from .ranking import average_precision, best_threshold_iou_f1, spearman
+
+CUES = ("structure", "motion", "fused")  # the paper's row order
+CUE_NAMES = {"structure": "Structure M_struct", "motion": "Motion M_motion", "fused": "Fused M_geo"}
+GRID_ROWS = 4
+
+
+def cue_map(result: GeCoResult, cue: str) -> tuple[Tensor, Tensor]:
+    """``(map [S, H, W] with invalid pixels at 0, valid [S, H, W])`` of cue ``cue``, on the CPU."""
+    values, valid = result.frame_maps.cue(cue)
+    return torch.where(valid, values, torch.zeros_like(values))[0].cpu().double(), valid[0].cpu()
+
+
+def detected_frame(scores: Tensor, has_valid: Tensor) -> int:
+    """Task 1's prediction ``argmax_t`` of frame scores ``[S]`` over frames with valid pixels."""
+    return int(torch.where(has_valid, scores.double(), torch.full_like(scores.double(), -math.inf)).argmax())
+
+
+def localisation(score_map: Tensor, valid: Tensor, truth: Tensor, magnitude: Tensor | None = None) -> dict[str, float]:
+    """Tasks 2/3 on one frame: ``ap``, ``iou``, ``f1`` of ``score_map [H, W]`` against ``truth
+    [H, W]`` and, given ``magnitude [H, W]``, ``srcc`` over the ``valid [H, W]`` pixels."""
+    iou, f1 = best_threshold_iou_f1(score_map, truth)
+    row = {"ap": average_precision(score_map, truth), "iou": iou, "f1": f1}
+    if magnitude is not None:
+        row["srcc"] = spearman(score_map[valid], magnitude[valid])
+    return row
+
+
+def judged_frames(bench: Benchmark) -> list[int]:
+    """Frames of Tasks 2/3: those with ground-truth artifact pixels (for an occlusion clip, the
+    re-revealed frames with the object in view)."""
+    return [t for t in range(bench.truth["mask"].shape[0]) if bool(bench.truth["mask"][t].any())]
+
+
+def clip_name(folder: Path) -> str:
+    """``<benchmark>-<clip>``: unique across benchmark folders that reuse clip names."""
+    return f"{folder.parent.name}-{folder.name}"
+
+
+def validate_clip(bench: Benchmark, result: GeCoResult) -> dict[str, Any]:
+    """The task records of one scored clip (JSON-ready)."""
+    record: dict[str, Any] = {"clip": clip_name(bench.path), "path": str(bench.path), "kind": bench.kind,
+                              "mode": bench.meta.get("mode")}
+    maps = {cue: cue_map(result, cue) for cue in CUES}
+    if bench.kind == "warp" and bench.meta.get("anomalous_frame") is not None:
+        truth = int(bench.meta["anomalous_frame"])
+        predicted = {cue: detected_frame(result.frame_scores[cue][0].cpu(), result.frame_has_valid[cue][0].cpu()) for cue in CUES}
+        record["task1"] = {"anomalous_frame": truth, "predicted": predicted,
+                           "correct": {cue: predicted[cue] == truth for cue in CUES}}
+    task = "task2" if bench.kind == "warp" else "task3"
+    magnitude = bench.truth.get("magnitude")
+    record[task] = [
+        {"frame": t, **{cue: localisation(maps[cue][0][t], maps[cue][1][t], bench.truth["mask"][t],
+                                          None if magnitude is None else magnitude[t].double()) for cue in CUES}}
+        for t in judged_frames(bench)
+    ]
+    return record
+
+
+def _mean(values: list[float]) -> float | None:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return sum(finite) / len(finite) if finite else None
+
+
+def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """Means over clips (Task 1) and over judged frames of all clips (Tasks 2/3), per cue."""
+    summary: dict[str, Any] = {}
+    task1 = [r["task1"] for r in records if "task1" in r]
+    if task1:
+        summary["task1"] = {"clips": len(task1), **{cue: {"accuracy": _mean([float(t["correct"][cue]) for t in task1])} for cue in CUES}}
+    for task in ("task2", "task3"):
+        rows = [row for r in records for row in r.get(task, [])]
+        if rows:
+            keys = list(rows[0][CUES[0]])
+            summary[task] = {"frames": len(rows), **{cue: {k: _mean([row[cue][k] for row in rows]) for k in keys} for cue in CUES}}
+    return summary
+
+
+def _cell(value: float | None, percent: bool = True) -> str:
+    if value is None:
+        return "-"
+    return f"{100 * value:.2f}" if percent else f"{value:.3f}"
+
+
+def markdown_table(summary: dict[str, Any]) -> str:
+    """The paper's layout: one row per cue, Task 1 accuracy, Task 2 AP/IoU/F1/SRCC, Task 3 AP/IoU/F1."""
+    head = ["Cue"]
+    columns: list[tuple[str, str, bool]] = []
+    if "task1" in summary:
+        head.append(f"Task 1 Acc (%) [{summary['task1']['clips']} clips]")
+        columns.append(("task1", "accuracy", True))
+    if "task2" in summary:
+        n = summary["task2"]["frames"]
+        head += [f"Task 2 AP (%) [{n} frames]", "Task 2 IoU (%)", "Task 2 F1 (%)", "Task 2 SRCC"]
+        columns += [("task2", "ap", True), ("task2", "iou", True), ("task2", "f1", True), ("task2", "srcc", False)]
+    if "task3" in summary:
+        n = summary["task3"]["frames"]
+        head += [f"Task 3 AP (%) [{n} frames]", "Task 3 IoU (%)", "Task 3 F1 (%)"]
+        columns += [("task3", "ap", True), ("task3", "iou", True), ("task3", "f1", True)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for cue in CUES:
+        cells = [_cell(summary[task][cue][key], percent) for task, key, percent in columns]
+        lines.append("| " + " | ".join([CUE_NAMES[cue], *cells]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def grid_image(bench: Benchmark, result: GeCoResult, frames: list[int]) -> Tensor:
+    """``[3, H', W']`` rows of frame | ground truth | motion | structure | fused (viridis on the
+    fixed map range, grey: no valid pixel) for ``frames``."""
+    truth = bench.truth["mask"][frames].float()[:, None].expand(-1, 3, -1, -1)
+    panels = [bench.frames[frames], truth]
+    for cue in ("motion", "structure", "fused"):
+        values, valid = result.frame_maps.cue(cue)
+        panels.append(colorize(values[0, frames].cpu(), valid[0, frames].cpu()))
+    rows = side_by_side(panels, ["FRAME", "TRUTH", "MOTION", "STRUCTURE", "FUSED"])
+    return torch.cat(list(rows), dim=-2)
+
+
+def write_png(path: Path, image: Tensor) -> Path:
+    """``image [3, H, W]`` in ``[0, 1]`` as a PNG, atomically."""
+    array = (image.clamp(0, 1).permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(array).save(buffer, format="PNG")
+    return write_bytes_atomic(path, buffer.getvalue())
+
+
+def grid_frames(bench: Benchmark, record: dict[str, Any]) -> list[int]:
+    """Up to :data:`GRID_ROWS` judged frames (evenly spaced), plus Task 1's fused detection."""
+    judged = judged_frames(bench)
+    picked = [judged[round(k * (len(judged) - 1) / max(GRID_ROWS - 1, 1))] for k in range(min(GRID_ROWS, len(judged)))]
+    if "task1" in record:
+        picked.append(record["task1"]["predicted"]["fused"])
+    return sorted(set(picked))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m geco_guide.validate",
+                                description="Score benchmark clips on the paper's three detection tasks.")
+    p.add_argument("inputs", nargs="+", metavar="DIR|key=value", help="benchmark folders; key=value config overrides")
+    p.add_argument("--oracle", action="store_true", help="ground-truth estimators (clips built from 'synthetic')")
+    p.add_argument("--preset", default=None, help="a preset of configs/ (tiny: tiny random models, CPU)")
+    p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
+    p.add_argument("--vggt", default=None, metavar="ID_OR_DIR", help="geometry estimator: hub id or local folder")
+    p.add_argument("--ufm", default=None, metavar="ID_OR_DIR", help="flow estimator: hub id or local folder")
+    p.add_argument("--pairs", choices=("all", "center", "adjacent"), default=None, help="frame pairs (default: all)")
+    p.add_argument("--out", default=None, help="output folder (default: <first input>/validation)")
+    p.add_argument("--no-grids", action="store_true", help="skip the per-clip image grids")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    overrides = [a for a in args.inputs if "=" in a and not Path(a).exists()]
+    roots = [a for a in args.inputs if a not in overrides]
+    for option, key in ((args.vggt, "estimators.geometry"), (args.ufm, "estimators.flow"), (args.pairs, "evaluation.loss.pairs")):
+        if option is not None:
+            overrides.append(f"{key}={option}")
+    try:
+        if not roots:
+            raise ValueError("no benchmark folder given")
+        folders = [folder for root in roots for folder in find_benchmarks(root)]
+        cfg = load_config(args.config, args.preset, overrides)
+        estimators = None if args.oracle else load_estimators(cfg.estimators, cfg.evaluation.device)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out else Path(roots[0]) / "validation"
+    records, errors = [], []
+    for folder in folders:
+        try:
+            bench = load_benchmark(folder)
+            if args.oracle:
+                clip = oracle_clip(bench)
+                geometry, flow = OracleGeometry(clip), OracleFlow(clip)
+            else:
+                geometry, flow = estimators
+            _, result = score_frames(bench.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
+            record = validate_clip(bench, result)
+            if not args.no_grids:
+                record["grid"] = str(write_png(out / "grids" / f"{record['clip']}.png", grid_image(bench, result, grid_frames(bench, record))))
+        except (ValueError, OSError, RuntimeError) as err:  # one bad clip must not stop the others
+            errors.append({"clip": str(folder), "error": str(err).splitlines()[0] if str(err) else type(err).__name__})
+            print(f"error: {folder}: {errors[-1]['error']}", file=sys.stderr)
+            continue
+        records.append(record)
+        print(f"{folder}: {bench.kind} scored")
+    summary = summarise(records)
+    estimator_ids = {"geometry": "oracle", "flow": "oracle"} if args.oracle else {
+        "geometry": estimator_id(estimators[0]), "flow": estimator_id(estimators[1])}
+    report = {"summary": summary, "clips": records, "errors": errors, "estimators": estimator_ids,
+              "loss": asdict(cfg.evaluation.loss)}
+    write_json_atomic(out / "validation.json", report)
+    table = markdown_table(summary) if summary else "No clip could be scored.\n"
+    write_text_atomic(out / "validation.md", f"# GeCo validation ({estimator_ids['geometry']} + {estimator_ids['flow']})\n\n{table}")
+    print(table, end="")
+    print(f"wrote {out / 'validation.json'} and {out / 'validation.md'}")
+    return 1 if not records else 0
+

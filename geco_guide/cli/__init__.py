@@ -1,0 +1,1 @@
+"""The commands: one argparse kit and each command's ``main``."""

@@ -1,0 +1,1 @@
+"""Video files, atomic writes, plots and devices: the ground floor's I/O."""

@@ -1,0 +1,1 @@
+"""Scoring any video with GeCo: the protocol, evaluate_video, per-frame detection maps, rendering. Imports no diffusion code."""

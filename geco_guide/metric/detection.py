@@ -1,0 +1,231 @@
+"""Per-frame detection maps: where a video breaks, frame by frame (the paper code's detection demo).
+
+    python -m geco_guide.detection clip.mp4 --out maps                  # VGGT-1B + UFM-Base, mp4
+    python -m geco_guide.detection frames/ --preset tiny --window 8 --anchor end --format gif png
+
+:func:`geco_guide.evaluate.evaluate_video` scores the protocol's windows; here every frame gets
+its own window of ``W`` frames (default 20) with the frame at its start, centre or end (clamped
+at the clip's ends), GeCo runs on the pairs ``frame -> each other frame of the window``, and the
+frame's motion / structure / fused maps are the means over those pairs. The structure cue checks
+occlusion in both directions (the supplement's "Occlusion Handling": a source pixel also needs
+the target pixel it lands on to see it back), unless ``two_way=False``.
+
+Output per video: ``<out>/<stem>.detection.mp4`` / ``.gif`` and/or ``<out>/<stem>.detection/
+NNNNN.png``: source | motion | structure | fused on the fixed colour scale of
+:data:`geco_guide.video.MAP_RANGE` with a legend and the frame's scores; and
+``<out>/<stem>.detection.json`` with the per-frame scores. Written atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import math
+import sys
+from dataclasses import asdict, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image
+from torch import Tensor
+
+from ..config import load_config
+from ..estimators import estimator_id, load_estimators
+from ..geometry import relative_pose, sample_at_projection
+from ..io.files import atomic_path, write_bytes_atomic, write_json_atomic
+from ..io.video import read_frames, write_video
+from ..loss.cues import fuse_cues, masked_mean, structure_residual
+from ..loss.geco import GeCoLossConfig, GeCoMaps
+from ..types import SceneGeometry
+from .evaluate import EvaluationMaps, score_frames
+from .render import colorbar, colorize, side_by_side, text_scale, text_strip
+
+ANCHORS = ("start", "center", "end")
+FORMATS = ("mp4", "gif", "png")
+PANELS = ("motion", "structure", "fused")
+
+
+def window_indices(num_frames: int, frame: int, size: int, anchor: str) -> list[int]:
+    """``[frame, *its neighbours]``: the ``size`` frames around ``frame`` (it first, then the
+    others in time order). ``anchor``: ``start`` looks ahead, ``end`` back, ``center`` both ways;
+    a window that would leave the clip is shifted back inside it."""
+    if anchor not in ANCHORS:
+        raise ValueError(f"anchor must be one of {ANCHORS}, got {anchor!r}")
+    if size < 2:
+        raise ValueError(f"the window needs at least 2 frames, got {size}")
+    start = {"start": frame, "center": frame - size // 2, "end": frame + 1 - size}[anchor]
+    start = max(0, min(start, num_frames - size))
+    return [frame] + [k for k in range(start, min(start + size, num_frames)) if k != frame]
+
+
+def seen_back(geometry: SceneGeometry, pairs: list[tuple[int, int]], config: GeCoLossConfig) -> Tensor:
+    """The reverse occlusion check ``[1, P, H, W]`` bool: for each pair ``(s, t)`` and source
+    pixel ``p``, the target pixel at ``p``'s projection passes the structure test towards ``s``
+    (it is not hidden from ``s``), i.e. the two frames see the same surface there."""
+    depth, K, extrinsics = geometry.depth[0], geometry.intrinsics[0], geometry.extrinsics[0]
+    src = [s for s, _ in pairs]
+    tgt = [t for _, t in pairs]
+    tgt_to_src = relative_pose(extrinsics[tgt], extrinsics[src])
+    _, reverse_valid = structure_residual(depth[tgt], depth[src], K[tgt], K[src], tgt_to_src,
+                                          tau=config.occlusion_tau, edge_tau=config.depth_edge_tau)
+    src_to_tgt = relative_pose(extrinsics[src], extrinsics[tgt])
+    _, back, _ = sample_at_projection(depth[src], K[src], K[tgt], src_to_tgt, reverse_valid[:, None].to(depth.dtype))
+    return (back[:, 0] > 0.5)[None]
+
+
+def frame_maps(frames: Tensor, window: list[int], geometry: Any, flow: Any, config: GeCoLossConfig,
+               two_way: bool = True, flow_batch_size: int = 16) -> GeCoMaps:
+    """Maps ``[1, H, W]`` of frame ``window[0]`` of ``frames [S, 3, H, W]`` against the other
+    frames of ``window``: the pixel-wise mean over the pairs ``window[0] -> window[k]``."""
+    pairs = [(0, k) for k in range(1, len(window))]
+    scene, result = score_frames(frames[window], geometry, flow, config, pairs, flow_batch_size)
+    maps = result.pair_maps
+    if two_way:
+        structure_valid = maps.structure_valid & seen_back(scene, pairs, config)
+        fused, fused_valid = fuse_cues(maps.motion, maps.motion_valid, maps.structure, structure_valid)
+        maps = replace(maps, structure_valid=structure_valid, fused=fused, fused_valid=fused_valid)
+    averaged = []
+    for name in PANELS:
+        values, valid = maps.cue(name)
+        averaged += [masked_mean(values, valid, dims=(1,)).cpu().float(), valid.any(1).cpu()]
+    return GeCoMaps(*averaged)
+
+
+@torch.no_grad()
+def detection_maps(frames: Tensor, geometry: Any, flow: Any, config: GeCoLossConfig | None = None, *,
+                   window: int = 20, anchor: str = "center", two_way: bool = True,
+                   flow_batch_size: int = 16) -> EvaluationMaps:
+    """Every frame's own maps: ``frames [S, 3, H, W]`` in ``[0, 1]`` -> :class:`EvaluationMaps`
+    ``[S, H, W]`` (``window`` is capped at the clip's length)."""
+    if frames.ndim != 4 or frames.shape[1] != 3 or frames.shape[0] < 2:
+        raise ValueError(f"frames must be [S >= 2, 3, H, W], got {list(frames.shape)}")
+    config = config or GeCoLossConfig()
+    size = min(window, frames.shape[0])
+    per_frame = [frame_maps(frames, window_indices(frames.shape[0], t, size, anchor), geometry, flow, config,
+                            two_way, flow_batch_size) for t in range(frames.shape[0])]
+    stacked = [torch.cat([getattr(m, f.name) for m in per_frame]) for f in fields(GeCoMaps)]
+    return EvaluationMaps(*stacked, frames=frames.detach().float().cpu())
+
+
+def frame_scores(maps: EvaluationMaps) -> list[dict[str, float | None]]:
+    """Per frame, each cue's mean over its valid pixels (``None`` without a valid pixel)."""
+    rows = []
+    for k in range(len(maps)):
+        row = {}
+        for name in PANELS:
+            values, valid = maps.cue(name)
+            row[name] = float(values[k][valid[k]].mean()) if bool(valid[k].any()) else None
+        rows.append(row)
+    return rows
+
+
+def render_detection(maps: EvaluationMaps, scores: list[dict[str, float | None]]) -> Tensor:
+    """``[S, 3, H', W']``: labelled panels source | motion | structure | fused, the legend, and a
+    line with the frame's index and scores."""
+    heat = [colorize(*maps.cue(name)) for name in PANELS]
+    grid = side_by_side([maps.frames, *heat], ["SOURCE", *(name.upper() for name in PANELS)])
+    num, _, _, width = grid.shape
+    scale = text_scale(maps.frames.shape[-2])
+    legend = colorbar(width, scale)[None].expand(num, -1, -1, -1)
+
+    def text(value: float | None) -> str:
+        return "N/A" if value is None else f"{value:.3f}"
+
+    lines = torch.stack([text_strip(f"FRAME {k} " + " ".join(f"{n.upper()} {text(row[n])}" for n in ("fused", "motion", "structure")),
+                                    width, scale) for k, row in enumerate(scores)])
+    return torch.cat((grid, legend, lines), dim=-2)
+
+
+def _uint8(frames: Tensor) -> np.ndarray:
+    return (frames.clamp(0, 1).permute(0, 2, 3, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def write_gif(path: Path, frames: Tensor, fps: float) -> Path:
+    """``frames [S, 3, H, W]`` as a looping GIF at ``fps``, atomically."""
+    import imageio.v2 as imageio
+
+    with atomic_path(path) as tmp:
+        imageio.mimsave(tmp, list(_uint8(frames)), format="GIF", duration=1000.0 / fps, loop=0)
+    return path
+
+
+def write_pngs(folder: Path, frames: Tensor) -> Path:
+    """One PNG per frame, ``folder/NNNNN.png``, each written atomically."""
+    for k, frame in enumerate(_uint8(frames)):
+        buffer = io.BytesIO()
+        Image.fromarray(frame).save(buffer, format="PNG")
+        write_bytes_atomic(folder / f"{k:05d}.png", buffer.getvalue())
+    return folder
+
+
+def write_detection(rendered: Tensor, stem: Path, formats: list[str], fps: float) -> list[Path]:
+    """Write ``rendered [S, 3, H, W]`` as ``stem.detection.{mp4,gif}`` / ``stem.detection/*.png``."""
+    writers = {
+        "mp4": lambda: write_video(stem.with_name(f"{stem.name}.detection.mp4"), rendered, fps=fps),
+        "gif": lambda: write_gif(stem.with_name(f"{stem.name}.detection.gif"), rendered, fps),
+        "png": lambda: write_pngs(stem.with_name(f"{stem.name}.detection"), rendered),
+    }
+    return [writers[f]() for f in formats]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m geco_guide.detection",
+                                description="Per-frame GeCo detection maps (a window per frame).")
+    p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|key=value")
+    p.add_argument("--out", default="detection", help="output folder")
+    p.add_argument("--window", type=int, default=20, help="frames per window (the demo's default: 20)")
+    p.add_argument("--anchor", choices=ANCHORS, default="center", help="where the frame sits in its window")
+    p.add_argument("--one-way", action="store_true", help="structure occlusion test in one direction only")
+    p.add_argument("--format", nargs="+", choices=FORMATS, default=["mp4"], dest="formats")
+    p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the input's)")
+    p.add_argument("--preset", default=None, help="a preset of configs/ (tiny: tiny random models, CPU)")
+    p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
+    p.add_argument("--vggt", default=None, metavar="ID_OR_DIR", help="geometry estimator: hub id or local folder")
+    p.add_argument("--ufm", default=None, metavar="ID_OR_DIR", help="flow estimator: hub id or local folder")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    overrides = [a for a in args.inputs if "=" in a and not Path(a).exists()]
+    videos = [a for a in args.inputs if a not in overrides]
+    for option, key in ((args.vggt, "estimators.geometry"), (args.ufm, "estimators.flow")):
+        if option is not None:
+            overrides.append(f"{key}={option}")
+    try:
+        if not videos:
+            raise ValueError("no input video given")
+        if args.window < 2:
+            raise ValueError(f"--window must be >= 2, got {args.window}")
+        if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
+            raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
+        cfg = load_config(args.config, args.preset, overrides)
+        geometry, flow = load_estimators(cfg.estimators, cfg.evaluation.device)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    failed = 0
+    for video in videos:
+        try:
+            clip = read_frames(video, min_frames=2)
+            maps = detection_maps(clip.frames, geometry, flow, cfg.evaluation.loss, window=args.window,
+                                  anchor=args.anchor, two_way=not args.one_way,
+                                  flow_batch_size=cfg.evaluation.flow_batch_size)
+            scores = frame_scores(maps)
+            stem = Path(args.out) / (Path(video).stem or Path(video).name)
+            written = write_detection(render_detection(maps, scores), stem, args.formats, args.fps or clip.fps)
+            write_json_atomic(stem.with_name(f"{stem.name}.detection.json"), {
+                "source": video, "window": min(args.window, clip.num_frames), "anchor": args.anchor,
+                "two_way": not args.one_way, "frames": [{"index": k, **row} for k, row in enumerate(scores)],
+                "estimators": {"geometry": estimator_id(geometry), "flow": estimator_id(flow)},
+                "loss": asdict(cfg.evaluation.loss)})
+        except (ValueError, OSError, RuntimeError) as err:  # one bad input must not stop the others
+            failed += 1
+            print(f"error: {video}: {str(err).splitlines()[0] if str(err) else type(err).__name__}", file=sys.stderr)
+            continue
+        worst = max(range(len(scores)), key=lambda k: -1.0 if scores[k]["fused"] is None else scores[k]["fused"])
+        print(f"{video}: {len(scores)} frames, least consistent frame {worst} -> {', '.join(map(str, written))}")
+    return 1 if failed == len(videos) else 0
+

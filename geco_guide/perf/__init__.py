@@ -1,0 +1,1 @@
+"""Performance: the cost model of a guided run, stage profiling, full-size model builders."""

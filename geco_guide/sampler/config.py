@@ -1,0 +1,148 @@
+"""Guidance options (:class:`GuidanceConfig`) and the paper's two presets.
+
+``GuidanceConfig()`` is the paper's guidance experiment, what the CLI runs by default (the
+``cogvideox-5b`` preset): the residual motion cue without gradients through the geometry
+estimator (:func:`~geco_guide.loss.presets.guidance_loss`). :func:`fused_guidance_config` is the
+method section's fused loss (the ``cogvideox-5b-fused`` preset). See docs/guidance.md.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any, Optional
+
+from ..loss.geco import GeCoLossConfig
+from ..loss.presets import fused_guidance_loss, guidance_loss
+from ..types import OptionError, merge_dataclass, non_finite_fields
+from .schedule import (
+    PAPER_ETA,
+    PAPER_REPEATS,
+    PAPER_TIME_TRAVEL,
+    GuidanceSchedule,
+    scale_schedule,
+)
+from .slicing import AnchorChunk, anchor_latent_chunks
+
+PAPER_ANCHORS = (12, 24, 36, 48)
+# An update of eta moves the latents by eta in L2 norm; 1000 is about the norm of the whole latent
+# video at 480x720 (the paper: 3). Larger values only overflow the latents to NaN/inf after
+# minutes of sampling (a black video), so they are refused at once.
+MAX_ETA = 1000.0
+
+
+
+@dataclass
+class GuidanceConfig:
+    """GeCo guidance options (defaults: the paper's guidance experiment, for 50 DDIM steps of a
+    49-frame video; :func:`fused_guidance_config` is the method section's fused loss).
+
+    Attributes:
+        enabled: ``False`` samples without guidance (plain deterministic DDIM).
+        anchors: 0-based pixel frames decoded and scored during guidance.
+        chunk_latents: latents per causal chunk decoded for each anchor (ending at its latent).
+        repeats: ``R_t`` per step, as runs ``"RxN,..."`` (see :mod:`.schedule`). Runs written for
+            another step count are scaled to the sampler's, phases in proportion (with a
+            warning); an explicit per-step list must match exactly.
+        eta: normalised step size of each update (>= 0).
+        time_travel: inclusive ``[first, last]`` step window of time travel; empty/None disables.
+            Scaled with the runs of ``repeats``.
+        denoiser_grad: ``True`` backpropagates through the denoiser at every update (paper);
+            ``False`` is the fast mode that holds the model output constant through the step
+            (``dx0/dz_t = sqrt(a_t)``), so the denoiser runs once per step as without guidance
+            (plus once after each time-travel re-noising).
+        gradient_checkpointing: checkpoint the denoiser's blocks while differentiating it.
+        vae_checkpointing: decode the anchor chunks one at a time in checkpointed regions, with
+            the VAE's own block checkpointing inside (where the VAE supports it): the backward
+            then holds one chunk's decode instead of all of them, for extra forward decodes.
+            The CogVideoX-5B VAE needs it at 480x720 (docs/benchmarks.md); ``False`` batches the
+            chunks in one decode and keeps everything (fastest, for small videos).
+        grad_eps: ``eps`` of the normalised update.
+        loss: the GeCo loss options (default :func:`~geco_guide.loss.presets.guidance_loss`); the
+            structure cue only gives gradients with ``loss.geometry_grad=True``, since it depends
+            on the frames only through the geometry estimator: ``cue="structure"`` with
+            ``geometry_grad=False`` is refused before any denoising step.
+    """
+
+    enabled: bool = True
+    anchors: list[int] = field(default_factory=lambda: list(PAPER_ANCHORS))
+    chunk_latents: int = 3
+    repeats: str = PAPER_REPEATS
+    eta: float = PAPER_ETA
+    time_travel: Optional[list[int]] = field(default_factory=lambda: list(PAPER_TIME_TRAVEL))
+    denoiser_grad: bool = True
+    gradient_checkpointing: bool = True
+    vae_checkpointing: bool = True
+    grad_eps: float = 1e-8
+    loss: GeCoLossConfig = field(default_factory=guidance_loss)
+
+    def __post_init__(self) -> None:
+        for key, value in non_finite_fields(self):  # the first one
+            raise OptionError(key, f"must be a finite number, got {value}")
+        if not 0 <= self.eta <= MAX_ETA:
+            raise OptionError("eta", f"must be in [0, {MAX_ETA:g}], got {self.eta}")
+        if not self.grad_eps > 0:
+            raise OptionError("grad_eps", f"must be > 0, got {self.grad_eps}")
+        if self.chunk_latents < 2:
+            raise OptionError("chunk_latents", f"must be >= 2, got {self.chunk_latents}")
+
+    def schedule(self, num_steps: int) -> GuidanceSchedule:
+        """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see
+        :func:`~geco_guide.sampler.schedule.scale_schedule`)."""
+        repeats, time_travel = scale_schedule(self.repeats, self.time_travel, num_steps)
+        return GuidanceSchedule.build(repeats, num_steps, self.eta, time_travel)
+
+    def check_loss(self) -> None:
+        """ValueError (one line) for a loss that cannot give an update."""
+        loss = self.loss
+        if self.enabled and getattr(loss, "cue", None) == "structure" and not getattr(loss, "geometry_grad", True):
+            raise ValueError(
+                "guidance.loss.cue='structure' needs guidance.loss.geometry_grad=true: the structure cue reaches the "
+                "frames only through the geometry estimator, so without its gradient there is no update "
+                "(use cue=motion or fused, or geometry_grad=true)"
+            )
+
+    def anchor_chunks(self, num_frames: int, temporal_compression: int) -> list[AnchorChunk]:
+        """The causal latent chunk of each anchor of a ``num_frames`` video (ValueError for anchors
+        the video cannot contain)."""
+        return anchor_latent_chunks(self.anchors, num_frames, temporal_compression, self.chunk_latents)
+
+    def validate(self, num_steps: int, num_frames: int,
+                 temporal_compression: int) -> tuple[GuidanceSchedule, list[AnchorChunk]]:
+        """Check everything against a run; ValueError naming the problem. Returns the schedule
+        and the anchors' chunks."""
+        self.check_loss()
+        chunks = self.anchor_chunks(num_frames, temporal_compression)
+        return self.schedule(num_steps), chunks
+
+
+def paper_guidance_config() -> GuidanceConfig:
+    """The paper's guidance experiment (supplement; the published code's ``residual_motion`` loss):
+    ``GuidanceConfig()``, named for the code that says so."""
+    return GuidanceConfig()
+
+
+def fused_guidance_config() -> GuidanceConfig:
+    """The method section's equation: the fused ``M_geo`` with gradients through the geometry
+    estimator too (:func:`~geco_guide.loss.presets.fused_guidance_loss`); the rest as the paper."""
+    return GuidanceConfig(loss=fused_guidance_loss())
+
+
+def resolve_guidance_config(
+    base: GuidanceConfig | None, override: GuidanceConfig | Mapping[str, Any] | bool | None
+) -> GuidanceConfig:
+    """The guidance config of one call: ``override`` (config, dict of changes, or bool) over ``base``.
+
+    ``False`` disables guidance, ``True``/``None`` keeps ``base``; a dict changes only the keys it
+    names (``{"loss": {"cue": "motion"}}`` works). Unknown keys raise ValueError naming them.
+    """
+    base = base if base is not None else GuidanceConfig()
+    if override is None or override is True:
+        return base
+    if override is False:
+        return replace(base, enabled=False)
+    if isinstance(override, GuidanceConfig):
+        return override
+    if hasattr(override, "keys"):  # dict or omegaconf DictConfig
+        return merge_dataclass(base, override, "guidance")
+    raise ValueError(f"guidance must be a GuidanceConfig, a dict, True/False or None, got {type(override).__name__}")

@@ -1,0 +1,147 @@
+"""The guidance of one call, shared by :class:`GeCoCogVideoXPipeline` and the pipeline hooks.
+
+A :class:`GuidanceContext` holds what every guided step of a call needs: the options, the
+schedule, the anchor decode, the GeCo loss and the guidance log. Its :meth:`~GuidanceContext.models`
+block freezes the models and switches on the checkpointing the options ask for, and
+:meth:`~GuidanceContext.guide` runs :func:`~.step.guided_step` at one step of the loop. Profilers
+subclass it: :meth:`~GuidanceContext.guide` brackets the updates of a step, and
+:meth:`~GuidanceContext.read_scalars` is the one host sync of an update.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from ..loss.geco import GeCoLoss
+from .config import GuidanceConfig
+from .levels import NoiseLevels
+from .schedule import GuidanceSchedule
+from .slicing import AnchorChunk, decode_anchor_frames
+from .step import GuidanceRecord, Update, guided_step, loss_terms, read_scalars
+
+
+@contextlib.contextmanager
+def frozen(*modules: Any):
+    """Disable ``requires_grad`` of every parameter of the given modules; restore on exit."""
+    params = [p for m in modules if isinstance(m, nn.Module) for p in m.parameters()]
+    flags = [p.requires_grad for p in params]
+    try:
+        for p in params:
+            p.requires_grad_(False)
+        yield
+    finally:
+        for p, flag in zip(params, flags):
+            p.requires_grad_(flag)
+
+
+@contextlib.contextmanager
+def gradient_checkpointing(model: Any, enable: bool):
+    """Turn on the model's diffusers gradient checkpointing for the duration; restore on exit."""
+    if not enable or not getattr(model, "_supports_gradient_checkpointing", False) or model.is_gradient_checkpointing:
+        yield
+        return
+    model.enable_gradient_checkpointing()
+    try:
+        yield
+    finally:
+        model.disable_gradient_checkpointing()
+
+
+class GuidanceContext:
+    """Guidance state of one pipeline call.
+
+    Args:
+        config: the call's resolved :class:`GuidanceConfig`.
+        schedule: its :class:`GuidanceSchedule` for the call's step count.
+        chunks: the anchors' causal latent chunks.
+        decode_chunk: ``latents [N, F', C, h, w] -> frames [N, T, 3, H, W]`` in ``[0, 1]`` (a
+            VAE's, or the pipeline adapter's).
+        latent_frames: ``x0 -> [B, F, C, h, w]``: the video's latents, frames first, of the
+            model's clean estimate (drops padding frames, reorders channels).
+        geometry_estimator, flow_estimator: the GeCo loss' estimators.
+        generator: source of the time-travel noise (the call's).
+        on_record: called with each :class:`GuidanceRecord` as it is logged.
+        log: the list the records are appended to as dicts (a new one by default).
+    """
+
+    def __init__(
+        self,
+        config: GuidanceConfig,
+        schedule: GuidanceSchedule,
+        chunks: Sequence[AnchorChunk],
+        decode_chunk: Callable[[Tensor], Tensor],
+        latent_frames: Callable[[Tensor], Tensor],
+        geometry_estimator: Any,
+        flow_estimator: Any,
+        *,
+        generator: torch.Generator | list[torch.Generator] | None = None,
+        on_record: Callable[[GuidanceRecord], None] | None = None,
+        log: list[dict[str, Any]] | None = None,
+    ):
+        self.config, self.schedule, self.chunks = config, schedule, list(chunks)
+        self.decode_chunk, self.latent_frames = decode_chunk, latent_frames
+        self.estimators = (geometry_estimator, flow_estimator)
+        self.generator, self.on_record = generator, on_record
+        # No frame check: it would make each update wait for the device; a NaN decode gives NaN
+        # scalars and no update instead (see guided_step).
+        self.loss_fn = GeCoLoss(geometry_estimator, flow_estimator, config.loss, check_values=False)
+        self.log = log if log is not None else []
+
+    @contextlib.contextmanager
+    def models(self, denoisers: Iterable[nn.Module], vae: Any, others: Iterable[Any] = ()):
+        """Frozen ``denoisers``, ``vae``, ``others`` and estimators; the denoisers' gradient
+        checkpointing in faithful mode (``gradient_checkpointing``) and the VAE's with
+        ``vae_checkpointing``; all restored on exit."""
+        config = self.config
+        denoisers = list(denoisers)
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(frozen(*others, vae, *denoisers, *self.estimators))
+            for module in denoisers:
+                stack.enter_context(gradient_checkpointing(module, config.denoiser_grad and config.gradient_checkpointing))
+            stack.enter_context(gradient_checkpointing(vae, config.vae_checkpointing))
+            yield
+
+    def objective(self, x0: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """GeCo loss of the anchor frames decoded from ``x0`` (differentiable), and its terms."""
+        frames = decode_anchor_frames(self.decode_chunk, self.latent_frames(x0), self.chunks,
+                                      checkpoint_chunks=self.config.vae_checkpointing)
+        return loss_terms(self.loss_fn(frames))
+
+    def read_scalars(self, values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
+        """The numbers of one update's record: its one device-to-host copy."""
+        return read_scalars(values, device)
+
+    def guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: NoiseLevels, step: int,
+              t: int) -> tuple[Tensor, Tensor]:
+        """The ``R_t`` updates of step ``step`` (timestep ``t``): the guided ``z_t`` and the model
+        output there (:func:`~.step.guided_step`), each update logged."""
+        config, schedule = self.config, self.schedule
+
+        def on_update(update: Update) -> None:
+            scalars = self.read_scalars(update.terms, z.device)
+            record = GuidanceRecord(
+                step=step,
+                repeat=update.repeat,
+                t=int(t),
+                loss=scalars["loss"],
+                motion=scalars.get("motion"),
+                structure=scalars.get("structure"),
+                fused=scalars.get("fused"),
+                grad_norm=scalars["grad_norm"],
+                seconds=time.perf_counter() - update.started,
+                time_travel=update.time_travel,
+                skipped=not scalars["finite"],
+            )
+            self.log.append(record.to_dict())
+            if self.on_record is not None:
+                self.on_record(record)
+
+        return guided_step(z, predict, levels, self.objective, schedule.repeats_at(step), eta=schedule.eta,
+                           time_travel=schedule.time_travel_at(step), denoiser_grad=config.denoiser_grad,
+                           generator=self.generator, eps=config.grad_eps, on_update=on_update)

@@ -1,0 +1,176 @@
+"""The model-agnostic guided step: ``R_t`` GeCo updates of the latents of one denoising step.
+
+    for r in range(R_t):
+        out = predict(z_t)                          # through the denoiser (faithful), or held constant (fast)
+        x0  = levels.to_x0(z_t, out)
+        L   = objective(x0)                         # anchor frames decoded from x0, GeCo loss
+        g   = dL/dz_t
+        z_t <- z_t - eta * g / (||g|| + eps)        # fp32, norm per video
+        (time travel: z_t <- renoise(DDIM(z_t, x0) - eta * g / (||g|| + eps)) back to t)
+    return z_t, predict(z_t)                        # the guided latents and the model output there
+
+The caller's scheduler then takes the step from the guided latents with that model output. The
+model enters only through ``predict``, ``objective`` and the step's :class:`~.levels.NoiseLevels`;
+this module imports torch only.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .levels import NoiseLevels, randn_like
+
+Objective = Callable[[Tensor], "tuple[Tensor, dict[str, Tensor]]"]
+
+
+def normalized_update(z: Tensor, grad: Tensor, eta: float, eps: float = 1e-8) -> tuple[Tensor, Tensor]:
+    """``z - eta * g / (||g|| + eps)`` in fp32, with the norm taken per video. Returns (z, ||g||)."""
+    grad = grad.float()
+    norm = grad.flatten(1).norm(dim=1).view(-1, *([1] * (grad.ndim - 1)))
+    return z.float() - eta * grad / (norm + eps), norm.flatten()
+
+
+@dataclass
+class Update:
+    """One update as :func:`guided_step` made it, its numbers still on the device.
+
+    Attributes:
+        repeat: index of the update within the step.
+        terms: 0-dim tensors: the objective's (``loss``; ``motion``, ``structure``, ``fused`` for a
+            GeCo result), ``grad_norm`` (``||g||``, the batch mean) and ``finite`` (False: the
+            gradient was not finite and the update was skipped).
+        started: ``time.perf_counter()`` at its start.
+        time_travel: whether it was a time-travel update.
+    """
+
+    repeat: int
+    terms: dict[str, Tensor]
+    started: float
+    time_travel: bool
+
+
+@dataclass
+class GuidanceRecord:
+    """One guided update of the guidance log: step index, timestep, loss and cues before the
+    update, ``||g||``, seconds."""
+
+    step: int
+    repeat: int
+    t: int
+    loss: float
+    motion: float | None
+    structure: float | None
+    fused: float | None
+    grad_norm: float
+    seconds: float
+    time_travel: bool
+    skipped: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def loss_terms(result: Any) -> tuple[Tensor, dict[str, Tensor]]:
+    """The loss to differentiate and the scalars to record of a loss result (a ``GeCoResult`` or a
+    scalar tensor), as tensors: reading them is a host sync."""
+    if isinstance(result, Tensor):
+        return result, {"loss": result}
+    return result.loss, {name: getattr(result, name) for name in ("loss", "motion", "structure", "fused")}
+
+
+def read_scalars(values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
+    """Plain floats of ``values`` (0-dim tensors) with one device-to-host copy for all of them."""
+    stacked = torch.stack([v.detach().to(device=device, dtype=torch.float32).reshape(()) for v in values.values()])
+    return dict(zip(values, stacked.tolist()))
+
+
+def guided_step(
+    z: Tensor,
+    predict: Callable[[Tensor, bool], Tensor],
+    levels: NoiseLevels,
+    objective: Objective,
+    repeats: int,
+    *,
+    eta: float,
+    time_travel: bool = False,
+    denoiser_grad: bool = True,
+    generator: torch.Generator | list[torch.Generator] | None = None,
+    eps: float = 1e-8,
+    on_update: Callable[[Update], None] | None = None,
+) -> tuple[Tensor, Tensor]:
+    """``repeats`` GeCo updates of ``z_t`` (see the module docstring).
+
+    Args:
+        z: ``z_t [B, ...]`` (any float dtype; the updates run in fp32).
+        predict: ``(z, differentiate) -> model output`` (CFG-combined) at ``z``. Called with True
+            for each update in faithful mode, and with False under ``torch.no_grad`` for the
+            output returned and, in fast mode, for the one output the step's updates share.
+        levels: the step's noise levels; ``x0 = levels.to_x0(z, output)``.
+        objective: ``x0 -> (loss, terms)``: a scalar to differentiate and the 0-dim tensors to
+            record (:func:`loss_terms` of a loss result).
+        repeats: ``R_t``; 0 returns ``z`` and the model output there.
+        eta: normalised step size.
+        time_travel: take the DDIM step with the update, then re-noise back to ``t``.
+        denoiser_grad: differentiate through the denoiser at every update (the paper), or hold its
+            output constant through the step (fast: ``dx0/dz_t = sqrt(a_t)`` for v-prediction);
+            the denoiser then runs once per step as without guidance, plus once after each
+            time-travel re-noising.
+        generator: source of the time-travel noise.
+        eps: of the normalised update.
+        on_update: called with each :class:`Update` once it is queued.
+
+    Returns:
+        ``(z, output)``: the guided ``z_t`` (fp32) and the model output at it.
+    """
+    z = z.detach().float()
+    held: tuple[Tensor, Tensor] | None = None  # fast mode: (z, output) of the last prediction, until time travel moves z
+    for r in range(repeats):
+        started = time.perf_counter()
+        with torch.enable_grad():
+            z_in = z.detach().requires_grad_(True)
+            if denoiser_grad:
+                x0 = levels.to_x0(z_in, predict(z_in, True).float())
+            else:
+                if held is None:
+                    with torch.no_grad():
+                        held = (z, predict(z, False).float())
+                # With the output held, x0 is linear in z: its value at the held latents plus the
+                # move since, so every update of the step rounds x0 as the first one does.
+                x0 = levels.to_x0(*held) + levels.to_x0(z_in - held[0], torch.zeros_like(held[1]))
+            loss, terms = objective(x0)
+            (grad,) = torch.autograd.grad(loss, z_in, allow_unused=True)
+        grad = torch.zeros_like(z) if grad is None else grad
+        # A NaN gradient must never reach the latents; torch.where keeps the check on the device.
+        finite = torch.isfinite(grad).all()
+        grad = torch.where(finite, grad, torch.zeros_like(grad))
+        z_new, norm = normalized_update(z, grad, eta, eps)
+        if time_travel:
+            z = levels.renoise(levels.step(z, x0.detach()) + (z_new - z), randn_like(z, generator))
+            held = None
+        else:
+            z = z_new
+        if on_update is not None:
+            on_update(Update(r, {**terms, "grad_norm": norm.mean(), "finite": finite}, started, time_travel))
+    if held is None:
+        with torch.no_grad():
+            return z, predict(z, False)
+    return z, held[1]
+
+
+def score_anchor_frames(video: Tensor, anchors: Sequence[int], loss_fn: Callable[[Tensor], Any]) -> dict[str, float]:
+    """GeCo scalars (``motion``, ``structure``, ``fused``, ``loss``) of the anchor frames of a
+    decoded ``video [B, F, 3, H, W]`` in ``[0, 1]``, without gradients."""
+    if video.ndim != 5:
+        raise ValueError(f"video must be [B, F, 3, H, W], got shape {list(video.shape)}")
+    bad = [a for a in anchors if not 0 <= a < video.shape[1]]
+    if bad:
+        raise ValueError(f"anchors {bad} out of range for a {video.shape[1]}-frame video")
+    with torch.no_grad():
+        _, terms = loss_terms(loss_fn(video[:, list(anchors)].float()))
+    return read_scalars(terms, video.device)
