@@ -164,6 +164,16 @@ def tiny_cogvideox_components(seed: int = 0, sizes: TinySizes | None = None) -> 
     }
 
 
+def tiny_guidance_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int = TinySizes.latent_channels):
+    """A tiny random :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` of ``variant`` for the
+    tiny models' latents (their channel count; the published variants take 16 or more)."""
+    from dataclasses import replace
+
+    from .estimators.tiny_decoder import TinyDecoder, resolve_variant
+
+    return TinyDecoder.tiny(replace(resolve_variant(variant), latent_channels=latent_channels), seed)
+
+
 def tiny_guidance_config(**changes: Any):
     """A short guidance schedule for the tiny models and a few steps (default: 4 steps), with the
     fused loss (the cues all get gradients, so the tests see every path)."""

@@ -78,7 +78,7 @@ def test_guidance_lowers_geco_loss_and_detach_restores_bitwise(family, faithful,
     never_hooked = BUILDERS[family](0)
     reference = run(never_hooked)
     pipe = BUILDERS[family](0)
-    handle = attach_geco_guidance(pipe, config, geometry=estimators[0], flow=estimators[1])
+    handle = attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1])
     guided = run(pipe)
     handle.detach()
     after = run(pipe)
@@ -112,7 +112,7 @@ def test_hook_on_stock_cogvideox_matches_geco_pipeline(faithful, estimators):
     stock.set_progress_bar_config(disable=True)
     kwargs = dict(T.TINY_CALL_KWARGS, num_frames=NUM_FRAMES, output_type="latent")
     ours = geco(PROMPT, generator=torch.Generator().manual_seed(1), guidance=config, **kwargs)
-    with attach_geco_guidance(stock, config, geometry=estimators[0], flow=estimators[1]) as handle:
+    with attach_geco_guidance(stock, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
         hooked = stock(PROMPT, generator=torch.Generator().manual_seed(1), **kwargs).frames
     assert [(e["step"], e["time_travel"]) for e in handle.log] == [(2, True), (3, False)]
     for a, b in zip(handle.log, ours.guidance_log):
@@ -123,7 +123,7 @@ def test_hook_on_stock_cogvideox_matches_geco_pipeline(faithful, estimators):
 def test_time_travel_is_reproducible_from_the_generator(estimators):
     pipe = T.tiny_hunyuan_pipeline(0)
     config = T.tiny_guidance_config(anchors=ANCHORS, repeats="0x2,1x2", time_travel=[2, 3], eta=1.0, denoiser_grad=False)
-    with attach_geco_guidance(pipe, config, geometry=estimators[0], flow=estimators[1]) as handle:
+    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
         a, b, c = run(pipe, seed=7), run(pipe, seed=7), run(pipe, seed=8)
     assert len(handle.log) == 2 and all(e["time_travel"] for e in handle.log)
     assert torch.equal(a, b) and not torch.equal(a, c)
@@ -198,7 +198,7 @@ def test_unipc_corrector_keeps_the_guided_update():
 def test_bad_calls_are_rejected_before_any_denoising_step(family, changes, call, match, estimators):
     pipe = BUILDERS[family](0)
     config = T.tiny_guidance_config(**{**LAST_STEP, **changes})
-    with attach_geco_guidance(pipe, config, geometry=estimators[0], flow=estimators[1]):
+    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]):
         counter = CountingForward(pipe.transformer)  # after the hook's own pre-hook
         with pytest.raises(ValueError, match=match):
             run(pipe, **call)
@@ -213,28 +213,28 @@ def test_unsupported_pipelines_get_a_clear_error(estimators):
         pass
 
     with pytest.raises(ValueError) as err:
-        attach_geco_guidance(MyVideoPipeline(), geometry=estimators[0], flow=estimators[1])
+        attach_geco_guidance(MyVideoPipeline(), geometry_estimator=estimators[0], flow_estimator=estimators[1])
     message = str(err.value)
     for name in ("CogVideoXPipeline", "CogVideoXImageToVideoPipeline", "WanPipeline", "LTXPipeline", "HunyuanVideoPipeline"):
         assert name in message
     assert "register_adapter" in message and "MyVideoPipeline" in message
     with pytest.raises(ValueError, match="guides itself"):
-        attach_geco_guidance(T.tiny_pipeline(0), geometry=estimators[0], flow=estimators[1])
+        attach_geco_guidance(T.tiny_pipeline(0), geometry_estimator=estimators[0], flow_estimator=estimators[1])
     with pytest.raises(ValueError, match="flow"):
-        attach_geco_guidance(T.tiny_wan_pipeline(0), geometry=estimators[0], flow=None)
+        attach_geco_guidance(T.tiny_wan_pipeline(0), geometry_estimator=estimators[0], flow_estimator=None)
 
 
 def test_attach_twice_is_refused_and_detach_is_idempotent(estimators):
     pipe = T.tiny_ltx_pipeline(0)
     before = state_of(pipe)
-    handle = attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry=estimators[0], flow=estimators[1])
+    handle = attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry_estimator=estimators[0], flow_estimator=estimators[1])
     assert handle.attached and state_of(pipe) != before
     with pytest.raises(ValueError, match="already"):
-        attach_geco_guidance(pipe, geometry=estimators[0], flow=estimators[1])
+        attach_geco_guidance(pipe, geometry_estimator=estimators[0], flow_estimator=estimators[1])
     handle.detach()
     handle.detach()
     assert not handle.attached and state_of(pipe) == before
-    with attach_geco_guidance(pipe, geometry=estimators[0], flow=estimators[1]) as again:
+    with attach_geco_guidance(pipe, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as again:
         assert again.attached
     assert state_of(pipe) == before
 
@@ -243,7 +243,7 @@ def test_guidance_off_and_models_untouched(estimators):
     pipe = T.tiny_wan_pipeline(0, scheduler="euler")
     reference = run(pipe)
     weights = copy.deepcopy(pipe.transformer.state_dict())
-    with attach_geco_guidance(pipe, {**LAST_STEP, "enabled": False}, geometry=estimators[0], flow=estimators[1]) as h:
+    with attach_geco_guidance(pipe, {**LAST_STEP, "enabled": False}, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as h:
         assert torch.equal(run(pipe), reference) and h.log == []
         h.config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=True)
         guided = run(pipe)
@@ -258,7 +258,7 @@ def test_ltx_guidance_rescale_is_rebuilt_and_wrong_combinations_fail_loudly(esti
 
     pipe = T.tiny_ltx_pipeline(0)
     config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=False)
-    with attach_geco_guidance(pipe, config, geometry=estimators[0], flow=estimators[1]) as handle:
+    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
         run(pipe, guidance_rescale=0.7)
         assert len(handle.log) == 2
         # an adapter whose combination does not reproduce the pipeline's model output (here: the
@@ -278,7 +278,7 @@ def test_wrapped_step_keeps_the_signature_pipelines_inspect(estimators):
     before = inspect.signature(pipe.scheduler.step)
     assert {"eta", "generator"} <= set(before.parameters)
     g = torch.Generator().manual_seed(0)
-    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry=estimators[0], flow=estimators[1]):
+    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry_estimator=estimators[0], flow_estimator=estimators[1]):
         assert inspect.signature(pipe.scheduler.step) == before
         # diffusers' prepare_extra_step_kwargs decides from the signature what to pass
         assert pipe.prepare_extra_step_kwargs(g, 0.5) == {"eta": 0.5, "generator": g}
@@ -289,7 +289,7 @@ def test_stochastic_scheduler_noise_comes_from_the_calls_generator(estimators):
     # hook attached, the call's generator must still be what determines the video, not the global RNG
     pipe = T.tiny_cogvideox_pipeline(0, scheduler="dpm")
     config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=False)
-    with attach_geco_guidance(pipe, config, geometry=estimators[0], flow=estimators[1]) as handle:
+    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
         torch.manual_seed(100)
         a = run(pipe, seed=3, output_type="latent")
         torch.manual_seed(200)
@@ -305,7 +305,7 @@ def test_eta_reaches_a_ddim_scheduler_through_the_hook(estimators):
     pipe = T.tiny_cogvideox_pipeline(0)
     pipe.scheduler = DDIMScheduler.from_config(pipe.scheduler.config)  # honours eta (CogVideoX's DDIM ignores it)
     config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=False)
-    with attach_geco_guidance(pipe, config, geometry=estimators[0], flow=estimators[1]) as handle:
+    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
         deterministic = run(pipe, seed=3, output_type="latent", eta=0.0)
         torch.manual_seed(100)
         a = run(pipe, seed=3, output_type="latent", eta=1.0)
@@ -326,7 +326,7 @@ def test_denoiser_cache_is_refused_before_any_denoising_step(estimators):
         unconditional_batch_skip_range=2, attention_weight_callback=lambda _: 0.5,
         current_timestep_callback=lambda: pipe.current_timestep, is_guidance_distilled=False,
     ))
-    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry=estimators[0], flow=estimators[1]):
+    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry_estimator=estimators[0], flow_estimator=estimators[1]):
         counter = CountingForward(pipe.transformer)
         with pytest.raises(ValueError, match="FasterCache cache enabled") as err:
             run(pipe)
@@ -344,7 +344,15 @@ def test_model_cpu_offload_with_the_hook_gives_the_same_video(family, faithful, 
     offloaded.enable_model_cpu_offload(device="cpu")
     videos = []
     for pipe in (plain, offloaded):
-        with attach_geco_guidance(pipe, config, geometry=estimators[0], flow=estimators[1]) as handle:
+        with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
             videos.append(run(pipe))
         assert len(handle.log) == 2
     assert torch.equal(videos[0], videos[1])
+
+
+def test_the_estimators_earlier_argument_names_still_work(estimators):
+    pipe = T.tiny_ltx_pipeline(0)
+    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry=estimators[0], flow=estimators[1]) as handle:
+        assert (handle.geometry_estimator, handle.flow_estimator) == estimators
+    with pytest.raises(ValueError, match="not both"):
+        attach_geco_guidance(pipe, geometry=estimators[0], geometry_estimator=estimators[0], flow=estimators[1])

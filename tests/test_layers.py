@@ -1,20 +1,55 @@
-"""The import graph points down: geometry/types at the bottom, estimators and the loss beside each
-other on them, the sampler and the tools above (see README, "Layout")."""
+"""The house: the import graph of the package (module- and function-level imports) points down
+the floors of docs/architecture.md, with no circles, and scoring a video loads no diffusion code."""
 
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "geco_guide"
+ENTRY_POINTS = ("generate", "evaluate", "geco_eval", "detection", "validate", "robustness", "benchmarks")
+
+# Floors from the bottom up; a module imports its own subpackage or lower floors. Rooms on one
+# floor do not import each other (the metric never imports the sampler, nor bench perf).
+FLOORS = [
+    ["geco_guide", "geco_guide.geometry", "geco_guide.types", "geco_guide.io"],
+    ["geco_guide.loss", "geco_guide.estimators"],
+    ["geco_guide.metric", "geco_guide.sampler"],
+    ["geco_guide.config", "geco_guide.tiny"],
+    ["geco_guide.bench", "geco_guide.perf"],
+    ["geco_guide.cli"],
+    [f"geco_guide.{name}" for name in ENTRY_POINTS],
+]
+DIFFUSION_PACKAGES = ("diffusers", "transformers", "accelerate")
 
 
-def imported_modules(path: Path) -> set[str]:
-    """Absolute names of the geco_guide modules that ``path`` imports (relative imports resolved)."""
-    module = ".".join(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _type_checking_only(tree: ast.AST) -> set[int]:
+    """Line numbers of imports under ``if TYPE_CHECKING:`` (never executed)."""
+    lines: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING":
+            lines.update(n.lineno for stmt in node.body for n in ast.walk(stmt) if hasattr(n, "lineno"))
+    return lines
+
+
+def imported_modules(path: Path, *, external: bool = False) -> set[str]:
+    """Absolute names of the modules ``path`` imports anywhere in it (relative imports resolved,
+    ``from package import module`` counted as the module); geco_guide's, or the others'."""
+    module = module_name(path)
     package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
-    names = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    tree = ast.parse(path.read_text())
+    skip = _type_checking_only(tree)
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if getattr(node, "lineno", None) in skip:
+            continue
         if isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
@@ -22,27 +57,101 @@ def imported_modules(path: Path) -> set[str]:
             else:
                 target = node.module or ""
             names.add(target)
-            names.update(f"{target}.{alias.name}" for alias in node.names)
+            for alias in node.names:
+                candidate = f"{target}.{alias.name}"
+                if (PACKAGE.parent / (candidate.replace(".", "/") + ".py")).is_file() or (
+                        PACKAGE.parent / candidate.replace(".", "/")).is_dir():
+                    names.add(candidate)
         elif isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
+    if external:
+        return {n.split(".")[0] for n in names if not n.startswith("geco_guide")}
     return {n for n in names if n.startswith("geco_guide")}
 
 
-def imports_of(subpackage: str) -> dict[str, set[str]]:
-    return {str(p.relative_to(PACKAGE)): imported_modules(p) for p in (PACKAGE / subpackage).glob("*.py")}
+def floor_of(name: str) -> tuple[int, str]:
+    """(floor, room) of a module: the longest room name it lies in."""
+    best = max((room for floor in FLOORS for room in floor if name == room or name.startswith(room + ".")), key=len)
+    return next(i for i, floor in enumerate(FLOORS) if best in floor), best
 
 
-def test_geometry_and_types_import_nothing_of_the_package():
-    for name in ("geometry.py", "types.py"):
-        assert imported_modules(PACKAGE / name) == set(), name
+def sources() -> list[Path]:
+    return sorted(PACKAGE.rglob("*.py"))
 
 
-def test_estimators_and_loss_only_import_downwards():
-    allowed = ("geco_guide.geometry", "geco_guide.types")
-    for subpackage, own in (("estimators", "geco_guide.estimators"), ("loss", "geco_guide.loss")):
-        for path, names in imports_of(subpackage).items():
-            foreign = {n for n in names if not n.startswith((own, *allowed))}
-            # the one exception, for type annotations only: the loader's argument is the config's section
-            if path == "estimators/__init__.py":
-                foreign -= {"geco_guide.config", "geco_guide.config.EstimatorsConfig"}
-            assert not foreign, f"{path} imports {sorted(foreign)}"
+def graph() -> dict[str, set[str]]:
+    edges: dict[str, set[str]] = {}
+    known = {module_name(p) for p in sources()}
+    for path in sources():
+        targets = set()
+        for name in imported_modules(path):
+            while name not in known and "." in name:  # a name imported from a module: the module
+                name = name.rsplit(".", 1)[0]
+            targets.add(name)
+        edges[module_name(path)] = targets - {module_name(path)}
+    return edges
+
+
+def test_every_import_points_down_or_stays_in_its_room():
+    wrong = []
+    for source, targets in graph().items():
+        if source == "geco_guide":
+            continue  # the public facade: lazy names only (import_module), checked below
+        floor, room = floor_of(source)
+        for target in targets:
+            target_floor, target_room = floor_of(target)
+            if target_room != room and (target_floor > floor or (target_floor == floor and target_room != "geco_guide")):
+                wrong.append(f"{source} -> {target}")
+    assert not wrong, "imports that run up or sideways:\n" + "\n".join(sorted(wrong))
+
+
+def test_the_package_facade_imports_nothing_at_import_time():
+    assert graph()["geco_guide"] == set()
+
+
+def test_no_import_circles_lazy_imports_included():
+    edges = graph()
+    state: dict[str, int] = {}
+    circles = []
+
+    def visit(node: str, path: list[str]) -> None:
+        state[node] = 1
+        for target in sorted(edges.get(node, ())):
+            if target == "geco_guide":
+                continue
+            if state.get(target) == 1:
+                circles.append(" -> ".join(path[path.index(target):] + [target]))
+            elif target not in state:
+                visit(target, path + [target])
+        state[node] = 2
+
+    for node in sorted(edges):
+        if node not in state:
+            visit(node, [node])
+    assert not circles, "\n".join(circles)
+
+
+def test_the_metric_and_the_floors_below_import_no_diffusion_code():
+    for path in sources():
+        floor, room = floor_of(module_name(path))
+        if floor <= 1 or room == "geco_guide.metric":
+            found = imported_modules(path, external=True) & set(DIFFUSION_PACKAGES)
+            assert not found, f"{path.relative_to(PACKAGE)} imports {sorted(found)}"
+
+
+def test_scoring_a_video_with_the_public_api_loads_no_diffusers():
+    probe = ("import sys, geco_guide; geco_guide.GeCoLoss; geco_guide.evaluate_video; "
+             f"print(sorted(m for m in {DIFFUSION_PACKAGES!r} if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
+def test_the_top_of_the_package_is_small_and_no_source_file_is_long():
+    top = sorted(p.name for p in PACKAGE.glob("*.py"))
+    assert len(top) <= 12, top
+    long = {str(p.relative_to(PACKAGE.parent)): n for p in sources() if (n := len(p.read_text().splitlines())) > 800}
+    assert not long, long
+    scripts = PACKAGE.parent / "scripts"
+    long = {p.name: n for p in scripts.glob("*.py") if (n := len(p.read_text().splitlines())) > 800}
+    assert not long, long

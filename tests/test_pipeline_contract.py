@@ -90,7 +90,7 @@ def test_guided_pipeline_uses_the_schedulers_alpha_prev_like_the_hooks(spacing, 
     stock, ours = pair(estimators, scheduler)
     config = tiny_guidance_config(repeats="0x2,1x2", time_travel=[2, 3], eta=1.0, denoiser_grad=False)
     ours_out = call(ours, 1, guidance=config)
-    with attach_geco_guidance(stock, config, geometry=estimators[0], flow=estimators[1]) as handle:
+    with attach_geco_guidance(stock, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
         hooked = call(stock, 1).frames
     assert [e["t"] for e in handle.log] == [e["t"] for e in ours_out.guidance_log]
     for a, b in zip(handle.log, ours_out.guidance_log):

@@ -3,7 +3,12 @@ anchor slicing, noise-level arithmetic, the model-agnostic guided step and the g
 the CogVideoX pipeline and the hooks that guide other diffusers video pipelines (both imported
 lazily: they pull in diffusers)."""
 
-from .config import GuidanceConfig, fused_guidance_config, paper_guidance_config, resolve_guidance_config
+from .config import (
+    GuidanceConfig,
+    fused_guidance_config,
+    paper_guidance_config,
+    resolve_guidance_config,
+)
 from .context import GuidanceContext
 from .levels import FlowLevels, NoiseLevels, VPLevels, ddim_step, renoise, v_to_x0
 from .schedule import GuidanceSchedule, paper_schedule, parse_repeats, scale_schedule

@@ -374,12 +374,6 @@ def adapter_for(pipe) -> PipelineAdapter:
     """The adapter of ``pipe``'s class (the most derived registered base); ValueError listing the
     supported pipelines and how to register one otherwise."""
     _register_defaults()
-    from .pipeline_cogvideox import GeCoCogVideoXPipeline
-
-    if isinstance(pipe, GeCoCogVideoXPipeline):
-        raise ValueError(
-            "GeCoCogVideoXPipeline guides itself: pass guidance=... to its call instead of attaching a hook"
-        )
     for cls in type(pipe).__mro__:
         if cls in _REGISTRY:
             return _REGISTRY[cls]

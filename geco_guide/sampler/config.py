@@ -12,6 +12,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Optional
 
+from ..estimators.tiny_decoder import CONTEXT_LATENTS
 from ..loss.geco import GeCoLossConfig
 from ..loss.presets import fused_guidance_loss, guidance_loss
 from ..types import OptionError, merge_dataclass, non_finite_fields
@@ -29,6 +30,7 @@ PAPER_ANCHORS = (12, 24, 36, 48)
 # video at 480x720 (the paper: 3). Larger values only overflow the latents to NaN/inf after
 # minutes of sampling (a black video), so they are refused at once.
 MAX_ETA = 1000.0
+DECODERS = ("vae", "tiny")
 
 
 
@@ -58,6 +60,12 @@ class GuidanceConfig:
             The CogVideoX-5B VAE needs it at 480x720 (docs/benchmarks.md); ``False`` batches the
             chunks in one decode and keeps everything (fastest, for small videos).
         grad_eps: ``eps`` of the normalised update.
+        decoder: what decodes the anchor frames for the loss: ``vae`` (the model's own VAE,
+            exact) or ``tiny`` (an approximation: a :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder`
+            trained on the model's latents, a few percent of the VAE's cost; its chunks are
+            :data:`~geco_guide.estimators.tiny_decoder.CONTEXT_LATENTS` long). The final video
+            always comes from the VAE. See docs/performance.md for what it saves and how to
+            measure what it costs in fidelity.
         loss: the GeCo loss options (default :func:`~geco_guide.loss.presets.guidance_loss`); the
             structure cue only gives gradients with ``loss.geometry_grad=True``, since it depends
             on the frames only through the geometry estimator: ``cue="structure"`` with
@@ -74,6 +82,7 @@ class GuidanceConfig:
     gradient_checkpointing: bool = True
     vae_checkpointing: bool = True
     grad_eps: float = 1e-8
+    decoder: str = "vae"
     loss: GeCoLossConfig = field(default_factory=guidance_loss)
 
     def __post_init__(self) -> None:
@@ -85,6 +94,8 @@ class GuidanceConfig:
             raise OptionError("grad_eps", f"must be > 0, got {self.grad_eps}")
         if self.chunk_latents < 2:
             raise OptionError("chunk_latents", f"must be >= 2, got {self.chunk_latents}")
+        if self.decoder not in DECODERS:
+            raise OptionError("decoder", f"must be one of {DECODERS}, got {self.decoder!r}")
 
     def schedule(self, num_steps: int) -> GuidanceSchedule:
         """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see
@@ -104,8 +115,10 @@ class GuidanceConfig:
 
     def anchor_chunks(self, num_frames: int, temporal_compression: int) -> list[AnchorChunk]:
         """The causal latent chunk of each anchor of a ``num_frames`` video (ValueError for anchors
-        the video cannot contain)."""
-        return anchor_latent_chunks(self.anchors, num_frames, temporal_compression, self.chunk_latents)
+        the video cannot contain): ``chunk_latents`` long for the VAE, the tiny decoder's context
+        for it."""
+        length = self.chunk_latents if self.decoder == "vae" else CONTEXT_LATENTS
+        return anchor_latent_chunks(self.anchors, num_frames, temporal_compression, length)
 
     def validate(self, num_steps: int, num_frames: int,
                  temporal_compression: int) -> tuple[GuidanceSchedule, list[AnchorChunk]]:

@@ -53,6 +53,28 @@ def gradient_checkpointing(model: Any, enable: bool):
         model.disable_gradient_checkpointing()
 
 
+def anchor_decoder(config: GuidanceConfig, vae_decode: Callable[[Tensor], Tensor], guidance_decoder: Any,
+                   vae_config: Any) -> Callable[[Tensor], Tensor]:
+    """The chunk decode of the loss' anchor frames: ``vae_decode`` with ``decoder="vae"``; with
+    ``"tiny"`` the tiny decoder on the pipeline's latents ``[N, F, C, h, w]``, in its family's
+    convention taken from the VAE config (CogVideoX's divided by ``scaling_factor``, Wan's and
+    HunyuanVideo's as they are). ValueError (one line) for a missing or mismatched decoder."""
+    if config.decoder == "vae":
+        return vae_decode
+    if guidance_decoder is None:
+        raise ValueError(
+            "guidance.decoder='tiny' needs a tiny decoder: pass guidance_decoder=TinyDecoder.from_pretrained(PATH) "
+            "(weights such as taecvx.pth from github.com/madebyollin/taehv), or use guidance.decoder=vae"
+        )
+    channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)  # CogVideoX, Wan
+    if channels is not None and guidance_decoder.latent_channels != channels:
+        raise ValueError(
+            f"the tiny decoder ({guidance_decoder.variant.name}) takes {guidance_decoder.latent_channels} latent "
+            f"channels but this VAE makes {channels}: load the tiny decoder trained for this model"
+        )
+    return lambda latents: guidance_decoder.decode(guidance_decoder.pipeline_latents(latents, vae_config, layout="NTCHW"))
+
+
 class GuidanceContext:
     """Guidance state of one pipeline call.
 

@@ -1,8 +1,8 @@
 """Attach GeCo guidance to stock diffusers video pipelines, without copying their code.
 
-``attach_geco_guidance(pipe, config, geometry=..., flow=...)`` installs three things on the
-pipeline *instance* and returns a handle whose ``detach()`` (or the end of its ``with`` block)
-removes them again, leaving the pipeline exactly as it was:
+``attach_geco_guidance(pipe, config, geometry_estimator=..., flow_estimator=...)`` installs three
+things on the pipeline *instance* and returns a handle whose ``detach()`` (or the end of its
+``with`` block) removes them again, leaving the pipeline exactly as it was:
 
 1. ``pipe.prepare_latents`` is wrapped (an instance attribute over the class method): every call
    of the pipeline goes through it before its first denoising step. The hook reads the frame
@@ -62,7 +62,8 @@ from .adapters import (
     noise_levels,
 )
 from .config import GuidanceConfig, resolve_guidance_config
-from .context import GuidanceContext
+from .context import GuidanceContext, anchor_decoder
+from .pipeline_cogvideox import GeCoCogVideoXPipeline
 from .slicing import AnchorChunk
 
 __all__ = ["GeCoGuidanceHandle", "attach_geco_guidance"]
@@ -194,8 +195,10 @@ class GeCoGuidanceHandle:
         geometry: the :class:`~geco_guide.sampler.adapters.CallGeometry` of the last call.
     """
 
-    def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, geometry_estimator, flow_estimator):
+    def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, geometry_estimator, flow_estimator,
+                 decoder=None):
         self.pipe = pipe
+        self.decoder = decoder
         self.adapter = adapter
         self.config = config
         self.geometry_estimator = geometry_estimator
@@ -299,6 +302,7 @@ class GeCoGuidanceHandle:
         check_no_denoiser_cache(self.adapter.denoisers(self.pipe))
         chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
         check_scheduler(self.pipe.scheduler)
+        anchor_decoder(config, None, self.decoder, self.pipe.vae.config)
         self._state = _CallState(geometry, chunks, args.get("generator"), config)
 
     def _pre_hook(self, module, args, kwargs):
@@ -311,7 +315,8 @@ class GeCoGuidanceHandle:
             check_scheduler(pipe.scheduler)
             state.context = GuidanceContext(
                 state.config, state.config.schedule(len(pipe.scheduler.timesteps)), state.chunks,
-                decode_chunk=functools.partial(adapter.decode, pipe),
+                decode_chunk=anchor_decoder(state.config, functools.partial(adapter.decode, pipe), self.decoder,
+                                            pipe.vae.config),
                 latent_frames=functools.partial(adapter.frames_first, pipe, geometry=state.geometry),
                 geometry_estimator=self.geometry_estimator, flow_estimator=self.flow_estimator,
                 generator=state.generator, log=self.log,
@@ -362,17 +367,26 @@ class GeCoGuidanceHandle:
                 self._replaying = False
 
         denoisers = {id(c.module): c.module for c in calls}.values()
-        with context.models(denoisers, pipe.vae, adapter.frozen_modules(pipe)):
+        with context.models(denoisers, pipe.vae, [*adapter.frozen_modules(pipe), self.decoder]):
             z, out = context.guide(sample, predict, noise_levels(scheduler, timestep, i), i, int(timestep))
         return z.to(sample.device), out.to(sample.device)
+
+
+def _one_of(value: Any, old: Any, name: str, old_name: str) -> Any:
+    if value is not None and old is not None:
+        raise ValueError(f"pass {name}= or its earlier name {old_name}=, not both")
+    return value if value is not None else old
 
 
 def attach_geco_guidance(
     pipe,
     config: GuidanceConfig | Mapping[str, Any] | None = None,
     *,
-    geometry: GeometryEstimator,
-    flow: FlowEstimator,
+    geometry_estimator: GeometryEstimator | None = None,
+    flow_estimator: FlowEstimator | None = None,
+    geometry: GeometryEstimator | None = None,
+    flow: FlowEstimator | None = None,
+    decoder: Any = None,
 ) -> GeCoGuidanceHandle:
     """Guide every following call of a stock diffusers video pipeline with GeCo.
 
@@ -384,7 +398,12 @@ def attach_geco_guidance(
         config: a :class:`GuidanceConfig` or a dict of fields over the default one. Its
             ``repeats`` schedule must cover the call's ``num_inference_steps``; its anchors are
             pixel frames of the output video.
-        geometry, flow: the GeCo loss' estimators (e.g. ``VGGT``, ``UFM``).
+        geometry_estimator, flow_estimator: the GeCo loss' estimators (e.g. ``VGGT``, ``UFM``), as
+            the components of ``GeCoCogVideoXPipeline`` are named; ``geometry=`` / ``flow=`` are
+            the same arguments under their earlier names.
+        decoder: the tiny decoder of ``config.decoder="tiny"``
+            (:class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` of the pipeline's family):
+            it decodes the loss' anchor frames; the video is always the VAE's.
 
     Returns:
         A :class:`GeCoGuidanceHandle`; ``handle.detach()`` (or leaving ``with handle:``)
@@ -392,19 +411,26 @@ def attach_geco_guidance(
 
     Raises:
         ValueError: an unsupported pipeline (naming the supported ones and how to register an
-            adapter), missing estimators, or a pipeline that already has GeCo guidance attached.
+            adapter), missing estimators (or one given under both names), or a pipeline that
+            already has GeCo guidance attached.
     """
+    if isinstance(pipe, GeCoCogVideoXPipeline):
+        raise ValueError(
+            "GeCoCogVideoXPipeline guides itself: pass guidance=... to its call instead of attaching a hook"
+        )
+    geometry_estimator = _one_of(geometry_estimator, geometry, "geometry_estimator", "geometry")
+    flow_estimator = _one_of(flow_estimator, flow, "flow_estimator", "flow")
     adapter = adapter_for(pipe)
     config = resolve_guidance_config(None, config)
-    missing = missing_estimators(geometry, flow)
+    missing = missing_estimators(geometry_estimator, flow_estimator)
     if missing:
         raise ValueError(
             f"GeCo guidance needs the {' and '.join(missing)} estimator(s): "
-            "attach_geco_guidance(pipe, geometry=..., flow=...)"
+            "attach_geco_guidance(pipe, geometry_estimator=..., flow_estimator=...)"
         )
     current = pipe.__dict__.get("prepare_latents")
     if getattr(current, "_geco_handle", None) is not None:
         raise ValueError("this pipeline already has GeCo guidance attached; detach() it first")
-    handle = GeCoGuidanceHandle(pipe, adapter, config, geometry, flow)
+    handle = GeCoGuidanceHandle(pipe, adapter, config, geometry_estimator, flow_estimator, decoder)
     handle._attach()
     return handle

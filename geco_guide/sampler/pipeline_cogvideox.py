@@ -37,7 +37,7 @@ from torch import Tensor, nn
 from ..types import FlowEstimator, GeometryEstimator, missing_estimators
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .config import GuidanceConfig, resolve_guidance_config
-from .context import GuidanceContext
+from .context import GuidanceContext, anchor_decoder
 from .slicing import (
     check_num_frames,
     check_paired_latent_frames,
@@ -72,9 +72,11 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
     Components: the stock ``tokenizer``, ``text_encoder``, ``vae``, ``transformer``, ``scheduler``
     (any of them may be ``None``, as in the stock pipeline), plus the optional
-    ``geometry_estimator`` (e.g. VGGT) and ``flow_estimator`` (e.g. UFM), and ``guidance_config``:
-    the default :class:`GuidanceConfig` (a dict of its fields works too), kept in the pipeline's
-    config so that ``save_pretrained`` / ``from_pretrained`` round-trip it.
+    ``geometry_estimator`` (e.g. VGGT) and ``flow_estimator`` (e.g. UFM), the optional
+    ``guidance_decoder`` (a :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder`, used for the
+    loss' anchor frames with ``guidance.decoder="tiny"``; the video is always the VAE's), and
+    ``guidance_config``: the default :class:`GuidanceConfig` (a dict of its fields works too), kept
+    in the pipeline's config so that ``save_pretrained`` / ``from_pretrained`` round-trip it.
 
     The scheduler is the one given, kept as is: the paper samples with deterministic DDIM, so
     choose ``CogVideoXDDIMScheduler.from_config(pipe.scheduler.config)`` for its setting (the
@@ -92,11 +94,11 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         out.frames, out.guidance_log
     """
 
-    _optional_components = ["geometry_estimator", "flow_estimator"]
+    _optional_components = ["geometry_estimator", "flow_estimator", "guidance_decoder"]
     #: What one guided call's guidance is made of; profilers substitute a subclass.
     guidance_context_class = GuidanceContext
-    _exclude_from_cpu_offload = ["geometry_estimator", "flow_estimator"]
-    _estimator_names = ("geometry_estimator", "flow_estimator")
+    _exclude_from_cpu_offload = ["geometry_estimator", "flow_estimator", "guidance_decoder"]
+    _guidance_modules = ("geometry_estimator", "flow_estimator", "guidance_decoder")
 
     def __init__(
         self,
@@ -108,11 +110,13 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         geometry_estimator: GeometryEstimator | None = None,
         flow_estimator: FlowEstimator | None = None,
         guidance_config: GuidanceConfig | Mapping[str, Any] | None = None,
+        guidance_decoder: nn.Module | None = None,
     ):
         super().__init__(tokenizer=tokenizer, text_encoder=text_encoder, vae=vae, transformer=transformer, scheduler=scheduler)
         # Optional components: in ``components``, moved by ``to()`` (device only) and placed on the
         # execution device by ``enable_model_cpu_offload`` / ``enable_sequential_cpu_offload``.
-        self.register_modules(geometry_estimator=geometry_estimator, flow_estimator=flow_estimator)
+        self.register_modules(geometry_estimator=geometry_estimator, flow_estimator=flow_estimator,
+                              guidance_decoder=guidance_decoder)
         self.guidance_config = guidance_config  # a GuidanceConfig, and its dict in the config (__setattr__)
 
     def __setattr__(self, name: str, value: Any) -> None:
@@ -132,8 +136,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
     @contextlib.contextmanager
     def _estimators_hidden(self):
-        """The estimators out of sight of DiffusionPipeline's ``to``/``save_pretrained`` for a moment."""
-        saved = {name: getattr(self, name, None) for name in self._estimator_names}
+        """The estimators and the tiny decoder out of sight of DiffusionPipeline's ``to``/``save_pretrained`` for a moment."""
+        saved = {name: getattr(self, name, None) for name in self._guidance_modules}
         self.register_modules(**{name: None for name in saved})
         try:
             yield saved
@@ -141,7 +145,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             self.register_modules(**saved)
 
     def _model_components(self) -> list[nn.Module]:
-        names = [n for n in self._get_signature_keys(self)[0] if n not in self._estimator_names]
+        names = [n for n in self._get_signature_keys(self)[0] if n not in self._guidance_modules]
         return [m for m in (getattr(self, n, None) for n in names) if isinstance(m, nn.Module)]
 
     @property
@@ -222,6 +226,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 f"GeCo guidance needs {' and '.join(missing)}: pass them to from_pretrained(..., "
                 "geometry_estimator=..., flow_estimator=...) or to the call, or call with guidance=False"
             )
+        anchor_decoder(guidance, None, self.guidance_decoder, self.vae.config)
         return schedule, chunks
 
     # ------------------------------------------------------------------------------------------
@@ -399,7 +404,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         if config.enabled:
             geco = self.guidance_context_class(
                 config, schedule, chunks,
-                decode_chunk=partial(decode_chunk, self.vae, scaling_factor=self.vae_scaling_factor_image),
+                decode_chunk=anchor_decoder(config, partial(decode_chunk, self.vae, scaling_factor=self.vae_scaling_factor_image),
+                                            self.guidance_decoder, self.vae.config),
                 latent_frames=lambda x0: x0[:, additional_frames:],
                 geometry_estimator=geometry_estimator, flow_estimator=flow_estimator, generator=generator,
             )
@@ -408,7 +414,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         num_warmup_steps = max(len(timesteps) - num_inference_steps * self.scheduler.order, 0)
         step_values = [int(v) for v in timesteps.tolist()]  # host copies: the guided steps add no device sync
         with (
-            geco.models([self.transformer], self.vae, [self.text_encoder]) if geco else contextlib.nullcontext(),
+            geco.models([self.transformer], self.vae, [self.text_encoder, self.guidance_decoder]) if geco else contextlib.nullcontext(),
             self.progress_bar(total=num_inference_steps) as progress_bar,
         ):
             if geco:
