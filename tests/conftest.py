@@ -1,8 +1,8 @@
 """Shared test fixtures: the VGGT / UFM parity fixtures (spec section 7), shipped in tests/fixtures/.
 
-They are copies of ``../shared/fixtures/*.pt`` (tiny configurations, state dicts under upstream key
-names, inputs, reference outputs), kept in the repository so that every clone runs the parity
-tests; ``test_fixtures_match_the_shared_copies`` notices when the shared ones change.
+Tiny configurations, state dicts under upstream key names, inputs and reference outputs, kept in
+the repository so that every clone runs the parity tests; ``test_parity_fixtures_are_the_reference_files``
+notices a fixture changed by accident.
 """
 
 from __future__ import annotations

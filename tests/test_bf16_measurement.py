@@ -1,4 +1,4 @@
-"""Issue 12: the README's figure for bf16 latents comes from scripts/measure_bf16_update.py."""
+"""The documented figure for bf16 latents comes from scripts/measure_bf16_update.py."""
 
 import importlib.util
 from pathlib import Path
@@ -15,7 +15,7 @@ def test_bf16_rounding_keeps_the_update_on_average_and_adds_noise():
     out = module.measure(trials=1)
     r = out["results"]
     assert out["update_rms_per_entry"] == pytest.approx(3 / 1123200**0.5)
-    # the part along the update survives (the README: 100 % after a step, 92 % for a round trip) ...
+    # the part along the update survives (docs/guidance.md: 100 % after a step, 92 % for a round trip) ...
     assert r["gaussian/after_ddim_step"]["along"] == pytest.approx(1.0, abs=0.02)
     assert r["gaussian/round_trip"]["along"] == pytest.approx(0.92, abs=0.03)
     # ... with rounding noise of 30-80 % of its norm, 17-38 degrees off

@@ -21,7 +21,7 @@ def test_schema_defaults_are_the_paper():
     assert g.repeats == "0x3,3x17,2x30" and g.eta == 3.0 and g.time_travel == [15, 20]
     assert g.denoiser_grad and g.enabled
     assert isinstance(g.loss, GeCoLossConfig)
-    # the paper's experiment (issue 12): residual motion, depth and cameras constant in the update
+    # the paper's experiment: residual motion, depth and cameras constant in the update
     assert g.loss.cue == "motion" and g.loss.pairs == "adjacent" and g.loss.flow_downscale == 0.5
     assert not g.loss.geometry_grad and s.scheduler == "ddim"
 

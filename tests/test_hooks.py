@@ -189,7 +189,7 @@ def test_unipc_corrector_keeps_the_guided_update():
         ("ltx", dict(anchors=[8, 16]), {}, "out of range for a 9-frame video"),  # r = 8
         ("cogvideox", dict(anchors=[0, 8]), {}, "latent 0"),
         ("cogvideox", {}, dict(num_frames=13), "even number of latents"),
-        # (runs are scaled to other step counts since issue 12; a per-step list must match)
+        # (runs are scaled to other step counts; a per-step list must match)
         ("hunyuan", dict(repeats=[0, 0, 0, 1, 1]), {}, "covers 5 steps but the sampler runs 4"),
         ("cogvideox", dict(loss=GeCoLossConfig(cue="structure", geometry_grad=False)), {},
          "geometry_grad=true"),
@@ -268,7 +268,7 @@ def test_ltx_guidance_rescale_is_rebuilt_and_wrong_combinations_fail_loudly(esti
             run(pipe, guidance_rescale=0.7)
 
 
-# ---- issue 12: the wrapped scheduler.step keeps the scheduler's call contract ------------------
+# ---- the wrapped scheduler.step keeps the scheduler's call contract ----------------------------
 
 
 def test_wrapped_step_keeps_the_signature_pipelines_inspect(estimators):
@@ -317,7 +317,7 @@ def test_eta_reaches_a_ddim_scheduler_through_the_hook(estimators):
 
 
 def test_denoiser_cache_is_refused_before_any_denoising_step(estimators):
-    # issue 12: with guidance on, a cache would count the guidance's denoiser calls as steps
+    # with guidance on, a cache would count the guidance's denoiser calls as steps
     from diffusers import FasterCacheConfig
 
     pipe = T.tiny_cogvideox_pipeline(0)

@@ -291,7 +291,7 @@ def test_guidance_needs_estimators_but_unguided_does_not():
 
 
 def test_from_pretrained_takes_estimators_and_keeps_the_checkpoints_scheduler(tmp_path, pipe):
-    # issue 12: the scheduler the checkpoint ships (CogVideoXDPMScheduler for CogVideoX-5B) is kept;
+    # the scheduler the checkpoint ships (CogVideoXDPMScheduler for CogVideoX-5B) is kept;
     # the paper's DDIM is chosen explicitly (the cogvideox-5b preset does, see test_presets.py)
     from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 

@@ -1,4 +1,4 @@
-"""GeCoCogVideoXPipeline as a drop-in diffusers CogVideoXPipeline (issue 12), tiny models on CPU.
+"""GeCoCogVideoXPipeline as a drop-in diffusers CogVideoXPipeline, tiny models on CPU.
 
 With guidance off the call must be the stock call in every respect; with guidance on every
 contract but the output values holds, or the combination is refused up front in one line. Each
@@ -70,7 +70,7 @@ def ddim_settings(**changes):
     return dict(tiny_cogvideox_components(0)["scheduler"].config, **changes)
 
 
-# ---- issue 12 section 2: the scheduler's own rule, eta and generator ---------------------------
+# ---- the scheduler's own rule, eta and generator -----------------------------------------------
 
 
 @pytest.mark.parametrize("spacing", ["linspace", "leading", "trailing"])
@@ -112,7 +112,7 @@ def test_eta_and_generator_reach_the_scheduler_step(estimators):
     assert torch.equal(a, b) and not torch.equal(a, deterministic)
 
 
-# ---- issue 12 section 3: guidance off behaves as the stock pipeline ---------------------------
+# ---- guidance off behaves as the stock pipeline -----------------------------------------------
 
 
 def test_inference_with_8_frames_and_guidance_off(estimators):

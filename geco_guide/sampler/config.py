@@ -57,7 +57,7 @@ class GuidanceConfig:
         vae_checkpointing: decode the anchor chunks one at a time in checkpointed regions, with
             the VAE's own block checkpointing inside (where the VAE supports it): the backward
             then holds one chunk's decode instead of all of them, for extra forward decodes.
-            The CogVideoX-5B VAE needs it at 480x720 (docs/benchmarks.md); ``False`` batches the
+            The CogVideoX-5B VAE needs it at 480x720 (docs/performance.md); ``False`` batches the
             chunks in one decode and keeps everything (fastest, for small videos).
         grad_eps: ``eps`` of the normalised update.
         decoder: what decodes the anchor frames for the loss: ``vae`` (the model's own VAE,

@@ -22,6 +22,13 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+class ScheduleScaledWarning(UserWarning):
+    """A schedule written for another step count was scaled (the message names the result)."""
+
+
+# One config is often checked more than once before a run (config, then pipeline): say it once.
+warnings.filterwarnings("once", category=ScheduleScaledWarning)
+
 PAPER_REPEATS = "0x3,3x17,2x30"
 PAPER_ETA = 3.0
 PAPER_TIME_TRAVEL = (15, 20)
@@ -105,7 +112,7 @@ def scale_schedule(
         f"{new_repeats!r}, time_travel {list(time_travel) if time_travel else None} -> "
         f"{list(new_window) if new_window else None} (phases scaled in proportion; give one R_t per step to set "
         "them exactly)",
-        UserWarning,
+        ScheduleScaledWarning,
         stacklevel=3,
     )
     return new_repeats, new_window

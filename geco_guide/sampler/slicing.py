@@ -169,7 +169,7 @@ def decode_anchor_frames(
     three latents: one call instead of four), which is fastest; batching is exact for the VAEs
     supported here, which normalise and convolve each video separately. But a differentiated
     decode keeps every activation of every chunk until the backward: for the CogVideoX-5B VAE at
-    480x720 that is far more than a GPU holds (see docs/benchmarks.md). ``checkpoint_chunks``
+    480x720 that is far more than a GPU holds (see docs/performance.md). ``checkpoint_chunks``
     decodes one chunk per call, each in its own checkpointed region: the forward keeps only the
     chunk's latents, and the backward re-decodes the chunks one at a time (autograd finishes the
     last-created region before it starts the previous one), for one extra forward decode per
