@@ -1,17 +1,25 @@
-"""Smoke test of scripts/benchmark.py: both subcommands run at a tiny size and write sane JSON.
+"""The performance harness: geco_guide.perf and its command line, scripts/benchmark.py.
 
-No timing thresholds: only the report's structure and that the numbers are positive. The two
-commands run concurrently to keep the test short (every case imports torch in its own process).
+The subcommands run at a tiny size and write sane JSON; no timing thresholds, only the report's
+structure and that the numbers are positive. The micro-benchmarks run concurrently to keep the
+test short (every case imports torch in its own process). Bad options are one error line before
+any work (checked in-process: nothing runs).
 """
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+import torch
+
+from geco_guide.perf import cost, models, profile, sampling
+from geco_guide.sampler.context import GuidanceContext
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmark.py"
 FAST = ["--threads", "1", "--warmup", "0", "--repeats", "1"]
@@ -105,7 +113,8 @@ BREAKDOWN_KEYS = {
 
 @pytest.fixture(scope="module")
 def sampling_report(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """2 steps of the tiny preset in fast mode (the compressed paper schedule gives R = 0, 2)."""
+    """2 steps of the tiny preset in fast mode (the paper schedule scaled to 2 steps gives R = 3, 2,
+    time travel in step 1)."""
     path = tmp_path_factory.mktemp("sampling") / "sampling.json"
     proc = subprocess.run(
         [sys.executable, str(SCRIPT), "sampling", "--preset", "tiny", "--mode", "fast", "--steps", "2",
@@ -122,7 +131,7 @@ def test_sampling_report(sampling_report: dict) -> None:
             "extrapolated", "config", "wall_time_s", "time_per_step_s"} <= set(report)
     assert report["device"] == "cpu" and report["mode"] == "fast" and report["preset"] == "tiny"
     assert report["steps"] == 2 and report["extrapolated"] is True and report["ratio_basis"] == "extrapolated"
-    assert report["config"]["guidance"]["repeats"] == "0,2" and report["config"]["guidance"]["denoiser_grad"] is False
+    assert report["config"]["guidance"]["repeats"] == "3x1,2x1" and report["config"]["guidance"]["denoiser_grad"] is False
     assert report["ratio_guided_over_unguided"] > 0
     assert report["peak_memory_gb"] > 0 and report["peak_memory_gb_unguided"] > 0
     for arm in ("guided", "unguided"):
@@ -136,13 +145,15 @@ def test_sampling_report(sampling_report: dict) -> None:
                 "vae_final_decode_s", "vggt_forward_s", "vggt_backward_s", "ufm_forward_s", "ufm_backward_s",
                 "guided_updates_s"):
         assert breakdown[key] > 0, key
-    # fast mode: the denoiser is never differentiated and runs once per step (in step 1 inside the
-    # first update, whose prediction the second update and the DDIM step reuse); per update, one
-    # decode of anchor 4's 2-latent chunk and one of the other three 3-latent chunks together
+    # fast mode: the denoiser is never differentiated. Step 0 (R = 3) predicts once, inside its
+    # first update, and the other updates and the DDIM step reuse it; step 1 (R = 2, time travel)
+    # predicts in its first update, again in the second after the re-noising, and once after it:
+    # 4 forwards, 3 inside updates. Per update (5), one decode of anchor 4's 2-latent chunk and one
+    # of the other three 3-latent chunks together, one VGGT and one UFM call
     assert breakdown["denoiser_backward_s"] == 0
     counts = breakdown["counts"]
-    assert counts == {"denoiser_forwards": 2, "denoiser_forwards_in_updates": 1, "denoiser_backwards": 0,
-                      "vae_slice_decodes": 4, "vggt_calls": 2, "ufm_calls": 2}
+    assert counts == {"denoiser_forwards": 4, "denoiser_forwards_in_updates": 3, "denoiser_backwards": 0,
+                      "vae_slice_decodes": 10, "vggt_calls": 5, "ufm_calls": 5}
     # the stages inside the updates never add up to more than the updates themselves
     profile = report["arms"]["guided"]["profile"]
     assert 0 < profile["attributed_in_updates_s"] <= profile["updates_s"]
@@ -154,18 +165,11 @@ def test_sampling_report(sampling_report: dict) -> None:
 
 def test_full_size_pipeline_on_meta() -> None:
     """The --full-size parts build on the meta device (nothing allocated) with the published configs."""
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import benchmark
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
-    import torch
-
     from geco_guide.estimators.ufm import UFM, UFMConfig
     from geco_guide.estimators.vggt import VGGT, VGGTConfig
     from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
-    components = benchmark.build_full_size_components("meta", torch.bfloat16)
+    components = models.build_full_size_components("meta", torch.bfloat16)
     transformer, vae = components["transformer"], components["vae"]
     for model in (transformer, vae):
         assert all(p.device.type == "meta" and p.dtype == torch.bfloat16 for p in model.parameters())
@@ -192,27 +196,21 @@ def test_full_size_pipeline_on_meta() -> None:
     assert (pipe.vae_scale_factor_spatial, pipe.vae_scale_factor_temporal, pipe.vae_scaling_factor_image) == (8, 4, 0.7)
 
 
-def test_compressed_schedule() -> None:
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import benchmark
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
+def test_scaled_paper_schedule() -> None:
+    """The harness scales the paper schedule by the package's rule (scale_schedule: phase boundaries
+    rounded, b -> round(b * N / 50)); identity at 50."""
     from geco_guide.sampler.schedule import PAPER_REPEATS, parse_repeats
 
-    assert benchmark.compressed_paper_schedule(50) == (parse_repeats(PAPER_REPEATS), [15, 20])
-    assert benchmark.compressed_paper_schedule(2) == ([0, 2], None)
-    assert benchmark.compressed_paper_schedule(10) == ([0, 3, 3, 3, 2, 2, 2, 2, 2, 2], [3, 4])
+    assert sampling.paper_schedule_for(50) == (PAPER_REPEATS, [15, 20])
+    repeats, window = sampling.paper_schedule_for(2)
+    assert (parse_repeats(repeats), window) == ([3, 2], [1, 1])
+    repeats, window = sampling.paper_schedule_for(10)
+    assert (parse_repeats(repeats), window) == ([0, 3, 3, 3, 2, 2, 2, 2, 2, 2], [3, 3])
 
 
 def test_update_windows_run_back_to_back_from_each_step_start() -> None:
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import benchmark
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
     log = [{"step": 1, "seconds": 0.5}, {"step": 1, "seconds": 0.25}, {"step": 2, "seconds": 1.0}]
-    windows = benchmark.update_windows(10.0, [11.0, 13.0, 16.0], log)
+    windows = profile.update_windows(10.0, [11.0, 13.0, 16.0], log)
     assert windows == [(11.0, 11.5), (11.5, 11.75), (13.0, 14.0)]
 
 
@@ -225,17 +223,10 @@ def test_full_size_refused_on_cpu() -> None:
 def test_stage_profiler_backward_intervals() -> None:
     """Two chained stages: each gets one forward and one backward interval; the backward of the
     later stage runs (and is attributed) before the earlier one's, without overlap."""
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import benchmark
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
-    import torch
-
     first, second = torch.nn.Linear(8, 8), torch.nn.Linear(8, 8)
     for p in [*first.parameters(), *second.parameters()]:
         p.requires_grad_(False)
-    profiler = benchmark.StageProfiler(torch.device("cpu"))
+    profiler = profile.StageProfiler(torch.device("cpu"))
     profiler.wrap(first, "forward", "a")
     profiler.wrap(second, "forward", "b")
     x = torch.randn(4, 8, requires_grad=True)
@@ -251,27 +242,15 @@ def test_stage_profiler_backward_intervals() -> None:
     assert b["bwd_start"] <= b["bwd_end"] <= a["bwd_start"] <= a["bwd_end"]
     kinds = sorted((iv["stage"], iv["kind"]) for iv in profiler.intervals())
     assert kinds == [("a", "backward"), ("a", "forward"), ("a", "forward"), ("b", "backward"), ("b", "forward"), ("b", "forward")]
-    assert benchmark._union_seconds([(0.0, 2.0), (1.0, 3.0), (5.0, 6.0)]) == 4.0
+    assert profile.union_seconds([(0.0, 2.0), (1.0, 3.0), (5.0, 6.0)]) == 4.0
 
 
 # ---- cost: FLOPs and memory on fake tensors ----------------------------------------------------
 
 
-def _benchmark_module():
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import benchmark
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
-    return benchmark
-
-
 def test_cost_tracker_counts_flops_and_live_memory() -> None:
     """On real tensors: a matmul's FLOPs, and memory that follows allocations and frees."""
-    import torch
-
-    benchmark = _benchmark_module()
-    tracker = benchmark.CostTracker()
+    tracker = cost.CostTracker()
     with tracker.mode():
         a = torch.ones(1024)  # 4 KiB
         b = a * 2  # 8 KiB live
@@ -288,26 +267,24 @@ def test_cost_tracker_counts_flops_and_live_memory() -> None:
 
 def test_cost_schedule_counts_at_paper_schedule() -> None:
     """The real guided_step driven by counting stubs: 111 updates; faithful makes 111
-    differentiated denoiser calls and 50 without gradients, fast 67 (docs/benchmarks.md)."""
+    differentiated denoiser calls and 50 without gradients, fast 67 (docs/performance.md)."""
     from geco_guide.sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
 
-    benchmark = _benchmark_module()
     settings = {"preset": "full", "frames": 49, "steps": 50, "repeats": PAPER_REPEATS,
                 "time_travel": list(PAPER_TIME_TRAVEL), "chunk_latents": None, "vae_checkpointing": None,
                 "denoiser_checkpointing": None}
-    faithful = benchmark.count_schedule_calls("faithful", settings)
-    fast = benchmark.count_schedule_calls("fast", settings)
+    faithful = cost.count_schedule_calls("faithful", settings)
+    fast = cost.count_schedule_calls("fast", settings)
     assert faithful == {"steps": 50, "updates": 111, "denoiser_cfg": 50, "denoiser_grad": 111, "time_travel_updates": 17}
     assert fast == {"steps": 50, "updates": 111, "denoiser_cfg": 67, "denoiser_grad": 0, "time_travel_updates": 17}
-    no_tt = benchmark.count_schedule_calls("fast", {**settings, "time_travel": None})
+    no_tt = cost.count_schedule_calls("fast", {**settings, "time_travel": None})
     assert no_tt["denoiser_cfg"] == 50 and no_tt["updates"] == 111
-    assert benchmark.count_schedule_calls("unguided", settings)["denoiser_cfg"] == 50
+    assert cost.count_schedule_calls("unguided", settings)["denoiser_cfg"] == 50
 
 
 def test_cost_tiny_denoiser_step_equals_independent_count() -> None:
     """The cost model's FLOPs of one tiny CFG denoiser call (fake tensors, through the pipeline)
     equal FlopCounterMode's on real tensors with the math attention backend (attention as bmm)."""
-    import torch
     from torch.nn.attention import SDPBackend, sdpa_kernel
     from torch.utils.flop_counter import FlopCounterMode
 
@@ -319,11 +296,10 @@ def test_cost_tiny_denoiser_step_equals_independent_count() -> None:
         tiny_pipeline,
     )
 
-    benchmark = _benchmark_module()
     settings = {"preset": "tiny", "frames": TINY_NUM_FRAMES, "height": TINY_HEIGHT, "width": TINY_WIDTH,
                 "dtype": "float32", "seed": 0, "vae_tiling": False, "estimator_checkpointing": False,
                 "chunk_latents": None, "vae_checkpointing": None, "denoiser_checkpointing": None}
-    trace = benchmark.trace_cost(settings, "unguided")
+    trace = cost.trace_cost(settings, "unguided")
     cfg = trace["stages"]["denoiser_cfg"]
     assert cfg["calls"] == 1 and "backward" not in cfg
 
@@ -381,3 +357,130 @@ def test_zero_steps_is_one_error_line(command):
     """--steps 0 used to run the default 50 steps (0 is falsy)."""
     proc = subprocess.run([sys.executable, str(SCRIPT), *command], capture_output=True, text=True, timeout=120)
     assert proc.returncode != 0 and proc.stderr.strip().count("\n") == 0 and "--steps must be" in proc.stderr
+
+
+# ---- option checks: one error line, exit code 2, before any work ------------------------------
+
+
+def _cli():
+    """scripts/benchmark.py as a module (it is a script, not part of the package)."""
+    spec = importlib.util.spec_from_file_location("benchmark_cli", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def cli():
+    return _cli()
+
+
+def _refused(cli, monkeypatch, capsys, argv: list[str]) -> str:
+    """Run ``argv`` in-process with every entry point to work replaced by a failure; return the
+    one stderr line of the refusal."""
+    def no_work(*args, **kwargs):
+        raise AssertionError(f"{argv}: work started before the options were checked")
+
+    for name in ("run_cases", "sampling_report", "cost_report", "geco_eval_cost"):
+        monkeypatch.setattr(cli, name, no_work)
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(argv)
+    assert exit_info.value.code == 2, argv
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "error:" in err, err
+    return err
+
+
+@pytest.mark.parametrize(("argv", "expected"), [
+    (["loss", "--height", "0"], "--height: must be >= 1, got 0"),
+    (["loss", "--width", "-3"], "--width: must be >= 1, got -3"),
+    (["estimators", "--frames", "1"], "--frames: must be >= 2, got 1"),
+    (["vae", "--frames", "0"], "--frames: must be >= 1, got 0"),
+    (["sampling", "--height", "-32"], "--height: must be >= 1"),
+    (["cost", "--preset", "tiny", "--width", "0"], "--width: must be >= 1"),
+    (["loss", "--repeats", "0"], "--repeats: must be >= 1, got 0"),
+    (["estimators", "--threads", "0"], "--threads: must be >= 1"),
+    (["vae", "--frames", "16"], "4*k + 1"),
+    (["sampling", "--frames", "13"], "8k+1"),
+    (["sampling", "--mode", "unguided", "--frames", "14"], "4*k + 1"),
+    (["cost", "--preset", "tiny", "--frames", "21"], "8k+1"),
+    (["cost", "--preset", "tiny", "--calibration-step-s", "nan"], "must be a finite number > 0"),
+    (["cost", "--preset", "tiny", "--calibration-step-s", "inf"], "must be a finite number > 0"),
+    (["cost", "--preset", "tiny", "--calibration-step-s", "0"], "must be a finite number > 0"),
+    (["cost", "--preset", "tiny", "--calibration-step-s", "-1.5"], "must be a finite number > 0"),
+    (["geco-eval", "--videos", "-5"], "--videos: must be >= 1, got -5"),
+    (["geco-eval", "--fps", "0"], "--fps: must be a finite number > 0"),
+    (["sampling", "--chunk-latents", "0"], "--chunk-latents: must be >= 2, got 0"),
+    (["sampling", "--chunk-latents", "1"], "--chunk-latents: must be >= 2, got 1"),
+    (["cost", "--preset", "tiny", "--chunk-latents", "0"], "--chunk-latents: must be >= 2"),
+    (["sampling", "--steps", "51"], "--steps must be in [1, 50], got 51"),
+    (["sampling", "--full-size", "--steps", "1"], "--allow-cpu"),
+])
+def test_bad_option_is_one_error_line_before_any_work(cli, monkeypatch, capsys, argv, expected):
+    assert expected in _refused(cli, monkeypatch, capsys, argv)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a GPU is available here")
+@pytest.mark.parametrize("command", [["loss"], ["sampling"], ["vae"]])
+def test_cuda_without_gpu_is_refused(cli, monkeypatch, capsys, command):
+    err = _refused(cli, monkeypatch, capsys, [*command, "--device", "cuda"])
+    assert "no CUDA GPU" in err
+
+
+def test_bad_device_is_refused(cli, monkeypatch, capsys):
+    assert "not a torch device" in _refused(cli, monkeypatch, capsys, ["loss", "--device", "gpu0"])
+
+
+def test_missing_or_invalid_measured_file_is_refused(cli, monkeypatch, capsys, tmp_path: Path):
+    base = ["cost", "--preset", "tiny", "--measured"]
+    assert "no such file" in _refused(cli, monkeypatch, capsys, [*base, str(tmp_path / "missing.json")])
+    broken = tmp_path / "broken.json"
+    broken.write_text("{")
+    assert "not JSON" in _refused(cli, monkeypatch, capsys, [*base, str(broken)])
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"subcommand": "cost"}))
+    err = _refused(cli, monkeypatch, capsys, [*base, str(other)])
+    assert "not a `sampling` report" in err and "wall_time_s" in err
+
+
+def test_unwritable_json_path_is_refused_before_the_run(cli, monkeypatch, capsys, tmp_path: Path):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("")
+    err = _refused(cli, monkeypatch, capsys, ["loss", "--json", str(blocker / "sub" / "out.json")])
+    assert "is a file" in err
+    assert "is a folder" in _refused(cli, monkeypatch, capsys, ["loss", "--json", str(tmp_path)])
+    if os.geteuid() != 0:  # root writes anywhere
+        locked = tmp_path / "locked"
+        locked.mkdir()
+        locked.chmod(0o500)
+        try:
+            err = _refused(cli, monkeypatch, capsys, ["loss", "--json", str(locked / "new" / "out.json")])
+        finally:
+            locked.chmod(0o700)
+        assert "permission denied" in err
+    assert not (tmp_path / "sub").exists()
+
+
+def test_failed_report_write_leaves_no_file(monkeypatch, tmp_path: Path):
+    """A full disk while writing --json: the atomic writer raises and leaves neither the report nor
+    a 0-byte file (nor its temporary) behind."""
+    import errno
+
+    from geco_guide.perf.measure import write_report
+
+    def disk_full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", disk_full)
+    target = tmp_path / "reports" / "out.json"
+    with pytest.raises(OSError, match="space"):
+        write_report(target, {"results": [1, 2, 3]})
+    assert not target.exists() and list(target.parent.iterdir()) == []
+
+
+def test_no_private_name_is_patched_in_the_cost_trace():
+    """The cost trace uses the pipeline's seam (guidance_context_class), not mock.patch."""
+    source = Path(cost.__file__).read_text() + SCRIPT.read_text()
+    assert "mock" not in source and "_read_scalars" not in source
+    context = cost.counting_context_class(cost.CostTracker())
+    assert issubclass(context, GuidanceContext)

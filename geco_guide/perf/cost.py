@@ -1,0 +1,587 @@
+"""The cost model of a sampling call: FLOPs, bytes, memory and a roofline time, on fake tensors.
+
+The real pipeline call of one step (unguided, or guided with one update) runs on fake tensors
+(``FakeTensorMode``: no weights, no GPU) under a :class:`CostTracker`, which counts per stage
+(denoiser with / without gradients, anchor decode, VGGT, UFM, loss, final decode; forward and
+backward) the FLOPs (``torch.utils.flop_counter`` formulas), bytes moved, ATen ops and the live
+memory. :func:`count_schedule_calls` drives the real :func:`~geco_guide.sampler.step.guided_step`
+with counting stubs over the schedule; :func:`whole_run_costs` combines units and counts, and
+:func:`cost_report` adds a roofline time on H100/H200 with one efficiency calibrated on the
+measured unguided H200 step. :func:`compare_with_measured` sets it against a ``sampling`` report.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import weakref
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..config import COGVIDEOX_TEMPORAL_COMPRESSION
+from ..sampler.config import GuidanceConfig, fused_guidance_config
+from ..sampler.context import GuidanceContext
+from ..sampler.levels import VPLevels
+from ..sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
+from ..sampler.slicing import default_anchors
+from ..sampler.step import Update, guided_step, loss_terms
+from ..tiny import tiny_guidance_config
+from .measure import GIB, environment_info
+from .models import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_cost_pipeline, model_bytes
+from .profile import call_marking_backward
+
+NOMINAL_STEPS = 50
+
+#: Published dense (no sparsity) bf16 tensor-core peak and HBM bandwidth of the SXM parts
+#: (NVIDIA H100 and H200 data sheets): 989.4 TFLOP/s for both; 3.35 and 4.8 TB/s.
+GPU_SPECS: dict[str, dict[str, float]] = {
+    "H100": {"bf16_flops_per_s": 989.4e12, "bytes_per_s": 3.35e12, "memory_gib": 80},
+    "H200": {"bf16_flops_per_s": 989.4e12, "bytes_per_s": 4.8e12, "memory_gib": 141},
+}
+#: Measured on the H200 (docs/benchmarks/sampling_full_h200_*.json): one unguided CFG step of the
+#: CogVideoX-5B transformer at 49x480x720, steady state (steps 2-4 of the three unguided arms).
+H200_UNGUIDED_STEP_S = 1.78
+#: Stages of the cost report; ``denoiser_cfg`` is a CFG call without gradients (the unguided step,
+#: the final prediction of a guided step, fast mode's held prediction), ``denoiser`` the
+#: differentiated call of a faithful update; ``loss`` is everything else inside a guided update
+#: (GeCo loss, resizing, CFG combination, normalised update), ``other`` the rest of the call.
+COST_STAGES = ("denoiser_cfg", "denoiser", "anchor_decode", "vggt", "ufm", "loss", "final_decode", "other")
+
+
+def register_cpu_sdpa_flops() -> None:
+    """FLOP formulas for the CPU flash attention kernels (FlopCounter's registry only has the CUDA
+    ones): the same counts as ``scaled_dot_product_attention`` anywhere."""
+    from torch.utils import flop_counter as fc
+
+    aten = torch.ops.aten
+    if aten._scaled_dot_product_flash_attention_for_cpu in fc.flop_registry:
+        return
+
+    @fc.register_flop_formula(aten._scaled_dot_product_flash_attention_for_cpu)
+    def _fwd(query_shape, key_shape, value_shape, *args, out_shape=None, **kwargs):
+        return fc.sdpa_flop_count(query_shape, key_shape, value_shape)
+
+    @fc.register_flop_formula(aten._scaled_dot_product_flash_attention_for_cpu_backward)
+    def _bwd(grad_out_shape, query_shape, key_shape, value_shape, *args, out_shape=None, **kwargs):
+        return fc.sdpa_backward_flop_count(grad_out_shape, query_shape, key_shape, value_shape)
+
+
+def _tensor_bytes(t: Tensor) -> int:
+    """Bytes of the elements of ``t`` (its view, not its storage)."""
+    return t.numel() * t.element_size()
+
+
+class CostTracker:
+    """A ``TorchDispatchMode`` (built lazily, see :meth:`mode`) that counts, per ``(stage, kind)``
+    (``kind`` = ``forward`` or ``backward``), the FLOPs of every ATen op (``torch.utils.flop_counter``
+    formulas), the bytes it reads and writes (tensor arguments + outputs, views excluded) and a
+    roofline time per GPU of :data:`GPU_SPECS` (``max(flops / peak, bytes / bandwidth)`` per op), and
+    follows memory: every new output storage is live from its creation until a ``weakref``
+    finalizer on the storage says it is freed (autograd's saved tensors keep theirs alive, so the
+    graph's activations are counted); ``static`` storages (the weights) are not counted.
+
+    Stages come from :meth:`wrap` (forward: the innermost wrapped call running; backward: from the
+    first execution of an output's ``grad_fn`` to the gradient w.r.t. an input, as
+    :func:`~.profile.call_marking_backward`); ops of the autograd engine run in ``backward``
+    (``torch._C._current_graph_task_id() != -1``), including checkpoint recomputation.
+    """
+
+    def __init__(self, static: Sequence[Tensor] = ()) -> None:
+        self.stack: list[str] = []
+        self.bwd_stage: str | None = None
+        self.in_update = 0
+        self.flops: dict[tuple[str, str], int] = {}
+        self.bytes: dict[tuple[str, str], int] = {}
+        self.roofline_s: dict[str, dict[tuple[str, str], float]] = {gpu: {} for gpu in GPU_SPECS}
+        self.ops: dict[tuple[str, str], int] = {}
+        self.calls: dict[str, int] = {}
+        self.static = {t.untyped_storage()._cdata for t in static}
+        self.live: dict[int, int] = {}
+        self.current = 0
+        self.peak = 0
+        self.peak_key: tuple[str, str] | None = None
+        self.stage_peak: dict[tuple[str, str], int] = {}
+
+    def key(self) -> tuple[str, str]:
+        backward = torch._C._current_graph_task_id() != -1
+        if self.stack:
+            stage = self.stack[-1]
+        elif backward and self.bwd_stage is not None:
+            stage = self.bwd_stage
+        else:
+            stage = "loss" if self.in_update else "other"
+        return stage, "backward" if backward else "forward"
+
+    def _free(self, key: int) -> None:
+        self.current -= self.live.pop(key, 0)
+
+    def record(self, func: Any, args: tuple, kwargs: dict, out: Any) -> None:
+        from torch.utils import flop_counter as fc
+        from torch.utils._pytree import tree_flatten
+
+        key = self.key()
+        formula = fc.flop_registry.get(func._overloadpacket)
+        flops = int(formula(*args, **kwargs, out_val=out)) if formula is not None else 0
+        outputs = [t for t in tree_flatten(out)[0] if isinstance(t, Tensor)]
+        moved = 0
+        if not func.is_view:
+            inputs = [t for t in tree_flatten((args, kwargs))[0] if isinstance(t, Tensor)]
+            moved = sum(_tensor_bytes(t) for t in inputs + outputs)
+        self.flops[key] = self.flops.get(key, 0) + flops
+        self.bytes[key] = self.bytes.get(key, 0) + moved
+        self.ops[key] = self.ops.get(key, 0) + 1
+        for gpu, spec in GPU_SPECS.items():
+            seconds = max(flops / spec["bf16_flops_per_s"], moved / spec["bytes_per_s"])
+            self.roofline_s[gpu][key] = self.roofline_s[gpu].get(key, 0.0) + seconds
+        for t in outputs:
+            storage = t.untyped_storage()
+            sid = storage._cdata
+            if sid in self.static or sid in self.live:
+                continue
+            self.live[sid] = storage.nbytes()
+            self.current += self.live[sid]
+            weakref.finalize(storage, self._free, sid)
+        if self.current > self.peak:
+            self.peak, self.peak_key = self.current, key
+        self.stage_peak[key] = max(self.stage_peak.get(key, 0), self.current)
+
+    def mode(self) -> Any:
+        """The dispatch mode to enter (inside a ``FakeTensorMode``, or on real tensors)."""
+        from torch.utils._python_dispatch import TorchDispatchMode
+
+        tracker = self
+
+        class _Mode(TorchDispatchMode):
+            def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+                kwargs = kwargs or {}
+                out = func(*args, **kwargs)
+                tracker.record(func, args, kwargs, out)
+                return out
+
+        return _Mode()
+
+    def wrap(self, obj: Any, name: str, stage: str | Callable[[], str]) -> None:
+        """Label the ops of ``obj.name`` (an instance attribute replaces the method) as ``stage``
+        (or ``stage()``, evaluated per call), forward and backward."""
+        original = getattr(obj, name)
+
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            label = stage() if callable(stage) else stage
+
+            def start() -> None:
+                self.bwd_stage = label
+
+            def end() -> None:
+                if self.bwd_stage == label:
+                    self.bwd_stage = None
+
+            def labelled(*args: Any, **kwargs: Any) -> Any:
+                # a call: not a checkpoint's recomputation (backward), not nested in a call of the same stage
+                new_call = torch._C._current_graph_task_id() == -1 and not (self.stack and self.stack[-1] == label)
+                self.calls[label] = self.calls.get(label, 0) + new_call
+                self.stack.append(label)
+                try:
+                    return original(*args, **kwargs)
+                finally:
+                    self.stack.pop()
+
+            return call_marking_backward(labelled, args, kwargs, start, end)
+
+        setattr(obj, name, wrapper)
+
+    def summary(self) -> dict[str, Any]:
+        """Per-stage FLOPs, bytes, op counts, roofline seconds and peak memory (bytes)."""
+        stages: dict[str, Any] = {}
+        for stage, kind in sorted(self.flops):
+            entry = stages.setdefault(stage, {"calls": self.calls.get(stage, 0)})
+            k = (stage, kind)
+            entry[kind] = {"flops": self.flops[k], "bytes": self.bytes[k], "ops": self.ops[k],
+                           "peak_live_bytes": self.stage_peak[k],
+                           "roofline_s": {gpu: self.roofline_s[gpu][k] for gpu in GPU_SPECS}}
+        return {"stages": stages, "peak_live_bytes": self.peak,
+                "peak_at": "/".join(self.peak_key) if self.peak_key else None}
+
+
+def cost_guidance(settings: dict[str, Any], mode: str, repeats: str, time_travel: list[int] | None) -> GuidanceConfig | bool:
+    """The guidance of a cost trace or count: the preset's config with the run's settings."""
+    if mode == "unguided":
+        return False
+    # the fused loss (gradients through VGGT too): the costlier of the two presets, what was measured
+    base = tiny_guidance_config() if settings["preset"] == "tiny" else fused_guidance_config()
+    changes = {k: settings[k] for k in ("chunk_latents", "vae_checkpointing", "denoiser_checkpointing")
+               if settings.get(k) is not None}
+    anchors = default_anchors(settings["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
+    return replace(base, anchors=anchors, repeats=repeats, time_travel=time_travel,
+                   denoiser_grad=mode == "faithful",
+                   chunk_latents=changes.get("chunk_latents", base.chunk_latents),
+                   vae_checkpointing=changes.get("vae_checkpointing", base.vae_checkpointing),
+                   gradient_checkpointing=changes.get("denoiser_checkpointing", base.gradient_checkpointing))
+
+
+def counting_context_class(tracker: CostTracker) -> type[GuidanceContext]:
+    """A :class:`GuidanceContext` for fake tensors under ``tracker``: its ops inside the updates of
+    a step count as ``loss`` unless a wrapped stage claims them, and an update's record reads no
+    values (fake tensors have none): zeros, and every update finite."""
+
+    class CountingGuidanceContext(GuidanceContext):
+        def guide(self, *args: Any, **kwargs: Any) -> tuple[Tensor, Tensor]:
+            tracker.in_update += 1
+            try:
+                return super().guide(*args, **kwargs)
+            finally:
+                tracker.in_update -= 1
+
+        def read_scalars(self, values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
+            return {**dict.fromkeys(values, 0.0), "finite": 1.0}
+
+    return CountingGuidanceContext
+
+
+def trace_cost(settings: dict[str, Any], mode: str) -> dict[str, Any]:
+    """One pipeline call of 1 step on fake tensors, counted by a :class:`CostTracker`: unguided (one
+    CFG step and the final decode) or guided with ``R = 1`` (one update of ``mode``, the step's final
+    prediction, the final decode). The call is the real ``GeCoCogVideoXPipeline.__call__``; fake
+    tensors have no values, so the scheduler's timestep table is built outside the fake mode,
+    ``scheduler.step`` gets the real timestep, and the guidance context
+    (:func:`counting_context_class`) reads no scalars."""
+    from torch._subclasses.fake_tensor import FakeTensorMode, unset_fake_temporarily
+
+    register_cpu_sdpa_flops()
+    fake_mode = FakeTensorMode(allow_non_fake_inputs=True)
+    pipe, call = build_cost_pipeline(settings, fake_mode)
+    models = {name: getattr(pipe, name, None) for name in
+              ("transformer", "vae", "geometry_estimator", "flow_estimator", "text_encoder")}
+    weights = [t for m in models.values() if isinstance(m, torch.nn.Module) for t in [*m.parameters(), *m.buffers()]]
+    tracker = CostTracker(static=weights)
+
+    tracker.wrap(pipe.transformer, "forward", lambda: "denoiser" if torch.is_grad_enabled() else "denoiser_cfg")
+    tracker.wrap(pipe.vae, "decode", lambda: "final_decode" if "final_decode" in tracker.stack else "anchor_decode")
+    tracker.wrap(pipe, "decode_latents", "final_decode")
+    if mode != "unguided":
+        tracker.wrap(pipe.geometry_estimator, "estimate_geometry", "vggt")
+        tracker.wrap(pipe.flow_estimator, "estimate_flow", "ufm")
+    pipe.guidance_context_class = counting_context_class(tracker)
+
+    scheduler, table = pipe.scheduler, {"timesteps": [], "i": 0}
+    set_timesteps, step = scheduler.set_timesteps, scheduler.step
+
+    def set_timesteps_real(*args: Any, **kwargs: Any) -> Any:
+        with unset_fake_temporarily():
+            out = set_timesteps(*args, **kwargs)
+        table.update(timesteps=scheduler.timesteps.tolist(), i=0)
+        return out
+
+    def step_real(model_output: Tensor, timestep: Any, *args: Any, **kwargs: Any) -> Any:
+        t = table["timesteps"][table["i"]]
+        table["i"] += 1
+        return step(model_output, t, *args, **kwargs)
+
+    scheduler.set_timesteps, scheduler.step = set_timesteps_real, step_real
+    guidance = cost_guidance(settings, mode, "1", None)
+    start = time.perf_counter()
+    with fake_mode, tracker.mode():
+        if settings["preset"] != "tiny":
+            dtype = getattr(torch, settings["dtype"])
+            call["prompt_embeds"], call["negative_prompt_embeds"] = (
+                torch.empty(TEXT_EMBED_SHAPE, dtype=dtype) for _ in range(2))
+        out = pipe(**call, num_inference_steps=1, guidance=guidance, guidance_scale=6.0)
+        frames_shape = list(out.frames.shape)
+        del out
+    summary = tracker.summary()
+    summary.update(trace_s=time.perf_counter() - start, output_shape=frames_shape,
+                   weights_bytes={name: model_bytes(m) for name, m in models.items()},
+                   guided_updates=1 if mode != "unguided" else 0)
+    return summary
+
+
+def count_schedule_calls(mode: str, settings: dict[str, Any]) -> dict[str, int]:
+    """How often each unit of work runs in a whole sampling call (``settings["steps"]`` steps, the
+    guidance schedule of the preset with the run's time travel, scaled to the steps by
+    :meth:`GuidanceConfig.schedule`): the real :func:`guided_step` driven by counting stubs
+    (R_t = 0 steps make the pipeline's single CFG call). Returns ``steps``, ``updates``,
+    ``denoiser_cfg`` (calls without gradients), ``denoiser_grad`` and ``time_travel_updates``."""
+    steps = settings["steps"]
+    counts = {"steps": steps, "updates": 0, "denoiser_cfg": 0, "denoiser_grad": 0, "time_travel_updates": 0}
+    if mode == "unguided":
+        counts["denoiser_cfg"] = steps
+        return counts
+    config = cost_guidance(settings, mode, settings["repeats"], settings["time_travel"])
+    schedule = config.schedule(steps)
+
+    def predict(z: Tensor, differentiate: bool) -> Tensor:
+        counts["denoiser_grad" if differentiate and torch.is_grad_enabled() else "denoiser_cfg"] += 1
+        return z * 0.5
+
+    def on_update(update: Update) -> None:
+        counts["updates"] += 1
+        counts["time_travel_updates"] += update.time_travel
+
+    for i in range(steps):
+        repeats = schedule.repeats_at(i)
+        if repeats == 0:
+            counts["denoiser_cfg"] += 1
+            continue
+        guided_step(torch.ones(1, 4), predict, VPLevels(0.5, 0.6), lambda x0: loss_terms((x0**2).sum()), repeats,
+                    eta=config.eta, time_travel=schedule.time_travel_at(i), denoiser_grad=config.denoiser_grad,
+                    on_update=on_update)
+    return counts
+
+
+def _flops(stage: dict[str, Any], kind: str | None = None) -> int:
+    kinds = (kind,) if kind else ("forward", "backward")
+    return sum(stage.get(k, {}).get("flops", 0) for k in kinds)
+
+
+def _ops(stage: dict[str, Any]) -> int:
+    return sum(stage.get(k, {}).get("ops", 0) for k in ("forward", "backward"))
+
+
+def _roofline(stage: dict[str, Any], gpu: str) -> float:
+    return sum(stage.get(k, {}).get("roofline_s", {}).get(gpu, 0.0) for k in ("forward", "backward"))
+
+
+def whole_run_costs(unguided: dict[str, Any], guided: dict[str, Any] | None, counts: dict[str, int],
+                    counts_unguided: dict[str, int]) -> dict[str, Any]:
+    """Whole-run totals from the traced units and the schedule counts.
+
+    Units: a CFG call without gradients (``denoiser_cfg``, per call, from the unguided trace), one
+    guided update (every stage of the guided trace's update except its ``denoiser_cfg`` calls: the
+    differentiated denoiser call, anchor decode, VGGT, UFM, loss, forward and backward), and per
+    call once: ``final_decode`` and ``other`` (latents, rotary tables, scheduler step; tiny).
+    """
+    cfg = unguided["stages"]["denoiser_cfg"]
+    cfg_calls = cfg["calls"]
+    per_call = {"flops": _flops(cfg) / cfg_calls, "ops": _ops(cfg) / cfg_calls,
+                "roofline_s": {gpu: _roofline(cfg, gpu) / cfg_calls for gpu in GPU_SPECS}}
+    once = {s: unguided["stages"].get(s, {}) for s in ("final_decode", "other")}
+
+    def totals(trace: dict[str, Any] | None, c: dict[str, int]) -> dict[str, Any]:
+        stages: dict[str, dict[str, Any]] = {}
+        stages["denoiser_cfg"] = {"count": c["denoiser_cfg"], "flops_forward": c["denoiser_cfg"] * per_call["flops"],
+                                  "flops_backward": 0, "ops": c["denoiser_cfg"] * per_call["ops"],
+                                  "roofline_s": {g: c["denoiser_cfg"] * per_call["roofline_s"][g] for g in GPU_SPECS}}
+        if trace is not None:
+            for name in ("denoiser", "anchor_decode", "vggt", "ufm", "loss"):
+                s = trace["stages"].get(name, {})
+                stages[name] = {"count": c["updates"], "flops_forward": c["updates"] * _flops(s, "forward"),
+                                "flops_backward": c["updates"] * _flops(s, "backward"), "ops": c["updates"] * _ops(s),
+                                "roofline_s": {g: c["updates"] * _roofline(s, g) for g in GPU_SPECS}}
+        for name, s in once.items():
+            stages[name] = {"count": 1, "flops_forward": _flops(s, "forward"), "flops_backward": _flops(s, "backward"),
+                            "ops": _ops(s),
+                            "roofline_s": {g: _roofline(s, g) for g in GPU_SPECS}}
+        total = sum(s["flops_forward"] + s["flops_backward"] for s in stages.values())
+        return {"stages": stages, "flops": total, "ops": sum(s["ops"] for s in stages.values()),
+                "roofline_s": {g: sum(s["roofline_s"][g] for s in stages.values()) for g in GPU_SPECS}}
+
+    return {"unguided": totals(None, counts_unguided), "guided": totals(guided, counts) if guided else None,
+            "cfg_call": per_call}
+
+
+def cost_settings(*, preset: str, steps: int | None, frames: int | None, height: int | None, width: int | None,
+                  dtype: str | None, no_time_travel: bool = False, paper_schedule: bool = False, seed: int = 0,
+                  chunk_latents: int | None = None, vae_checkpointing: bool | None = None,
+                  denoiser_checkpointing: bool | None = None, estimator_checkpointing: bool = False,
+                  vae_tiling: bool = False, calibration_step_s: float = H200_UNGUIDED_STEP_S) -> dict[str, Any]:
+    """The settings of a cost report, the presets' defaults filled in (``None``: the preset's).
+
+    Full size: 49x480x720 bfloat16, the paper's 50-step schedule. Tiny: 17x32x48 float32 and the
+    tiny preset's 4-step schedule, or the paper's 50-step one with ``paper_schedule``.
+    """
+    if preset == "tiny":
+        from ..tiny import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH
+
+        video = {"frames": TINY_NUM_FRAMES, "height": TINY_HEIGHT, "width": TINY_WIDTH}
+        base = tiny_guidance_config()
+        repeats, time_travel, dtype = base.repeats, base.time_travel, dtype or "float32"
+        default_steps = 4
+        if paper_schedule:
+            repeats, time_travel, default_steps = PAPER_REPEATS, list(PAPER_TIME_TRAVEL), NOMINAL_STEPS
+    else:
+        video = dict(FULL_SIZE_VIDEO)
+        repeats, time_travel, default_steps = PAPER_REPEATS, list(PAPER_TIME_TRAVEL), NOMINAL_STEPS
+        dtype = dtype or "bfloat16"
+    video.update({k: v for k, v in (("frames", frames), ("height", height), ("width", width)) if v is not None})
+    return {"preset": preset, **video, "dtype": dtype, "steps": default_steps if steps is None else steps,
+            "repeats": repeats, "time_travel": None if no_time_travel else time_travel, "seed": seed,
+            "chunk_latents": chunk_latents, "vae_checkpointing": vae_checkpointing,
+            "denoiser_checkpointing": denoiser_checkpointing, "estimator_checkpointing": estimator_checkpointing,
+            "vae_tiling": vae_tiling, "calibration_step_s": calibration_step_s, "guidance_scale": 6.0,
+            "note": "shape-only: fake tensors (FakeTensorMode), no weights; estimator trunks in dtype, heads float32"}
+
+
+def cost_report(settings: dict[str, Any], mode: str, argv: Sequence[str] = ()) -> dict[str, Any]:
+    """Trace the units, count the schedule, combine; the JSON report of ``cost`` for ``settings``
+    (:func:`cost_settings`)."""
+    start = time.perf_counter()
+    unguided = trace_cost(settings, "unguided")
+    guided = trace_cost(settings, mode) if mode != "unguided" else None
+    counts_unguided = count_schedule_calls("unguided", settings)
+    counts = count_schedule_calls(mode, settings) if mode != "unguided" else counts_unguided
+    run = whole_run_costs(unguided, guided, counts, counts_unguided)
+    main = guided or unguided
+    weights = sum(main["weights_bytes"].values())
+    calibration = settings["calibration_step_s"]
+    # one efficiency for every op, from the measured unguided step on the H200
+    efficiency = run["cfg_call"]["roofline_s"]["H200"] / calibration
+    wall = {}
+    for gpu in GPU_SPECS:
+        wall[gpu] = {arm: (r["roofline_s"][gpu] / efficiency if r else None) for arm, r in
+                     (("unguided", run["unguided"]), ("guided", run["guided"]))}
+    per_stage = {}
+    for name, s in (run["guided"] or run["unguided"])["stages"].items():
+        per_stage[name] = {**{k: v for k, v in s.items() if k != "roofline_s"},
+                           "flops": s["flops_forward"] + s["flops_backward"],
+                           "time_s": {gpu: s["roofline_s"][gpu] / efficiency for gpu in GPU_SPECS}}
+    unit = {}
+    for arm, trace in (("unguided", unguided), ("guided", guided)):
+        if trace is None:
+            continue
+        unit[arm] = {name: {kind: {k: v[k] for k in ("flops", "bytes", "ops", "peak_live_bytes")}
+                            for kind, v in s.items() if kind in ("forward", "backward")} | {"calls": s["calls"]}
+                     for name, s in trace["stages"].items()}
+    flops_u, flops_g = run["unguided"]["flops"], (run["guided"] or run["unguided"])["flops"]
+    report = {
+        "subcommand": "cost",
+        "argv": list(argv),
+        "mode": mode,
+        "settings": settings,
+        "flops_unguided": flops_u,
+        "flops_guided": flops_g if guided else None,
+        "flops_ratio_guided_over_unguided": flops_g / flops_u if guided else None,
+        "ops_unguided": run["unguided"]["ops"],
+        "ops_guided": run["guided"]["ops"] if guided else None,
+        "ops_ratio_guided_over_unguided": run["guided"]["ops"] / run["unguided"]["ops"] if guided else None,
+        "peak_memory_gb": (weights + main["peak_live_bytes"]) / GIB,
+        "peak_memory_gb_unguided": (sum(unguided["weights_bytes"].values()) + unguided["peak_live_bytes"]) / GIB,
+        "peak_at": main["peak_at"],
+        "weights_gb": {k: v / GIB for k, v in main["weights_bytes"].items()},
+        "activations_peak_gb": main["peak_live_bytes"] / GIB,
+        "per_stage": per_stage,
+        "counts": counts,
+        "unit_traces": unit,
+        "roofline": {
+            "gpus": GPU_SPECS,
+            "efficiency": efficiency,
+            "efficiency_note": (f"one efficiency for all ops: the roofline time of one unguided CFG call on the "
+                                f"H200 over the measured {calibration} s (docs/benchmarks/sampling_full_h200_*.json)"),
+            "roofline_s_at_peak": {gpu: {arm: (r["roofline_s"][gpu] if r else None) for arm, r in
+                                         (("unguided", run["unguided"]), ("guided", run["guided"]))} for gpu in GPU_SPECS},
+            "wall_time_s": wall,
+            "ratio_guided_over_unguided": {gpu: (wall[gpu]["guided"] / wall[gpu]["unguided"] if guided else None)
+                                           for gpu in GPU_SPECS},
+        },
+        "trace_s": {"unguided": unguided["trace_s"], "guided": guided["trace_s"] if guided else None},
+        "elapsed_s": time.perf_counter() - start,
+        "environment": environment_info(torch.get_num_threads()),
+    }
+    return report
+
+
+#: Measured breakdown keys (``sampling`` JSON) of each cost stage; the denoiser's calls with and
+#: without gradients are one measured stage.
+MEASURED_STAGES: dict[str, tuple[str, ...]] = {
+    "denoiser": ("denoiser_forward_s", "denoiser_backward_s"),
+    "anchor_decode": ("vae_slice_decode_forward_s", "vae_slice_decode_backward_s"),
+    "vggt": ("vggt_forward_s", "vggt_backward_s"),
+    "ufm": ("ufm_forward_s", "ufm_backward_s"),
+    "loss": ("loss_s",),
+    "final_decode": ("vae_final_decode_s",),
+}
+
+
+#: Keys a ``sampling`` report needs for :func:`compare_with_measured`.
+MEASURED_KEYS = ("wall_time_s", "breakdown", "peak_memory_gb")
+
+
+def load_measured(path: str | Path) -> dict[str, Any]:
+    """A ``sampling`` JSON report to compare with.
+
+    Raises:
+        ValueError: missing or unreadable file, not JSON, or not a sampling report (the message
+            says which).
+    """
+    try:
+        measured = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise ValueError(f"--measured {str(path)!r}: no such file") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"--measured {str(path)!r}: cannot read it ({err})") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"--measured {str(path)!r}: not JSON ({err.msg}, line {err.lineno})") from None
+    missing = [k for k in MEASURED_KEYS if not isinstance(measured, dict) or k not in measured]
+    if missing:
+        raise ValueError(f"--measured {str(path)!r}: not a `sampling` report (no {', '.join(missing)})")
+    return measured
+
+
+def compare_with_measured(report: dict[str, Any], measured: dict[str, Any], measured_path: str,
+                          gpu: str = "H200") -> dict[str, Any]:
+    """Predicted vs measured: a ``sampling`` report of the same mode on ``gpu`` (times extrapolated to
+    the nominal run when the run was shorter). Stage times: the measured breakdown's seconds per
+    stage (forward + backward; the harness's forward of a checkpointed decode includes its
+    recomputation, so the measured stage sums can exceed the measured updates a little).
+    ``measured`` is the report read by :func:`load_measured` from ``measured_path``."""
+    ext = measured.get("extrapolated_to_nominal") or {}
+    walls = ext.get("wall_time_s") or measured["wall_time_s"]
+    breakdown = ext.get("breakdown") or measured["breakdown"]
+    predicted_wall = report["roofline"]["wall_time_s"][gpu]
+    stages = {}
+    for name, keys in MEASURED_STAGES.items():
+        parts = ("denoiser_cfg", "denoiser") if name == "denoiser" else (name,)
+        predicted = sum(report["per_stage"][p]["time_s"][gpu] for p in parts if p in report["per_stage"])
+        stages[name] = {"predicted_s": predicted, "measured_s": sum(breakdown.get(k, 0.0) for k in keys)}
+    return {
+        "measured_json": measured_path,
+        "gpu": gpu,
+        "wall_time_s": {"predicted": predicted_wall, "measured": walls},
+        "ratio_guided_over_unguided": {"predicted": report["roofline"]["ratio_guided_over_unguided"][gpu],
+                                       "measured": measured.get("ratio_guided_over_unguided")},
+        "peak_memory_gb": {"predicted": report["peak_memory_gb"], "measured": measured["peak_memory_gb"]},
+        "peak_memory_gb_unguided": {"predicted": report["peak_memory_gb_unguided"],
+                                    "measured": measured.get("peak_memory_gb_unguided")},
+        "stages": stages,
+    }
+
+
+def cost_table(report: dict[str, Any]) -> str:
+    """Markdown: per stage FLOPs and predicted seconds on the GPUs, then the run's totals."""
+    lines = ["| stage | count | TFLOP forward | TFLOP backward | TFLOP total | share | "
+             + " | ".join(f"{g} (s)" for g in GPU_SPECS) + " |",
+             "|---|---|---|---|---|---|" + "---|" * len(GPU_SPECS)]
+    total = sum(s["flops"] for s in report["per_stage"].values()) or 1
+    for name, s in report["per_stage"].items():
+        lines.append(f"| {name} | {s['count']} | {s['flops_forward'] / 1e12:.1f} | {s['flops_backward'] / 1e12:.1f} | "
+                     f"{s['flops'] / 1e12:.1f} | {100 * s['flops'] / total:.1f} % | "
+                     + " | ".join(f"{s['time_s'][g]:.1f}" for g in GPU_SPECS) + " |")
+    ratio = report["flops_ratio_guided_over_unguided"]
+    wall = report["roofline"]["wall_time_s"]
+    lines.append("")
+    lines.append(f"mode {report['mode']}: FLOPs unguided {report['flops_unguided'] / 1e15:.2f} PFLOP"
+                 + (f", guided {report['flops_guided'] / 1e15:.2f} PFLOP, ratio {ratio:.2f}" if ratio else ""))
+    lines.append(f"peak memory {report['peak_memory_gb']:.1f} GiB (at {report['peak_at']}; weights "
+                 f"{sum(report['weights_gb'].values()):.1f} GiB), unguided {report['peak_memory_gb_unguided']:.1f} GiB")
+    if report["ops_ratio_guided_over_unguided"]:
+        lines.append(f"ATen ops: unguided {report['ops_unguided']:.0f}, guided {report['ops_guided']:.0f}, "
+                     f"ratio {report['ops_ratio_guided_over_unguided']:.1f} (what a launch-bound device pays for)")
+    if report["settings"]["preset"] == "tiny":
+        return "\n".join(lines)  # the calibration is a full-size measurement: no GPU times for tiny models
+    validation = report.get("validation")
+    if validation:
+        v = validation
+        lines.append(f"vs measured ({v['measured_json']}): ratio {v['ratio_guided_over_unguided']['predicted']:.2f} "
+                     f"predicted / {v['ratio_guided_over_unguided']['measured']:.2f} measured; peak "
+                     f"{v['peak_memory_gb']['predicted']:.1f} / {v['peak_memory_gb']['measured']:.1f} GiB; "
+                     + ", ".join(f"{k} {x['predicted_s']:.0f} / {x['measured_s']:.0f} s" for k, x in v["stages"].items()))
+    for gpu in GPU_SPECS:
+        g = wall[gpu]["guided"]
+        lines.append(f"{gpu}: unguided {wall[gpu]['unguided']:.0f} s" + (f", guided {g:.0f} s" if g else "")
+                     + f" (efficiency {report['roofline']['efficiency']:.2f})")
+    return "\n".join(lines)
+
+
