@@ -1,8 +1,8 @@
-"""``python -m geco_guide.evaluate``: score videos with the GeCo metric (:mod:`geco_guide.metric.evaluate`)."""
+"""``python -m geco_guide.evaluate``: score videos with the GeCo metric (:mod:`geco_guide.cli.evaluate`)."""
 
 import sys
 
-from .metric.evaluate import main
+from .cli.evaluate import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,8 +1,8 @@
-"""``python -m geco_guide.validate``: score built WarpBench/OccluBench clips against their ground truth (:mod:`geco_guide.bench.validate`)."""
+"""``python -m geco_guide.validate``: score built WarpBench/OccluBench clips against their ground truth (:mod:`geco_guide.cli.validate`)."""
 
 import sys
 
-from .bench.validate import main
+from .cli.validate import main
 
 if __name__ == "__main__":
     sys.exit(main())

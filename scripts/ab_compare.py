@@ -30,8 +30,6 @@ different config is refused.
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 import json
 import os
 import re
@@ -46,7 +44,9 @@ from typing import Any
 
 import numpy as np
 
+from geco_guide.bench import report
 from geco_guide.bench.geco_eval import SUITE, select_prompts
+from geco_guide.bench.report import TINY_NOTE, fmt, markdown_table
 from geco_guide.bench.runs import (
     PeakMemory,
     config_fingerprint,
@@ -57,13 +57,13 @@ from geco_guide.bench.runs import (
 )
 from geco_guide.bench.runs import check_output_folder as check_run_folder
 from geco_guide.cli.generate import build_pipeline, generate, slugify, versions
-from geco_guide.config import GeCoConfig, config_to_dict, config_to_yaml, load_config
+from geco_guide.cli.kit import Parser, add_config_flags, config_from_args
+from geco_guide.config import GeCoConfig, config_to_dict, config_to_yaml
 from geco_guide.estimators import load_estimators
 from geco_guide.io.devices import check_device, resolve_device
 from geco_guide.io.files import (
     WriteError,
     remove_temp_files,
-    write_bytes_atomic,
     write_json_atomic,
 )
 from geco_guide.io.plots import Panel, legend, limits
@@ -394,6 +394,8 @@ def summarize(results: Sequence[dict[str, Any]], pairs: Sequence[Pair], cfg: GeC
         },
         "bootstrap": {"resamples": BOOTSTRAP_RESAMPLES, "seed": BOOTSTRAP_SEED, "level": CI_LEVEL},
         "config_sha": config_fingerprint(cfg),
+        "models": {"video": cfg.model.id, "geometry": cfg.estimators.geometry, "flow": cfg.estimators.flow},
+        "tiny_models": report.uses_tiny_models(cfg),
         "config": config_to_dict(cfg),
         "devices": sorted({r["device"] for r in results}),
         "versions": _versions(),
@@ -415,18 +417,9 @@ def csv_text(results: Sequence[dict[str, Any]]) -> str:
     """``results.csv``: one row per pair and arm."""
     columns = ["pair", "prompt_id", "seed", "arm", *METRICS, "generation_s", "evaluation_s",
                "peak_memory_mib", "memory_kind", "guidance_updates", "video", "prompt"]
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
-    writer.writeheader()
-    for result in results:
-        for arm in ARMS:
-            video = f"pairs/{result['pair']}/{result['arms'][arm]['video']}"
-            writer.writerow({**result, **result["arms"][arm], "arm": arm, "video": video})
-    return buffer.getvalue()
-
-
-def _fmt(value: float | None, digits: int = 4) -> str:
-    return "-" if value is None or not np.isfinite(value) else f"{value:.{digits}g}"
+    rows = [{**result, **result["arms"][arm], "arm": arm, "video": f"pairs/{result['pair']}/{result['arms'][arm]['video']}"}
+            for result in results for arm in ARMS]
+    return report.csv_text(rows, columns)
 
 
 def _non_finite_note(found: dict[str, list[str]]) -> list[str]:
@@ -437,12 +430,8 @@ def _non_finite_note(found: dict[str, list[str]]) -> list[str]:
             f"(no valid pixels to measure): {listed}", ""]
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    return lines + ["| " + " | ".join(row) + " |" for row in rows]
-
-
-def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], config_yaml: str, command: str) -> str:
+def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], config_yaml: str, command: str,
+                    models: Sequence[str] = ()) -> str:
     """``report.md``: scores, paired differences, cost, the plot, per-pair table, config, versions."""
     n = summary["pairs"]
     lowered = summary["guidance_lowered_fused"]
@@ -456,25 +445,28 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
         f"Command: `{command}`",
         "",
     ]
+    if summary.get("tiny_models"):
+        lines += [f"**{TINY_NOTE}.**", ""]
+    lines += list(models)
     if summary["missing_pairs"]:
         lines += [f"**Missing pairs** (rerun the same command to finish them): {', '.join(summary['missing_pairs'])}", ""]
     if not n:
         return "\n".join(lines + ["No complete pairs yet."]) + "\n"
     arms, paired = summary["arms"], summary["paired_differences"]
     level = int(summary["bootstrap"]["level"] * 100)
-    share = f"{_fmt(100 * lowered['fraction'], 3)} %" if lowered["n"] else "-"
+    share = f"{fmt(100 * lowered['fraction'], 3)} %" if lowered["n"] else "-"
     rows = []
     for metric in METRICS:
         diff = paired[metric]
         ci = diff["ci95"]
-        ci_text = f"[{_fmt(ci[0])}, {_fmt(ci[1])}]" if ci else "undefined (fewer than 2 pairs)"
+        ci_text = f"[{fmt(ci[0])}, {fmt(ci[1])}]" if ci else "undefined (fewer than 2 pairs)"
         label = f"{metric} ({PAPER_NAMES[metric]})" if metric in CUES else PAPER_NAMES[metric]
-        rows.append([label, _fmt(arms["unguided"][metric]), _fmt(arms["guided"][metric]),
-                     _fmt(diff["mean_diff"]), ci_text])
+        rows.append([label, fmt(arms["unguided"][metric]), fmt(arms["guided"][metric]),
+                     fmt(diff["mean_diff"]), ci_text])
     lines += [
         "## Scores (mean over pairs; lower fused/motion/structure is more consistent)",
         "",
-        *_table(["metric", "unguided", "guided", "guided - unguided", f"{level}% CI (paired bootstrap)"], rows),
+        *markdown_table(["metric", "unguided", "guided", "guided - unguided", f"{level}% CI (paired bootstrap)"], rows),
         "",
         *_non_finite_note(summary["non_finite_scores"]),
         f"Guidance lowered the fused score in **{lowered['count']} of {lowered['n']}** pairs "
@@ -484,10 +476,10 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
         "",
         "## Cost per arm",
         "",
-        *_table(
+        *markdown_table(
             ["arm", "sampling s (mean)", "sampling s (total)", "scoring s (mean)", "peak memory MiB (max)"],
-            [[arm, _fmt(arms[arm]["generation_s_mean"], 3), _fmt(arms[arm]["generation_s_total"], 3),
-              _fmt(arms[arm]["evaluation_s_mean"], 3), f"{_fmt(arms[arm]['peak_memory_mib_max'], 4)} "
+            [[arm, fmt(arms[arm]["generation_s_mean"], 3), fmt(arms[arm]["generation_s_total"], 3),
+              fmt(arms[arm]["evaluation_s_mean"], 3), f"{fmt(arms[arm]['peak_memory_mib_max'], 4)} "
               f"({arms[arm]['memory_kind']})"] for arm in ARMS],
         ),
         "",
@@ -495,10 +487,10 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
         "",
         "## Pairs",
         "",
-        *_table(
+        *markdown_table(
             ["pair", "fused unguided", "fused guided", "TM unguided", "TM guided", "video"],
-            [[r["pair"], _fmt(r["arms"]["unguided"]["fused"]), _fmt(r["arms"]["guided"]["fused"]),
-              _fmt(r["arms"]["unguided"]["total_motion"]), _fmt(r["arms"]["guided"]["total_motion"]),
+            [[r["pair"], fmt(r["arms"]["unguided"]["fused"]), fmt(r["arms"]["guided"]["fused"]),
+              fmt(r["arms"]["unguided"]["total_motion"]), fmt(r["arms"]["guided"]["total_motion"]),
               f"[side by side](pairs/{r['pair']}/{r['side_by_side']})"] for r in results],
         ),
         "",
@@ -510,7 +502,7 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
         "",
         "## Versions",
         "",
-        *_table(["package", "version"], [[k, v] for k, v in summary["versions"].items()]),
+        *markdown_table(["package", "version"], [[k, v] for k, v in summary["versions"].items()]),
     ]
     return "\n".join(lines) + "\n"
 
@@ -551,9 +543,7 @@ def plot_png(results: Sequence[dict[str, Any]]) -> bytes:
         right.dot(draw, guided["total_motion"], guided["fused"], GUIDED_COLOR)
     legend(draw, left, (("guidance lowered fused", BETTER_COLOR), ("guidance raised fused", WORSE_COLOR)))
     legend(draw, right, (("unguided", UNGUIDED_COLOR), ("guided", GUIDED_COLOR)))
-    buffer = io.BytesIO()
-    image.save(buffer, format="PNG")
-    return buffer.getvalue()
+    return report.png_bytes(image)
 
 
 def write_report(out: Path, pairs: Sequence[Pair], cfg: GeCoConfig, command: str) -> dict[str, Any]:
@@ -561,30 +551,17 @@ def write_report(out: Path, pairs: Sequence[Pair], cfg: GeCoConfig, command: str
     remove_temp_files(out, REPORT_STEMS)
     results = [r for r in (read_result(out, pair) for pair in pairs) if r is not None]
     summary = summarize(results, pairs, cfg)
-    write_bytes_atomic(out / "results.csv", csv_text(results).encode())
-    write_json_atomic(out / "summary.json", summary)
-    write_bytes_atomic(out / "pareto.png", plot_png(results))
-    write_bytes_atomic(out / "report.md", report_markdown(summary, results, config_to_yaml(cfg), command).encode())
+    markdown = report_markdown(summary, results, config_to_yaml(cfg), command, report.models_section(cfg))
+    report.write_report_files(out, table=csv_text(results), summary=summary, plot=plot_png(results), markdown=markdown)
     return summary
-
-
-# ----------------------------------------------------------------------------------------------
-# processes: one, or many under `accelerate launch`
 
 
 # ----------------------------------------------------------------------------------------------
 # CLI
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(2, f"error: {message} (see --help)\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = Parser(
         prog="scripts/ab_compare.py",
         description="A/B test of GeCo guidance: unguided vs guided video per prompt x seed, from the same noise.",
     )
@@ -593,8 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "geco-eval, geco-eval:indoor, geco-eval:fast, geco-eval:outdoor:slow, ...")
     p.add_argument("--seeds", required=True, nargs="+", metavar="SEED", help="sampling seeds (integers)")
     p.add_argument("--out", required=True, help="output folder (reuse it to resume)")
-    p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
-    p.add_argument("--preset", default=None, help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
+    add_config_flags(p, preset_help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
     p.add_argument("--maps", action="store_true", help="also write each arm's GeCo maps video")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.eta=2.0")
     return p
@@ -611,7 +587,7 @@ def validate_inputs(args: argparse.Namespace) -> Inputs:
     """Every check that needs no model: prompts, seeds, config, output folder."""
     prompts = read_prompts(args.prompts)
     seeds = parse_seeds(args.seeds)
-    cfg = load_config(args.config, args.preset, args.overrides)
+    cfg = config_from_args(args, args.overrides)
     if not cfg.guidance.enabled:
         raise InputError("guidance.enabled=false leaves nothing to compare: the guided arm needs guidance")
     check_device(cfg.model.device)
@@ -644,8 +620,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     fused = summary["paired_differences"]["fused"]
-    ci = f"[{_fmt(fused['ci95'][0])}, {_fmt(fused['ci95'][1])}]" if fused["ci95"] else "undefined"
-    print(f"{summary['pairs']} pairs: fused guided - unguided = {_fmt(fused['mean_diff'])}, 95% CI {ci}; "
+    ci = f"[{fmt(fused['ci95'][0])}, {fmt(fused['ci95'][1])}]" if fused["ci95"] else "undefined"
+    print(f"{summary['pairs']} pairs: fused guided - unguided = {fmt(fused['mean_diff'])}, 95% CI {ci}; "
           f"report: {out / 'report.md'}")
     return 0 if not summary["missing_pairs"] else 1
 

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 import torch
 
+from geco_guide.config import load_config
 from geco_guide.io.video import read_video
 from geco_guide.metric.render import panel_layout
 
@@ -117,6 +118,7 @@ def test_end_to_end_report(reference: Path):
     assert summary["config"]["sampling"]["num_frames"] == 9 and summary["devices"] == ["cpu"]
 
     report = (reference / "report.md").read_text()
+    assert "tiny random models: the numbers show the mechanics, not quality" in report and "## Models and weights" in report
     for text in ("## Configuration", "num_frames: 9", "## Versions", "| torch |", "pareto.png",
                  "seeds [0]", "95% CI"):
         assert text in report, text
@@ -239,7 +241,7 @@ def test_bootstrap_ci():
 
 
 def test_single_pair_reports_an_undefined_interval():
-    cfg = ab.load_config(preset="tiny")
+    cfg = load_config(preset="tiny")
     pairs = ab.plan_pairs([ab.Prompt("one", "one"), ab.Prompt("two", "two")], [0])
     results = [_result("one-s0", 0.2, 0.1)]
     summary = ab.summarize(results, pairs, cfg)
@@ -252,7 +254,7 @@ def test_single_pair_reports_an_undefined_interval():
 
 
 def test_a_video_without_valid_pixels_is_left_out_of_the_statistics():
-    cfg = ab.load_config(preset="tiny")
+    cfg = load_config(preset="tiny")
     results = [_result("nan-s0", float("nan"), 0.1)]
     summary = ab.summarize(results, ab.plan_pairs([ab.Prompt("nan", "nan")], [0]), cfg)
     assert summary["arms"]["unguided"]["fused"] is None and summary["arms"]["guided"]["fused"] == 0.1
@@ -263,7 +265,7 @@ def test_a_video_without_valid_pixels_is_left_out_of_the_statistics():
 
 
 def test_non_finite_scores_are_counted_and_named():
-    cfg = ab.load_config(preset="tiny")
+    cfg = load_config(preset="tiny")
     results = [_result("nan-s0", float("nan"), 0.1), _result("ok-s0", 0.2, 0.1)]
     pairs = ab.plan_pairs([ab.Prompt("nan", "nan"), ab.Prompt("ok", "ok")], [0])
     summary = ab.summarize(results, pairs, cfg)

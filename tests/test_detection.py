@@ -8,9 +8,9 @@ import torch
 from geco_guide.bench.ranking import average_precision
 from geco_guide.bench.synthetic import occlusion_swap_clip, rigid_clip, with_warp
 from geco_guide.bench.warp import WarpParams, warp_one_frame
+from geco_guide.cli import detection
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.io.video import write_video
-from geco_guide.metric import detection
 from geco_guide.metric.detection import detection_maps, frame_scores, window_indices
 from geco_guide.metric.protocol import EvaluationConfig
 

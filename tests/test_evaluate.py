@@ -13,6 +13,7 @@ import torch
 
 import geco_guide
 from geco_guide.bench.synthetic import inject_deformation, rigid_clip
+from geco_guide.cli.evaluate import main
 from geco_guide.config import load_config
 from geco_guide.estimators import EstimatorsConfig, load_estimators
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
@@ -21,7 +22,6 @@ from geco_guide.loss.geco import GeCoLossConfig
 from geco_guide.metric.evaluate import (
     MAP_PANELS,
     evaluate_video,
-    main,
     render_maps,
     write_maps_video,
 )

@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 
 from geco_guide.bench import geco_eval
-from geco_guide.bench.geco_eval import MODELS, load_prompts, main, select_prompts
-from geco_guide.metric.evaluate import main as evaluate_main
+from geco_guide.bench.geco_eval import MODELS, load_prompts, select_prompts
+from geco_guide.cli.evaluate import main as evaluate_main
+from geco_guide.cli.geco_eval import main
 from geco_guide.sampler.slicing import default_anchors
 
 TINY_RUN = ["--preset", "tiny", "--models", "cogvideox-5b", "wan2.1-t2v-1.3b", "--seeds", "0", "--limit", "1", "--guided"]
@@ -72,6 +73,29 @@ def test_tiny_run_writes_videos_results_and_a_consistent_report(tiny_run: Path):
     report = (out / "report.md").read_text()
     assert "## cogvideox-5b-guided" in report and "fused (M_geo)" in report
     assert (out / "pareto.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the report names what it ran with, and that tiny random models say nothing about quality
+    assert "tiny random models: the numbers show the mechanics, not quality" in report
+    assert "## Models and weights" in report and "tiny-random (wan family" in report
+    assert summary["tiny_models"] and set(summary["models"]) == {"cogvideox-5b", "wan2.1-t2v-1.3b"}
+
+
+def test_pareto_draws_no_empty_scenario_panels():
+    import io
+
+    from PIL import Image
+
+    from geco_guide.bench.geco_eval import plot_png
+
+    stats = {"mean": 0.5, "std": None, "n": 1}
+    one = {"arms": {"m": {"groups": {"all": {"mean_motion": stats, "fused": stats},
+                                     "indoor": {"mean_motion": stats, "fused": stats}}}}}
+    empty = {"arms": {"m": {"groups": {}}}}
+    def columns_drawn(png: bytes) -> int:
+        image = Image.open(io.BytesIO(png)).convert("L")
+        return sum(1 for left in range(70, 1500, 290) if image.crop((left, 80, left + 220, 360)).getextrema()[0] < 255)
+
+    assert columns_drawn(plot_png(one)) == 2  # "all" and indoor; no empty object-centric/outdoor/... panels
+    assert columns_drawn(plot_png(empty)) == 1  # "all", labelled "no data"
 
 
 def test_rerun_resumes_and_a_redone_video_is_identical(tiny_run: Path, tmp_path: Path, capsys):
@@ -143,8 +167,8 @@ def test_console_scripts_and_version(capsys):
     import geco_guide
 
     scripts = {ep.name: ep.value for ep in entry_points(group="console_scripts") if ep.name.startswith("geco-")}
-    assert scripts == {"geco-generate": "geco_guide.generate:main", "geco-evaluate": "geco_guide.evaluate:main",
-                       "geco-eval": "geco_guide.geco_eval:main"}
+    assert scripts == {"geco-generate": "geco_guide.cli.generate:main", "geco-evaluate": "geco_guide.cli.evaluate:main",
+                       "geco-eval": "geco_guide.cli.geco_eval:main"}
     from geco_guide.cli.generate import main as generate_main
 
     for cli in (main, evaluate_main, generate_main):

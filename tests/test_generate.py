@@ -10,10 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from geco_guide.cli.generate import load_video_pipeline, main, output_paths
+from geco_guide.cli.generate import main, output_paths
 from geco_guide.config import load_config
 from geco_guide.estimators.loading import WeightsNotFoundError
 from geco_guide.io.video import read_video
+from geco_guide.sampler.loading import load_video_pipeline
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -90,7 +91,7 @@ def test_scheduler_is_chosen_by_the_config_and_named_in_the_sidecar(choice, cls,
     # issue 12: the pipeline keeps the scheduler it is given; the config (the presets: ddim) chooses
     from diffusers import CogVideoXDPMScheduler
 
-    from geco_guide.cli.generate import choose_scheduler
+    from geco_guide.sampler.loading import choose_scheduler
     from geco_guide.tiny import tiny_pipeline
 
     cfg = load_config(preset="tiny", overrides=[f"sampling.scheduler={choice}"])

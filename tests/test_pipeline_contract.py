@@ -177,9 +177,11 @@ def test_the_users_scheduler_is_kept(make, estimators):
 def test_components_function_includes_the_estimators(estimators):
     # mirrors test_components_function
     _, ours = pair(estimators)
-    names = {"tokenizer", "text_encoder", "vae", "transformer", "scheduler", "geometry_estimator", "flow_estimator"}
+    names = {"tokenizer", "text_encoder", "vae", "transformer", "scheduler", "geometry_estimator", "flow_estimator",
+             "guidance_decoder"}
     assert set(ours.components) == names
     assert ours.components["geometry_estimator"] is estimators[0]
+    assert ours.components["guidance_decoder"] is None  # optional: guidance.decoder=tiny only
     again = GeCoCogVideoXPipeline(**ours.components)
     assert again.flow_estimator is estimators[1]
 

@@ -17,8 +17,10 @@ import pytest
 import torch
 
 from geco_guide.bench.synthetic import inject_deformation, rigid_clip
+from geco_guide.cli import evaluate as evaluate_module
 from geco_guide.cli import generate as generate_module
-from geco_guide.cli.generate import generate, load_video_pipeline, main
+from geco_guide.cli.evaluate import main as evaluate_main
+from geco_guide.cli.generate import generate, main
 from geco_guide.config import load_config
 from geco_guide.estimators.loading import fetch_checkpoint_file
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
@@ -31,9 +33,8 @@ from geco_guide.loss.geco import (
     frame_pairs,
     geco_from_geometry,
 )
-from geco_guide.metric import evaluate as evaluate_module
 from geco_guide.metric.evaluate import evaluate_video
-from geco_guide.metric.evaluate import main as evaluate_main
+from geco_guide.sampler.loading import load_video_pipeline
 from geco_guide.tiny import tiny_estimators
 from geco_guide.types import (
     Correspondences,
@@ -414,7 +415,7 @@ def test_evaluate_cuda_without_cuda_is_one_line_before_loading(tmp_path: Path, c
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
 @pytest.mark.parametrize("override", ["model.device=cuda", "evaluation.device=cuda"])
 def test_geco_eval_cuda_without_cuda_is_one_line_before_loading(tmp_path: Path, capsys, monkeypatch, override):
-    from geco_guide.bench import geco_eval
+    from geco_guide.cli import geco_eval
 
     monkeypatch.setattr(geco_eval, "process_state", lambda cfg: pytest.fail("the run started"))
     argv = ["--preset", "tiny", "--models", "cogvideox-5b", "--limit", "1", "--out", str(tmp_path / "x"), override]

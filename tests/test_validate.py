@@ -7,8 +7,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from geco_guide.bench import datasets as benchmarks
-from geco_guide.bench import robustness, validate
+from geco_guide.bench import validate
 from geco_guide.bench.datasets import load_benchmark, oracle_clip
 from geco_guide.bench.occlusion import (
     OBJECT,
@@ -28,6 +27,8 @@ from geco_guide.bench.warp import (
     warp_fields,
     warp_one_frame,
 )
+from geco_guide.cli import benchmarks, robustness
+from geco_guide.cli import validate as validate_cli
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.geometry import pixel_grid, sample_bilinear
 from geco_guide.loss.geco import GeCoLossConfig
@@ -159,7 +160,7 @@ def test_builders_write_complete_deterministic_folders(built, tmp_path):
 
 def test_oracle_estimators_solve_the_three_tasks(built):
     out = built / "report"
-    code = validate.main([str(built / "warp-frame"), str(built / "warp-clip"), str(built / "occlusion"),
+    code = validate_cli.main([str(built / "warp-frame"), str(built / "warp-clip"), str(built / "occlusion"),
                           "--oracle", "--out", str(out)])
     assert code == 0
     summary = json.loads((out / "validation.json").read_text())["summary"]
@@ -179,7 +180,7 @@ def test_oracle_estimators_solve_the_three_tasks(built):
 
 def test_a_3d_occlusion_edit_is_found_by_structure_and_missed_by_motion(built):
     out = built / "report-3d"
-    assert validate.main([str(built / "occlusion-3d"), "--oracle", "--no-grids", "--out", str(out)]) == 0
+    assert validate_cli.main([str(built / "occlusion-3d"), "--oracle", "--no-grids", "--out", str(out)]) == 0
     summary = json.loads((out / "validation.json").read_text())["summary"]["task3"]
     # The paper's OccluBench finding: the flow follows the new surface, only depth contradicts it.
     assert summary["structure"]["ap"] >= 0.9 and summary["fused"]["ap"] >= 0.9
@@ -200,14 +201,14 @@ def test_a_wrong_mask_fails_the_tasks(built):
 
 
 def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
-    assert validate.main([str(tmp_path), "--oracle"]) == 2
+    assert validate_cli.main([str(tmp_path), "--oracle"]) == 2
     assert "holds no built benchmark clip" in capsys.readouterr().err
     assert benchmarks.main(["warp", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "\n" not in err
     assert benchmarks.main(["warp", "synthetic", "--synthetic-size", "3", "16", "24", "--out", str(tmp_path / "b")]) == 0
     (tmp_path / "b" / "synthetic-s0" / "truth.npz").write_bytes(b"damaged")
-    assert validate.main([str(tmp_path / "b"), "--oracle", "--no-grids"]) == 1
+    assert validate_cli.main([str(tmp_path / "b"), "--oracle", "--no-grids"]) == 1
     err = capsys.readouterr().err.strip()
     assert "cannot read truth.npz" in err and len(err.splitlines()) == 1
 

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from geco_guide.io import video
 from geco_guide.io.files import WriteError
 from geco_guide.io.video import (
     VideoReadError,
@@ -17,6 +16,7 @@ from geco_guide.io.video import (
     read_video,
     write_video,
 )
+from geco_guide.metric import render
 from geco_guide.metric.protocol import (
     evaluation_windows,
     motion_grid,
@@ -376,13 +376,13 @@ def test_without_font_sizes_the_bitmap_font_is_enlarged(monkeypatch):
         return ImageFont.load_default_imagefont()
 
     monkeypatch.setattr(ImageFont, "load_default", load_default)
-    video._font.cache_clear()
+    render._font.cache_clear()
     try:
         one, three = text_mask("AB", 1), text_mask("AB", 3)
         assert one.shape[1] > 0 and one.max() == 1.0 and three.shape == (one.shape[0] * 3, one.shape[1] * 3)
         assert label_height(3) % 2 == 0 and text_strip("AB", 60, 3).shape == (3, label_height(3), 60)
     finally:
-        video._font.cache_clear()
+        render._font.cache_clear()
 
 
 def test_side_by_side_layout():

@@ -1,10 +1,5 @@
-"""Build WarpBench- and OccluBench-style benchmarks from any static-scene clip.
-
-    python -m geco_guide.benchmarks warp clip.mp4 frames/ --out bench/warp --mode frame --seeds 0 1 2
-    python -m geco_guide.benchmarks warp clip.mp4 --mask object.png --out bench/warp-clip
-    python -m geco_guide.benchmarks occlusion clip.mp4 --object duck.png --out bench/occlusion
-    python -m geco_guide.benchmarks warp synthetic --out bench/synthetic-warp --seeds 0 1 2   # offline, exact ground truth
-    python -m geco_guide.benchmarks occlusion synthetic-3d --out bench/synthetic-occlusion-3d
+"""Build WarpBench- and OccluBench-style benchmarks from any static-scene clip (the command is
+:mod:`geco_guide.cli.benchmarks`).
 
 Each clip becomes a folder ``<out>/<name>-s<seed>/`` holding
 
@@ -28,7 +23,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import sys
 import zipfile
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -270,52 +264,3 @@ def build_one(kind: str, source: str, frames: Tensor, synthetic: SyntheticClip |
                 phases=list(result.phases), object=args.object or "procedural", object_mask=args.object_mask or "ellipse",
                 region_track="scene flow" if track is not None else "fixed in the image")
     return result.frames, truth, meta
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m geco_guide.benchmarks",
-                                description="Build WarpBench/OccluBench-style clips with ground truth.")
-    p.add_argument("kind", choices=KINDS)
-    p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|synthetic|synthetic-3d",
-                   help="clips to edit; synthetic: the gallery scene with exact ground truth; synthetic-3d "
-                        "(occlusion only): a pillar hides a wall region that re-appears with another box, in 3D")
-    p.add_argument("--out", required=True, help="output folder (one sub-folder per clip and seed)")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="one clip per input and seed")
-    p.add_argument("--max-frames", type=int, default=20, help="frames kept per input, evenly spaced (paper: 20)")
-    p.add_argument("--synthetic-size", type=int, nargs=3, default=(9, 48, 64), metavar=("FRAMES", "H", "W"))
-    warp = p.add_argument_group("warp")
-    warp.add_argument("--mode", choices=("clip", "frame"), default="clip",
-                      help="clip: warp every frame (Task 2); frame: replace one random frame (Task 1)")
-    warp.add_argument("--mask", default=None, help="foreground mask image, or folder/video of per-frame masks")
-    warp.add_argument("--controls", type=int, default=WarpParams.num_controls)
-    warp.add_argument("--amplitude", type=float, default=WarpParams.amplitude, help="control displacement std (px)")
-    warp.add_argument("--beta", type=float, default=WarpParams.beta, help="EMA factor over time")
-    warp.add_argument("--feather", type=float, default=None, help="feather width in px")
-    warp.add_argument("--mask-threshold", type=float, default=WarpParams.mask_threshold, help="artifact: |U| > this (px)")
-    occ = p.add_argument_group("occlusion")
-    occ.add_argument("--object", default=None, help="the re-revealed object: an image, or a video / frame folder (its middle frame); default procedural")
-    occ.add_argument("--object-mask", default=None, help="its alpha mask image (default: an ellipse)")
-    occ.add_argument("--region", type=int, nargs=4, default=None, metavar=("LEFT", "TOP", "RIGHT", "BOTTOM"))
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    failed = 0
-    for source in args.inputs:
-        try:
-            if args.max_frames < 3:
-                raise ValueError(f"--max-frames must be >= 3, got {args.max_frames}")
-            frames, synthetic = load_clip(source, args.max_frames, tuple(args.synthetic_size))
-            stem = source if synthetic is not None else Path(source).stem or Path(source).name
-            for seed in args.seeds:
-                edited, truth, meta = build_one(args.kind, source, frames, synthetic, seed, args)
-                folder = Path(args.out) / f"{stem}-s{seed}"
-                write_benchmark(folder, edited, truth, meta)
-                note = f", anomalous frame {meta['anomalous_frame']}" if meta["anomalous_frame"] is not None else ""
-                print(f"{folder}: {args.kind} ({meta['mode']}), {int(truth['mask'].sum())} artifact pixels{note}")
-        except (ValueError, OSError, RuntimeError) as err:  # one bad input must not stop the others
-            failed += 1
-            print(f"error: {source}: {str(err).splitlines()[0] if str(err) else type(err).__name__}", file=sys.stderr)
-    return 1 if failed == len(args.inputs) else 0
-

@@ -1,9 +1,5 @@
-"""GeCo-Eval, the paper's benchmark: ``python -m geco_guide.geco_eval --models ... --out DIR``.
-
-    python -m geco_guide.geco_eval --models cogvideox-5b wan2.1-t2v-1.3b --seeds 0 1 2 3 --out bench
-    python -m geco_guide.geco_eval --models cogvideox-5b --guided --scenario indoor --out bench
-    python -m geco_guide.geco_eval --videos sora-2=downloads/sora --out bench
-    python -m geco_guide.geco_eval --preset tiny --models cogvideox-5b wan2.1-t2v-1.3b --limit 2 --out bench-tiny
+"""GeCo-Eval, the paper's benchmark: prompts, jobs, the runner and the report (the command is
+:mod:`geco_guide.cli.geco_eval`).
 
 The suite is the paper's 80 prompts (supplement, "List of Text Prompt"; shipped as
 ``geco_guide/bench/data/geco_eval_prompts.jsonl``): four scenarios (object-centric, indoor, outdoor,
@@ -25,14 +21,9 @@ the report once all are done.
 
 from __future__ import annotations
 
-import argparse
-import csv
-import io
 import json
 import math
 import re
-import shlex
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -43,32 +34,26 @@ from typing import Any
 
 import torch
 
-from .. import __version__
-from ..cli.generate import pipeline_from_pretrained, quiet_hub_logs
-from ..config import GeCoConfig, config_to_dict, config_to_yaml, load_config
+from ..config import GeCoConfig, config_to_yaml
 from ..estimators import TINY_RANDOM, load_estimators
 from ..estimators.loading import WeightsNotFoundError
-from ..io.devices import check_device, resolve_device
+from ..io.devices import resolve_device
 from ..io.files import (
-    WriteError,
     remove_temp_files,
-    write_bytes_atomic,
     write_json_atomic,
-    write_text_atomic,
 )
-from ..io.plots import Panel, legend, limits
+from ..io.plots import Panel, legend, limits, text
 from ..io.video import VIDEO_SUFFIXES, write_video
 from ..loss.geco import CUES
 from ..metric.evaluate import PAPER_NAMES, evaluate_video
+from ..sampler.loading import pipeline_from_pretrained, quiet_hub_logs
 from ..sampler.slicing import default_anchors
+from . import report
+from .report import fmt
 from .runs import (
     PeakMemory,
-    check_output_folder,
     config_fingerprint,
-    process_config,
-    process_state,
     read_finished,
-    shard,
 )
 
 SCENARIOS = ("object-centric", "indoor", "outdoor", "appearance-complex")
@@ -357,17 +342,13 @@ def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str,
             generator = Generator(MODELS[name], cfg, weights.get(name), estimators)
         for job in (j for j in todo if j.model == name):
             result = run_job(job, out, cfg, estimators, generator)
-            print(f"{tag}{job.arm}/{job.name}: fused {_fmt(result['fused'])}, TM {_fmt(result['total_motion'])} %",
+            print(f"{tag}{job.arm}/{job.name}: fused {fmt(result['fused'])}, TM {fmt(result['total_motion'])} %",
                   flush=True)
         del generator
 
 
 # ----------------------------------------------------------------------------------------------
 # the report
-
-
-def _fmt(value: float | None, digits: int = 4) -> str:
-    return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
 
 
 def _stats(values: Sequence[float | None]) -> dict[str, Any]:
@@ -402,23 +383,23 @@ CSV_COLUMNS = ("model", "guided", "prompt_id", "scenario", "camera", "seed", *ME
 
 
 def csv_text(results: Sequence[dict[str, Any]]) -> str:
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
-    writer.writeheader()
-    for result in results:
-        writer.writerow({k: "" if result.get(k) is None else result[k] for k in CSV_COLUMNS})
-    return buffer.getvalue()
+    return report.csv_text(results, CSV_COLUMNS)
 
 
 def _cell(stats: dict[str, Any]) -> str:
     if stats["mean"] is None:
         return "-"
-    return _fmt(stats["mean"]) + ("" if stats["std"] is None else f" ± {_fmt(stats['std'], 3)}")
+    return fmt(stats["mean"]) + ("" if stats["std"] is None else f" ± {fmt(stats['std'], 3)}")
 
 
-def report_markdown(summary: dict[str, Any], missing: Sequence[str], config_yaml: str, command: str) -> str:
+def report_markdown(summary: dict[str, Any], missing: Sequence[str], config_yaml: str, command: str,
+                    models: Sequence[str] = ()) -> str:
+    """``report.md``; ``models``: the lines of :func:`geco_guide.bench.report.models_section`."""
     lines = ["# GeCo-Eval", "",
-             f"{summary['videos']} videos scored; command: `{command}`", "",
+             f"{summary['videos']} videos scored; command: `{command}`", ""]
+    if summary.get("tiny_models"):
+        lines += [f"**{report.TINY_NOTE}.**", ""]
+    lines += [*models,
              "Scores: mean ± standard deviation over videos (lower motion / structure / fused is more "
              "consistent). TM = Total Motion (%), MM = Mean Motion (%/s): read the scores next to them, "
              "a static video is trivially consistent.", ""]
@@ -427,11 +408,10 @@ def report_markdown(summary: dict[str, Any], missing: Sequence[str], config_yaml
                   + (" ..." if len(missing) > 20 else ""), ""]
     header = ["group", "n", *(f"{m} ({PAPER_NAMES[m]})" if m in CUES else PAPER_NAMES[m] for m in METRICS)]
     for arm, data in summary["arms"].items():
-        lines += [f"## {arm}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-        for group, stats in data["groups"].items():
-            cells = [group, str(stats["fused"]["n"]), *(_cell(stats[m]) for m in METRICS)]
-            lines.append("| " + " | ".join(cells) + " |")
-        cost = f"sampling {_fmt(data['generation_s_mean'], 3)} s per video" if data["generation_s_mean"] is not None else ""
+        rows = [[group, str(stats["fused"]["n"]), *(_cell(stats[m]) for m in METRICS)]
+                for group, stats in data["groups"].items()]
+        lines += [f"## {arm}", "", *report.markdown_table(header, rows)]
+        cost = f"sampling {fmt(data['generation_s_mean'], 3)} s per video" if data["generation_s_mean"] is not None else ""
         lines += ["", cost, ""] if cost else [""]
     lines += ["![fused score vs Mean Motion per model](pareto.png)", "", "## Configuration", "", "```yaml",
               config_yaml.rstrip(), "```"]
@@ -444,32 +424,49 @@ COLORS = [(60, 110, 200), (235, 125, 30), (40, 160, 70), (210, 50, 50), (140, 90
 
 def plot_png(summary: dict[str, Any]) -> bytes:
     """``pareto.png``: fused score vs Mean Motion, one point per model (arm); left all prompts,
-    then one small panel per scenario."""
+    then one small panel per scenario with data (a run of one scenario draws no empty panels;
+    "all" without any point says "no data")."""
     from PIL import Image, ImageDraw
 
-    groups = ("all", *SCENARIOS)
     image = Image.new("RGB", (1500, 480), (255, 255, 255))
     draw = ImageDraw.Draw(image)
     arms = list(summary["arms"].items())
     points = {g: [(data["groups"][g]["mean_motion"]["mean"], data["groups"][g]["fused"]["mean"], k)
-                  for k, (_, data) in enumerate(arms) if g in data["groups"]] for g in groups}
+                  for k, (_, data) in enumerate(arms) if g in data["groups"]] for g in ("all", *SCENARIOS)}
     points = {g: [p for p in pts if p[0] is not None and p[1] is not None] for g, pts in points.items()}
+    groups = ["all", *(g for g in SCENARIOS if points[g])]
     for column, group in enumerate(groups):
         xs = [p[0] for p in points[group]] or [0.0]
         ys = [p[1] for p in points[group]] or [0.0]
         left = 70 + column * 290
         panel = Panel((left, 80, left + 220, 360), limits(xs), limits(ys))
         panel.draw_axes(draw, group, "Mean Motion (%/s)", "fused")
+        if not points[group]:
+            text(draw, ((left + left + 220) / 2, 220), "no data", "mm")
         for x, y, k in points[group]:
             panel.dot(draw, x, y, COLORS[k % len(COLORS)])
     legend(draw, Panel((70, 80, 1400, 380), (0, 1), (0, 1)),
            [(arm, COLORS[k % len(COLORS)]) for k, (arm, _) in enumerate(arms)])
-    buffer = io.BytesIO()
-    image.save(buffer, format="PNG")
-    return buffer.getvalue()
+    return report.png_bytes(image)
 
 
-def write_report(out: Path, jobs: Sequence[Job], cfg: GeCoConfig, command: str) -> dict[str, Any]:
+def model_weights(cfg: GeCoConfig, names: Sequence[str], weights: dict[str, str] | None = None) -> dict[str, str]:
+    """``{model: the weights it ran with}``: a ``--weights`` folder, the hub id, or the tiny random family."""
+    weights = weights or {}
+    found = {}
+    for name in names:
+        model = MODELS.get(name)
+        if model is None:
+            found[name] = "existing videos (--videos)"
+        elif cfg.model.id == TINY_RANDOM:
+            found[name] = f"{TINY_RANDOM} ({model.tiny} family, init seed {cfg.model.init_seed})"
+        else:
+            found[name] = weights.get(name, model.hub_id)
+    return found
+
+
+def write_report(out: Path, jobs: Sequence[Job], cfg: GeCoConfig, command: str,
+                 weights: dict[str, str] | None = None) -> dict[str, Any]:
     """Rebuild the report files from the jobs' result JSON files; returns the summary."""
     remove_temp_files(out, REPORT_STEMS)
     results, missing = [], []
@@ -479,114 +476,12 @@ def write_report(out: Path, jobs: Sequence[Job], cfg: GeCoConfig, command: str) 
             missing.append(f"{job.arm}/{job.name}")
         else:
             results.append(result)
+    models = model_weights(cfg, list(dict.fromkeys(job.model for job in jobs)), weights)
     summary = {**summarize(results), "missing": missing, "config_sha": config_fingerprint(cfg),
+               "models": models, "estimators": {"geometry": cfg.estimators.geometry, "flow": cfg.estimators.flow},
+               "tiny_models": report.uses_tiny_models(cfg),
                "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-    write_text_atomic(out / "results.csv", csv_text(results))
-    write_json_atomic(out / "summary.json", summary)
-    write_bytes_atomic(out / "pareto.png", plot_png(summary))
-    write_text_atomic(out / "report.md", report_markdown(summary, missing, config_to_yaml(cfg), command))
+    markdown = report_markdown(summary, missing, config_to_yaml(cfg), command,
+                               report.models_section(cfg, models))
+    report.write_report_files(out, table=csv_text(results), summary=summary, plot=plot_png(summary), markdown=markdown)
     return summary
-
-
-# ----------------------------------------------------------------------------------------------
-# CLI
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(2, f"error: {message} (see --help)\n")
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="python -m geco_guide.geco_eval",
-                description="GeCo-Eval: generate the paper's 80 prompts with video models and score them with GeCo.")
-    p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
-    p.add_argument("--models", nargs="+", default=[], metavar="NAME", help=f"models to generate with: {', '.join(MODELS)}")
-    p.add_argument("--videos", nargs="+", default=[], metavar="NAME=DIR",
-                   help="score existing videos: DIR/<prompt_id>-s<seed>.mp4 or DIR/<prompt_id>/*.mp4, timed at "
-                        "NAME's native frame rate (evaluation.model_fps) unless --fps")
-    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3], help="sampling seeds (default: 0 1 2 3, the paper's 4)")
-    p.add_argument("--guided", action="store_true", help="also generate every video with GeCo guidance")
-    p.add_argument("--scenario", choices=SCENARIOS, default=None, help="only this scenario")
-    p.add_argument("--camera", choices=CAMERAS, default=None, help="only this camera speed")
-    p.add_argument("--limit", type=int, default=None, help="only the first N prompts of the selection")
-    p.add_argument("--weights", nargs="+", default=[], metavar="NAME=DIR", help="a local folder for a model's weights")
-    p.add_argument("--fps", type=float, default=None, help="frame rate of the --videos inputs (overrides the table)")
-    p.add_argument("--out", required=True, help="output folder (reuse it to resume)")
-    p.add_argument("--preset", default=None, help="a config preset (tiny: every model is a tiny random model, CPU, offline)")
-    p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
-    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. evaluation.loss.pairs=center")
-    return p
-
-
-def _pairs(values: Sequence[str], option: str) -> dict[str, str]:
-    parsed = {}
-    for value in values:
-        name, sep, path = value.partition("=")
-        if not sep or not name or not path:
-            raise ValueError(f"{option} takes NAME=DIR, got {value!r}")
-        parsed[name] = path
-    return parsed
-
-
-def plan(args: argparse.Namespace) -> tuple[GeCoConfig, list[Job]]:
-    """Every check that needs no model: config, selection, model names, folders."""
-    cfg = load_config(args.config, args.preset, args.overrides)
-    unknown = [m for m in args.models if m not in MODELS]
-    if unknown:
-        raise ValueError(f"unknown model {unknown[0]!r}; known: {list(MODELS)}")
-    videos = _pairs(args.videos, "--videos")
-    weights = _pairs(args.weights, "--weights")
-    if not args.models and not videos:
-        raise ValueError("nothing to do: give --models and/or --videos NAME=DIR")
-    if args.limit is not None and args.limit < 1:
-        raise ValueError(f"--limit must be >= 1, got {args.limit}")
-    if len(set(args.seeds)) != len(args.seeds) or any(s < 0 for s in args.seeds):
-        raise ValueError(f"--seeds must be distinct non-negative integers, got {args.seeds}")
-    if args.fps is not None:
-        if not (args.fps > 0 and math.isfinite(args.fps)):
-            raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
-        cfg = replace(cfg, evaluation=replace(cfg.evaluation, model_fps={**cfg.evaluation.model_fps,
-                                                                         **{n: args.fps for n in videos}}))
-    for name in [*args.models, *videos]:
-        cfg.evaluation.fps_of_model(name)  # every model needs its native frame rate
-    prompts = load_prompts(args.scenario, args.camera)[: args.limit]
-    if not prompts:
-        raise ValueError("the selection holds no prompt")
-    jobs = [Job(m, p, s, guided) for m in args.models for guided in ((False, True) if args.guided else (False,))
-            for p in prompts for s in args.seeds]
-    for name, folder in videos.items():
-        jobs += existing_video_jobs(name, Path(folder), prompts)
-    args.weights_map = weights
-    return cfg, jobs
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        cfg, jobs = plan(args)
-        out = Path(args.out)
-        check_output_folder(out, cfg)
-        check_device(cfg.model.device)
-        check_device(cfg.evaluation.device, "evaluation.device")
-    except (ValueError, FileNotFoundError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    try:
-        state = process_state(cfg)
-        tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
-        if state.is_main_process:
-            write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
-        run_jobs(shard(jobs, state.process_index, state.num_processes), out, process_config(cfg, state),
-                 args.weights_map, tag)
-        state.wait_for_everyone()
-        if not state.is_main_process:
-            return 0
-        command = shlex.join(["python", "-m", "geco_guide.geco_eval", *(sys.argv[1:] if argv is None else argv)])
-        summary = write_report(out, jobs, cfg, command)
-    except (FileNotFoundError, WriteError) as err:  # weights not available (WeightsNotFoundError), disk full
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print(f"{summary['videos']} videos scored ({len(summary['missing'])} missing); report: {out / 'report.md'}")
-    return 0 if not summary["missing"] else 1
-

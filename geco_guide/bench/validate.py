@@ -1,8 +1,5 @@
-"""Score built benchmarks on the GeCo paper's three detection tasks.
-
-    python -m geco_guide.validate bench/synthetic-warp bench/synthetic-occlusion --oracle   # exact geometry, CPU
-    python -m geco_guide.validate bench/warp bench/occlusion                               # VGGT-1B + UFM-Base
-    python -m geco_guide.validate bench/warp --preset tiny                                 # tiny random models
+"""Score built benchmarks on the GeCo paper's three detection tasks (the command is
+:mod:`geco_guide.cli.validate`).
 
 Each input is a folder made by :mod:`geco_guide.benchmarks` (one clip, or a folder of clips).
 GeCo runs on the whole clip (the config's ``evaluation.loss``: every ordered pair by default) and
@@ -24,11 +21,8 @@ frame and the means), ``validation.md`` (the paper's table layout) and ``grids/<
 
 from __future__ import annotations
 
-import argparse
 import io
 import math
-import sys
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -37,14 +31,10 @@ import torch
 from PIL import Image
 from torch import Tensor
 
-from ..config import load_config
-from ..estimators import estimator_id, load_estimators
-from ..estimators.oracle import OracleFlow, OracleGeometry
-from ..io.files import write_bytes_atomic, write_json_atomic, write_text_atomic
+from ..io.files import write_bytes_atomic
 from ..loss.geco import GeCoResult
-from ..metric.evaluate import score_frames
 from ..metric.render import colorize, side_by_side
-from .datasets import Benchmark, find_benchmarks, load_benchmark, oracle_clip
+from .datasets import Benchmark
 from .ranking import average_precision, best_threshold_iou_f1, spearman
 
 CUES = ("structure", "motion", "fused")  # the paper's row order
@@ -178,68 +168,3 @@ def grid_frames(bench: Benchmark, record: dict[str, Any]) -> list[int]:
     if "task1" in record:
         picked.append(record["task1"]["predicted"]["fused"])
     return sorted(set(picked))
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m geco_guide.validate",
-                                description="Score benchmark clips on the paper's three detection tasks.")
-    p.add_argument("inputs", nargs="+", metavar="DIR|key=value", help="benchmark folders; key=value config overrides")
-    p.add_argument("--oracle", action="store_true", help="ground-truth estimators (clips built from 'synthetic')")
-    p.add_argument("--preset", default=None, help="a preset of configs/ (tiny: tiny random models, CPU)")
-    p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
-    p.add_argument("--vggt", default=None, metavar="ID_OR_DIR", help="geometry estimator: hub id or local folder")
-    p.add_argument("--ufm", default=None, metavar="ID_OR_DIR", help="flow estimator: hub id or local folder")
-    p.add_argument("--pairs", choices=("all", "center", "adjacent"), default=None, help="frame pairs (default: all)")
-    p.add_argument("--out", default=None, help="output folder (default: <first input>/validation)")
-    p.add_argument("--no-grids", action="store_true", help="skip the per-clip image grids")
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    overrides = [a for a in args.inputs if "=" in a and not Path(a).exists()]
-    roots = [a for a in args.inputs if a not in overrides]
-    for option, key in ((args.vggt, "estimators.geometry"), (args.ufm, "estimators.flow"), (args.pairs, "evaluation.loss.pairs")):
-        if option is not None:
-            overrides.append(f"{key}={option}")
-    try:
-        if not roots:
-            raise ValueError("no benchmark folder given")
-        folders = [folder for root in roots for folder in find_benchmarks(root)]
-        cfg = load_config(args.config, args.preset, overrides)
-        estimators = None if args.oracle else load_estimators(cfg.estimators, cfg.evaluation.device)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    out = Path(args.out) if args.out else Path(roots[0]) / "validation"
-    records, errors = [], []
-    for folder in folders:
-        try:
-            bench = load_benchmark(folder)
-            if args.oracle:
-                clip = oracle_clip(bench)
-                geometry, flow = OracleGeometry(clip), OracleFlow(clip)
-            else:
-                geometry, flow = estimators
-            _, result = score_frames(bench.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
-            record = validate_clip(bench, result)
-            if not args.no_grids:
-                record["grid"] = str(write_png(out / "grids" / f"{record['clip']}.png", grid_image(bench, result, grid_frames(bench, record))))
-        except (ValueError, OSError, RuntimeError) as err:  # one bad clip must not stop the others
-            errors.append({"clip": str(folder), "error": str(err).splitlines()[0] if str(err) else type(err).__name__})
-            print(f"error: {folder}: {errors[-1]['error']}", file=sys.stderr)
-            continue
-        records.append(record)
-        print(f"{folder}: {bench.kind} scored")
-    summary = summarise(records)
-    estimator_ids = {"geometry": "oracle", "flow": "oracle"} if args.oracle else {
-        "geometry": estimator_id(estimators[0]), "flow": estimator_id(estimators[1])}
-    report = {"summary": summary, "clips": records, "errors": errors, "estimators": estimator_ids,
-              "loss": asdict(cfg.evaluation.loss)}
-    write_json_atomic(out / "validation.json", report)
-    table = markdown_table(summary) if summary else "No clip could be scored.\n"
-    write_text_atomic(out / "validation.md", f"# GeCo validation ({estimator_ids['geometry']} + {estimator_ids['flow']})\n\n{table}")
-    print(table, end="")
-    print(f"wrote {out / 'validation.json'} and {out / 'validation.md'}")
-    return 1 if not records else 0
-

@@ -12,7 +12,6 @@ atomically. Trailing ``key=value`` arguments override the config (unknown keys a
 from __future__ import annotations
 
 import argparse
-import contextlib
 import math
 import os
 import platform
@@ -27,132 +26,30 @@ from typing import Any
 import torch
 
 from .. import __version__
-from ..config import GeCoConfig, config_to_dict, load_config
-from ..estimators import TINY_RANDOM, load_estimators
-from ..estimators.loading import WeightsNotFoundError
-from ..io.devices import check_device, resolve_device
+from ..config import GeCoConfig, config_to_dict
+from ..estimators import TINY_RANDOM
+from ..io.devices import check_device
 from ..io.files import WriteError, write_json_atomic
+from ..sampler import loading
 from ..types import NonFiniteFramesError, check_frame_values
+from .kit import Parser, add_config_flags, config_from_args
 
 # --------------------------------------------------------------------------------------------
 # building the pipeline from a config
 
 
-@contextlib.contextmanager
-def quiet_hub_logs():
-    """diffusers/transformers print several lines while failing to reach the hub; keep one error."""
-    from diffusers.utils import logging as dlogging
+def video_components(cfg: GeCoConfig) -> dict[str, Any] | None:
+    """The tiny random CogVideoX models for ``model.id=tiny-random``, else ``None`` (load the id)."""
+    if cfg.model.id != TINY_RANDOM:
+        return None
+    from ..tiny import tiny_cogvideox_components
 
-    level = dlogging.get_verbosity()
-    dlogging.set_verbosity_error()
-    try:
-        yield
-    finally:
-        dlogging.set_verbosity(level)
-
-
-def _looks_like_path(model_id: str) -> bool:
-    return model_id.startswith((".", "/", "~")) or model_id.count("/") > 1 or os.sep in model_id.replace("/", "")
-
-
-def _dtype_kwarg() -> str:
-    """diffusers renamed ``torch_dtype`` to ``dtype``; use whichever this version reads."""
-    from diffusers.pipelines import pipeline_utils
-
-    return "dtype" if hasattr(pipeline_utils, "_resolve_dtype") else "torch_dtype"
-
-
-def pipeline_from_pretrained(cls, model_id: str, name: str, folder_hint: str, *, dtype: torch.dtype,
-                             revision: str | None = None, **kwargs: Any):
-    """``cls.from_pretrained`` of a hub id or a local folder, in ``dtype``.
-
-    Raises:
-        WeightsNotFoundError: one line naming ``model_id``, the ``hf download`` command and
-            ``folder_hint`` (how to pass a local folder), when the folder does not exist or the
-            weights are neither in the hub cache nor reachable.
-    """
-    path = Path(model_id).expanduser()
-    if _looks_like_path(model_id) and not path.is_dir():
-        raise WeightsNotFoundError(f"{name}: local folder {model_id!r} does not exist (pass an existing folder or a "
-                                   f"hub id: {folder_hint})")
-    try:
-        with quiet_hub_logs():
-            return cls.from_pretrained(str(path) if path.is_dir() else model_id, revision=revision,
-                                       **{_dtype_kwarg(): dtype}, **kwargs)
-    except (OSError, ValueError) as err:
-        if isinstance(err, ValueError) and type(err).__name__ != "HFValidationError":
-            raise
-        raise WeightsNotFoundError(
-            f"{name} weights {model_id!r} are not available: not in the local Hugging Face cache and the hub "
-            f"cannot be reached (offline?). Download them once with `hf download {model_id}` (huggingface_hub "
-            f"< 0.34: `huggingface-cli download`) or pass a local folder: {folder_hint}"
-        ) from None
-
-
-def load_video_pipeline(cfg: GeCoConfig, geometry_estimator=None, flow_estimator=None):
-    """The GeCoCogVideoXPipeline of ``cfg.model`` on its device (estimators attached, the scheduler
-    of ``sampling.scheduler``: DDIM in the presets, see :func:`choose_scheduler`).
-
-    Raises:
-        WeightsNotFoundError: one line naming the model id and how to pass a local folder, when
-            the weights are neither in a local folder nor in the hub cache / reachable.
-    """
-    from ..sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
-
-    dtype = getattr(torch, cfg.model.dtype)
-    device = resolve_device(cfg.model.device)
-    model_id = cfg.model.id
-    extra = dict(geometry_estimator=geometry_estimator, flow_estimator=flow_estimator, guidance_config=cfg.guidance)
-    if model_id == TINY_RANDOM:
-        from ..tiny import tiny_cogvideox_components
-
-        components = tiny_cogvideox_components(cfg.model.init_seed)
-        pipe = GeCoCogVideoXPipeline(**components, **extra)
-        if dtype != torch.float32:
-            for model in (pipe.text_encoder, pipe.transformer, pipe.vae):
-                model.to(dtype)
-    else:
-        pipe = pipeline_from_pretrained(
-            GeCoCogVideoXPipeline, model_id, "CogVideoX", f"model.id=/path/to/{model_id.split('/')[-1]}",
-            dtype=dtype, revision=cfg.model.revision, **extra,
-        )
-    pipe.geco_scheduler_note = choose_scheduler(pipe, cfg.sampling.scheduler)
-    if cfg.model.vae_tiling:
-        pipe.vae.enable_tiling()
-    if cfg.model.vae_slicing:
-        pipe.vae.enable_slicing()
-    pipe.to(device)
-    return pipe
-
-
-SCHEDULERS = {"ddim": "CogVideoXDDIMScheduler", "dpm": "CogVideoXDPMScheduler"}
-
-
-def choose_scheduler(pipe, name: str | None) -> str:
-    """Give ``pipe`` the scheduler ``sampling.scheduler`` names; returns the sidecar's note.
-
-    ``ddim`` / ``dpm``: CogVideoX's DDIM / DPM scheduler built from the checkpoint's scheduler
-    config (the paper samples with deterministic DDIM, and CogVideoX-5B ships DPM); ``None``: the
-    checkpoint's own scheduler, untouched. The pipeline itself never replaces a scheduler.
-    """
-    shipped = type(pipe.scheduler).__name__
-    if name is None:
-        return f"{shipped} (the checkpoint's)"
-    if name not in SCHEDULERS:
-        raise ValueError(f"sampling.scheduler must be one of {sorted(SCHEDULERS)} or null, got {name!r}")
-    import diffusers
-
-    cls = getattr(diffusers, SCHEDULERS[name])
-    if type(pipe.scheduler) is cls:
-        return f"{cls.__name__} (sampling.scheduler={name}, the checkpoint's)"
-    pipe.scheduler = cls.from_config(pipe.scheduler.config)
-    return f"{cls.__name__} (sampling.scheduler={name}, built from the checkpoint's {shipped} config)"
+    return tiny_cogvideox_components(cfg.model.init_seed)
 
 
 def build_pipeline(cfg: GeCoConfig):
-    """Estimators + video pipeline of a config (estimators first: they are the cheaper failure)."""
-    geometry, flow = load_estimators(cfg.estimators, resolve_device(cfg.model.device))
-    return load_video_pipeline(cfg, geometry, flow)
+    """:func:`geco_guide.sampler.loading.build_pipeline` with the tiny models when the config asks for them."""
+    return loading.build_pipeline(cfg, components=video_components(cfg))
 
 
 # --------------------------------------------------------------------------------------------
@@ -296,14 +193,13 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="python -m geco_guide.generate",
         description="Generate a video with GeCo geometric-consistency guidance (CogVideoX).",
     )
     p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
     p.add_argument("--prompt", required=True, help="text prompt")
-    p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
-    p.add_argument("--preset", default=None, help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
+    add_config_flags(p, preset_help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
     p.add_argument("--seed", type=int, default=None, help="sampling seed (overrides the config's seed)")
     p.add_argument("--no-guidance", action="store_true", help="sample without GeCo guidance")
     p.add_argument("--out", default=None, help="output .mp4 path or folder (sidecar next to it, .json)")
@@ -313,13 +209,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    overrides = list(args.overrides)
-    if args.seed is not None:
-        overrides.append(f"seed={args.seed}")
-    if args.no_guidance:
-        overrides.append("guidance.enabled=false")
+    options = {"seed": args.seed, "guidance.enabled": "false" if args.no_guidance else None}
     try:
-        cfg = load_config(args.config, args.preset, overrides)
+        cfg = config_from_args(args, args.overrides, options)
         result = generate(cfg, args.prompt, out=args.out)
     except (ValueError, FileNotFoundError, WriteError) as err:  # WeightsNotFoundError: a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)

@@ -1,7 +1,5 @@
-"""Per-frame detection maps: where a video breaks, frame by frame (the paper code's detection demo).
-
-    python -m geco_guide.detection clip.mp4 --out maps                  # VGGT-1B + UFM-Base, mp4
-    python -m geco_guide.detection frames/ --preset tiny --window 8 --anchor end --format gif png
+"""Per-frame detection maps: where a video breaks, frame by frame (the paper code's detection demo;
+the command is :mod:`geco_guide.cli.detection`).
 
 :func:`geco_guide.evaluate.evaluate_video` scores the protocol's windows; here every frame gets
 its own window of ``W`` frames (default 20) with the frame at its start, centre or end (clamped
@@ -18,11 +16,8 @@ NNNNN.png``: source | motion | structure | fused on the fixed colour scale of
 
 from __future__ import annotations
 
-import argparse
 import io
-import math
-import sys
-from dataclasses import asdict, fields, replace
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,11 +26,9 @@ import torch
 from PIL import Image
 from torch import Tensor
 
-from ..config import load_config
-from ..estimators import estimator_id, load_estimators
 from ..geometry import relative_pose, sample_at_projection
-from ..io.files import atomic_path, write_bytes_atomic, write_json_atomic
-from ..io.video import read_frames, write_video
+from ..io.files import atomic_path, write_bytes_atomic
+from ..io.video import write_video
 from ..loss.cues import fuse_cues, masked_mean, structure_residual
 from ..loss.geco import GeCoLossConfig, GeCoMaps
 from ..types import SceneGeometry
@@ -168,64 +161,3 @@ def write_detection(rendered: Tensor, stem: Path, formats: list[str], fps: float
         "png": lambda: write_pngs(stem.with_name(f"{stem.name}.detection"), rendered),
     }
     return [writers[f]() for f in formats]
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m geco_guide.detection",
-                                description="Per-frame GeCo detection maps (a window per frame).")
-    p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|key=value")
-    p.add_argument("--out", default="detection", help="output folder")
-    p.add_argument("--window", type=int, default=20, help="frames per window (the demo's default: 20)")
-    p.add_argument("--anchor", choices=ANCHORS, default="center", help="where the frame sits in its window")
-    p.add_argument("--one-way", action="store_true", help="structure occlusion test in one direction only")
-    p.add_argument("--format", nargs="+", choices=FORMATS, default=["mp4"], dest="formats")
-    p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the input's)")
-    p.add_argument("--preset", default=None, help="a preset of configs/ (tiny: tiny random models, CPU)")
-    p.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
-    p.add_argument("--vggt", default=None, metavar="ID_OR_DIR", help="geometry estimator: hub id or local folder")
-    p.add_argument("--ufm", default=None, metavar="ID_OR_DIR", help="flow estimator: hub id or local folder")
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    overrides = [a for a in args.inputs if "=" in a and not Path(a).exists()]
-    videos = [a for a in args.inputs if a not in overrides]
-    for option, key in ((args.vggt, "estimators.geometry"), (args.ufm, "estimators.flow")):
-        if option is not None:
-            overrides.append(f"{key}={option}")
-    try:
-        if not videos:
-            raise ValueError("no input video given")
-        if args.window < 2:
-            raise ValueError(f"--window must be >= 2, got {args.window}")
-        if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
-            raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
-        cfg = load_config(args.config, args.preset, overrides)
-        geometry, flow = load_estimators(cfg.estimators, cfg.evaluation.device)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    failed = 0
-    for video in videos:
-        try:
-            clip = read_frames(video, min_frames=2)
-            maps = detection_maps(clip.frames, geometry, flow, cfg.evaluation.loss, window=args.window,
-                                  anchor=args.anchor, two_way=not args.one_way,
-                                  flow_batch_size=cfg.evaluation.flow_batch_size)
-            scores = frame_scores(maps)
-            stem = Path(args.out) / (Path(video).stem or Path(video).name)
-            written = write_detection(render_detection(maps, scores), stem, args.formats, args.fps or clip.fps)
-            write_json_atomic(stem.with_name(f"{stem.name}.detection.json"), {
-                "source": video, "window": min(args.window, clip.num_frames), "anchor": args.anchor,
-                "two_way": not args.one_way, "frames": [{"index": k, **row} for k, row in enumerate(scores)],
-                "estimators": {"geometry": estimator_id(geometry), "flow": estimator_id(flow)},
-                "loss": asdict(cfg.evaluation.loss)})
-        except (ValueError, OSError, RuntimeError) as err:  # one bad input must not stop the others
-            failed += 1
-            print(f"error: {video}: {str(err).splitlines()[0] if str(err) else type(err).__name__}", file=sys.stderr)
-            continue
-        worst = max(range(len(scores)), key=lambda k: -1.0 if scores[k]["fused"] is None else scores[k]["fused"])
-        print(f"{video}: {len(scores)} frames, least consistent frame {worst} -> {', '.join(map(str, written))}")
-    return 1 if failed == len(videos) else 0
-

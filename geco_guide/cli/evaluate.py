@@ -1,0 +1,223 @@
+"""``python -m geco_guide.evaluate VIDEO [VIDEO ...|DIR]``: score videos with the GeCo metric.
+
+    python -m geco_guide.evaluate clip.mp4 --maps                 # VGGT-1B + UFM-Base from the hub
+    python -m geco_guide.evaluate videos/ --geometry-estimator /data/VGGT-1B --flow-estimator /data/UFM-Base --out scores
+    python -m geco_guide.evaluate --preset tiny clip.mp4 frames/   # tiny random models, CPU, offline
+    python -m geco_guide.evaluate clip.mp4 --model cogvideox-5b    # timed at the model's native 16 fps
+
+The protocol is :func:`geco_guide.metric.evaluate.evaluate_video`'s. Per video:
+``<out>/<stem>.geco.json`` and with ``--maps`` ``<out>/<stem>.maps.mp4`` (source | motion |
+structure | fused on the fixed colour scale of :data:`geco_guide.video.MAP_RANGE`, with a
+legend). Several inputs (or a folder of videos) add ``<out>/geco_scores.csv`` (one row per video,
+failures with an ``error``) and ``<out>/geco_summary.json`` (means over videos). Every output is
+written atomically. A bad input is one error line and does not stop the others; the exit code is
+non-zero only when every input failed (2 for a bad config or unavailable weights).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import math
+import os
+import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from .. import __version__
+from ..config import GeCoConfig
+from ..estimators import estimator_id, load_estimators
+from ..io.devices import check_device
+from ..io.files import write_json_atomic, write_text_atomic
+from ..io.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES, frame_files, read_frames
+from ..loss.geco import PAIR_MODES
+from ..metric.detection import (
+    detection_maps,
+    frame_scores,
+    render_detection,
+    write_detection,
+)
+from ..metric.evaluate import (
+    PAPER_NAMES,
+    _mean,
+    _number,
+    evaluate_video,
+    write_maps_video,
+)
+from .kit import (
+    Parser,
+    add_config_flags,
+    config_from_args,
+    is_config_key,
+    split_overrides,
+)
+
+
+def write_detection_video(video: str | os.PathLike, stem: Path, geometry: Any, flow: Any, cfg: GeCoConfig) -> Path:
+    """``<stem>.detection.mp4``: the per-frame detection maps of every frame of ``video``
+    (:mod:`geco_guide.detection`, its defaults: a 20-frame window centred on the frame)."""
+    clip = read_frames(video, default_fps=cfg.evaluation.default_fps, min_frames=2)
+    maps = detection_maps(clip.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
+    (path,) = write_detection(render_detection(maps, frame_scores(maps)), stem, ["mp4"], clip.fps)
+    return path
+
+
+@dataclass
+class _Input:
+    """One video to score (a file or a frame folder), or an input that already failed."""
+
+    path: Path
+    name: str
+    error: str | None = None
+
+
+def _holds_frames(folder: Path) -> bool:
+    return bool(frame_files(folder))
+
+
+def expand_inputs(paths: list[str]) -> list[_Input]:
+    """Command-line inputs -> videos. A folder with png/jpg frames is one video; any other
+    folder stands for its video files and frame sub-folders (one level), and is an error when it
+    holds none. Names (output stems) are made unique with ``-2``, ``-3``, ..."""
+    items: list[_Input] = []
+    for arg in paths:
+        path = Path(arg)
+        if path.is_dir() and not _holds_frames(path):
+            entries = sorted(p for p in path.iterdir() if not p.name.startswith("."))
+            videos = [p for p in entries if (p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES) or (p.is_dir() and _holds_frames(p))]
+            if not videos:
+                kinds = "/".join(s.lstrip(".") for s in VIDEO_SUFFIXES + IMAGE_SUFFIXES)
+                items.append(_Input(path, path.name or str(path), f"folder {str(path)!r} holds no video ({kinds})"))
+            items.extend(_Input(p, p.stem if p.is_file() else p.name) for p in videos)
+        else:
+            items.append(_Input(path, path.stem if path.suffix else path.name))
+    seen: dict[str, int] = {}
+    for item in items:
+        count = seen.get(item.name, 0)
+        seen[item.name] = count + 1
+        if count:
+            item.name = f"{item.name}-{count + 1}"
+    return items
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    message = text[0] if text else ""
+    return message if isinstance(err, ValueError) else f"{type(err).__name__}: {message}"
+
+
+CSV_COLUMNS = (
+    "name", "path", "fused", "motion", "structure", "total_motion", "mean_motion",
+    "num_frames", "fps", "fps_source", "sampled_fps", "num_windows", "json", "error",
+)
+SUMMARY_KEYS = ("fused", "motion", "structure", "total_motion", "mean_motion")
+
+
+def _write_table(out: Path, rows: list[dict[str, Any]], estimators: dict[str, str], config: dict[str, Any]) -> tuple[Path, Path]:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({key: "" if row.get(key) is None else row[key] for key in CSV_COLUMNS})
+    csv_path = write_text_atomic(out / "geco_scores.csv", buffer.getvalue())
+    ok = [row for row in rows if row.get("error") is None]
+    summary = {
+        "num_videos": len(rows),
+        "num_ok": len(ok),
+        "num_failed": len(rows) - len(ok),
+        "mean": {key: _number(_mean([row[key] for row in ok if row[key] is not None])) for key in SUMMARY_KEYS},
+        "paper_names": PAPER_NAMES,
+        "videos": [{key: row.get(key) for key in ("name", "path", "json", "error")} for row in rows],
+        "estimators": estimators,
+        "config": config,
+    }
+    return csv_path, write_json_atomic(out / "geco_summary.json", summary)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(
+        prog="python -m geco_guide.evaluate",
+        description="Score videos with GeCo (M_motion, M_struct, M_geo, Total/Mean Motion).",
+    )
+    p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
+    p.add_argument("inputs", nargs="+", metavar="VIDEO|DIR|key=value",
+                   help="video files (mp4, gif, ...), folders of frames or of videos; key=value config overrides")
+    add_config_flags(p)
+    p.add_argument("--model", default=None, metavar="NAME",
+                   help="the video model that made the inputs (e.g. cogvideox-5b): its native frame rate "
+                        "(evaluation.model_fps, the paper's table) replaces the file's")
+    p.add_argument("--fps", type=float, default=None, help="source frame rate, overriding --model and the file's")
+    p.add_argument("--out", default=None, help="output folder (default: the config's output.dir)")
+    p.add_argument("--maps", action="store_true", help="also write <stem>.maps.mp4 with the heat maps")
+    p.add_argument("--detection", action="store_true",
+                   help="also write <stem>.detection.mp4: every frame's own maps against a window of 20 frames "
+                        "around it (python -m geco_guide.detection for the window, anchor and formats)")
+    p.add_argument("--pairs", choices=PAIR_MODES, default=None,
+                   help="frame pairs per window: all (default, the paper's script: n(n-1) flow pairs for n frames), "
+                        "center (2(n-1)) or adjacent (n-1)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_intermixed_args(argv)  # options may follow the inputs
+    overrides, videos = split_overrides(args.inputs)
+    # Neither an input nor an option (a=b.mp4): a missing file, or a mistyped key.
+    strays = [a for a in overrides if not is_config_key(a.partition("=")[0])]
+    try:
+        if strays:
+            raise ValueError(f"{strays[0]!r} is neither an existing file nor a config override "
+                             f"({strays[0].partition('=')[0]!r} is not a config key)")
+        if not videos:
+            raise ValueError("no input video given")
+        if args.fps is not None and not (args.fps > 0 and math.isfinite(args.fps)):
+            raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
+        cfg = config_from_args(args, overrides, {"evaluation.loss.pairs": args.pairs})
+        if args.model is not None:
+            cfg.evaluation.fps_of_model(args.model)  # an unknown name fails before the estimators load
+        check_device(cfg.evaluation.device, "evaluation.device")
+        geometry, flow = load_estimators(cfg.estimators, cfg.evaluation.device)
+    except (ValueError, FileNotFoundError) as err:  # WeightsNotFoundError is a FileNotFoundError
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+    out = Path(args.out if args.out is not None else cfg.output.dir)
+    items = expand_inputs(videos)
+    rows: list[dict[str, Any]] = []
+    for item in items:
+        row: dict[str, Any] = {"name": item.name, "path": str(item.path), "error": item.error}
+        if item.error is None:
+            try:
+                result = evaluate_video(item.path, geometry=geometry, flow=flow, config=cfg, fps=args.fps,
+                                        model=args.model, maps=args.maps)
+                json_path = write_json_atomic(out / f"{item.name}.geco.json", result.to_dict())
+                maps_note = ""
+                if args.maps:
+                    maps_note = f", maps {write_maps_video(result, out / f'{item.name}.maps.mp4')}"
+                if args.detection:
+                    maps_note += f", detection maps {write_detection_video(item.path, out / item.name, geometry, flow, cfg)}"
+            except Exception as err:  # one bad input must not stop the others
+                row["error"] = _one_line(err)
+            else:
+                row.update({key: _number(getattr(result, key)) for key in SUMMARY_KEYS})
+                row.update(num_frames=result.num_frames, fps=result.fps, fps_source=result.fps_source,
+                           sampled_fps=result.sampled_fps,
+                           num_windows=len(result.windows), json=str(json_path))
+                print(
+                    f"{item.name}: M_geo={result.fused:.4f} M_motion={result.motion:.4f} M_struct={result.structure:.4f} "
+                    f"TM={result.total_motion:.2f}% MM={result.mean_motion:.2f}%/s "
+                    f"({len(result.windows)} windows at {result.sampled_fps:g} fps, source {result.fps:g} fps "
+                    f"from {result.fps_source}) "
+                    f"-> {json_path}{maps_note}"
+                )
+        if row["error"] is not None:
+            print(f"error: {item.path}: {row['error']}", file=sys.stderr)
+        rows.append(row)
+
+    if len(items) > 1 or any(Path(v).is_dir() and not _holds_frames(Path(v)) for v in videos):
+        estimators = {"geometry": estimator_id(geometry), "flow": estimator_id(flow)}
+        csv_path, summary_path = _write_table(out, rows, estimators, asdict(cfg.evaluation))
+        print(f"wrote {csv_path} and {summary_path}")
+    return 1 if all(row["error"] is not None for row in rows) else 0
+

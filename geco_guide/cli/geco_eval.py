@@ -1,0 +1,135 @@
+"""``python -m geco_guide.geco_eval --models ... --out DIR``: the GeCo-Eval benchmark
+(:mod:`geco_guide.bench.geco_eval`).
+
+    python -m geco_guide.geco_eval --models cogvideox-5b wan2.1-t2v-1.3b --seeds 0 1 2 3 --out bench
+    python -m geco_guide.geco_eval --models cogvideox-5b --guided --scenario indoor --out bench
+    python -m geco_guide.geco_eval --videos sora-2=downloads/sora --out bench
+    python -m geco_guide.geco_eval --preset tiny --models cogvideox-5b wan2.1-t2v-1.3b --limit 2 --out bench-tiny
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import shlex
+import sys
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+
+from .. import __version__
+from ..bench.geco_eval import (
+    CAMERAS,
+    MODELS,
+    SCENARIOS,
+    Job,
+    existing_video_jobs,
+    load_prompts,
+    run_jobs,
+    write_report,
+)
+from ..bench.runs import (
+    check_output_folder,
+    config_fingerprint,
+    process_config,
+    process_state,
+    shard,
+)
+from ..config import GeCoConfig, config_to_dict
+from ..io.devices import check_device
+from ..io.files import WriteError, write_json_atomic
+from .kit import Parser, add_config_flags, config_from_args
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="python -m geco_guide.geco_eval",
+                description="GeCo-Eval: generate the paper's 80 prompts with video models and score them with GeCo.")
+    p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
+    p.add_argument("--models", nargs="+", default=[], metavar="NAME", help=f"models to generate with: {', '.join(MODELS)}")
+    p.add_argument("--videos", nargs="+", default=[], metavar="NAME=DIR",
+                   help="score existing videos: DIR/<prompt_id>-s<seed>.mp4 or DIR/<prompt_id>/*.mp4, timed at "
+                        "NAME's native frame rate (evaluation.model_fps) unless --fps")
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3], help="sampling seeds (default: 0 1 2 3, the paper's 4)")
+    p.add_argument("--guided", action="store_true", help="also generate every video with GeCo guidance")
+    p.add_argument("--scenario", choices=SCENARIOS, default=None, help="only this scenario")
+    p.add_argument("--camera", choices=CAMERAS, default=None, help="only this camera speed")
+    p.add_argument("--limit", type=int, default=None, help="only the first N prompts of the selection")
+    p.add_argument("--weights", nargs="+", default=[], metavar="NAME=DIR", help="a local folder for a model's weights")
+    p.add_argument("--fps", type=float, default=None, help="frame rate of the --videos inputs (overrides the table)")
+    p.add_argument("--out", required=True, help="output folder (reuse it to resume)")
+    add_config_flags(p, preset_help="a config preset (tiny: every model is a tiny random model, CPU, offline)")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. evaluation.loss.pairs=center")
+    return p
+
+
+def _pairs(values: Sequence[str], option: str) -> dict[str, str]:
+    parsed = {}
+    for value in values:
+        name, sep, path = value.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(f"{option} takes NAME=DIR, got {value!r}")
+        parsed[name] = path
+    return parsed
+
+
+def plan(args: argparse.Namespace) -> tuple[GeCoConfig, list[Job]]:
+    """Every check that needs no model: config, selection, model names, folders."""
+    cfg = config_from_args(args, args.overrides)
+    unknown = [m for m in args.models if m not in MODELS]
+    if unknown:
+        raise ValueError(f"unknown model {unknown[0]!r}; known: {list(MODELS)}")
+    videos = _pairs(args.videos, "--videos")
+    weights = _pairs(args.weights, "--weights")
+    if not args.models and not videos:
+        raise ValueError("nothing to do: give --models and/or --videos NAME=DIR")
+    if args.limit is not None and args.limit < 1:
+        raise ValueError(f"--limit must be >= 1, got {args.limit}")
+    if len(set(args.seeds)) != len(args.seeds) or any(s < 0 for s in args.seeds):
+        raise ValueError(f"--seeds must be distinct non-negative integers, got {args.seeds}")
+    if args.fps is not None:
+        if not (args.fps > 0 and math.isfinite(args.fps)):
+            raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
+        cfg = replace(cfg, evaluation=replace(cfg.evaluation, model_fps={**cfg.evaluation.model_fps,
+                                                                         **{n: args.fps for n in videos}}))
+    for name in [*args.models, *videos]:
+        cfg.evaluation.fps_of_model(name)  # every model needs its native frame rate
+    prompts = load_prompts(args.scenario, args.camera)[: args.limit]
+    if not prompts:
+        raise ValueError("the selection holds no prompt")
+    jobs = [Job(m, p, s, guided) for m in args.models for guided in ((False, True) if args.guided else (False,))
+            for p in prompts for s in args.seeds]
+    for name, folder in videos.items():
+        jobs += existing_video_jobs(name, Path(folder), prompts)
+    args.weights_map = weights
+    return cfg, jobs
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        cfg, jobs = plan(args)
+        out = Path(args.out)
+        check_output_folder(out, cfg)
+        check_device(cfg.model.device)
+        check_device(cfg.evaluation.device, "evaluation.device")
+    except (ValueError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    try:
+        state = process_state(cfg)
+        tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
+        if state.is_main_process:
+            write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
+        run_jobs(shard(jobs, state.process_index, state.num_processes), out, process_config(cfg, state),
+                 args.weights_map, tag)
+        state.wait_for_everyone()
+        if not state.is_main_process:
+            return 0
+        command = shlex.join(["python", "-m", "geco_guide.geco_eval", *(sys.argv[1:] if argv is None else argv)])
+        summary = write_report(out, jobs, cfg, command, args.weights_map)
+    except (FileNotFoundError, WriteError) as err:  # weights not available (WeightsNotFoundError), disk full
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(f"{summary['videos']} videos scored ({len(summary['missing'])} missing); report: {out / 'report.md'}")
+    return 0 if not summary["missing"] else 1
+

@@ -1,0 +1,86 @@
+"""``python -m geco_guide.validate``: score built benchmarks on the paper's three detection tasks
+(:mod:`geco_guide.bench.validate`).
+
+    python -m geco_guide.validate bench/synthetic-warp bench/synthetic-occlusion --oracle   # exact geometry, CPU
+    python -m geco_guide.validate bench/warp bench/occlusion                               # VGGT-1B + UFM-Base
+    python -m geco_guide.validate bench/warp --preset tiny                                 # tiny random models
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+from ..bench.datasets import find_benchmarks, load_benchmark, oracle_clip
+from ..bench.validate import (
+    grid_frames,
+    grid_image,
+    markdown_table,
+    summarise,
+    validate_clip,
+    write_png,
+)
+from ..estimators import estimator_id, load_estimators
+from ..estimators.oracle import OracleFlow, OracleGeometry
+from ..io.files import write_json_atomic, write_text_atomic
+from ..metric.evaluate import score_frames
+from .kit import Parser, add_config_flags, config_from_args, split_overrides
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="python -m geco_guide.validate", description="Score benchmark clips on the paper's three detection tasks.")
+    p.add_argument("inputs", nargs="+", metavar="DIR|key=value", help="benchmark folders; key=value config overrides")
+    p.add_argument("--oracle", action="store_true", help="ground-truth estimators (clips built from 'synthetic')")
+    add_config_flags(p)
+    p.add_argument("--pairs", choices=("all", "center", "adjacent"), default=None, help="frame pairs (default: all)")
+    p.add_argument("--out", default=None, help="output folder (default: <first input>/validation)")
+    p.add_argument("--no-grids", action="store_true", help="skip the per-clip image grids")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    overrides, roots = split_overrides(args.inputs)
+    try:
+        if not roots:
+            raise ValueError("no benchmark folder given")
+        folders = [folder for root in roots for folder in find_benchmarks(root)]
+        cfg = config_from_args(args, overrides, {"evaluation.loss.pairs": args.pairs})
+        estimators = None if args.oracle else load_estimators(cfg.estimators, cfg.evaluation.device)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out else Path(roots[0]) / "validation"
+    records, errors = [], []
+    for folder in folders:
+        try:
+            bench = load_benchmark(folder)
+            if args.oracle:
+                clip = oracle_clip(bench)
+                geometry, flow = OracleGeometry(clip), OracleFlow(clip)
+            else:
+                geometry, flow = estimators
+            _, result = score_frames(bench.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
+            record = validate_clip(bench, result)
+            if not args.no_grids:
+                record["grid"] = str(write_png(out / "grids" / f"{record['clip']}.png", grid_image(bench, result, grid_frames(bench, record))))
+        except (ValueError, OSError, RuntimeError) as err:  # one bad clip must not stop the others
+            errors.append({"clip": str(folder), "error": str(err).splitlines()[0] if str(err) else type(err).__name__})
+            print(f"error: {folder}: {errors[-1]['error']}", file=sys.stderr)
+            continue
+        records.append(record)
+        print(f"{folder}: {bench.kind} scored")
+    summary = summarise(records)
+    estimator_ids = {"geometry": "oracle", "flow": "oracle"} if args.oracle else {
+        "geometry": estimator_id(estimators[0]), "flow": estimator_id(estimators[1])}
+    report = {"summary": summary, "clips": records, "errors": errors, "estimators": estimator_ids,
+              "loss": asdict(cfg.evaluation.loss)}
+    write_json_atomic(out / "validation.json", report)
+    table = markdown_table(summary) if summary else "No clip could be scored.\n"
+    write_text_atomic(out / "validation.md", f"# GeCo validation ({estimator_ids['geometry']} + {estimator_ids['flow']})\n\n{table}")
+    print(table, end="")
+    print(f"wrote {out / 'validation.json'} and {out / 'validation.md'}")
+    return 1 if not records else 0
+

@@ -1,0 +1,53 @@
+"""The commands' shared kit: one-line errors, the config flags and their aliases, overrides."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from geco_guide.cli.kit import (
+    Parser,
+    add_config_flags,
+    config_from_args,
+    is_config_key,
+    split_overrides,
+)
+
+
+def parser() -> Parser:
+    p = Parser(prog="test")
+    add_config_flags(p)
+    p.add_argument("inputs", nargs="*")
+    return p
+
+
+def test_errors_are_one_line(capsys):
+    with pytest.raises(SystemExit) as info:
+        parser().parse_args(["--nope"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("flags", [["--geometry-estimator", "g", "--flow-estimator", "f"], ["--vggt", "g", "--ufm", "f"]])
+def test_estimator_flags_and_their_aliases_share_a_destination(flags):
+    args = parser().parse_args(["--preset", "tiny", *flags])
+    assert (args.geometry_estimator, args.flow_estimator) == ("g", "f")
+
+
+def test_overrides_are_told_from_inputs(tmp_path: Path):
+    existing = tmp_path / "a=b.mp4"
+    existing.write_bytes(b"")
+    overrides, others = split_overrides(["guidance.eta=2", str(existing), "clip.mp4", "x=1"])
+    assert overrides == ["guidance.eta=2", "x=1"] and others == [str(existing), "clip.mp4"]
+    assert is_config_key("guidance.eta") and is_config_key("evaluation.model_fps.mine") and not is_config_key("x")
+
+
+def test_the_config_takes_preset_overrides_and_flags_in_that_order():
+    args = parser().parse_args(["--preset", "tiny", "--vggt", "tiny-random"])
+    cfg = config_from_args(args, ["seed=5", "estimators.geometry=elsewhere"], {"evaluation.loss.pairs": "center",
+                                                                            "seed": None})
+    assert cfg.seed == 5 and cfg.estimators.geometry == "tiny-random" and cfg.evaluation.loss.pairs == "center"
+    with pytest.raises(ValueError):
+        config_from_args(args, ["guidance.etaa=1"])
