@@ -41,9 +41,9 @@ from ..metric.detection import (
 )
 from ..metric.evaluate import (
     PAPER_NAMES,
-    _mean,
-    _number,
     evaluate_video,
+    finite_or_none,
+    mean_or_nan,
     write_maps_video,
 )
 from .kit import (
@@ -127,7 +127,7 @@ def _write_table(out: Path, rows: list[dict[str, Any]], estimators: dict[str, st
         "num_videos": len(rows),
         "num_ok": len(ok),
         "num_failed": len(rows) - len(ok),
-        "mean": {key: _number(_mean([row[key] for row in ok if row[key] is not None])) for key in SUMMARY_KEYS},
+        "mean": {key: finite_or_none(mean_or_nan([row[key] for row in ok if row[key] is not None])) for key in SUMMARY_KEYS},
         "paper_names": PAPER_NAMES,
         "videos": [{key: row.get(key) for key in ("name", "path", "json", "error")} for row in rows],
         "estimators": estimators,
@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
             except Exception as err:  # one bad input must not stop the others
                 row["error"] = _one_line(err)
             else:
-                row.update({key: _number(getattr(result, key)) for key in SUMMARY_KEYS})
+                row.update({key: finite_or_none(getattr(result, key)) for key in SUMMARY_KEYS})
                 row.update(num_frames=result.num_frames, fps=result.fps, fps_source=result.fps_source,
                            sampled_fps=result.sampled_fps,
                            num_windows=len(result.windows), json=str(json_path))

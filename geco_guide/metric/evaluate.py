@@ -125,7 +125,7 @@ class EvaluationResult:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (no tensors; NaN scores become ``None``)."""
-        data = {name: _number(getattr(self, name)) for name in ("motion", "structure", "fused", "total_motion", "mean_motion")}
+        data = {name: finite_or_none(getattr(self, name)) for name in ("motion", "structure", "fused", "total_motion", "mean_motion")}
         return {
             "source": self.source,
             **data,
@@ -143,11 +143,13 @@ class EvaluationResult:
         }
 
 
-def _number(value: float) -> float | None:
+def finite_or_none(value: float) -> float | None:
+    """``value``, or None (JSON ``null``) where it is not finite."""
     return value if math.isfinite(value) else None
 
 
-def _mean(values: list[float]) -> float:
+def mean_or_nan(values: list[float]) -> float:
+    """The mean, NaN for no values."""
     return sum(values) / len(values) if values else math.nan
 
 
@@ -245,7 +247,7 @@ def _window_record(window: Window, rows: list[dict[str, Any]]) -> dict[str, Any]
         "start_s": window.start_s,
         "length_s": window.length_s,
         "frames": list(window.indices),
-        **{name: _number(_mean([r[name] for r in rows if r[name] is not None])) for name in CUES},
+        **{name: finite_or_none(mean_or_nan([r[name] for r in rows if r[name] is not None])) for name in CUES},
     }
 
 
