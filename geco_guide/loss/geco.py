@@ -324,7 +324,11 @@ class GeCoLoss(nn.Module):
     Args:
         geometry: a :class:`GeometryEstimator` (e.g. VGGT) giving depth, K, extrinsics.
         flow: a :class:`FlowEstimator` (e.g. UFM) giving flow and covisibility per pair.
-        config: :class:`GeCoLossConfig` (or a dict of its fields); defaults if ``None``.
+        config: :class:`GeCoLossConfig` (or a dict of its fields); defaults if ``None``: the
+            fused map on ADJACENT pairs (k -> k+1), the guidance loss' pairs, cheap enough to
+            differentiate at every update. ``evaluate_video`` defaults to all ordered pairs of a
+            window instead (:func:`~geco_guide.loss.presets.evaluation_loss`), because the
+            benchmark reproduces the published evaluation script; docs/metric.md says more.
         check_values: refuse frames that are not finite (:class:`NonFiniteFramesError`) or not in
             ``[0, 1]`` with a ValueError naming them, at the cost of one device-to-host copy per
             call. The samplers pass ``False``: their updates must not wait for the device, and a

@@ -273,7 +273,9 @@ def evaluate_video(
     """GeCo scores of a video under the GeCo-Eval protocol (:class:`EvaluationConfig`).
 
     The clip is covered by overlapping windows of ~3 s (at most 4), each sampled at
-    ``min(8, fps)`` fps; GeCo runs on each window (all ordered pairs by default); a frame's score
+    ``min(8, fps)`` fps; GeCo runs on each window (all ordered pairs by default, the published
+    evaluation script's, where ``GeCoLoss()`` uses the guidance loss' adjacent pairs: see
+    :mod:`geco_guide.loss.presets`); a frame's score
     is the mean of its map over valid pixels, a window's the mean over its frames, the clip's the
     windows' frame-weighted mean. Total / Mean Motion come from consecutive frames of the clip's
     time grid.
