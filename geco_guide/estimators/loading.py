@@ -23,6 +23,10 @@ class CheckpointMismatchError(ValueError):
     """A state dict does not fit the module it is loaded into."""
 
 
+# A path ending in one of these names a checkpoint file, not a folder or a repo id.
+CHECKPOINT_SUFFIXES = (".pth", ".pt", ".safetensors", ".bin")
+
+
 def fetch_checkpoint_file(
     repo_id_or_dir: str | os.PathLike,
     filenames: Sequence[str],
@@ -31,15 +35,22 @@ def fetch_checkpoint_file(
     revision: str | None = None,
     cache_dir: str | os.PathLike | None = None,
 ) -> Path:
-    """Return the first of ``filenames`` available in a local folder or a Hugging Face repo.
+    """Return the checkpoint file itself, or the first of ``filenames`` available in a local
+    folder or a Hugging Face repo.
 
-    A path that exists on disk is treated as a local folder; anything else as a hub repo id,
-    resolved through the local cache first (so ``HF_HUB_OFFLINE=1`` works once downloaded).
+    A file on disk is the checkpoint; a folder on disk is searched for ``filenames``; anything else
+    is a hub repo id, resolved through the local cache first (so ``HF_HUB_OFFLINE=1`` works once
+    downloaded).
 
     Raises:
-        WeightsNotFoundError: none of the files can be had (missing folder, offline, unknown repo).
+        WeightsNotFoundError: none of the files can be had (missing file or folder, offline,
+            unknown repo).
     """
     path = Path(repo_id_or_dir).expanduser()
+    if path.is_file():
+        return path
+    if path.suffix.lower() in CHECKPOINT_SUFFIXES:
+        raise WeightsNotFoundError(f"{model_name}: checkpoint file {str(repo_id_or_dir)!r} does not exist")
     if path.is_dir():
         for name in filenames:
             if (path / name).is_file():

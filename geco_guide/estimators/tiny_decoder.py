@@ -567,7 +567,6 @@ class TinyDecoder(nn.Module):
         return model.to(device=device, dtype=dtype)
 
 
-_CHECKPOINT_SUFFIXES = (".pth", ".pt", ".safetensors", ".bin")
 
 
 def _candidate_files(spec: TinyDecoderVariant | None) -> list[str]:
@@ -585,20 +584,14 @@ def _locate(
     **fetch: Any,
 ) -> Path:
     """The checkpoint file of ``source`` (a file, a folder or a hub repo id)."""
-    path = Path(source).expanduser()
-    if path.is_file():
-        return path
     example = f"{spec.checkpoint if spec else 'taecvx'}.pth"
     how = (f"download {example} from {WEIGHTS_URL} and pass its local path, e.g. "
            f"TinyDecoder.from_pretrained('/path/to/{example}')")
-    if path.suffix.lower() in _CHECKPOINT_SUFFIXES:
-        # fetch_checkpoint_file only knows folders and repo ids; a missing *file* deserves its own words
-        raise WeightsNotFoundError(f"{MODEL_NAME}: checkpoint file {str(source)!r} does not exist; {how}")
     names = [filename] if filename else _candidate_files(spec)
     try:
         return fetch_checkpoint_file(source, names, model_name=MODEL_NAME, **fetch)
     except WeightsNotFoundError as err:
-        raise WeightsNotFoundError(f"{err}; or {how}") from None
+        raise WeightsNotFoundError(f"{err}; {how}") from None
 
 
 def _widths_of(state_dict: Mapping[str, Tensor]) -> dict[str, Any]:
