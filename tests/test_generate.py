@@ -88,7 +88,7 @@ def test_output_paths(tmp_path: Path):
     ],
 )
 def test_scheduler_is_chosen_by_the_config_and_named_in_the_sidecar(choice, cls, note):
-    # issue 12: the pipeline keeps the scheduler it is given; the config (the presets: ddim) chooses
+    # the pipeline keeps the scheduler it is given; the config (the presets: ddim) chooses
     from diffusers import CogVideoXDPMScheduler
 
     from geco_guide.sampler.loading import choose_scheduler

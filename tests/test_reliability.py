@@ -1,4 +1,4 @@
-"""Reliability (issue 13): non-finite and absurd values end in a finite result or one clear
+"""Reliability: non-finite and absurd values end in a finite result or one clear
 ValueError, never a crash (grid_sample's backward segfaults on a NaN grid) and never a silent
 0.0 score; config and CLI mistakes are one line, found before any model loads."""
 
