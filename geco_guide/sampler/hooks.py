@@ -83,6 +83,7 @@ class _Call:
 class _CallState:
     geometry: CallGeometry
     chunks: list[AnchorChunk]
+    decode_chunk: Any  # the anchor chunks' decode (the VAE's or the tiny decoder's)
     generator: Any
     config: GuidanceConfig
     context: GuidanceContext | None = None  # from the first denoiser call on (it fixes the schedule)
@@ -302,8 +303,9 @@ class GeCoGuidanceHandle:
         check_no_denoiser_cache(self.adapter.denoisers(self.pipe))
         chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
         check_scheduler(self.pipe.scheduler)
-        anchor_decoder(config, None, self.decoder, self.pipe.vae.config)
-        self._state = _CallState(geometry, chunks, args.get("generator"), config)
+        decode_chunk = anchor_decoder(config, functools.partial(self.adapter.decode, self.pipe), self.decoder,
+                                      self.pipe.vae.config)
+        self._state = _CallState(geometry, chunks, decode_chunk, args.get("generator"), config)
 
     def _pre_hook(self, module, args, kwargs):
         state = self._state
@@ -315,8 +317,7 @@ class GeCoGuidanceHandle:
             check_scheduler(pipe.scheduler)
             state.context = GuidanceContext(
                 state.config, state.config.schedule(len(pipe.scheduler.timesteps)), state.chunks,
-                decode_chunk=anchor_decoder(state.config, functools.partial(adapter.decode, pipe), self.decoder,
-                                            pipe.vae.config),
+                decode_chunk=state.decode_chunk,
                 latent_frames=functools.partial(adapter.frames_first, pipe, geometry=state.geometry),
                 geometry_estimator=self.geometry_estimator, flow_estimator=self.flow_estimator,
                 generator=state.generator, log=self.log,
