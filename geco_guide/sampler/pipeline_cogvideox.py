@@ -202,10 +202,11 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         """Validate what guidance needs, before any denoising step; ValueError naming the problem.
 
         Nothing is checked without guidance (the stock pipeline's own checks apply). Returns the
-        guidance schedule and anchor chunks (``(None, None)`` without guidance).
+        guidance schedule, the anchor chunks and their decode (``(None, None, None)`` without
+        guidance).
         """
         if not guidance.enabled:
-            return None, None
+            return None, None, None
         guidance.check_loss()
         multiple = self.vae_scale_factor_spatial * self.transformer.config.patch_size
         if height % multiple or width % multiple:
@@ -226,8 +227,9 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 f"GeCo guidance needs {' and '.join(missing)}: pass them to from_pretrained(..., "
                 "geometry_estimator=..., flow_estimator=...) or to the call, or call with guidance=False"
             )
-        anchor_decoder(guidance, None, self.guidance_decoder, self.vae.config)
-        return schedule, chunks
+        decode = anchor_decoder(guidance, partial(decode_chunk, self.vae, scaling_factor=self.vae_scaling_factor_image),
+                                self.guidance_decoder, self.vae.config)
+        return schedule, chunks, decode
 
     # ------------------------------------------------------------------------------------------
     # the model, as the stock loop and the guided step see it
@@ -328,7 +330,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         geometry_estimator = geometry_estimator if geometry_estimator is not None else self.geometry_estimator
         flow_estimator = flow_estimator if flow_estimator is not None else self.flow_estimator
         num_steps = len(timesteps) if timesteps is not None else num_inference_steps
-        schedule, chunks = self.check_geco_inputs(
+        schedule, chunks, decode = self.check_geco_inputs(
             height, width, num_frames, num_steps, config, geometry_estimator, flow_estimator
         )
         self._guidance_scale = guidance_scale
@@ -404,8 +406,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         if config.enabled:
             geco = self.guidance_context_class(
                 config, schedule, chunks,
-                decode_chunk=anchor_decoder(config, partial(decode_chunk, self.vae, scaling_factor=self.vae_scaling_factor_image),
-                                            self.guidance_decoder, self.vae.config),
+                decode_chunk=decode,
                 latent_frames=lambda x0: x0[:, additional_frames:],
                 geometry_estimator=geometry_estimator, flow_estimator=flow_estimator, generator=generator,
             )
