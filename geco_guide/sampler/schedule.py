@@ -22,6 +22,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+
 class ScheduleScaledWarning(UserWarning):
     """A schedule written for another step count was scaled (the message names the result)."""
 
