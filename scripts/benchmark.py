@@ -161,7 +161,6 @@ def loss_workload(spec: dict[str, Any], device: torch.device) -> Workload:
     return Workload(make_step(spec["mode"], scalar, leaves), info)
 
 
-
 WORKLOADS = {**perf_workloads.WORKLOADS, "loss": loss_workload}
 
 
@@ -185,7 +184,6 @@ COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("load (1 min)", "load_avg_1m", "{:.1f}"),
     ("CPU/wall", "cpu_per_wall", "{:.2f}"),
 )
-
 
 
 # ----------------------------------------------------------------------------------------------

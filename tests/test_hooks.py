@@ -11,9 +11,9 @@ from counting import CountingForward
 from geco_guide import tiny as T
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig
 from geco_guide.sampler.adapters import keep_update
+from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.levels import FlowLevels, flow_renoise, flow_step, flow_to_x0
 from geco_guide.sampler.step import score_anchor_frames
-from geco_guide.sampler.hooks import attach_geco_guidance
 
 PROMPT = "a marble bust on a table"
 NUM_FRAMES = 9  # 3 latents at r=4 (2 at r=8, LTX)

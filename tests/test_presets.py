@@ -8,7 +8,11 @@ import torch
 
 from geco_guide.config import config_to_dict, load_config
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig
-from geco_guide.sampler.config import GuidanceConfig, fused_guidance_config, paper_guidance_config
+from geco_guide.sampler.config import (
+    GuidanceConfig,
+    fused_guidance_config,
+    paper_guidance_config,
+)
 from geco_guide.tiny import tiny_estimators
 from geco_guide.types import SceneGeometry
 

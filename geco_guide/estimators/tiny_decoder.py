@@ -567,8 +567,6 @@ class TinyDecoder(nn.Module):
         return model.to(device=device, dtype=dtype)
 
 
-
-
 def _candidate_files(spec: TinyDecoderVariant | None) -> list[str]:
     specs = [spec] if spec is not None else list(VARIANTS.values())
     names: list[str] = []

@@ -21,7 +21,6 @@ def sampled_rate(fps: float, max_fps: float) -> float:
     return min(float(max_fps), float(fps))
 
 
-
 def time_grid_indices(num_frames: int, fps: float, start_s: float, length_s: float, rate: float) -> list[int]:
     """Source frames nearest to the times ``start_s + k / rate``, ``k < max(2, floor(length_s * rate))``.
 
@@ -47,7 +46,6 @@ def time_grid_indices(num_frames: int, fps: float, start_s: float, length_s: flo
     return indices
 
 
-
 @dataclass(frozen=True)
 class Window:
     """One evaluation window: its start and length in seconds and its sampled source frames."""
@@ -55,7 +53,6 @@ class Window:
     start_s: float
     length_s: float
     indices: list[int]
-
 
 
 def evaluation_windows(num_frames: int, fps: float, window_seconds: float, max_windows: int,
@@ -87,13 +84,10 @@ def evaluation_windows(num_frames: int, fps: float, window_seconds: float, max_w
     return [Window(start, length, time_grid_indices(num_frames, fps, start, length, rate)) for start in starts]
 
 
-
 def motion_grid(num_frames: int, fps: float, max_fps: float) -> list[int]:
     """The frames Total / Mean Motion are measured on: the whole clip on the windows' time grid
     (:func:`time_grid_indices` from 0 over the clip's duration at ``min(max_fps, fps)``)."""
     return time_grid_indices(num_frames, fps, 0.0, num_frames / fps, sampled_rate(fps, max_fps))
-
-
 
 
 #: Native frame rate of each video model (GeCo paper, supplement "Frame rate of evaluated
@@ -111,7 +105,6 @@ PAPER_MODEL_FPS = {
     "cogvideox-2b": 16.0,
     "ltx-video": 30.0,
 }
-
 
 
 @dataclass

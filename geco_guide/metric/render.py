@@ -25,18 +25,15 @@ VIRIDIS = torch.tensor(
 ) / 255.0
 
 
-
 #: The fixed value range of GeCo heat maps: residuals in normalised image units / relative depth.
 #: 0.2 sits above generated videos' typical fused scores (0.1-0.3 in the paper); larger values
 #: are clipped to the top colour, so one colour means one value in every video.
 MAP_RANGE = (0.0, 0.2)
 
 
-
 #: Pixels without a valid value (occluded, not co-visible, low confidence): neutral grey, a
 #: colour viridis never takes.
 INVALID_COLOR = (0.5, 0.5, 0.5)
-
 
 
 def colorize(values: Tensor, valid: Tensor | None = None, value_range: tuple[float, float] = MAP_RANGE) -> Tensor:
@@ -61,16 +58,13 @@ def colorize(values: Tensor, valid: Tensor | None = None, value_range: tuple[flo
     return rgb.movedim(-1, -3).contiguous()
 
 
-
 #: Font size in pixels per unit of :func:`text_scale` (text next to a 480-pixel-high video is
 #: drawn at 4 x 9 = 36 pixels).
 FONT_SIZE = 9
 
 
-
 #: The smallest size :func:`text_strip` shrinks a line to so that it fits its width.
 MIN_FONT_SIZE = 7
-
 
 
 @functools.cache
@@ -89,7 +83,6 @@ def _font(size: int) -> tuple[Any, int]:
     return font, max(1, round(size / FONT_SIZE))  # its 11-pixel lines stand in for FONT_SIZE ones
 
 
-
 def _line_height(font: Any) -> int:
     if hasattr(font, "getmetrics"):
         ascent, descent = font.getmetrics()
@@ -97,12 +90,10 @@ def _line_height(font: Any) -> int:
     return font.getbbox("Ag|")[3]
 
 
-
 def _ascent(size: int) -> int:
     """Rows from the top of a line of text at ``size`` pixels to its baseline."""
     font, upscale = _font(size)
     return (font.getmetrics()[0] if hasattr(font, "getmetrics") else font.getbbox("A")[3]) * upscale
-
 
 
 def _coverage(text: str, size: int) -> Tensor:
@@ -123,11 +114,9 @@ def _coverage(text: str, size: int) -> Tensor:
     return mask.repeat_interleave(upscale, 0).repeat_interleave(upscale, 1)
 
 
-
 def text_scale(size: int) -> int:
     """Integer scale of text next to an image of ``size`` pixels (its height)."""
     return max(1, size // 120)
-
 
 
 def text_mask(text: str, scale: int = 1) -> Tensor:
@@ -136,7 +125,6 @@ def text_mask(text: str, scale: int = 1) -> Tensor:
     descent) whatever the text, so lines of one scale share a baseline; the width grows with the
     text. Characters the font lacks are drawn as its placeholder box."""
     return _coverage(text, FONT_SIZE * scale)
-
 
 
 def _blend(image: Tensor, mask: Tensor, x: int, y: int, color: tuple[float, float, float]) -> Tensor:
@@ -153,13 +141,11 @@ def _blend(image: Tensor, mask: Tensor, x: int, y: int, color: tuple[float, floa
     return out
 
 
-
 def draw_text(image: Tensor, text: str, x: int, y: int, scale: int = 1, color: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> Tensor:
     """``image [3, H, W]`` with ``text`` (:func:`text_mask`) blended in ``color``, the top-left
     corner of its line at column ``x``, row ``y`` (clipped at the image border). Returns a new
     tensor."""
     return _blend(image, text_mask(text, scale), x, y, color)
-
 
 
 def label_height(scale: int) -> int:
@@ -168,7 +154,6 @@ def label_height(scale: int) -> int:
     font, upscale = _font(FONT_SIZE * scale)
     height = _line_height(font) * upscale + 2 * scale
     return height + height % 2
-
 
 
 def text_strip(text: str, width: int, scale: int) -> Tensor:
@@ -185,7 +170,6 @@ def text_strip(text: str, width: int, scale: int) -> Tensor:
     strip = torch.zeros(3, label_height(scale), width)
     baseline = scale + _ascent(FONT_SIZE * scale)
     return _blend(strip, mask, margin, baseline - _ascent(size), (1.0, 1.0, 1.0))
-
 
 
 def colorbar(width: int, scale: int = 1, value_range: tuple[float, float] = MAP_RANGE, ticks: int = 5) -> Tensor:
@@ -216,7 +200,6 @@ def colorbar(width: int, scale: int = 1, value_range: tuple[float, float] = MAP_
     return legend
 
 
-
 def panel_layout(sizes: list[tuple[int, int]]) -> tuple[tuple[int, int], list[tuple[int, int, int, int]]]:
     """Where :func:`side_by_side` puts panels of ``sizes`` ``(H, W)`` (already at a common H).
 
@@ -233,7 +216,6 @@ def panel_layout(sizes: list[tuple[int, int]]) -> tuple[tuple[int, int], list[tu
         boxes.append((top, left, h, w))
         left += w + gap
     return (top + height, left - gap), boxes
-
 
 
 def side_by_side(videos: list[Tensor], labels: list[str]) -> Tensor:

@@ -33,7 +33,6 @@ MAX_ETA = 1000.0
 DECODERS = ("vae", "tiny")
 
 
-
 @dataclass
 class GuidanceConfig:
     """GeCo guidance options (defaults: the paper's guidance experiment, for 50 DDIM steps of a
