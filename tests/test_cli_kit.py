@@ -10,6 +10,7 @@ from geco_guide.cli.kit import (
     Parser,
     add_config_flags,
     config_from_args,
+    interruptible,
     is_config_key,
     split_overrides,
 )
@@ -51,3 +52,13 @@ def test_the_config_takes_preset_overrides_and_flags_in_that_order():
     assert cfg.seed == 5 and cfg.estimators.geometry == "tiny-random" and cfg.evaluation.loss.pairs == "center"
     with pytest.raises(ValueError):
         config_from_args(args, ["guidance.etaa=1"])
+
+
+def test_ctrl_c_is_one_line_and_exit_code_130(capsys):
+    @interruptible("the finished videos are kept; rerun to resume")
+    def main(argv=None):
+        raise KeyboardInterrupt
+
+    assert main([]) == 130
+    err = capsys.readouterr().err
+    assert err == "interrupted: the finished videos are kept; rerun to resume\n"

@@ -5,8 +5,10 @@ make together."""
 from __future__ import annotations
 
 import argparse
+import functools
 import re
-from collections.abc import Iterable, Sequence
+import sys
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -71,3 +73,21 @@ def config_from_args(args: argparse.Namespace, overrides: Sequence[str] = (),
         if value is not None:
             items.append(f"{key}={value}")
     return load_config(getattr(args, "config", None), getattr(args, "preset", None), items)
+
+
+def interruptible(kept: str) -> Callable[[Callable[..., int]], Callable[..., int]]:
+    """Ctrl-C ends the decorated ``main`` with one line saying what was kept (``kept``) and exit
+    code 130, the shell's code for SIGINT, instead of a traceback from wherever it stopped."""
+
+    def decorate(main: Callable[..., int]) -> Callable[..., int]:
+        @functools.wraps(main)
+        def run(argv: list[str] | None = None) -> int:
+            try:
+                return main(argv)
+            except KeyboardInterrupt:
+                print(f"interrupted: {kept}", file=sys.stderr)
+                return 130
+
+        return run
+
+    return decorate
