@@ -17,7 +17,7 @@ initialised offline models of :mod:`geco_guide.tiny` instead of loading weights.
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -121,7 +121,28 @@ def _merge(base: DictConfig, other: Any, source: str) -> DictConfig:
     try:
         return OmegaConf.merge(base, other)
     except OmegaConfBaseException as err:
+        scalar = _scalar_section(base, other)
+        if scalar is not None:  # omegaconf's merge error names no key for these
+            key, value = scalar
+            raise ValueError(f"{key} must be a mapping of options, got {value!r} ({source})") from None
         raise _key_error(err, source) from None
+
+
+def _scalar_section(base: DictConfig, other: Any, prefix: str = "") -> tuple[str, Any] | None:
+    """The first ``(dotted key, value)`` of ``other`` that gives a plain value (``sampling: 5``)
+    where ``base`` has a section of options, or None."""
+    if not isinstance(other, (DictConfig, Mapping)):
+        return None
+    for key, value in other.items():
+        section = base.get(key) if key in base else None
+        if not isinstance(section, DictConfig):
+            continue
+        if not isinstance(value, (DictConfig, Mapping)):
+            return f"{prefix}{key}", value
+        found = _scalar_section(section, value, f"{prefix}{key}.")
+        if found is not None:
+            return found
+    return None
 
 
 def load_config(
@@ -132,7 +153,8 @@ def load_config(
     """Schema defaults <- preset <- YAML file <- ``key=value`` overrides, validated.
 
     Raises:
-        ValueError: unknown key, wrong type or invalid value, naming the key.
+        ValueError: unknown key, wrong type or invalid value, naming the key; ``path`` is a
+            folder or not a YAML mapping.
         FileNotFoundError: ``path`` does not exist.
     """
     cfg = OmegaConf.structured(GeCoConfig)
@@ -141,6 +163,8 @@ def load_config(
         cfg = _merge(cfg, _load_yaml(p), str(p))
     if path is not None:
         p = Path(path)
+        if p.is_dir():
+            raise ValueError(f"config file {str(p)!r} is a folder, not a config file")
         if not p.is_file():
             raise FileNotFoundError(f"config file {str(p)!r} does not exist")
         cfg = _merge(cfg, _load_yaml(p), str(p))
@@ -154,16 +178,24 @@ def load_config(
 
 
 def _load_yaml(path: Path) -> DictConfig:
-    """A config file's sections; ValueError naming the file (and the YAML error's line) if it is
-    not UTF-8 YAML holding a mapping."""
+    """A config file's sections; ValueError naming the file (and the YAML error's line and column)
+    if it is not UTF-8 or not YAML holding a mapping."""
     try:
         loaded = OmegaConf.load(path)
-    except (yaml.YAMLError, UnicodeDecodeError) as err:
-        reason = " ".join(str(err).split())  # YAML errors span several lines
-        raise ValueError(f"config file {str(path)!r} is not valid UTF-8 YAML: {reason}") from None
+    except UnicodeDecodeError as err:
+        raise ValueError(f"config file {str(path)!r} is not UTF-8 text (byte {err.start}: {err.reason})") from None
+    except yaml.YAMLError as err:
+        raise ValueError(f"config file {str(path)!r} is not valid YAML: {_yaml_reason(err)}") from None
     if not isinstance(loaded, DictConfig):
         raise ValueError(f"config file {str(path)!r} must hold a mapping of sections (model:, sampling:, ...)")
     return loaded
+
+
+def _yaml_reason(err: yaml.YAMLError) -> str:
+    """``line L, column C: problem`` (1-based, as editors count) of a YAML error, on one line."""
+    mark = getattr(err, "problem_mark", None)
+    problem = getattr(err, "problem", None) or " ".join(str(err).split())
+    return f"line {mark.line + 1}, column {mark.column + 1}: {problem}" if mark is not None else problem
 
 
 def _parse_override(cfg: DictConfig, item: str) -> DictConfig:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -119,3 +120,36 @@ def test_merge_dataclass_is_the_one_dict_to_config_merger():
         merge_dataclass(GuidanceConfig(), {"loss": {"cues": "motion"}}, "guidance")
     with pytest.raises(ValueError, match="guidance.loss must be a mapping"):
         merge_dataclass(GuidanceConfig(), {"loss": 3}, "guidance")
+
+
+def test_yaml_syntax_error_names_the_line_and_column(tmp_path: Path):
+    path = tmp_path / "x.yaml"
+    path.write_text("seed: 1\nsampling:\n  a: b: c\n")
+    with pytest.raises(ValueError, match=r"'.*x\.yaml' is not valid YAML: line 3, column 7: mapping values are not allowed") as info:
+        load_config(path)
+    assert "\n" not in str(info.value) and "UTF-8" not in str(info.value)
+
+
+def test_undecodable_file_is_called_not_utf8(tmp_path: Path):
+    path = tmp_path / "latin1.yaml"
+    path.write_bytes(b"seed: 1\n# caf\xe9\n")
+    with pytest.raises(ValueError, match=r"is not UTF-8 text \(byte 13: invalid continuation byte\)$"):
+        load_config(path)
+
+
+@pytest.mark.parametrize(
+    "text, key, shown",
+    [("sampling: 5\n", "sampling", "5"), ("guidance:\n  loss: 3\n", "guidance.loss", "3"), ("sampling:\n", "sampling", "None")],
+)
+def test_section_given_a_plain_value_is_named(tmp_path: Path, text, key, shown):
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=rf"^{re.escape(key)} must be a mapping of options, got {shown} \(.*c\.yaml\)$"):
+        load_config(path)
+    with pytest.raises(ValueError, match=rf"^{re.escape(key)} must be a mapping of options, got {shown} \(command line\)$"):
+        load_config(preset="tiny", overrides=[f"{key}={shown if shown != 'None' else 'null'}"])
+
+
+def test_config_path_that_is_a_folder_is_called_a_folder(tmp_path: Path):
+    with pytest.raises(ValueError, match=r"is a folder, not a config file$"):
+        load_config(tmp_path)
