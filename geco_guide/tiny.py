@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from .estimators import tiny_estimators
+from .estimators import tiny_estimators, tiny_random_decoder
 
 # Tiny sampling settings that fit the tiny models (17 frames = 5 latents, 32x48 pixels).
 TINY_NUM_FRAMES = 17
@@ -167,11 +167,7 @@ def tiny_cogvideox_components(seed: int = 0, sizes: TinySizes | None = None) -> 
 def tiny_guidance_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int = TinySizes.latent_channels):
     """A tiny random :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` of ``variant`` for the
     tiny models' latents (their channel count; the published variants take 16 or more)."""
-    from dataclasses import replace
-
-    from .estimators.tiny_decoder import TinyDecoder, resolve_variant
-
-    return TinyDecoder.tiny(replace(resolve_variant(variant), latent_channels=latent_channels), seed)
+    return tiny_random_decoder(variant, seed, latent_channels)
 
 
 def tiny_guidance_config(**changes: Any):

@@ -102,3 +102,89 @@ def test_the_hook_takes_the_tiny_decoder_too():
         with pytest.raises(ValueError, match="needs a tiny decoder"):
             pipe(PROMPT, generator=torch.Generator().manual_seed(0), **T.tiny_call_kwargs(pipe, num_inference_steps=4),
                  output_type="pt")
+
+
+# ---- estimators.tiny_decoder: the config key, loaded by build_pipeline -----------------------
+
+
+def tiny_config(*overrides):
+    from geco_guide.config import load_config
+
+    return load_config(preset="tiny", overrides=list(overrides))
+
+
+def no_model_loads(monkeypatch):
+    """Make every model load fail loudly: a check must come before it."""
+    from geco_guide.sampler import loading
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a model loaded before the tiny decoder's weights were checked")
+
+    monkeypatch.setattr(loading, "load_estimators", refuse)
+    monkeypatch.setattr(loading, "load_video_pipeline", refuse)
+
+
+def test_the_tiny_preset_builds_the_tiny_random_decoder_for_its_vae():
+    from geco_guide.sampler.loading import build_pipeline
+
+    cfg = tiny_config("guidance.decoder=tiny")
+    assert cfg.estimators.tiny_decoder == "tiny-random"
+    pipe = build_pipeline(cfg, components=T.tiny_cogvideox_components(0))
+    assert isinstance(pipe.guidance_decoder, TinyDecoder)
+    assert pipe.guidance_decoder.latent_channels == pipe.vae.config.latent_channels == 4
+    assert pipe.geco_decoder_note == "TinyDecoder(cogvideox) from tiny-random(seed=0)"
+    # the VAE guides by default: no tiny decoder is built, even though the preset names one
+    exact = build_pipeline(tiny_config(), components=T.tiny_cogvideox_components(0))
+    assert exact.guidance_decoder is None and exact.geco_decoder_note == "vae (the model's own)"
+
+
+def test_tiny_without_weights_is_one_line_with_the_url_and_the_key_before_any_model_loads(monkeypatch):
+    from geco_guide.sampler.loading import build_pipeline
+
+    no_model_loads(monkeypatch)
+    with pytest.raises(ValueError) as err:
+        build_pipeline(tiny_config("guidance.decoder=tiny", "estimators.tiny_decoder=null"))
+    message = str(err.value)
+    assert "\n" not in message and "github.com/madebyollin/taehv" in message
+    assert "estimators.tiny_decoder=/path/to/taecvx.pth" in message
+
+
+def test_a_missing_tiny_decoder_file_is_one_line_naming_it_and_the_key(monkeypatch, tmp_path):
+    from geco_guide.estimators.loading import WeightsNotFoundError
+    from geco_guide.sampler.loading import build_pipeline
+
+    no_model_loads(monkeypatch)
+    missing = tmp_path / "taecvx.pth"
+    with pytest.raises(WeightsNotFoundError) as err:
+        build_pipeline(tiny_config("guidance.decoder=tiny", f"estimators.tiny_decoder={missing}"))
+    assert "\n" not in str(err.value) and str(missing) in str(err.value) and "estimators.tiny_decoder=" in str(err.value)
+
+
+def test_a_checkpoint_file_loads_with_its_path_recorded(tmp_path):
+    from geco_guide.sampler.loading import build_pipeline, load_tiny_decoder
+
+    saved = T.tiny_guidance_decoder("cogvideox", seed=3, latent_channels=16)  # the published variant's channels
+    path = tmp_path / "taecvx.pth"
+    torch.save(saved.state_dict(), path)
+    cfg = tiny_config("guidance.decoder=tiny", f"estimators.tiny_decoder={path}")
+    loaded = load_tiny_decoder(cfg)
+    assert loaded.checkpoint_file == str(path) and loaded.decoder_widths == saved.decoder_widths
+    assert all(torch.equal(a, b) for a, b in zip(loaded.state_dict().values(), saved.state_dict().values()))
+    pipe = build_pipeline(cfg, components=T.tiny_cogvideox_components(0))
+    assert pipe.geco_decoder_note == f"TinyDecoder(cogvideox) from {path}"
+    # the decoder of another model is refused by its name
+    torch.save(saved.state_dict(), tmp_path / "taew2_1.pth")
+    with pytest.raises(ValueError, match="Wan 2.1.*CogVideoX needs taecvx.pth"):
+        load_tiny_decoder(tiny_config("guidance.decoder=tiny", f"estimators.tiny_decoder={tmp_path / 'taew2_1.pth'}"))
+
+
+@pytest.mark.parametrize(("key", "example"), [("geometry", "/path/to/VGGT-1B"), ("flow", "/path/to/UFM-Base")])
+def test_missing_estimator_weights_name_the_config_key(tmp_path, key, example):
+    from geco_guide.estimators import EstimatorsConfig, load_estimators
+    from geco_guide.estimators.loading import WeightsNotFoundError
+
+    other = "flow" if key == "geometry" else "geometry"
+    cfg = EstimatorsConfig(**{key: str(tmp_path / "missing"), other: "tiny-random"}, dtype="float32")
+    with pytest.raises(WeightsNotFoundError) as err:
+        load_estimators(cfg, "cpu")
+    assert "\n" not in str(err.value) and f"estimators.{key}={example}" in str(err.value)

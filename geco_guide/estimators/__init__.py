@@ -10,11 +10,12 @@ import runs it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Optional
 
 import torch
 
 from ..io.devices import resolve_device
+from .loading import WeightsNotFoundError
 
 TINY_RANDOM = "tiny-random"
 
@@ -27,6 +28,10 @@ class EstimatorsConfig:
     memory and speeds them up on a GPU; the heads, outputs and the GeCo loss stay float32.
     ``gradient_checkpointing`` recomputes their trunks' blocks in the guidance backward: less
     activation memory (about 6 GiB at 480x720 in the cost model) for one more trunk forward.
+    ``tiny_decoder`` is the weights of the tiny decoder that ``guidance.decoder=tiny`` decodes the
+    anchor frames with: a ``.pth`` / ``.safetensors`` file (``taecvx.pth`` for CogVideoX, from
+    :data:`~geco_guide.estimators.tiny_decoder.WEIGHTS_URL`), a folder holding it, a hub id, or
+    ``tiny-random``; unused (and not loaded) with ``guidance.decoder=vae``.
     """
 
     geometry: str = "facebook/VGGT-1B"
@@ -34,6 +39,7 @@ class EstimatorsConfig:
     dtype: str = "bfloat16"
     gradient_checkpointing: bool = False
     init_seed: int = 0
+    tiny_decoder: Optional[str] = None
 
 
 def estimator_id(estimator: Any) -> str:
@@ -50,6 +56,26 @@ def tiny_estimators(seed: int = 0) -> tuple[Any, Any]:
     return VGGT.random(VGGTConfig.tiny(), seed=seed), UFM.random(UFMConfig.tiny(), seed=seed)
 
 
+def tiny_random_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int | None = None) -> Any:
+    """A tiny random :class:`~.tiny_decoder.TinyDecoder` of ``variant`` (frozen, float32): what
+    ``estimators.tiny_decoder=tiny-random`` loads. ``latent_channels``: the latents it takes when
+    they are not the variant's (the tiny models' VAE makes 4; the published variants take 16 or
+    more)."""
+    from dataclasses import replace
+
+    from .tiny_decoder import TinyDecoder, resolve_variant
+
+    spec = resolve_variant(variant)
+    if latent_channels is not None:
+        spec = replace(spec, latent_channels=latent_channels)
+    return TinyDecoder.tiny(spec, seed)
+
+
+def with_config_key(err: Exception, key: str, example: str) -> WeightsNotFoundError:
+    """``err``'s one line, ending with the config key that points at local weights instead."""
+    return WeightsNotFoundError(f"{err} (config: {key}={example})")
+
+
 def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device = "auto") -> tuple[Any, Any]:
     """``(geometry, flow)`` of ``estimators_cfg``: frozen, in eval mode, on ``device``.
 
@@ -64,7 +90,8 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
     name their estimators (:func:`estimator_id`).
 
     Raises:
-        WeightsNotFoundError: one line naming the repo id, when the weights are unavailable.
+        WeightsNotFoundError: one line naming the repo id and the config key to point at a local
+            folder instead, when the weights are unavailable.
     """
     dtype = getattr(torch, estimators_cfg.dtype)
     device = resolve_device(device)
@@ -76,13 +103,19 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
     else:
         from .vggt import VGGT
 
-        geometry = VGGT.from_pretrained(estimators_cfg.geometry, dtype=dtype, device=device)
+        try:
+            geometry = VGGT.from_pretrained(estimators_cfg.geometry, dtype=dtype, device=device)
+        except WeightsNotFoundError as err:
+            raise with_config_key(err, "estimators.geometry", "/path/to/VGGT-1B") from None
     if estimators_cfg.flow == TINY_RANDOM:
         flow = tiny[1].to(device).trunk_to(dtype)
     else:
         from .ufm import UFM
 
-        flow = UFM.from_pretrained(estimators_cfg.flow, dtype=dtype, device=device)
+        try:
+            flow = UFM.from_pretrained(estimators_cfg.flow, dtype=dtype, device=device)
+        except WeightsNotFoundError as err:
+            raise with_config_key(err, "estimators.flow", "/path/to/UFM-Base") from None
     for model, name in ((geometry, estimators_cfg.geometry), (flow, estimators_cfg.flow)):
         model.eval().requires_grad_(False)
         model.gradient_checkpointing = estimators_cfg.gradient_checkpointing

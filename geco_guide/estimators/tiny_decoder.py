@@ -326,6 +326,7 @@ class TinyDecoder(nn.Module):
                 f"{decoder_widths} / {encoder_width}"
             )
         self.variant = spec
+        self.checkpoint_file: str | None = None  # set by from_pretrained
         self.latent_channels = spec.latent_channels
         self.patch_size = spec.patch_size
         self.decoder_widths = decoder_widths
@@ -541,7 +542,8 @@ class TinyDecoder(nn.Module):
         revision: str | None = None,
         cache_dir: str | os.PathLike | None = None,
     ) -> TinyDecoder:
-        """Load published TAEHV weights (``.pth`` or ``.safetensors``); frozen, eval mode.
+        """Load published TAEHV weights (``.pth`` or ``.safetensors``); frozen, eval mode, with the
+        resolved file in ``checkpoint_file``.
 
         Args:
             path_or_hub_id: a checkpoint file, a local folder, or a Hugging Face repo id. The
@@ -564,6 +566,7 @@ class TinyDecoder(nn.Module):
         if spec is None:
             spec = variant_from_filename(weights)
         model = cls.from_state_dict(load_weights(weights), spec)
+        model.checkpoint_file = str(weights)  # what the run's record names (the file, not the folder)
         return model.to(device=device, dtype=dtype)
 
 

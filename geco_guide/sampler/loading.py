@@ -1,5 +1,6 @@
 """Loading video pipelines: a hub id or a local folder, in a dtype, with a clear one-line error
-when the weights are not there, and the scheduler that ``sampling.scheduler`` names.
+when the weights are not there, the scheduler that ``sampling.scheduler`` names, and the tiny
+decoder of ``guidance.decoder=tiny`` (``estimators.tiny_decoder``).
 
 diffusers is imported inside the functions, so importing this module stays light. The config is
 duck-typed (``cfg.model``, ``cfg.sampling``, ``cfg.guidance``, ``cfg.estimators`` of a
@@ -15,8 +16,13 @@ from typing import Any
 
 import torch
 
-from ..estimators import TINY_RANDOM, load_estimators
-from ..estimators.loading import WeightsNotFoundError
+from ..estimators import (
+    TINY_RANDOM,
+    load_estimators,
+    tiny_random_decoder,
+    with_config_key,
+)
+from ..estimators.loading import CHECKPOINT_SUFFIXES, WeightsNotFoundError
 from ..io.devices import resolve_device
 
 
@@ -135,7 +141,89 @@ def choose_scheduler(pipe, name: str | None) -> str:
     return f"{cls.__name__} (sampling.scheduler={name}, built from the checkpoint's {shipped} config)"
 
 
-def build_pipeline(cfg: Any, components: dict[str, Any] | None = None):
-    """Estimators + video pipeline of a config (estimators first: they are the cheaper failure)."""
+def wants_tiny_decoder(cfg: Any) -> bool:
+    """Whether the config's guidance decodes its anchor frames with the tiny decoder."""
+    return bool(cfg.guidance.enabled and cfg.guidance.decoder == "tiny")
+
+
+def check_tiny_decoder_source(cfg: Any) -> None:
+    """One line, before any model loads, when the tiny decoder's weights are not named or not there.
+
+    Raises:
+        ValueError: ``estimators.tiny_decoder`` is not set.
+        WeightsNotFoundError: it names a checkpoint file that does not exist.
+    """
+    from ..estimators.tiny_decoder import WEIGHTS_URL
+
+    source = cfg.estimators.tiny_decoder
+    if not source:
+        raise ValueError(
+            f"guidance.decoder=tiny needs the tiny decoder's weights: download taecvx.pth from {WEIGHTS_URL} and "
+            "set estimators.tiny_decoder=/path/to/taecvx.pth (or use guidance.decoder=vae)"
+        )
+    path = Path(source).expanduser()
+    if source != TINY_RANDOM and path.suffix.lower() in CHECKPOINT_SUFFIXES and not path.is_file():
+        raise WeightsNotFoundError(
+            f"estimators.tiny_decoder={source}: no such file (download taecvx.pth from {WEIGHTS_URL} and set "
+            "estimators.tiny_decoder=/path/to/taecvx.pth)"
+        )
+
+
+def load_tiny_decoder(cfg: Any) -> Any:
+    """The CogVideoX tiny decoder of ``estimators.tiny_decoder`` (a file, a folder or a hub id;
+    ``tiny-random`` is built by :func:`build_pipeline`, which knows the VAE's latent channels), in
+    ``model.dtype`` on the CPU (the pipeline moves it). A file must be the CogVideoX variant.
+
+    Raises:
+        WeightsNotFoundError: one line naming the source and the config key.
+        ValueError: the file is the tiny decoder of another model.
+    """
+    from ..estimators.tiny_decoder import TinyDecoder, variant_from_filename
+
+    check_tiny_decoder_source(cfg)
+    source = cfg.estimators.tiny_decoder
+    path = Path(source).expanduser()
+    try:
+        named = variant_from_filename(path) if path.is_file() else None
+    except ValueError:  # a name that tells no variant: the strict load checks the keys
+        named = None
+    if named is not None and named.name != "cogvideox":
+        raise ValueError(f"estimators.tiny_decoder={source} is the tiny decoder of {named.models}; "
+                         "CogVideoX needs taecvx.pth")
+    try:
+        return TinyDecoder.from_pretrained(source, "cogvideox", dtype=getattr(torch, cfg.model.dtype))
+    except WeightsNotFoundError as err:
+        raise with_config_key(err, "estimators.tiny_decoder", "/path/to/taecvx.pth") from None
+
+
+def decoder_note(pipe: Any, cfg: Any) -> str:
+    """What decodes the loss' anchor frames, for the run's record: the VAE, or the tiny decoder
+    and the file it was loaded from."""
+    decoder = getattr(pipe, "guidance_decoder", None)
+    if cfg.guidance.decoder != "tiny" or decoder is None:
+        return "vae (the model's own)"
+    origin = decoder.checkpoint_file or f"{TINY_RANDOM}(seed={cfg.estimators.init_seed})"
+    return f"TinyDecoder({decoder.variant.name}) from {origin}"
+
+
+def build_pipeline(cfg: Any, components: dict[str, Any] | None = None, *, tiny_decoder: bool | None = None):
+    """Estimators, tiny decoder and video pipeline of a config, cheapest failure first.
+
+    ``tiny_decoder``: attach ``estimators.tiny_decoder`` as the pipeline's ``guidance_decoder``;
+    default: when the guidance uses it (:func:`wants_tiny_decoder`). A checkpoint file loads
+    before the video model; ``tiny-random`` is built after it, for its VAE's latent channels.
+    ``pipe.geco_decoder_note`` says what decodes the anchor frames (:func:`decoder_note`).
+    """
+    tiny_decoder = wants_tiny_decoder(cfg) if tiny_decoder is None else tiny_decoder
+    if tiny_decoder:
+        check_tiny_decoder_source(cfg)
     geometry, flow = load_estimators(cfg.estimators, resolve_device(cfg.model.device))
-    return load_video_pipeline(cfg, geometry, flow, components=components)
+    tiny_random = cfg.estimators.tiny_decoder == TINY_RANDOM
+    decoder = load_tiny_decoder(cfg) if tiny_decoder and not tiny_random else None
+    pipe = load_video_pipeline(cfg, geometry, flow, components=components)
+    if tiny_decoder:
+        if tiny_random:
+            decoder = tiny_random_decoder("cogvideox", cfg.estimators.init_seed, pipe.vae.config.latent_channels)
+        pipe.register_modules(guidance_decoder=decoder.to(device=pipe.device, dtype=getattr(torch, cfg.model.dtype)))
+    pipe.geco_decoder_note = decoder_note(pipe, cfg)
+    return pipe
