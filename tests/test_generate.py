@@ -4,15 +4,26 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
+import torch
 
-from geco_guide.cli.generate import main, output_paths
-from geco_guide.config import load_config
+from geco_guide.cli import generate as generate_module
+from geco_guide.cli.generate import (
+    SCORES_NOTE,
+    default_name,
+    main,
+    output_paths,
+    video_key,
+)
+from geco_guide.config import config_to_dict, load_config
 from geco_guide.estimators.loading import WeightsNotFoundError
+from geco_guide.io.files import WriteError
 from geco_guide.io.video import read_video
 from geco_guide.sampler.loading import load_video_pipeline
 
@@ -24,11 +35,13 @@ def test_cli_tiny_preset_writes_playable_mp4_and_sidecar(tmp_path: Path):
     proc = subprocess.run(
         [sys.executable, "-m", "geco_guide.generate", "--preset", "tiny", "--prompt", "a marble bust",
          "--out", str(tmp_path / "run.mp4")],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120, check=False,
     )
     assert proc.returncode == 0, proc.stderr
     video, sidecar = tmp_path / "run.mp4", tmp_path / "run.json"
     assert f"wrote video:   {video}" in proc.stdout and "GeCo scores of anchor frames" in proc.stdout
+    assert SCORES_NOTE in proc.stdout  # says why evaluate prints another number for the same video
+    assert "loading models: CogVideoX tiny-random, geometry tiny-random, flow tiny-random ..." in proc.stderr
     frames, fps = read_video(video)
     assert frames.shape == (17, 3, 32, 48) and fps == pytest.approx(8.0)
     data = json.loads(sidecar.read_text())
@@ -49,9 +62,11 @@ def test_no_guidance_seed_and_overrides_in_process(tmp_path: Path, capsys):
     assert rc == 0
     out = capsys.readouterr().out
     assert "guidance: off" in out
-    data = json.loads((tmp_path / "a-cat-seed3-unguided.json").read_text())
+    (sidecar,) = tmp_path.glob("*.json")
+    assert re.fullmatch(r"a-cat-[0-9a-f]{8}-seed3-unguided\.json", sidecar.name)
+    data = json.loads(sidecar.read_text())
     assert data["seed"] == 3 and data["guidance_log"] == [] and data["config"]["guidance"]["enabled"] is False
-    assert (tmp_path / "a-cat-seed3-unguided.mp4").is_file()
+    assert sidecar.with_suffix(".mp4").is_file() and data["video"] == sidecar.with_suffix(".mp4").name
 
 
 def test_bad_override_is_one_error_line(capsys):
@@ -76,7 +91,154 @@ def test_offline_without_weights_is_one_clear_error(monkeypatch):
 def test_output_paths(tmp_path: Path):
     cfg = load_config(preset="tiny", overrides=[f"output.dir={tmp_path}"])
     video, sidecar = output_paths(cfg, "A Marble Bust, on a table!")
-    assert video == tmp_path / "a-marble-bust-on-a-table-seed0.mp4" and sidecar == video.with_suffix(".json")
+    key = video_key(config_to_dict(cfg), "A Marble Bust, on a table!")
+    assert video == tmp_path / f"a-marble-bust-on-a-table-{key}-seed0.mp4" and sidecar == video.with_suffix(".json")
+    assert re.fullmatch(r"[0-9a-f]{8}", key)
+    assert output_paths(cfg, "x", tmp_path / "run.MP4") == (tmp_path / "run.MP4", tmp_path / "run.json")
+    assert output_paths(cfg, "x", tmp_path / "runs")[0].parent == tmp_path / "runs"  # no suffix: a folder
+
+
+def test_default_names_differ_for_prompts_with_one_prefix_and_for_configs_that_change_the_video():
+    cfg = load_config(preset="tiny")
+    prefix = "a very long prompt about a marble bust on a wooden table in a quiet"  # longer than the slug
+    first, second = default_name(cfg, prefix + " room"), default_name(cfg, prefix + " hall")
+    assert first != second and first.split("-seed")[0].rsplit("-", 1)[0] == second.split("-seed")[0].rsplit("-", 1)[0]
+    for override in ("guidance.eta=2.0", "sampling.num_inference_steps=3", "model.init_seed=1", "seed=1",
+                     "guidance.loss.cue=fused", "estimators.flow=some/other-flow"):
+        assert default_name(load_config(preset="tiny", overrides=[override]), "a cat") != default_name(cfg, "a cat")
+    # where the files go, whether the anchors are scored, the evaluation protocol and the device do not rename
+    same = ["output.dir=elsewhere", "output.score_anchors=false", "evaluation.max_fps=4", "model.device=cpu"]
+    assert default_name(load_config(preset="tiny", overrides=same), "a cat") == default_name(cfg, "a cat")
+    unguided = load_config(preset="tiny", overrides=["guidance.enabled=false"])
+    assert default_name(unguided, "a cat").endswith("-seed0-unguided")
+
+
+def test_the_video_key_is_the_same_in_another_process():
+    cfg = load_config(preset="tiny")
+    code = ("from geco_guide.cli.generate import default_name; from geco_guide.config import load_config; "
+            "print(default_name(load_config(preset='tiny'), 'a cat'))")
+    env = dict(os.environ, PYTHONHASHSEED="123", PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == default_name(cfg, "a cat")
+
+
+# --------------------------------------------------------------------------------------------
+# outputs are never lost: checked before anything loads, written together
+
+
+def _stub_pipe(frames: torch.Tensor):
+    """Stands in for the video pipeline: returns ``frames`` as the sampled video."""
+
+    def pipe(**kwargs):
+        return SimpleNamespace(frames=frames, guidance_log=[])
+
+    pipe.scheduler, pipe.device = object(), torch.device("cpu")
+    return pipe
+
+
+@pytest.fixture
+def no_loading(monkeypatch):
+    def refuse(cfg):
+        raise AssertionError("models were loaded")
+
+    monkeypatch.setattr(generate_module, "build_pipeline", refuse)
+
+
+@pytest.fixture
+def stub_loading(monkeypatch):
+    frames = torch.rand(1, 9, 3, 32, 48)
+    monkeypatch.setattr(generate_module, "build_pipeline", lambda cfg: _stub_pipe(frames))
+
+
+def _run(out: Path, *extra: str) -> int:
+    return main(["--preset", "tiny", "--prompt", "a cat", "--out", str(out), "output.score_anchors=false", *extra])
+
+
+def _error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "\n" not in err, err
+    return err
+
+
+def test_an_existing_output_is_refused_before_loading_unless_overwrite(tmp_path: Path, capsys, monkeypatch,
+                                                                       no_loading):
+    video = tmp_path / "clip.mp4"
+    video.write_bytes(b"an earlier video")
+    assert _run(video) == 2
+    assert f"{str(video)!r} already exists; pass --overwrite" in _error_line(capsys)
+    video.unlink()
+    (tmp_path / "clip.json").write_text("{}")  # a sidecar alone is an output too
+    assert _run(video) == 2 and "clip.json' already exists" in _error_line(capsys)
+    assert video.exists() is False
+
+    frames = torch.rand(1, 9, 3, 32, 48)
+    monkeypatch.setattr(generate_module, "build_pipeline", lambda cfg: _stub_pipe(frames))
+    assert _run(video, "--overwrite") == 0
+    assert json.loads((tmp_path / "clip.json").read_text())["video"] == "clip.mp4"
+    assert read_video(video)[0].shape[0] == 9
+
+
+def test_default_names_in_one_folder_do_not_overwrite(tmp_path: Path, capsys, stub_loading):
+    assert _run(tmp_path) == 0
+    capsys.readouterr()
+    assert _run(tmp_path) == 2 and "already exists" in _error_line(capsys)
+    assert _run(tmp_path, "guidance.eta=2.0") == 0  # another config: another name
+    assert len(list(tmp_path.glob("*.mp4"))) == 2 and len(list(tmp_path.glob("*.json"))) == 2
+
+
+@pytest.mark.parametrize("name, message", [
+    ("x.gif", "must end with .mp4 (gif is not written"),
+    ("x.avi", "a video path must end with .mp4"),
+    ("x.webm", "a path without a suffix is a folder"),
+])
+def test_out_suffixes_other_than_mp4_are_one_line(tmp_path: Path, capsys, no_loading, name, message):
+    assert _run(tmp_path / name) == 2
+    assert message in _error_line(capsys)
+    assert list(tmp_path.iterdir()) == []  # no folder named x.gif
+
+
+def test_out_paths_that_cannot_be_written_are_one_line_before_loading(tmp_path: Path, capsys, monkeypatch,
+                                                                      no_loading):
+    (tmp_path / "x.mp4").mkdir()
+    assert _run(tmp_path / "x.mp4") == 2
+    assert "a folder of that name is in the way" in _error_line(capsys)
+
+    read_only = tmp_path / "read-only"
+    read_only.mkdir()
+    read_only.chmod(0o555)
+    real_access = os.access  # root writes anywhere: the check asks access(), so ask it for this folder
+    monkeypatch.setattr(os, "access", lambda path, mode: Path(path) != read_only and real_access(path, mode))
+    try:
+        assert _run(read_only / "run.mp4") == 2
+        assert f"the folder {str(read_only)!r} is not writable" in _error_line(capsys)
+    finally:
+        read_only.chmod(0o755)
+
+    assert _run(tmp_path / "long", "output.name=" + "n" * 300) == 2
+    assert "bytes, over the" in _error_line(capsys)
+    assert not (tmp_path / "long").exists()
+
+
+def test_a_failed_sidecar_write_leaves_no_video_without_its_sidecar(tmp_path: Path, capsys, monkeypatch, stub_loading):
+    def full_disk(path, data):
+        raise WriteError(f"cannot write {str(path)!r}: No space left on device")
+
+    monkeypatch.setattr(generate_module, "write_json_atomic", full_disk)
+    assert _run(tmp_path / "clip.mp4") == 2
+    assert "No space left on device" in _error_line(capsys)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_ctrl_c_is_one_line_and_exit_code_130(tmp_path: Path, capsys, monkeypatch):
+    def interrupted(cfg):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(generate_module, "build_pipeline", interrupted)
+    assert _run(tmp_path / "clip.mp4") == 130
+    assert capsys.readouterr().err == "interrupted: nothing was written (outputs are written atomically)\n"
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize(

@@ -6,18 +6,25 @@
 
 Writes ``<name>.mp4`` and a JSON sidecar ``<name>.json`` (resolved config, seed, scheduler,
 versions, timings, guidance log, GeCo scores of the anchor frames of the final video), each
-atomically. Trailing ``key=value`` arguments override the config (unknown keys are rejected).
+atomically. The default name is ``<prompt slug>-<video key>-seed<N>[-unguided]``, the key a hash
+of the prompt and of the config that makes the frames (:func:`video_key`), so two runs share a name
+only when they make the same video; an existing output is refused without ``--overwrite``.
+Trailing ``key=value`` arguments override the config (unknown keys are rejected).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import hashlib
+import json
 import math
 import os
 import platform
 import re
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -32,7 +39,7 @@ from ..io.devices import check_device
 from ..io.files import WriteError, write_json_atomic
 from ..sampler import loading
 from ..types import NonFiniteFramesError, check_frame_values
-from .kit import Parser, add_config_flags, config_from_args
+from .kit import Parser, add_config_flags, config_from_args, interruptible
 
 # --------------------------------------------------------------------------------------------
 # building the pipeline from a config
@@ -48,12 +55,31 @@ def video_components(cfg: GeCoConfig) -> dict[str, Any] | None:
 
 
 def build_pipeline(cfg: GeCoConfig):
-    """:func:`geco_guide.sampler.loading.build_pipeline` with the tiny models when the config asks for them."""
+    """:func:`geco_guide.sampler.loading.build_pipeline` with the tiny models when the config asks
+    for them, after one stderr line naming them (loading takes minutes)."""
+    print(loading_line(cfg), file=sys.stderr, flush=True)
     return loading.build_pipeline(cfg, components=video_components(cfg))
+
+
+def loading_line(cfg: GeCoConfig) -> str:
+    return (f"loading models: CogVideoX {cfg.model.id}, geometry {cfg.estimators.geometry}, "
+            f"flow {cfg.estimators.flow} ...")
 
 
 # --------------------------------------------------------------------------------------------
 # outputs
+
+
+#: What ``--out`` may end with: a video file of these suffixes, or no suffix (a folder).
+OUT_SUFFIXES = (".mp4",)
+#: Config sections that cannot change the frames, left out of :func:`video_key`: where the files
+#: go, whether the anchors are scored afterwards, the evaluation protocol.
+KEYLESS_SECTIONS = ("output", "evaluation")
+#: Longest name a temporary of an atomic write adds to ``<name>``: ``.<name>.<8 random>.tmp``
+#: before the suffix (see :func:`geco_guide.io.files.atomic_path`).
+TEMP_NAME_EXTRA = len("..12345678.tmp")
+SCORES_NOTE = ("These are the anchor frames' scores with the guidance loss' settings; "
+               "python -m geco_guide.evaluate scores the whole video with the paper's protocol (a different number).")
 
 
 def slugify(text: str, max_len: int = 48) -> str:
@@ -61,40 +87,109 @@ def slugify(text: str, max_len: int = 48) -> str:
     return slug[:max_len].rstrip("-") or "video"
 
 
-def output_paths(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None) -> tuple[Path, Path]:
-    """``(video.mp4, sidecar.json)``: ``out`` (a .mp4 path or a folder) or ``output.dir/name``."""
+def video_key(config: dict[str, Any], prompt: str) -> str:
+    """8 hex characters of SHA-256 over the prompt and the config that makes the frames
+    (``config``: :func:`geco_guide.config.config_to_dict`'s form, e.g. a sidecar's ``config``).
+
+    Left out: :data:`KEYLESS_SECTIONS` and ``model.device``. The device can change the bytes
+    (CPU and GPU kernels round differently), but a video moved to another device is the same
+    experiment, so it does not rename it. The JSON is canonical (sorted keys), so the key is the
+    same in every process and on every machine.
+    """
+    kept = {section: value for section, value in config.items() if section not in KEYLESS_SECTIONS}
+    kept["model"] = {key: value for key, value in kept.get("model", {}).items() if key != "device"}
+    text = json.dumps({"prompt": prompt, "config": kept}, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:8]
+
+
+def default_name(cfg: GeCoConfig, prompt: str) -> str:
+    """``<slug>-<video key>-seed<N>``, with ``-unguided`` when guidance is off."""
     suffix = "" if cfg.guidance.enabled else "-unguided"
-    name = cfg.output.name or f"{slugify(prompt)}-seed{cfg.seed}{suffix}"
-    if out is not None:
-        out = Path(out)
-        video = out if out.suffix.lower() == ".mp4" else out / f"{name}.mp4"
-    else:
+    return f"{slugify(prompt)}-{video_key(config_to_dict(cfg), prompt)}-seed{cfg.seed}{suffix}"
+
+
+def output_paths(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None) -> tuple[Path, Path]:
+    """``(video.mp4, sidecar.json)``: ``out`` (a .mp4 path, or a folder: no suffix) or
+    ``output.dir/name``; ValueError (one line) for an ``out`` of another suffix."""
+    name = cfg.output.name or default_name(cfg, prompt)
+    if out is None:
         video = Path(cfg.output.dir) / f"{name}.mp4"
+    else:
+        out = Path(out)
+        suffix = out.suffix.lower()
+        if suffix and suffix not in OUT_SUFFIXES:
+            raise ValueError(_suffix_problem(out))
+        video = out if suffix else out / f"{name}.mp4"
     return video, video.with_suffix(".json")
 
 
-def check_output_location(video: Path) -> None:
-    """ValueError (one line) if ``video``'s folder cannot exist because a file is in the way.
+def _suffix_problem(out: Path) -> str:
+    gif = " (gif is not written: the video writer makes H.264 mp4 only)" if out.suffix.lower() == ".gif" else ""
+    return (f"--out {str(out)!r}: a video path must end with .mp4{gif}; a path without a suffix is a folder "
+            "(the default name inside it)")
 
-    Checked before the models load, so that a bad ``--out`` does not fail after sampling.
-    """
-    for parent in video.parents:
+
+def _nearest_existing(path: Path) -> Path:
+    """``path``'s nearest ancestor that exists (the folder an atomic write would create the rest in)."""
+    for parent in path.parents:
         if parent.exists():
-            if not parent.is_dir():
-                raise ValueError(f"cannot write {str(video)!r}: {str(parent)!r} is a file, not a folder")
-            return
+            return parent
+    return Path.cwd()
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):  # no pathconf for this file system: the common limit
+        return 255
+
+
+def check_outputs(paths: tuple[Path, ...], overwrite: bool = False) -> None:
+    """ValueError (one line) for anything that would make writing ``paths`` fail after sampling:
+    a file where a folder must be, a folder or (without ``overwrite``) a file under an output's
+    name, a folder that cannot be written, a name too long for the file system (with the
+    temporary name its atomic write uses)."""
+    for path in paths:
+        existing = _nearest_existing(path)
+        if not existing.is_dir():
+            raise ValueError(f"cannot write {str(path)!r}: {str(existing)!r} is a file, not a folder")
+        if path.is_dir():
+            raise ValueError(f"cannot write {str(path)!r}: a folder of that name is in the way")
+        if path.exists() and not overwrite:
+            raise ValueError(f"{str(path)!r} already exists; pass --overwrite to replace it, or choose another "
+                             "--out or output.name")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise ValueError(f"cannot write {str(path)!r}: the folder {str(existing)!r} is not writable")
+        longest = len(path.name.encode()) + TEMP_NAME_EXTRA
+        limit = _name_max(existing)
+        if longest > limit:
+            raise ValueError(f"cannot write {str(path)!r}: the name is {len(path.name.encode())} bytes, over the "
+                             f"{limit - TEMP_NAME_EXTRA} this file system allows (a shorter output.name or --out)")
+
+
+@contextlib.contextmanager
+def removed_on_failure(*paths: Path) -> Iterator[None]:
+    """Remove ``paths`` when the block fails or is interrupted. Around a sidecar's write it removes
+    the video just written (and an old sidecar under the name, whose video that replaced), so that
+    no video is left without its own sidecar."""
+    try:
+        yield
+    except BaseException:
+        for path in paths:
+            path.unlink(missing_ok=True)
+        raise
 
 
 def versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
     import diffusers
     import numpy
     import transformers
 
     try:
-        from importlib.metadata import version
-
         geco_version = version("geco_guide")
-    except Exception:  # not installed (running from a checkout)
+    except PackageNotFoundError:  # not installed (running from a checkout)
         geco_version = "unknown"
     return {
         "geco_guide": geco_version,
@@ -114,8 +209,10 @@ class GenerationResult:
     sidecar: dict[str, Any]
 
 
-def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None, pipe=None) -> GenerationResult:
-    """Run one generation of ``cfg`` and write the mp4 + JSON sidecar. ``pipe`` skips loading."""
+def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None, pipe=None,
+             overwrite: bool = False) -> GenerationResult:
+    """Run one generation of ``cfg`` and write the mp4 + JSON sidecar. ``pipe`` skips loading;
+    existing outputs are replaced only with ``overwrite`` (checked before anything loads)."""
     from ..io.video import write_video
     from ..loss.geco import GeCoLoss
     from ..sampler.step import score_anchor_frames
@@ -123,7 +220,7 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     if not prompt or not prompt.strip():
         raise ValueError("prompt must not be empty")
     video_path, sidecar_path = output_paths(cfg, prompt, out)
-    check_output_location(video_path)
+    check_outputs((video_path, sidecar_path), overwrite)
     timings: dict[str, float] = {}
     start = time.perf_counter()
     if pipe is None:
@@ -167,25 +264,31 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     start = time.perf_counter()
     write_video(video_path, frames[0], fps=s.fps)
     timings["write_video_s"] = time.perf_counter() - start
-    log = output.guidance_log or []
-    timings["guidance_s"] = sum(r["seconds"] for r in log)
-    sidecar = {
+    with removed_on_failure(video_path, sidecar_path):
+        sidecar = sidecar_of(cfg, prompt, pipe, frames, video_path.name, timings, scores, output.guidance_log or [])
+        write_json_atomic(sidecar_path, sidecar)
+    return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=scores, sidecar=sidecar)
+
+
+def sidecar_of(cfg: GeCoConfig, prompt: str, pipe: Any, frames: torch.Tensor, video_name: str,
+               timings: dict[str, float], scores: dict[str, float] | None, log: list[dict[str, Any]]) -> dict[str, Any]:
+    """The sidecar of a video ``frames [1, F, 3, H, W]``: what made it and how long it took."""
+    return {
         "prompt": prompt,
         "seed": cfg.seed,
-        "video": video_path.name,
+        "video": video_name,
+        "video_key": video_key(config_to_dict(cfg), prompt),
         "num_frames": int(frames.shape[1]),
-        "fps": s.fps,
+        "fps": cfg.sampling.fps,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "config": config_to_dict(cfg),
         "scheduler": getattr(pipe, "geco_scheduler_note", None) or type(pipe.scheduler).__name__,
         "device": str(pipe.device),
         "versions": versions(),
-        "timings": timings,
+        "timings": {**timings, "guidance_s": sum(r["seconds"] for r in log)},
         "geco_scores": {"anchors": list(cfg.guidance.anchors), **scores} if scores is not None else None,
         "guidance_log": log,
     }
-    write_json_atomic(sidecar_path, sidecar)
-    return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=scores, sidecar=sidecar)
 
 
 # --------------------------------------------------------------------------------------------
@@ -202,17 +305,22 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_flags(p, preset_help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
     p.add_argument("--seed", type=int, default=None, help="sampling seed (overrides the config's seed)")
     p.add_argument("--no-guidance", action="store_true", help="sample without GeCo guidance")
-    p.add_argument("--out", default=None, help="output .mp4 path or folder (sidecar next to it, .json)")
+    p.add_argument("--out", default=None,
+                   help="output path ending in .mp4 (the sidecar: the same path with .json), or a folder (no suffix) "
+                        "for the default name <prompt slug>-<8 hex of prompt and config>-seed<N>[-unguided].mp4; "
+                        "default: output.dir")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing video and sidecar of the same name")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.eta=2.0")
     return p
 
 
+@interruptible("nothing was written (outputs are written atomically)")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     options = {"seed": args.seed, "guidance.enabled": "false" if args.no_guidance else None}
     try:
         cfg = config_from_args(args, args.overrides, options)
-        result = generate(cfg, args.prompt, out=args.out)
+        result = generate(cfg, args.prompt, out=args.out, overwrite=args.overwrite)
     except (ValueError, FileNotFoundError, WriteError) as err:  # WeightsNotFoundError: a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -224,6 +332,7 @@ def main(argv: list[str] | None = None) -> int:
             f"GeCo scores of anchor frames {list(cfg.guidance.anchors)}: "
             f"fused={s['fused']:.4f} motion={s['motion']:.4f} structure={s['structure']:.4f}"
         )
+        print(SCORES_NOTE)
     log = result.sidecar["guidance_log"]
     if log:
         print(f"guidance: {len(log)} updates in {result.sidecar['timings']['guidance_s']:.1f} s")
