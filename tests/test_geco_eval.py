@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from geco_guide.bench import geco_eval
-from geco_guide.bench.geco_eval import MODELS, load_prompts, select_prompts
+from geco_guide.bench.geco_eval import load_prompts, select_prompts
+from geco_guide.bench.models import MODELS
 from geco_guide.cli.evaluate import main as evaluate_main
 from geco_guide.cli.geco_eval import main
 from geco_guide.sampler.slicing import default_anchors
@@ -107,11 +108,11 @@ def test_rerun_resumes_and_a_redone_video_is_identical(tiny_run: Path, tmp_path:
     (out / "videos" / "cogvideox-5b" / "a1-s0.mp4").unlink()  # a finished job whose video was deleted
     assert main([*TINY_RUN, "--out", str(out)]) == 0
     text = capsys.readouterr()
-    assert "2 of 4 videos already done" in text.out and "a1-s0.mp4 is missing" in text.err
+    assert "2 of 4 videos already done" in text.err and "a1-s0.mp4 is missing" in text.err
     after = json.loads(result.read_text())
     for metric in ("fused", "motion", "structure", "total_motion"):
         assert after[metric] == before[metric]  # same seed, same device: the same video
-    assert main([*TINY_RUN, "--out", str(out)]) == 0 and "4 of 4 videos already done" in capsys.readouterr().out
+    assert main([*TINY_RUN, "--out", str(out)]) == 0 and "4 of 4 videos already done" in capsys.readouterr().err
 
 
 def test_score_existing_videos_at_the_models_native_rate(tiny_run: Path, tmp_path: Path):

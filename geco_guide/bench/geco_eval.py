@@ -4,19 +4,22 @@
 The suite is the paper's 80 prompts (supplement, "List of Text Prompt"; shipped as
 ``geco_guide/bench/data/geco_eval_prompts.jsonl``): four scenarios (object-centric, indoor, outdoor,
 appearance-complex) x slow / fast camera x 10. Each job is one (model, prompt, seed, guided?):
-the model generates the video at its documented default settings (:data:`MODELS`), written at its
+the model generates the video at its documented default settings (:data:`geco_guide.bench.models.MODELS`), written at its
 native frame rate, and :func:`geco_guide.evaluate.evaluate_video` scores it with the GeCo-Eval
 protocol (the config's ``evaluation`` section, the model's native rate from
-``evaluation.model_fps``). ``--videos NAME=DIR`` scores videos that exist already.
+``evaluation.model_fps``). ``--videos NAME=DIR`` scores videos that exist already. The models are
+the registry of :mod:`geco_guide.bench.models`.
 
 ``DIR/videos/<model>[-guided]/<prompt_id>-s<seed>.mp4`` holds each video, ``.json`` beside it its
-scores and timings (written last: its presence marks the job done, so a killed run resumes where
-it stopped). The report is rebuilt from every job's JSON at the end: ``results.csv`` (one row per
-video), ``summary.json`` and ``report.md`` (per model: all, per scenario, slow vs fast; mean and
-standard deviation of each score, as the paper's tables) and ``pareto.png`` (fused score vs Mean
-Motion, one point per model; one panel per scenario). ``run.json`` pins the config. Under
-``accelerate launch`` the jobs are dealt round-robin to the processes and the main process writes
-the report once all are done.
+scores and timings (written last: a complete one marks the job done, so a killed run resumes where
+it stopped). A job whose video cannot be scored (unreadable, too short, non-finite) leaves
+``<prompt_id>-s<seed>.failed.json`` with the reason instead, and the run goes on with the others;
+a rerun tries it again. The report is rebuilt from every job's JSON at the end: ``results.csv``
+(one row per video, failed ones with their reason), ``summary.json`` and ``report.md`` (per model:
+all, per scenario, slow vs fast; mean and standard deviation of each score, as the paper's tables)
+and ``pareto.png`` (fused score vs Mean Motion, one point per model; one panel per scenario with
+data). ``run.json`` pins the config. Under ``accelerate launch`` the jobs are dealt round-robin to
+the processes and the main process writes the report once all are done.
 """
 
 from __future__ import annotations
@@ -24,8 +27,9 @@ from __future__ import annotations
 import json
 import math
 import re
+import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from importlib import resources
@@ -49,6 +53,7 @@ from ..metric.evaluate import PAPER_NAMES, evaluate_video
 from ..sampler.loading import pipeline_from_pretrained, quiet_hub_logs
 from ..sampler.slicing import default_anchors
 from . import report
+from .models import MODELS, VideoModel
 from .report import fmt
 from .runs import (
     PeakMemory,
@@ -60,6 +65,10 @@ SCENARIOS = ("object-centric", "indoor", "outdoor", "appearance-complex")
 CAMERAS = ("slow", "fast")
 METRICS = (*CUES, "total_motion", "mean_motion")
 REPORT_STEMS = ("results", "summary", "report", "pareto", "run")
+REPORT_FILES = ("results.csv", "summary.json", "report.md", "pareto.png", "run.json")
+#: What the report reads of a job's result JSON: one without them is redone.
+RESULT_KEYS = ("model", "guided", "prompt_id", "scenario", "camera", "seed", *METRICS, "generation_s",
+               "peak_memory_mib", "video")
 SUITE = "geco-eval"
 
 
@@ -93,56 +102,7 @@ def select_prompts(spec: str) -> list[dict[str, str]]:
 
 
 # ----------------------------------------------------------------------------------------------
-# the models
-
-
-@dataclass(frozen=True)
-class VideoModel:
-    """A text-to-video model as GeCo-Eval runs it.
-
-    Attributes:
-        name: the registry name (also the key of ``evaluation.model_fps``, its native rate).
-        hub_id: the diffusers checkpoint (``--weights NAME=DIR`` replaces it with a folder).
-        pipeline: the diffusers pipeline class.
-        call: the documented default call settings (frames, size, steps, CFG, ...).
-        temporal_compression: frames per latent of the VAE (anchors of guided runs).
-        tiny: the tiny random family of ``--preset tiny`` (:mod:`geco_guide.tiny`).
-    """
-
-    name: str
-    hub_id: str
-    pipeline: str
-    call: dict[str, Any] = field(hash=False)
-    temporal_compression: int
-    tiny: str
-
-
-#: Defaults from each model card / diffusers' pipeline documentation. Guided runs use the
-#: config's guidance schedule, written for 50 steps (other counts are scaled, see README).
-MODELS: dict[str, VideoModel] = {
-    m.name: m
-    for m in (
-        VideoModel("cogvideox-2b", "THUDM/CogVideoX-2b", "CogVideoXPipeline",
-                   dict(num_frames=49, height=480, width=720, num_inference_steps=50, guidance_scale=6.0), 4, "cogvideox"),
-        VideoModel("cogvideox-5b", "THUDM/CogVideoX-5b", "CogVideoXPipeline",
-                   dict(num_frames=49, height=480, width=720, num_inference_steps=50, guidance_scale=6.0), 4, "cogvideox"),
-        VideoModel("cogvideox1.5-5b", "THUDM/CogVideoX1.5-5B", "CogVideoXPipeline",
-                   dict(num_frames=81, height=768, width=1360, num_inference_steps=50, guidance_scale=6.0), 4,
-                   "cogvideox1.5"),
-        VideoModel("wan2.1-t2v-1.3b", "Wan-AI/Wan2.1-T2V-1.3B-Diffusers", "WanPipeline",
-                   dict(num_frames=81, height=480, width=832, num_inference_steps=50, guidance_scale=5.0), 4, "wan"),
-        VideoModel("wan2.1-t2v-14b", "Wan-AI/Wan2.1-T2V-14B-Diffusers", "WanPipeline",
-                   dict(num_frames=81, height=720, width=1280, num_inference_steps=50, guidance_scale=5.0), 4, "wan"),
-        VideoModel("wan2.2-t2v-a14b", "Wan-AI/Wan2.2-T2V-A14B-Diffusers", "WanPipeline",
-                   dict(num_frames=81, height=720, width=1280, num_inference_steps=40, guidance_scale=4.0,
-                        guidance_scale_2=3.0), 4, "wan"),
-        VideoModel("hunyuanvideo", "hunyuanvideo-community/HunyuanVideo", "HunyuanVideoPipeline",
-                   dict(num_frames=129, height=720, width=1280, num_inference_steps=50, guidance_scale=6.0), 4,
-                   "hunyuan"),
-        VideoModel("ltx-video", "Lightricks/LTX-Video", "LTXPipeline",
-                   dict(num_frames=161, height=480, width=704, num_inference_steps=50, guidance_scale=3.0), 8, "ltx"),
-    )
-}
+# loading the models
 
 
 def _tiny_pipeline(family: str, seed: int) -> Any:
@@ -222,11 +182,35 @@ def job_paths(out: Path, job: Job) -> tuple[Path, Path]:
     return folder / f"{job.name}.mp4", folder / f"{job.name}.json"
 
 
+def failure_path(out: Path, job: Job) -> Path:
+    """``<prompt_id>-s<seed>.failed.json`` beside the job's result: why its video could not be scored."""
+    return out / "videos" / job.arm / f"{job.name}.failed.json"
+
+
+def job_video(out: Path, job: Job) -> str:
+    """The video a job's result points at: the ``--videos`` file as given, or the generated one
+    relative to ``out``."""
+    return str(job.video) if job.video is not None else str(job_paths(out, job)[0].relative_to(out))
+
+
 def read_job_result(out: Path, job: Job, warn: bool = True) -> dict[str, Any] | None:
-    """A finished job's result, or None. A damaged result JSON, or a generated video that is gone,
+    """A finished job's result, or None. A damaged result JSON, one that lacks a field the report
+    reads (:data:`RESULT_KEYS`) or points at another video, or a video that is gone or unreadable,
     means the job is redone (with a warning naming the file)."""
     video, path = job_paths(out, job)
-    return read_finished(path, [video] if job.video is None else [], f"job {job.arm}/{job.name}", warn=warn)
+    unit = f"job {job.arm}/{job.name}"
+    result = read_finished(path, [video if job.video is None else job.video], unit, warn=warn, required=RESULT_KEYS)
+    if result is not None and result["video"] != job_video(out, job):
+        if warn:
+            print(f"warning: {path} scores {result['video']!r}, not {job_video(out, job)!r}; {unit} is redone",
+                  file=sys.stderr)
+        return None
+    return result
+
+
+def read_job_failure(out: Path, job: Job) -> dict[str, Any] | None:
+    """The failure record of a job that has no result (:func:`failure_path`), or None."""
+    return read_finished(failure_path(out, job), [], f"job {job.arm}/{job.name}", warn=False, required=("error",))
 
 
 PROMPT_FILE_ID = re.compile(r"^(?P<id>[a-d]\d{1,2})-s(?P<seed>\d+)$")
@@ -250,6 +234,31 @@ def existing_video_jobs(name: str, folder: Path, prompts: Sequence[dict[str, str
         raise ValueError(f"--videos {name}={folder}: no video named <prompt_id>-s<seed>.mp4 or <prompt_id>/*.mp4 "
                          "for the selected prompts")
     return jobs
+
+
+def prompts_without_video(name: str, jobs: Sequence[Job], prompts: Sequence[dict[str, str]]) -> list[str]:
+    """``<name>/<prompt_id>`` of each selected prompt that no job of ``--videos NAME=DIR`` covers."""
+    covered = {job.prompt["id"] for job in jobs if job.model == name}
+    return [f"{name}/{p['id']}" for p in prompts if p["id"] not in covered]
+
+
+def remove_run_outputs(out: Path) -> None:
+    """Delete what a GeCo-Eval run wrote in ``out`` (``--overwrite``): the report files,
+    ``run.json`` and under ``videos/<arm>/`` the ``<prompt_id>-s<seed>`` videos, results and
+    failure records; folders left empty go too, any other file stays."""
+    for name in REPORT_FILES:
+        (out / name).unlink(missing_ok=True)
+    videos = out / "videos"
+    arms = [arm for arm in videos.iterdir() if arm.is_dir()] if videos.is_dir() else []
+    for arm in arms:
+        for path in arm.iterdir():
+            if path.is_file() and PROMPT_FILE_ID.match(path.name.split(".", 1)[0]) and (
+                    path.suffix in (".json", *VIDEO_SUFFIXES)):
+                path.unlink()
+        if not any(arm.iterdir()):
+            arm.rmdir()
+    if videos.is_dir() and not any(videos.iterdir()):
+        videos.rmdir()
 
 
 def guidance_for(model: VideoModel, cfg: GeCoConfig, num_frames: int) -> Any:
@@ -304,7 +313,13 @@ class Generator:
 
 
 def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: tuple[Any, Any], generator: Generator | None) -> dict[str, Any]:
-    """Generate (unless the video exists) and score one job; its result JSON is written last."""
+    """Generate (for a job without ``video``) and score one job; its result JSON is written last
+    (and a failure record of an earlier try removed).
+
+    Raises:
+        ValueError, FileNotFoundError: this video cannot be scored (unreadable, too short,
+            non-finite frames) or generated (non-finite frames); the caller records it.
+    """
     video, result_path = job_paths(out, job)
     remove_temp_files(video.parent, (job.name,))
     fps = cfg.evaluation.fps_of_model(job.model)
@@ -317,33 +332,71 @@ def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: tuple[Any, Any], g
     start = time.perf_counter()
     evaluation = evaluate_video(source, geometry=estimators[0], flow=estimators[1], config=cfg.evaluation, model=job.model)
     result = {
-        "model": job.model, "guided": job.guided, "prompt_id": job.prompt["id"], "scenario": job.prompt["scenario"],
-        "camera": job.prompt["camera"], "seed": job.seed,
-        **{metric: evaluation.to_dict()[metric] for metric in METRICS},
+        **job_identity(job), **{metric: evaluation.to_dict()[metric] for metric in METRICS},
         **timing, "evaluation_s": time.perf_counter() - start,
-        "video": str(source if job.video is not None else video.relative_to(out)),
+        "video": job_video(out, job),
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "evaluation": evaluation.to_dict(),
     }
     write_json_atomic(result_path, result)
+    failure_path(out, job).unlink(missing_ok=True)
     return result
 
 
-def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str, str], tag: str = "") -> None:
-    """Run the jobs not done yet, one model at a time (models and estimators load only if needed)."""
+def job_identity(job: Job) -> dict[str, Any]:
+    """The fields that name a job in its result and failure record (and in ``results.csv``)."""
+    return {"model": job.model, "guided": job.guided, "prompt_id": job.prompt["id"],
+            "scenario": job.prompt["scenario"], "camera": job.prompt["camera"], "seed": job.seed}
+
+
+def record_failure(out: Path, job: Job, err: Exception) -> str:
+    """Write the job's failure record (its reason, the first line of ``err``); returns the reason."""
+    reason = (str(err).strip().splitlines() or [type(err).__name__])[0]
+    write_json_atomic(failure_path(out, job), {**job_identity(job), "video": job_video(out, job), "error": reason,
+                                               "created": datetime.now(timezone.utc).isoformat(timespec="seconds")})
+    return reason
+
+
+def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str, str], tag: str = "",
+             on_loaded: Callable[[], None] | None = None) -> None:
+    """Run the jobs not done yet, one model at a time (models and estimators load only if needed).
+
+    A job whose video cannot be scored or generated is recorded as failed (:func:`record_failure`)
+    and the others go on. Progress goes to stderr, one line per job. ``on_loaded`` is called
+    once, when the first model needed has loaded (or at once when nothing is left to do), before
+    any job writes a file: the caller pins the run there, so that a run stopped by missing weights
+    leaves nothing behind.
+    """
     todo = [job for job in jobs if read_job_result(out, job) is None]
-    print(f"{tag}{len(jobs) - len(todo)} of {len(jobs)} videos already done", flush=True)
+    retried = sum(1 for job in todo if failure_path(out, job).is_file())
+    print(f"{tag}{len(jobs) - len(todo)} of {len(jobs)} videos already done"
+          + (f"; {retried} that failed before are tried again" if retried else ""), file=sys.stderr, flush=True)
     if not todo:
+        if on_loaded is not None:
+            on_loaded()
         return
+    print(f"{tag}loading models: geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow}", file=sys.stderr,
+          flush=True)
     estimators = load_estimators(cfg.estimators, resolve_device(cfg.evaluation.device))
+    done = 0
     for name in dict.fromkeys(job.model for job in todo):
         generator = None
         if any(job.video is None for job in todo if job.model == name):
-            generator = Generator(MODELS[name], cfg, weights.get(name), estimators)
-        for job in (j for j in todo if j.model == name):
-            result = run_job(job, out, cfg, estimators, generator)
-            print(f"{tag}{job.arm}/{job.name}: fused {fmt(result['fused'])}, TM {fmt(result['total_motion'])} %",
+            print(f"{tag}loading models: {name} ({model_weights(cfg, [name], weights)[name]})", file=sys.stderr,
                   flush=True)
+            generator = Generator(MODELS[name], cfg, weights.get(name), estimators)
+        if done == 0 and on_loaded is not None:
+            on_loaded()
+        for job in (j for j in todo if j.model == name):
+            done += 1
+            start = time.perf_counter()
+            try:
+                result = run_job(job, out, cfg, estimators, generator)
+                outcome = f"fused {fmt(result['fused'])}, TM {fmt(result['total_motion'])} %"
+            except (ValueError, FileNotFoundError) as err:  # this video only: unreadable, too short, non-finite
+                outcome = f"failed: {record_failure(out, job, err)}"
+            print(f"{tag}[{done}/{len(todo)}] {job.arm} {job.prompt['id']} seed {job.seed}: "
+                  f"{time.perf_counter() - start:.1f} s, {outcome}", file=sys.stderr, flush=True)
         del generator
 
 
@@ -379,7 +432,7 @@ def summarize(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 
 CSV_COLUMNS = ("model", "guided", "prompt_id", "scenario", "camera", "seed", *METRICS, "generation_s",
-               "evaluation_s", "peak_memory_mib", "guidance_updates", "video")
+               "evaluation_s", "peak_memory_mib", "guidance_updates", "video", "error")
 
 
 def csv_text(results: Sequence[dict[str, Any]]) -> str:
@@ -392,20 +445,31 @@ def _cell(stats: dict[str, Any]) -> str:
     return fmt(stats["mean"]) + ("" if stats["std"] is None else f" ± {fmt(stats['std'], 3)}")
 
 
+def _listed(names: Sequence[str], limit: int = 20) -> str:
+    return ", ".join(names[:limit]) + (" ..." if len(names) > limit else "")
+
+
 def report_markdown(summary: dict[str, Any], missing: Sequence[str], config_yaml: str, command: str,
                     models: Sequence[str] = ()) -> str:
-    """``report.md``; ``models``: the lines of :func:`geco_guide.bench.report.models_section`."""
+    """``report.md``; ``missing``: the jobs not finished; ``models``: the lines of
+    :func:`geco_guide.bench.report.models_section`. The summary's ``failed`` (job, reason) and
+    ``no_video`` (prompts a ``--videos`` folder lacks) are listed too."""
     lines = ["# GeCo-Eval", "",
              f"{summary['videos']} videos scored; command: `{command}`", ""]
     if summary.get("tiny_models"):
         lines += [f"**{report.TINY_NOTE}.**", ""]
     lines += [*models,
-             "Scores: mean ± standard deviation over videos (lower motion / structure / fused is more "
+             ("Scores: mean ± standard deviation over videos (lower motion / structure / fused is more "
              "consistent). TM = Total Motion (%), MM = Mean Motion (%/s): read the scores next to them, "
-             "a static video is trivially consistent.", ""]
+             "a static video is trivially consistent."), ""]
     if missing:
-        lines += [f"**Missing videos** (rerun the same command to finish them): {', '.join(missing[:20])}"
-                  + (" ..." if len(missing) > 20 else ""), ""]
+        lines += [f"**Missing videos** (rerun the same command to finish them): {_listed(missing)}", ""]
+    if summary.get("no_video"):
+        lines += [f"**No video** in the --videos folder for: {_listed(summary['no_video'])}", ""]
+    if summary.get("failed"):
+        lines += ["**Failed videos** (left out of the scores; a rerun tries them again):", "",
+                  *(f"- {f['job']}: {f['error']}" for f in summary["failed"][:20]),
+                  *(["- ..."] if len(summary["failed"]) > 20 else []), ""]
     header = ["group", "n", *(f"{m} ({PAPER_NAMES[m]})" if m in CUES else PAPER_NAMES[m] for m in METRICS)]
     for arm, data in summary["arms"].items():
         rows = [[group, str(stats["fused"]["n"]), *(_cell(stats[m]) for m in METRICS)]
@@ -466,22 +530,30 @@ def model_weights(cfg: GeCoConfig, names: Sequence[str], weights: dict[str, str]
 
 
 def write_report(out: Path, jobs: Sequence[Job], cfg: GeCoConfig, command: str,
-                 weights: dict[str, str] | None = None) -> dict[str, Any]:
-    """Rebuild the report files from the jobs' result JSON files; returns the summary."""
+                 weights: dict[str, str] | None = None, no_video: Sequence[str] = ()) -> dict[str, Any]:
+    """Rebuild the report files from the jobs' result JSON files and failure records; returns the
+    summary. ``no_video``: the prompts a ``--videos`` folder has no video for
+    (:func:`prompts_without_video`)."""
     remove_temp_files(out, REPORT_STEMS)
-    results, missing = [], []
+    results, failures, missing = [], [], []
     for job in jobs:
         result = read_job_result(out, job, warn=False)  # run_jobs warned
-        if result is None:
-            missing.append(f"{job.arm}/{job.name}")
-        else:
+        failure = read_job_failure(out, job) if result is None else None
+        if result is not None:
             results.append(result)
+        elif failure is not None:
+            failures.append({**job_identity(job), "video": job_video(out, job), "error": failure["error"]})
+        else:
+            missing.append(f"{job.arm}/{job.name}")
+    failed = [{"job": f"{f['model']}{'-guided' if f['guided'] else ''}/{f['prompt_id']}-s{f['seed']}",
+               "video": f["video"], "error": f["error"]} for f in failures]
     models = model_weights(cfg, list(dict.fromkeys(job.model for job in jobs)), weights)
-    summary = {**summarize(results), "missing": missing, "config_sha": config_fingerprint(cfg),
+    summary = {**summarize(results), "missing": missing, "failed": failed, "no_video": list(no_video),
+               "config_sha": config_fingerprint(cfg),
                "models": models, "estimators": {"geometry": cfg.estimators.geometry, "flow": cfg.estimators.flow},
                "tiny_models": report.uses_tiny_models(cfg),
                "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     markdown = report_markdown(summary, missing, config_to_yaml(cfg), command,
                                report.models_section(cfg, models))
-    report.write_report_files(out, table=csv_text(results), summary=summary, plot=plot_png(summary), markdown=markdown)
+    report.write_report_files(out, table=csv_text([*results, *failures]), summary=summary, plot=plot_png(summary), markdown=markdown)
     return summary

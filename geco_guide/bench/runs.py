@@ -1,9 +1,10 @@
 """Long runs over many videos (the A/B script, GeCo-Eval): resumable, shardable, measured.
 
 * :func:`config_fingerprint` pins an output folder to one config (``run.json``,
-  :func:`check_output_folder`).
-* :func:`read_finished` reads a finished unit's result file: a damaged one, or one whose outputs
-  are gone, means the unit is redone (with a warning naming the file).
+  :func:`check_output_folder`, which names the keys another config changed).
+* :func:`read_finished` reads a finished unit's result file: a damaged one, one without the
+  fields its reader needs, or one whose outputs are gone or unreadable, means the unit is redone
+  (with a warning naming the file).
 * :class:`PeakMemory` measures the peak memory of a block (CUDA, or peak RSS on CPU).
 * :func:`process_state` / :func:`process_config` / :func:`shard`: one process, or many under
   ``accelerate launch`` with the jobs dealt round-robin.
@@ -11,18 +12,21 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
+import os
 import sys
+import tempfile
 from collections.abc import Sequence
 from dataclasses import replace
 from datetime import timedelta
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Self, TypeVar
 
 import torch
 
-from ..config import GeCoConfig, config_to_yaml
+from ..config import GeCoConfig, config_to_dict, config_to_yaml
 from ..io.devices import resolve_device
 
 MIB = 2**20
@@ -33,35 +37,97 @@ def config_fingerprint(cfg: GeCoConfig) -> str:
     return hashlib.sha256(config_to_yaml(cfg).encode()).hexdigest()[:16]
 
 
-def check_output_folder(out: Path, cfg: GeCoConfig) -> None:
-    """ValueError (one line) unless ``out`` is a folder to create, or one whose ``run.json`` pins
-    ``cfg``; a damaged ``run.json`` is named."""
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {str(out)!r} exists and is not a folder")
+def config_differences(previous: Any, current: Any, prefix: str = "") -> list[str]:
+    """``key: old -> new`` for each dotted key whose value differs between two config dicts (as
+    ``run.json`` stores them), in the config's order; a key only one side has shows ``-``."""
+    if not (isinstance(previous, dict) and isinstance(current, dict)):
+        return [] if previous == current else [f"{prefix}: {json.dumps(previous)} -> {json.dumps(current)}"]
+    changes = []
+    for key in dict.fromkeys([*current, *previous]):
+        name = f"{prefix}.{key}" if prefix else str(key)
+        if key not in previous or key not in current:
+            old, new = (json.dumps(previous[key]) if key in previous else "-"), (
+                json.dumps(current[key]) if key in current else "-")
+            changes.append(f"{name}: {old} -> {new}")
+        else:
+            changes += config_differences(previous[key], current[key], name)
+    return changes
+
+
+def _check_writable(out: Path) -> None:
+    """ValueError (one line) unless files can be made in ``out``, or, when it does not exist yet,
+    in the nearest folder above it (which is probed, ``out`` is not created: a run refused later
+    leaves nothing behind)."""
+    try:
+        folder = out
+        while not folder.exists():
+            folder = folder.parent
+        if not folder.is_dir():
+            raise ValueError(f"--out {str(out)!r} exists and is not a folder" if folder == out else
+                             f"--out {str(out)!r} cannot be made: a file is in the way ({str(folder)!r})")
+        fd, probe = tempfile.mkstemp(prefix=".write-check.", suffix=".tmp", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        reason = "a file name in it is too long" if err.errno == errno.ENAMETOOLONG else (
+            err.strerror or type(err).__name__)
+        raise ValueError(f"cannot write to --out {str(out)!r}: {reason}") from None
+
+
+def check_output_folder(out: Path, cfg: GeCoConfig, overwrite: bool = False) -> None:
+    """ValueError (one line) unless ``out`` is a folder that can be written: one to create, or one
+    whose ``run.json`` pins ``cfg`` (another config is refused naming the first keys it changed; a
+    damaged ``run.json`` is named). With ``overwrite`` the folder's config is not compared: the
+    caller starts afresh."""
+    _check_writable(out)
     run_file = out / "run.json"
-    if not run_file.is_file():
+    if overwrite or not run_file.is_file():  # also when out does not exist yet
         return
     try:
-        previous = json.loads(run_file.read_text(encoding="utf-8"))["config_sha"]
+        pinned = json.loads(run_file.read_text(encoding="utf-8"))
+        previous = pinned["config_sha"]
     except (ValueError, KeyError, TypeError):  # UnicodeDecodeError is a ValueError
         raise ValueError(f"{run_file} is damaged; remove it to reuse the folder with this config") from None
     if previous != config_fingerprint(cfg):
-        raise ValueError(f"{out} holds results of another config (run.json: {previous}, now: "
-                         f"{config_fingerprint(cfg)}); use a new --out folder or the same config")
+        now = json.loads(json.dumps(config_to_dict(cfg)))  # as run.json stores it
+        changes = config_differences(pinned.get("config"), now) if isinstance(pinned.get("config"), dict) else []
+        what = "; ".join(changes[:3]) + (f"; {len(changes) - 3} more" if len(changes) > 3 else "") if changes else (
+            f"run.json: {previous}, now: {config_fingerprint(cfg)}")
+        raise ValueError(f"{out} holds results of another config ({what}); use a new --out folder, the same "
+                         "config, or --overwrite to start afresh")
 
 
-def read_finished(path: Path, outputs: Sequence[Path], unit: str, warn: bool = True) -> dict[str, Any] | None:
+def _unreadable(path: Path) -> str | None:
+    """Why ``path`` is not a readable, non-empty file, or None."""
+    if not path.is_file():
+        return "is missing"
+    try:
+        with open(path, "rb") as fh:
+            if not fh.read(1):
+                return "is empty"
+    except OSError as err:
+        return f"cannot be read ({err.strerror or type(err).__name__})"
+    return None
+
+
+def read_finished(path: Path, outputs: Sequence[Path], unit: str, warn: bool = True,
+                  required: Sequence[str] = ()) -> dict[str, Any] | None:
     """The JSON object in ``path`` if the unit of work it records (``unit``, e.g. ``pair a-s0``) is
-    finished, else None: no file, a damaged one (not a JSON object), or one of its ``outputs``
-    missing. The last two mean the unit is redone; with ``warn`` a warning names the file."""
+    finished, else None: no file, a damaged one (not a JSON object, or without one of the
+    ``required`` keys), or one of its ``outputs`` missing, empty or unreadable. All but the first
+    mean the unit is redone; with ``warn`` a warning names the file."""
     if not path.is_file():
         return None
     try:
         result = json.loads(path.read_text(encoding="utf-8"))
     except ValueError:  # UnicodeDecodeError is a ValueError
         result = None
-    problem = f"{path} is damaged" if not isinstance(result, dict) else next(
-        (f"{output} is missing" for output in outputs if not output.is_file()), None)
+    if not isinstance(result, dict):
+        problem: str | None = f"{path} is damaged"
+    else:
+        lacking = [key for key in required if key not in result]
+        problem = f"{path} lacks {', '.join(map(repr, lacking))}" if lacking else next(
+            (f"{output} {why}" for output in outputs if (why := _unreadable(output)) is not None), None)
     if problem is None:
         return result
     if warn:
@@ -79,7 +145,7 @@ class PeakMemory:
         self.kind = "cuda_max_allocated"
         self.peak_mib = 0.0
 
-    def __enter__(self) -> PeakMemory:
+    def __enter__(self) -> Self:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
             torch.cuda.reset_peak_memory_stats(self.device)
@@ -91,7 +157,7 @@ class PeakMemory:
                 self.kind = "cpu_peak_rss_since_start"
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, *exc: object) -> None:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
             self.peak_mib = torch.cuda.max_memory_allocated(self.device) / MIB

@@ -5,6 +5,8 @@
     python -m geco_guide.geco_eval --models cogvideox-5b --guided --scenario indoor --out bench
     python -m geco_guide.geco_eval --videos sora-2=downloads/sora --out bench
     python -m geco_guide.geco_eval --preset tiny --models cogvideox-5b wan2.1-t2v-1.3b --limit 2 --out bench-tiny
+
+The same command resumes a stopped run; ``--overwrite`` starts afresh in its folder.
 """
 
 from __future__ import annotations
@@ -14,20 +16,22 @@ import math
 import shlex
 import sys
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from .. import __version__
 from ..bench.geco_eval import (
     CAMERAS,
-    MODELS,
     SCENARIOS,
     Job,
     existing_video_jobs,
     load_prompts,
+    prompts_without_video,
+    remove_run_outputs,
     run_jobs,
     write_report,
 )
+from ..bench.models import MODELS
 from ..bench.runs import (
     check_output_folder,
     config_fingerprint,
@@ -35,10 +39,10 @@ from ..bench.runs import (
     process_state,
     shard,
 )
-from ..config import GeCoConfig, config_to_dict
+from ..config import SEED_RANGE, GeCoConfig, config_to_dict
 from ..io.devices import check_device
 from ..io.files import WriteError, write_json_atomic
-from .kit import Parser, add_config_flags, config_from_args
+from .kit import Parser, add_config_flags, config_from_args, interruptible
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -57,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weights", nargs="+", default=[], metavar="NAME=DIR", help="a local folder for a model's weights")
     p.add_argument("--fps", type=float, default=None, help="frame rate of the --videos inputs (overrides the table)")
     p.add_argument("--out", required=True, help="output folder (reuse it to resume)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="start afresh in --out: delete the videos, results and report an earlier run wrote there "
+                        "(other files stay), even of another config")
     add_config_flags(p, preset_help="a config preset (tiny: every model is a tiny random model, CPU, offline)")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. evaluation.loss.pairs=center")
     return p
@@ -72,7 +79,29 @@ def _pairs(values: Sequence[str], option: str) -> dict[str, str]:
     return parsed
 
 
-def plan(args: argparse.Namespace) -> tuple[GeCoConfig, list[Job]]:
+@dataclass
+class Plan:
+    """What a run does, checked before any model loads: the config, the jobs, the ``--weights``
+    folders and the prompts a ``--videos`` folder has no video for."""
+
+    cfg: GeCoConfig
+    jobs: list[Job]
+    weights: dict[str, str]
+    no_video: list[str]
+
+
+def _check_seeds(seeds: Sequence[int]) -> None:
+    """Seeds name the videos (``-s<seed>``) and seed a ``torch.Generator``: distinct, from 0 to
+    the config's largest seed."""
+    low, high = 0, SEED_RANGE[1]
+    bad = next((s for s in seeds if not low <= s <= high), None)
+    if bad is not None:
+        raise ValueError(f"--seeds takes integers from {low} to {high}, got {bad}")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"--seeds must be distinct, got {list(seeds)}")
+
+
+def plan(args: argparse.Namespace) -> Plan:
     """Every check that needs no model: config, selection, model names, folders."""
     cfg = config_from_args(args, args.overrides)
     unknown = [m for m in args.models if m not in MODELS]
@@ -84,8 +113,7 @@ def plan(args: argparse.Namespace) -> tuple[GeCoConfig, list[Job]]:
         raise ValueError("nothing to do: give --models and/or --videos NAME=DIR")
     if args.limit is not None and args.limit < 1:
         raise ValueError(f"--limit must be >= 1, got {args.limit}")
-    if len(set(args.seeds)) != len(args.seeds) or any(s < 0 for s in args.seeds):
-        raise ValueError(f"--seeds must be distinct non-negative integers, got {args.seeds}")
+    _check_seeds(args.seeds)
     if args.fps is not None:
         if not (args.fps > 0 and math.isfinite(args.fps)):
             raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
@@ -98,38 +126,46 @@ def plan(args: argparse.Namespace) -> tuple[GeCoConfig, list[Job]]:
         raise ValueError("the selection holds no prompt")
     jobs = [Job(m, p, s, guided) for m in args.models for guided in ((False, True) if args.guided else (False,))
             for p in prompts for s in args.seeds]
+    no_video = []
     for name, folder in videos.items():
-        jobs += existing_video_jobs(name, Path(folder), prompts)
-    args.weights_map = weights
-    return cfg, jobs
+        found = existing_video_jobs(name, Path(folder), prompts)
+        jobs += found
+        no_video += prompts_without_video(name, found, prompts)
+    return Plan(cfg, jobs, weights, no_video)
 
 
+@interruptible("finished videos and scores are kept; rerun the same command to resume")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        cfg, jobs = plan(args)
-        out = Path(args.out)
-        check_output_folder(out, cfg)
+        run = plan(args)
+        cfg, out = run.cfg, Path(args.out)
+        check_output_folder(out, cfg, overwrite=args.overwrite)
         check_device(cfg.model.device)
         check_device(cfg.evaluation.device, "evaluation.device")
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+
+    def pin_config() -> None:  # once the models loaded: a run stopped by missing weights leaves no run.json
+        write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
+
     try:
         state = process_state(cfg)
         tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
-        if state.is_main_process:
-            write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
-        run_jobs(shard(jobs, state.process_index, state.num_processes), out, process_config(cfg, state),
-                 args.weights_map, tag)
+        if args.overwrite and state.is_main_process:
+            remove_run_outputs(out)
+        state.wait_for_everyone()  # no process reads results before they are removed
+        run_jobs(shard(run.jobs, state.process_index, state.num_processes), out, process_config(cfg, state),
+                 run.weights, tag, on_loaded=pin_config if state.is_main_process else None)
         state.wait_for_everyone()
         if not state.is_main_process:
             return 0
         command = shlex.join(["python", "-m", "geco_guide.geco_eval", *(sys.argv[1:] if argv is None else argv)])
-        summary = write_report(out, jobs, cfg, command, args.weights_map)
+        summary = write_report(out, run.jobs, cfg, command, run.weights, run.no_video)
     except (FileNotFoundError, WriteError) as err:  # weights not available (WeightsNotFoundError), disk full
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print(f"{summary['videos']} videos scored ({len(summary['missing'])} missing); report: {out / 'report.md'}")
-    return 0 if not summary["missing"] else 1
-
+    failed, missing = len(summary["failed"]), len(summary["missing"]) + len(summary["no_video"])
+    print(f"{summary['videos']} videos scored ({failed} failed, {missing} missing); report: {out / 'report.md'}")
+    return 0 if not failed and not missing else 1
