@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import re
 
 import pytest
 import torch
@@ -356,3 +357,33 @@ def test_the_estimators_earlier_argument_names_still_work(estimators):
         assert (handle.geometry_estimator, handle.flow_estimator) == estimators
     with pytest.raises(ValueError, match="not both"):
         attach_geco_guidance(pipe, geometry=estimators[0], geometry_estimator=estimators[0], flow=estimators[1])
+
+
+@pytest.mark.parametrize("family", ["cogvideox", "cogvideox-1.5", "wan", "hunyuan", "ltx"])
+def test_the_callers_latents_are_checked_before_any_denoising_step(family, estimators):
+    pipe = BUILDERS[family](0)
+    shapes = []
+
+    def record(p, i, t, tensors):
+        shapes.append(list(tensors["latents"].shape))
+        return tensors
+
+    run(pipe, callback_on_step_end=record, output_type="latent")
+    shape = shapes[0]
+    config = T.tiny_guidance_config(**LAST_STEP)
+    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
+        counter = CountingForward(pipe.transformer)
+        try:
+            nan = torch.randn(shape)
+            nan.view(-1)[7] = float("nan")
+            with pytest.raises(ValueError, match=r"^latents hold 1 NaN or infinite value\(s\)"):
+                run(pipe, latents=nan)
+            if family != "ltx":  # packed tokens: the adapter does not know the shape
+                wrong = [*shape[:-1], shape[-1] + 1]
+                with pytest.raises(ValueError, match=re.escape(f"latents must have shape {shape} (those of this ")):
+                    run(pipe, latents=torch.randn(wrong))
+            assert counter.n == 0
+            run(pipe, latents=torch.randn(shape, generator=torch.Generator().manual_seed(1)))  # the call's own shape
+        finally:
+            counter.handle.remove()
+    assert len(handle.log) == 2

@@ -17,6 +17,7 @@ from geco_guide.tiny import (
     TINY_ANCHORS,
     TINY_CALL_KWARGS,
     tiny_cogvideox_components,
+    tiny_guidance_decoder,
     tiny_pipeline,
 )
 
@@ -327,3 +328,67 @@ def test_gradient_checkpointing_gives_the_same_update(pipe):
     assert not pipe.transformer.is_gradient_checkpointing and not pipe.vae.is_gradient_checkpointing
     torch.testing.assert_close(ckpt.frames, plain.frames, rtol=1e-4, atol=1e-5)
     assert ckpt.guidance_log[0]["grad_norm"] == pytest.approx(plain.guidance_log[0]["grad_norm"], rel=1e-4)
+
+
+# ---- the caller's latents ----------------------------------------------------------------------
+
+
+def tiny_latents_shape(pipe, batch=1):
+    """[B, F, C, h, w] of a TINY_CALL_KWARGS call, as the stock prepare_latents draws them."""
+    latent_frames = (TINY_CALL_KWARGS["num_frames"] - 1) // pipe.vae_scale_factor_temporal + 1
+    scale = pipe.vae_scale_factor_spatial
+    return (batch, latent_frames, pipe.transformer.config.in_channels,
+            TINY_CALL_KWARGS["height"] // scale, TINY_CALL_KWARGS["width"] // scale)
+
+
+def test_latents_of_the_calls_shape_are_taken_as_the_generators_noise(pipe):
+    shape = tiny_latents_shape(pipe)
+    noise = torch.randn(shape, generator=torch.Generator().manual_seed(3))
+    given = run(pipe, seed=9, guidance=False, output_type="latent", latents=noise.clone())
+    drawn = run(pipe, seed=3, guidance=False, output_type="latent")
+    assert torch.equal(given.frames, drawn.frames)
+
+
+@pytest.mark.parametrize("guidance", [None, False])
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_latents_are_refused_before_any_step(pipe, guidance, value):
+    latents = torch.randn(tiny_latents_shape(pipe))
+    latents[0, 1, 0, 0, 0] = value
+    counter = CountingForward(pipe.transformer)
+    try:
+        with pytest.raises(ValueError, match=r"^latents hold 1 NaN or infinite value\(s\) of \d+: pass finite latents"):
+            run(pipe, guidance=guidance, latents=latents)
+    finally:
+        counter.handle.remove()
+    assert counter.n == 0
+
+
+@pytest.mark.parametrize("axis, size", [(2, 3), (1, 4), (3, 3), (4, 5), (0, 2)])
+def test_latents_of_another_shape_are_refused_naming_the_expected_one(pipe, axis, size):
+    expected = tiny_latents_shape(pipe)
+    wrong = list(expected)
+    wrong[axis] = size
+    counter = CountingForward(pipe.transformer)
+    try:
+        with pytest.raises(ValueError) as err:
+            run(pipe, latents=torch.randn(wrong))
+    finally:
+        counter.handle.remove()
+    assert counter.n == 0
+    message = str(err.value)
+    assert message.startswith(f"latents must have shape {list(expected)} ") and message.endswith(f"got {wrong}")
+    assert "num_frames=17, height=32, width=48" in message and "\n" not in message
+
+
+def test_a_nan_decode_by_the_tiny_decoder_skips_the_update_and_leaves_the_latents_finite():
+    guided = tiny_pipeline(0)
+    guided.register_modules(guidance_decoder=tiny_guidance_decoder("cogvideox"))
+    decode = guided.guidance_decoder.decode
+    guided.guidance_decoder.decode = lambda latents: decode(latents) * float("nan")
+    config = {"decoder": "tiny", "time_travel": []}
+    out = run(guided, seed=5, output_type="latent", guidance=config)
+    log = out.guidance_log
+    assert log and all(e["skipped"] and e["grad_norm"] == 0 and e["loss"] != e["loss"] for e in log)  # NaN loss
+    # every update skipped: the latents are those of the same schedule without updates
+    unguided = run(guided, seed=5, output_type="latent", guidance=False)
+    assert torch.isfinite(out.frames).all() and torch.equal(out.frames, unguided.frames)

@@ -9,6 +9,7 @@ import torch
 
 from geco_guide.sampler.slicing import (
     anchor_latent_chunks,
+    check_latents,
     check_num_frames,
     decode_anchor_frames,
     decode_chunk,
@@ -153,3 +154,15 @@ def test_checkpointed_chunks_give_the_same_frames_and_gradient():
     torch.testing.assert_close(results[1][0], results[0][0])
     torch.testing.assert_close(results[1][1], results[0][1])
     assert results[0][1].abs().sum() > 0
+
+
+def test_check_latents_takes_none_and_the_right_shape_and_refuses_the_rest():
+    check_latents(None, (1, 2), "a call")
+    check_latents(torch.zeros(1, 2), (1, 2), "a call")
+    check_latents(torch.zeros(3), None, "a call")  # shape unknown: values only
+    with pytest.raises(ValueError, match=r"^latents must have shape \[1, 2\] \(those of a call\), got \[2, 1\]$"):
+        check_latents(torch.zeros(2, 1), (1, 2), "a call")
+    with pytest.raises(ValueError, match=r"^latents hold 2 NaN or infinite value\(s\) of 3"):
+        check_latents(torch.tensor([1.0, float("-inf"), float("nan")]), None, "a call")
+    with pytest.raises(TypeError, match="must be a torch.Tensor, got list"):
+        check_latents([[0.0, 0.0]], (1, 2), "a call")

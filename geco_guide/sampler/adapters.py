@@ -88,6 +88,11 @@ class PipelineAdapter:
     def check(self, pipe, geometry: CallGeometry) -> None:
         """Extra up-front checks of a call (ValueError naming the problem)."""
 
+    def latents_shape(self, pipe, args: dict[str, Any]) -> tuple[int, ...] | None:
+        """The shape of the latents ``prepare_latents`` makes for its bound ``args`` (what latents the
+        caller passes must have), or None where the adapter does not know it."""
+        return None
+
     def frames_first(self, pipe, x0: Tensor, geometry: CallGeometry) -> Tensor:
         """Scheduler-layout clean latents -> ``[B, F, C, h, w]`` without padding (differentiable)."""
         return x0.permute(0, 2, 1, 3, 4)
@@ -146,6 +151,14 @@ class CogVideoXAdapter(PipelineAdapter):
                 f"Use {2 * r}k+1 frames, e.g. 49."
             )
 
+    def latents_shape(self, pipe, args):
+        if "image" in args:  # image-to-video: its own frame count and padding rule
+            return None
+        s = pipe.vae_scale_factor_spatial
+        frames = (int(args["num_frames"]) - 1) // self.temporal_compression(pipe) + 1  # padded already (1.5)
+        return (int(args["batch_size"]), frames, int(args["num_channels_latents"]), int(args["height"]) // s,
+                int(args["width"]) // s)
+
     def frames_first(self, pipe, x0, geometry):
         return x0[:, geometry.pad :]
 
@@ -155,11 +168,22 @@ class CogVideoXAdapter(PipelineAdapter):
         return decode_chunk(pipe.vae, latents, pipe.vae_scaling_factor_image)
 
 
+def _channels_first_shape(pipe, args: dict[str, Any], temporal_compression: int) -> tuple[int, ...]:
+    """``[B, C, F, h, w]`` of the ``prepare_latents`` of Wan and HunyuanVideo for its bound ``args``."""
+    s = pipe.vae_scale_factor_spatial
+    frames = (int(args["num_frames"]) - 1) // temporal_compression + 1
+    return (int(args["batch_size"]), int(args["num_channels_latents"]), frames, int(args["height"]) // s,
+            int(args["width"]) // s)
+
+
 class WanAdapter(PipelineAdapter):
     """``WanPipeline``: latents ``[B, C, F, h, w]``, flow matching, CFG as two calls, per-channel
     ``latents_mean/std`` (decode input ``z * std + mean``); Wan 2.2's ``transformer_2`` is hooked too."""
 
     name = "Wan"
+
+    def latents_shape(self, pipe, args):
+        return _channels_first_shape(pipe, args, self.temporal_compression(pipe))
 
     def denormalize(self, pipe, z):
         cfg = pipe.vae.config
@@ -173,6 +197,9 @@ class HunyuanVideoAdapter(PipelineAdapter):
     embedding in one call (true CFG, when on, as a second call); decode input ``z / scaling_factor``."""
 
     name = "HunyuanVideo"
+
+    def latents_shape(self, pipe, args):
+        return _channels_first_shape(pipe, args, self.temporal_compression(pipe))
 
 
 class LTXAdapter(PipelineAdapter):

@@ -7,8 +7,10 @@ things on the pipeline *instance* and returns a handle whose ``detach()`` (or th
 1. ``pipe.prepare_latents`` is wrapped (an instance attribute over the class method): every call
    of the pipeline goes through it before its first denoising step. The hook reads the frame
    geometry of the call from its arguments (and the caller's ``generator``, the source of the
-   time-travel noise), checks the anchors against the video the call will make and resets its
-   per-call state. Anchors the video cannot contain raise ValueError here, up front.
+   time-travel noise), checks the anchors against the video the call will make, and the latents
+   the caller passed (finite, and of the call's shape where the adapter knows it), and resets its
+   per-call state. Anchors the video cannot contain and unusable latents raise ValueError here, up
+   front.
 2. Forward hooks on the denoiser(s) (``register_forward_pre_hook``/``register_forward_hook``
    with kwargs) capture each call's arguments and output: latent model input, timestep, text
    states, CFG batch layout. They also validate the ``R_t`` schedule against the scheduler's
@@ -64,7 +66,7 @@ from .adapters import (
 from .config import GuidanceConfig, resolve_guidance_config
 from .context import GuidanceContext, anchor_decoder
 from .pipeline_cogvideox import GeCoCogVideoXPipeline
-from .slicing import AnchorChunk
+from .slicing import AnchorChunk, check_latents
 
 __all__ = ["GeCoGuidanceHandle", "attach_geco_guidance"]
 
@@ -298,6 +300,8 @@ class GeCoGuidanceHandle:
         self._state = None
         if not config.enabled:
             return
+        check_latents(args.get("latents"), self.adapter.latents_shape(self.pipe, args),
+                      f"this {type(self.pipe).__name__} call")
         self.adapter.check(self.pipe, geometry)
         config.check_loss()
         check_no_denoiser_cache(self.adapter.denoisers(self.pipe))

@@ -10,7 +10,9 @@ from the scheduler's ``alphas_cumprod`` with the scheduler's own rule (``t`` and
 
 A drop-in ``CogVideoXPipeline``: with guidance off the call is the stock call in every respect
 (any scheduler, any frame count the stock pipeline accepts, latents rounded to the model dtype
-after each step as stock does), so the output is the stock output bit for bit. With guidance on,
+after each step as stock does), so the output is the stock output bit for bit; only ``latents``
+passed by the caller are checked in both modes (their shape, finite values), before any work, where
+the stock pipeline fails in the denoiser's first layer or returns an all-NaN video. With guidance on,
 what guidance needs is checked up front (``4k+1`` frames, a v-prediction VP scheduler, the
 estimators, no denoiser cache), and the latents are kept in fp32 between steps whatever the model
 dtype (the stock pipeline rounds them to the model dtype, which adds rounding noise to an update:
@@ -39,6 +41,7 @@ from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .config import GuidanceConfig, resolve_guidance_config
 from .context import GuidanceContext, anchor_decoder
 from .slicing import (
+    check_latents,
     check_num_frames,
     check_paired_latent_frames,
     decode_chunk,
@@ -231,6 +234,16 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                                 self.guidance_decoder, self.vae.config)
         return schedule, chunks, decode
 
+    def latents_shape(self, batch_size: int, num_frames: int, height: int, width: int) -> tuple[tuple[int, ...], int]:
+        """The shape ``[B, F, C, h, w]`` of the latents a call makes, and the latent frames
+        CogVideoX 1.5 pads in front (to a multiple of ``patch_size_t``; 0 otherwise)."""
+        latent_frames = (num_frames - 1) // self.vae_scale_factor_temporal + 1
+        patch_size_t = self.transformer.config.patch_size_t
+        padding = (patch_size_t - latent_frames % patch_size_t) % patch_size_t if patch_size_t is not None else 0
+        scale = self.vae_scale_factor_spatial
+        shape = (batch_size, latent_frames + padding, self.transformer.config.in_channels, height // scale, width // scale)
+        return shape, padding
+
     # ------------------------------------------------------------------------------------------
     # the model, as the stock loop and the guided step see it
 
@@ -345,6 +358,9 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             batch_size = len(prompt)
         else:
             batch_size = prompt_embeds.shape[0]
+        latents_shape, additional_frames = self.latents_shape(batch_size, num_frames, height, width)
+        check_latents(latents, latents_shape, f"a call with num_frames={num_frames}, height={height}, width={width}, "
+                                               "as [batch, frames, channels, height, width]")
         device = self._execution_device
         do_classifier_free_guidance = guidance_scale > 1.0
 
@@ -368,16 +384,10 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         self._num_timesteps = len(timesteps)
 
         # 5. Latents (CogVideoX 1.5 pads latent frames to a multiple of patch_size_t)
-        latent_frames = (num_frames - 1) // self.vae_scale_factor_temporal + 1
-        patch_size_t = self.transformer.config.patch_size_t
-        additional_frames = 0
-        if patch_size_t is not None and latent_frames % patch_size_t != 0:
-            additional_frames = patch_size_t - latent_frames % patch_size_t
-            num_frames += additional_frames * self.vae_scale_factor_temporal
         latents = self.prepare_latents(
             batch_size * num_videos_per_prompt,
             self.transformer.config.in_channels,
-            num_frames,
+            num_frames + additional_frames * self.vae_scale_factor_temporal,
             height,
             width,
             prompt_embeds.dtype,

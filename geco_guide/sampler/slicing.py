@@ -10,7 +10,8 @@ latents, 3 by default as in the paper's code). The VAE treats the first latent o
 "first frame" (one pixel frame; the CogVideoX VAE only does so for an odd number of latents); the
 anchor's latent, at the end of the chunk, gets its full ``r`` frames with ``chunk_latents - 1``
 latents of causal context, so the anchor is picked counting from the chunk's last frame. Everything here is pure index
-arithmetic except :func:`decode_anchor_frames`, which only needs ``vae.decode``.
+arithmetic except :func:`decode_anchor_frames`, which only needs ``vae.decode``, and
+:func:`check_latents`, which looks at the caller's latents.
 """
 
 from __future__ import annotations
@@ -50,6 +51,25 @@ def check_paired_latent_frames(num_frames: int, temporal_compression: int) -> in
         raise ValueError(f"num_frames={num_frames} cannot be produced: the CogVideoX VAE makes {step}k+1 frames "
                          f"({temporal_compression}*k + 1 with an odd number of latents), e.g. {nearest} or 49{why}")
     return check_num_frames(num_frames, temporal_compression)
+
+
+def check_latents(latents: object, shape: Sequence[int] | None, call: str) -> None:
+    """A one-line ValueError unless the caller's ``latents`` (``None``: drawn from the generator)
+    are finite and of ``shape``, the one the call makes (``None``: not known, not checked; ``call``
+    says which call that is), TypeError for a non-tensor. Pipelines take given latents as they
+    are: a wrong shape fails in the denoiser's first layer, a NaN comes out as an all-NaN video."""
+    if latents is None:
+        return
+    if not isinstance(latents, Tensor):
+        raise TypeError(f"latents must be a torch.Tensor, got {type(latents).__name__}")
+    if shape is not None and tuple(latents.shape) != tuple(shape):
+        raise ValueError(f"latents must have shape {list(shape)} (those of {call}), got {list(latents.shape)}")
+    finite = torch.isfinite(latents)
+    if not finite.all():
+        raise ValueError(
+            f"latents hold {int((~finite).sum())} NaN or infinite value(s) of {latents.numel()}: pass finite latents, "
+            "or latents=None to draw them from the generator"
+        )
 
 
 def pixel_to_latent(frame: int, temporal_compression: int) -> int:
