@@ -44,6 +44,15 @@ def test_registry_anchors_and_frame_rates():
         assert (model.call["num_frames"] - 1) % model.temporal_compression == 0
 
 
+def test_one_registry_whose_frame_rates_are_the_metrics_table():
+    from geco_guide.bench.models import SCORED_ONLY
+    from geco_guide.metric.protocol import PAPER_MODEL_FPS
+
+    assert {name: model.fps for name, model in MODELS.items()} == {name: PAPER_MODEL_FPS[name] for name in MODELS}
+    assert set(MODELS) | set(SCORED_ONLY) == set(PAPER_MODEL_FPS) and not set(MODELS) & set(SCORED_ONLY)
+    assert all(name == model.name for name, model in MODELS.items())
+
+
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("geco-eval") / "bench"
@@ -139,6 +148,8 @@ def test_bad_inputs_are_one_line_before_any_model_loads(tmp_path: Path, tiny_run
         (["--videos", "nonsense"], "NAME=DIR"),
         ([], "nothing to do"),
         (["--models", "cogvideox-5b", "--seeds", "0", "0"], "distinct"),
+        (["--models", "cogvideox-5b", "--seeds", "0", str(2**64)], f"--seeds takes integers from 0 to {2**64 - 1}"),
+        (["--models", "cogvideox-5b", "--seeds", "-1"], "--seeds takes integers from 0"),
     ]
     for args, message in cases:
         assert main(["--preset", "tiny", *args, "--out", str(tmp_path / "x")]) == 2

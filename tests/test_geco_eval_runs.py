@@ -1,0 +1,205 @@
+"""GeCo-Eval runs that survive bad inputs and resume truthfully: failed videos are recorded and
+the others scored, incomplete results are redone, another config is refused naming the key,
+``--overwrite``, progress lines, Ctrl-C (tiny estimators on small random videos, CPU)."""
+
+from __future__ import annotations
+
+import csv
+import errno
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from geco_guide.bench import geco_eval, runs
+from geco_guide.bench.runs import check_output_folder, config_fingerprint, read_finished
+from geco_guide.cli import geco_eval as cli
+from geco_guide.cli.geco_eval import main
+from geco_guide.config import config_to_dict, load_config
+from geco_guide.estimators.loading import WeightsNotFoundError
+from geco_guide.io.video import write_video
+
+INTERRUPTED = "interrupted: finished videos and scores are kept; rerun the same command to resume\n"
+
+
+def _videos(folder: Path, frames: dict[str, int], garbage: tuple[str, ...] = ()) -> Path:
+    """``folder/<name>.mp4`` of ``frames[name]`` random frames at 16 fps, and files of junk bytes."""
+    folder.mkdir(parents=True, exist_ok=True)
+    generator = torch.Generator().manual_seed(0)
+    for name, count in frames.items():
+        write_video(folder / f"{name}.mp4", torch.rand(count, 3, 32, 48, generator=generator), fps=16)
+    for name in garbage:
+        (folder / f"{name}.mp4").write_bytes(b"not a video" * 50)
+    return folder
+
+
+def _score(videos: Path, out: Path, *extra: str) -> int:
+    return main(["--preset", "tiny", "--videos", f"sora-2={videos}", "--out", str(out), *extra])
+
+
+def _one_line(text: str) -> str:
+    assert text.count("\n") == 1, text
+    return text
+
+
+def test_bad_videos_are_recorded_as_failed_and_the_others_scored(tmp_path: Path, capsys):
+    videos = _videos(tmp_path / "in", {"a1-s0": 17, "a2-s0": 1}, garbage=("a3-s0",))
+    out = tmp_path / "out"
+    assert _score(videos, out, "--limit", "3") == 1  # some failed
+    captured = capsys.readouterr()
+    assert captured.out.strip() == f"1 videos scored (2 failed, 0 missing); report: {out / 'report.md'}"
+    assert "[1/3] sora-2 a1 seed 0: " in captured.err and "failed: cannot use video" in captured.err
+    rows = {row["prompt_id"]: row for row in csv.DictReader((out / "results.csv").open())}
+    assert rows["a1"]["error"] == "" and float(rows["a1"]["fused"]) >= 0
+    assert "at least 2" in rows["a2"]["error"] and rows["a2"]["fused"] == ""
+    assert rows["a3"]["error"].startswith("cannot read video")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["videos"] == 1 and [f["job"] for f in summary["failed"]] == ["sora-2/a2-s0", "sora-2/a3-s0"]
+    report = (out / "report.md").read_text()
+    assert "**Failed videos**" in report and "- sora-2/a3-s0: cannot read video" in report
+    assert "existing videos (--videos)" in report and "tiny random models" in report  # what it ran with
+    # a rerun tries the failed ones again: a fixed file is scored and its failure record goes
+    _videos(videos, {"a3-s0": 17})
+    assert _score(videos, out, "--limit", "3") == 1
+    captured = capsys.readouterr()
+    assert "1 of 3 videos already done; 2 that failed before are tried again" in captured.err
+    assert "2 videos scored (1 failed, 0 missing)" in captured.out
+    assert not (out / "videos" / "sora-2" / "a3-s0.failed.json").exists()
+    assert (out / "videos" / "sora-2" / "a2-s0.failed.json").is_file()
+
+
+def test_an_fps_that_leaves_one_frame_per_window_fails_that_video_only(tmp_path: Path, capsys):
+    videos = _videos(tmp_path / "in", {"a1-s0": 2})
+    assert _score(videos, tmp_path / "out", "--limit", "1", "--fps", "0.01") == 1
+    assert "0 videos scored (1 failed, 0 missing)" in capsys.readouterr().out
+
+
+def test_videos_covering_part_of_the_selection_count_the_rest_missing(tmp_path: Path, capsys):
+    videos = _videos(tmp_path / "in", {"a1-s0": 17, "a2-s0": 17})
+    out = tmp_path / "out"
+    assert _score(videos, out, "--limit", "5") == 1
+    assert "2 videos scored (0 failed, 3 missing)" in capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["no_video"] == ["sora-2/a3", "sora-2/a4", "sora-2/a5"] and summary["missing"] == []
+    assert "**No video** in the --videos folder for: sora-2/a3, sora-2/a4, sora-2/a5" in (out / "report.md").read_text()
+
+
+def test_resume_redoes_results_that_lack_fields_or_point_at_another_video(tmp_path: Path, capsys):
+    videos = _videos(tmp_path / "in", {"a1-s0": 17, "a2-s0": 17})
+    out = tmp_path / "out"
+    assert _score(videos, out, "--limit", "2") == 0
+    first, second = (out / "videos" / "sora-2" / f"{name}.json" for name in ("a1-s0", "a2-s0"))
+    truncated = json.loads(first.read_text())
+    scored = truncated.pop("fused")
+    first.write_text(json.dumps(truncated))
+    elsewhere = json.loads(second.read_text())
+    second.write_text(json.dumps({**elsewhere, "video": str(tmp_path / "other.mp4")}))
+    capsys.readouterr()
+    assert _score(videos, out, "--limit", "2") == 0
+    err = capsys.readouterr().err
+    assert f"warning: {first} lacks 'fused'; job sora-2/a1-s0 is redone" in err
+    assert f"warning: {second} scores {str(tmp_path / 'other.mp4')!r}" in err and "0 of 2 videos already done" in err
+    assert json.loads(first.read_text())["fused"] == pytest.approx(scored)  # scored again, the same
+    assert json.loads(second.read_text())["video"] == str(videos / "a2-s0.mp4")
+
+
+def test_read_finished_checks_required_fields_and_readable_outputs(tmp_path: Path, capsys):
+    result, video = tmp_path / "r.json", tmp_path / "v.mp4"
+    result.write_text(json.dumps({"fused": 0.1}))
+    video.write_bytes(b"")
+    assert read_finished(result, [], "unit u", required=("fused",)) == {"fused": 0.1}
+    assert read_finished(result, [], "unit u", required=("fused", "video")) is None
+    assert read_finished(result, [video], "unit u") is None
+    video.write_bytes(b"x")
+    assert read_finished(result, [video], "unit u") == {"fused": 0.1}
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"warning: {result} lacks 'video'; unit u is redone", f"warning: {video} is empty; unit u is redone"]
+
+
+def _pinned_folder(out: Path, overrides: list[str]) -> None:
+    cfg = load_config(preset="tiny", overrides=overrides)
+    out.mkdir(parents=True)
+    (out / "run.json").write_text(json.dumps({"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)}))
+
+
+def test_another_config_is_refused_naming_the_keys_it_changed(tmp_path: Path):
+    out = tmp_path / "out"
+    _pinned_folder(out, ["evaluation.max_fps=8"])
+    check_output_folder(out, load_config(preset="tiny", overrides=["evaluation.max_fps=8"]))
+    with pytest.raises(ValueError) as err:
+        check_output_folder(out, load_config(preset="tiny", overrides=["evaluation.max_fps=4",
+                                                                        "evaluation.loss.pairs=center"]))
+    message = str(err.value)
+    assert "\n" not in message and "evaluation.max_fps: 8.0 -> 4.0" in message
+    assert 'evaluation.loss.pairs: "all" -> "center"' in message and "--overwrite" in message
+    check_output_folder(out, load_config(preset="tiny"), overwrite=True)  # the caller starts afresh
+
+
+def test_out_folders_that_cannot_be_written_are_one_line(tmp_path: Path, monkeypatch):
+    cfg = load_config(preset="tiny")
+    with pytest.raises(ValueError, match="cannot write to --out .*: a file name in it is too long$"):
+        check_output_folder(tmp_path / ("x" * 300), cfg)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(ValueError, match="exists and is not a folder"):
+        check_output_folder(tmp_path / "file", cfg)
+    with pytest.raises(ValueError, match=r"cannot be made: a file is in the way \(.*file'\)"):
+        check_output_folder(tmp_path / "file" / "sub", cfg)
+    assert not (tmp_path / "new").exists()
+    check_output_folder(tmp_path / "new" / "deeper", cfg)
+    assert not (tmp_path / "new").exists()  # checked, not created
+
+    def read_only(*args, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr(runs.tempfile, "mkstemp", read_only)  # root writes into a chmod 555 folder anyway
+    with pytest.raises(ValueError, match="cannot write to --out .*: Permission denied$"):
+        check_output_folder(tmp_path, cfg)
+
+
+def test_missing_weights_leave_no_run_json(tmp_path: Path, monkeypatch, capsys):
+    def missing(model, cfg, weights=None):
+        raise WeightsNotFoundError(f"{model.name}: weights not found")
+
+    monkeypatch.setattr(geco_eval, "load_model", missing)
+    out = tmp_path / "out"
+    assert main(["--preset", "tiny", "--models", "cogvideox-5b", "--seeds", "0", "--limit", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1] == "error: cogvideox-5b: weights not found" and "Traceback" not in "".join(err)
+    assert not (out / "run.json").exists() and not (out / "videos").exists()
+
+
+def test_overwrite_starts_afresh_removing_only_the_runs_files(tmp_path: Path, capsys):
+    videos = _videos(tmp_path / "in", {"a1-s0": 17})
+    out = tmp_path / "out"
+    assert _score(videos, out, "--limit", "1") == 0
+    (out / "notes.txt").write_text("mine")
+    (out / "videos" / "sora-2" / "keep.txt").write_text("mine")
+    before = json.loads((out / "run.json").read_text())["config_sha"]
+    capsys.readouterr()
+    assert _score(videos, out, "--limit", "1", "evaluation.loss.pairs=center") == 2
+    assert 'evaluation.loss.pairs: "all" -> "center"' in _one_line(capsys.readouterr().err)
+    assert _score(videos, out, "--limit", "1", "evaluation.loss.pairs=center", "--overwrite") == 0
+    assert "0 of 1 videos already done" in capsys.readouterr().err
+    assert json.loads((out / "run.json").read_text())["config_sha"] != before
+    assert (out / "notes.txt").read_text() == "mine" and (out / "videos" / "sora-2" / "keep.txt").is_file()
+    assert (out / "videos" / "sora-2" / "a1-s0.json").is_file()
+
+
+def test_progress_names_each_job_and_the_models_loading(tmp_path: Path, capsys):
+    videos = _videos(tmp_path / "in", {"a1-s0": 17, "a2-s0": 17})
+    assert _score(videos, tmp_path / "out", "--limit", "2") == 0
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[:2] == ["0 of 2 videos already done", "loading models: geometry tiny-random, flow tiny-random"]
+    assert [line.split(":")[0] for line in lines[2:]] == ["[1/2] sora-2 a1 seed 0", "[2/2] sora-2 a2 seed 0"]
+    assert all(" s, fused " in line and line.endswith(" %") for line in lines[2:])
+
+
+def test_ctrl_c_is_one_line_and_exit_code_130(tmp_path: Path, monkeypatch, capsys):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "run_jobs", interrupted)
+    videos = _videos(tmp_path / "in", {"a1-s0": 17})
+    assert _score(videos, tmp_path / "out", "--limit", "1") == 130
+    assert capsys.readouterr().err == INTERRUPTED
