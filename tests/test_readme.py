@@ -68,3 +68,12 @@ def test_first_bash_block_holds_the_two_setup_commands():
 def test_text_speaks_of_the_project_alone(path):
     hits = [m.group(0) for m in FORBIDDEN.finditer(path.read_text())]
     assert not hits, f"{path.relative_to(ROOT)}: {hits}"
+
+
+@pytest.mark.parametrize("path", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_the_hook_is_shown_with_the_estimators_names(path):
+    """``geometry_estimator=`` / ``flow_estimator=``, as the pipeline's components; the earlier
+    ``geometry=`` / ``flow=`` are only mentioned, never shown in a call."""
+    calls = re.findall(r"attach_geco_guidance\([^)]*\)", path.read_text())
+    old = [c for c in calls if re.search(r"\b(geometry|flow)=", c)]
+    assert not old, f"{path.relative_to(ROOT)}: {old}"
