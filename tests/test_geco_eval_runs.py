@@ -169,6 +169,21 @@ def test_missing_weights_leave_no_run_json(tmp_path: Path, monkeypatch, capsys):
     assert not (out / "run.json").exists() and not (out / "videos").exists()
 
 
+def test_a_generation_that_fails_is_recorded_and_the_run_pinned_once_the_model_loaded(tmp_path: Path, monkeypatch,
+                                                                                        capsys):
+    def diverged(self, job):
+        raise ValueError(f"{self.model.name} {job.name}: sampling produced non-finite frames; nothing was written")
+
+    monkeypatch.setattr(geco_eval.Generator, "__call__", diverged)
+    out = tmp_path / "out"
+    assert main(["--preset", "tiny", "--models", "cogvideox-5b", "--seeds", "0", "--limit", "1", "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    assert "loading models: cogvideox-5b (tiny-random (cogvideox family" in captured.err
+    assert "0 videos scored (1 failed, 0 missing)" in captured.out and (out / "run.json").is_file()
+    failure = json.loads((out / "videos" / "cogvideox-5b" / "a1-s0.failed.json").read_text())
+    assert failure["error"].endswith("non-finite frames; nothing was written") and failure["seed"] == 0
+
+
 def test_overwrite_starts_afresh_removing_only_the_runs_files(tmp_path: Path, capsys):
     videos = _videos(tmp_path / "in", {"a1-s0": 17})
     out = tmp_path / "out"

@@ -43,6 +43,7 @@ from ..estimators import TINY_RANDOM, load_estimators
 from ..estimators.loading import WeightsNotFoundError
 from ..io.devices import resolve_device
 from ..io.files import (
+    WriteError,
     remove_temp_files,
     write_json_atomic,
 )
@@ -245,20 +246,26 @@ def prompts_without_video(name: str, jobs: Sequence[Job], prompts: Sequence[dict
 def remove_run_outputs(out: Path) -> None:
     """Delete what a GeCo-Eval run wrote in ``out`` (``--overwrite``): the report files,
     ``run.json`` and under ``videos/<arm>/`` the ``<prompt_id>-s<seed>`` videos, results and
-    failure records; folders left empty go too, any other file stays."""
-    for name in REPORT_FILES:
-        (out / name).unlink(missing_ok=True)
+    failure records; folders left empty go too, any other file stays.
+
+    Raises:
+        WriteError: one line naming what could not be removed.
+    """
     videos = out / "videos"
-    arms = [arm for arm in videos.iterdir() if arm.is_dir()] if videos.is_dir() else []
-    for arm in arms:
-        for path in arm.iterdir():
-            if path.is_file() and PROMPT_FILE_ID.match(path.name.split(".", 1)[0]) and (
-                    path.suffix in (".json", *VIDEO_SUFFIXES)):
-                path.unlink()
-        if not any(arm.iterdir()):
-            arm.rmdir()
-    if videos.is_dir() and not any(videos.iterdir()):
-        videos.rmdir()
+    try:
+        for name in REPORT_FILES:
+            (out / name).unlink(missing_ok=True)
+        for arm in [arm for arm in videos.iterdir() if arm.is_dir()] if videos.is_dir() else []:
+            for path in arm.iterdir():
+                if path.is_file() and PROMPT_FILE_ID.match(path.name.split(".", 1)[0]) and (
+                        path.suffix in (".json", *VIDEO_SUFFIXES)):
+                    path.unlink()
+            if not any(arm.iterdir()):
+                arm.rmdir()
+        if videos.is_dir() and not any(videos.iterdir()):
+            videos.rmdir()
+    except OSError as err:
+        raise WriteError(f"--overwrite cannot remove {err.filename!r} in {str(out)!r}: {err.strerror}") from None
 
 
 def guidance_for(model: VideoModel, cfg: GeCoConfig, num_frames: int) -> Any:
