@@ -18,8 +18,11 @@ the config's ``evaluation`` protocol. ``<out>/pairs/<id>-s<seed>/`` then holds `
 
 Every file is written atomically, so killing the run at any moment loses at most the pair in
 progress and never leaves a truncated file; a rerun skips complete pairs and redoes, with a
-warning naming the file, a pair whose ``result.json`` is damaged or whose videos or sidecars are
-gone. ``--maps`` on a resumed folder also makes the maps of complete pairs that have none (their
+warning naming the file, a pair whose ``result.json`` is damaged or lacks fields, or whose videos
+or sidecars are gone or unreadable. Outputs another run left in a pair folder (their sidecar names
+another prompt or config) are refused unless ``--overwrite``, which redoes every pair. While a run
+works in a folder it holds ``<out>/.ab_compare.lock`` (its pid): a second run there is refused,
+and the lock of a run that was killed is taken over. ``--maps`` on a resumed folder also makes the maps of complete pairs that have none (their
 videos are scored again; only the estimators load). Under ``accelerate launch`` the pairs are
 dealt round-robin to the processes; at the end the main process rebuilds ``results.csv`` (one row
 per pair and arm), ``summary.json``, ``report.md`` and ``pareto.png`` from the pairs'
@@ -31,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import shlex
@@ -56,18 +60,14 @@ from geco_guide.bench.runs import (
     shard,
 )
 from geco_guide.bench.runs import check_output_folder as check_run_folder
-from geco_guide.cli.generate import build_pipeline, generate, slugify, versions
-from geco_guide.cli.kit import Parser, add_config_flags, config_from_args
+from geco_guide.cli import generate as generate_cli
+from geco_guide.cli.kit import Parser, add_config_flags, config_from_args, interruptible
 from geco_guide.config import GeCoConfig, config_to_dict, config_to_yaml
 from geco_guide.estimators import load_estimators
 from geco_guide.io.devices import check_device, resolve_device
-from geco_guide.io.files import (
-    WriteError,
-    remove_temp_files,
-    write_json_atomic,
-)
+from geco_guide.io.files import WriteError, remove_temp_files, write_json_atomic
 from geco_guide.io.plots import Panel, legend, limits
-from geco_guide.io.video import read_video, write_video
+from geco_guide.io.video import read_frames, read_video, write_video
 from geco_guide.loss.geco import CUES
 from geco_guide.metric.evaluate import PAPER_NAMES, evaluate_video, write_maps_video
 from geco_guide.metric.render import side_by_side
@@ -83,6 +83,13 @@ BOOTSTRAP_SEED = 0
 CI_LEVEL = 0.95
 MAX_SEED = 2**63 - 1
 SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+LOCK_NAME = ".ab_compare.lock"
+#: The fields of a result.json that the report reads: a result without one of them is redone.
+RESULT_KEYS = ("pair", "prompt_id", "prompt", "seed", "device", "side_by_side", "arms")
+ARM_KEYS = ("video", "sidecar", *METRICS, "generation_s", "evaluation_s", "peak_memory_mib", "memory_kind",
+            "guidance_updates")
+TINY_GUIDANCE_NOTE = ("With tiny random models the guidance effect is meaningless: guidance can lower or raise "
+                      "the score.")
 
 
 class InputError(ValueError):
@@ -114,7 +121,7 @@ class Pair:
 def _parse_prompt_line(line: str, where: str) -> Prompt:
     """One non-empty line: plain text, or a JSON object with ``prompt`` and optional ``id``."""
     if not line.startswith("{"):
-        return Prompt(slugify(line), line)
+        return Prompt(generate_cli.slugify(line), line)
     try:
         item = json.loads(line)
     except json.JSONDecodeError as err:
@@ -123,12 +130,12 @@ def _parse_prompt_line(line: str, where: str) -> Prompt:
     if not isinstance(text, str) or not text.strip():
         raise InputError(f"{where}: a JSON line needs a non-empty string 'prompt'")
     if item.get("id") is None:
-        return Prompt(slugify(text), text.strip())
+        return Prompt(generate_cli.slugify(text), text.strip())
     prompt_id = str(item["id"])
     if not SAFE_ID.fullmatch(prompt_id):
         raise InputError(
             f"{where}: id {prompt_id!r} is not filesystem-safe (1-64 letters, digits, '.', '_', '-', "
-            f"not starting with '.', '_' or '-'), e.g. {slugify(prompt_id)!r}"
+            f"not starting with '.', '_' or '-'), e.g. {generate_cli.slugify(prompt_id)!r}"
         )
     return Prompt(prompt_id, text.strip())
 
@@ -188,16 +195,41 @@ def plan_pairs(prompts: Sequence[Prompt], seeds: Sequence[int]) -> list[Pair]:
     return [Pair(prompt, seed) for prompt in prompts for seed in seeds]
 
 
-def check_output_folder(out: Path, cfg: GeCoConfig, pairs: Sequence[Pair]) -> None:
-    """Refuse an output folder that holds results of another config or other prompt texts."""
-    check_run_folder(out, cfg)
+def check_output_folder(out: Path, cfg: GeCoConfig, pairs: Sequence[Pair], overwrite: bool = False) -> None:
+    """Refuse an output folder that holds results of another config or other prompt texts, or
+    videos another run left (their sidecars name another prompt or config), unless ``overwrite``."""
+    check_run_folder(out, cfg, overwrite)
+    if overwrite:
+        return
     for pair in pairs:
         result = read_finished(pair_dir(out, pair) / "result.json", [], f"pair {pair.name}", warn=False)
         if result is not None and result.get("prompt") != pair.prompt.text:
             raise InputError(
                 f"{pair_dir(out, pair)} was made for the prompt {result.get('prompt')!r}, not {pair.prompt.text!r}; "
-                "give this prompt another id or use a new --out folder"
+                "give this prompt another id, use a new --out folder or pass --overwrite"
             )
+        for arm in ARMS:
+            if foreign_video(out, cfg, pair, arm):
+                raise InputError(
+                    f"{pair_dir(out, pair) / f'{arm}.json'} was made by another run (its prompt or config differ); "
+                    "pass --overwrite to replace it, or use a new --out folder"
+                )
+
+
+def arm_config(cfg: GeCoConfig, pair: Pair, arm: str) -> GeCoConfig:
+    """The config one arm generates with: the pair's seed, guidance on for the guided arm only."""
+    return replace(cfg, seed=pair.seed, guidance=replace(cfg.guidance, enabled=arm == "guided"))
+
+
+def foreign_video(out: Path, cfg: GeCoConfig, pair: Pair, arm: str) -> bool:
+    """Whether the arm's sidecar (if readable) records a video of another prompt or config: its
+    :func:`~geco_guide.cli.generate.video_key`, the hash generate's default names carry, differs."""
+    try:
+        sidecar = json.loads((pair_dir(out, pair) / f"{arm}.json").read_text(encoding="utf-8"))
+        made = generate_cli.video_key(sidecar["config"], sidecar["prompt"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):  # none, or not a sidecar: redone anyway
+        return False
+    return made != generate_cli.video_key(config_to_dict(arm_config(cfg, pair, arm)), pair.prompt.text)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -208,11 +240,57 @@ def pair_dir(out: Path, pair: Pair) -> Path:
     return out / "pairs" / pair.name
 
 
-def read_result(out: Path, pair: Pair, warn: bool = False) -> dict[str, Any] | None:
-    """The pair's ``result.json``, or None when the pair is not complete: no result, a damaged one or
-    one of :data:`PAIR_OUTPUTS` missing (with ``warn``, a warning names the file: the pair is redone)."""
+def read_result(out: Path, pair: Pair, warn: bool = False, verify: bool = False) -> dict[str, Any] | None:
+    """The pair's ``result.json``, or None when the pair is not complete: no result, a damaged one,
+    one without a field the report reads, one of :data:`PAIR_OUTPUTS` missing or, with ``verify``,
+    a video that does not decode to its sidecar's frame count (with ``warn``, a warning names the
+    problem: the pair is redone). Scores written as null (not finite) read as NaN."""
     folder = pair_dir(out, pair)
-    return read_finished(folder / "result.json", [folder / name for name in PAIR_OUTPUTS], f"pair {pair.name}", warn)
+    result = read_finished(folder / "result.json", [folder / name for name in PAIR_OUTPUTS], f"pair {pair.name}", warn,
+                           required=RESULT_KEYS)
+    if result is None:
+        return None
+    problem = arms_problem(folder / "result.json", result["arms"]) or (videos_problem(folder) if verify else None)
+    if problem is not None:
+        if warn:
+            print(f"warning: {problem}; pair {pair.name} is redone", file=sys.stderr)
+        return None
+    for arm in ARMS:
+        record = result["arms"][arm]
+        record.update({metric: math.nan for metric in METRICS if record[metric] is None})
+    return result
+
+
+def arms_problem(path: Path, arms: Any) -> str | None:
+    """What the ``arms`` of the result.json at ``path`` lack that the report reads, or None."""
+    if not (isinstance(arms, dict) and all(isinstance(arms.get(arm), dict) for arm in ARMS)):
+        return f"{path} lacks 'arms.unguided' or 'arms.guided'"
+    lacking = [f"'arms.{arm}.{key}'" for arm in ARMS for key in ARM_KEYS if key not in arms[arm]]
+    if lacking:
+        return f"{path} lacks {', '.join(lacking[:3])}"
+    wrong = [f"'arms.{arm}.{metric}'" for arm in ARMS for metric in METRICS
+             if not (arms[arm][metric] is None or isinstance(arms[arm][metric], (int, float)))]
+    return f"{path} holds non-numbers in {', '.join(wrong[:3])}" if wrong else None
+
+
+def videos_problem(folder: Path) -> str | None:
+    """Why a pair's videos are not whole (one does not decode, or holds another frame count than
+    its sidecar says), or None."""
+    try:
+        expected = {arm: int(json.loads((folder / f"{arm}.json").read_text(encoding="utf-8"))["num_frames"])
+                    for arm in ARMS}
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        return f"a sidecar in {folder} is damaged ({type(err).__name__})"
+    expected["side_by_side"] = expected["guided"]
+    for stem, frames in expected.items():
+        path = folder / f"{stem}.mp4"
+        try:
+            found = read_frames(path, select=lambda count, fps: [count - 1]).num_frames
+        except (ValueError, OSError) as err:  # VideoReadError is a ValueError
+            return str(err).splitlines()[0]
+        if found != frames:
+            return f"{path} holds {found} frame(s), not {frames}"
+    return None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -220,10 +298,11 @@ def read_result(out: Path, pair: Pair, warn: bool = False) -> dict[str, Any] | N
 
 
 def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps: bool) -> dict[str, Any]:
-    """Generate one arm of a pair into ``folder/<arm>.mp4`` (+ sidecar) and score it."""
-    arm_cfg = replace(cfg, seed=pair.seed, guidance=replace(cfg.guidance, enabled=arm == "guided"))
+    """Generate one arm of a pair into ``folder/<arm>.mp4`` (+ sidecar) and score it; what an
+    unfinished run of this pair left there is replaced (other runs' outputs were refused before)."""
     with PeakMemory(pipe.device) as memory:
-        generated = generate(arm_cfg, pair.prompt.text, out=folder / f"{arm}.mp4", pipe=pipe)
+        generated = generate_cli.generate(arm_config(cfg, pair, arm), pair.prompt.text, out=folder / f"{arm}.mp4",
+                                          pipe=pipe, overwrite=True)
     start = time.perf_counter()
     evaluation = evaluate_video(
         generated.video_path,
@@ -269,11 +348,16 @@ def write_side_by_side(folder: Path, fps: float) -> None:
     write_video(folder / "side_by_side.mp4", side_by_side(videos, list(ARMS)), fps=fps)
 
 
-def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool) -> dict[str, Any]:
-    """Both arms, the side-by-side video, then ``result.json`` (last: it marks the pair complete)."""
+def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, where: str | None = None) -> dict[str, Any]:
+    """Both arms (with ``where``, a stderr line ``<where>: <arm> arm ...`` before each), the
+    side-by-side video, then ``result.json`` (last: it marks the pair complete)."""
     folder = pair_dir(out, pair)
     remove_temp_files(folder, UNIT_STEMS)
-    arms = {arm: run_arm(pipe, cfg, pair, arm, folder, maps) for arm in ARMS}
+    arms = {}
+    for arm in ARMS:
+        if where is not None:
+            print(f"{where}: {arm} arm ...", file=sys.stderr, flush=True)
+        arms[arm] = run_arm(pipe, cfg, pair, arm, folder, maps)
     write_side_by_side(folder, cfg.sampling.fps)
     result = {
         "pair": pair.name,
@@ -289,27 +373,32 @@ def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool) -> d
     return result
 
 
-def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag: str) -> None:
-    """Run the pairs of this process that are not complete yet, and with ``maps`` make the maps of
-    complete pairs that have none (models load only if needed: for maps alone, the estimators)."""
-    finished = {pair.name: read_result(out, pair, warn=True) for pair in pairs}
+def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag: str, redo: bool = False) -> None:
+    """Run the pairs of this process that are not complete yet (all of them with ``redo``), and
+    with ``maps`` make the maps of complete pairs that have none (models load only if needed: for
+    maps alone, the estimators). Outside a terminal, where no progress bar shows, one stderr line
+    says which pair and arm runs."""
+    finished = {pair.name: None if redo else read_result(out, pair, warn=True, verify=True) for pair in pairs}
     todo = [pair for pair in pairs if finished[pair.name] is None]
     unmapped = [pair for pair in pairs if maps and finished[pair.name] is not None and not has_maps(out, pair)]
     print(f"{tag}{len(pairs) - len(todo)} of {len(pairs)} pairs already complete", flush=True)
     if not todo and not unmapped:
         return
     if todo:
-        pipe = build_pipeline(cfg)
+        pipe = generate_cli.build_pipeline(cfg)
         pipe.set_progress_bar_config(disable=not sys.stderr.isatty())
         geometry, flow = pipe.geometry_estimator, pipe.flow_estimator
     else:
+        print(f"loading models: geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow} ...", file=sys.stderr,
+              flush=True)
         geometry, flow = load_estimators(cfg.estimators, resolve_device(cfg.model.device))
     if unmapped:
         print(f"{tag}making the maps of {len(unmapped)} complete pair(s) that have none", flush=True)
     for pair in unmapped:
         add_maps(cfg, pair, out, finished[pair.name], geometry, flow)
+    lines = not sys.stderr.isatty()
     for index, pair in enumerate(todo, start=1):
-        result = run_pair(pipe, cfg, pair, out, maps)
+        result = run_pair(pipe, cfg, pair, out, maps, f"{tag}[{index}/{len(todo)}] {pair.name}" if lines else None)
         unguided, guided = (result["arms"][arm] for arm in ARMS)
         print(
             f"{tag}[{index}/{len(todo)}] {pair.name}: fused {unguided['fused']:.4f} -> {guided['fused']:.4f} "
@@ -339,7 +428,7 @@ def paired_difference(results: Sequence[dict[str, Any]], metric: str) -> dict[st
     diffs = diffs[np.isfinite(diffs)]
     ci = bootstrap_ci(diffs)
     return {
-        "n": int(len(diffs)),
+        "n": len(diffs),
         "mean_diff": float(diffs.mean()) if len(diffs) else None,
         "ci95": list(ci) if ci is not None else None,
     }
@@ -406,7 +495,7 @@ def summarize(results: Sequence[dict[str, Any]], pairs: Sequence[Pair], cfg: GeC
 def _versions() -> dict[str, str]:
     import accelerate
 
-    return {**versions(), "accelerate": accelerate.__version__}
+    return {**generate_cli.versions(), "accelerate": accelerate.__version__}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -426,8 +515,8 @@ def _non_finite_note(found: dict[str, list[str]]) -> list[str]:
     if not found:
         return []
     listed = "; ".join(f"{pair} ({', '.join(scores)})" for pair, scores in found.items())
-    return [f"**Non-finite scores** in {len(found)} pair(s), left out of the means, differences and counts "
-            f"(no valid pixels to measure): {listed}", ""]
+    return [(f"**Non-finite scores** in {len(found)} pair(s), left out of the means, differences and counts "
+             f"(no valid pixels to measure): {listed}"), ""]
 
 
 def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], config_yaml: str, command: str,
@@ -438,9 +527,9 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
     lines = [
         "# GeCo guidance A/B: unguided vs guided",
         "",
-        f"{n} pairs complete of {summary['pairs_planned']} planned ({summary['prompts']} prompts x seeds "
-        f"{summary['seeds']}), same initial noise per pair; device {', '.join(summary['devices']) or '-'}; "
-        f"config `{summary['config_sha']}`; {summary['created']}.",
+        (f"{n} pairs complete of {summary['pairs_planned']} planned ({summary['prompts']} prompts x seeds "
+         f"{summary['seeds']}), same initial noise per pair; device {', '.join(summary['devices']) or '-'}; "
+         f"config `{summary['config_sha']}`; {summary['created']}."),
         "",
         f"Command: `{command}`",
         "",
@@ -469,18 +558,19 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
         *markdown_table(["metric", "unguided", "guided", "guided - unguided", f"{level}% CI (paired bootstrap)"], rows),
         "",
         *_non_finite_note(summary["non_finite_scores"]),
-        f"Guidance lowered the fused score in **{lowered['count']} of {lowered['n']}** pairs "
-        f"({share}). Bootstrap: {summary['bootstrap']['resamples']} resamples of "
-        f"the pairs, seed {summary['bootstrap']['seed']}. Total/Mean Motion measure how much the video "
-        "moves: a lower score at similar motion is the better trade-off (right panel of the plot).",
+        (f"Guidance lowered the fused score in **{lowered['count']} of {lowered['n']}** pairs "
+         f"({share}).{' ' + TINY_GUIDANCE_NOTE if summary.get('tiny_models') else ''} "
+         f"Bootstrap: {summary['bootstrap']['resamples']} resamples of "
+         f"the pairs, seed {summary['bootstrap']['seed']}. Total/Mean Motion measure how much the video "
+         "moves: a lower score at similar motion is the better trade-off (right panel of the plot)."),
         "",
         "## Cost per arm",
         "",
         *markdown_table(
             ["arm", "sampling s (mean)", "sampling s (total)", "scoring s (mean)", "peak memory MiB (max)"],
             [[arm, fmt(arms[arm]["generation_s_mean"], 3), fmt(arms[arm]["generation_s_total"], 3),
-              fmt(arms[arm]["evaluation_s_mean"], 3), f"{fmt(arms[arm]['peak_memory_mib_max'], 4)} "
-              f"({arms[arm]['memory_kind']})"] for arm in ARMS],
+              fmt(arms[arm]["evaluation_s_mean"], 3),
+              f"{fmt(arms[arm]['peak_memory_mib_max'], 4)} ({arms[arm]['memory_kind']})"] for arm in ARMS],
         ),
         "",
         "![fused score: guided vs unguided per pair, and vs Total Motion](pareto.png)",
@@ -572,6 +662,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (reuse it to resume)")
     add_config_flags(p, preset_help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
     p.add_argument("--maps", action="store_true", help="also write each arm's GeCo maps video")
+    p.add_argument("--overwrite", action="store_true",
+                   help="redo every pair, replacing what --out holds (also another config's or prompt's results)")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.eta=2.0")
     return p
 
@@ -593,24 +685,89 @@ def validate_inputs(args: argparse.Namespace) -> Inputs:
     check_device(cfg.model.device)
     pairs = plan_pairs(prompts, seeds)
     out = Path(args.out)
-    check_output_folder(out, cfg, pairs)
+    check_output_folder(out, cfg, pairs, args.overwrite)
     return Inputs(cfg, pairs, out)
 
 
+# ----------------------------------------------------------------------------------------------
+# one run per output folder
+
+
+def take_lock(out: Path) -> Path:
+    """Create ``out/.ab_compare.lock`` holding this pid (``O_CREAT | O_EXCL``: one run wins), taking
+    over a lock whose process is gone (a killed run). InputError (one line) while a live run holds
+    it (two runs in one folder delete each other's live temporary files) or if ``out`` cannot be
+    written."""
+    lock = out / LOCK_NAME
+    for _ in range(2):
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            holder = lock_holder(lock)
+            if holder is not None and pid_alive(holder):
+                raise InputError(f"another A/B run (pid {holder}) is writing to {out}; wait for it to end or use "
+                                 "another --out folder") from None
+            lock.unlink(missing_ok=True)  # its run was killed
+            continue
+        except OSError as err:
+            raise InputError(f"cannot write to --out {str(out)!r}: {err.strerror or err}") from None
+        with os.fdopen(fd, "w") as fh:
+            fh.write(f"{os.getpid()}\n")
+        return lock
+    raise InputError(f"another A/B run took {lock} at the same moment; use another --out folder")
+
+
+def lock_holder(lock: Path) -> int | None:
+    """The pid in a lock file, or None when it holds none (a damaged or vanished lock)."""
+    try:
+        return int(lock.read_text(encoding="utf-8").strip())
+    except (OSError, ValueError):
+        return None
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+def is_launch_main() -> bool:
+    """Whether this is the main process of its launch, known before accelerate starts: torchrun
+    and ``accelerate launch`` set ``RANK``; a plain run is the main process."""
+    return os.environ.get("RANK", "0") == "0"
+
+
+@interruptible("finished pairs are kept (each pair is written whole or not at all); rerun the same command to resume")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         inputs = validate_inputs(args)
+        lock = take_lock(inputs.out) if is_launch_main() else None
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    try:
+        return run(args, inputs, argv)
+    finally:
+        if lock is not None:
+            lock.unlink(missing_ok=True)
+
+
+def run(args: argparse.Namespace, inputs: Inputs, argv: list[str] | None) -> int:
+    """Every process's share of the pairs, then on the main process the report."""
     cfg, pairs, out = inputs.cfg, inputs.pairs, inputs.out
     state = process_state(cfg)
     tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
     try:
         if state.is_main_process:
             write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
-        run_shard(process_config(cfg, state), shard(pairs, state.process_index, state.num_processes), out, args.maps, tag)
+        run_shard(process_config(cfg, state), shard(pairs, state.process_index, state.num_processes), out, args.maps,
+                  tag, redo=args.overwrite)
         state.wait_for_everyone()
         if not state.is_main_process:
             return 0
@@ -621,8 +778,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     fused = summary["paired_differences"]["fused"]
     ci = f"[{fmt(fused['ci95'][0])}, {fmt(fused['ci95'][1])}]" if fused["ci95"] else "undefined"
+    tiny = f" {TINY_GUIDANCE_NOTE}" if summary["tiny_models"] else ""
     print(f"{summary['pairs']} pairs: fused guided - unguided = {fmt(fused['mean_diff'])}, 95% CI {ci}; "
-          f"report: {out / 'report.md'}")
+          f"report: {out / 'report.md'}{tiny}")
     return 0 if not summary["missing_pairs"] else 1
 
 

@@ -16,6 +16,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import imageio.v2 as imageio
 import numpy as np
@@ -23,7 +24,7 @@ import pytest
 import torch
 
 from geco_guide.config import load_config
-from geco_guide.io.video import read_video
+from geco_guide.io.video import read_video, write_video
 from geco_guide.metric.render import panel_layout
 
 REPO = Path(__file__).resolve().parents[1]
@@ -84,9 +85,14 @@ def prompts_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def reference(prompts_file: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """An uninterrupted A/B run of 2 prompts x 1 seed; its output folder."""
     out = tmp_path_factory.mktemp("ab") / "reference"
-    proc = subprocess.run(_command(prompts_file, out), env=_env(), capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(_command(prompts_file, out), env=_env(), capture_output=True, text=True, check=False, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "0 of 2 pairs already complete" in proc.stdout and "2 pairs: fused guided - unguided" in proc.stdout
+    assert ab.TINY_GUIDANCE_NOTE in proc.stdout
+    # no terminal, no progress bar: a line when the models load and one per pair and arm instead
+    assert "loading models: CogVideoX tiny-random, geometry tiny-random, flow tiny-random ..." in proc.stderr
+    assert "[1/2] a-marble-bust-s0: unguided arm ...\n[1/2] a-marble-bust-s0: guided arm ...\n" in proc.stderr
+    assert "[2/2] bridge-s0: guided arm ..." in proc.stderr and "it/s" not in proc.stderr
     return out
 
 
@@ -119,6 +125,7 @@ def test_end_to_end_report(reference: Path):
 
     report = (reference / "report.md").read_text()
     assert "tiny random models: the numbers show the mechanics, not quality" in report and "## Models and weights" in report
+    assert ab.TINY_GUIDANCE_NOTE in report
     for text in ("## Configuration", "num_frames: 9", "## Versions", "| torch |", "pareto.png",
                  "seeds [0]", "95% CI"):
         assert text in report, text
@@ -127,7 +134,7 @@ def test_end_to_end_report(reference: Path):
     assert image.ndim == 3 and image.shape[2] == 3 and image.shape[0] > 100 and image.std() > 0
 
     pair = reference / "pairs" / "bridge-s0"
-    unguided, fps = read_video(pair / "unguided.mp4")
+    unguided, _ = read_video(pair / "unguided.mp4")
     both, _ = read_video(pair / "side_by_side.mp4")
     (height, width), _ = panel_layout([tuple(unguided.shape[-2:])] * 2)  # labels above, a gap between
     even = (height + height % 2, width + width % 2)  # mp4 (yuv420p) pads odd sizes by one
@@ -172,7 +179,7 @@ def test_rerun_after_kill_finishes_with_the_same_results(reference: Path, prompt
             read_video(path)
     completed = first.read_bytes()
 
-    rerun = subprocess.run(_command(prompts_file, out), env=_env(), capture_output=True, text=True, timeout=300)
+    rerun = subprocess.run(_command(prompts_file, out), env=_env(), capture_output=True, text=True, check=False, timeout=300)
     assert rerun.returncode == 0, rerun.stderr
     assert "1 of 2 pairs already complete" in rerun.stdout
     assert first.read_bytes() == completed  # the complete pair was skipped, not redone
@@ -186,7 +193,7 @@ def test_sharded_run_matches_the_single_process_run(reference: Path, prompts_fil
     """Two processes (torchrun, as ``accelerate launch`` starts them) share the pairs; the main one merges."""
     out = tmp_path / "sharded"
     launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
-    proc = subprocess.run([*launcher, *_command(prompts_file, out)[1:]], env=_env(), capture_output=True, text=True,
+    proc = subprocess.run([*launcher, *_command(prompts_file, out)[1:]], env=_env(), capture_output=True, text=True, check=False,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "[rank 0 of 2] 0 of 1 pairs" in proc.stdout and "[rank 1 of 2] 0 of 1 pairs" in proc.stdout
@@ -202,7 +209,7 @@ def test_rerun_redoes_a_damaged_pair_and_maps_the_complete_ones(reference: Path,
     damaged.write_text('{"pair": "bridge-s0", "arms": {')  # e.g. edited by hand
     complete = out / "pairs" / "a-marble-bust-s0"
     video = (complete / "guided.mp4").read_bytes()
-    rerun = subprocess.run([*_command(prompts_file, out), "--maps"], env=_env(), capture_output=True, text=True,
+    rerun = subprocess.run([*_command(prompts_file, out), "--maps"], env=_env(), capture_output=True, text=True, check=False,
                            timeout=300)
     assert rerun.returncode == 0, rerun.stderr
     assert f"warning: {damaged} is damaged; pair bridge-s0 is redone" in rerun.stderr
@@ -224,7 +231,7 @@ def test_rerun_redoes_a_damaged_pair_and_maps_the_complete_ones(reference: Path,
 
 def _result(name: str, unguided: float, guided: float) -> dict:
     def arm(fused: float) -> dict:
-        return {"video": "v.mp4", "fused": fused, "motion": fused / 2, "structure": fused / 2, "total_motion": 5.0,
+        return {"video": "v.mp4", "sidecar": "v.json", "fused": fused, "motion": fused / 2, "structure": fused / 2, "total_motion": 5.0,
                 "mean_motion": 40.0, "generation_s": 1.0, "evaluation_s": 0.1, "peak_memory_mib": 10.0,
                 "memory_kind": "cpu_peak_rss", "guidance_updates": 0}
 
@@ -284,16 +291,62 @@ def test_a_pair_with_a_deleted_video_or_a_damaged_result_is_not_complete(tmp_pat
     result = _result(pair.name, 0.2, 0.1)
     ab.write_json_atomic(folder / "result.json", result)
     for name in ab.PAIR_OUTPUTS:
-        (folder / name).write_bytes(b"")
+        (folder / name).write_bytes(b"x")
     assert ab.read_result(tmp_path, pair, warn=True) == result and capsys.readouterr().err == ""
     (folder / "guided.mp4").unlink()
     assert ab.read_result(tmp_path, pair) is None and capsys.readouterr().err == ""  # the report reads quietly
     assert ab.read_result(tmp_path, pair, warn=True) is None
     assert capsys.readouterr().err == f"warning: {folder / 'guided.mp4'} is missing; pair cat-s0 is redone\n"
-    (folder / "guided.mp4").write_bytes(b"")
+    (folder / "guided.mp4").write_bytes(b"x")
     (folder / "result.json").write_bytes(b"\xff{")
     assert ab.read_result(tmp_path, pair, warn=True) is None
     assert capsys.readouterr().err == f"warning: {folder / 'result.json'} is damaged; pair cat-s0 is redone\n"
+
+
+def _whole_pair(folder: Path, frames: int = 3) -> dict:
+    """A complete pair folder of real (tiny) videos and its result; the result."""
+    video = torch.rand(frames, 3, 16, 16)
+    for arm in ab.ARMS:
+        write_video(folder / f"{arm}.mp4", video, fps=8)
+        ab.write_json_atomic(folder / f"{arm}.json", {"num_frames": frames})
+    write_video(folder / "side_by_side.mp4", video, fps=8)
+    result = _result(folder.name, 0.2, 0.1)
+    ab.write_json_atomic(folder / "result.json", result)
+    return result
+
+
+def test_resume_checks_the_fields_and_the_videos_of_a_pair(tmp_path: Path, capsys):
+    pair = ab.Pair(ab.Prompt("cat", "a cat"), 0)
+    folder = ab.pair_dir(tmp_path, pair)
+    result = _whole_pair(folder)
+    assert ab.read_result(tmp_path, pair, warn=True, verify=True) == result and capsys.readouterr().err == ""
+
+    guided = (folder / "guided.mp4").read_bytes()
+    (folder / "guided.mp4").write_bytes(guided[: len(guided) // 2])  # a copy cut short
+    assert ab.read_result(tmp_path, pair, warn=True) == result  # without verify: only that it is there
+    assert ab.read_result(tmp_path, pair, warn=True, verify=True) is None
+    err = capsys.readouterr().err
+    assert err.startswith(f"warning: cannot read video {str(folder / 'guided.mp4')!r}") and err.count("\n") == 1
+    assert err.endswith("; pair cat-s0 is redone\n")
+
+    write_video(folder / "guided.mp4", torch.rand(2, 3, 16, 16), fps=8)
+    assert ab.read_result(tmp_path, pair, warn=True, verify=True) is None
+    assert f"{folder / 'guided.mp4'} holds 2 frame(s), not 3" in capsys.readouterr().err
+
+    _whole_pair(folder)
+    del result["arms"]["guided"]["fused"]
+    ab.write_json_atomic(folder / "result.json", result)
+    assert ab.read_result(tmp_path, pair, warn=True, verify=True) is None
+    assert f"{folder / 'result.json'} lacks 'arms.guided.fused'" in capsys.readouterr().err
+    del result["arms"]
+    ab.write_json_atomic(folder / "result.json", result)
+    assert ab.read_result(tmp_path, pair, warn=True) is None
+    assert "lacks 'arms'" in capsys.readouterr().err
+
+    result = _whole_pair(folder)
+    result["arms"]["guided"]["fused"] = None  # a score that was not finite, written as null
+    ab.write_json_atomic(folder / "result.json", result)
+    assert np.isnan(ab.read_result(tmp_path, pair, verify=True)["arms"]["guided"]["fused"])
 
 
 def test_shards_cover_every_pair_once():
@@ -375,6 +428,54 @@ def test_a_damaged_run_file_or_a_non_utf8_prompts_file_is_one_line_naming_it(tmp
     assert ab.main(["--prompts", str(tmp_path / "latin1.txt"), *argv]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"error: prompts file {str(tmp_path / 'latin1.txt')!r} is not UTF-8 text (byte 5: invalid continuation byte)"
+
+
+def test_outputs_of_another_run_in_a_pair_folder_are_refused_unless_overwrite(tmp_path, capsys, no_models):
+    out = tmp_path / "out"
+    argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out), "--preset", "tiny"]
+    cfg = load_config(preset="tiny")
+    pair = ab.Pair(ab.Prompt("a-cat", "a cat"), 0)
+    sidecar = {"prompt": "a cat", "config": ab.config_to_dict(ab.arm_config(cfg, pair, "guided"))}
+    ab.write_json_atomic(ab.pair_dir(out, pair) / "guided.json", sidecar)  # this run's, unfinished: redone
+    assert ab.validate_inputs(ab.build_parser().parse_args(argv)).pairs == [pair]
+    sidecar["config"]["guidance"]["eta"] = 123.0
+    ab.write_json_atomic(ab.pair_dir(out, pair) / "guided.json", sidecar)
+    assert ab.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"error: {ab.pair_dir(out, pair) / 'guided.json'} was made by another run (its prompt or config "
+                   "differ); pass --overwrite to replace it, or use a new --out folder")
+    assert ab.validate_inputs(ab.build_parser().parse_args([*argv, "--overwrite"])).pairs == [pair]
+
+
+def test_a_second_run_in_one_folder_is_refused_while_the_first_holds_the_lock(tmp_path, capsys, no_models):
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out), "--preset", "tiny"]
+    (out / ab.LOCK_NAME).write_text(f"{os.getppid()}\n")  # a live process
+    assert ab.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"error: another A/B run (pid {os.getppid()}) is writing to {out}; wait for it to end or use "
+                   "another --out folder")
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (out / ab.LOCK_NAME).write_text(f"{dead.pid}\n")  # left by a killed run
+    lock = ab.take_lock(out)
+    assert lock.read_text() == f"{os.getpid()}\n"
+
+
+def test_ctrl_c_is_one_line_exit_130_and_releases_the_lock(tmp_path, capsys, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    state = SimpleNamespace(process_index=0, num_processes=1, is_main_process=True, wait_for_everyone=lambda: None)
+    monkeypatch.setattr(ab, "process_state", lambda cfg: state)
+    monkeypatch.setattr(ab, "run_shard", interrupted)
+    out = tmp_path / "out"
+    argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out), "--preset", "tiny"]
+    assert ab.main(argv) == 130
+    assert capsys.readouterr().err == ("interrupted: finished pairs are kept (each pair is written whole or not at "
+                                       "all); rerun the same command to resume\n")
+    assert not (out / ab.LOCK_NAME).exists()
 
 
 def test_missing_argument_is_one_line(capsys):
