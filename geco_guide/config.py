@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import yaml
-from omegaconf import DictConfig, OmegaConf, StringNode
+from omegaconf import DictConfig, ListConfig, OmegaConf, StringNode
 from omegaconf.errors import (
     ConfigAttributeError,
     ConfigKeyError,
@@ -120,28 +120,34 @@ def _key_error(err: OmegaConfBaseException, source: str) -> ValueError:
 def _merge(base: DictConfig, other: Any, source: str) -> DictConfig:
     try:
         return OmegaConf.merge(base, other)
-    except OmegaConfBaseException as err:
-        scalar = _scalar_section(base, other)
-        if scalar is not None:  # omegaconf's merge error names no key for these
-            key, value = scalar
-            raise ValueError(f"{key} must be a mapping of options, got {value!r} ({source})") from None
+    except (OmegaConfBaseException, TypeError) as err:  # TypeError: a mapping merged into a list
+        mismatch = _container_mismatch(base, other)
+        if mismatch is not None:  # omegaconf's merge error names no key for these
+            key, expected, value = mismatch
+            raise ValueError(f"{key} must be {expected}, got {value!r} ({source})") from None
+        if isinstance(err, TypeError):
+            raise ValueError(f"cannot merge the config of {source}: {err}") from None
         raise _key_error(err, source) from None
 
 
-def _scalar_section(base: DictConfig, other: Any, prefix: str = "") -> tuple[str, Any] | None:
-    """The first ``(dotted key, value)`` of ``other`` that gives a plain value (``sampling: 5``)
-    where ``base`` has a section of options, or None."""
+def _container_mismatch(base: DictConfig, other: Any, prefix: str = "") -> tuple[str, str, Any] | None:
+    """The first ``(dotted key, what it must be, value)`` of ``other`` that gives a plain value
+    or a list where ``base`` has a section (``sampling: 5``), or a mapping where ``base`` has a
+    list (``guidance.anchors: {a: 1}``); None if there is none."""
     if not isinstance(other, (DictConfig, Mapping)):
         return None
     for key, value in other.items():
-        section = base.get(key) if key in base else None
-        if not isinstance(section, DictConfig):
-            continue
-        if not isinstance(value, (DictConfig, Mapping)):
-            return f"{prefix}{key}", value
-        found = _scalar_section(section, value, f"{prefix}{key}.")
-        if found is not None:
-            return found
+        node = base.get(key) if key in base else None
+        is_mapping = isinstance(value, (DictConfig, Mapping))
+        if isinstance(node, DictConfig):
+            if not is_mapping:
+                expected = "a mapping" if OmegaConf.get_type(node) is dict else "a mapping of options"
+                return f"{prefix}{key}", expected, value
+            found = _container_mismatch(node, value, f"{prefix}{key}.")
+            if found is not None:
+                return found
+        elif isinstance(node, ListConfig) and is_mapping:
+            return f"{prefix}{key}", "a list", value
     return None
 
 

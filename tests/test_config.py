@@ -138,16 +138,24 @@ def test_undecodable_file_is_called_not_utf8(tmp_path: Path):
 
 
 @pytest.mark.parametrize(
-    "text, key, shown",
-    [("sampling: 5\n", "sampling", "5"), ("guidance:\n  loss: 3\n", "guidance.loss", "3"), ("sampling:\n", "sampling", "None")],
+    "text, key, expected, shown, override",
+    [
+        ("sampling: 5\n", "sampling", "a mapping of options", "5", "5"),
+        ("guidance:\n  loss: 3\n", "guidance.loss", "a mapping of options", "3", "3"),
+        ("sampling:\n", "sampling", "a mapping of options", "None", "null"),
+        ("sampling: [1]\n", "sampling", "a mapping of options", "[1]", "[1]"),
+        ("evaluation:\n  model_fps: 5\n", "evaluation.model_fps", "a mapping", "5", "5"),
+        ("guidance:\n  anchors: {a: 1}\n", "guidance.anchors", "a list", "{'a': 1}", "{a: 1}"),
+    ],
 )
-def test_section_given_a_plain_value_is_named(tmp_path: Path, text, key, shown):
+def test_a_section_or_list_given_another_kind_of_value_is_named(tmp_path: Path, text, key, expected, shown, override):
     path = tmp_path / "c.yaml"
     path.write_text(text)
-    with pytest.raises(ValueError, match=rf"^{re.escape(key)} must be a mapping of options, got {shown} \(.*c\.yaml\)$"):
+    message = f"{key} must be {expected}, got {shown}"
+    with pytest.raises(ValueError, match=rf"^{re.escape(message)} \(.*c\.yaml\)$"):
         load_config(path)
-    with pytest.raises(ValueError, match=rf"^{re.escape(key)} must be a mapping of options, got {shown} \(command line\)$"):
-        load_config(preset="tiny", overrides=[f"{key}={shown if shown != 'None' else 'null'}"])
+    with pytest.raises(ValueError, match=rf"^{re.escape(message)} \(command line\)$"):
+        load_config(preset="tiny", overrides=[f"{key}={override}"])
 
 
 def test_config_path_that_is_a_folder_is_called_a_folder(tmp_path: Path):
