@@ -127,13 +127,15 @@ def test_another_config_is_refused_naming_the_keys_it_changed(tmp_path: Path):
     out = tmp_path / "out"
     _pinned_folder(out, ["evaluation.max_fps=8"])
     check_output_folder(out, load_config(preset="tiny", overrides=["evaluation.max_fps=8"]))
+    other = load_config(preset="tiny", overrides=["evaluation.max_fps=4", "evaluation.loss.pairs=center"])
     with pytest.raises(ValueError) as err:
-        check_output_folder(out, load_config(preset="tiny", overrides=["evaluation.max_fps=4",
-                                                                        "evaluation.loss.pairs=center"]))
+        check_output_folder(out, other, overwrite=False)
     message = str(err.value)
     assert "\n" not in message and "evaluation.max_fps: 8.0 -> 4.0" in message
     assert 'evaluation.loss.pairs: "all" -> "center"' in message and "--overwrite" in message
-    check_output_folder(out, load_config(preset="tiny"), overwrite=True)  # the caller starts afresh
+    with pytest.raises(ValueError, match="use a new --out folder or the same config$"):
+        check_output_folder(out, other)  # a command without --overwrite does not offer it
+    check_output_folder(out, other, overwrite=True)  # the caller starts afresh
 
 
 def test_out_folders_that_cannot_be_written_are_one_line(tmp_path: Path, monkeypatch):

@@ -28,6 +28,7 @@ import torch
 
 from ..config import GeCoConfig, config_to_dict, config_to_yaml
 from ..io.devices import resolve_device
+from ..io.files import json_text
 
 MIB = 2**20
 T = TypeVar("T")
@@ -74,11 +75,11 @@ def _check_writable(out: Path) -> None:
         raise ValueError(f"cannot write to --out {str(out)!r}: {reason}") from None
 
 
-def check_output_folder(out: Path, cfg: GeCoConfig, overwrite: bool = False) -> None:
+def check_output_folder(out: Path, cfg: GeCoConfig, overwrite: bool | None = None) -> None:
     """ValueError (one line) unless ``out`` is a folder that can be written: one to create, or one
     whose ``run.json`` pins ``cfg`` (another config is refused naming the first keys it changed; a
-    damaged ``run.json`` is named). With ``overwrite`` the folder's config is not compared: the
-    caller starts afresh."""
+    damaged ``run.json`` is named). ``overwrite``: True, the folder's config is not compared (the
+    caller starts afresh); False, the refusal mentions ``--overwrite``; None, the command has none."""
     _check_writable(out)
     run_file = out / "run.json"
     if overwrite or not run_file.is_file():  # also when out does not exist yet
@@ -89,12 +90,13 @@ def check_output_folder(out: Path, cfg: GeCoConfig, overwrite: bool = False) -> 
     except (ValueError, KeyError, TypeError):  # UnicodeDecodeError is a ValueError
         raise ValueError(f"{run_file} is damaged; remove it to reuse the folder with this config") from None
     if previous != config_fingerprint(cfg):
-        now = json.loads(json.dumps(config_to_dict(cfg)))  # as run.json stores it
+        now = json.loads(json_text(config_to_dict(cfg)))  # as run.json stores it
         changes = config_differences(pinned.get("config"), now) if isinstance(pinned.get("config"), dict) else []
         what = "; ".join(changes[:3]) + (f"; {len(changes) - 3} more" if len(changes) > 3 else "") if changes else (
             f"run.json: {previous}, now: {config_fingerprint(cfg)}")
-        raise ValueError(f"{out} holds results of another config ({what}); use a new --out folder, the same "
-                         "config, or --overwrite to start afresh")
+        ways = "a new --out folder, the same config, or --overwrite to start afresh" if overwrite is False else (
+            "a new --out folder or the same config")
+        raise ValueError(f"{out} holds results of another config ({what}); use {ways}")
 
 
 def _unreadable(path: Path) -> str | None:
