@@ -61,3 +61,85 @@ def test_cli_writes_every_format(tmp_path, capsys):
     assert sorted(p.name for p in (out / "clip.detection").iterdir()) == [f"{k:05d}.png" for k in range(4)]
     assert detection.main([str(video), "--preset", "tiny", "--window", "1"]) == 2
     assert "--window" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# the CLI's outputs: named apart, inside --out, never stale, never silently replaced
+
+
+def _clip(path, frames=4):
+    return write_video(path, rigid_clip(num_frames=frames, height=32, width=48).frames, fps=8)
+
+
+def _detect(*args):
+    return detection.main([*map(str, args), "--preset", "tiny", "--window", "3"])
+
+
+def test_inputs_with_one_stem_get_numbered_outputs(tmp_path, capsys):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    first, second = _clip(tmp_path / "a" / "clip.mp4", 4), _clip(tmp_path / "b" / "clip.mp4", 5)
+    out = tmp_path / "maps"
+    assert _detect(first, second, "--out", out) == 0
+    assert json.loads((out / "clip.detection.json").read_text())["source"] == str(first)
+    assert json.loads((out / "clip-2.detection.json").read_text())["source"] == str(second)
+    assert len(json.loads((out / "clip-2.detection.json").read_text())["frames"]) == 5
+    err = capsys.readouterr().err
+    assert f"[1/2] {first} ...\n" in err and f"[2/2] {second} ...\n" in err  # one line per video
+
+
+def test_a_frame_folder_given_as_dot_writes_inside_out(tmp_path, monkeypatch):
+    from geco_guide.metric.detection import write_pngs
+
+    frames = tmp_path / "shot"
+    write_pngs(frames, rigid_clip(num_frames=4, height=32, width=48).frames)
+    monkeypatch.chdir(frames)
+    out = tmp_path / "maps"
+    assert _detect(".", "--out", out) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["shot.detection.json", "shot.detection.mp4"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["maps", "shot"]
+
+
+def test_existing_outputs_are_refused_before_loading_unless_overwrite(tmp_path, capsys, monkeypatch):
+    video, out = _clip(tmp_path / "clip.mp4"), tmp_path / "maps"
+    assert _detect(video, "--out", out, "--format", "png") == 0
+    capsys.readouterr()
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("estimators were loaded")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(detection, "load_estimators", refuse)
+        assert _detect(video, "--out", out, "--format", "png") == 2
+        err = capsys.readouterr().err.strip()
+        assert err == (f"error: {str(out / 'clip.detection')!r} already exists; pass --overwrite to replace it, "
+                       "or use another --out")
+        (out / "clip.mp4").write_text("a file")
+        assert _detect(video, "--out", out / "clip.mp4") == 2
+        assert "is a file, not a folder" in capsys.readouterr().err
+
+    # a shorter video under the same name: its PNG folder keeps no frame of the first run
+    (out / "clip.detection" / "notes.txt").write_text("mine")
+    _clip(video, 3)
+    assert _detect(video, "--out", out, "--format", "png", "--overwrite") == 0
+    assert sorted(p.name for p in (out / "clip.detection").iterdir()) == ["00000.png", "00001.png", "00002.png",
+                                                                          "notes.txt"]
+
+
+def test_a_window_longer_than_the_video_is_a_warning(tmp_path, capsys):
+    video = _clip(tmp_path / "clip.mp4", 4)
+    assert detection.main([str(video), "--preset", "tiny", "--window", "40", "--out", str(tmp_path / "maps")]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {video}: --window 40 is longer than its 4 frames; each window holds all 4\n" in err
+    assert json.loads((tmp_path / "maps" / "clip.detection.json").read_text())["window"] == 4
+
+
+def test_ctrl_c_is_one_line_and_exit_code_130(tmp_path, capsys, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(detection, "detection_maps", interrupted)
+    assert _detect(_clip(tmp_path / "clip.mp4"), "--out", tmp_path / "maps") == 130
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1] == "interrupted: the videos already done keep their outputs (each .detection.json is written last)"
+    assert err[:-1] == [f"[1/1] {tmp_path / 'clip.mp4'} ..."]

@@ -2,12 +2,19 @@
 
     python -m geco_guide.detection clip.mp4 --out maps                  # VGGT-1B + UFM-Base, mp4
     python -m geco_guide.detection frames/ --preset tiny --window 8 --anchor end --format gif png
+
+Each input writes, inside ``--out``, ``<name>.detection.mp4`` / ``.gif`` / ``<name>.detection/NNNNN.png``
+(``--format``) and last ``<name>.detection.json``. Inputs are named as ``evaluate`` names them (a
+file's stem, a frame folder's name, a folder of videos stands for its videos), numbered ``-2``,
+``-3``, ... when two share a name. Existing outputs are refused before the estimators load unless
+``--overwrite``; a PNG folder keeps no frame of an earlier, longer run.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 from dataclasses import asdict
 from pathlib import Path
@@ -23,25 +30,78 @@ from ..metric.detection import (
     render_detection,
     write_detection,
 )
-from .kit import Parser, add_config_flags, config_from_args, split_overrides
+from .evaluate import expand_inputs
+from .kit import (
+    Parser,
+    add_config_flags,
+    config_from_args,
+    interruptible,
+    split_overrides,
+)
+
+#: The names :func:`geco_guide.metric.detection.write_pngs` gives the frames of a PNG folder.
+FRAME_PNG = re.compile(r"(\d{5})\.png")
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="python -m geco_guide.detection", description="Per-frame GeCo detection maps (a window per frame).")
     p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|key=value")
-    p.add_argument("--out", default="detection", help="output folder")
+    p.add_argument("--out", default="detection", help="output folder: every file goes inside it")
     p.add_argument("--window", type=int, default=20, help="frames per window (the demo's default: 20)")
     p.add_argument("--anchor", choices=ANCHORS, default="center", help="where the frame sits in its window")
     p.add_argument("--one-way", action="store_true", help="structure occlusion test in one direction only")
     p.add_argument("--format", nargs="+", choices=FORMATS, default=["mp4"], dest="formats")
     p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the input's)")
+    p.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier run of the same names")
     add_config_flags(p)
     return p
 
 
+def output_paths(stem: Path, formats: list[str]) -> list[Path]:
+    """What one input writes for ``formats`` (``stem`` = ``<out>/<name>``), the JSON last."""
+    paths = {"mp4": f"{stem.name}.detection.mp4", "gif": f"{stem.name}.detection.gif", "png": f"{stem.name}.detection"}
+    return [stem.with_name(paths[f]) for f in formats] + [stem.with_name(f"{stem.name}.detection.json")]
+
+
+def _has_output(path: Path) -> bool:
+    """Whether ``path`` holds an output: a file, or a folder with frame PNGs."""
+    if path.is_dir():
+        return any(FRAME_PNG.fullmatch(p.name) for p in path.iterdir())
+    return path.exists()
+
+
+def check_outputs(out: Path, stems: list[Path], formats: list[str], overwrite: bool) -> None:
+    """ValueError (one line) for ``--out`` that is a file, or, without ``overwrite``, an output
+    of one of ``stems`` that is already there."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {str(out)!r} is a file, not a folder")
+    if overwrite:
+        return
+    for stem in stems:
+        existing = next((path for path in output_paths(stem, formats) if _has_output(path)), None)
+        if existing is not None:
+            raise ValueError(f"{str(existing)!r} already exists; pass --overwrite to replace it, or use another --out")
+
+
+def remove_stale_frames(folder: Path, count: int) -> None:
+    """Delete the frame PNGs ``NNNNN.png`` of index ``>= count`` that an earlier, longer run left
+    in ``folder`` (only files of that name: nothing else in the folder is touched)."""
+    for path in folder.iterdir():
+        match = FRAME_PNG.fullmatch(path.name)
+        if match and int(match.group(1)) >= count and path.is_file():
+            path.unlink()
+
+
+def _resolved(video: str) -> str:
+    """``.`` and ``..`` as the folder they name, so that the output is named after it (and stays inside ``--out``)."""
+    return str(Path(video).resolve()) if Path(video).name in ("", "..") else video
+
+
+@interruptible("the videos already done keep their outputs (each .detection.json is written last)")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     overrides, videos = split_overrides(args.inputs)
+    out = Path(args.out)
     try:
         if not videos:
             raise ValueError("no input video given")
@@ -50,21 +110,32 @@ def main(argv: list[str] | None = None) -> int:
         if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
             raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
         cfg = config_from_args(args, overrides)
+        items = expand_inputs([_resolved(v) for v in videos])
+        check_outputs(out, [out / item.name for item in items if item.error is None], args.formats, args.overwrite)
         geometry, flow = load_estimators(cfg.estimators, cfg.evaluation.device)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     failed = 0
-    for video in videos:
+    for index, item in enumerate(items, start=1):
+        video = str(item.path)
+        print(f"[{index}/{len(items)}] {video} ...", file=sys.stderr, flush=True)
         try:
-            clip = read_frames(video, min_frames=2)
+            if item.error is not None:
+                raise ValueError(item.error)
+            clip = read_frames(item.path, min_frames=2)
+            if args.window > clip.num_frames:
+                print(f"warning: {video}: --window {args.window} is longer than its {clip.num_frames} frames; "
+                      f"each window holds all {clip.num_frames}", file=sys.stderr)
             maps = detection_maps(clip.frames, geometry, flow, cfg.evaluation.loss, window=args.window,
                                   anchor=args.anchor, two_way=not args.one_way,
                                   flow_batch_size=cfg.evaluation.flow_batch_size)
             scores = frame_scores(maps)
-            stem = Path(args.out) / (Path(video).stem or Path(video).name)
+            stem = out / item.name
             written = write_detection(render_detection(maps, scores), stem, args.formats, args.fps or clip.fps)
-            write_json_atomic(stem.with_name(f"{stem.name}.detection.json"), {
+            if "png" in args.formats:
+                remove_stale_frames(output_paths(stem, ["png"])[0], len(scores))
+            write_json_atomic(output_paths(stem, [])[0], {
                 "source": video, "window": min(args.window, clip.num_frames), "anchor": args.anchor,
                 "two_way": not args.one_way, "frames": [{"index": k, **row} for k, row in enumerate(scores)],
                 "estimators": {"geometry": estimator_id(geometry), "flow": estimator_id(flow)},
@@ -75,5 +146,4 @@ def main(argv: list[str] | None = None) -> int:
             continue
         worst = max(range(len(scores)), key=lambda k: -1.0 if scores[k]["fused"] is None else scores[k]["fused"])
         print(f"{video}: {len(scores)} frames, least consistent frame {worst} -> {', '.join(map(str, written))}")
-    return 1 if failed == len(videos) else 0
-
+    return 1 if failed == len(items) else 0
