@@ -30,6 +30,7 @@ from geco_guide.tiny import (
     TINY_CALL_KWARGS,
     TinySizes,
     tiny_cogvideox_components,
+    tiny_cogvideox_pipeline,
     tiny_cogvideox_transformer,
     tiny_estimators,
     tiny_guidance_config,
@@ -333,3 +334,25 @@ def test_model_cpu_offload_with_guidance(estimators):
         assert torch.equal(once.frames, ref.frames) and torch.equal(twice.frames, ref.frames)
         assert len(once.guidance_log) == 2
     assert {p.device.type for p in offloaded.geometry_estimator.parameters()} == {"cpu"}
+
+
+# ---- the caller's latents (``test_cogvideox.py`` passes none; the stock call takes them as given) --
+
+
+@pytest.mark.parametrize("version", ["1.0", "1.5"])
+def test_latents_of_the_shape_the_stock_pipeline_draws_give_its_output(version, estimators):
+    stock = tiny_cogvideox_pipeline(0, version=version)
+    stock.set_progress_bar_config(disable=True)
+    ours = GeCoCogVideoXPipeline(**stock.components, geometry_estimator=estimators[0], flow_estimator=estimators[1],
+                                 guidance_config=tiny_guidance_config(**SHORT))
+    ours.set_progress_bar_config(disable=True)
+    drawn = []
+    prepare = stock.prepare_latents
+    stock.prepare_latents = lambda *args, **kwargs: drawn.append(prepare(*args, **kwargs)) or drawn[-1]
+    reference = call(stock, seed=1).frames
+    shape, padding = ours.latents_shape(1, TINY_CALL_KWARGS["num_frames"], TINY_CALL_KWARGS["height"],
+                                        TINY_CALL_KWARGS["width"])
+    assert shape == tuple(drawn[0].shape) and padding == (1 if version == "1.5" else 0)  # 5 latents padded to 6
+    assert torch.equal(call(ours, seed=5, guidance=False, latents=drawn[0].clone()).frames, reference)
+    guided = call(ours, seed=5, latents=drawn[0].clone())
+    assert torch.isfinite(guided.frames).all() and len(guided.guidance_log) == 2
