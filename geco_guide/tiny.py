@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from .estimators import tiny_estimators, tiny_random_decoder
+from .estimators import TINY_RANDOM, tiny_estimators, tiny_random_decoder
 
 # Tiny sampling settings that fit the tiny models (17 frames = 5 latents, 32x48 pixels).
 TINY_NUM_FRAMES = 17
@@ -37,11 +37,28 @@ _WORDS = (
 ).split()
 
 
+def _truncating_tokenizer_class():
+    from transformers import PreTrainedTokenizerFast
+
+    class TinyTokenizer(PreTrainedTokenizerFast):
+        """Truncates at ``model_max_length`` unless a call says otherwise. The pipelines tokenize
+        each prompt twice, truncated at ``max_sequence_length`` and once more untruncated to warn
+        about what was cut; at the tiny preset's 16 tokens nearly every prompt is cut, and that
+        second pass printed transformers' "longer than the specified maximum" line and a line of
+        the cut words (mostly ``<unk>``: the vocabulary is small) on every call."""
+
+        def __call__(self, *args: Any, truncation: Any = True, **kwargs: Any) -> Any:
+            return super().__call__(*args, truncation=truncation, **kwargs)
+
+    return TinyTokenizer
+
+
 def tiny_tokenizer(max_length: int = TINY_MAX_SEQUENCE_LENGTH):
-    """A T5-compatible fast tokenizer over a small fixed word list (lower-cased, ``</s>`` appended)."""
+    """A T5-compatible fast tokenizer over a small fixed word list (lower-cased, ``</s>`` appended)
+    that truncates at ``max_length`` by default (so long prompts are cut quietly, as the
+    pipelines cut them at ``max_sequence_length``)."""
     from tokenizers import Tokenizer, normalizers, pre_tokenizers, processors
     from tokenizers.models import WordLevel
-    from transformers import PreTrainedTokenizerFast
 
     vocab = {tok: i for i, tok in enumerate(_SPECIAL + list(dict.fromkeys(_WORDS)))}
     tok = Tokenizer(WordLevel(vocab=vocab, unk_token="<unk>"))
@@ -50,7 +67,7 @@ def tiny_tokenizer(max_length: int = TINY_MAX_SEQUENCE_LENGTH):
     tok.post_processor = processors.TemplateProcessing(
         single="$A </s>", pair="$A </s> $B </s>", special_tokens=[("</s>", vocab["</s>"])]
     )
-    return PreTrainedTokenizerFast(
+    return _truncating_tokenizer_class()(
         tokenizer_object=tok,
         pad_token="<pad>",
         eos_token="</s>",
@@ -162,6 +179,15 @@ def tiny_cogvideox_components(seed: int = 0, sizes: TinySizes | None = None) -> 
         "transformer": transformer,
         "scheduler": scheduler,
     }
+
+
+def video_components(cfg: Any) -> dict[str, Any] | None:
+    """The tiny random CogVideoX models of a config with ``model.id=tiny-random`` (seeded with
+    ``model.init_seed``), else ``None`` (load the id): what ``build_pipeline(cfg, components=...)``
+    takes."""
+    if cfg.model.id != TINY_RANDOM:
+        return None
+    return tiny_cogvideox_components(cfg.model.init_seed)
 
 
 def tiny_guidance_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int = TinySizes.latent_channels):
