@@ -1,87 +1,46 @@
-"""Time and memory benchmarks of geco_guide.
+"""Time and memory benchmarks of geco_guide: the thin command line over :mod:`geco_guide.perf`.
 
-Subcommands:
+Subcommands (docs/performance.md says what each measures and how to read it):
 
-* ``loss`` — the fused GeCo loss core (:func:`geco_from_geometry`) forward and forward+backward,
-  geometry and correspondences as random-but-valid leaf tensors requiring grad.
-* ``estimators`` — VGGT ``estimate_geometry`` and UFM ``estimate_flow`` forward and
-  forward+backward (gradient w.r.t. the input frames; parameters frozen), tiny and/or full-size
-  architectures with random weights.
-* ``vae`` — the anchor decode of one guided update (:func:`decode_anchor_frames`: the paper's
-  3-latent causal chunks, equal-length chunks batched in one call) forward and forward+backward
-  w.r.t. the latents, through the CogVideoX-5B VAE (random weights) or the tiny one.
-* ``sampling`` — :class:`GeCoCogVideoXPipeline` sampling without and with GeCo guidance from the
-  same seed (one subprocess per arm): wall time, time per denoising step, a per-stage breakdown
-  of the guided arm (denoiser forward/backward, VAE slice decode forward/backward, VGGT and UFM
-  forward/backward, loss), denoiser pass counts and peak memory. ``--preset tiny`` (tiny random
-  models, 17x32x48) or ``--full-size`` (CogVideoX-5B transformer + VAE, VGGT-1B, UFM-Base, random
-  weights, random ``[1, 226, 4096]`` text embeddings instead of T5, 49x480x720; refused on CPU
-  without ``--allow-cpu``). ``--steps N < 50`` runs the paper's guidance schedule scaled to N
-  steps by the package's rule (:func:`geco_guide.sampler.schedule.scale_schedule`: each phase
-  boundary b moves to ``round(b * N / 50)``; the scheduler's own N-step table) and extrapolates to
-  50 steps and the paper's 111 updates (``extrapolated: true``).
+* ``loss``, ``estimators``, ``vae``: micro-benchmarks of the GeCo loss core, VGGT / UFM and the
+  anchor-chunk VAE decode, forward and forward+backward, one subprocess per case (the internal
+  ``worker`` subcommand), so that each case's peak memory is its own.
+* ``sampling``: guided vs unguided CogVideoX sampling from the same seed (``--preset tiny`` or
+  ``--full-size`` with random weights), wall time, a per-stage breakdown and peak memory.
+* ``cost``: FLOPs, memory and a roofline GPU time of full-size sampling on fake tensors (no
+  weights, no GPU); ``--decoder tiny`` models the tiny decoder decoding the anchor frames.
+* ``decoder-agreement``: one guided generation with both decoders at every update: the gradient
+  cosine, both losses and the anchor frames' PSNR (the tiny decoder's fidelity, measured).
+* ``geco-eval``: the estimator calls and time of scoring one video under each pair mode.
 
-  Stage timing (:class:`StageProfiler`) wraps, on the instances only, ``transformer.forward``,
-  ``vae.decode``, ``geometry_estimator.estimate_geometry`` and ``flow_estimator.estimate_flow``:
-  forward = the call's duration; backward = from the first execution of an output's ``grad_fn``
-  (node pre-hook) to the gradient w.r.t. the last input (an identity autograd function on the
-  inputs). ``loss`` = the guided updates' own seconds (``guidance_log``) minus every stage
-  interval inside them: the GeCo loss math and its backward, resizing, the normalised update.
-  On CUDA every timing point synchronises the device, so CUDA timings include syncs added by
-  the harness.
-
-* ``cost`` — a cost model of sampling, no weights and no GPU needed: the real pipeline call of one
-  step (unguided, or guided with one update of ``--mode``) runs on fake tensors
-  (``FakeTensorMode``; full size: CogVideoX-5B transformer + VAE, VGGT-1B, UFM-Base, 49x480x720)
-  under :class:`CostTracker`, which counts per stage (denoiser with / without gradients, anchor
-  decode, VGGT, UFM, loss, final decode; forward and backward) the FLOPs
-  (``torch.utils.flop_counter`` formulas), bytes moved, ATen ops and the live memory (weights +
-  activations at the peak). The units are combined with the schedule's counts (the real
-  ``guided_step`` driven by counting stubs over R_t and time travel) into whole-run FLOPs, the
-  guided / unguided FLOP ratio, peak memory and a roofline time on H100/H200 (one efficiency,
-  calibrated on the measured unguided H200 step). About a minute per mode on a 2-core CPU.
-
-Every case (one workload in one mode) runs in its own subprocess (the internal ``worker``
-subcommand), so peak memory is per case: ``torch.cuda.max_memory_allocated`` on a GPU, peak RSS
-(``ru_maxrss``) on CPU, reported in total and as the increase over the child's post-import
-baseline; the peak is then restarted after setup, so that the timed runs' own peak over the
-memory in use when they start (activations) is reported too. Each case also records the
-1-minute load average at its start and its CPU time per wall-clock second: on a shared machine
-timings are only comparable at similar CPU shares.
-Results are printed as a Markdown table and written as JSON with ``--json PATH`` (atomically:
-a failed write leaves no partial file). Every option is checked before any work starts; a bad
-one is a single ``error:`` line on stderr and exit code 2.
-
-This file is the command line only. The work lives in :mod:`geco_guide.perf`: ``measure``
-(timing, memory, the per-case subprocess, reports), ``workloads`` (the micro-benchmark cases),
-``profile`` (:class:`StageProfiler`), ``sampling``, ``cost`` (:class:`CostTracker`, the roofline),
-``models`` (the full-size builders, fake tensors) and ``geco_eval``. A new benchmark adds a
-workload builder to :data:`WORKLOADS` and a subcommand that lists its cases.
+Results are printed as Markdown and written as JSON with ``--json PATH`` (atomically). Every option
+is checked before any work starts (:mod:`geco_guide.perf.options`): a bad one is a single
+``error:`` line on stderr and exit code 2.
 
 Examples::
 
     python scripts/benchmark.py loss --frames 4 --height 480 --width 720 --repeats 3
-    python scripts/benchmark.py estimators --size both --frames 2 --height 140 --width 210
     python scripts/benchmark.py vae --size full --height 64 --width 96
     python scripts/benchmark.py sampling --preset tiny --mode faithful --json out.json
     python scripts/benchmark.py sampling --full-size --device cuda --mode fast --steps 10
-    python scripts/benchmark.py cost --mode faithful --json cost.json
+    python scripts/benchmark.py cost --mode fast --decoder tiny --json cost.json
+    python scripts/benchmark.py decoder-agreement --preset tiny --json agreement.json
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from geco_guide.bench.synthetic import default_intrinsics, orbit_cameras
-from geco_guide.config import COGVIDEOX_TEMPORAL_COMPRESSION
+from geco_guide.config import CONFIG_DIR
 from geco_guide.loss.geco import (
     PAIR_MODES,
     GeCoLossConfig,
@@ -90,38 +49,54 @@ from geco_guide.loss.geco import (
 )
 from geco_guide.perf import workloads as perf_workloads
 from geco_guide.perf.cost import (
-    H200_UNGUIDED_STEP_S,
     compare_with_measured,
     cost_report,
     cost_settings,
     cost_table,
-    load_measured,
 )
+from geco_guide.perf.decoder_agreement import agreement_table, decoder_agreement
 from geco_guide.perf.geco_eval import geco_eval_cost, geco_eval_table
 from geco_guide.perf.measure import (
-    RSS_EXACT_MMAP_THRESHOLD,
+    CASE_COLUMNS,
     environment_info,
     markdown_table,
     run_cases,
-    unwritable_reason,
     write_report,
 )
+from geco_guide.perf.options import (
+    OneLineParser,
+    add_common_options,
+    add_cost_parser,
+    add_sampling_parser,
+    check_frames,
+    check_options,
+    frame_count,
+    positive_float,
+    positive_int,
+)
 from geco_guide.perf.sampling import (
-    NOMINAL_STEPS,
-    SAMPLING_MODES,
     run_sampling_worker,
     sampling_report,
     sampling_spec,
     sampling_table,
 )
-from geco_guide.perf.workloads import MODES, Workload, make_step, run_worker
-from geco_guide.sampler.slicing import check_num_frames, check_paired_latent_frames
+from geco_guide.perf.workloads import (
+    Workload,
+    estimator_specs,
+    loss_specs,
+    make_step,
+    run_worker,
+    vae_specs,
+)
 from geco_guide.types import Correspondences, SceneGeometry
 
 #: The child process of every case: this script's internal ``worker`` subcommand.
 WORKER = (sys.executable, str(Path(__file__).resolve()), "worker")
 #: The H200 sampling run whose estimator calls give the per-call times of the GeCo-Eval estimate.
 H200_FAST_RUN = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "sampling_full_h200_fast.json"
+#: The prompt of ``decoder-agreement`` unless ``--prompt`` says otherwise.
+AGREEMENT_PROMPT = "a marble bust on a wooden table, the camera orbiting it slowly"
+
 
 def _smooth_field(shape: tuple[int, ...], height: int, width: int, gen: torch.Generator) -> Tensor:
     """Seeded smooth random field ``[*shape, H, W]`` in ``[0, 1]``: a 6x8 grid upsampled bilinearly."""
@@ -164,165 +139,10 @@ def loss_workload(spec: dict[str, Any], device: torch.device) -> Workload:
 WORKLOADS = {**perf_workloads.WORKLOADS, "loss": loss_workload}
 
 
-# Report columns: header, result key, format.
-COLUMNS: tuple[tuple[str, str, str], ...] = (
-    ("case", "case", "{}"),
-    ("mode", "mode", "{}"),
-    ("input", "input", "{}"),
-    ("network input", "network", "{}"),
-    ("params (M)", "params_m", "{:.1f}"),
-    ("dtype", "dtype", "{}"),
-    ("checkpointing", "checkpointing", "{}"),
-    ("tiling", "tiling", "{}"),
-    ("setup (s)", "setup_s", "{:.1f}"),
-    ("median (s)", "time_median_s", "{:.4g}"),
-    ("min (s)", "time_min_s", "{:.4g}"),
-    ("peak mem (MiB)", "peak_mib", "{:.0f}"),
-    ("after setup (MiB)", "after_setup_mib", "{:.0f}"),
-    ("increase over import (MiB)", "peak_increase_mib", "{:.0f}"),
-    ("runs: peak over in use after setup (MiB)", "run_increase_mib", "{:.0f}"),
-    ("load (1 min)", "load_avg_1m", "{:.1f}"),
-    ("CPU/wall", "cpu_per_wall", "{:.2f}"),
-)
-
-
-# ----------------------------------------------------------------------------------------------
-# Option types and checks: every bad option is one line before any work
-# ----------------------------------------------------------------------------------------------
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """An argument parser whose errors are one line (``prog: error: ...``), exit code 2."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
-
-
-def fail(message: str) -> None:
-    """Stop with one ``error:`` line and exit code 2, as an argparse error."""
-    print(f"benchmark.py: error: {message}", file=sys.stderr)
-    raise SystemExit(2)
-
-
-def _int_at_least(minimum: int) -> Any:
-    def parse(value: str) -> int:
-        try:
-            number = int(value)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"must be an integer, got {value!r}") from None
-        if number < minimum:
-            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {number}")
-        return number
-
-    parse.__name__ = f"integer >= {minimum}"
-    return parse
-
-
-positive_int, non_negative_int = _int_at_least(1), _int_at_least(0)
-#: GeCo and UFM need at least one pair; a causal chunk at least two latents.
-frame_count, chunk_latents = _int_at_least(2), _int_at_least(2)
-
-
-def positive_float(value: str) -> float:
-    """argparse type: a finite number > 0 (``nan`` and ``inf`` are refused)."""
-    try:
-        number = float(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number, got {value!r}") from None
-    if not math.isfinite(number) or number <= 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {value}")
-    return number
-
-
-def check_device(device: str) -> None:
-    try:
-        kind = torch.device(device).type
-    except (RuntimeError, ValueError):
-        fail(f"--device {device!r} is not a torch device (e.g. cpu, cuda, cuda:1)")
-    if kind == "cuda" and not torch.cuda.is_available():
-        fail(f"--device {device}: no CUDA GPU is available here (use --device cpu)")
-
-
-def check_frames(frames: int, guided: bool) -> None:
-    """The CogVideoX VAE makes 4k+1 frames, and with guidance (anchors decoded in latent pairs) 8k+1."""
-    try:
-        (check_paired_latent_frames if guided else check_num_frames)(frames, COGVIDEOX_TEMPORAL_COMPRESSION)
-    except ValueError as err:
-        fail(f"--frames: {err}")
-
-
-def check_options(args: argparse.Namespace) -> None:
-    """The checks argparse cannot make alone; run before any work."""
-    if getattr(args, "device", None) is not None:
-        check_device(args.device)
-    if getattr(args, "json", None):
-        reason = unwritable_reason(args.json)
-        if reason:
-            fail(f"--json: {reason}")
-    if args.command == "vae":
-        check_frames(args.frames, guided=False)
-    elif args.command == "sampling":
-        if args.full_size and torch.device(args.device).type == "cpu" and not args.allow_cpu:
-            fail("sampling --full-size on CPU is refused: CogVideoX-5B + VGGT-1B + UFM-Base weights alone are "
-                 "about 30 GiB in float32 (7.4 G parameters) and a 49x480x720 step would take hours; run it on a "
-                 "GPU (--device cuda) or pass --allow-cpu to insist.")
-        if args.steps is not None and not 1 <= args.steps <= NOMINAL_STEPS:
-            fail(f"--steps must be in [1, {NOMINAL_STEPS}], got {args.steps}")
-        if args.frames is not None:
-            check_frames(args.frames, guided=args.mode != "unguided")
-    elif args.command == "cost":
-        if args.steps is not None and args.steps < 1:
-            fail(f"--steps must be >= 1, got {args.steps}")
-        if args.frames is not None:
-            check_frames(args.frames, guided=args.mode != "unguided")
-        if args.measured:
-            try:
-                args.measured_report = load_measured(args.measured)
-            except ValueError as err:
-                fail(str(err))
-
-
-# ----------------------------------------------------------------------------------------------
-# Subcommands
-# ----------------------------------------------------------------------------------------------
-
-
-def common_spec(args: argparse.Namespace) -> dict[str, Any]:
-    """Options every case shares."""
-    return {"device": args.device, "threads": args.threads, "warmup": args.warmup,
-            "repeats": args.repeats, "seed": args.seed, "rss_exact": args.rss_exact}
-
-
-def loss_specs(args: argparse.Namespace) -> list[dict[str, Any]]:
-    """Cases of ``loss``: the GeCo loss core, forward and forward+backward."""
-    base = {**common_spec(args), "workload": "loss", "case": "geco_from_geometry",
-            "frames": args.frames, "height": args.height, "width": args.width, "pairs": args.pairs}
-    return [{**base, "mode": mode} for mode in MODES]
-
-
-def vae_specs(args: argparse.Namespace) -> list[dict[str, Any]]:
-    """Cases of ``vae``: the anchor-chunk decode, forward and forward+backward."""
-    base = {**common_spec(args), "workload": "vae", "case": f"vae-{args.size}", "size": args.size,
-            "frames": args.frames, "height": args.height, "width": args.width, "dtype": args.dtype,
-            "vae_checkpointing": args.vae_checkpointing, "vae_tiling": args.vae_tiling}
-    return [{**base, "mode": mode} for mode in MODES]
-
-
-def estimator_specs(args: argparse.Namespace) -> list[dict[str, Any]]:
-    """Cases of ``estimators``: VGGT and UFM per size, forward and forward+backward."""
-    sizes = ("tiny", "full") if args.size == "both" else (args.size,)
-    base = {**common_spec(args), "frames": args.frames, "height": args.height, "width": args.width,
-            "dtype": args.dtype}
-    return [
-        {**base, "workload": model, "case": f"{model}-{size}", "size": size, "mode": mode}
-        for size in sizes for model in ("vggt", "ufm") for mode in MODES
-    ]
-
-
 def run_and_report(args: argparse.Namespace) -> None:
     """Run the subcommand's cases, print the Markdown table and write the JSON report."""
     results = run_cases(args.specs(args), WORKER)
-    print(markdown_table(results, COLUMNS))
+    print(markdown_table(results, CASE_COLUMNS))
     if args.json:
         write_report(args.json, {"subcommand": args.command, "argv": sys.argv[1:],
                                  "environment": environment_info(results[0]["threads"]), "results": results})
@@ -355,11 +175,20 @@ def run_cost(args: argparse.Namespace) -> None:
         chunk_latents=args.chunk_latents, vae_checkpointing=_on_off(args.vae_checkpointing),
         denoiser_checkpointing=_on_off(args.denoiser_checkpointing),
         estimator_checkpointing=args.estimator_checkpointing, vae_tiling=args.vae_tiling,
-        calibration_step_s=args.calibration_step_s)
+        calibration_step_s=args.calibration_step_s, decoder=args.decoder)
     report = cost_report(settings, args.mode, sys.argv[1:])
     if args.measured:
         report["validation"] = compare_with_measured(report, args.measured_report, args.measured)
     print(cost_table(report))
+    if args.json:
+        write_report(args.json, report)
+
+
+def run_decoder_agreement(args: argparse.Namespace) -> None:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    report = decoder_agreement(args.cfg, args.prompt, sys.argv[1:])
+    print(agreement_table(report))
     if args.json:
         write_report(args.json, report)
 
@@ -374,28 +203,9 @@ def run_geco_eval_cost(args: argparse.Namespace) -> None:
         write_report(args.json, report)
 
 
-def _add_common_options(parser: argparse.ArgumentParser, repeats: int) -> None:
-    parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (default: cpu)")
-    parser.add_argument("--threads", type=positive_int, default=None,
-                        help="torch.set_num_threads in every case (default: torch's default)")
-    parser.add_argument("--warmup", type=non_negative_int, default=1, help="untimed runs before timing (default: 1)")
-    parser.add_argument("--repeats", type=positive_int, default=repeats, help=f"timed runs (default: {repeats})")
-    parser.add_argument("--seed", type=int, default=0, help="seed of weights and inputs (default: 0)")
-    parser.add_argument("--json", metavar="PATH", help="also write the results as JSON to PATH")
-    _add_rss_exact_option(parser)
-
-
-def _add_rss_exact_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--rss-exact", action="store_true",
-                        help="CPU memory: run the workers with glibc's MALLOC_MMAP_THRESHOLD_="
-                             f"{RSS_EXACT_MMAP_THRESHOLD}, so that freed tensors leave the resident set at once "
-                             "and peak RSS follows the live tensors (slower: every allocation maps fresh pages)")
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The CLI: the benchmark subcommands and the internal ``worker``."""
-    parser = OneLineParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
     loss = sub.add_parser("loss", help="GeCo loss core (geco_from_geometry) forward / forward+backward")
@@ -403,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     loss.add_argument("--height", type=positive_int, default=480, help="frame height (default: 480)")
     loss.add_argument("--width", type=positive_int, default=720, help="frame width (default: 720)")
     loss.add_argument("--pairs", choices=PAIR_MODES, default="adjacent", help="frame pairs (default: adjacent)")
-    _add_common_options(loss, repeats=3)
+    add_common_options(loss, repeats=3)
     loss.set_defaults(specs=loss_specs)
 
     est = sub.add_parser("estimators", help="VGGT and UFM forward / forward+backward w.r.t. the frames")
@@ -415,7 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
     est.add_argument("--width", type=positive_int, default=210, help="input frame width (default: 210)")
     est.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32",
                      help="storage dtype of the ViT trunks (trunk_to); heads stay float32 (default: float32)")
-    _add_common_options(est, repeats=3)
+    add_common_options(est, repeats=3)
     est.set_defaults(specs=estimator_specs)
 
     vae = sub.add_parser("vae", help="the anchor-chunk VAE decode of one guided update, forward / forward+backward")
@@ -431,75 +241,23 @@ def build_parser() -> argparse.ArgumentParser:
                           "block checkpointing inside")
     vae.add_argument("--vae-tiling", action="store_true",
                      help="vae.enable_tiling with tiles of half the video size, as at 480x720")
-    _add_common_options(vae, repeats=1)
+    add_common_options(vae, repeats=1)
     vae.set_defaults(specs=vae_specs)
 
-    samp = sub.add_parser("sampling", help="guided vs unguided CogVideoX sampling, same seed, per-stage breakdown")
-    size = samp.add_mutually_exclusive_group()
-    size.add_argument("--preset", choices=("tiny",), default="tiny",
-                      help="tiny random models (default; 17 frames of 32x48, runs anywhere)")
-    size.add_argument("--full-size", action="store_true",
-                      help="CogVideoX-5B transformer + VAE, VGGT-1B, UFM-Base with random weights, 49x480x720")
-    samp.add_argument("--mode", choices=SAMPLING_MODES, default="faithful",
-                      help="faithful: backprop through the denoiser (paper); fast: denoiser output held "
-                           "constant; unguided: only the unguided arm (default: faithful)")
-    samp.add_argument("--steps", type=int, default=None,
-                      help=f"denoising steps run (default {NOMINAL_STEPS}); fewer scale the paper schedule "
-                           f"and extrapolate the times to {NOMINAL_STEPS} steps")
-    samp.add_argument("--frames", type=positive_int, default=None, help="frames (default: 17 tiny, 49 full size)")
-    samp.add_argument("--height", type=positive_int, default=None, help="height (default: 32 tiny, 480 full size)")
-    samp.add_argument("--width", type=positive_int, default=None, help="width (default: 48 tiny, 720 full size)")
-    samp.add_argument("--dtype", choices=("bfloat16", "float32"), default=None,
-                      help="transformer/VAE dtype; estimators autocast to it (default: bfloat16 for full size "
-                           "on CUDA, else float32)")
-    samp.add_argument("--estimator-checkpointing", action="store_true",
-                      help="gradient checkpointing in VGGT and UFM (less memory, more backward time)")
-    samp.add_argument("--vae-tiling", action="store_true",
-                      help="full size: the VAE's spatial tiles (generate's model.vae_tiling), both arms")
-    samp.add_argument("--chunk-latents", type=chunk_latents, default=None,
-                      help="latents per anchor chunk (default: the paper's 3; 2 decodes 5 frames per anchor instead of 9)")
-    samp.add_argument("--no-denoiser-checkpointing", action="store_true",
-                      help="faithful mode: backpropagate through the transformer without gradient checkpointing "
-                           "(guidance.gradient_checkpointing=false: one forward less per update, more memory)")
-    samp.add_argument("--allow-cpu", action="store_true",
-                      help="allow --full-size on CPU (the weights alone are ~30 GiB in float32)")
-    samp.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (default: cpu)")
-    samp.add_argument("--threads", type=positive_int, default=None, help="torch.set_num_threads in both arms")
-    samp.add_argument("--warmup", type=non_negative_int, default=1,
-                      help="untimed 2-step calls of the same arm before the timed one (default: 1)")
-    samp.add_argument("--seed", type=int, default=0, help="seed of weights, text embeddings and noise (default: 0)")
-    samp.add_argument("--json", metavar="PATH", help="also write the report as JSON to PATH")
-    _add_rss_exact_option(samp)
+    add_sampling_parser(sub)
+    add_cost_parser(sub)
 
-    cost = sub.add_parser("cost", help="FLOPs, memory and a roofline time of sampling at full size, on fake tensors "
-                                       "(no weights, no GPU)")
-    cost.add_argument("--preset", choices=("full", "tiny"), default="full",
-                      help="full: CogVideoX-5B, VGGT-1B, UFM-Base at 49x480x720 (default); tiny: the tiny pipeline")
-    cost.add_argument("--mode", choices=SAMPLING_MODES, default="faithful",
-                      help="guided mode to model beside the unguided run (default: faithful)")
-    cost.add_argument("--steps", type=int, default=None, help="denoising steps (default: 50 full, 4 tiny)")
-    cost.add_argument("--frames", type=positive_int, default=None, help="frames (default: 49 full, 17 tiny)")
-    cost.add_argument("--height", type=positive_int, default=None, help="height (default: 480 full, 32 tiny)")
-    cost.add_argument("--width", type=positive_int, default=None, help="width (default: 720 full, 48 tiny)")
-    cost.add_argument("--dtype", choices=("bfloat16", "float32"), default=None,
-                      help="transformer/VAE dtype and the estimators' trunks (default: bfloat16 full, float32 tiny)")
-    cost.add_argument("--chunk-latents", type=chunk_latents, default=None, help="latents per anchor chunk (default: the preset's)")
-    cost.add_argument("--vae-checkpointing", choices=("on", "off"), default=None,
-                      help="guidance.vae_checkpointing (default: the preset's: on full, off tiny)")
-    cost.add_argument("--denoiser-checkpointing", choices=("on", "off"), default=None,
-                      help="guidance.gradient_checkpointing (default: the preset's: on full, off tiny)")
-    cost.add_argument("--estimator-checkpointing", action="store_true", help="VGGT and UFM gradient checkpointing")
-    cost.add_argument("--vae-tiling", action="store_true", help="the VAE's spatial tiles (model.vae_tiling)")
-    cost.add_argument("--no-time-travel", action="store_true", help="the schedule without its time-travel window")
-    cost.add_argument("--paper-schedule", action="store_true",
-                      help="tiny preset: the paper's 50-step schedule instead of the tiny 4-step one (as `sampling`)")
-    cost.add_argument("--calibration-step-s", type=positive_float, default=H200_UNGUIDED_STEP_S,
-                      help=f"measured seconds of one unguided CFG step on the H200 (default {H200_UNGUIDED_STEP_S})")
-    cost.add_argument("--measured", metavar="JSON",
-                      help="a `sampling` report of the same settings on an H200: add predicted vs measured")
-    cost.add_argument("--threads", type=positive_int, default=None, help="torch.set_num_threads")
-    cost.add_argument("--seed", type=int, default=0, help="seed (shapes only; default: 0)")
-    cost.add_argument("--json", metavar="PATH", help="also write the report as JSON to PATH")
+    agree = sub.add_parser("decoder-agreement", help="both decoders at every guidance update of one guided call: "
+                                                     "gradient cosine, losses, anchor-frame PSNR")
+    presets = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+    agree.add_argument("--preset", choices=presets, default=None,
+                       help="a preset of configs/ (tiny: the tiny random models, offline); default: the schema's")
+    agree.add_argument("--config", metavar="YAML", default=None, help="a config file over the preset")
+    agree.add_argument("--prompt", default=AGREEMENT_PROMPT, help="the prompt (default: a marble bust, orbiting)")
+    agree.add_argument("--threads", type=positive_int, default=None, help="torch.set_num_threads")
+    agree.add_argument("--json", metavar="PATH", help="also write the report as JSON to PATH")
+    agree.add_argument("overrides", nargs="*", metavar="key=value",
+                       help="config overrides, e.g. estimators.tiny_decoder=/path/to/taecvx.pth guidance.decoder=tiny")
 
     geval = sub.add_parser("geco-eval", help="estimator calls and time of scoring one video under each pair mode "
                                              "(tiny on CPU, estimated at full size on an H200)")
@@ -532,6 +290,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         run_sampling(args)
     elif args.command == "cost":
         run_cost(args)
+    elif args.command == "decoder-agreement":
+        run_decoder_agreement(args)
     elif args.command == "geco-eval":
         run_geco_eval_cost(args)
     else:

@@ -217,7 +217,7 @@ def cost_guidance(settings: dict[str, Any], mode: str, repeats: str, time_travel
                if settings.get(k) is not None}
     anchors = default_anchors(settings["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
     return replace(base, anchors=anchors, repeats=repeats, time_travel=time_travel,
-                   denoiser_grad=mode == "faithful",
+                   denoiser_grad=mode == "faithful", decoder=settings.get("decoder", "vae"),
                    chunk_latents=changes.get("chunk_latents", base.chunk_latents),
                    vae_checkpointing=changes.get("vae_checkpointing", base.vae_checkpointing),
                    gradient_checkpointing=changes.get("denoiser_checkpointing", base.gradient_checkpointing))
@@ -255,13 +255,15 @@ def trace_cost(settings: dict[str, Any], mode: str) -> dict[str, Any]:
     fake_mode = FakeTensorMode(allow_non_fake_inputs=True)
     pipe, call = build_cost_pipeline(settings, fake_mode)
     models = {name: getattr(pipe, name, None) for name in
-              ("transformer", "vae", "geometry_estimator", "flow_estimator", "text_encoder")}
+              ("transformer", "vae", "geometry_estimator", "flow_estimator", "text_encoder", "guidance_decoder")}
     weights = [t for m in models.values() if isinstance(m, torch.nn.Module) for t in [*m.parameters(), *m.buffers()]]
     tracker = CostTracker(static=weights)
 
     tracker.wrap(pipe.transformer, "forward", lambda: "denoiser" if torch.is_grad_enabled() else "denoiser_cfg")
     tracker.wrap(pipe.vae, "decode", lambda: "final_decode" if "final_decode" in tracker.stack else "anchor_decode")
     tracker.wrap(pipe, "decode_latents", "final_decode")
+    if pipe.guidance_decoder is not None:
+        tracker.wrap(pipe.guidance_decoder, "decode", "anchor_decode")
     if mode != "unguided":
         tracker.wrap(pipe.geometry_estimator, "estimate_geometry", "vggt")
         tracker.wrap(pipe.flow_estimator, "estimate_flow", "ufm")
@@ -387,8 +389,11 @@ def cost_settings(*, preset: str, steps: int | None, frames: int | None, height:
                   dtype: str | None, no_time_travel: bool = False, paper_schedule: bool = False, seed: int = 0,
                   chunk_latents: int | None = None, vae_checkpointing: bool | None = None,
                   denoiser_checkpointing: bool | None = None, estimator_checkpointing: bool = False,
-                  vae_tiling: bool = False, calibration_step_s: float = H200_UNGUIDED_STEP_S) -> dict[str, Any]:
+                  vae_tiling: bool = False, calibration_step_s: float = H200_UNGUIDED_STEP_S,
+                  decoder: str = "vae") -> dict[str, Any]:
     """The settings of a cost report, the presets' defaults filled in (``None``: the preset's).
+    ``decoder`` decodes the anchor frames (``guidance.decoder``): the VAE, or ``tiny``: the TAEHV
+    tiny decoder of the published widths (random weights on fake tensors, like every model here).
 
     Full size: 49x480x720 bfloat16, the paper's 50-step schedule. Tiny: 17x32x48 float32 and the
     tiny preset's 4-step schedule, or the paper's 50-step one with ``paper_schedule``.
@@ -411,7 +416,7 @@ def cost_settings(*, preset: str, steps: int | None, frames: int | None, height:
             "repeats": repeats, "time_travel": None if no_time_travel else time_travel, "seed": seed,
             "chunk_latents": chunk_latents, "vae_checkpointing": vae_checkpointing,
             "denoiser_checkpointing": denoiser_checkpointing, "estimator_checkpointing": estimator_checkpointing,
-            "vae_tiling": vae_tiling, "calibration_step_s": calibration_step_s, "guidance_scale": 6.0,
+            "vae_tiling": vae_tiling, "decoder": decoder, "calibration_step_s": calibration_step_s, "guidance_scale": 6.0,
             "note": "shape-only: fake tensors (FakeTensorMode), no weights; estimator trunks in dtype, heads float32"}
 
 

@@ -157,6 +157,28 @@ def _cpu_model() -> str:
     return platform.processor()
 
 
+#: Columns of the micro-benchmarks' table: header, result key, format.
+CASE_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("case", "case", "{}"),
+    ("mode", "mode", "{}"),
+    ("input", "input", "{}"),
+    ("network input", "network", "{}"),
+    ("params (M)", "params_m", "{:.1f}"),
+    ("dtype", "dtype", "{}"),
+    ("checkpointing", "checkpointing", "{}"),
+    ("tiling", "tiling", "{}"),
+    ("setup (s)", "setup_s", "{:.1f}"),
+    ("median (s)", "time_median_s", "{:.4g}"),
+    ("min (s)", "time_min_s", "{:.4g}"),
+    ("peak mem (MiB)", "peak_mib", "{:.0f}"),
+    ("after setup (MiB)", "after_setup_mib", "{:.0f}"),
+    ("increase over import (MiB)", "peak_increase_mib", "{:.0f}"),
+    ("runs: peak over in use after setup (MiB)", "run_increase_mib", "{:.0f}"),
+    ("load (1 min)", "load_avg_1m", "{:.1f}"),
+    ("CPU/wall", "cpu_per_wall", "{:.2f}"),
+)
+
+
 def markdown_table(results: Sequence[dict[str, Any]], columns: Sequence[tuple[str, str, str]]) -> str:
     """A Markdown table of ``results``, one row each; ``columns`` are ``(header, key, format)``;
     missing values are shown as ``-``."""

@@ -13,6 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..estimators.tiny_decoder import TinyDecoder
 from ..estimators.ufm import UFM, UFMConfig
 from ..estimators.vggt import VGGT, VGGTConfig
 
@@ -180,7 +181,12 @@ def build_cost_pipeline(settings: dict[str, Any], fake_mode: Any) -> tuple[Any, 
     if settings["preset"] == "tiny":
         from ..tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_pipeline
 
-        pipe = tiny_pipeline(settings["seed"]).to(dtype=dtype)
+        pipe = tiny_pipeline(settings["seed"])
+        if settings.get("decoder") == "tiny":
+            from ..tiny import tiny_guidance_decoder
+
+            pipe.register_modules(guidance_decoder=tiny_guidance_decoder("cogvideox", settings["seed"]))
+        pipe.to(dtype=dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
     else:
         ckpt = settings["estimator_checkpointing"]
@@ -189,10 +195,12 @@ def build_cost_pipeline(settings: dict[str, Any], fake_mode: Any) -> tuple[Any, 
             flow = UFM(UFMConfig(), gradient_checkpointing=ckpt)
         geometry.trunk_to(dtype).eval()
         flow.trunk_to(dtype).eval()
+        with torch.device("meta"):
+            decoder = TinyDecoder("cogvideox").to(dtype).requires_grad_(False) if settings.get("decoder") == "tiny" else None
         pipe = GeCoCogVideoXPipeline(**build_full_size_components("meta", dtype, settings["seed"]),
-                                     geometry_estimator=geometry, flow_estimator=flow)
+                                     geometry_estimator=geometry, flow_estimator=flow, guidance_decoder=decoder)
         call = {"max_sequence_length": TEXT_EMBED_SHAPE[1]}
-    for name in ("text_encoder", "transformer", "vae", "geometry_estimator", "flow_estimator"):
+    for name in ("text_encoder", "transformer", "vae", "geometry_estimator", "flow_estimator", "guidance_decoder"):
         model = getattr(pipe, name, None)
         if isinstance(model, torch.nn.Module):
             to_fake(model, fake_mode)

@@ -303,6 +303,12 @@ SAMPLING_COLUMNS: tuple[tuple[str, str, str], ...] = (
 )
 
 
+#: Printed under a tiny run's ratio: its models are too small for the ratio to mean anything at full size.
+TINY_RATIO_NOTE = ("note: the tiny random models make this ratio meaningless for full size (their denoiser is "
+                   "nearly free, so the estimators and the decode dominate); `scripts/benchmark.py cost` predicts "
+                   "the full-size run.")
+
+
 def sampling_table(report: dict[str, Any]) -> str:
     """Markdown table of the arms (measured; the extrapolated rows are marked ``(extrap.)``)."""
     rows = []
@@ -316,6 +322,8 @@ def sampling_table(report: dict[str, Any]) -> str:
                      "time_per_step_s": ext["time_per_step_s"][arm], **{k: v for k, v in b.items() if k != "counts"}})
     ratio = report["ratio_guided_over_unguided"]
     footer = f"\nguided / unguided wall time: {ratio:.3g} ({report['ratio_basis']})" if ratio else ""
+    if ratio and report.get("preset") == "tiny":
+        footer += f"\n{TINY_RATIO_NOTE}"
     return markdown_table(rows, SAMPLING_COLUMNS) + footer
 
 

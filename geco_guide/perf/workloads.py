@@ -208,3 +208,38 @@ def run_worker(spec: dict[str, Any], workloads: Mapping[str, WorkloadBuilder] = 
         "run_increase_mib": (run_peak - in_use) / MIB if reset else None,
         "load_avg_1m": load_avg_1m,
     }
+
+
+# ---- the cases of each micro-benchmark subcommand (from its parsed options) ----------------------
+
+
+def common_spec(args: Any) -> dict[str, Any]:
+    """Options every case shares."""
+    return {"device": args.device, "threads": args.threads, "warmup": args.warmup,
+            "repeats": args.repeats, "seed": args.seed, "rss_exact": args.rss_exact}
+
+
+def loss_specs(args: Any) -> list[dict[str, Any]]:
+    """Cases of ``loss``: the GeCo loss core, forward and forward+backward."""
+    base = {**common_spec(args), "workload": "loss", "case": "geco_from_geometry",
+            "frames": args.frames, "height": args.height, "width": args.width, "pairs": args.pairs}
+    return [{**base, "mode": mode} for mode in MODES]
+
+
+def vae_specs(args: Any) -> list[dict[str, Any]]:
+    """Cases of ``vae``: the anchor-chunk decode, forward and forward+backward."""
+    base = {**common_spec(args), "workload": "vae", "case": f"vae-{args.size}", "size": args.size,
+            "frames": args.frames, "height": args.height, "width": args.width, "dtype": args.dtype,
+            "vae_checkpointing": args.vae_checkpointing, "vae_tiling": args.vae_tiling}
+    return [{**base, "mode": mode} for mode in MODES]
+
+
+def estimator_specs(args: Any) -> list[dict[str, Any]]:
+    """Cases of ``estimators``: VGGT and UFM per size, forward and forward+backward."""
+    sizes = ("tiny", "full") if args.size == "both" else (args.size,)
+    base = {**common_spec(args), "frames": args.frames, "height": args.height, "width": args.width,
+            "dtype": args.dtype}
+    return [
+        {**base, "workload": model, "case": f"{model}-{size}", "size": size, "mode": mode}
+        for size in sizes for model in ("vggt", "ufm") for mode in MODES
+    ]

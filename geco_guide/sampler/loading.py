@@ -196,14 +196,19 @@ def load_tiny_decoder(cfg: Any) -> Any:
         raise with_config_key(err, "estimators.tiny_decoder", "/path/to/taecvx.pth") from None
 
 
+def tiny_decoder_note(decoder: Any, init_seed: int) -> str:
+    """Which tiny decoder this is, for the run's record: its variant and the file it came from."""
+    origin = decoder.checkpoint_file or f"{TINY_RANDOM}(seed={init_seed})"
+    return f"TinyDecoder({decoder.variant.name}) from {origin}"
+
+
 def decoder_note(pipe: Any, cfg: Any) -> str:
     """What decodes the loss' anchor frames, for the run's record: the VAE, or the tiny decoder
-    and the file it was loaded from."""
+    (:func:`tiny_decoder_note`)."""
     decoder = getattr(pipe, "guidance_decoder", None)
     if cfg.guidance.decoder != "tiny" or decoder is None:
         return "vae (the model's own)"
-    origin = decoder.checkpoint_file or f"{TINY_RANDOM}(seed={cfg.estimators.init_seed})"
-    return f"TinyDecoder({decoder.variant.name}) from {origin}"
+    return tiny_decoder_note(decoder, cfg.estimators.init_seed)
 
 
 def build_pipeline(cfg: Any, components: dict[str, Any] | None = None, *, tiny_decoder: bool | None = None):
