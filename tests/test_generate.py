@@ -217,8 +217,12 @@ def test_out_paths_that_cannot_be_written_are_one_line_before_loading(tmp_path: 
         read_only.chmod(0o755)
 
     assert _run(tmp_path / "long", "output.name=" + "n" * 300) == 2
-    assert "bytes, over the" in _error_line(capsys)
-    assert not (tmp_path / "long").exists()
+    assert "the name is 304 bytes, over the" in _error_line(capsys)
+    assert _run(tmp_path / "long", "output.name=" + "n" * 250) == 2  # fits, but its temporary would not
+    assert "the name is 254 bytes" in _error_line(capsys)
+    assert _run(tmp_path / ("d" * 300) / "run.mp4") == 2
+    assert "the folder name 'dddddddddddddddddddddddd'... is 300 bytes" in _error_line(capsys)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["read-only", "x.mp4"]
 
 
 def test_a_failed_sidecar_write_leaves_no_video_without_its_sidecar(tmp_path: Path, capsys, monkeypatch, stub_loading):

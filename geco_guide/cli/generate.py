@@ -131,10 +131,7 @@ def _suffix_problem(out: Path) -> str:
 
 def _nearest_existing(path: Path) -> Path:
     """``path``'s nearest ancestor that exists (the folder an atomic write would create the rest in)."""
-    for parent in path.parents:
-        if parent.exists():
-            return parent
-    return Path.cwd()
+    return next((parent for parent in path.parents if os.path.exists(parent)), Path.cwd())
 
 
 def _name_max(folder: Path) -> int:
@@ -144,27 +141,38 @@ def _name_max(folder: Path) -> int:
         return 255
 
 
+def _name_problem(path: Path, existing: Path) -> str | None:
+    """Why a name of ``path`` below ``existing`` is too long for the file system (the file's with
+    the temporary name its atomic write uses), or None."""
+    limit = _name_max(existing)
+    too_long = next((part for part in path.parent.parts[len(existing.parts):] if len(part.encode()) > limit), None)
+    if too_long is not None:
+        return (f"the folder name {too_long[:24]!r}... is {len(too_long.encode())} bytes, over the {limit} this "
+                "file system allows")
+    if len(path.name.encode()) + TEMP_NAME_EXTRA > limit:
+        return (f"the name is {len(path.name.encode())} bytes, over the {limit - TEMP_NAME_EXTRA} this file system "
+                "allows (a shorter output.name or --out)")
+    return None
+
+
 def check_outputs(paths: tuple[Path, ...], overwrite: bool = False) -> None:
     """ValueError (one line) for anything that would make writing ``paths`` fail after sampling:
-    a file where a folder must be, a folder or (without ``overwrite``) a file under an output's
-    name, a folder that cannot be written, a name too long for the file system (with the
-    temporary name its atomic write uses)."""
+    a name too long for the file system, a file where a folder must be, a folder or (without
+    ``overwrite``) a file under an output's name, a folder that cannot be written."""
     for path in paths:
         existing = _nearest_existing(path)
-        if not existing.is_dir():
-            raise ValueError(f"cannot write {str(path)!r}: {str(existing)!r} is a file, not a folder")
-        if path.is_dir():
-            raise ValueError(f"cannot write {str(path)!r}: a folder of that name is in the way")
+        problem = _name_problem(path, existing)
+        if problem is None and not existing.is_dir():
+            problem = f"{str(existing)!r} is a file, not a folder"
+        if problem is None and path.is_dir():
+            problem = "a folder of that name is in the way"
+        if problem is None and not os.access(existing, os.W_OK | os.X_OK):
+            problem = f"the folder {str(existing)!r} is not writable"
+        if problem is not None:
+            raise ValueError(f"cannot write {str(path)!r}: {problem}")
         if path.exists() and not overwrite:
             raise ValueError(f"{str(path)!r} already exists; pass --overwrite to replace it, or choose another "
                              "--out or output.name")
-        if not os.access(existing, os.W_OK | os.X_OK):
-            raise ValueError(f"cannot write {str(path)!r}: the folder {str(existing)!r} is not writable")
-        longest = len(path.name.encode()) + TEMP_NAME_EXTRA
-        limit = _name_max(existing)
-        if longest > limit:
-            raise ValueError(f"cannot write {str(path)!r}: the name is {len(path.name.encode())} bytes, over the "
-                             f"{limit - TEMP_NAME_EXTRA} this file system allows (a shorter output.name or --out)")
 
 
 @contextlib.contextmanager
