@@ -61,10 +61,11 @@ class GuidanceConfig:
         grad_eps: ``eps`` of the normalised update.
         decoder: what decodes the anchor frames for the loss: ``vae`` (the model's own VAE,
             exact) or ``tiny`` (an approximation: a :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder`
-            trained on the model's latents, a few percent of the VAE's cost; its chunks are
-            :data:`~geco_guide.estimators.tiny_decoder.CONTEXT_LATENTS` long). The final video
-            always comes from the VAE. See docs/performance.md for what it saves and how to
-            measure what it costs in fidelity.
+            trained on the model's latents, about 4 % of the VAE's FLOPs per update at 480x720;
+            its chunks are :data:`~geco_guide.estimators.tiny_decoder.CONTEXT_LATENTS` long),
+            whose weights a config names in ``estimators.tiny_decoder``. The final video always
+            comes from the VAE. See docs/performance.md for what it saves (predicted) and how
+            to measure what it costs in fidelity (``scripts/benchmark.py decoder-agreement``).
         loss: the GeCo loss options (default :func:`~geco_guide.loss.presets.guidance_loss`); the
             structure cue only gives gradients with ``loss.geometry_grad=True``, since it depends
             on the frames only through the geometry estimator: ``cue="structure"`` with

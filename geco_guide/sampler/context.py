@@ -64,7 +64,8 @@ def anchor_decoder(config: GuidanceConfig, vae_decode: Callable[[Tensor], Tensor
     if guidance_decoder is None:
         raise ValueError(
             "guidance.decoder='tiny' needs a tiny decoder: pass guidance_decoder=TinyDecoder.from_pretrained(PATH) "
-            "(weights such as taecvx.pth from github.com/madebyollin/taehv), or use guidance.decoder=vae"
+            "(weights such as taecvx.pth from github.com/madebyollin/taehv; from a config: "
+            "estimators.tiny_decoder=/path/to/taecvx.pth), or use guidance.decoder=vae"
         )
     channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)  # CogVideoX, Wan
     if channels is not None and guidance_decoder.latent_channels != channels:
