@@ -395,3 +395,19 @@ def test_a_nan_decode_by_the_tiny_decoder_skips_the_update_and_leaves_the_latent
         assert any(e["time_travel"] for e in log)
     else:  # every update skipped: the latents are those of the same schedule without updates
         assert torch.equal(out.frames, run(guided, seed=5, output_type="latent", guidance=False).frames)
+
+
+def test_an_update_with_a_nan_loss_moves_nothing_even_with_a_finite_gradient():
+    z = torch.randn(1, 3, 2, 4, 4)
+    v = torch.randn_like(z)
+    levels = VPLevels(torch.tensor(0.3, dtype=torch.float64), torch.tensor(0.6, dtype=torch.float64))
+
+    def nan_loss(x0):
+        return loss_terms(x0.sum() + float("nan"))  # its gradient is finite: ones
+
+    updates = []
+    guided, _ = guided_step(z, lambda z, grad: v, levels, nan_loss, 2, eta=1.0, on_update=updates.append)
+    assert torch.equal(guided, z)
+    assert [bool(u.terms["finite"]) for u in updates] == [False, False]
+    moved, _ = guided_step(z, lambda z, grad: v, levels, squared(), 1, eta=1.0)
+    assert not torch.equal(moved, z)  # a finite loss does move it

@@ -44,7 +44,7 @@ class Update:
         repeat: index of the update within the step.
         terms: 0-dim tensors: the objective's (``loss``; ``motion``, ``structure``, ``fused`` for a
             GeCo result), ``grad_norm`` (``||g||``, the batch mean) and ``finite`` (False: the
-            gradient was not finite and the update was skipped).
+            loss or the gradient was not finite and the update was skipped).
         started: ``time.perf_counter()`` at its start.
         time_travel: whether it was a time-travel update.
     """
@@ -146,8 +146,9 @@ def guided_step(
             loss, terms = objective(x0)
             (grad,) = torch.autograd.grad(loss, z_in, allow_unused=True)
         grad = torch.zeros_like(z) if grad is None else grad
-        # A NaN gradient must never reach the latents; torch.where keeps the check on the device.
-        finite = torch.isfinite(grad).all()
+        # A NaN gradient must never reach the latents, nor a finite one of a NaN loss (a garbage
+        # objective); torch.where keeps the check on the device.
+        finite = torch.isfinite(grad).all() & torch.isfinite(loss.detach()).all()
         grad = torch.where(finite, grad, torch.zeros_like(grad))
         z_new, norm = normalized_update(z, grad, eta, eps)
         if time_travel:
