@@ -721,9 +721,10 @@ def take_lock(out: Path) -> Path:
 def lock_holder(lock: Path) -> int | None:
     """The pid in a lock file, or None when it holds none (a damaged or vanished lock)."""
     try:
-        return int(lock.read_text(encoding="utf-8").strip())
+        pid = int(lock.read_text(encoding="utf-8").strip())
     except (OSError, ValueError):
         return None
+    return pid if pid > 0 else None  # os.kill(0 or -1, ...) would ask about other processes
 
 
 def pid_alive(pid: int) -> bool:
