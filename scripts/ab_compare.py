@@ -22,12 +22,13 @@ warning naming the file, a pair whose ``result.json`` is damaged or lacks fields
 or sidecars are gone or unreadable. Outputs another run left in a pair folder (their sidecar names
 another prompt or config) are refused unless ``--overwrite``, which redoes every pair. While a run
 works in a folder it holds ``<out>/.ab_compare.lock`` (its pid): a second run there is refused,
-and the lock of a run that was killed is taken over. ``--maps`` on a resumed folder also makes the maps of complete pairs that have none (their
-videos are scored again; only the estimators load). Under ``accelerate launch`` the pairs are
-dealt round-robin to the processes; at the end the main process rebuilds ``results.csv`` (one row
-per pair and arm), ``summary.json``, ``report.md`` and ``pareto.png`` from the pairs'
-``result.json`` files; scores that are not finite are left out of its statistics and named. ``run.json`` pins the config: reusing an output folder with a
-different config is refused.
+and the lock of a run that was killed is taken over. ``--maps`` on a resumed folder also makes
+the maps of complete pairs that have none (their videos are scored again; only the estimators
+load). Under ``accelerate launch`` the pairs are dealt round-robin to the processes; at the end
+the main process rebuilds ``results.csv`` (one row per pair and arm), ``summary.json``,
+``report.md`` and ``pareto.png`` from the pairs' ``result.json`` files; scores that are not finite
+are left out of its statistics and named. ``run.json`` pins the config: reusing an output folder
+with a different config is refused (unless ``--overwrite``).
 """
 
 from __future__ import annotations
