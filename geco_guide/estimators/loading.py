@@ -7,8 +7,9 @@ id and how to pass a local folder instead; a checkpoint whose keys do not fit th
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import torch
@@ -25,6 +26,20 @@ class CheckpointMismatchError(ValueError):
 
 # A path ending in one of these names a checkpoint file, not a folder or a repo id.
 CHECKPOINT_SUFFIXES = (".pth", ".pt", ".safetensors", ".bin")
+
+
+@contextlib.contextmanager
+def quiet_hub_retries() -> Iterator[None]:
+    """huggingface_hub logs a line per failed attempt and per retry while the hub cannot be
+    reached; the failure ends in one error line instead."""
+    from huggingface_hub.utils import logging as hub_logging
+
+    level = hub_logging.get_verbosity()
+    hub_logging.set_verbosity_error()
+    try:
+        yield
+    finally:
+        hub_logging.set_verbosity(level)
 
 
 def fetch_checkpoint_file(
@@ -70,7 +85,8 @@ def fetch_checkpoint_file(
     reason = ""
     for name in filenames:
         try:
-            return Path(hf_hub_download(repo_id, name, revision=revision, cache_dir=cache_dir))
+            with quiet_hub_retries():
+                return Path(hf_hub_download(repo_id, name, revision=revision, cache_dir=cache_dir))
         except LocalEntryNotFoundError:
             reason = " (offline and not in the cache)"
             break

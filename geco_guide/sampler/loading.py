@@ -22,19 +22,25 @@ from ..estimators import (
     tiny_random_decoder,
     with_config_key,
 )
-from ..estimators.loading import CHECKPOINT_SUFFIXES, WeightsNotFoundError
+from ..estimators.loading import (
+    CHECKPOINT_SUFFIXES,
+    WeightsNotFoundError,
+    quiet_hub_retries,
+)
 from ..io.devices import resolve_device
 
 
 @contextlib.contextmanager
 def quiet_hub_logs():
-    """diffusers/transformers print several lines while failing to reach the hub; keep one error."""
+    """diffusers/transformers and huggingface_hub print several lines while failing to reach the
+    hub; keep one error."""
     from diffusers.utils import logging as dlogging
 
     level = dlogging.get_verbosity()
     dlogging.set_verbosity_error()
     try:
-        yield
+        with quiet_hub_retries():
+            yield
     finally:
         dlogging.set_verbosity(level)
 
