@@ -486,3 +486,20 @@ def test_no_private_name_is_patched_in_the_cost_trace():
     assert "mock" not in source and "_read_scalars" not in source
     context = cost.counting_context_class(cost.CostTracker())
     assert issubclass(context, GuidanceContext)
+
+
+def test_cost_with_the_tiny_decoder_traces_it_as_the_anchor_decode() -> None:
+    """`cost --decoder tiny`: the tiny decoder's decode is the anchor decode (its weights counted),
+    the VAE only decodes the final video."""
+    torch.set_num_threads(1)
+    settings = {k: cost.cost_settings(preset="tiny", steps=None, frames=None, height=None, width=None, dtype=None,
+                                      decoder=k) for k in ("vae", "tiny")}
+    reports = {k: cost.cost_report(s, "fast") for k, s in settings.items()}
+    tiny, vae = reports["tiny"], reports["vae"]
+    assert tiny["settings"]["decoder"] == "tiny" and vae["settings"]["decoder"] == "vae"
+    assert tiny["weights_gb"]["guidance_decoder"] > 0 and vae["weights_gb"]["guidance_decoder"] == 0
+    decode = {k: r["unit_traces"]["guided"]["anchor_decode"] for k, r in reports.items()}
+    # one update: the tiny decoder decodes each anchor's 8-latent context once, no VAE call
+    assert decode["tiny"]["calls"] == 4 and decode["vae"]["calls"] == 2
+    assert decode["tiny"]["forward"]["flops"] != decode["vae"]["forward"]["flops"] > 0
+    assert tiny["per_stage"]["final_decode"] == vae["per_stage"]["final_decode"]
