@@ -66,6 +66,21 @@ def test_guiding_with_the_tiny_decoder_swaps_the_roles():
     assert all(r["guided_by"] == "tiny" and -1 <= r["cosine"] <= 1 for r in result["rows"])
 
 
+def test_rows_of_a_loaded_pipeline_leave_it_as_it_was():
+    from geco_guide import tiny as T
+    from geco_guide.config import load_config
+    from geco_guide.perf.decoder_agreement import agreement_rows
+    from geco_guide.sampler.context import GuidanceContext
+
+    torch.set_num_threads(1)
+    pipe = T.tiny_pipeline(0)
+    pipe.register_modules(guidance_decoder=T.tiny_guidance_decoder("cogvideox"))
+    cfg = load_config(preset="tiny", overrides=["guidance.repeats=0x3,1x1"])
+    rows = agreement_rows(pipe, cfg, "a marble bust")
+    assert len(rows) == 1 and rows[0]["step"] == 3 and -1 <= rows[0]["cosine"] <= 1
+    assert pipe.guidance_context_class is GuidanceContext and "guidance_context_class" not in pipe.__dict__
+
+
 def test_cosine_and_psnr():
     g = torch.randn(2, 3, 4, generator=torch.Generator().manual_seed(0))
     assert gradient_cosine(g, 2 * g) == pytest.approx(1.0) and gradient_cosine(g, -g) == pytest.approx(-1.0)

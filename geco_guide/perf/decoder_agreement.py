@@ -137,9 +137,32 @@ def check_agreement_config(cfg: GeCoConfig) -> None:
     loading.check_tiny_decoder_source(cfg)
 
 
+def agreement_rows(pipe: Any, cfg: GeCoConfig, prompt: str) -> list[dict[str, Any]]:
+    """The per-update rows of one guided call of ``pipe`` (a :class:`GeCoCogVideoXPipeline` with
+    its ``guidance_decoder`` attached, e.g. the pipeline of an A/B run that guides with it) with
+    ``cfg``'s sampling and guidance, seeded with ``cfg.seed``. The pipeline's own guidance
+    context class is restored afterwards."""
+    rows: list[dict[str, Any]] = []
+    own = pipe.__dict__.get("guidance_context_class")
+    pipe.guidance_context_class = agreement_context_class(pipe, cfg.sampling.num_frames, rows)
+    s = cfg.sampling
+    try:
+        pipe(prompt=prompt, negative_prompt=s.negative_prompt, height=s.height, width=s.width,
+             num_frames=s.num_frames, num_inference_steps=s.num_inference_steps, guidance_scale=s.guidance_scale,
+             use_dynamic_cfg=s.use_dynamic_cfg, generator=torch.Generator(device="cpu").manual_seed(cfg.seed),
+             output_type="latent", max_sequence_length=s.max_sequence_length, guidance=cfg.guidance)
+    finally:
+        if own is None:
+            del pipe.guidance_context_class  # the class's again
+        else:
+            pipe.guidance_context_class = own
+    return rows
+
+
 def decoder_agreement(cfg: GeCoConfig, prompt: str, argv: Sequence[str] = ()) -> dict[str, Any]:
     """One guided generation call of ``cfg`` (``model.id=tiny-random``: the tiny random models)
-    with both decoders at every update; the report: per-update rows and :func:`agreement_summary`.
+    with both decoders at every update; the report: per-update rows (:func:`agreement_rows`) and
+    :func:`agreement_summary`.
 
     Raises:
         ValueError / WeightsNotFoundError: one line, before any model loads, for guidance that is
@@ -148,13 +171,7 @@ def decoder_agreement(cfg: GeCoConfig, prompt: str, argv: Sequence[str] = ()) ->
     check_agreement_config(cfg)
     pipe = loading.build_pipeline(cfg, components=video_components(cfg), tiny_decoder=True)
     pipe.set_progress_bar_config(disable=True)
-    rows: list[dict[str, Any]] = []
-    pipe.guidance_context_class = agreement_context_class(pipe, cfg.sampling.num_frames, rows)
-    s = cfg.sampling
-    pipe(prompt=prompt, negative_prompt=s.negative_prompt, height=s.height, width=s.width, num_frames=s.num_frames,
-         num_inference_steps=s.num_inference_steps, guidance_scale=s.guidance_scale, use_dynamic_cfg=s.use_dynamic_cfg,
-         generator=torch.Generator(device="cpu").manual_seed(cfg.seed), output_type="latent",
-         max_sequence_length=s.max_sequence_length, guidance=cfg.guidance)
+    rows = agreement_rows(pipe, cfg, prompt)
     tiny_random = TINY_RANDOM in (cfg.model.id, cfg.estimators.tiny_decoder)
     return {
         "subcommand": "decoder-agreement",
