@@ -41,7 +41,7 @@ import re
 import shlex
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -150,6 +150,8 @@ def read_prompts(path: str | os.PathLike) -> list[Prompt]:
         except ValueError as err:
             raise InputError(str(err)) from None
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"prompts file {str(path)!r} is a folder, not a prompt file")
     if not path.is_file():
         raise InputError(f"prompts file {str(path)!r} does not exist")
     prompts: list[Prompt] = []
@@ -374,16 +376,18 @@ def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, wher
     return result
 
 
-def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag: str, redo: bool = False) -> None:
+def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag: str, redo: bool = False,
+              on_loaded: Callable[[], None] = lambda: None) -> None:
     """Run the pairs of this process that are not complete yet (all of them with ``redo``), and
     with ``maps`` make the maps of complete pairs that have none (models load only if needed: for
-    maps alone, the estimators). Outside a terminal, where no progress bar shows, one stderr line
+    maps alone, the estimators; ``on_loaded`` runs once they did). Outside a terminal, where no progress bar shows, one stderr line
     says which pair and arm runs."""
     finished = {pair.name: None if redo else read_result(out, pair, warn=True, verify=True) for pair in pairs}
     todo = [pair for pair in pairs if finished[pair.name] is None]
     unmapped = [pair for pair in pairs if maps and finished[pair.name] is not None and not has_maps(out, pair)]
     print(f"{tag}{len(pairs) - len(todo)} of {len(pairs)} pairs already complete", flush=True)
     if not todo and not unmapped:
+        on_loaded()
         return
     if todo:
         pipe = generate_cli.build_pipeline(cfg)
@@ -393,6 +397,7 @@ def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag
         print(f"loading models: geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow} ...", file=sys.stderr,
               flush=True)
         geometry, flow = load_estimators(cfg.estimators, resolve_device(cfg.model.device))
+    on_loaded()
     if unmapped:
         print(f"{tag}making the maps of {len(unmapped)} complete pair(s) that have none", flush=True)
     for pair in unmapped:
@@ -766,10 +771,12 @@ def run(args: argparse.Namespace, inputs: Inputs, argv: list[str] | None) -> int
     state = process_state(cfg)
     tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
     try:
-        if state.is_main_process:
-            write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
+        def pin_config() -> None:  # once the models loaded: missing weights leave no run.json behind
+            if state.is_main_process:
+                write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
+
         run_shard(process_config(cfg, state), shard(pairs, state.process_index, state.num_processes), out, args.maps,
-                  tag, redo=args.overwrite)
+                  tag, redo=args.overwrite, on_loaded=pin_config)
         state.wait_for_everyone()
         if not state.is_main_process:
             return 0

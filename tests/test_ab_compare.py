@@ -478,6 +478,20 @@ def test_ctrl_c_is_one_line_exit_130_and_releases_the_lock(tmp_path, capsys, mon
     assert not (out / ab.LOCK_NAME).exists()
 
 
+def test_a_folder_as_prompts_file_is_named_a_folder(tmp_path, capsys, no_models):
+    rc = ab.main(["--prompts", str(tmp_path), "--out", str(tmp_path / "out"), "--preset", "tiny", "--seeds", "0"])
+    assert rc == 2 and "is a folder, not a prompt file" in capsys.readouterr().err
+
+
+def test_missing_weights_leave_no_run_file(tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--out", str(out), "--preset", "tiny",
+            f"estimators.geometry={tmp_path / 'no-such-vggt'}", "--seeds", "0"]
+    assert ab.main(argv) == 2
+    assert "no-such-vggt" in capsys.readouterr().err
+    assert not (out / "run.json").exists()
+
+
 def test_missing_argument_is_one_line(capsys):
     with pytest.raises(SystemExit) as exit_info:
         ab.main(["--prompts", "p.txt", "--out", "o"])
