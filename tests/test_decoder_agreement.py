@@ -116,6 +116,7 @@ def cli():
     (["decoder-agreement", "--preset", "nope"], "invalid choice"),
     (["decoder-agreement", "--preset", "tiny", "--threads", "0"], "--threads: must be >= 1"),
     (["cost", "--decoder", "taesd"], "invalid choice"),
+    (["cost", "--decoder", "tiny", "--mode", "unguided"], "use --mode fast or faithful"),
 ])
 def test_bad_input_is_one_error_line_before_any_work(cli, monkeypatch, capsys, argv, expected):
     def no_work(*args, **kwargs):

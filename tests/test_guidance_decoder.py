@@ -188,3 +188,16 @@ def test_missing_estimator_weights_name_the_config_key(tmp_path, key, example):
     with pytest.raises(WeightsNotFoundError) as err:
         load_estimators(cfg, "cpu")
     assert "\n" not in str(err.value) and f"estimators.{key}={example}" in str(err.value)
+
+
+def test_generate_runs_the_tiny_preset_with_the_tiny_decoder_offline(tmp_path):
+    import json
+
+    from geco_guide.cli.generate import main
+
+    out = tmp_path / "bust.mp4"
+    assert main(["--preset", "tiny", "--prompt", "a bust", "--out", str(out), "guidance.decoder=tiny"]) == 0
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert sidecar["config"]["guidance"]["decoder"] == "tiny"
+    assert sidecar["config"]["estimators"]["tiny_decoder"] == "tiny-random"
+    assert sidecar["guidance_log"] and all(r["grad_norm"] > 0 and not r["skipped"] for r in sidecar["guidance_log"])

@@ -121,6 +121,8 @@ def check_options(args: argparse.Namespace) -> None:
         if args.frames is not None:
             check_frames(args.frames, guided=args.mode != "unguided")
     elif args.command == "cost":
+        if args.decoder != "vae" and args.mode == "unguided":
+            fail(f"--decoder {args.decoder} decodes the anchor frames of guidance: use --mode fast or faithful")
         if args.steps is not None and args.steps < 1:
             fail(f"--steps must be >= 1, got {args.steps}")
         if args.frames is not None:
