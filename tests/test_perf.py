@@ -503,3 +503,4 @@ def test_cost_with_the_tiny_decoder_traces_it_as_the_anchor_decode() -> None:
     assert decode["tiny"]["calls"] == 4 and decode["vae"]["calls"] == 2
     assert decode["tiny"]["forward"]["flops"] != decode["vae"]["forward"]["flops"] > 0
     assert tiny["per_stage"]["final_decode"] == vae["per_stage"]["final_decode"]
+    assert "the tiny decoder (an approximation" in cost.cost_table(tiny) and "tiny decoder" not in cost.cost_table(vae)

@@ -569,6 +569,9 @@ def cost_table(report: dict[str, Any]) -> str:
     lines.append("")
     lines.append(f"mode {report['mode']}: FLOPs unguided {report['flops_unguided'] / 1e15:.2f} PFLOP"
                  + (f", guided {report['flops_guided'] / 1e15:.2f} PFLOP, ratio {ratio:.2f}" if ratio else ""))
+    if report["settings"].get("decoder") == "tiny":
+        lines.append("anchor decode: the tiny decoder (an approximation of the VAE; `decoder-agreement` measures "
+                     "its fidelity)")
     lines.append(f"peak memory {report['peak_memory_gb']:.1f} GiB (at {report['peak_at']}; weights "
                  f"{sum(report['weights_gb'].values()):.1f} GiB), unguided {report['peak_memory_gb_unguided']:.1f} GiB")
     if report["ops_ratio_guided_over_unguided"]:
