@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
+from transformers import PreTrainedTokenizerFast
 
 from .estimators import TINY_RANDOM, tiny_estimators, tiny_random_decoder
 
@@ -37,20 +38,16 @@ _WORDS = (
 ).split()
 
 
-def _truncating_tokenizer_class():
-    from transformers import PreTrainedTokenizerFast
+class TinyTokenizer(PreTrainedTokenizerFast):
+    """Truncates at ``model_max_length`` unless a call says otherwise. The pipelines tokenize
+    each prompt twice, truncated at ``max_sequence_length`` and once more untruncated to warn
+    about what was cut; at the tiny preset's 16 tokens nearly every prompt is cut, and that
+    second pass printed transformers' "longer than the specified maximum" line and a line of
+    the cut words (mostly ``<unk>``: the vocabulary is small) on every call. A module-level
+    class, so that a saved tiny pipeline loads again (``model_index.json`` names it)."""
 
-    class TinyTokenizer(PreTrainedTokenizerFast):
-        """Truncates at ``model_max_length`` unless a call says otherwise. The pipelines tokenize
-        each prompt twice, truncated at ``max_sequence_length`` and once more untruncated to warn
-        about what was cut; at the tiny preset's 16 tokens nearly every prompt is cut, and that
-        second pass printed transformers' "longer than the specified maximum" line and a line of
-        the cut words (mostly ``<unk>``: the vocabulary is small) on every call."""
-
-        def __call__(self, *args: Any, truncation: Any = True, **kwargs: Any) -> Any:
-            return super().__call__(*args, truncation=truncation, **kwargs)
-
-    return TinyTokenizer
+    def __call__(self, *args: Any, truncation: Any = True, **kwargs: Any) -> Any:
+        return super().__call__(*args, truncation=truncation, **kwargs)
 
 
 def tiny_tokenizer(max_length: int = TINY_MAX_SEQUENCE_LENGTH):
@@ -67,7 +64,7 @@ def tiny_tokenizer(max_length: int = TINY_MAX_SEQUENCE_LENGTH):
     tok.post_processor = processors.TemplateProcessing(
         single="$A </s>", pair="$A </s> $B </s>", special_tokens=[("</s>", vocab["</s>"])]
     )
-    return _truncating_tokenizer_class()(
+    return TinyTokenizer(
         tokenizer_object=tok,
         pad_token="<pad>",
         eos_token="</s>",
