@@ -53,6 +53,7 @@ def test_cli_tiny_preset_writes_playable_mp4_and_sidecar(tmp_path: Path):
     assert len(data["guidance_log"]) == 5 and "grad_norm" in data["guidance_log"][0]
     assert {"fused", "motion", "structure", "anchors"} <= set(data["geco_scores"])
     assert data["scheduler"].startswith("CogVideoXDDIMScheduler")
+    assert data["guidance_decoder"] == "vae (the model's own)"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.json", "run.mp4"]  # no temporaries
 
 

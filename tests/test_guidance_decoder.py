@@ -200,4 +200,5 @@ def test_generate_runs_the_tiny_preset_with_the_tiny_decoder_offline(tmp_path):
     sidecar = json.loads(out.with_suffix(".json").read_text())
     assert sidecar["config"]["guidance"]["decoder"] == "tiny"
     assert sidecar["config"]["estimators"]["tiny_decoder"] == "tiny-random"
+    assert sidecar["guidance_decoder"] == "TinyDecoder(cogvideox) from tiny-random(seed=0)"
     assert sidecar["guidance_log"] and all(r["grad_norm"] > 0 and not r["skipped"] for r in sidecar["guidance_log"])

@@ -34,7 +34,6 @@ import torch
 
 from .. import __version__
 from ..config import GeCoConfig, config_to_dict
-from ..estimators import TINY_RANDOM
 from ..io.devices import check_device
 from ..io.files import WriteError, write_json_atomic
 from ..sampler import loading
@@ -45,18 +44,11 @@ from .kit import Parser, add_config_flags, config_from_args, interruptible
 # building the pipeline from a config
 
 
-def video_components(cfg: GeCoConfig) -> dict[str, Any] | None:
-    """The tiny random CogVideoX models for ``model.id=tiny-random``, else ``None`` (load the id)."""
-    if cfg.model.id != TINY_RANDOM:
-        return None
-    from ..tiny import tiny_cogvideox_components
-
-    return tiny_cogvideox_components(cfg.model.init_seed)
-
-
 def build_pipeline(cfg: GeCoConfig):
     """:func:`geco_guide.sampler.loading.build_pipeline` with the tiny models when the config asks
     for them, after one stderr line naming them (loading takes minutes)."""
+    from ..tiny import video_components
+
     print(loading_line(cfg), file=sys.stderr, flush=True)
     return loading.build_pipeline(cfg, components=video_components(cfg))
 
@@ -291,6 +283,7 @@ def sidecar_of(cfg: GeCoConfig, prompt: str, pipe: Any, frames: torch.Tensor, vi
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "config": config_to_dict(cfg),
         "scheduler": getattr(pipe, "geco_scheduler_note", None) or type(pipe.scheduler).__name__,
+        "guidance_decoder": getattr(pipe, "geco_decoder_note", None),
         "device": str(pipe.device),
         "versions": versions(),
         "timings": {**timings, "guidance_s": sum(r["seconds"] for r in log)},
