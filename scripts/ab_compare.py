@@ -58,6 +58,7 @@ from geco_guide.bench.runs import (
     process_config,
     process_state,
     read_finished,
+    run_lock,
     shard,
 )
 from geco_guide.bench.runs import check_output_folder as check_run_folder
@@ -84,7 +85,6 @@ BOOTSTRAP_SEED = 0
 CI_LEVEL = 0.95
 MAX_SEED = 2**63 - 1
 SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
-LOCK_NAME = ".ab_compare.lock"
 #: The fields of a result.json that the report reads: a result without one of them is redone.
 RESULT_KEYS = ("pair", "prompt_id", "prompt", "seed", "device", "side_by_side", "arms")
 ARM_KEYS = ("video", "sidecar", *METRICS, "generation_s", "evaluation_s", "peak_memory_mib", "memory_kind",
@@ -699,70 +699,16 @@ def validate_inputs(args: argparse.Namespace) -> Inputs:
 # one run per output folder
 
 
-def take_lock(out: Path) -> Path:
-    """Create ``out/.ab_compare.lock`` holding this pid (``O_CREAT | O_EXCL``: one run wins), taking
-    over a lock whose process is gone (a killed run). InputError (one line) while a live run holds
-    it (two runs in one folder delete each other's live temporary files) or if ``out`` cannot be
-    written."""
-    lock = out / LOCK_NAME
-    for _ in range(2):
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            holder = lock_holder(lock)
-            if holder is not None and pid_alive(holder):
-                raise InputError(f"another A/B run (pid {holder}) is writing to {out}; wait for it to end or use "
-                                 "another --out folder") from None
-            lock.unlink(missing_ok=True)  # its run was killed
-            continue
-        except OSError as err:
-            raise InputError(f"cannot write to --out {str(out)!r}: {err.strerror or err}") from None
-        with os.fdopen(fd, "w") as fh:
-            fh.write(f"{os.getpid()}\n")
-        return lock
-    raise InputError(f"another A/B run took {lock} at the same moment; use another --out folder")
-
-
-def lock_holder(lock: Path) -> int | None:
-    """The pid in a lock file, or None when it holds none (a damaged or vanished lock)."""
-    try:
-        pid = int(lock.read_text(encoding="utf-8").strip())
-    except (OSError, ValueError):
-        return None
-    return pid if pid > 0 else None  # os.kill(0 or -1, ...) would ask about other processes
-
-
-def pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, another user's
-        return True
-    return True
-
-
-def is_launch_main() -> bool:
-    """Whether this is the main process of its launch, known before accelerate starts: torchrun
-    and ``accelerate launch`` set ``RANK``; a plain run is the main process."""
-    return os.environ.get("RANK", "0") == "0"
-
-
 @interruptible("finished pairs are kept (each pair is written whole or not at all); rerun the same command to resume")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         inputs = validate_inputs(args)
-        lock = take_lock(inputs.out) if is_launch_main() else None
+        with run_lock(inputs.out, "A/B"):
+            return run(args, inputs, argv)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    try:
-        return run(args, inputs, argv)
-    finally:
-        if lock is not None:
-            lock.unlink(missing_ok=True)
 
 
 def run(args: argparse.Namespace, inputs: Inputs, argv: list[str] | None) -> int:

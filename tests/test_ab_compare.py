@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 import torch
 
+from geco_guide.bench.runs import LOCK_NAME, take_run_lock
 from geco_guide.config import load_config
 from geco_guide.io.video import read_video, write_video
 from geco_guide.metric.render import panel_layout
@@ -451,15 +452,15 @@ def test_a_second_run_in_one_folder_is_refused_while_the_first_holds_the_lock(tm
     out = tmp_path / "out"
     out.mkdir()
     argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out), "--preset", "tiny"]
-    (out / ab.LOCK_NAME).write_text(f"{os.getppid()}\n")  # a live process
+    (out / LOCK_NAME).write_text(f"{os.getppid()}\n")  # a live process
     assert ab.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err == (f"error: another A/B run (pid {os.getppid()}) is writing to {out}; wait for it to end or use "
                    "another --out folder")
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
-    (out / ab.LOCK_NAME).write_text(f"{dead.pid}\n")  # left by a killed run
-    lock = ab.take_lock(out)
+    (out / LOCK_NAME).write_text(f"{dead.pid}\n")  # left by a killed run
+    lock = take_run_lock(out, "A/B")
     assert lock.read_text() == f"{os.getpid()}\n"
 
 
@@ -475,7 +476,7 @@ def test_ctrl_c_is_one_line_exit_130_and_releases_the_lock(tmp_path, capsys, mon
     assert ab.main(argv) == 130
     assert capsys.readouterr().err == ("interrupted: finished pairs are kept (each pair is written whole or not at "
                                        "all); rerun the same command to resume\n")
-    assert not (out / ab.LOCK_NAME).exists()
+    assert not (out / LOCK_NAME).exists()
 
 
 def test_a_folder_as_prompts_file_is_named_a_folder(tmp_path, capsys, no_models):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import errno
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -220,3 +221,18 @@ def test_ctrl_c_is_one_line_and_exit_code_130(tmp_path: Path, monkeypatch, capsy
     videos = _videos(tmp_path / "in", {"a1-s0": 17})
     assert _score(videos, tmp_path / "out", "--limit", "1") == 130
     assert capsys.readouterr().err == INTERRUPTED
+
+
+def test_a_second_run_in_one_folder_is_refused_while_the_first_holds_the_lock(tmp_path: Path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / runs.LOCK_NAME).write_text(f"{os.getppid()}\n")  # a live process
+    assert _score(_videos(tmp_path / "in", {"a1-s0": 17}), out, "--limit", "1") == 2
+    err = _one_line(capsys.readouterr().err)
+    assert err == f"error: another GeCo-Eval run (pid {os.getppid()}) is writing to {out}; wait for it to end or use another --out folder\n"
+
+
+def test_the_lock_is_released_when_the_run_ends(tmp_path: Path, capsys):
+    out = tmp_path / "out"
+    assert _score(_videos(tmp_path / "in", {"a1-s0": 17}), out, "--limit", "1") == 0
+    assert not (out / runs.LOCK_NAME).exists()

@@ -5,6 +5,7 @@
 * :func:`read_finished` reads a finished unit's result file: a damaged one, one without the
   fields its reader needs, or one whose outputs are gone or unreadable, means the unit is redone
   (with a warning naming the file).
+* :func:`run_lock` keeps a second run out of a folder a live run writes to.
 * :class:`PeakMemory` measures the peak memory of a block (CUDA, or peak RSS on CPU).
 * :func:`process_state` / :func:`process_config` / :func:`shard`: one process, or many under
   ``accelerate launch`` with the jobs dealt round-robin.
@@ -12,13 +13,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import json
 import os
 import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from datetime import timedelta
 from pathlib import Path
@@ -203,3 +205,69 @@ def process_config(cfg: GeCoConfig, state: Any) -> GeCoConfig:
 def shard(jobs: Sequence[T], index: int, count: int) -> list[T]:
     """Jobs of process ``index`` of ``count``, dealt round-robin."""
     return list(jobs[index::count])
+
+
+#: The lock file of a run folder (:func:`run_lock`).
+LOCK_NAME = ".run.lock"
+
+
+def is_launch_main() -> bool:
+    """Whether this is the main process of its launch, known before accelerate starts: torchrun
+    and ``accelerate launch`` set ``RANK``; a plain run is the main process."""
+    return os.environ.get("RANK", "0") == "0"
+
+
+def take_run_lock(out: Path, command: str) -> Path:
+    """Create ``out/.run.lock`` holding this pid (``O_CREAT | O_EXCL``: one run wins), taking over
+    a lock whose process is gone (a killed run). ValueError (one line) while a live run holds it
+    (two runs in one folder delete each other's live temporary files) or if ``out`` cannot be
+    written; ``command`` names the run in the message."""
+    lock = out / LOCK_NAME
+    for _ in range(2):
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            holder = lock_holder(lock)
+            if holder is not None and pid_alive(holder):
+                raise ValueError(f"another {command} run (pid {holder}) is writing to {out}; wait for it to end or "
+                                 "use another --out folder") from None
+            lock.unlink(missing_ok=True)  # its run was killed
+            continue
+        except OSError as err:
+            raise ValueError(f"cannot write to --out {str(out)!r}: {err.strerror or err}") from None
+        with os.fdopen(fd, "w") as fh:
+            fh.write(f"{os.getpid()}\n")
+        return lock
+    raise ValueError(f"another {command} run took {lock} at the same moment; use another --out folder")
+
+
+@contextlib.contextmanager
+def run_lock(out: Path, command: str) -> Iterator[None]:
+    """Hold :func:`take_run_lock` for the block on the launch's main process (the other ranks of
+    a sharded run share their main process' lock); released however the block ends."""
+    lock = take_run_lock(out, command) if is_launch_main() else None
+    try:
+        yield
+    finally:
+        if lock is not None:
+            lock.unlink(missing_ok=True)
+
+
+def lock_holder(lock: Path) -> int | None:
+    """The pid in a lock file, or None when it holds none (a damaged or vanished lock)."""
+    try:
+        pid = int(lock.read_text(encoding="utf-8").strip())
+    except (OSError, ValueError):
+        return None
+    return pid if pid > 0 else None  # os.kill(0 or -1, ...) would ask about other processes
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True

@@ -37,6 +37,7 @@ from ..bench.runs import (
     config_fingerprint,
     process_config,
     process_state,
+    run_lock,
     shard,
 )
 from ..config import SEED_RANGE, GeCoConfig, config_to_dict
@@ -143,9 +144,16 @@ def main(argv: list[str] | None = None) -> int:
         check_output_folder(out, cfg, overwrite=args.overwrite)
         check_device(cfg.model.device)
         check_device(cfg.evaluation.device, "evaluation.device")
+        with run_lock(out, "GeCo-Eval"):
+            return execute(args, run, out, argv)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+
+
+def execute(args: argparse.Namespace, run: Plan, out: Path, argv: list[str] | None) -> int:
+    """Every process's share of the jobs, then on the main process the report; the exit code."""
+    cfg = run.cfg
 
     def pin_config() -> None:  # once the models loaded: a run stopped by missing weights leaves no run.json
         write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
