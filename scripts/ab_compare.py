@@ -21,7 +21,7 @@ progress and never leaves a truncated file; a rerun skips complete pairs and red
 warning naming the file, a pair whose ``result.json`` is damaged or lacks fields, or whose videos
 or sidecars are gone or unreadable. Outputs another run left in a pair folder (their sidecar names
 another prompt or config) are refused unless ``--overwrite``, which redoes every pair. While a run
-works in a folder it holds ``<out>/.ab_compare.lock`` (its pid): a second run there is refused,
+works in a folder it holds ``<out>/.run.lock`` (its pid): a second run there is refused,
 and the lock of a run that was killed is taken over. ``--maps`` on a resumed folder also makes
 the maps of complete pairs that have none (their videos are scored again; only the estimators
 load). Under ``accelerate launch`` the pairs are dealt round-robin to the processes; at the end
