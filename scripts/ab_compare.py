@@ -73,6 +73,7 @@ from geco_guide.io.video import read_frames, read_video, write_video
 from geco_guide.loss.geco import CUES
 from geco_guide.metric.evaluate import PAPER_NAMES, evaluate_video, write_maps_video
 from geco_guide.metric.render import side_by_side
+from geco_guide.perf.decoder_agreement import agreement_rows, agreement_summary
 
 ARMS = ("unguided", "guided")
 METRICS = (*CUES, "total_motion", "mean_motion")
@@ -89,6 +90,8 @@ SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 RESULT_KEYS = ("pair", "prompt_id", "prompt", "seed", "device", "side_by_side", "arms")
 ARM_KEYS = ("video", "sidecar", *METRICS, "generation_s", "evaluation_s", "peak_memory_mib", "memory_kind",
             "guidance_updates")
+#: With ``guidance.decoder=tiny``: the tiny decoder measured against the VAE on one pair.
+AGREEMENT_FILE = "decoder_agreement.json"
 TINY_GUIDANCE_NOTE = ("With tiny random models the guidance effect is meaningless: guidance can lower or raise "
                       "the score.")
 
@@ -376,11 +379,23 @@ def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, wher
     return result
 
 
+def measure_decoder_agreement(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path) -> None:
+    """``out/decoder_agreement.json``: one more guided call of ``pair`` in which the VAE and the
+    tiny decoder both decode the anchor frames at every update (gradient cosine, both losses,
+    anchor PSNR: :func:`geco_guide.perf.decoder_agreement.agreement_rows`)."""
+    print(f"measuring the tiny decoder against the VAE on {pair.name} (one more guided call) ...", file=sys.stderr,
+          flush=True)
+    rows = agreement_rows(pipe, arm_config(cfg, pair, "guided"), pair.prompt.text)
+    write_json_atomic(out / AGREEMENT_FILE, {"pair": pair.name, "summary": agreement_summary(rows), "updates": rows})
+
+
 def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag: str, redo: bool = False,
-              on_loaded: Callable[[], None] = lambda: None) -> None:
+              on_loaded: Callable[[], None] = lambda: None, agreement: bool = False) -> None:
     """Run the pairs of this process that are not complete yet (all of them with ``redo``), and
     with ``maps`` make the maps of complete pairs that have none (models load only if needed: for
-    maps alone, the estimators; ``on_loaded`` runs once they did). Outside a terminal, where no progress bar shows, one stderr line
+    maps alone, the estimators; ``on_loaded`` runs once they did). With ``agreement`` and
+    ``guidance.decoder=tiny``, the first pair it runs also measures the tiny decoder against the
+    VAE (:func:`measure_decoder_agreement`), once per folder. Outside a terminal, where no progress bar shows, one stderr line
     says which pair and arm runs."""
     finished = {pair.name: None if redo else read_result(out, pair, warn=True, verify=True) for pair in pairs}
     todo = [pair for pair in pairs if finished[pair.name] is None]
@@ -411,6 +426,8 @@ def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag
             f"(sampling {unguided['generation_s']:.1f} s -> {guided['generation_s']:.1f} s)",
             flush=True,
         )
+    if agreement and todo and cfg.guidance.decoder == "tiny" and (redo or not (out / AGREEMENT_FILE).exists()):
+        measure_decoder_agreement(pipe, cfg, todo[0], out)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -525,6 +542,15 @@ def _non_finite_note(found: dict[str, list[str]]) -> list[str]:
              f"(no valid pixels to measure): {listed}"), ""]
 
 
+def _agreement_note(agreement: dict[str, Any] | None) -> list[str]:
+    if agreement is None:
+        return []
+    return [(f"**Tiny decoder vs VAE** (the guided arm decodes the anchor frames with the tiny decoder, an "
+             f"approximation), measured on {agreement['pair']} over {agreement['updates']} updates: gradient cosine "
+             f"median {fmt(agreement['cosine_median'])} (min {fmt(agreement['cosine_min'])}), anchor-frame PSNR "
+             f"{fmt(agreement['psnr_mean_db'], 3)} dB ([{AGREEMENT_FILE}]({AGREEMENT_FILE}))."), ""]
+
+
 def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], config_yaml: str, command: str,
                     models: Sequence[str] = ()) -> str:
     """``report.md``: scores, paired differences, cost, the plot, per-pair table, config, versions."""
@@ -570,6 +596,7 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
          f"the pairs, seed {summary['bootstrap']['seed']}. Total/Mean Motion measure how much the video "
          "moves: a lower score at similar motion is the better trade-off (right panel of the plot)."),
         "",
+        *_agreement_note(summary.get("decoder_agreement")),
         "## Cost per arm",
         "",
         *markdown_table(
@@ -647,6 +674,13 @@ def write_report(out: Path, pairs: Sequence[Pair], cfg: GeCoConfig, command: str
     remove_temp_files(out, REPORT_STEMS)
     results = [r for r in (read_result(out, pair) for pair in pairs) if r is not None]
     summary = summarize(results, pairs, cfg)
+    if cfg.guidance.decoder == "tiny" and (out / AGREEMENT_FILE).is_file():
+        try:
+            measured = json.loads((out / AGREEMENT_FILE).read_text(encoding="utf-8"))
+            summary["decoder_agreement"] = {"pair": measured["pair"], **measured["summary"]}
+        except (OSError, ValueError, KeyError, TypeError):
+            print(f"warning: {out / AGREEMENT_FILE} is damaged and left out of the report; rerun with --overwrite "
+                  "to measure it again", file=sys.stderr)
     markdown = report_markdown(summary, results, config_to_yaml(cfg), command, report.models_section(cfg))
     report.write_report_files(out, table=csv_text(results), summary=summary, plot=plot_png(results), markdown=markdown)
     return summary
@@ -722,7 +756,7 @@ def run(args: argparse.Namespace, inputs: Inputs, argv: list[str] | None) -> int
                 write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
 
         run_shard(process_config(cfg, state), shard(pairs, state.process_index, state.num_processes), out, args.maps,
-                  tag, redo=args.overwrite, on_loaded=pin_config)
+                  tag, redo=args.overwrite, on_loaded=pin_config, agreement=state.is_main_process)
         state.wait_for_everyone()
         if not state.is_main_process:
             return 0

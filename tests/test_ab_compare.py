@@ -517,3 +517,17 @@ def test_the_geco_eval_suite_as_prompts(tmp_path, capsys, no_models):
                     "--preset", "tiny"]) == 2
     err = capsys.readouterr().err
     assert "unknown filter 'underwater'" in err and err.count("\n") == 1
+
+
+def test_a_run_guided_by_the_tiny_decoder_measures_it_against_the_vae(tmp_path: Path, capsys):
+    out = tmp_path / "out"
+    argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out),
+            *FAST, "guidance.decoder=tiny"]
+    assert ab.main(argv) == 0
+    measured = json.loads((out / ab.AGREEMENT_FILE).read_text())
+    assert measured["pair"] == "a-cat-s0" and measured["summary"]["updates"] == len(measured["updates"]) > 0
+    assert -1 <= measured["summary"]["cosine_min"] <= measured["summary"]["cosine_median"] <= 1
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["decoder_agreement"]["pair"] == "a-cat-s0"
+    assert "**Tiny decoder vs VAE**" in (out / "report.md").read_text()
+    assert "measuring the tiny decoder against the VAE on a-cat-s0" in capsys.readouterr().err
