@@ -27,7 +27,7 @@ class EstimatorsConfig:
     ``dtype`` is the storage dtype of their ViT trunks (``trunk_to``): bfloat16 halves their
     memory and speeds them up on a GPU; the heads, outputs and the GeCo loss stay float32.
     ``gradient_checkpointing`` recomputes their trunks' blocks in the guidance backward: less
-    activation memory (about 6 GiB at 480x720 in the cost model) for one more trunk forward.
+    activation memory (how much: docs/performance.md) for one more trunk forward.
     ``tiny_decoder`` is the weights of the tiny decoder that ``guidance.decoder=tiny`` decodes the
     anchor frames with: a ``.pth`` / ``.safetensors`` file (``taecvx.pth`` for CogVideoX, from
     :data:`~geco_guide.estimators.tiny_decoder.WEIGHTS_URL`), a folder holding it, a hub id, or

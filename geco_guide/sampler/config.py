@@ -61,7 +61,7 @@ class GuidanceConfig:
         grad_eps: ``eps`` of the normalised update.
         decoder: what decodes the anchor frames for the loss: ``vae`` (the model's own VAE,
             exact) or ``tiny`` (an approximation: a :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder`
-            trained on the model's latents, about 4 % of the VAE's FLOPs per update at 480x720;
+            trained on the model's latents, a small fraction of the VAE's cost (docs/performance.md);
             its chunks are :data:`~geco_guide.estimators.tiny_decoder.CONTEXT_LATENTS` long),
             whose weights a config names in ``estimators.tiny_decoder``. The final video always
             comes from the VAE. See docs/performance.md for what it saves (predicted) and how
