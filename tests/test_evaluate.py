@@ -132,7 +132,8 @@ def test_maps_video_has_the_panel_layout(tmp_path: Path, clips, evaluated):
     assert len(maps) == 5 and set(maps[0]) == {"frame", *(f"{c}{v}" for c in ("motion", "structure", "fused") for v in ("", "_valid"))}
     frames = render_maps(result)
     (grid_h, grid_w), boxes = panel_layout([(H, W)] * len(MAP_PANELS))
-    assert [left for _, left, _, _ in boxes] == [0, W + 2, 2 * W + 4, 3 * W + 6] and grid_w == 4 * W + 3 * 2
+    gap = 2 * text_scale(H)  # black columns between panels
+    assert [left for _, left, _, _ in boxes] == [0, W + gap, 2 * (W + gap), 3 * (W + gap)] and grid_w == 4 * W + 3 * gap
     assert frames.shape[0] == 5 and frames.shape[-1] == grid_w and frames.shape[-2] > grid_h + label_height(text_scale(H))
     top = boxes[0][0]
     assert torch.allclose(frames[:, :, top : top + H, :W], clip.frames.float())
@@ -140,7 +141,7 @@ def test_maps_video_has_the_panel_layout(tmp_path: Path, clips, evaluated):
         expected = colorize(getattr(maps, name), getattr(maps, f"{name}_valid"))
         assert torch.allclose(frames[:, :, top : top + H, left : left + W], expected)
     # the legend under the panels: a colour bar from viridis' first to its last colour
-    bar = frames[0, :, grid_h + 3]
+    bar = frames[0, :, grid_h + gap + 1]  # the bar starts a margin of 2 * scale below the panels
     on_bar = [x for x in range(grid_w) if any(torch.allclose(bar[:, x], c) for c in (VIRIDIS[0], VIRIDIS[-1]))]
     assert torch.allclose(bar[:, on_bar[0]], VIRIDIS[0]) and torch.allclose(bar[:, on_bar[-1]], VIRIDIS[-1])
 

@@ -38,6 +38,7 @@ from ..io.video import VIDEO_SUFFIXES, read_frames
 from .occlusion import (
     OcclusionParams,
     OcclusionResult,
+    check_region,
     composite_occlusion,
     default_region,
 )
@@ -116,18 +117,44 @@ def read_mask(path: str | Path, num_frames: int, height: int, width: int) -> Ten
     return masks[0] if masks.shape[0] == 1 else masks
 
 
+def output_stem(source: str) -> str:
+    """The folder-name stem of an input: ``synthetic`` / ``synthetic-3d`` as they are, a file's
+    stem, a folder's own name (resolved, so ``.`` is named after the folder it stands for)."""
+    if source in (SYNTHETIC, SYNTHETIC_3D):
+        return source
+    path = Path(source)
+    return path.stem if path.suffix and not path.is_dir() else path.resolve().name or "root"
+
+
 def load_clip(source: str, max_frames: int, synthetic_size: tuple[int, int, int]) -> tuple[Tensor, SyntheticClip | None]:
     """Frames ``[S, 3, H, W]`` of ``source`` (at most ``max_frames``, evenly spaced), and the
     synthetic clip when ``source`` is ``synthetic`` / ``synthetic-3d`` (``synthetic_size``:
     frames, height, width)."""
     if source in (SYNTHETIC, SYNTHETIC_3D):
+        check_synthetic_size(synthetic_size)
         clip = (rigid_clip if source == SYNTHETIC else occlusion_swap_clip)(*synthetic_size)
         return clip.frames.float(), clip
+    return read_frames(source, select=lambda count, fps: evenly_spaced(count, max_frames), min_frames=3).frames, None
 
-    def evenly(count: int, fps: float) -> list[int]:
-        return sorted({round(k * (count - 1) / max(max_frames - 1, 1)) for k in range(min(count, max_frames))})
 
-    return read_frames(source, select=evenly, min_frames=3).frames, None
+def evenly_spaced(count: int, keep: int) -> list[int]:
+    """``min(count, keep)`` indices of ``range(count)`` spread over the whole clip, its first and
+    last frame included (17 frames, keep 20 -> all 17; 8 frames, keep 4 -> 0, 2, 5, 7)."""
+    kept = min(count, keep)
+    return sorted({round(k * (count - 1) / max(kept - 1, 1)) for k in range(kept)})
+
+
+#: The smallest synthetic scene: an occlusion edit needs a frame per phase, a warp a few pixels.
+MIN_SYNTHETIC_SIZE = (3, 8, 8)
+
+
+def check_synthetic_size(size: tuple[int, int, int], option: str = "--synthetic-size") -> None:
+    """One-line ValueError naming ``option`` unless ``size`` (frames, height, width) is at least
+    :data:`MIN_SYNTHETIC_SIZE`."""
+    if len(size) != 3 or any(v < low for v, low in zip(size, MIN_SYNTHETIC_SIZE)):
+        frames, height, width = MIN_SYNTHETIC_SIZE
+        raise ValueError(f"{option} (frames, height, width) must be at least {frames} frames of {height}x{width}, "
+                         f"got {' '.join(map(str, size))}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -166,7 +193,12 @@ def load_benchmark(folder: str | Path) -> Benchmark:
     meta_path = folder / "meta.json"
     if not meta_path.is_file():
         raise ValueError(f"{str(folder)!r} is not a built benchmark clip (no meta.json)")
-    meta = json.loads(meta_path.read_text())
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{str(meta_path)!r}: cannot read it as JSON ({err})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{str(meta_path)!r} must hold a JSON object, got {type(meta).__name__}")  # noqa: TRY004 (a damaged file)
     if meta.get("kind") not in KINDS:
         raise ValueError(f"{str(meta_path)!r}: kind must be one of {KINDS}, got {meta.get('kind')!r}")
     try:
@@ -174,17 +206,63 @@ def load_benchmark(folder: str | Path) -> Benchmark:
             truth = {key: torch.from_numpy(data[key]) for key in data.files}
     except (OSError, ValueError, zipfile.BadZipFile) as err:
         raise ValueError(f"{str(folder)!r}: cannot read truth.npz ({err})") from None
-    if "mask" not in truth:
-        raise ValueError(f"{str(folder)!r}: truth.npz holds no mask")
     frames = read_frames(folder / "frames").frames
-    if frames.shape[0] != truth["mask"].shape[0] or tuple(frames.shape[-2:]) != tuple(truth["mask"].shape[-2:]):
-        raise ValueError(f"{str(folder)!r}: frames {list(frames.shape)} do not match the truth {list(truth['mask'].shape)}")
+    truth["mask"] = checked_mask(truth, folder, frames.shape)
+    check_meta(meta, meta_path, frames.shape[0])
     return Benchmark(folder, meta, frames, truth)
+
+
+def checked_mask(truth: dict[str, Tensor], folder: Path, frames_shape: torch.Size) -> Tensor:
+    """The truth's ``mask`` as bool ``[S, H, W]``, checked against the frames ``[S, 3, H, W]``: a
+    mask that is not 0/1 (NaN, grey levels) is refused, not read as artifact pixels."""
+    mask = truth.get("mask")
+    if mask is None:
+        raise ValueError(f"{str(folder)!r}: truth.npz holds no mask")
+    if mask.ndim != 3 or tuple(mask.shape) != (frames_shape[0], *frames_shape[-2:]):
+        raise ValueError(f"{str(folder)!r}: frames {list(frames_shape)} do not match the truth {list(mask.shape)}")
+    if mask.dtype != torch.bool:
+        values = mask.double()
+        if not bool(((values == 0) | (values == 1)).all()):
+            bad = values[(values != 0) & (values != 1)]
+            raise ValueError(f"{str(folder)!r}: truth.npz mask must be 0/1, it holds {int(bad.numel())} other value(s) "
+                             f"(e.g. {float(bad[0]):g})")
+        mask = values == 1
+    return mask
+
+
+def check_meta(meta: dict[str, Any], meta_path: Path, num_frames: int) -> None:
+    """One-line ValueError when ``meta.json`` contradicts the clip: an ``anomalous_frame`` that is
+    not one of its ``num_frames`` frames, a ``synthetic`` spec without its scene and size."""
+    frame = meta.get("anomalous_frame")
+    if frame is not None and (isinstance(frame, bool) or not isinstance(frame, int) or not 0 <= frame < num_frames):
+        raise ValueError(f"{str(meta_path)!r}: anomalous_frame must be a frame of the clip in [0, {num_frames}), got {frame!r}")
+    spec = meta.get("synthetic")
+    if spec is not None:
+        keys = ("scene", "num_frames", "height", "width")
+        if not isinstance(spec, dict) or any(key not in spec for key in keys) or \
+                not all(isinstance(spec[key], int) and spec[key] > 0 for key in keys[1:]):
+            raise ValueError(f"{str(meta_path)!r}: synthetic must be an object with {keys[0]} and positive integer {', '.join(keys[1:])}, got {spec!r}")
+
+
+def truth_field(bench: Benchmark, key: str) -> Tensor:
+    """``truth.npz``'s array ``key``, or a one-line ValueError naming the clip."""
+    if key not in bench.truth:
+        raise ValueError(f"{str(bench.path)!r}: truth.npz holds no {key!r}, which a {bench.kind} clip needs")
+    return bench.truth[key]
+
+
+def meta_field(bench: Benchmark, key: str) -> Any:
+    """``meta.json``'s entry ``key``, or a one-line ValueError naming the clip."""
+    if key not in bench.meta:
+        raise ValueError(f"{str(bench.path / 'meta.json')!r} holds no {key!r}, which a {bench.kind} clip needs")
+    return bench.meta[key]
 
 
 def find_benchmarks(root: str | Path) -> list[Path]:
     """``root`` itself if it is a clip folder, else its clip sub-folders (sorted); error if none."""
     root = Path(root)
+    if not root.exists():
+        raise FileNotFoundError(f"benchmark folder {str(root)!r} does not exist")
     if (root / "meta.json").is_file():
         return [root]
     found = sorted(p for p in root.iterdir() if (p / "meta.json").is_file()) if root.is_dir() else []
@@ -204,10 +282,10 @@ def oracle_clip(bench: Benchmark) -> SyntheticClip:
         return replace(occlusion_swap_clip(spec["num_frames"], spec["height"], spec["width"]), frames=bench.frames)
     clip = rigid_clip(spec["num_frames"], spec["height"], spec["width"])
     if bench.kind == "warp":
-        edit = WarpResult(bench.frames, bench.truth["displacement"].double(), bench.truth["mask"], torch.empty(0, 2))
+        edit = WarpResult(bench.frames, truth_field(bench, "displacement").double(), bench.truth["mask"], torch.empty(0, 2))
         return with_warp(clip, edit)
-    edit = OcclusionResult(bench.frames, bench.truth["labels"].long(), bench.truth["offsets"].double(),
-                           bench.truth["mask"], tuple(bench.meta["region"]), tuple(bench.meta["phases"]))
+    edit = OcclusionResult(bench.frames, truth_field(bench, "labels").long(), truth_field(bench, "offsets").double(),
+                           bench.truth["mask"], tuple(meta_field(bench, "region")), tuple(meta_field(bench, "phases")))
     return with_overlay(clip, edit)
 
 
@@ -254,9 +332,9 @@ def build_one(kind: str, source: str, frames: Tensor, synthetic: SyntheticClip |
                     mask=args.mask or "central ellipse", controls=result.controls.tolist())
         return result.frames, truth, meta
     params = OcclusionParams(region=tuple(args.region) if args.region else None, seed=seed)
+    region = check_region(params.region or default_region(height, width, params.region_fraction), height, width)
     image = read_object(args.object) if args.object else None
     alpha = read_image(args.object_mask).mean(0) if args.object_mask else None
-    region = params.region or default_region(height, width, params.region_fraction)
     track = scene_track(synthetic, region) if synthetic is not None else None
     result = composite_occlusion(frames, params, image, alpha, track)
     truth = {"mask": result.mask, "labels": result.labels.to(torch.int16), "offsets": result.offsets}

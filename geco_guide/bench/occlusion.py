@@ -94,6 +94,17 @@ def default_region(height: int, width: int, fraction: float) -> tuple[int, int, 
     return left, top, left + w, top + h
 
 
+def check_region(region: tuple[int, int, int, int], height: int, width: int) -> tuple[int, int, int, int]:
+    """``region`` ``(left, top, right, bottom)`` if it is a non-empty box inside the
+    ``width`` x ``height`` image (right/bottom exclusive); else a one-line ValueError. Checked
+    before anything reads the image at the region (its scene track, its object)."""
+    left, top, right, bottom = region
+    if not (0 <= left < right <= width and 0 <= top < bottom <= height):
+        raise ValueError(f"region {tuple(region)} (left, top, right, bottom) must be a non-empty box inside the "
+                         f"{width}x{height} image")
+    return left, top, right, bottom
+
+
 def procedural_texture(height: int, width: int, seed: int) -> Tensor:
     """A smooth colourful texture ``[3, H, W]`` in ``[0, 1]``, seeded (random frequencies and phases)."""
     generator = torch.Generator().manual_seed(seed)
@@ -157,9 +168,7 @@ def composite_occlusion(
     num_frames, _, height, width = frames.shape
     phases = occlusion_phases(num_frames, params)
     region = params.region or default_region(height, width, params.region_fraction)
-    left, top, right, bottom = region
-    if not (0 <= left < right <= width and 0 <= top < bottom <= height):
-        raise ValueError(f"region {region} must lie inside the {width}x{height} image")
+    left, top, right, bottom = check_region(region, height, width)
     box_h, box_w = bottom - top, right - left
     image = procedural_texture(box_h, box_w, params.seed) if object_image is None else fit_image(object_image, box_h, box_w)
     if object_alpha is None:

@@ -13,18 +13,21 @@ At each level it reports every cue's ranking AP on a WarpBench-style clip (Task 
 warped) and an OccluBench-style clip (Task 3: re-revealed frames), and the fused score of the
 clean rigid clip (the noise floor). Output: ``robustness.json`` and ``robustness.png`` (AP
 against sigma, one panel per input and task), written atomically. Deterministic from ``--seed``.
+A level so large that the noisy input is not finite (depth ``exp(sigma n)`` overflowing to inf
+or 0, flow to inf) is scored NaN (null in the JSON) and left out of the plot.
 """
 
 from __future__ import annotations
 
 import io
+import math
 from dataclasses import asdict, replace
 from typing import Any
 
 import torch
 from PIL import Image, ImageDraw
 
-from ..io.plots import Panel, legend
+from ..io.plots import Panel, legend, limits
 from ..loss.geco import GeCoLossConfig, frame_pairs, geco_from_geometry
 from ..metric.protocol import EvaluationConfig
 from ..types import Correspondences, SceneGeometry
@@ -38,6 +41,19 @@ DEPTH_SIGMAS = (0.0, 0.01, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0)
 FLOW_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0)
 CUES = ("structure", "motion", "fused")
 COLORS = {"structure": (31, 119, 180), "motion": (255, 127, 14), "fused": (44, 160, 44)}
+# Drawn in this order, widest first, with their own markers: a line that coincides with another
+# (motion and fused often do) still shows as the border of the one drawn over it.
+LINE_WIDTHS = {"fused": 7, "motion": 4, "structure": 1}
+SHAPES = {"fused": "square", "motion": "circle", "structure": "triangle"}
+
+
+def sweep_memory_bytes(num_frames: int, height: int, width: int, pairs: str) -> int:
+    """A lower bound of the sweep's peak memory in bytes: the exact inputs it holds throughout,
+    for each of the three clips of :func:`sweep_clips` float64 correspondences of every frame pair
+    (flow ``[P, 2, H, W]`` and covisibility ``[P, H, W]``) and depth ``[S, H, W]``. The metric's
+    per-pair maps and the noisy copies come on top of it."""
+    num_pairs = len(frame_pairs(num_frames, pairs))
+    return 3 * 8 * height * width * (3 * num_pairs + num_frames)
 
 
 def noisy_depth(geometry: SceneGeometry, sigma: float, generator: torch.Generator) -> SceneGeometry:
@@ -59,6 +75,13 @@ def sweep_clips(num_frames: int, height: int, width: int, seed: int) -> dict[str
     region = default_region(height, width, OcclusionParams.region_fraction)
     edit = composite_occlusion(rigid.frames, OcclusionParams(seed=seed), region_track=scene_track(rigid, region))
     return {"rigid": rigid, "warp": warped, "occlusion": with_overlay(rigid, edit)}
+
+
+def usable(geometry: SceneGeometry, correspondences: Correspondences) -> bool:
+    """Whether noisy inputs are still inputs: finite flow and finite positive depth (a large
+    sigma overflows ``exp(sigma n)`` to inf or 0, and the metric would score that garbage)."""
+    depth = geometry.depth
+    return bool(torch.isfinite(depth).all() and (depth > 0).all() and torch.isfinite(correspondences.flow).all())
 
 
 def detection_ap(clip: SyntheticClip, geometry: SceneGeometry, correspondences: Correspondences,
@@ -96,6 +119,13 @@ def run_sweep(num_frames: int = 9, height: int = 48, width: int = 64, seed: int 
                     geometry = noisy_depth(geometry, sigma, generator)
                 else:
                     correspondences = noisy_flow(correspondences, sigma, generator)
+                if not usable(geometry, correspondences):  # the level overflowed: no score, not a 0
+                    if name == "rigid":
+                        rows["rigid_fused"].append(math.nan)
+                    else:
+                        for cue in CUES:
+                            rows[name][cue].append(math.nan)
+                    continue
                 if name == "rigid":
                     rows["rigid_fused"].append(float(geco_from_geometry(geometry, correspondences, pair_list, config).fused))
                     continue
@@ -106,24 +136,30 @@ def run_sweep(num_frames: int = 9, height: int = 48, width: int = 64, seed: int 
 
 
 def plot(report: dict[str, Any]) -> bytes:
-    """PNG: AP against sigma, panels depth/flow x warp (Task 2)/occlusion (Task 3), one line per cue."""
+    """PNG: AP against sigma, panels depth/flow x warp (Task 2)/occlusion (Task 3), one line per
+    cue. The sigmas are evenly spaced levels on the x axis, each labelled with its value (they
+    span decades and start at 0, which a log axis cannot show); non-finite APs are left out."""
     image = Image.new("RGB", (760, 760), (255, 255, 255))
     draw = ImageDraw.Draw(image)
     for row, noisy_input in enumerate(("depth", "flow")):
         sigmas = report[noisy_input]["sigmas"]
-        unit = "relative, log-space" if noisy_input == "depth" else "pixels"
+        levels = list(range(len(sigmas)))
+        unit = "relative: D exp(sigma n)" if noisy_input == "depth" else "pixels"
         for column, task in enumerate(("warp", "occlusion")):
             left, top = 90 + column * 360, 80 + row * 350
-            panel = Panel((left, top, left + 260, top + 200), (min(sigmas), max(sigmas)), (0.0, 1.0))
+            panel = Panel((left, top, left + 260, top + 200), limits(levels), (0.0, 1.0))
             title = f"{noisy_input} noise: {'Task 2 (warp)' if task == 'warp' else 'Task 3 (occlusion)'} AP"
-            panel.draw_axes(draw, title, f"sigma ({unit})", "AP")
-            for cue in CUES:
-                points = [panel.to_pixel(s, ap) for s, ap in zip(sigmas, report[noisy_input][task][cue])]
-                draw.line(points, fill=COLORS[cue], width=2)
-                for s, ap in zip(sigmas, report[noisy_input][task][cue]):
-                    panel.dot(draw, s, ap, COLORS[cue], radius=3)
+            panel.draw_axes(draw, title, f"sigma ({unit}), one level per tick", "AP",
+                            xticks=[(k, f"{s:.2g}") for k, s in zip(levels, sigmas)])
+            for cue in sorted(CUES, key=lambda c: -LINE_WIDTHS[c]):
+                points = [(k, ap) for k, ap in zip(levels, report[noisy_input][task][cue])
+                          if ap is not None and math.isfinite(ap)]
+                if len(points) > 1:
+                    draw.line([panel.to_pixel(k, ap) for k, ap in points], fill=COLORS[cue], width=LINE_WIDTHS[cue])
+                for k, ap in points:
+                    panel.dot(draw, k, ap, COLORS[cue], radius=3, shape=SHAPES[cue])
             if row == 1 and column == 0:
-                legend(draw, panel, [(cue, COLORS[cue]) for cue in CUES])
+                legend(draw, panel, [(cue, COLORS[cue]) for cue in CUES], [SHAPES[cue] for cue in CUES])
     buffer = io.BytesIO()
     image.save(buffer, format="PNG")
     return buffer.getvalue()

@@ -16,7 +16,8 @@ ground truth:
 
 Output (``--out``, default ``<first input>/validation``): ``validation.json`` (per clip, per
 frame and the means), ``validation.md`` (the paper's table layout) and ``grids/<clip>.png``
-(frame | ground truth | motion | structure | fused, one row per judged frame). Written atomically.
+(frame | ground truth | motion | structure | fused, one captioned row per judged frame, the maps'
+colour scale below). Written atomically.
 """
 
 from __future__ import annotations
@@ -28,12 +29,13 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
 from ..io.files import write_bytes_atomic
 from ..loss.geco import GeCoResult
-from ..metric.render import colorize, side_by_side
+from ..metric.render import colorbar, colorize, side_by_side, text_scale, text_strip
 from .datasets import Benchmark
 from .ranking import average_precision, best_threshold_iou_f1, spearman
 
@@ -108,8 +110,8 @@ def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
     for task in ("task2", "task3"):
         rows = [row for r in records for row in r.get(task, [])]
         if rows:
-            keys = list(rows[0][CUES[0]])
-            summary[task] = {"frames": len(rows), **{cue: {k: _mean([row[cue][k] for row in rows]) for k in keys} for cue in CUES}}
+            keys = list(dict.fromkeys(k for row in rows for k in row[CUES[0]]))  # srcc needs a magnitude
+            summary[task] = {"frames": len(rows), **{cue: {k: _mean([row[cue].get(k) for row in rows]) for k in keys} for cue in CUES}}
     return summary
 
 
@@ -141,16 +143,29 @@ def markdown_table(summary: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: Grid panels smaller than this are enlarged (nearest, whole factors: pixels stay pixels) so
+#: that their labels are legible at the PNG's native size.
+GRID_MIN_HEIGHT = 192
+
+
 def grid_image(bench: Benchmark, result: GeCoResult, frames: list[int]) -> Tensor:
     """``[3, H', W']`` rows of frame | ground truth | motion | structure | fused (viridis on the
-    fixed map range, grey: no valid pixel) for ``frames``."""
+    fixed map range, grey: no valid pixel) for ``frames``, each row under a caption naming its
+    frame, and the colour scale of the maps (with the grey of "no valid pixel") at the bottom."""
     truth = bench.truth["mask"][frames].float()[:, None].expand(-1, 3, -1, -1)
     panels = [bench.frames[frames], truth]
     for cue in ("motion", "structure", "fused"):
         values, valid = result.frame_maps.cue(cue)
         panels.append(colorize(values[0, frames].cpu(), valid[0, frames].cpu()))
-    rows = side_by_side(panels, ["FRAME", "TRUTH", "MOTION", "STRUCTURE", "FUSED"])
-    return torch.cat(list(rows), dim=-2)
+    factor = max(1, math.ceil(GRID_MIN_HEIGHT / bench.frames.shape[-2]))
+    panels = [F.interpolate(panel.float(), scale_factor=factor, mode="nearest") for panel in panels]
+    rows = side_by_side(panels, ["FRAME", "TRUTH (ARTIFACT)", "MOTION", "STRUCTURE", "FUSED"])
+    width, scale = rows.shape[-1], text_scale(panels[0].shape[-2])
+    body = []
+    for t, row in zip(frames, rows):
+        note = "ground-truth artifact" if bool(bench.truth["mask"][t].any()) else "no artifact"
+        body += [text_strip(f"FRAME {t} ({note}); maps: residual, 0 = consistent", width, scale), row]
+    return torch.cat([*body, colorbar(width, scale)], dim=-2)
 
 
 def write_png(path: Path, image: Tensor) -> Path:

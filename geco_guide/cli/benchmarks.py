@@ -13,9 +13,19 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..bench.datasets import KINDS, build_one, load_clip, write_benchmark
+from ..bench.datasets import (
+    KINDS,
+    SYNTHETIC,
+    SYNTHETIC_3D,
+    build_one,
+    check_synthetic_size,
+    load_clip,
+    output_stem,
+    write_benchmark,
+)
 from ..bench.warp import WarpParams
-from .kit import Parser
+from ..io.files import WriteError, check_output_dir, unique_names
+from .kit import Parser, interruptible
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,15 +54,23 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@interruptible("the clip folders finished so far (each complete with its meta.json); a folder without meta.json is incomplete")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    try:
+        if args.max_frames < 3:
+            raise ValueError(f"--max-frames must be >= 3, got {args.max_frames}")
+        if any(source in (SYNTHETIC, SYNTHETIC_3D) for source in args.inputs):
+            check_synthetic_size(tuple(args.synthetic_size))
+        check_output_dir(args.out)
+    except (ValueError, WriteError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     failed = 0
-    for source in args.inputs:
+    # Inputs that share a stem (two clip.mp4 of different folders) get folders of their own.
+    for source, stem in zip(args.inputs, unique_names(output_stem(source) for source in args.inputs)):
         try:
-            if args.max_frames < 3:
-                raise ValueError(f"--max-frames must be >= 3, got {args.max_frames}")
             frames, synthetic = load_clip(source, args.max_frames, tuple(args.synthetic_size))
-            stem = source if synthetic is not None else Path(source).stem or Path(source).name
             for seed in args.seeds:
                 edited, truth, meta = build_one(args.kind, source, frames, synthetic, seed, args)
                 folder = Path(args.out) / f"{stem}-s{seed}"

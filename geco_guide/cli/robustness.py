@@ -1,6 +1,9 @@
 """``python -m geco_guide.robustness``: the noise sweep of :mod:`geco_guide.bench.robustness`.
 
     python -m geco_guide.robustness --out robustness            # CPU, offline, about a minute
+
+Every option is checked, the output folder included, and the sweep's memory predicted
+(:func:`~geco_guide.bench.robustness.sweep_memory_bytes`) before the sweep runs.
 """
 
 from __future__ import annotations
@@ -9,10 +12,24 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from ..bench.robustness import CUES, DEPTH_SIGMAS, FLOW_SIGMAS, plot, run_sweep
-from ..io.files import write_bytes_atomic, write_json_atomic
+from ..bench.robustness import (
+    CUES,
+    DEPTH_SIGMAS,
+    FLOW_SIGMAS,
+    plot,
+    run_sweep,
+    sweep_memory_bytes,
+)
+from ..config import SEED_RANGE
+from ..io.devices import check_memory_fits
+from ..io.files import (
+    WriteError,
+    check_output_dir,
+    write_bytes_atomic,
+    write_json_atomic,
+)
 from ..metric.protocol import EvaluationConfig
-from .kit import Parser
+from .kit import Parser, interruptible
 
 
 def _sigmas(values: list[float], name: str) -> tuple[float, ...]:
@@ -21,6 +38,7 @@ def _sigmas(values: list[float], name: str) -> tuple[float, ...]:
     return tuple(sorted(values))
 
 
+@interruptible("nothing: the sweep writes its files only when it is complete")
 def main(argv: list[str] | None = None) -> int:
     p = Parser(prog="python -m geco_guide.robustness",
                description="Sweep Gaussian noise on depth and flow; plot each cue's detection AP.")
@@ -33,20 +51,30 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-depth-edges", action="store_true",
                    help="keep structure pixels on depth edges (depth_edge_tau=None, the paper's behaviour)")
     args = p.parse_args(argv)
+    out = Path(args.out)
     try:
         frames, height, width = args.size
         if frames < 3 or height < 8 or width < 8:
             raise ValueError(f"--size must be at least 3 frames of 8x8, got {args.size}")
-        report = run_sweep(frames, height, width, args.seed, _sigmas(args.depth_sigmas, "--depth-sigmas"),
-                           _sigmas(args.flow_sigmas, "--flow-sigmas"),
-                           replace(EvaluationConfig().loss, pairs=args.pairs,
-                                   depth_edge_tau=None if args.no_depth_edges else EvaluationConfig().loss.depth_edge_tau))
-    except ValueError as err:
+        if not SEED_RANGE[0] <= args.seed <= SEED_RANGE[1]:
+            raise ValueError(f"--seed must be a 64-bit integer in [{SEED_RANGE[0]}, {SEED_RANGE[1]}], got {args.seed}")
+        depth_sigmas = _sigmas(args.depth_sigmas, "--depth-sigmas")
+        flow_sigmas = _sigmas(args.flow_sigmas, "--flow-sigmas")
+        check_memory_fits(sweep_memory_bytes(frames, height, width, args.pairs), "cpu",
+                          f"--size {frames} {height} {width} (--pairs {args.pairs})")
+        check_output_dir(out)
+    except (ValueError, WriteError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    write_json_atomic(out / "robustness.json", report)
-    write_bytes_atomic(out / "robustness.png", plot(report))
+    defaults = EvaluationConfig().loss
+    report = run_sweep(frames, height, width, args.seed, depth_sigmas, flow_sigmas,
+                       replace(defaults, pairs=args.pairs, depth_edge_tau=None if args.no_depth_edges else defaults.depth_edge_tau))
+    try:
+        write_json_atomic(out / "robustness.json", report)
+        write_bytes_atomic(out / "robustness.png", plot(report))
+    except WriteError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
     for noisy_input in ("depth", "flow"):
         rows = report[noisy_input]
         for k, sigma in enumerate(rows["sigmas"]):
@@ -54,4 +82,3 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{noisy_input} sigma={sigma:g}: {cells} rigid fused {rows['rigid_fused'][k]:.4f}")
     print(f"wrote {out / 'robustness.json'} and {out / 'robustness.png'}")
     return 0
-

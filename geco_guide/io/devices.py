@@ -1,6 +1,9 @@
-"""Torch devices: what ``auto`` means, and a one-line error for a device this machine lacks."""
+"""Torch devices: what ``auto`` means, a one-line error for a device this machine lacks, and one
+for a working set that cannot fit in its memory."""
 
 from __future__ import annotations
+
+import os
 
 import torch
 
@@ -29,3 +32,35 @@ def check_device(name: str, key: str = "model.device") -> None:
             raise ValueError(f"device {name!r} is not available ({found}); use {key}=cpu or auto")
     elif device.type == "mps" and not torch.backends.mps.is_available():
         raise ValueError(f"device {name!r} is not available on this machine; use {key}=cpu or auto")
+
+
+def memory_limit(device: str | torch.device) -> int | None:
+    """Bytes of memory that ``device`` has in all: a CUDA device's total memory, the machine's
+    physical RAM for the CPU (and any other device); None where the system does not say."""
+    device = resolve_device(device)
+    if device.type == "cuda" and torch.cuda.is_available():
+        return int(torch.cuda.get_device_properties(device.index or 0).total_memory)
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):  # not a POSIX system
+        return None
+
+
+def _gib(nbytes: float) -> str:
+    return f"{nbytes / 2**30:.3g} GiB"
+
+
+def check_memory_fits(nbytes: float, device: str | torch.device, what: str) -> None:
+    """ValueError (one line) when ``nbytes``, a prediction of the peak memory of ``what`` (e.g.
+    "--size 9 4000 4000"), exceeds all the memory of ``device`` (:func:`memory_limit`).
+
+    Called before any heavy work, so that a size that cannot fit fails at once instead of after
+    minutes in the allocator. The prediction should be a lower bound of what the work must hold
+    (its unavoidable tensors): a refusal is then certain, and a size close to the limit is left to
+    try. Nothing is checked where the limit is unknown.
+    """
+    limit = memory_limit(device)
+    if limit is not None and nbytes > limit:
+        where = "GPU memory" if resolve_device(device).type == "cuda" else "RAM"
+        raise ValueError(f"{what} needs at least {_gib(nbytes)} of memory, more than the {_gib(limit)} of "
+                         f"{where} of device {str(device)!r}: choose a smaller size")

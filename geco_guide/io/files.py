@@ -5,17 +5,20 @@ Outputs are written to a hidden temporary file in the destination folder (``.<st
 interrupted run never leaves a truncated video, sidecar or report behind. The temporary file is
 removed on any error; what a killed process (``kill -9``) left of it is removed by the next write
 of the same file (:func:`remove_temp_files`). A failed write (full disk, no permission) is one
-:class:`WriteError` line naming the file.
+:class:`WriteError` line naming the file. Files that belong together (a report's JSON and its
+Markdown) are written all or none (:func:`write_texts_atomic`), and an output folder can be checked
+before the work that fills it (:func:`check_output_dir`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import re
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -83,11 +86,10 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically (flushed to disk before the rename)."""
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
     return Path(path)
 
 
@@ -96,6 +98,78 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
     return write_bytes_atomic(path, text.encode("utf-8"))
 
 
+def write_texts_atomic(texts: Mapping[str | os.PathLike, str]) -> list[Path]:
+    """Write each ``{path: text}`` (UTF-8) all or none: every text goes to its temporary file
+    first, and the files take their names only once all of them are written, so a failed write
+    (a full disk) leaves none of them, not one file of a pair that describes the other."""
+    with contextlib.ExitStack() as stack:
+        for path, text in texts.items():
+            tmp = stack.enter_context(atomic_path(path))
+            with open(tmp, "wb") as fh:
+                fh.write(text.encode("utf-8"))
+                fh.flush()
+                os.fsync(fh.fileno())
+    return [Path(path) for path in texts]
+
+
+def json_ready(data: Any) -> Any:
+    """``data`` with every non-finite float (NaN, inf) replaced by None, so that it is standard
+    JSON (``NaN`` and ``Infinity`` are not) that every reader parses, and means "no value"."""
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, Mapping):
+        return {key: json_ready(value) for key, value in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [json_ready(value) for value in data]
+    return data
+
+
+def json_text(data: Any) -> str:
+    """``data`` as indented standard JSON (non-finite floats as null, see :func:`json_ready`)."""
+    return json.dumps(json_ready(data), indent=2, allow_nan=False) + "\n"
+
+
 def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
-    """Write ``data`` as indented JSON to ``path`` atomically."""
-    return write_text_atomic(path, json.dumps(data, indent=2, allow_nan=True) + "\n")
+    """Write ``data`` as indented standard JSON to ``path`` atomically (NaN and inf as null)."""
+    return write_text_atomic(path, json_text(data))
+
+
+def check_output_dir(folder: str | os.PathLike, option: str = "--out") -> Path:
+    """Create ``folder`` if needed and check that files can be made in it, before the work that
+    fills it: otherwise a file in its place or a read-only folder shows only at the end.
+
+    Raises:
+        WriteError: one line naming ``option`` and the folder.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise WriteError(f"{option} {str(folder)!r} is a file, not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".write-check.", suffix=".tmp", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise WriteError(f"cannot write to {option} {str(folder)!r}: {_reason(err)}") from err
+    return folder
+
+
+def unique_names(names: Iterable[str]) -> list[str]:
+    """``names`` with repeats numbered ``-2``, ``-3``, ... in order (``a, a, a`` -> ``a, a-2,
+    a-3``), never reusing a name given or made (``a, a, a-2`` -> ``a, a-3, a-2``): inputs that
+    share a stem get outputs of their own instead of overwriting each other's."""
+    names = list(names)
+    taken = set(names)
+    seen: set[str] = set()
+    out = []
+    for name in names:
+        unique = name
+        if name in seen:
+            count = 2
+            while f"{name}-{count}" in taken:
+                count += 1
+            unique = f"{name}-{count}"
+            taken.add(unique)
+        seen.add(name)
+        out.append(unique)
+    return out

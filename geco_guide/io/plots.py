@@ -2,7 +2,9 @@
 dependency): no matplotlib.
 
 A :class:`Panel` maps data to a pixel box with axes, ticks and labels; :func:`legend` adds a
-row of coloured dots with labels. Used by the A/B report and the GeCo-Eval report.
+row of coloured markers with labels. Markers come in several shapes (:data:`SHAPES`) so that
+series drawn on top of each other stay told apart. Used by the A/B report, the GeCo-Eval report
+and the robustness sweep.
 """
 
 from __future__ import annotations
@@ -11,9 +13,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+#: Marker shapes of :func:`marker`.
+SHAPES = ("circle", "square", "triangle", "diamond")
+
 
 def limits(values: Sequence[float]) -> tuple[float, float]:
-    """Axis limits around ``values`` with a 6 % margin (a unit-width range around a constant)."""
+    """Axis limits around ``values`` with a 6 % margin (a small range around a constant, so a
+    single value still gets an axis of non-zero width)."""
     low, high = min(values), max(values)
     pad = 0.06 * (high - low) if high > low else max(abs(low) * 0.1, 1e-3)
     return low - pad, high + pad
@@ -44,30 +50,59 @@ class Panel:
         v = bottom - (y - self.ylim[0]) / (self.ylim[1] - self.ylim[0]) * (bottom - top)
         return u, v
 
-    def draw_axes(self, draw: Any, title: str, xlabel: str, ylabel: str) -> None:
+    def __post_init__(self) -> None:
+        for name, (low, high) in (("xlim", self.xlim), ("ylim", self.ylim)):
+            if not high > low:  # a zero-width range would divide by zero in to_pixel
+                raise ValueError(f"{name} must be an increasing range, got {(low, high)} (see limits())")
+
+    def draw_axes(self, draw: Any, title: str, xlabel: str, ylabel: str,
+                  xticks: Sequence[tuple[float, str]] | None = None) -> None:
+        """Frame, title, labels and ticks; ``xticks``: ``(x, label)`` pairs replacing the
+        default three x ticks (at both ends and the middle of ``xlim``)."""
         left, top, right, bottom = self.box
         draw.rectangle(self.box, outline=(0, 0, 0))
         text(draw, (left - 50, top - 44), title, "lt")
         text(draw, ((left + right) / 2, bottom + 24), xlabel, "mt")
         text(draw, (left - 50, top - 8), ylabel, "lb")
-        for t in (0.0, 0.5, 1.0):
-            x = self.xlim[0] + t * (self.xlim[1] - self.xlim[0])
-            y = self.ylim[0] + t * (self.ylim[1] - self.ylim[0])
+        if xticks is None:
+            xticks = [(x, f"{x:.3g}") for x in (self.xlim[0] + t * (self.xlim[1] - self.xlim[0]) for t in (0.0, 0.5, 1.0))]
+        for x, label in xticks:
             u, _ = self.to_pixel(x, self.ylim[0])
-            _, v = self.to_pixel(self.xlim[0], y)
             draw.line([(u, bottom), (u, bottom + 4)], fill=(0, 0, 0))
-            text(draw, (u, bottom + 6), f"{x:.3g}", "mt")
+            text(draw, (u, bottom + 6), label, "mt")
+        for t in (0.0, 0.5, 1.0):
+            y = self.ylim[0] + t * (self.ylim[1] - self.ylim[0])
+            _, v = self.to_pixel(self.xlim[0], y)
             draw.line([(left - 4, v), (left, v)], fill=(0, 0, 0))
             text(draw, (left - 6, v), f"{y:.3g}", "rm")
 
-    def dot(self, draw: Any, x: float, y: float, color: tuple[int, int, int], radius: int = 4) -> None:
-        u, v = self.to_pixel(x, y)
-        draw.ellipse([u - radius, v - radius, u + radius, v + radius], fill=color, outline=(0, 0, 0))
+    def dot(self, draw: Any, x: float, y: float, color: tuple[int, int, int], radius: int = 4,
+            shape: str = "circle") -> None:
+        marker(draw, self.to_pixel(x, y), color, radius, shape)
 
 
-def legend(draw: Any, panel: Panel, entries: Sequence[tuple[str, tuple[int, int, int]]]) -> None:
-    """Coloured dots with labels in a row below the panel's x label."""
+def marker(draw: Any, centre: tuple[float, float], color: tuple[int, int, int], radius: int = 4,
+           shape: str = "circle") -> None:
+    """A filled marker of ``shape`` (one of :data:`SHAPES`) with a black outline at ``centre``."""
+    u, v = centre
+    r = radius
+    if shape == "circle":
+        draw.ellipse([u - r, v - r, u + r, v + r], fill=color, outline=(0, 0, 0))
+    elif shape == "square":
+        draw.rectangle([u - r, v - r, u + r, v + r], fill=color, outline=(0, 0, 0))
+    elif shape == "triangle":
+        draw.polygon([(u, v - r - 1), (u + r + 1, v + r), (u - r - 1, v + r)], fill=color, outline=(0, 0, 0))
+    elif shape == "diamond":
+        draw.polygon([(u, v - r - 1), (u + r + 1, v), (u, v + r + 1), (u - r - 1, v)], fill=color, outline=(0, 0, 0))
+    else:
+        raise ValueError(f"shape must be one of {SHAPES}, got {shape!r}")
+
+
+def legend(draw: Any, panel: Panel, entries: Sequence[tuple[str, tuple[int, int, int]]],
+           shapes: Sequence[str] | None = None) -> None:
+    """Coloured markers (``shapes``, one per entry; default circles) with labels in a row below
+    the panel's x label."""
     u, v = panel.box[0], panel.box[3] + 48
-    for label, color in entries:
-        draw.ellipse([u - 4, v - 4, u + 4, v + 4], fill=color, outline=(0, 0, 0))
+    for k, (label, color) in enumerate(entries):
+        marker(draw, (u, v), color, 4, "circle" if shapes is None else shapes[k])
         u += 9 + text(draw, (u + 9, v), label, "lm") + 24

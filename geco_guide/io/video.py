@@ -13,9 +13,9 @@ from __future__ import annotations
 import math
 import os
 import re
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -41,7 +41,22 @@ def _error_reason(err: Exception) -> str:
     return reason
 
 
-def _to_uint8_hwc(frames) -> np.ndarray:
+#: Frame rates :func:`write_video` writes: an mp4 from one frame per 100 s to 1000 fps; a GIF
+#: stores whole centiseconds per frame (at least 1, at most 65535), so at most 100 fps.
+FPS_RANGE = {"mp4": (0.01, 1000.0), "gif": (0.01, 100.0)}
+
+
+def check_fps(fps: float, suffix: str = ".mp4") -> None:
+    """One-line ValueError unless ``fps`` lies in the :data:`FPS_RANGE` of the format of
+    ``suffix`` (``.gif``, or anything else: mp4): ``inf`` or ``1e-300`` overflow the writers."""
+    kind = "gif" if suffix.lower() == ".gif" else "mp4"
+    low, high = FPS_RANGE[kind]
+    if not low <= fps <= high:  # NaN fails too
+        raise ValueError(f"fps must be in [{low:g}, {high:g}] for a {kind} video, got {fps}")
+
+
+def _to_uint8_hwc(frames, even: bool = True) -> np.ndarray:
+    """Frames -> ``[S, H, W, 3]`` uint8; with ``even``, odd sizes padded (yuv420p needs even)."""
     if isinstance(frames, torch.Tensor):
         frames = frames.detach().float().cpu().numpy()
     frames = np.asarray(frames)
@@ -56,31 +71,39 @@ def _to_uint8_hwc(frames) -> np.ndarray:
     if frames.dtype == np.uint8:
         out = frames
     else:
+        # A NaN frame would be written black (and scored as a real one): refuse it by its number.
+        # (The metric's check_frame_values sits beside io on the ground floor: io cannot import it.)
+        bad = np.flatnonzero(~np.isfinite(frames.reshape(frames.shape[0], -1)).all(axis=1))
+        if bad.size:
+            raise ValueError(f"frames must be finite: frame(s) {bad[:10].tolist()} hold NaN or inf values")
         out = (np.clip(frames.astype(np.float32), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     # yuv420p needs even sizes: pad odd sizes by repeating the last row/column.
     pad_h, pad_w = out.shape[1] % 2, out.shape[2] % 2
-    if pad_h or pad_w:
+    if even and (pad_h or pad_w):
         out = np.pad(out, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
     return np.ascontiguousarray(out)
 
 
 def write_video(path: str | os.PathLike, frames, fps: float = 8) -> Path:
     """Write ``frames`` (``[S, 3, H, W]`` or ``[S, H, W, 3]``, float in [0, 1] or uint8) as an
-    H.264 mp4 (yuv420p; an odd height/width is padded by one repeated row/column), atomically.
-    Returns the path.
+    H.264 mp4 (yuv420p; an odd height/width is padded by one repeated row/column), or as a
+    looping GIF when ``path`` ends in ``.gif``, atomically. Returns the path.
 
     The written file is checked before it takes its name: ffmpeg can fail while writing the
     trailer (a full disk) without the writer raising, which leaves an unreadable file.
 
     Raises:
+        ValueError: ``fps`` outside :data:`FPS_RANGE`, frames of a wrong shape or holding NaN or
+            inf; before anything is written.
         WriteError: one line naming ``path`` (disk full, ffmpeg failed, the file does not hold
             ``S`` readable frames); nothing is left under its name or as a temporary file.
     """
     import imageio.v2 as imageio
 
-    if not fps > 0:
-        raise ValueError(f"fps must be > 0, got {fps}")
     path = Path(path)
+    check_fps(fps, path.suffix)
+    if path.suffix.lower() == ".gif":
+        return _write_gif(path, _to_uint8_hwc(frames, even=False), fps)
     data = _to_uint8_hwc(frames)
     with atomic_path(path) as tmp:
         writer = imageio.get_writer(
@@ -98,6 +121,22 @@ def write_video(path: str | os.PathLike, frames, fps: float = 8) -> Path:
     return path
 
 
+def _write_gif(path: Path, data: np.ndarray, fps: float) -> Path:
+    """``data [S, H, W, 3]`` uint8 as a looping GIF at ``fps`` (Pillow stores whole
+    centiseconds, see :func:`gif_rate`), atomically, checked to open as an image sequence."""
+    import imageio.v2 as imageio
+    from PIL import Image
+
+    with atomic_path(path) as tmp:
+        imageio.mimsave(tmp, list(data), format="GIF", duration=1000.0 / fps, loop=0)
+        try:
+            with Image.open(tmp) as image:
+                image.seek(0)
+        except OSError as err:
+            raise WriteError(f"cannot write {str(path)!r}: the written file is not a readable GIF ({err})") from None
+    return path
+
+
 def _written_video_problem(path: Path, expected_frames: int) -> str | None:
     """Why the mp4 at ``path`` is not a readable video of ``expected_frames`` frames, or None.
 
@@ -110,7 +149,7 @@ def _written_video_problem(path: Path, expected_frames: int) -> str | None:
 
     command = [imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-v", "error", "-i", str(path), "-map", "0:v:0",
                "-c", "copy", "-f", "null", "-", "-progress", "pipe:1", "-nostats"]
-    proc = subprocess.run(command, capture_output=True, text=True, errors="replace")
+    proc = subprocess.run(command, check=False, capture_output=True, text=True, errors="replace")
     if proc.returncode != 0:
         lines = [line.strip() for line in proc.stderr.splitlines() if line.strip()]
         return f"the written file is not a readable video ({lines[0] if lines else f'ffmpeg exit {proc.returncode}'})"

@@ -27,11 +27,11 @@ from PIL import Image
 from torch import Tensor
 
 from ..geometry import relative_pose, sample_at_projection
-from ..io.files import atomic_path, write_bytes_atomic
-from ..io.video import write_video
+from ..io.files import write_bytes_atomic
+from ..io.video import check_fps, write_video
 from ..loss.cues import fuse_cues, masked_mean, structure_residual
 from ..loss.geco import GeCoLossConfig, GeCoMaps
-from ..types import SceneGeometry
+from ..types import SceneGeometry, check_frame_values
 from .evaluate import EvaluationMaps, score_frames
 from .render import colorbar, colorize, side_by_side, text_scale, text_strip
 
@@ -94,6 +94,7 @@ def detection_maps(frames: Tensor, geometry: Any, flow: Any, config: GeCoLossCon
     ``[S, H, W]`` (``window`` is capped at the clip's length)."""
     if frames.ndim != 4 or frames.shape[1] != 3 or frames.shape[0] < 2:
         raise ValueError(f"frames must be [S >= 2, 3, H, W], got {list(frames.shape)}")
+    check_frame_values(frames)  # as evaluate_video: a NaN frame is an error, not maps of None
     config = config or GeCoLossConfig()
     size = min(window, frames.shape[0])
     per_frame = [frame_maps(frames, window_indices(frames.shape[0], t, size, anchor), geometry, flow, config,
@@ -135,15 +136,6 @@ def _uint8(frames: Tensor) -> np.ndarray:
     return (frames.clamp(0, 1).permute(0, 2, 3, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
-def write_gif(path: Path, frames: Tensor, fps: float) -> Path:
-    """``frames [S, 3, H, W]`` as a looping GIF at ``fps``, atomically."""
-    import imageio.v2 as imageio
-
-    with atomic_path(path) as tmp:
-        imageio.mimsave(tmp, list(_uint8(frames)), format="GIF", duration=1000.0 / fps, loop=0)
-    return path
-
-
 def write_pngs(folder: Path, frames: Tensor) -> Path:
     """One PNG per frame, ``folder/NNNNN.png``, each written atomically."""
     for k, frame in enumerate(_uint8(frames)):
@@ -154,10 +146,15 @@ def write_pngs(folder: Path, frames: Tensor) -> Path:
 
 
 def write_detection(rendered: Tensor, stem: Path, formats: list[str], fps: float) -> list[Path]:
-    """Write ``rendered [S, 3, H, W]`` as ``stem.detection.{mp4,gif}`` / ``stem.detection/*.png``."""
+    """Write ``rendered [S, 3, H, W]`` as ``stem.detection.{mp4,gif}`` / ``stem.detection/*.png``.
+    A frame rate outside the :data:`~geco_guide.io.video.FPS_RANGE` of a video format asked for
+    is refused before any of them is written."""
+    for f in formats:
+        if f != "png":
+            check_fps(fps, f".{f}")
     writers = {
         "mp4": lambda: write_video(stem.with_name(f"{stem.name}.detection.mp4"), rendered, fps=fps),
-        "gif": lambda: write_gif(stem.with_name(f"{stem.name}.detection.gif"), rendered, fps),
+        "gif": lambda: write_video(stem.with_name(f"{stem.name}.detection.gif"), rendered, fps=fps),
         "png": lambda: write_pngs(stem.with_name(f"{stem.name}.detection"), rendered),
     }
     return [writers[f]() for f in formats]

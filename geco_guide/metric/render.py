@@ -115,8 +115,9 @@ def _coverage(text: str, size: int) -> Tensor:
 
 
 def text_scale(size: int) -> int:
-    """Integer scale of text next to an image of ``size`` pixels (its height)."""
-    return max(1, size // 120)
+    """Integer scale of text next to an image of ``size`` pixels (its height): at least 2
+    (18-pixel text), as the 9 pixels of scale 1 are hard to read at a video's native size."""
+    return max(2, size // 120)
 
 
 def text_mask(text: str, scale: int = 1) -> Tensor:
