@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import math
 from dataclasses import replace
@@ -10,13 +11,15 @@ from pathlib import Path
 
 import pytest
 import torch
+from PIL import Image
 
 import geco_guide
 from geco_guide.bench.synthetic import inject_deformation, rigid_clip
-from geco_guide.cli.evaluate import main
+from geco_guide.cli.evaluate import expand_inputs, main
 from geco_guide.config import load_config
 from geco_guide.estimators import EstimatorsConfig, load_estimators
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
+from geco_guide.io import files
 from geco_guide.io.video import VideoReadError, read_video, write_video
 from geco_guide.loss.geco import GeCoLossConfig
 from geco_guide.metric.evaluate import (
@@ -240,8 +243,8 @@ def test_cli_scores_videos_and_reports_bad_inputs(tmp_path: Path, capsys):
                "--preset", "tiny", "--out", str(out), "--maps", "--pairs", "all", "evaluation.flow_batch_size=7"])
     captured = capsys.readouterr()
     assert rc == 0, captured.err
-    errors = captured.err.strip().splitlines()
-    assert len(errors) == 2 and all(line.startswith("error: ") for line in errors)
+    errors = [line for line in captured.err.strip().splitlines() if not line.startswith(("loading models:", "["))]
+    assert len(errors) == 2 and all(line.startswith("error: ") for line in errors)  # the rest is progress
     assert "corrupt.mp4" in errors[0] and "cannot read video" in errors[0]
     assert "empty" in errors[1] and "holds no video" in errors[1]
     assert "static: M_geo=" in captured.out
@@ -270,8 +273,9 @@ def test_cli_scores_videos_and_reports_bad_inputs(tmp_path: Path, capsys):
 def test_cli_exit_codes(tmp_path: Path, capsys):
     (tmp_path / "bad.mp4").write_bytes(b"junk" * 100)
     assert main([str(tmp_path / "bad.mp4"), "--preset", "tiny", "--out", str(tmp_path / "o")]) == 1
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("error: ") and "\n" not in err
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[:2] == ["loading models: tiny-random + tiny-random on cpu", f"[1/1] scoring {tmp_path / 'bad.mp4'}"]
+    assert len(err) == 3 and err[2].startswith("error: ")  # progress, then one error line
     assert main([str(tmp_path / "bad.mp4"), "--preset", "tiny", "evaluation.max_fps=-1"]) == 2
     err = capsys.readouterr().err.strip()
     assert "evaluation.max_fps" in err and "\n" not in err
@@ -285,3 +289,54 @@ def test_cli_detection_view_writes_every_frames_own_maps(tmp_path: Path, capsys)
     assert "detection maps" in capsys.readouterr().out
     rendered, fps = read_video(out / "deformed.detection.mp4")
     assert rendered.shape[0] == 6 and fps == pytest.approx(8.0)  # one map row per source frame
+
+
+# --- outputs that cannot be written, names, progress -------------------------------------------
+
+
+def _two_videos(tmp_path: Path) -> list[str]:
+    torch.manual_seed(0)
+    paths = []
+    for name in ("a", "b"):
+        write_video(tmp_path / f"{name}.mp4", torch.rand(6, 3, 24, 32), fps=8)
+        paths.append(str(tmp_path / f"{name}.mp4"))
+    return paths
+
+
+def test_an_unwritable_out_is_refused_before_scoring(tmp_path: Path, capsys):
+    (tmp_path / "a-file").write_text("")
+    assert main([*_two_videos(tmp_path), "--preset", "tiny", "--out", str(tmp_path / "a-file")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --out") and "is a file" in err and "\n" not in err
+
+
+def test_a_full_disk_is_one_line_per_output_and_leaves_no_table(tmp_path: Path, monkeypatch, capsys):
+    videos = _two_videos(tmp_path)
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(files.os, "fsync", full)
+    out = tmp_path / "out"
+    assert main([*videos, "--preset", "tiny", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.count("No space left") == 3  # two videos and the table
+    assert list(out.iterdir()) == []  # no csv without its summary, no temporaries
+
+
+def test_progress_goes_to_stderr_and_a_dot_is_named_after_its_folder(tmp_path: Path, monkeypatch, capsys):
+    folder = tmp_path / "myclips"
+    folder.mkdir()
+    _two_videos(folder)
+    monkeypatch.chdir(folder)
+    assert main([".", "--preset", "tiny", "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("loading models:") == 1 and "[1/2] scoring" in err and "[2/2]   window 1/1" in err
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "a.geco.json", "b.geco.json", "geco_scores.csv", "geco_summary.json"]
+    frames = tmp_path / "frames"  # a folder of frames given as "." is one video named after it
+    frames.mkdir()
+    for k in range(2):
+        Image.new("RGB", (8, 8)).save(frames / f"{k}.png")
+    monkeypatch.chdir(frames)
+    assert [item.name for item in expand_inputs(["."])] == ["frames"]

@@ -209,8 +209,9 @@ def test_bad_inputs_are_one_line_errors(tmp_path, capsys):
     assert benchmarks.main(["warp", "synthetic", "--synthetic-size", "3", "16", "24", "--out", str(tmp_path / "b")]) == 0
     (tmp_path / "b" / "synthetic-s0" / "truth.npz").write_bytes(b"damaged")
     assert validate_cli.main([str(tmp_path / "b"), "--oracle", "--no-grids"]) == 1
-    err = capsys.readouterr().err.strip()
-    assert "cannot read truth.npz" in err and len(err.splitlines()) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[0].startswith("[1/1] scoring") and len(err) == 2  # progress, then one error line
+    assert "cannot read truth.npz" in err[1]
 
 
 def test_the_oracle_refuses_clips_built_from_real_footage(built, tmp_path):

@@ -345,7 +345,7 @@ def test_text_and_legend():
     for scale in range(1, 9):
         assert label_height(scale) % 2 == 0 and label_height(scale) >= line_height(FONT_SIZE * scale)
         assert text_strip("GUIDED", 300, scale).shape == (3, label_height(scale), 300)
-    assert text_scale(32) == 1 and text_scale(480) == 4
+    assert text_scale(32) == 2 and text_scale(240) == 2 and text_scale(480) == 4  # 18-pixel text at least
     strip = text_strip("STRUCTURE", 48, 1)  # a 32x48 panel's label
     assert text_mask("STRUCTURE").shape[1] > 48 - 4 and strip[:, :, -2:].max() == 0.0 and strip.max() > 0.8
     line = "T=0.12S FUSED 0.002 MOTION 0.002 STRUCTURE 0.002"  # the score line under four 32x48 panels
@@ -390,14 +390,44 @@ def test_side_by_side_layout():
     b = torch.rand(2, 3, 16, 16)  # shorter and smaller: resized to height 32, last frame held
     out = side_by_side([a, b], ["unguided", "guided"])
     (height, width), boxes = panel_layout([(32, 48), (32, 32)])
-    assert out.shape == (4, 3, height, width) and boxes == [(label_height(1), 0, 32, 48), (label_height(1), 50, 32, 32)]
+    scale = text_scale(32)
+    right = 48 + 2 * scale  # after a black gap of 2 * scale columns
+    assert out.shape == (4, 3, height, width) and boxes == [(label_height(scale), 0, 32, 48), (label_height(scale), right, 32, 32)]
     top = boxes[0][0]
     assert torch.equal(out[:, :, top:, :48], a)
-    assert torch.equal(out[2, :, top:, 50:], out[1, :, top:, 50:])  # held
-    assert torch.equal(out[:, :, :top, :48], text_strip("unguided", 48, 1).expand(4, -1, -1, -1))  # the labels
-    assert torch.equal(out[:, :, :top, 50:], text_strip("guided", 32, 1).expand(4, -1, -1, -1))
-    assert out[0, :, :top, :48].max() > 0.8 and out[:, :, :, 48:50].max() == 0.0  # drawn; a black gap
+    assert torch.equal(out[2, :, top:, right:], out[1, :, top:, right:])  # held
+    assert torch.equal(out[:, :, :top, :48], text_strip("unguided", 48, scale).expand(4, -1, -1, -1))  # the labels
+    assert torch.equal(out[:, :, :top, right:], text_strip("guided", 32, scale).expand(4, -1, -1, -1))
+    assert out[0, :, :top, :48].max() > 0.8 and out[:, :, :, 48:right].max() == 0.0  # drawn; a black gap
     with pytest.raises(ValueError, match="one label per video"):
         side_by_side([a], ["x", "y"])
     with pytest.raises(ValueError, match=r"videos\[0\]"):
         side_by_side([a[0]], ["x"])
+
+
+# --- frame rates and frames the writer refuses, GIFs ---------------------------------------------
+
+
+@pytest.mark.parametrize("fps", [float("inf"), 1e-300, float("nan"), 0.0, -8.0, 5000.0])
+def test_write_video_refuses_frame_rates_outside_its_range(tmp_path: Path, fps):
+    with pytest.raises(ValueError, match=r"fps must be in \[0.01, 1000\] for a mp4 video"):
+        write_video(tmp_path / "v.mp4", torch.rand(2, 3, 8, 8), fps=fps)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_video_refuses_a_nan_frame_instead_of_writing_it_black(tmp_path: Path):
+    frames = torch.rand(3, 3, 8, 8)
+    frames[1, 0, 2, 2] = float("nan")
+    with pytest.raises(ValueError, match=r"frame\(s\) \[1\] hold NaN or inf"):
+        write_video(tmp_path / "v.mp4", frames)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_video_writes_gifs_by_their_suffix(tmp_path: Path):
+    frames = torch.rand(4, 3, 9, 11)  # odd sizes: a GIF needs no padding
+    path = write_video(tmp_path / "v.gif", frames, fps=10)
+    clip = read_frames(path)
+    assert clip.frames.shape == (4, 3, 9, 11) and clip.fps == pytest.approx(10.0)
+    assert (clip.frames - frames).abs().mean() < 0.1  # a GIF's palette is lossy
+    with pytest.raises(ValueError, match=r"\[0.01, 100\] for a gif"):
+        write_video(tmp_path / "w.gif", frames, fps=200)

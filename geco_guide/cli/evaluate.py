@@ -10,8 +10,10 @@ The protocol is :func:`geco_guide.metric.evaluate.evaluate_video`'s. Per video:
 structure | fused on the fixed colour scale of :data:`geco_guide.video.MAP_RANGE`, with a
 legend). Several inputs (or a folder of videos) add ``<out>/geco_scores.csv`` (one row per video,
 failures with an ``error``) and ``<out>/geco_summary.json`` (means over videos). Every output is
-written atomically. A bad input is one error line and does not stop the others; the exit code is
-non-zero only when every input failed (2 for a bad config or unavailable weights).
+written atomically, the table and summary both or neither. A bad input is one error line and does
+not stop the others; the exit code is non-zero only when every input failed or the table could not
+be written (2 for a bad config, an unusable ``--out`` or unavailable weights, before any scoring).
+Progress goes to stderr: the models being loaded, then one line per input and per window.
 """
 
 from __future__ import annotations
@@ -30,7 +32,14 @@ from .. import __version__
 from ..config import GeCoConfig
 from ..estimators import estimator_id, load_estimators
 from ..io.devices import check_device
-from ..io.files import write_json_atomic, write_text_atomic
+from ..io.files import (
+    WriteError,
+    check_output_dir,
+    json_text,
+    unique_names,
+    write_json_atomic,
+    write_texts_atomic,
+)
 from ..io.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES, frame_files, read_frames
 from ..loss.geco import PAIR_MODES
 from ..metric.detection import (
@@ -50,6 +59,7 @@ from .kit import (
     Parser,
     add_config_flags,
     config_from_args,
+    interruptible,
     is_config_key,
     split_overrides,
 )
@@ -89,17 +99,19 @@ def expand_inputs(paths: list[str]) -> list[_Input]:
             videos = [p for p in entries if (p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES) or (p.is_dir() and _holds_frames(p))]
             if not videos:
                 kinds = "/".join(s.lstrip(".") for s in VIDEO_SUFFIXES + IMAGE_SUFFIXES)
-                items.append(_Input(path, path.name or str(path), f"folder {str(path)!r} holds no video ({kinds})"))
+                items.append(_Input(path, _folder_name(path), f"folder {str(path)!r} holds no video ({kinds})"))
             items.extend(_Input(p, p.stem if p.is_file() else p.name) for p in videos)
         else:
-            items.append(_Input(path, path.stem if path.suffix else path.name))
-    seen: dict[str, int] = {}
-    for item in items:
-        count = seen.get(item.name, 0)
-        seen[item.name] = count + 1
-        if count:
-            item.name = f"{item.name}-{count + 1}"
+            items.append(_Input(path, path.stem if path.suffix and not path.is_dir() else _folder_name(path)))
+    for item, name in zip(items, unique_names(item.name for item in items)):
+        item.name = name
     return items
+
+
+def _folder_name(path: Path) -> str:
+    """A folder's own name, resolved: ``.`` is named after the folder it stands for (not the
+    hidden ``.geco.json``)."""
+    return path.resolve().name or "root"
 
 
 def _one_line(err: BaseException) -> str:
@@ -116,12 +128,12 @@ SUMMARY_KEYS = ("fused", "motion", "structure", "total_motion", "mean_motion")
 
 
 def _write_table(out: Path, rows: list[dict[str, Any]], estimators: dict[str, str], config: dict[str, Any]) -> tuple[Path, Path]:
+    """``geco_scores.csv`` and ``geco_summary.json``, both or neither (:class:`WriteError`)."""
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, lineterminator="\n")
     writer.writeheader()
     for row in rows:
         writer.writerow({key: "" if row.get(key) is None else row[key] for key in CSV_COLUMNS})
-    csv_path = write_text_atomic(out / "geco_scores.csv", buffer.getvalue())
     ok = [row for row in rows if row.get("error") is None]
     summary = {
         "num_videos": len(rows),
@@ -133,7 +145,9 @@ def _write_table(out: Path, rows: list[dict[str, Any]], estimators: dict[str, st
         "estimators": estimators,
         "config": config,
     }
-    return csv_path, write_json_atomic(out / "geco_summary.json", summary)
+    csv_path, summary_path = out / "geco_scores.csv", out / "geco_summary.json"
+    write_texts_atomic({csv_path: buffer.getvalue(), summary_path: json_text(summary)})
+    return csv_path, summary_path
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -160,6 +174,11 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _progress(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+@interruptible("the <stem>.geco.json (and maps) of the videos finished so far; no geco_scores.csv or geco_summary.json")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)  # options may follow the inputs
     overrides, videos = split_overrides(args.inputs)
@@ -177,20 +196,23 @@ def main(argv: list[str] | None = None) -> int:
         if args.model is not None:
             cfg.evaluation.fps_of_model(args.model)  # an unknown name fails before the estimators load
         check_device(cfg.evaluation.device, "evaluation.device")
+        out = check_output_dir(args.out if args.out is not None else cfg.output.dir)
+        _progress(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {cfg.evaluation.device}")
         geometry, flow = load_estimators(cfg.estimators, cfg.evaluation.device)
-    except (ValueError, FileNotFoundError) as err:  # WeightsNotFoundError is a FileNotFoundError
+    except (ValueError, FileNotFoundError, WriteError) as err:  # WeightsNotFoundError is a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)
         return 2
 
-    out = Path(args.out if args.out is not None else cfg.output.dir)
     items = expand_inputs(videos)
     rows: list[dict[str, Any]] = []
-    for item in items:
+    for k, item in enumerate(items, 1):
         row: dict[str, Any] = {"name": item.name, "path": str(item.path), "error": item.error}
         if item.error is None:
+            _progress(f"[{k}/{len(items)}] scoring {item.path}")
             try:
                 result = evaluate_video(item.path, geometry=geometry, flow=flow, config=cfg, fps=args.fps,
-                                        model=args.model, maps=args.maps)
+                                        model=args.model, maps=args.maps,
+                                        progress=lambda line, k=k: _progress(f"[{k}/{len(items)}]   {line}"))
                 json_path = write_json_atomic(out / f"{item.name}.geco.json", result.to_dict())
                 maps_note = ""
                 if args.maps:
@@ -217,7 +239,11 @@ def main(argv: list[str] | None = None) -> int:
 
     if len(items) > 1 or any(Path(v).is_dir() and not _holds_frames(Path(v)) for v in videos):
         estimators = {"geometry": estimator_id(geometry), "flow": estimator_id(flow)}
-        csv_path, summary_path = _write_table(out, rows, estimators, asdict(cfg.evaluation))
+        try:
+            csv_path, summary_path = _write_table(out, rows, estimators, asdict(cfg.evaluation))
+        except WriteError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 1
         print(f"wrote {csv_path} and {summary_path}")
     return 1 if all(row["error"] is not None for row in rows) else 0
 

@@ -4,6 +4,11 @@
     python -m geco_guide.validate bench/synthetic-warp bench/synthetic-occlusion --oracle   # exact geometry, CPU
     python -m geco_guide.validate bench/warp bench/occlusion                               # VGGT-1B + UFM-Base
     python -m geco_guide.validate bench/warp --preset tiny                                 # tiny random models
+
+A clip that cannot be read or scored (a damaged ``meta.json`` or ``truth.npz``, ground truth that
+contradicts the clip) is one error line and a row of ``errors`` in the report; the others are
+scored, and the exit code is 1 when any clip failed (2 for bad options, before any work).
+Progress (one line per clip) goes to stderr.
 """
 
 from __future__ import annotations
@@ -24,9 +29,16 @@ from ..bench.validate import (
 )
 from ..estimators import estimator_id, load_estimators
 from ..estimators.oracle import OracleFlow, OracleGeometry
-from ..io.files import write_json_atomic, write_text_atomic
+from ..io.devices import check_device
+from ..io.files import WriteError, check_output_dir, json_text, write_texts_atomic
 from ..metric.evaluate import score_frames
-from .kit import Parser, add_config_flags, config_from_args, split_overrides
+from .kit import (
+    Parser,
+    add_config_flags,
+    config_from_args,
+    interruptible,
+    split_overrides,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,6 +52,12 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _progress(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+@interruptible("nothing of this run's report: validation.json and validation.md are written together at the end "
+               "(grids of the clips scored so far stay in <out>/grids)")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     overrides, roots = split_overrides(args.inputs)
@@ -48,13 +66,17 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("no benchmark folder given")
         folders = [folder for root in roots for folder in find_benchmarks(root)]
         cfg = config_from_args(args, overrides, {"evaluation.loss.pairs": args.pairs})
+        check_device(cfg.evaluation.device, "evaluation.device")
+        out = check_output_dir(Path(args.out) if args.out else Path(roots[0]) / "validation")
+        if not args.oracle:
+            _progress(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {cfg.evaluation.device}")
         estimators = None if args.oracle else load_estimators(cfg.estimators, cfg.evaluation.device)
-    except (ValueError, FileNotFoundError) as err:
+    except (ValueError, FileNotFoundError, WriteError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    out = Path(args.out) if args.out else Path(roots[0]) / "validation"
     records, errors = [], []
-    for folder in folders:
+    for k, folder in enumerate(folders, 1):
+        _progress(f"[{k}/{len(folders)}] scoring {folder}")
         try:
             bench = load_benchmark(folder)
             if args.oracle:
@@ -77,10 +99,15 @@ def main(argv: list[str] | None = None) -> int:
         "geometry": estimator_id(estimators[0]), "flow": estimator_id(estimators[1])}
     report = {"summary": summary, "clips": records, "errors": errors, "estimators": estimator_ids,
               "loss": asdict(cfg.evaluation.loss)}
-    write_json_atomic(out / "validation.json", report)
     table = markdown_table(summary) if summary else "No clip could be scored.\n"
-    write_text_atomic(out / "validation.md", f"# GeCo validation ({estimator_ids['geometry']} + {estimator_ids['flow']})\n\n{table}")
+    if errors:
+        table += f"\n{len(errors)} of {len(folders)} clip(s) failed: see errors in validation.json.\n"
+    try:  # the table describes the JSON: both or neither
+        write_texts_atomic({out / "validation.json": json_text(report),
+                            out / "validation.md": f"# GeCo validation ({estimator_ids['geometry']} + {estimator_ids['flow']})\n\n{table}"})
+    except WriteError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
     print(table, end="")
     print(f"wrote {out / 'validation.json'} and {out / 'validation.md'}")
-    return 1 if not records else 0
-
+    return 1 if errors or not records else 0

@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -269,6 +270,7 @@ def evaluate_video(
     fps: float | None = None,
     model: str | None = None,
     maps: bool = False,
+    progress: Callable[[str], None] | None = None,
 ) -> EvaluationResult:
     """GeCo scores of a video under the GeCo-Eval protocol (:class:`EvaluationConfig`).
 
@@ -291,6 +293,8 @@ def evaluate_video(
         model: a model name of ``config.model_fps`` (e.g. ``cogvideox-5b``): its native frame
             rate replaces the file's (the paper's protocol); ``fps`` still wins.
         maps: keep the per-frame maps (:class:`EvaluationMaps`) for :func:`write_maps_video`.
+        progress: called with one line before each window and before the motion statistics
+            (a long clip takes a while per window).
 
     Raises:
         VideoReadError: unreadable input or fewer than 2 frames (a ValueError).
@@ -319,7 +323,11 @@ def evaluate_video(
     windows: list[dict[str, Any]] = []
     kept_maps: list[list[Tensor]] = []
     kept_frames: list[Tensor] = []
-    for w, window in enumerate(evaluation_windows(clip.num_frames, clip.fps, cfg.window_seconds, cfg.max_windows, cfg.max_fps)):
+    planned = evaluation_windows(clip.num_frames, clip.fps, cfg.window_seconds, cfg.max_windows, cfg.max_fps)
+    for w, window in enumerate(planned):
+        if progress is not None:
+            progress(f"window {w + 1}/{len(planned)}: {len(window.indices)} frames from "
+                     f"{window.indices[0] / clip.fps:.2f} s to {window.indices[-1] / clip.fps:.2f} s")
         window_frames = frames_of(window.indices)
         _, result = score_frames(window_frames, geometry, flow, cfg.loss, flow_batch_size=cfg.flow_batch_size)
         rows = []
@@ -335,6 +343,8 @@ def evaluate_video(
             kept_maps.append([getattr(result.frame_maps, name)[0].cpu() for name in _MAP_FIELDS])
             kept_frames.append(window_frames)
 
+    if progress is not None:
+        progress("motion statistics (consecutive frames)")
     grid = motion_grid(clip.num_frames, clip.fps, cfg.max_fps)
     steps = [(k, k + 1) for k in range(len(grid) - 1)]
     consecutive = pair_correspondences(metric, frames_of(grid), steps, cfg.flow_batch_size, device)
