@@ -34,7 +34,7 @@ from PIL import Image
 from torch import Tensor
 
 from ..io.files import write_bytes_atomic, write_json_atomic
-from ..io.video import VIDEO_SUFFIXES, read_frames
+from ..io.video import VIDEO_SUFFIXES, input_stem, read_frames
 from .occlusion import (
     OcclusionParams,
     OcclusionResult,
@@ -119,11 +119,8 @@ def read_mask(path: str | Path, num_frames: int, height: int, width: int) -> Ten
 
 def output_stem(source: str) -> str:
     """The folder-name stem of an input: ``synthetic`` / ``synthetic-3d`` as they are, a file's
-    stem, a folder's own name (resolved, so ``.`` is named after the folder it stands for)."""
-    if source in (SYNTHETIC, SYNTHETIC_3D):
-        return source
-    path = Path(source)
-    return path.stem if path.suffix and not path.is_dir() else path.resolve().name or "root"
+    stem, a folder's own name (:func:`~geco_guide.io.video.input_stem`)."""
+    return source if source in (SYNTHETIC, SYNTHETIC_3D) else input_stem(source)
 
 
 def load_clip(source: str, max_frames: int, synthetic_size: tuple[int, int, int]) -> tuple[Tensor, SyntheticClip | None]:

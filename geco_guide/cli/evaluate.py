@@ -40,7 +40,13 @@ from ..io.files import (
     write_json_atomic,
     write_texts_atomic,
 )
-from ..io.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES, frame_files, read_frames
+from ..io.video import (
+    IMAGE_SUFFIXES,
+    VIDEO_SUFFIXES,
+    frame_files,
+    input_stem,
+    read_frames,
+)
 from ..loss.geco import PAIR_MODES
 from ..metric.detection import (
     detection_maps,
@@ -99,19 +105,14 @@ def expand_inputs(paths: list[str]) -> list[_Input]:
             videos = [p for p in entries if (p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES) or (p.is_dir() and _holds_frames(p))]
             if not videos:
                 kinds = "/".join(s.lstrip(".") for s in VIDEO_SUFFIXES + IMAGE_SUFFIXES)
-                items.append(_Input(path, _folder_name(path), f"folder {str(path)!r} holds no video ({kinds})"))
-            items.extend(_Input(p, p.stem if p.is_file() else p.name) for p in videos)
+                items.append(_Input(path, input_stem(path), f"folder {str(path)!r} holds no video ({kinds})"))
+            items.extend(_Input(p, input_stem(p)) for p in videos)
         else:
-            items.append(_Input(path, path.stem if path.suffix and not path.is_dir() else _folder_name(path)))
+            items.append(_Input(path, input_stem(path)))
     for item, name in zip(items, unique_names(item.name for item in items)):
         item.name = name
     return items
 
-
-def _folder_name(path: Path) -> str:
-    """A folder's own name, resolved: ``.`` is named after the folder it stands for (not the
-    hidden ``.geco.json``)."""
-    return path.resolve().name or "root"
 
 
 def _one_line(err: BaseException) -> str:

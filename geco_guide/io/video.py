@@ -218,6 +218,15 @@ class VideoFrames:
 FrameSelector = Callable[[int, float], Sequence[int]]
 
 
+def input_stem(path: str | os.PathLike) -> str:
+    """The name outputs of a video input are given: a file's stem, a folder's own name (``.``
+    and ``..`` named after the folder they stand for, not the hidden ``.<suffix>``)."""
+    path = Path(path)
+    if path.suffix and not path.is_dir():
+        return path.stem
+    return path.name if path.name not in ("", "..") else path.resolve().name or "root"
+
+
 def _natural_key(path: Path) -> list:
     """``frame2.png`` before ``frame10.png``."""
     return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name.lower())]
