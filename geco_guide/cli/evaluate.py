@@ -179,7 +179,7 @@ def _progress(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-@interruptible("the <stem>.geco.json (and maps) of the videos finished so far; no geco_scores.csv or geco_summary.json")
+@interruptible("the <stem>.geco.json (and maps) of the videos finished so far; geco_scores.csv and geco_summary.json were not written")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)  # options may follow the inputs
     overrides, videos = split_overrides(args.inputs)
