@@ -199,3 +199,13 @@ def test_robustness_refuses_sizes_seeds_and_outputs_before_the_sweep(tmp_path, m
     (tmp_path / "a-file").write_text("")
     assert robustness.main(["--out", str(tmp_path / "a-file"), "--size", *SIZE]) == 2
     assert "is a file" in _one_error_line(capsys.readouterr().err)
+
+
+def test_robustness_on_a_full_disk_writes_neither_file(tmp_path, monkeypatch, capsys):
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(files.os, "fsync", full)
+    assert robustness.main(["--out", str(tmp_path), "--size", *SIZE, "--depth-sigmas", "0", "--flow-sigmas", "0"]) == 1
+    assert "No space left" in _one_error_line(capsys.readouterr().err)
+    assert list(tmp_path.iterdir()) == []  # no JSON without its plot, no temporaries

@@ -340,3 +340,12 @@ def test_progress_goes_to_stderr_and_a_dot_is_named_after_its_folder(tmp_path: P
         Image.new("RGB", (8, 8)).save(frames / f"{k}.png")
     monkeypatch.chdir(frames)
     assert [item.name for item in expand_inputs(["."])] == ["frames"]
+
+
+def test_an_output_name_too_long_is_one_error_line(tmp_path: Path, capsys):
+    video = tmp_path / f"{'a' * 235}.mp4"  # a name that fits, whose .geco.json's temporary does not
+    write_video(video, torch.rand(4, 3, 16, 16), fps=8)
+    assert main([str(video), "--preset", "tiny", "--out", str(tmp_path / "out")]) == 1
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error.startswith(f"error: {video}: ") and "cannot write" in error and "too long" in error
+    assert list((tmp_path / "out").iterdir()) == []

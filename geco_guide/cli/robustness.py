@@ -22,12 +22,7 @@ from ..bench.robustness import (
 )
 from ..config import SEED_RANGE
 from ..io.devices import check_memory_fits
-from ..io.files import (
-    WriteError,
-    check_output_dir,
-    write_bytes_atomic,
-    write_json_atomic,
-)
+from ..io.files import WriteError, check_output_dir, json_text, write_texts_atomic
 from ..metric.protocol import EvaluationConfig
 from .kit import Parser, interruptible
 
@@ -70,8 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     report = run_sweep(frames, height, width, args.seed, depth_sigmas, flow_sigmas,
                        replace(defaults, pairs=args.pairs, depth_edge_tau=None if args.no_depth_edges else defaults.depth_edge_tau))
     try:
-        write_json_atomic(out / "robustness.json", report)
-        write_bytes_atomic(out / "robustness.png", plot(report))
+        write_texts_atomic({out / "robustness.json": json_text(report), out / "robustness.png": plot(report)})
     except WriteError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1

@@ -98,15 +98,15 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
     return write_bytes_atomic(path, text.encode("utf-8"))
 
 
-def write_texts_atomic(texts: Mapping[str | os.PathLike, str]) -> list[Path]:
-    """Write each ``{path: text}`` (UTF-8) all or none: every text goes to its temporary file
-    first, and the files take their names only once all of them are written, so a failed write
-    (a full disk) leaves none of them, not one file of a pair that describes the other."""
+def write_texts_atomic(texts: Mapping[str | os.PathLike, str | bytes]) -> list[Path]:
+    """Write each ``{path: text}`` (a str as UTF-8, or bytes) all or none: every file goes to its
+    temporary first, and they take their names only once all of them are written, so a failed
+    write (a full disk) leaves none of them, not one file of a pair that describes the other."""
     with contextlib.ExitStack() as stack:
         for path, text in texts.items():
             tmp = stack.enter_context(atomic_path(path))
             with open(tmp, "wb") as fh:
-                fh.write(text.encode("utf-8"))
+                fh.write(text.encode("utf-8") if isinstance(text, str) else text)
                 fh.flush()
                 os.fsync(fh.fileno())
     return [Path(path) for path in texts]
