@@ -431,3 +431,11 @@ def test_write_video_writes_gifs_by_their_suffix(tmp_path: Path):
     assert (clip.frames - frames).abs().mean() < 0.1  # a GIF's palette is lossy
     with pytest.raises(ValueError, match=r"\[0.01, 100\] for a gif"):
         write_video(tmp_path / "w.gif", frames, fps=200)
+
+
+def test_every_window_of_a_very_slow_clip_holds_two_frames():
+    # 4 frames at 0.01 fps: the last window starts past the last frame's time; it keeps that
+    # frame and the one before (GeCo needs a pair), as every other window does.
+    windows = evaluation_windows(4, 0.01, 3.0, 4, 8.0)
+    assert len(windows) == 4 and all(len(w.indices) == 2 for w in windows)
+    assert windows[-1].indices == [2, 3] and windows[0].indices == [0, 1]

@@ -26,7 +26,8 @@ def time_grid_indices(num_frames: int, fps: float, start_s: float, length_s: flo
 
     The GeCo-Eval script's sampling: times are clamped to the clip (the last frame starts at
     ``num_frames / fps - 1 / fps``), rounded to the nearest frame (half to even) and de-duplicated;
-    fewer than 2 distinct frames fall back to the frames nearest the interval's two ends.
+    fewer than 2 distinct frames fall back to the frames nearest the interval's two ends, and
+    when those are one frame (a window past the clip's last frame), to it and the one before.
 
     Returns:
         Increasing 0-based source indices (at least 2 when ``num_frames >= 2``).
@@ -43,6 +44,8 @@ def time_grid_indices(num_frames: int, fps: float, start_s: float, length_s: flo
     if len(indices) < 2:
         ends = (round(start_s * fps), round((start_s + length_s) * fps))
         indices = sorted({min(num_frames - 1, max(0, i)) for i in ends})
+    if len(indices) < 2:  # both ends past the clip's last frame (a very low fps): it and the one before
+        indices = [max(0, indices[0] - 1), max(1, indices[0])]
     return indices
 
 
