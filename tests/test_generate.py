@@ -190,14 +190,32 @@ def test_default_names_in_one_folder_do_not_overwrite(tmp_path: Path, capsys, st
 
 
 @pytest.mark.parametrize("name, message", [
-    ("x.gif", "must end with .mp4 (gif is not written"),
-    ("x.avi", "a video path must end with .mp4"),
+    ("x.avi", "a video path must end with .mp4 or .gif"),
     ("x.webm", "a path without a suffix is a folder"),
 ])
-def test_out_suffixes_other_than_mp4_are_one_line(tmp_path: Path, capsys, no_loading, name, message):
+def test_out_suffixes_other_than_mp4_or_gif_are_one_line(tmp_path: Path, capsys, no_loading, name, message):
     assert _run(tmp_path / name) == 2
     assert message in _error_line(capsys)
-    assert list(tmp_path.iterdir()) == []  # no folder named x.gif
+    assert list(tmp_path.iterdir()) == []  # no folder named x.avi
+
+
+def test_out_gif_writes_a_gif_and_its_sidecar(tmp_path: Path, capsys):
+    assert _run(tmp_path / "x.gif") == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.gif", "x.json"]
+    assert (tmp_path / "x.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")
+    frames = read_video(tmp_path / "x.gif")[0]
+    assert frames.shape[0] == 17
+
+
+def test_a_video_too_big_for_the_device_is_one_line_before_loading(tmp_path: Path, capsys, monkeypatch, no_loading):
+    from geco_guide.io import devices
+
+    monkeypatch.setattr(devices, "memory_limit", lambda device: 24 * 2**30)  # a 24 GiB machine, whatever runs this
+    assert _run(tmp_path, "sampling.height=16384", "sampling.width=16384", "sampling.num_frames=49") == 2
+    err = _error_line(capsys)
+    assert ("a 49-frame 16384x16384 video (sampling.num_frames/height/width) needs at least 147 GiB of memory, more "
+            "than the 24 GiB of RAM") in err
+    generate_module.check_video_fits(load_config(preset="tiny"))  # the tiny preset fits
 
 
 def test_out_paths_that_cannot_be_written_are_one_line_before_loading(tmp_path: Path, capsys, monkeypatch,

@@ -34,7 +34,7 @@ import torch
 
 from .. import __version__
 from ..config import GeCoConfig, config_to_dict
-from ..io.devices import check_device
+from ..io.devices import check_device, check_memory_fits
 from ..io.files import WriteError, write_json_atomic
 from ..sampler import loading
 from ..types import NonFiniteFramesError, check_frame_values
@@ -62,8 +62,9 @@ def loading_line(cfg: GeCoConfig) -> str:
 # outputs
 
 
-#: What ``--out`` may end with: a video file of these suffixes, or no suffix (a folder).
-OUT_SUFFIXES = (".mp4",)
+#: What ``--out`` may end with: a video file of these suffixes (the writer picks the format by
+#: it), or no suffix (a folder).
+OUT_SUFFIXES = (".mp4", ".gif")
 #: Config sections that cannot change the frames, left out of :func:`video_key`: where the files
 #: go, whether the anchors are scored afterwards, the evaluation protocol.
 KEYLESS_SECTIONS = ("output", "evaluation")
@@ -101,8 +102,8 @@ def default_name(cfg: GeCoConfig, prompt: str) -> str:
 
 
 def output_paths(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None) -> tuple[Path, Path]:
-    """``(video.mp4, sidecar.json)``: ``out`` (a .mp4 path, or a folder: no suffix) or
-    ``output.dir/name``; ValueError (one line) for an ``out`` of another suffix."""
+    """``(video, sidecar.json)``: ``out`` (a .mp4 or .gif path, or a folder: no suffix) or
+    ``output.dir/name.mp4``; ValueError (one line) for an ``out`` of another suffix."""
     name = cfg.output.name or default_name(cfg, prompt)
     if out is None:
         video = Path(cfg.output.dir) / f"{name}.mp4"
@@ -116,9 +117,18 @@ def output_paths(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = N
 
 
 def _suffix_problem(out: Path) -> str:
-    gif = " (gif is not written: the video writer makes H.264 mp4 only)" if out.suffix.lower() == ".gif" else ""
-    return (f"--out {str(out)!r}: a video path must end with .mp4{gif}; a path without a suffix is a folder "
-            "(the default name inside it)")
+    return (f"--out {str(out)!r}: a video path must end with {' or '.join(OUT_SUFFIXES)}; a path without a suffix "
+            "is a folder (the default name inside it)")
+
+
+def check_video_fits(cfg: GeCoConfig) -> None:
+    """ValueError (one line) for a video size that cannot fit the device, before any model loads:
+    the decoded video alone, in float32, is a lower bound of the run's peak (the models, latents
+    and activations come on top), so a refusal is certain."""
+    s = cfg.sampling
+    nbytes = s.num_frames * 3 * s.height * s.width * 4
+    check_memory_fits(nbytes, cfg.model.device,
+                      f"a {s.num_frames}-frame {s.height}x{s.width} video (sampling.num_frames/height/width)")
 
 
 def _nearest_existing(path: Path) -> Path:
@@ -213,7 +223,7 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
              overwrite: bool = False) -> GenerationResult:
     """Run one generation of ``cfg`` and write the mp4 + JSON sidecar. ``pipe`` skips loading;
     existing outputs are replaced only with ``overwrite`` (checked before anything loads)."""
-    from ..io.video import write_video
+    from ..io.video import check_fps, write_video
     from ..loss.geco import GeCoLoss
     from ..sampler.step import score_anchor_frames
 
@@ -221,6 +231,8 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
         raise ValueError("prompt must not be empty")
     video_path, sidecar_path = output_paths(cfg, prompt, out)
     check_outputs((video_path, sidecar_path), overwrite)
+    check_fps(cfg.sampling.fps, video_path.suffix)
+    check_video_fits(cfg)
     timings: dict[str, float] = {}
     start = time.perf_counter()
     if pipe is None:
@@ -307,7 +319,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=None, help="sampling seed (overrides the config's seed)")
     p.add_argument("--no-guidance", action="store_true", help="sample without GeCo guidance")
     p.add_argument("--out", default=None,
-                   help="output path ending in .mp4 (the sidecar: the same path with .json), or a folder (no suffix) "
+                   help="output path ending in .mp4 or .gif (the sidecar: the same path with .json), or a folder (no suffix) "
                         "for the default name <prompt slug>-<8 hex of prompt and config>-seed<N>[-unguided].mp4; "
                         "default: output.dir")
     p.add_argument("--overwrite", action="store_true", help="replace an existing video and sidecar of the same name")

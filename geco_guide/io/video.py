@@ -161,21 +161,20 @@ def _written_video_problem(path: Path, expected_frames: int) -> str | None:
 
 
 def read_video(path: str | os.PathLike) -> tuple[torch.Tensor, float]:
-    """Read a video file -> ``(frames float [S, 3, H, W] in [0, 1], fps)``.
+    """Read a video file (mp4 and the like through ffmpeg, or a GIF) -> ``(frames float
+    [S, 3, H, W] in [0, 1], fps)``; fps 0.0 where the file states none.
 
     Raises:
         FileNotFoundError: no such file.
         VideoReadError: the file is not a readable video (corrupt, truncated, empty).
     """
-    import imageio.v2 as imageio
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"video file {str(path)!r} does not exist")
     try:
-        reader = imageio.get_reader(path, format="FFMPEG")
+        reader = _open_reader(path)
         try:
-            fps = float(reader.get_meta_data().get("fps", 0.0))
+            fps = _file_fps(reader.get_meta_data(), path.suffix.lower() == ".gif") or 0.0
             frames = [np.asarray(frame) for frame in reader]
         finally:
             reader.close()
