@@ -143,3 +143,15 @@ def test_ctrl_c_is_one_line_and_exit_code_130(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err.splitlines()
     assert err[-1] == "interrupted: the videos already done keep their outputs (each .detection.json is written last)"
     assert err[:-1] == [f"[1/1] {tmp_path / 'clip.mp4'} ..."]
+
+
+def test_an_fps_the_gif_writer_cannot_take_is_one_line_before_any_map(tmp_path, capsys, monkeypatch):
+    video = _clip(tmp_path / "clip.mp4")
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("models were loaded")
+
+    monkeypatch.setattr(detection, "load_estimators", refuse)
+    assert detection.main([str(video), "--out", str(tmp_path / "out"), "--format", "gif", "--fps", "1e-300"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "error: fps must be in [0.01, 100] for a gif video, got 1e-300"

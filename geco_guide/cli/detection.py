@@ -21,7 +21,7 @@ from pathlib import Path
 
 from ..estimators import estimator_id, load_estimators
 from ..io.files import write_json_atomic
-from ..io.video import read_frames
+from ..io.video import check_fps, read_frames
 from ..metric.detection import (
     ANCHORS,
     FORMATS,
@@ -109,6 +109,9 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--window must be >= 2, got {args.window}")
         if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
             raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
+        if args.fps is not None:
+            for video_format in set(args.formats) - {"png"}:  # the writers' bounds, before any map is computed
+                check_fps(args.fps, f".{video_format}")
         cfg = config_from_args(args, overrides)
         items = expand_inputs([_resolved(v) for v in videos])
         check_outputs(out, [out / item.name for item in items if item.error is None], args.formats, args.overwrite)
