@@ -81,6 +81,14 @@ def missing_estimators(geometry: Any, flow: Any) -> list[str]:
     return [name for name, estimator, protocol in pairs if not isinstance(estimator, protocol)]
 
 
+def one_of_names(value: Any, old: Any, name: str, old_name: str) -> Any:
+    """The argument given as ``name=`` or under its earlier name ``old_name=`` (kept for the users
+    who pass it); ValueError (one line) when both are given."""
+    if value is not None and old is not None:
+        raise ValueError(f"pass {name}= or its earlier name {old_name}=, not both")
+    return value if value is not None else old
+
+
 def check_frames(frames: Tensor, name: str = "frames") -> None:
     """Raise a ValueError naming ``name`` unless it is a floating ``[B, S, 3, H, W]`` tensor."""
     if not isinstance(frames, torch.Tensor):

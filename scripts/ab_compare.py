@@ -343,7 +343,7 @@ def add_maps(cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], geo
     maps (deterministic: the scores in ``result.json`` stay), then ``result.json`` names them."""
     folder = pair_dir(out, pair)
     for arm in ARMS:
-        evaluation = evaluate_video(folder / f"{arm}.mp4", geometry=geometry, flow=flow, config=cfg.evaluation, maps=True)
+        evaluation = evaluate_video(folder / f"{arm}.mp4", geometry_estimator=geometry, flow_estimator=flow, config=cfg.evaluation, maps=True)
         result["arms"][arm]["maps_video"] = write_maps_video(evaluation, folder / f"{arm}_maps.mp4").name
     write_json_atomic(folder / "result.json", result)
 

@@ -104,9 +104,14 @@ def test_total_motion_of_a_known_flow():
             flow[:, 0] = 2.0 * steps[:, None, None]
             return Correspondences(flow=flow, covisibility=torch.ones(len(steps), *source.shape[-2:]))
 
-    result = evaluate_video(clip.frames, geometry=OracleGeometry(clip), flow=ConstantFlow(), fps=16)
+    result = evaluate_video(clip.frames, geometry_estimator=OracleGeometry(clip), flow_estimator=ConstantFlow(), fps=16)
     assert result.total_motion == pytest.approx(7 * 8.0, rel=1e-5)
     assert result.mean_motion == pytest.approx(56.0 / (17 / 16), rel=1e-5)  # over the clip's duration
+    earlier = evaluate_video(clip.frames, geometry=OracleGeometry(clip), flow=ConstantFlow(), fps=16)  # earlier names
+    assert earlier.total_motion == result.total_motion and earlier.fused == result.fused
+    with pytest.raises(ValueError, match="pass geometry_estimator= or its earlier name geometry=, not both"):
+        evaluate_video(clip.frames, geometry_estimator=OracleGeometry(clip), geometry=OracleGeometry(clip),
+                       flow_estimator=ConstantFlow(), fps=16)
 
 
 def test_mp4_round_trip_with_oracle_of_the_decoded_frames(tmp_path: Path, clips, evaluated):

@@ -337,7 +337,7 @@ def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: tuple[Any, Any], g
         timing = {"generation_s": seconds, "peak_memory_mib": peak, "guidance_updates": updates}
     source = job.video or video
     start = time.perf_counter()
-    evaluation = evaluate_video(source, geometry=estimators[0], flow=estimators[1], config=cfg.evaluation, model=job.model)
+    evaluation = evaluate_video(source, geometry_estimator=estimators[0], flow_estimator=estimators[1], config=cfg.evaluation, model=job.model)
     result = {
         **job_identity(job), **{metric: evaluation.to_dict()[metric] for metric in METRICS},
         **timing, "evaluation_s": time.perf_counter() - start,

@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
         if item.error is None:
             _progress(f"[{k}/{len(items)}] scoring {item.path}")
             try:
-                result = evaluate_video(item.path, geometry=geometry, flow=flow, config=cfg, fps=args.fps,
+                result = evaluate_video(item.path, geometry_estimator=geometry, flow_estimator=flow, config=cfg, fps=args.fps,
                                         model=args.model, maps=args.maps,
                                         progress=lambda line, k=k: _progress(f"[{k}/{len(items)}]   {line}"))
                 json_path = write_json_atomic(out / f"{item.name}.geco.json", result.to_dict())

@@ -40,7 +40,7 @@ from ..loss.geco import (
     geco_from_geometry,
 )
 from ..loss.motion_stats import motion_statistics
-from ..types import Correspondences, SceneGeometry, check_frame_values
+from ..types import Correspondences, SceneGeometry, check_frame_values, one_of_names
 from .protocol import (
     EvaluationConfig,
     Window,
@@ -264,13 +264,15 @@ def _clip_score(windows: list[dict[str, Any]], name: str) -> float:
 def evaluate_video(
     video: str | os.PathLike | Tensor,
     *,
-    geometry: Any = None,
-    flow: Any = None,
+    geometry_estimator: Any = None,
+    flow_estimator: Any = None,
     config: Any = None,
     fps: float | None = None,
     model: str | None = None,
     maps: bool = False,
     progress: Callable[[str], None] | None = None,
+    geometry: Any = None,
+    flow: Any = None,
 ) -> EvaluationResult:
     """GeCo scores of a video under the GeCo-Eval protocol (:class:`EvaluationConfig`).
 
@@ -285,8 +287,10 @@ def evaluate_video(
     Args:
         video: a path (mp4 or another ffmpeg format, gif, folder of png/jpg frames) or frames
             ``[S, 3, H, W]`` in ``[0, 1]`` (then ``fps`` or ``model`` is required).
-        geometry, flow: a :class:`GeometryEstimator` / :class:`FlowEstimator`; built from the
-            config's estimators when ``None`` (pass them to score many videos with one load).
+        geometry_estimator, flow_estimator: a :class:`GeometryEstimator` / :class:`FlowEstimator`;
+            built from the config's estimators when ``None`` (pass them to score many videos
+            with one load). ``geometry=`` / ``flow=`` are the same arguments under their
+            earlier names.
         config: an :class:`EvaluationConfig`, or a whole :class:`GeCoConfig` (its ``evaluation``
             and ``estimators``); ``None``: defaults (VGGT-1B + UFM-Base).
         fps: the source frame rate, overriding everything else.
@@ -301,6 +305,8 @@ def evaluate_video(
         ValueError: evaluated frames with NaN/inf values or outside ``[0, 1]``, naming them; an
             unknown ``model``.
     """
+    geometry = one_of_names(geometry_estimator, geometry, "geometry_estimator", "geometry")
+    flow = one_of_names(flow_estimator, flow, "flow_estimator", "flow")
     cfg, estimators_cfg = _split_config(config)
     rate, fps_source = protocol_fps(fps, model, cfg)
     clip, source = _load_frames(video, rate, cfg)
