@@ -16,6 +16,7 @@ from ..estimators.tiny_decoder import CONTEXT_LATENTS
 from ..loss.geco import GeCoLossConfig
 from ..loss.presets import fused_guidance_loss, guidance_loss
 from ..types import OptionError, merge_dataclass, non_finite_fields
+from .fast_decode import DECODE_LAYOUTS
 from .schedule import (
     PAPER_ETA,
     PAPER_REPEATS,
@@ -66,6 +67,13 @@ class GuidanceConfig:
             whose weights a config names in ``estimators.tiny_decoder``. The final video always
             comes from the VAE. See docs/performance.md for what it saves (predicted) and how
             to measure what it costs in fidelity (``scripts/benchmark.py decoder-agreement``).
+        decode_layout: memory layout of the VAE's guidance decode (:mod:`.fast_decode`):
+            ``default`` (the stock decode) or ``channels_last`` (the CogVideoX VAE decoder in
+            ``torch.channels_last_3d``, the same frames and gradients to float rounding, not
+            bitwise, hence off by default; ``decoder=vae`` only). The final video is decoded as stock.
+        compile: ``torch.compile`` the guidance decoder (the VAE decoder, or the tiny decoder),
+            forward and backward, once per decoder and input shape; if compiling fails, one
+            warning and an eager decode. See docs/guidance.md (Faster anchor decode).
         loss: the GeCo loss options (default :func:`~geco_guide.loss.presets.guidance_loss`); the
             structure cue only gives gradients with ``loss.geometry_grad=True``, since it depends
             on the frames only through the geometry estimator: ``cue="structure"`` with
@@ -83,6 +91,8 @@ class GuidanceConfig:
     vae_checkpointing: bool = True
     grad_eps: float = 1e-8
     decoder: str = "vae"
+    decode_layout: str = "default"
+    compile: bool = False
     loss: GeCoLossConfig = field(default_factory=guidance_loss)
 
     def __post_init__(self) -> None:
@@ -96,6 +106,13 @@ class GuidanceConfig:
             raise OptionError("chunk_latents", f"must be >= 2, got {self.chunk_latents}")
         if self.decoder not in DECODERS:
             raise OptionError("decoder", f"must be one of {DECODERS}, got {self.decoder!r}")
+        if self.decode_layout not in DECODE_LAYOUTS:
+            raise OptionError("decode_layout", f"must be one of {', '.join(DECODE_LAYOUTS)}, got {self.decode_layout!r}")
+        if self.decode_layout != "default" and self.decoder != "vae":
+            raise OptionError("decode_layout", f"{self.decode_layout} lays out the VAE's decode, but decoder={self.decoder!r}: "
+                                               "use decode_layout=default with the tiny decoder")
+        if not isinstance(self.compile, bool):
+            raise OptionError("compile", f"must be true or false, got {self.compile!r}")
 
     def schedule(self, num_steps: int) -> GuidanceSchedule:
         """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see

@@ -18,8 +18,10 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from ..estimators.tiny_decoder import TinyDecoder
 from ..loss.geco import GeCoLoss
 from .config import GuidanceConfig
+from .fast_decode import guidance_decode
 from .levels import NoiseLevels
 from .schedule import GuidanceSchedule
 from .slicing import AnchorChunk, decode_anchor_frames
@@ -122,9 +124,11 @@ class GuidanceContext:
         checkpointing in faithful mode (``gradient_checkpointing``) and the VAE's with
         ``vae_checkpointing``; all restored on exit."""
         config = self.config
-        denoisers = list(denoisers)
+        denoisers, others = list(denoisers), list(others)
+        tiny_decoder = next((m for m in others if isinstance(m, TinyDecoder)), None)
         with contextlib.ExitStack() as stack:
             stack.enter_context(frozen(*others, vae, *denoisers, *self.estimators))
+            stack.enter_context(guidance_decode(self.config, vae, tiny_decoder))
             for module in denoisers:
                 stack.enter_context(gradient_checkpointing(module, config.denoiser_grad and config.gradient_checkpointing))
             stack.enter_context(gradient_checkpointing(vae, config.vae_checkpointing))
