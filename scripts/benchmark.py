@@ -53,6 +53,7 @@ from geco_guide.perf.cost import (
     cost_report,
     cost_settings,
     cost_table,
+    with_card,
 )
 from geco_guide.perf.decoder_agreement import agreement_table, decoder_agreement
 from geco_guide.perf.geco_eval import geco_eval_cost, geco_eval_table
@@ -67,13 +68,16 @@ from geco_guide.perf.options import (
     OneLineParser,
     add_common_options,
     add_cost_parser,
+    add_plans_parser,
     add_sampling_parser,
     check_frames,
     check_options,
+    fail,
     frame_count,
     positive_float,
     positive_int,
 )
+from geco_guide.perf.plans import card_plan, plan_estimates
 from geco_guide.perf.sampling import (
     run_sampling_worker,
     sampling_report,
@@ -153,7 +157,8 @@ def run_sampling(args: argparse.Namespace) -> None:
         full_size=args.full_size, mode=args.mode, steps=args.steps, frames=args.frames, height=args.height,
         width=args.width, device=args.device, dtype=args.dtype, threads=args.threads, seed=args.seed,
         warmup=args.warmup, estimator_checkpointing=args.estimator_checkpointing, chunk_latents=args.chunk_latents,
-        vae_tiling=args.vae_tiling, rss_exact=args.rss_exact, no_denoiser_checkpointing=args.no_denoiser_checkpointing)
+        vae_tiling=args.vae_tiling, rss_exact=args.rss_exact, no_denoiser_checkpointing=args.no_denoiser_checkpointing,
+        memory_plan=args.memory_plan)
     # the defaults filled in: the default frame count of a preset is checked too
     check_frames(spec["frames"], guided=args.mode != "unguided")
     report = sampling_report(spec, WORKER, sys.argv[1:])
@@ -169,17 +174,33 @@ def _on_off(value: str | None) -> bool | None:
 def run_cost(args: argparse.Namespace) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
+    card = None
+    if args.gpu:
+        card = card_plan(args.gpu, args.mode, args.decoder, *(args.frames or 49, args.height or 480, args.width or 720))
+        if card["plan"] is None:
+            fail(f"--gpu {args.gpu}: {card['reason']}")
     settings = cost_settings(
         preset=args.preset, steps=args.steps, frames=args.frames, height=args.height, width=args.width,
         dtype=args.dtype, no_time_travel=args.no_time_travel, paper_schedule=args.paper_schedule, seed=args.seed,
         chunk_latents=args.chunk_latents, vae_checkpointing=_on_off(args.vae_checkpointing),
+        vae_block_checkpointing=_on_off(args.vae_block_checkpointing),
         denoiser_checkpointing=_on_off(args.denoiser_checkpointing),
         estimator_checkpointing=args.estimator_checkpointing, vae_tiling=args.vae_tiling,
-        calibration_step_s=args.calibration_step_s, decoder=args.decoder)
+        calibration_step_s=args.calibration_step_s, decoder=args.decoder, plan=card["plan"] if card else None)
     report = cost_report(settings, args.mode, sys.argv[1:])
+    if card:
+        report = with_card(report, card)
     if args.measured:
         report["validation"] = compare_with_measured(report, args.measured_report, args.measured)
     print(cost_table(report))
+    if args.json:
+        write_report(args.json, report)
+
+
+def run_plans(args: argparse.Namespace) -> None:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    report = plan_estimates(args.models, sys.argv[1:], on_report=print)
     if args.json:
         write_report(args.json, report)
 
@@ -246,6 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_sampling_parser(sub)
     add_cost_parser(sub)
+    add_plans_parser(sub)
 
     agree = sub.add_parser("decoder-agreement", help="both decoders at every guidance update of one guided call: "
                                                      "gradient cosine, losses, anchor-frame PSNR")
@@ -290,6 +312,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         run_sampling(args)
     elif args.command == "cost":
         run_cost(args)
+    elif args.command == "plans":
+        run_plans(args)
     elif args.command == "decoder-agreement":
         run_decoder_agreement(args)
     elif args.command == "geco-eval":

@@ -383,7 +383,7 @@ def _refused(cli, monkeypatch, capsys, argv: list[str]) -> str:
     def no_work(*args, **kwargs):
         raise AssertionError(f"{argv}: work started before the options were checked")
 
-    for name in ("run_cases", "sampling_report", "cost_report", "geco_eval_cost"):
+    for name in ("run_cases", "sampling_report", "cost_report", "geco_eval_cost", "plan_estimates"):
         monkeypatch.setattr(cli, name, no_work)
     with pytest.raises(SystemExit) as exit_info:
         cli.main(argv)
@@ -417,6 +417,13 @@ def _refused(cli, monkeypatch, capsys, argv: list[str]) -> str:
     (["cost", "--preset", "tiny", "--chunk-latents", "0"], "--chunk-latents: must be >= 2"),
     (["sampling", "--steps", "51"], "--steps must be in [1, 50], got 51"),
     (["sampling", "--full-size", "--steps", "1"], "--allow-cpu"),
+    (["cost", "--gpu", "H300"], "--gpu: invalid choice: 'H300'"),
+    (["cost", "--preset", "tiny", "--gpu", "L4"], "use it with --preset full and --mode fast or faithful"),
+    (["cost", "--gpu", "L4", "--mode", "unguided"], "use it with --preset full"),
+    (["cost", "--gpu", "H100", "--vae-checkpointing", "off", "--estimator-checkpointing"],
+     "without --vae-checkpointing, --estimator-checkpointing"),
+    (["plans", "--models", "cogvideox-2b"], "--models: invalid choice"),
+    (["plans", "--threads", "0"], "--threads: must be >= 1"),
 ])
 def test_bad_option_is_one_error_line_before_any_work(cli, monkeypatch, capsys, argv, expected):
     assert expected in _refused(cli, monkeypatch, capsys, argv)
@@ -504,3 +511,25 @@ def test_cost_with_the_tiny_decoder_traces_it_as_the_anchor_decode() -> None:
     assert decode["tiny"]["forward"]["flops"] != decode["vae"]["forward"]["flops"] > 0
     assert tiny["per_stage"]["final_decode"] == vae["per_stage"]["final_decode"]
     assert "the tiny decoder (an approximation" in cost.cost_table(tiny) and "tiny decoder" not in cost.cost_table(vae)
+
+
+def test_cost_gpu_runs_the_planner_for_the_card_and_reports_its_plan(cli, monkeypatch, capsys, tmp_path: Path):
+    """`cost --gpu RTX4090`: the plan auto picks for 24 GB (with offload: none fits without), traced with
+    that plan; the tiny models stand in for the full-size trace (seconds instead of a minute)."""
+    real = cost.cost_report
+    traced = []
+
+    def tiny_report(settings, mode, argv=()):
+        traced.append(settings["plan"])
+        tiny = cost.cost_settings(preset="tiny", steps=None, frames=None, height=None, width=None, dtype=None,
+                                  plan=settings["plan"])
+        return real(tiny, mode, argv)
+
+    monkeypatch.setattr(cli, "cost_report", tiny_report)
+    path = tmp_path / "cost.json"
+    cli.main(["cost", "--gpu", "RTX4090", "--mode", "fast", "--threads", "1", "--json", str(path)])
+    report = json.loads(path.read_text())
+    assert traced == ["leanest"] and report["plan"] == "leanest" and report["card"]["offload"]
+    assert report["peak_memory_gb_without_offload"] >= report["peak_memory_gb"] > 0
+    assert set(report["roofline"]["ratio_guided_over_unguided"]) == set(cost.GPU_SPECS)
+    assert "RTX4090 (22.4 GiB): memory plan leanest with model CPU offload" in capsys.readouterr().out

@@ -27,6 +27,7 @@ from ..config import COGVIDEOX_TEMPORAL_COMPRESSION
 from ..sampler.config import GuidanceConfig, fused_guidance_config
 from ..sampler.context import GuidanceContext
 from ..sampler.levels import VPLevels
+from ..sampler.memory_plan import model_signature
 from ..sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
 from ..sampler.slicing import default_anchors
 from ..sampler.step import Update, guided_step, loss_terms
@@ -37,11 +38,19 @@ from .profile import call_marking_backward
 
 NOMINAL_STEPS = 50
 
-#: Published dense (no sparsity) bf16 tensor-core peak and HBM bandwidth of the SXM parts
-#: (NVIDIA H100 and H200 data sheets): 989.4 TFLOP/s for both; 3.35 and 4.8 TB/s.
+#: The cards the cost model predicts for: memory (GB = 1e9 bytes), dense (no sparsity) bf16
+#: tensor-core peak with fp32 accumulation, and memory bandwidth, from the vendor's data sheets:
+#: NVIDIA H200 SXM (141 GB, 989.4 TFLOP/s, 4.8 TB/s), NVIDIA H100 SXM (80 GB, 989.4, 3.35 TB/s),
+#: NVIDIA L40S (48 GB, 362.05, 864 GB/s), NVIDIA RTX A6000 (48 GB, 154.8, 768 GB/s), NVIDIA
+#: GeForce RTX 4090 (24 GB, 165.2 with fp32 accumulation per the Ada Lovelace architecture
+#: whitepaper, 1008 GB/s), NVIDIA L4 (24 GB, 121, 300 GB/s).
 GPU_SPECS: dict[str, dict[str, float]] = {
-    "H100": {"bf16_flops_per_s": 989.4e12, "bytes_per_s": 3.35e12, "memory_gib": 80},
-    "H200": {"bf16_flops_per_s": 989.4e12, "bytes_per_s": 4.8e12, "memory_gib": 141},
+    "H200": {"bf16_flops_per_s": 989.4e12, "bytes_per_s": 4.8e12, "memory_gb": 141},
+    "H100": {"bf16_flops_per_s": 989.4e12, "bytes_per_s": 3.35e12, "memory_gb": 80},
+    "L40S": {"bf16_flops_per_s": 362.05e12, "bytes_per_s": 864e9, "memory_gb": 48},
+    "A6000": {"bf16_flops_per_s": 154.8e12, "bytes_per_s": 768e9, "memory_gb": 48},
+    "RTX4090": {"bf16_flops_per_s": 165.2e12, "bytes_per_s": 1008e9, "memory_gb": 24},
+    "L4": {"bf16_flops_per_s": 121e12, "bytes_per_s": 300e9, "memory_gb": 24},
 }
 #: Measured on the H200 (docs/benchmarks/sampling_full_h200_*.json): one unguided CFG step of the
 #: CogVideoX-5B transformer at 49x480x720, steady state (steps 2-4 of the three unguided arms).
@@ -213,13 +222,16 @@ def cost_guidance(settings: dict[str, Any], mode: str, repeats: str, time_travel
         return False
     # the fused loss (gradients through VGGT too): the costlier of the two presets, what was measured
     base = tiny_guidance_config() if settings["preset"] == "tiny" else fused_guidance_config()
-    changes = {k: settings[k] for k in ("chunk_latents", "vae_checkpointing", "denoiser_checkpointing")
-               if settings.get(k) is not None}
+    changes = {k: settings[k] for k in ("chunk_latents", "vae_checkpointing", "vae_block_checkpointing",
+                                        "denoiser_checkpointing") if settings.get(k) is not None}
     anchors = default_anchors(settings["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
+    # a named plan sets every checkpointing flag, the estimators' too; else the flags as given
     return replace(base, anchors=anchors, repeats=repeats, time_travel=time_travel,
                    denoiser_grad=mode == "faithful", decoder=settings.get("decoder", "vae"),
+                   memory_plan=settings.get("plan") or "explicit",
                    chunk_latents=changes.get("chunk_latents", base.chunk_latents),
                    vae_checkpointing=changes.get("vae_checkpointing", base.vae_checkpointing),
+                   vae_block_checkpointing=changes.get("vae_block_checkpointing", base.vae_block_checkpointing),
                    gradient_checkpointing=changes.get("denoiser_checkpointing", base.gradient_checkpointing))
 
 
@@ -297,6 +309,7 @@ def trace_cost(settings: dict[str, Any], mode: str) -> dict[str, Any]:
     summary = tracker.summary()
     summary.update(trace_s=time.perf_counter() - start, output_shape=frames_shape,
                    weights_bytes={name: model_bytes(m) for name, m in models.items()},
+                   signature=model_signature(pipe.transformer.config),
                    guided_updates=1 if mode != "unguided" else 0)
     return summary
 
@@ -388,12 +401,15 @@ def whole_run_costs(unguided: dict[str, Any], guided: dict[str, Any] | None, cou
 def cost_settings(*, preset: str, steps: int | None, frames: int | None, height: int | None, width: int | None,
                   dtype: str | None, no_time_travel: bool = False, paper_schedule: bool = False, seed: int = 0,
                   chunk_latents: int | None = None, vae_checkpointing: bool | None = None,
+                  vae_block_checkpointing: bool | None = None,
                   denoiser_checkpointing: bool | None = None, estimator_checkpointing: bool = False,
                   vae_tiling: bool = False, calibration_step_s: float = H200_UNGUIDED_STEP_S,
-                  decoder: str = "vae") -> dict[str, Any]:
+                  decoder: str = "vae", plan: str | None = None) -> dict[str, Any]:
     """The settings of a cost report, the presets' defaults filled in (``None``: the preset's).
     ``decoder`` decodes the anchor frames (``guidance.decoder``): the VAE, or ``tiny``: the TAEHV
     tiny decoder of the published widths (random weights on fake tensors, like every model here).
+    ``plan``: a named memory plan (:data:`~geco_guide.sampler.memory_plan.PLANS`), which sets every
+    checkpointing flag (the estimators' too) over the flags given; ``None``: the flags as given.
 
     Full size: 49x480x720 bfloat16, the paper's 50-step schedule. Tiny: 17x32x48 float32 and the
     tiny preset's 4-step schedule, or the paper's 50-step one with ``paper_schedule``.
@@ -415,6 +431,7 @@ def cost_settings(*, preset: str, steps: int | None, frames: int | None, height:
     return {"preset": preset, **video, "dtype": dtype, "steps": default_steps if steps is None else steps,
             "repeats": repeats, "time_travel": None if no_time_travel else time_travel, "seed": seed,
             "chunk_latents": chunk_latents, "vae_checkpointing": vae_checkpointing,
+            "vae_block_checkpointing": vae_block_checkpointing, "plan": plan,
             "denoiser_checkpointing": denoiser_checkpointing, "estimator_checkpointing": estimator_checkpointing,
             "vae_tiling": vae_tiling, "decoder": decoder, "calibration_step_s": calibration_step_s, "guidance_scale": 6.0,
             "note": "shape-only: fake tensors (FakeTensorMode), no weights; estimator trunks in dtype, heads float32"}
@@ -465,6 +482,7 @@ def cost_report(settings: dict[str, Any], mode: str, argv: Sequence[str] = ()) -
         "peak_memory_gb": (weights + main["peak_live_bytes"]) / GIB,
         "peak_memory_gb_unguided": (sum(unguided["weights_bytes"].values()) + unguided["peak_live_bytes"]) / GIB,
         "peak_at": main["peak_at"],
+        "signature": main["signature"],
         "weights_gb": {k: v / GIB for k, v in main["weights_bytes"].items()},
         "activations_peak_gb": main["peak_live_bytes"] / GIB,
         "per_stage": per_stage,
@@ -486,6 +504,20 @@ def cost_report(settings: dict[str, Any], mode: str, argv: Sequence[str] = ()) -
         "environment": environment_info(torch.get_num_threads()),
     }
     return report
+
+
+def with_card(report: dict[str, Any], card: dict[str, Any]) -> dict[str, Any]:
+    """``report`` (of the plan ``card`` chose: :func:`~.plans.card_plan`) with ``plan``, ``card``, and
+    ``peak_memory_gb`` the peak the card sees: under model CPU offload where the card needs it
+    (``peak_memory_gb_without_offload`` keeps the other)."""
+    from .plans import offload_peak
+
+    out = {**report, "plan": card["plan"], "card": card}
+    if card["offload"]:
+        peak = offload_peak(report)
+        out.update(peak_memory_gb=peak["weights_gb"] + peak["activations_gb"], peak_at=peak["at"],
+                   peak_memory_gb_without_offload=report["peak_memory_gb"])
+    return out
 
 
 #: Measured breakdown keys (``sampling`` JSON) of each cost stage; the denoiser's calls with and
@@ -574,6 +606,10 @@ def cost_table(report: dict[str, Any]) -> str:
                      "its fidelity)")
     lines.append(f"peak memory {report['peak_memory_gb']:.1f} GiB (at {report['peak_at']}; weights "
                  f"{sum(report['weights_gb'].values()):.1f} GiB), unguided {report['peak_memory_gb_unguided']:.1f} GiB")
+    card = report.get("card")
+    if card:
+        lines.append(f"{card['gpu']} ({card['memory_gib']:.1f} GiB): memory plan {card['plan']}"
+                     + (" with model CPU offload" if card["offload"] else "") + f" ({card['reason']})")
     if report["ops_ratio_guided_over_unguided"]:
         lines.append(f"ATen ops: unguided {report['ops_unguided']:.0f}, guided {report['ops_guided']:.0f}, "
                      f"ratio {report['ops_ratio_guided_over_unguided']:.1f} (what a launch-bound device pays for)")

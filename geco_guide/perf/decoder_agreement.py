@@ -82,7 +82,9 @@ def agreement_context_class(pipe: Any, num_frames: int, rows: list[dict[str, Any
             return super().guide(z, predict, levels, step, t)
 
         def decode(self, decode: Callable[[Tensor], Tensor], latents: Tensor, chunks: Sequence[Any]) -> Tensor:
-            return decode_anchor_frames(decode, latents, chunks, checkpoint_chunks=self.config.vae_checkpointing)
+            return decode_anchor_frames(decode, latents, chunks,
+                                        checkpoint_chunks=self.memory_plan.plan.chunk_checkpointing,
+                                        batch_chunks=self.memory_plan.plan.batch_chunks)
 
         def objective(self, x0: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
             latents = self.latent_frames(x0)

@@ -19,8 +19,9 @@ from ..config import COGVIDEOX_TEMPORAL_COMPRESSION, load_config
 from ..estimators.loading import WeightsNotFoundError
 from ..io.devices import check_device as check_config_device
 from ..sampler.config import DECODERS
+from ..sampler.memory_plan import PLAN_NAMES
 from ..sampler.slicing import check_num_frames, check_paired_latent_frames
-from .cost import H200_UNGUIDED_STEP_S, load_measured
+from .cost import GPU_SPECS, H200_UNGUIDED_STEP_S, load_measured
 from .decoder_agreement import check_agreement_config
 from .measure import RSS_EXACT_MMAP_THRESHOLD, unwritable_reason
 from .sampling import NOMINAL_STEPS, SAMPLING_MODES
@@ -123,6 +124,15 @@ def check_options(args: argparse.Namespace) -> None:
     elif args.command == "cost":
         if args.decoder != "vae" and args.mode == "unguided":
             fail(f"--decoder {args.decoder} decodes the anchor frames of guidance: use --mode fast or faithful")
+        if args.gpu:
+            flags = [name for name, value in (("--vae-checkpointing", args.vae_checkpointing),
+                                              ("--vae-block-checkpointing", args.vae_block_checkpointing),
+                                              ("--denoiser-checkpointing", args.denoiser_checkpointing),
+                                              ("--estimator-checkpointing", args.estimator_checkpointing or None))
+                     if value is not None]
+            if args.mode == "unguided" or args.preset != "full" or flags:
+                fail(f"--gpu chooses the memory plan of guidance for CogVideoX-5B: use it with --preset full and "
+                     f"--mode fast or faithful, without {', '.join(flags) or 'the checkpointing flags'}")
         if args.steps is not None and args.steps < 1:
             fail(f"--steps must be >= 1, got {args.steps}")
         if args.frames is not None:
@@ -188,6 +198,9 @@ def add_sampling_parser(sub: Any) -> argparse.ArgumentParser:
     samp.add_argument("--no-denoiser-checkpointing", action="store_true",
                       help="faithful mode: backpropagate through the transformer without gradient checkpointing "
                            "(guidance.gradient_checkpointing=false: one forward less per update, more memory)")
+    samp.add_argument("--memory-plan", choices=PLAN_NAMES, default="explicit",
+                      help="guidance.memory_plan of the guided arm (default: explicit, the flags above as "
+                           "measured; auto: the plan chosen for the device's memory, recorded in the report)")
     samp.add_argument("--allow-cpu", action="store_true",
                       help="allow --full-size on CPU (the weights alone are ~30 GiB in float32)")
     samp.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (default: cpu)")
@@ -216,7 +229,14 @@ def add_cost_parser(sub: Any) -> argparse.ArgumentParser:
                       help="transformer/VAE dtype and the estimators' trunks (default: bfloat16 full, float32 tiny)")
     cost.add_argument("--chunk-latents", type=chunk_latents, default=None, help="latents per anchor chunk (default: the preset's)")
     cost.add_argument("--vae-checkpointing", choices=("on", "off"), default=None,
-                      help="guidance.vae_checkpointing (default: the preset's: on full, off tiny)")
+                      help="guidance.vae_checkpointing, the anchor chunks one at a time (default: the preset's: "
+                           "on full, off tiny)")
+    cost.add_argument("--vae-block-checkpointing", choices=("on", "off"), default=None,
+                      help="guidance.vae_block_checkpointing: the VAE's own block checkpointing (default: as "
+                           "--vae-checkpointing)")
+    cost.add_argument("--gpu", choices=tuple(GPU_SPECS), default=None,
+                      help="model the memory plan that guidance.memory_plan=auto picks for this card's memory "
+                           "(with model CPU offload where none fits without)")
     cost.add_argument("--denoiser-checkpointing", choices=("on", "off"), default=None,
                       help="guidance.gradient_checkpointing (default: the preset's: on full, off tiny)")
     cost.add_argument("--estimator-checkpointing", action="store_true", help="VGGT and UFM gradient checkpointing")
@@ -235,3 +255,16 @@ def add_cost_parser(sub: Any) -> argparse.ArgumentParser:
     cost.add_argument("--seed", type=int, default=0, help="seed (shapes only; default: 0)")
     cost.add_argument("--json", metavar="PATH", help="also write the report as JSON to PATH")
     return cost
+
+
+def add_plans_parser(sub: Any) -> argparse.ArgumentParser:
+    """The ``plans`` subcommand's options (:mod:`.plans`)."""
+    from .plans import KNOWN_MODELS
+
+    plans = sub.add_parser("plans", help="the memory plans' estimates of the known models (the package data "
+                                         "guidance.memory_plan=auto reads), from the cost model")
+    plans.add_argument("--models", nargs="+", choices=tuple(KNOWN_MODELS), default=list(KNOWN_MODELS),
+                       help="the models to trace (default: all)")
+    plans.add_argument("--threads", type=positive_int, default=None, help="torch.set_num_threads")
+    plans.add_argument("--json", metavar="PATH", help="write the estimates as JSON to PATH")
+    return plans

@@ -68,8 +68,10 @@ def sampling_guidance(spec: dict[str, Any]) -> GuidanceConfig | bool:
     base = tiny_guidance_config() if spec["preset"] == "tiny" else fused_guidance_config()
     chunk_latents = base.chunk_latents if spec["chunk_latents"] is None else spec["chunk_latents"]
     anchors = default_anchors(spec["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
+    # the flags as measured unless a memory plan is asked for
     return replace(base, anchors=anchors, repeats=repeats, time_travel=time_travel,
                    denoiser_grad=spec["mode"] == "faithful", chunk_latents=chunk_latents,
+                   memory_plan=spec.get("memory_plan") or "explicit",
                    gradient_checkpointing=base.gradient_checkpointing and not spec.get("no_denoiser_checkpointing"))
 
 
@@ -155,6 +157,7 @@ def run_sampling_worker(spec: dict[str, Any]) -> dict[str, Any]:
         "step_times_s": step_times,
         "time_per_step_s": loop_s / len(step_times),
         "guided_updates": len(log),
+        "memory_plan": getattr(out, "memory_plan", None),
         "update_seconds": [r["seconds"] for r in log],
         "skipped_updates": sum(bool(r["skipped"]) for r in log),
         "losses": [r["loss"] for r in log],
@@ -197,9 +200,11 @@ def extrapolate_arm(arm: dict[str, Any], nominal: int, nominal_updates: int) -> 
 def sampling_spec(*, full_size: bool, mode: str, steps: int | None, frames: int | None, height: int | None,
                   width: int | None, device: str, dtype: str | None, threads: int | None, seed: int, warmup: int,
                   estimator_checkpointing: bool = False, chunk_latents: int | None = None, vae_tiling: bool = False,
-                  rss_exact: bool = False, no_denoiser_checkpointing: bool = False) -> dict[str, Any]:
+                  rss_exact: bool = False, no_denoiser_checkpointing: bool = False,
+                  memory_plan: str = "explicit") -> dict[str, Any]:
     """The case of a sampling benchmark with the presets' defaults filled in (``None``: the
-    preset's; tiny: 17x32x48 float32; full size: 49x480x720, bfloat16 on CUDA)."""
+    preset's; tiny: 17x32x48 float32; full size: 49x480x720, bfloat16 on CUDA). ``memory_plan``:
+    ``guidance.memory_plan`` (default ``explicit``: the checkpointing flags of the preset and options)."""
     preset = "full-size" if full_size else "tiny"
     if preset == "tiny":
         from ..tiny import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH
@@ -214,7 +219,7 @@ def sampling_spec(*, full_size: bool, mode: str, steps: int | None, frames: int 
             "device": device, "dtype": dtype, "threads": threads, "seed": seed,
             "warmup": warmup, "estimator_checkpointing": estimator_checkpointing,
             "chunk_latents": chunk_latents, "vae_tiling": vae_tiling, "rss_exact": rss_exact,
-            "no_denoiser_checkpointing": no_denoiser_checkpointing}
+            "no_denoiser_checkpointing": no_denoiser_checkpointing, "memory_plan": memory_plan}
 
 
 def sampling_report(spec: dict[str, Any], worker: Sequence[str], argv: Sequence[str] = ()) -> dict[str, Any]:
@@ -254,6 +259,7 @@ def sampling_report(spec: dict[str, Any], worker: Sequence[str], argv: Sequence[
                                     "b -> round(b * steps / 50)); scheduler's own steps-step table"},
         "memory_kind": main_arm["memory_kind"],
         "peak_memory_gb": main_arm["peak_memory_gb"],
+        "memory_plan": guided.get("memory_plan") if guided else None,
         "peak_memory_gb_unguided": arms["unguided"]["peak_memory_gb"],
         "wall_time_s": {arm: r["wall_s"] for arm, r in arms.items()},
         "time_per_step_s": {arm: r["time_per_step_s"] for arm, r in arms.items()},

@@ -17,6 +17,7 @@ from ..loss.geco import GeCoLossConfig
 from ..loss.presets import fused_guidance_loss, guidance_loss
 from ..types import OptionError, merge_dataclass, non_finite_fields
 from .fast_decode import DECODE_LAYOUTS
+from .memory_plan import PLAN_NAMES
 from .schedule import (
     PAPER_ETA,
     PAPER_REPEATS,
@@ -54,11 +55,21 @@ class GuidanceConfig:
             (``dx0/dz_t = sqrt(a_t)``), so the denoiser runs once per step as without guidance
             (plus once after each time-travel re-noising).
         gradient_checkpointing: checkpoint the denoiser's blocks while differentiating it.
-        vae_checkpointing: decode the anchor chunks one at a time in checkpointed regions, with
-            the VAE's own block checkpointing inside (where the VAE supports it): the backward
-            then holds one chunk's decode instead of all of them, for extra forward decodes.
-            The CogVideoX-5B VAE needs it at 480x720 (docs/performance.md); ``False`` batches the
-            chunks in one decode and keeps everything (fastest, for small videos).
+        vae_checkpointing: decode the anchor chunks one at a time in checkpointed regions: the
+            backward then holds one chunk's decode instead of all of them, for one extra forward
+            decode per chunk. The CogVideoX-5B VAE needs it at 480x720 (docs/performance.md);
+            ``False`` batches the chunks in one decode and keeps everything (fastest, for small
+            videos). With ``memory_plan=explicit`` only, as the next two flags.
+        vae_block_checkpointing: the VAE's own block checkpointing while guiding (where the VAE
+            supports it; a third decode of each chunk, less memory); ``None`` follows
+            ``vae_checkpointing``, which meant both before the two were split.
+        memory_plan: what the guidance backward recomputes (:mod:`.memory_plan`): ``auto``
+            (default: the plan of least predicted time that fits the memory budget),
+            ``explicit`` (the three flags above as given, the estimators as loaded), or a named
+            plan, ``fastest``, ``chunked``, ``checkpointed`` or ``leanest``. No plan changes the
+            video.
+        memory_budget_gb: the memory (GiB) ``auto`` plans for; ``None``: 94 % of the device's
+            (a CUDA device's total, a CPU's physical RAM).
         grad_eps: ``eps`` of the normalised update.
         decoder: what decodes the anchor frames for the loss: ``vae`` (the model's own VAE,
             exact) or ``tiny`` (an approximation: a :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder`
@@ -89,6 +100,9 @@ class GuidanceConfig:
     denoiser_grad: bool = True
     gradient_checkpointing: bool = True
     vae_checkpointing: bool = True
+    vae_block_checkpointing: Optional[bool] = None
+    memory_plan: str = "auto"
+    memory_budget_gb: Optional[float] = None
     grad_eps: float = 1e-8
     decoder: str = "vae"
     decode_layout: str = "default"
@@ -113,6 +127,11 @@ class GuidanceConfig:
                                                "use decode_layout=default with the tiny decoder")
         if not isinstance(self.compile, bool):
             raise OptionError("compile", f"must be true or false, got {self.compile!r}")
+        if self.memory_plan not in PLAN_NAMES:
+            raise OptionError("memory_plan", f"must be one of {', '.join(PLAN_NAMES)}, got {self.memory_plan!r}")
+        if self.memory_budget_gb is not None and not self.memory_budget_gb > 0:
+            raise OptionError("memory_budget_gb", f"must be a positive number of GiB (or null: the device's memory), "
+                                                  f"got {self.memory_budget_gb}")
 
     def schedule(self, num_steps: int) -> GuidanceSchedule:
         """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see

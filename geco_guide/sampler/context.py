@@ -2,8 +2,10 @@
 
 A :class:`GuidanceContext` holds what every guided step of a call needs: the options, the
 schedule, the anchor decode, the GeCo loss and the guidance log. Its :meth:`~GuidanceContext.models`
-block freezes the models and switches on the checkpointing the options ask for, and
-:meth:`~GuidanceContext.guide` runs :func:`~.step.guided_step` at one step of the loop. Profilers
+block freezes the models and switches on the checkpointing of the call's memory plan
+(:mod:`.memory_plan`), and :meth:`~GuidanceContext.guide` runs :func:`~.step.guided_step` at one
+step of the loop; an out-of-memory error at the call's first update falls back to the next plan
+and retries that update (same generator state, so the same video). Profilers
 subclass it: :meth:`~GuidanceContext.guide` brackets the updates of a step, and
 :meth:`~GuidanceContext.read_scalars` is the one host sync of an update.
 """
@@ -11,6 +13,8 @@ subclass it: :meth:`~GuidanceContext.guide` brackets the updates of a step, and
 from __future__ import annotations
 
 import contextlib
+import gc
+import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
@@ -23,6 +27,7 @@ from ..loss.geco import GeCoLoss
 from .config import GuidanceConfig
 from .fast_decode import guidance_decode
 from .levels import NoiseLevels
+from .memory_plan import PlanChoice, explicit_plan
 from .schedule import GuidanceSchedule
 from .slicing import AnchorChunk, decode_anchor_frames
 from .step import GuidanceRecord, Update, guided_step, loss_terms, read_scalars
@@ -53,6 +58,27 @@ def gradient_checkpointing(model: Any, enable: bool):
         yield
     finally:
         model.disable_gradient_checkpointing()
+
+
+@contextlib.contextmanager
+def estimator_checkpointing(estimators: Iterable[Any], enable: bool | None):
+    """Set the estimators' ``gradient_checkpointing`` (where they have one) for the duration;
+    ``None`` leaves them as they are. Restored on exit."""
+    models = [m for m in estimators if enable is not None and hasattr(m, "gradient_checkpointing")]
+    flags = [m.gradient_checkpointing for m in models]
+    try:
+        for model in models:
+            model.gradient_checkpointing = enable
+        yield
+    finally:
+        for model, flag in zip(models, flags):
+            model.gradient_checkpointing = flag
+
+
+def generator_states(generator: torch.Generator | list[torch.Generator] | None) -> list[tuple[torch.Generator, Tensor]]:
+    """``(generator, state)`` of the call's generator(s), to draw the same noise again."""
+    generators = generator if isinstance(generator, list) else [generator] if generator is not None else []
+    return [(g, g.get_state()) for g in generators]
 
 
 def anchor_decoder(config: GuidanceConfig, vae_decode: Callable[[Tensor], Tensor], guidance_decoder: Any,
@@ -93,6 +119,8 @@ class GuidanceContext:
         generator: source of the time-travel noise (the call's).
         on_record: called with each :class:`GuidanceRecord` as it is logged.
         log: the list the records are appended to as dicts (a new one by default).
+        memory_plan: the call's :class:`~.memory_plan.PlanChoice` (default: the config's explicit
+            flags, no fallback); :attr:`memory_plan` is the one in use (after a fallback, the new one).
     """
 
     def __init__(
@@ -108,6 +136,7 @@ class GuidanceContext:
         generator: torch.Generator | list[torch.Generator] | None = None,
         on_record: Callable[[GuidanceRecord], None] | None = None,
         log: list[dict[str, Any]] | None = None,
+        memory_plan: PlanChoice | None = None,
     ):
         self.config, self.schedule, self.chunks = config, schedule, list(chunks)
         self.decode_chunk, self.latent_frames = decode_chunk, latent_frames
@@ -117,27 +146,59 @@ class GuidanceContext:
         # scalars and no update instead (see guided_step).
         self.loss_fn = GeCoLoss(geometry_estimator, flow_estimator, config.loss, check_values=False)
         self.log = log if log is not None else []
+        self.memory_plan = memory_plan or PlanChoice(explicit_plan(config), "the config's explicit flags")
+        self._plan_stack: contextlib.ExitStack | None = None
+        self._plan_models: tuple[list[nn.Module], Any] = ([], None)
 
     @contextlib.contextmanager
     def models(self, denoisers: Iterable[nn.Module], vae: Any, others: Iterable[Any] = ()):
-        """Frozen ``denoisers``, ``vae``, ``others`` and estimators; the denoisers' gradient
-        checkpointing in faithful mode (``gradient_checkpointing``) and the VAE's with
-        ``vae_checkpointing``; all restored on exit."""
-        config = self.config
+        """Frozen ``denoisers``, ``vae``, ``others`` and estimators, with the checkpointing of the
+        memory plan (the denoisers' in faithful mode, the VAE's blocks, the estimators'); all
+        restored on exit."""
         denoisers, others = list(denoisers), list(others)
         tiny_decoder = next((m for m in others if isinstance(m, TinyDecoder)), None)
         with contextlib.ExitStack() as stack:
             stack.enter_context(frozen(*others, vae, *denoisers, *self.estimators))
             stack.enter_context(guidance_decode(self.config, vae, tiny_decoder))
-            for module in denoisers:
-                stack.enter_context(gradient_checkpointing(module, config.denoiser_grad and config.gradient_checkpointing))
-            stack.enter_context(gradient_checkpointing(vae, config.vae_checkpointing))
-            yield
+            self._plan_models = (denoisers, vae)
+            self._plan_stack = self._enter_plan()
+            try:
+                yield
+            finally:
+                self._plan_stack.close()
+                self._plan_stack, self._plan_models = None, ([], None)
+
+    def _enter_plan(self) -> contextlib.ExitStack:
+        """The checkpointing switches of :attr:`memory_plan` on the models of :meth:`models`."""
+        plan, (denoisers, vae) = self.memory_plan.plan, self._plan_models
+        stack = contextlib.ExitStack()
+        for module in denoisers:
+            stack.enter_context(gradient_checkpointing(module, self.config.denoiser_grad and plan.denoiser_checkpointing))
+        stack.enter_context(gradient_checkpointing(vae, plan.vae_block_checkpointing))
+        stack.enter_context(estimator_checkpointing(self.estimators, plan.estimator_checkpointing))
+        return stack
+
+    def fall_back(self) -> None:
+        """Switch to the next plan of :attr:`memory_plan`'s fallbacks after an out-of-memory
+        error: free what the failed update held, re-enter the checkpointing, say so in one line."""
+        choice = self.memory_plan
+        failed, new = choice.plan.name, choice.fallbacks[0]
+        self.memory_plan = PlanChoice(new, f"{choice.reason}; fell back from {failed!r}: out of memory at the first "
+                                           "update", budget_gb=choice.budget_gb, fallbacks=choice.fallbacks[1:])
+        gc.collect()
+        if torch.cuda.is_available():
+            torch.cuda.empty_cache()
+        if self._plan_stack is not None:
+            self._plan_stack.close()
+            self._plan_stack = self._enter_plan()
+        print(f"guidance: out of memory at the first update with memory plan {failed!r}; retrying it with "
+              f"{new.name!r}", file=sys.stderr)
 
     def objective(self, x0: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """GeCo loss of the anchor frames decoded from ``x0`` (differentiable), and its terms."""
         frames = decode_anchor_frames(self.decode_chunk, self.latent_frames(x0), self.chunks,
-                                      checkpoint_chunks=self.config.vae_checkpointing)
+                                      checkpoint_chunks=self.memory_plan.plan.chunk_checkpointing,
+                                      batch_chunks=self.memory_plan.plan.batch_chunks)
         return loss_terms(self.loss_fn(frames))
 
     def read_scalars(self, values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
@@ -147,7 +208,22 @@ class GuidanceContext:
     def guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: NoiseLevels, step: int,
               t: int) -> tuple[Tensor, Tensor]:
         """The ``R_t`` updates of step ``step`` (timestep ``t``): the guided ``z_t`` and the model
-        output there (:func:`~.step.guided_step`), each update logged."""
+        output there (:func:`~.step.guided_step`), each update logged. Out of memory before the
+        call's first update is logged: :meth:`fall_back` and the step again, from the same
+        generator state, while the plan has fallbacks."""
+        while True:
+            states = generator_states(self.generator)
+            try:
+                return self._guide(z, predict, levels, step, t)
+            except torch.cuda.OutOfMemoryError:
+                if self.log or not self.memory_plan.fallbacks:
+                    raise
+            for generator, state in states:
+                generator.set_state(state)
+            self.fall_back()
+
+    def _guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: NoiseLevels, step: int,
+               t: int) -> tuple[Tensor, Tensor]:
         config, schedule = self.config, self.schedule
 
         def on_update(update: Update) -> None:

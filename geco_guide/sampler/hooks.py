@@ -65,6 +65,7 @@ from .adapters import (
 )
 from .config import GuidanceConfig, resolve_guidance_config
 from .context import GuidanceContext, anchor_decoder
+from .memory_plan import PlanChoice, choose_plan, device_memory_gb, model_signature
 from .pipeline_cogvideox import GeCoCogVideoXPipeline
 from .slicing import AnchorChunk, check_latents
 
@@ -88,6 +89,7 @@ class _CallState:
     decode_chunk: Any  # the anchor chunks' decode (the VAE's or the tiny decoder's)
     generator: Any
     config: GuidanceConfig
+    memory_plan: PlanChoice
     context: GuidanceContext | None = None  # from the first denoiser call on (it fixes the schedule)
     counter: int = 0
     calls: list[_Call] = field(default_factory=list)
@@ -289,6 +291,15 @@ class GeCoGuidanceHandle:
     def __exit__(self, *exc) -> None:
         self.detach()
 
+    @property
+    def memory_plan(self) -> dict[str, Any] | None:
+        """The memory plan of the last guided call (:meth:`PlanChoice.to_dict
+        <geco_guide.sampler.memory_plan.PlanChoice.to_dict>`, after any fallback), ``None`` before one."""
+        state = self._state
+        if state is None:
+            return None
+        return (state.context.memory_plan if state.context is not None else state.memory_plan).to_dict()
+
     # ------------------------------------------------------------------------------------------
     # per call
 
@@ -309,7 +320,13 @@ class GeCoGuidanceHandle:
         check_scheduler(self.pipe.scheduler)
         decode_chunk = anchor_decoder(config, functools.partial(self.adapter.decode, self.pipe), self.decoder,
                                       self.pipe.vae.config)
-        self._state = _CallState(geometry, chunks, decode_chunk, args.get("generator"), config)
+        # the estimates know CogVideoX-5B, whose VAE is 8x spatially; other models get the safe plan
+        scale = getattr(self.pipe, "vae_scale_factor_spatial", 8)
+        memory_plan = choose_plan(
+            config, signature=model_signature(self.adapter.denoisers(self.pipe)[0].config), frames=geometry.num_frames,
+            height=geometry.latent_height * scale, width=geometry.latent_width * scale,
+            device_gb=device_memory_gb(self.pipe._execution_device), offload=bool(getattr(self.pipe, "_all_hooks", None)))
+        self._state = _CallState(geometry, chunks, decode_chunk, args.get("generator"), config, memory_plan)
 
     def _pre_hook(self, module, args, kwargs):
         state = self._state
@@ -324,7 +341,7 @@ class GeCoGuidanceHandle:
                 decode_chunk=state.decode_chunk,
                 latent_frames=functools.partial(adapter.frames_first, pipe, geometry=state.geometry),
                 geometry_estimator=self.geometry_estimator, flow_estimator=self.flow_estimator,
-                generator=state.generator, log=self.log,
+                generator=state.generator, log=self.log, memory_plan=state.memory_plan,
             )
         return None
 

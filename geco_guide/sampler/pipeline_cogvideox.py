@@ -40,6 +40,7 @@ from ..types import FlowEstimator, GeometryEstimator, missing_estimators
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .config import GuidanceConfig, resolve_guidance_config
 from .context import GuidanceContext, anchor_decoder
+from .memory_plan import PlanChoice, choose_plan, device_memory_gb, model_signature
 from .slicing import (
     check_latents,
     check_num_frames,
@@ -64,10 +65,14 @@ class GeCoCogVideoXPipelineOutput(CogVideoXPipelineOutput):
         guidance_log: one dict per guided update (``step, repeat, t, loss, motion, structure,
             fused, grad_norm, seconds, time_travel, skipped``); empty without guidance.
         guidance: the resolved guidance config of the call (a dict), ``None`` when off.
+        memory_plan: the memory plan the call ran with (:meth:`PlanChoice.to_dict
+            <geco_guide.sampler.memory_plan.PlanChoice.to_dict>`: its flags, why, the predicted
+            peak), ``None`` without guidance; also ``pipe.geco_memory_plan`` after the call.
     """
 
     guidance_log: list[dict[str, Any]] | None = None
     guidance: dict[str, Any] | None = None
+    memory_plan: dict[str, Any] | None = None
 
 
 class GeCoCogVideoXPipeline(CogVideoXPipeline):
@@ -234,6 +239,14 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                                 self.guidance_decoder, self.vae.config)
         return schedule, chunks, decode
 
+    def choose_memory_plan(self, guidance: GuidanceConfig, num_frames: int, height: int, width: int) -> PlanChoice:
+        """The memory plan of a guided call (:func:`~geco_guide.sampler.memory_plan.choose_plan`) for
+        this transformer, video size and execution device (model CPU offload counted); ValueError
+        (one line) where ``auto`` finds no plan that fits."""
+        return choose_plan(guidance, signature=model_signature(self.transformer.config), frames=num_frames,
+                           height=height, width=width, device_gb=device_memory_gb(self._execution_device),
+                           offload=bool(getattr(self, "_all_hooks", None)))
+
     def latents_shape(self, batch_size: int, num_frames: int, height: int, width: int) -> tuple[tuple[int, ...], int]:
         """The shape ``[B, F, C, h, w]`` of the latents a call makes, and the latent frames
         CogVideoX 1.5 pads in front (to a multiple of ``patch_size_t``; 0 otherwise)."""
@@ -346,6 +359,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         schedule, chunks, decode = self.check_geco_inputs(
             height, width, num_frames, num_steps, config, geometry_estimator, flow_estimator
         )
+        memory_plan = self.choose_memory_plan(config, num_frames, height, width) if config.enabled else None
         self._guidance_scale = guidance_scale
         self._attention_kwargs = attention_kwargs
         self._current_timestep = None
@@ -419,6 +433,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 decode_chunk=decode,
                 latent_frames=lambda x0: x0[:, additional_frames:],
                 geometry_estimator=geometry_estimator, flow_estimator=flow_estimator, generator=generator,
+                memory_plan=memory_plan,
             )
 
         # 9. Denoising loop
@@ -430,6 +445,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         ):
             if geco:
                 geco.on_record = lambda record: progress_bar.set_postfix(loss=f"{record.loss:.4f}", refresh=False)
+                progress_bar.set_description(f"memory plan {geco.memory_plan.plan.name}", refresh=False)
             old_pred_original_sample = None  # for DPM-solver++
             for i, t in enumerate(timesteps):
                 if self.interrupt:
@@ -488,6 +504,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                     progress_bar.update()
 
         self._current_timestep = None
+        self.geco_memory_plan = geco.memory_plan.to_dict() if geco else None
 
         if not output_type == "latent":
             latents = latents[:, additional_frames:]
@@ -504,4 +521,5 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             frames=video,
             guidance_log=geco.log if geco else [],
             guidance=asdict(config) if config.enabled else None,
+            memory_plan=self.geco_memory_plan,
         )

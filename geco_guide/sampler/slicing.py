@@ -181,6 +181,7 @@ def decode_anchor_frames(
     latents: Tensor,
     chunks: Sequence[AnchorChunk],
     checkpoint_chunks: bool = False,
+    batch_chunks: bool = True,
 ) -> Tensor:
     """Decode only the anchor frames, each from its causal chunk, through a frozen VAE.
 
@@ -204,6 +205,9 @@ def decode_anchor_frames(
         chunks: from :func:`anchor_latent_chunks`.
         checkpoint_chunks: one checkpointed decode per chunk when gradients are enabled
             (memory of one chunk's decode instead of all of them; one more forward each).
+        batch_chunks: otherwise, decode chunks of the same length in one call (``False``: one call
+            per chunk, as the checkpointed decode makes them: the same numbers to the last bit,
+            where a batched convolution may round differently).
 
     Returns:
         ``[B, S, 3, H, W]`` fp32 frames in ``[0, 1]``, one per chunk, in order.
@@ -219,6 +223,9 @@ def decode_anchor_frames(
     if checkpoint_chunks and torch.is_grad_enabled():
         for start, stop in spans:
             decoded[(start, stop)] = checkpoint(decode, latents[:, start:stop], use_reentrant=False)
+    elif not batch_chunks:
+        for start, stop in spans:
+            decoded[(start, stop)] = decode(latents[:, start:stop])
     else:
         for length in sorted({stop - start for start, stop in spans}):
             group = [span for span in spans if span[1] - span[0] == length]

@@ -1,0 +1,289 @@
+"""Memory plans: every plan gives the same video, the planner's choice, the OOM fallback, bad input."""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+from pathlib import Path
+
+import pytest
+import torch
+
+from geco_guide.config import load_config
+from geco_guide.perf.plans import KNOWN_MODELS, card_plan, offload_peak
+from geco_guide.sampler.config import GuidanceConfig
+from geco_guide.sampler.context import GuidanceContext
+from geco_guide.sampler.memory_plan import (
+    DEVICE_HEADROOM,
+    ESTIMATES_PATH,
+    PLAN_NAMES,
+    PLANS,
+    SAFE_PLAN,
+    choose_plan,
+    explicit_plan,
+    load_estimates,
+    plan_named,
+)
+from geco_guide.sampler.slicing import (
+    anchor_latent_chunks,
+    decode_anchor_frames,
+    decode_chunk,
+)
+from geco_guide.tiny import TINY_CALL_KWARGS, tiny_pipeline
+
+PROMPT = "a marble bust on a table"
+#: Two guided steps, one update each: short, and the second update runs after the first's plan.
+SCHEDULE = {"repeats": "0x1,1x2,0x1", "time_travel": []}
+#: Today's default (GuidanceConfig(), the paper's preset): the chunks decoded one at a time in
+#: checkpointed regions, with the VAE's block checkpointing, the denoiser checkpointed.
+EXPLICIT_DEFAULT = {"memory_plan": "explicit", "vae_checkpointing": True, "gradient_checkpointing": True}
+
+
+@pytest.fixture(scope="module")
+def pipe():
+    return tiny_pipeline(0)
+
+
+def run(pipe, mode: str, seed: int = 3, **guidance):
+    args = dict(TINY_CALL_KWARGS, output_type="pt")
+    return pipe(PROMPT, generator=torch.Generator().manual_seed(seed), **args,
+                guidance={**SCHEDULE, "denoiser_grad": mode == "faithful", **guidance})
+
+
+# ---- every plan gives the same video ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("mode", ["fast", "faithful"])
+def test_every_plan_gives_the_same_frames_as_the_explicit_default(pipe, mode):
+    reference = run(pipe, mode, **EXPLICIT_DEFAULT)
+    assert reference.memory_plan["name"] == "explicit" and len(reference.guidance_log) == 2
+    variants = [{"memory_plan": name} for name in PLAN_NAMES if name != "explicit"]
+    variants.append({"memory_plan": "explicit", "vae_checkpointing": True, "vae_block_checkpointing": False,
+                     "gradient_checkpointing": False})
+    for guidance in variants:
+        out = run(pipe, mode, **guidance)
+        assert torch.equal(out.frames, reference.frames), guidance
+        assert [r["loss"] for r in out.guidance_log] == [r["loss"] for r in reference.guidance_log], guidance
+    # every switch restored after the calls
+    assert not pipe.transformer.is_gradient_checkpointing and not pipe.vae.is_gradient_checkpointing
+    assert not pipe.geometry_estimator.gradient_checkpointing and not pipe.flow_estimator.gradient_checkpointing
+
+
+def test_one_call_per_chunk_is_the_checkpointed_decode_to_the_last_bit(pipe):
+    """The named plans' decode without checkpointing (one call per chunk) gives the checkpointed
+    decode's numbers and gradient exactly; the explicit plan without ``vae_checkpointing`` batches
+    the chunks of one length, as before the plans."""
+    decode = partial(decode_chunk, pipe.vae, scaling_factor=pipe.vae_scaling_factor_image)
+    chunks = anchor_latent_chunks([4, 8, 12, 16], 17, 4, 3)
+    latents = torch.randn(1, 5, pipe.transformer.config.in_channels, 4, 6, generator=torch.Generator().manual_seed(0))
+    results = []
+
+    def counted(calls: list[int], x):
+        calls.append(len(x))
+        return decode(x)
+
+    for kwargs in ({"checkpoint_chunks": True}, {"batch_chunks": False}, {}):
+        z = latents.clone().requires_grad_(True)
+        calls: list[int] = []
+        frames = decode_anchor_frames(partial(counted, calls), z, chunks, **kwargs)
+        frames.square().sum().backward()
+        results.append((frames.detach(), z.grad, calls))
+    (ckpt, ckpt_grad, _), (single, single_grad, single_calls), (_, _, batched_calls) = results
+    assert torch.equal(single, ckpt) and torch.equal(single_grad, ckpt_grad)
+    assert single_calls == [1, 1, 1, 1] and sorted(batched_calls) == [1, 3]
+
+
+def test_the_plan_switches_are_on_during_the_call_and_reported(pipe, monkeypatch):
+    seen = []
+    objective = GuidanceContext.objective
+
+    def spy(self, x0):
+        seen.append((pipe.transformer.is_gradient_checkpointing, pipe.vae.is_gradient_checkpointing,
+                     pipe.geometry_estimator.gradient_checkpointing, self.memory_plan.plan.chunk_checkpointing))
+        return objective(self, x0)
+
+    monkeypatch.setattr(GuidanceContext, "objective", spy)
+    out = run(pipe, "faithful", memory_plan="leanest")
+    assert seen[0] == (True, True, True, True)
+    assert out.memory_plan["name"] == "leanest" and pipe.geco_memory_plan == out.memory_plan
+    seen.clear()
+    run(pipe, "fast", memory_plan="chunked")
+    assert seen[0] == (False, False, False, True)  # the denoiser is not differentiated in fast mode
+
+
+# ---- the planner ------------------------------------------------------------------------------
+
+
+def estimates(peaks: dict[str, float], times: dict[str, float]) -> dict:
+    """A one-model estimates table: ``cogvideox-5b`` fast/vae, weights 10 GiB, no offload savings
+    but half the activations under offload."""
+    table = {name: {"weights_gb": 10.0, "activations_gb": peaks[name] - 10.0, "offload_weights_gb": 2.0,
+                    "offload_activations_gb": (peaks[name] - 10.0) / 2, "time_s": times[name]} for name in peaks}
+    return {"models": {"cogvideox-5b": {"signature": {"num_layers": 42}, "model_ids": ["THUDM/CogVideoX-5b"],
+                                        "video": {"frames": 49, "height": 480, "width": 720},
+                                        "estimates": {"fast/vae": table}}}}
+
+
+TABLE = estimates({"fastest": 300, "chunked": 80, "checkpointed": 30, "leanest": 28},
+                  {"fastest": 500, "chunked": 600, "checkpointed": 800, "leanest": 810})
+
+
+def choose(budget=None, device_gb=None, offload=False, frames=49, **config):
+    cfg = GuidanceConfig(denoiser_grad=False, memory_budget_gb=budget, **config)
+    return choose_plan(cfg, model_id="THUDM/CogVideoX-5b", frames=frames, height=480, width=720,
+                       device_gb=device_gb, offload=offload, estimates=TABLE)
+
+
+def test_auto_picks_the_least_time_that_fits_and_falls_back_in_order():
+    assert choose(budget=400).plan.name == "fastest"
+    choice = choose(budget=100)
+    assert choice.plan.name == "chunked" and choice.predicted_peak_gb == 80
+    assert [p.name for p in choice.fallbacks] == ["checkpointed", "leanest"]
+    assert choose(budget=29).plan.name == "leanest"
+    # the device's memory, with headroom: 0.94 * 90 = 84.6 fits chunked, 0.94 * 85 = 79.9 does not
+    assert choose(device_gb=90).plan.name == "chunked"
+    assert choose(device_gb=85).plan.name == "checkpointed"
+    # activations scale with frames x pixels: 10 + 70 * 25 / 49 = 45.7 for 25 frames
+    assert choose(budget=46, frames=25).plan.name == "chunked"
+    assert choose(budget=20, offload=True).plan.name == "checkpointed"  # 2 + 20 / 2 = 12
+
+
+def test_unknown_model_or_budget_gets_the_safe_plan_and_named_plans_are_kept():
+    cfg = GuidanceConfig(denoiser_grad=False)
+    unknown = choose_plan(cfg, model_id="someone/other-model", frames=49, height=480, width=720, device_gb=80,
+                          estimates=TABLE)
+    assert unknown.plan == SAFE_PLAN and "no estimates" in unknown.reason and unknown.fallbacks == ()
+    assert choose().plan == SAFE_PLAN  # no budget known
+    faithful = choose_plan(GuidanceConfig(), model_id="THUDM/CogVideoX-5b", frames=49, height=480, width=720,
+                           device_gb=80, estimates=TABLE)
+    assert faithful.plan == SAFE_PLAN  # the table has no faithful estimates
+    named = choose(budget=1, memory_plan="chunked")
+    assert named.plan == plan_named("chunked") and named.fallbacks == () and named.predicted_peak_gb == 80
+
+
+def test_no_plan_fits_is_one_line_naming_the_smallest_peak_and_offload():
+    with pytest.raises(ValueError) as err:
+        choose(budget=25)
+    message = str(err.value)
+    assert "\n" not in message and "'leanest'" in message and "28.0 GiB" in message
+    assert "enable_model_cpu_offload() it is predicted at 11.0 GiB" in message
+    with pytest.raises(ValueError, match="no memory plan fits 5.0 GiB") as err:
+        choose(budget=5)
+    assert "offload" not in str(err.value)  # 11 GiB with offload does not fit 5 either
+
+
+def test_explicit_plan_reproduces_the_one_flag_of_before():
+    for flag in (True, False):
+        plan = explicit_plan(GuidanceConfig(vae_checkpointing=flag, gradient_checkpointing=flag))
+        assert plan.chunk_checkpointing is plan.vae_block_checkpointing is plan.denoiser_checkpointing is flag
+        assert plan.estimator_checkpointing is None  # the estimators as loaded
+    split = explicit_plan(GuidanceConfig(vae_checkpointing=True, vae_block_checkpointing=False))
+    assert split.chunk_checkpointing and not split.vae_block_checkpointing
+    # the named plans, least recomputation first: each adds one
+    flags = [sum((p.chunk_checkpointing, p.vae_block_checkpointing, p.denoiser_checkpointing,
+                  bool(p.estimator_checkpointing))) for p in PLANS]
+    assert flags == sorted(flags) and PLANS[-1] == SAFE_PLAN
+
+
+# ---- bad input ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("value", [0, -1.5, math.nan, math.inf])
+def test_a_budget_that_is_not_a_positive_finite_number_is_one_line(value):
+    with pytest.raises(ValueError, match="memory_budget_gb") as err:
+        GuidanceConfig(memory_budget_gb=value)
+    assert "\n" not in str(err.value)
+
+
+def test_an_unknown_plan_is_one_line_listing_the_plans():
+    with pytest.raises(ValueError) as err:
+        load_config(preset="tiny", overrides=["guidance.memory_plan=smallest"])
+    message = str(err.value)
+    assert "\n" not in message and all(name in message for name in PLAN_NAMES)
+    assert load_config(preset="tiny", overrides=["guidance.memory_budget_gb=12.5"]).guidance.memory_budget_gb == 12.5
+
+
+def test_a_call_whose_budget_no_plan_fits_stops_before_any_step(pipe, monkeypatch):
+    def no_step(*args, **kwargs):
+        raise AssertionError("the call started denoising")
+
+    monkeypatch.setattr(type(pipe), "model_output", no_step)
+    with pytest.raises(ValueError, match="no memory plan fits 0.0 GiB"):
+        run(pipe, "fast", memory_budget_gb=1e-6)
+
+
+# ---- out of memory at the first update -----------------------------------------------------------
+
+
+def fake_oom_at_calls(monkeypatch, calls: set[int]):
+    """Make the objective raise ``torch.cuda.OutOfMemoryError`` at the given 0-based calls."""
+    objective, count = GuidanceContext.objective, {"n": 0}
+
+    def failing(self, x0):
+        count["n"] += 1
+        if count["n"] - 1 in calls:
+            raise torch.cuda.OutOfMemoryError("CUDA out of memory (injected)")
+        return objective(self, x0)
+
+    monkeypatch.setattr(GuidanceContext, "objective", failing)
+
+
+@pytest.mark.parametrize("mode", ["fast", "faithful"])
+def test_oom_at_the_first_update_falls_back_to_the_next_plan(pipe, monkeypatch, capsys, mode):
+    budget = {"memory_budget_gb": 1000.0}  # auto picks the tiny models' least-recompute plan
+    plain = run(pipe, mode, **budget)
+    first = plain.memory_plan["name"]
+    expected = PLANS[[p.name for p in PLANS].index(first) + 1].name
+    capsys.readouterr()
+    fake_oom_at_calls(monkeypatch, {0})
+    out = run(pipe, mode, **budget)
+    assert out.memory_plan["name"] == expected and first in out.memory_plan["reason"]
+    assert f"memory plan {first!r}; retrying it with {expected!r}" in capsys.readouterr().err
+    torch.testing.assert_close(out.frames, plain.frames, rtol=0, atol=1e-6)
+    assert len(out.guidance_log) == len(plain.guidance_log)
+
+
+def test_oom_after_the_first_update_or_with_a_named_plan_is_raised(pipe, monkeypatch):
+    fake_oom_at_calls(monkeypatch, {1})
+    with pytest.raises(torch.cuda.OutOfMemoryError):
+        run(pipe, "fast", memory_budget_gb=1000.0)
+    fake_oom_at_calls(monkeypatch, {0})
+    with pytest.raises(torch.cuda.OutOfMemoryError):
+        run(pipe, "fast", memory_plan="chunked")
+
+
+# ---- the shipped estimates and the cards -------------------------------------------------------
+
+
+def test_the_shipped_estimates_know_the_models_and_are_package_data():
+    data = load_estimates()
+    assert set(data["models"]) == set(KNOWN_MODELS)
+    for entry in data["models"].values():
+        assert set(entry["estimates"]) == {"fast/vae", "fast/tiny", "faithful/vae", "faithful/tiny"}
+        for table in entry["estimates"].values():
+            assert [name for name in table] == [p.name for p in PLANS]
+    full = data["models"]["cogvideox-5b"]["estimates"]["fast/vae"]
+    assert full["fastest"]["peak_gb"] > full["chunked"]["peak_gb"] > full["checkpointed"]["peak_gb"]
+    assert full["fastest"]["time_s"] < full["chunked"]["time_s"] < full["checkpointed"]["time_s"]
+    pyproject = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
+    assert '"geco_guide.sampler" = ["data/*.json"]' in pyproject and ESTIMATES_PATH.parent.name == "data"
+
+
+def test_the_cards_get_the_plans_of_their_memory():
+    h200 = card_plan("H200", "fast", "vae", 49, 480, 720)
+    assert h200["plan"] == "chunked" and not h200["offload"]
+    h100 = card_plan("H100", "fast", "vae", 49, 480, 720)
+    assert h100["plan"] == "checkpointed" and h100["predicted_peak_gb"] < DEVICE_HEADROOM * h100["memory_gib"]
+    small = card_plan("RTX4090", "fast", "vae", 49, 480, 720)
+    assert small["offload"] and small["predicted_peak_gb"] <= 23
+
+
+def test_offload_peak_counts_the_resident_estimators_and_the_model_at_work():
+    gib = 2**30
+    report = {"weights_gb": {"transformer": 10.0, "vae": 0.5, "geometry_estimator": 2.0, "flow_estimator": 1.0},
+              "settings": {"decoder": "vae"},
+              "unit_traces": {"guided": {"denoiser_cfg": {"forward": {"peak_live_bytes": 1 * gib}, "calls": 1},
+                                         "anchor_decode": {"backward": {"peak_live_bytes": 12 * gib}, "calls": 1},
+                                         "loss": {"forward": {"peak_live_bytes": 11 * gib}, "calls": 0}}}}
+    peak = offload_peak(report)
+    assert peak == {"weights_gb": 3.5, "activations_gb": 12.0, "at": "anchor_decode/backward"}
