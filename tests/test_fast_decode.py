@@ -127,6 +127,22 @@ def test_channels_last_refuses_another_vae_in_one_line():
     assert "\n" not in str(err.value)
 
 
+def test_channels_last_refuses_a_decoder_with_hooked_forwards():
+    vae = frozen_vae()
+    norm = next(m for m in vae.decoder.modules() if isinstance(m, nn.GroupNorm))
+    norm.forward = norm.forward  # as an offload hook installs it
+    hooked = r"already have their own forward \(1, e.g. .*norm_layer.*offload hook"
+    with pytest.raises(ValueError, match=hooked), guidance_decode(CHANNELS_LAST, vae):
+        pass
+    assert all(p.is_contiguous() for p in vae.parameters())
+
+
+def test_compile_refuses_a_vae_without_a_decoder_in_one_line(fresh_compile_cache):
+    refused = r"^guidance.compile compiles the VAE's decoder module, and Linear has none"
+    with pytest.raises(TypeError, match=refused), guidance_decode(GuidanceConfig(compile=True), nn.Linear(2, 2)):
+        pass
+
+
 @pytest.mark.parametrize("affine", [True, False])
 def test_channels_last_group_norm_is_group_norm(affine):
     generator = torch.Generator().manual_seed(0)

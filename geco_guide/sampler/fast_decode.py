@@ -163,6 +163,11 @@ def channels_last_decode(vae: Any) -> Iterator[None]:
 
     check_channels_last_vae(vae)
     decoder = vae.decoder
+    hooked = [name or "decoder" for name, m in decoder.named_modules() if "forward" in m.__dict__]
+    if hooked:  # e.g. accelerate's sequential CPU offload, whose hooks the layout's forwards would bypass
+        raise ValueError(f"guidance.decode_layout=channels_last cannot lay out a VAE decoder whose modules already have "
+                         f"their own forward ({len(hooked)}, e.g. {hooked[0]}: an offload hook?): use "
+                         "guidance.decode_layout=default")
     with contextlib.ExitStack() as stack:
         stack.enter_context(channels_last_weights(decoder))
         for module in decoder.modules():
@@ -226,6 +231,9 @@ def guidance_decode(config: Any, vae: Any, guidance_decoder: Any = None) -> Iter
     with ``compile`` the decoder that ``decoder`` names compiled (the VAE decoder's ``forward``,
     the tiny ``guidance_decoder``'s ``decode``). Nothing is patched with the defaults."""
     layout = config.decode_layout == CHANNELS_LAST
+    if config.compile and config.decoder == "vae" and not isinstance(getattr(vae, "decoder", None), nn.Module):
+        raise TypeError(f"guidance.compile compiles the VAE's decoder module, and {type(vae).__name__} has none: "
+                        "use guidance.compile=false")
     with contextlib.ExitStack() as stack:
         if layout:
             stack.enter_context(channels_last_decode(vae))
