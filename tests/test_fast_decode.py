@@ -159,6 +159,24 @@ def test_channels_last_group_norm_is_group_norm(affine):
         torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.parametrize("offset", [0.5, 100.0])
+def test_channels_last_group_norm_in_bf16_is_as_close_as_the_stock_kernel(offset):
+    """Against float64 of the same bf16 inputs: the mean and the factors in float32, so a group far
+    from zero (``offset`` 50 standard deviations) loses nothing to a rounded mean."""
+    generator = torch.Generator().manual_seed(0)
+    x = (torch.randn(1, 64, 5, 16, 24, generator=generator) * 2 + offset).bfloat16()
+    weight, bias = torch.randn(64, generator=generator).bfloat16(), torch.randn(64, generator=generator).bfloat16()
+    exact = nn.functional.group_norm(x.double(), 32, weight.double(), bias.double(), 1e-6)
+    ours = channels_last_group_norm(x.contiguous(memory_format=CL3D), 32, weight, bias, 1e-6)
+    stock = nn.functional.group_norm(x, 32, weight, bias, 1e-6)
+    assert ours.dtype == torch.bfloat16 and ours.is_contiguous(memory_format=CL3D)
+
+    def rms_error(y):
+        return (y.double() - exact).square().mean().sqrt().item()
+
+    assert rms_error(ours) <= 1.2 * rms_error(stock)
+
+
 @pytest.mark.parametrize("with_cache", [False, True])
 def test_causal_time_pad_is_the_stock_padding_in_channels_last(with_cache):
     inputs = torch.randn(1, 4, 3, 5, 6).contiguous(memory_format=CL3D)

@@ -62,18 +62,22 @@ def channels_last_group_norm(x: Tensor, num_groups: int, weight: Tensor | None, 
     channels-last ``x`` gives a channels-last result without a copy (the CUDA kernel makes ``x``
     contiguous first). The statistics are taken over ``[N, prod(S), G, C/G]``, a view of a
     channels-last ``x``; normalisation, scale and shift are one ``addcmul`` with per-(video, channel)
-    factors, which are computed in at least float32."""
+    factors, computed and applied in at least float32 (for bf16 and fp16 ``x`` the mean is a second,
+    float32 reduction, the variance is rounded to ``x``'s dtype)."""
     n, c = x.shape[:2]
     grouped = x.movedim(1, -1).reshape(n, -1, num_groups, c // num_groups)  # [N, L, G, C/G]
     var, mean = torch.var_mean(grouped, dim=(1, 3), correction=0, keepdim=True)  # [N, 1, G, 1]
     factor_dtype = torch.promote_types(x.dtype, torch.float32)
+    if mean.dtype != factor_dtype:  # bf16/fp16: a rounded mean would shift every value of its group
+        mean = grouped.mean(dim=(1, 3), keepdim=True, dtype=factor_dtype)
     scale = torch.rsqrt(var.to(factor_dtype) + eps)
     if weight is not None:
         scale = scale * weight.to(factor_dtype).view(1, 1, num_groups, -1)  # [N, 1, G, C/G]
     shift = -mean.to(factor_dtype) * scale
     if bias is not None:
         shift = shift + bias.to(factor_dtype).view(1, 1, num_groups, -1)
-    out = torch.addcmul(shift.to(x.dtype), grouped, scale.to(x.dtype))  # [N, L, G, C/G]
+    # in the factors' precision, rounded once (bf16 factors lose the shift's cancellation)
+    out = torch.addcmul(shift, grouped, scale).to(x.dtype)  # [N, L, G, C/G]
     return out.reshape(n, *x.shape[2:], c).movedim(-1, 1)
 
 
