@@ -53,7 +53,6 @@ from geco_guide.perf.cost import (
     cost_report,
     cost_settings,
     cost_table,
-    with_card,
 )
 from geco_guide.perf.decoder_agreement import agreement_table, decoder_agreement
 from geco_guide.perf.geco_eval import geco_eval_cost, geco_eval_table
@@ -77,7 +76,7 @@ from geco_guide.perf.options import (
     positive_float,
     positive_int,
 )
-from geco_guide.perf.plans import card_plan, plan_estimates
+from geco_guide.perf.plans import card_plan, plan_estimates, with_card
 from geco_guide.perf.sampling import (
     run_sampling_worker,
     sampling_report,

@@ -529,7 +529,8 @@ def test_cost_gpu_runs_the_planner_for_the_card_and_reports_its_plan(cli, monkey
     path = tmp_path / "cost.json"
     cli.main(["cost", "--gpu", "RTX4090", "--mode", "fast", "--threads", "1", "--json", str(path)])
     report = json.loads(path.read_text())
-    assert traced == ["leanest"] and report["plan"] == "leanest" and report["card"]["offload"]
+    # checkpointed and leanest peak alike (in the anchor decode's backward): the faster one
+    assert traced == ["checkpointed"] and report["plan"] == "checkpointed" and report["card"]["offload"]
     assert report["peak_memory_gb_without_offload"] >= report["peak_memory_gb"] > 0
     assert set(report["roofline"]["ratio_guided_over_unguided"]) == set(cost.GPU_SPECS)
-    assert "RTX4090 (22.4 GiB): memory plan leanest with model CPU offload" in capsys.readouterr().out
+    assert "RTX4090 (22.4 GiB): memory plan checkpointed with model CPU offload" in capsys.readouterr().out

@@ -6,8 +6,9 @@ The real pipeline call of one step (unguided, or guided with one update) runs on
 backward) the FLOPs (``torch.utils.flop_counter`` formulas), bytes moved, ATen ops and the live
 memory. :func:`count_schedule_calls` drives the real :func:`~geco_guide.sampler.step.guided_step`
 with counting stubs over the schedule; :func:`whole_run_costs` combines units and counts, and
-:func:`cost_report` adds a roofline time on H100/H200 with one efficiency calibrated on the
-measured unguided H200 step. :func:`compare_with_measured` sets it against a ``sampling`` report.
+:func:`cost_report` adds a roofline time on the cards of :data:`GPU_SPECS` with one efficiency
+calibrated on the measured unguided H200 step. :func:`compare_with_measured` sets it against a
+``sampling`` report.
 """
 
 from __future__ import annotations
@@ -504,20 +505,6 @@ def cost_report(settings: dict[str, Any], mode: str, argv: Sequence[str] = ()) -
         "environment": environment_info(torch.get_num_threads()),
     }
     return report
-
-
-def with_card(report: dict[str, Any], card: dict[str, Any]) -> dict[str, Any]:
-    """``report`` (of the plan ``card`` chose: :func:`~.plans.card_plan`) with ``plan``, ``card``, and
-    ``peak_memory_gb`` the peak the card sees: under model CPU offload where the card needs it
-    (``peak_memory_gb_without_offload`` keeps the other)."""
-    from .plans import offload_peak
-
-    out = {**report, "plan": card["plan"], "card": card}
-    if card["offload"]:
-        peak = offload_peak(report)
-        out.update(peak_memory_gb=peak["weights_gb"] + peak["activations_gb"], peak_at=peak["at"],
-                   peak_memory_gb_without_offload=report["peak_memory_gb"])
-    return out
 
 
 #: Measured breakdown keys (``sampling`` JSON) of each cost stage; the denoiser's calls with and

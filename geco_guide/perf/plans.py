@@ -77,7 +77,8 @@ def plan_estimates(models: Sequence[str] = tuple(KNOWN_MODELS), argv: Sequence[s
     traced video size and, per ``mode/decoder``, each plan's :func:`plan_estimate`.
     ``on_report`` is told each finished trace (a progress line)."""
     out: dict[str, Any] = {"note": "predicted by the cost model (fake tensors, roofline calibrated on the H200), "
-                                   "not measured; memory in GiB, time in H200 seconds for the traced video",
+                                   "not measured; memory in GiB, time in H200 seconds for the traced video (the "
+                                   "tiny models' times only order their plans)",
                            "command": REGENERATE, "argv": list(argv), "models": {}}
     for key in models:
         known = KNOWN_MODELS[key]
@@ -121,3 +122,14 @@ def card_plan(gpu: str, mode: str, decoder: str, frames: int, height: int, width
     return {"gpu": gpu, "memory_gib": device_gb, "plan": None, "offload": None, "reason": errors[-1],
             "budget_gb": None, "predicted_peak_gb": None}
 
+
+def with_card(report: dict[str, Any], card: dict[str, Any]) -> dict[str, Any]:
+    """``report`` (of the plan ``card`` chose: :func:`card_plan`) with ``plan``, ``card``, and
+    ``peak_memory_gb`` the peak the card sees: under model CPU offload where the card needs it
+    (``peak_memory_gb_without_offload`` keeps the other)."""
+    out = {**report, "plan": card["plan"], "card": card}
+    if card["offload"]:
+        peak = offload_peak(report)
+        out.update(peak_memory_gb=peak["weights_gb"] + peak["activations_gb"], peak_at=peak["at"],
+                   peak_memory_gb_without_offload=report["peak_memory_gb"])
+    return out

@@ -226,7 +226,8 @@ def choose_plan(config: Any, *, signature: Mapping[str, Any] | None = None, mode
                         f"{offloaded[smallest.name]:.1f} GiB")
         raise ValueError(
             f"no memory plan fits {budget:.1f} GiB: the smallest, {smallest.name!r}, is predicted to peak at "
-            f"{peaks[smallest.name]:.1f} GiB ({key}, {mode} mode, {frames}x{height}x{width}){hint}; set "
+            f"{peaks[smallest.name]:.1f} GiB{' with model CPU offload' if offload else ''} ({key}, {mode} mode, "
+            f"{frames}x{height}x{width}){hint}; set "
             "guidance.memory_budget_gb to insist, or pick a plan with guidance.memory_plan")
     plan = min(fitting, key=lambda p: (times[p.name]["time_s"], PLANS.index(p)))
     later = PLANS[PLANS.index(plan) + 1:]
