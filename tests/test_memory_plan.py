@@ -287,3 +287,34 @@ def test_offload_peak_counts_the_resident_estimators_and_the_model_at_work():
                                          "loss": {"forward": {"peak_live_bytes": 11 * gib}, "calls": 0}}}}
     peak = offload_peak(report)
     assert peak == {"weights_gb": 3.5, "activations_gb": 12.0, "at": "anchor_decode/backward"}
+
+
+# ---- the hooks ----------------------------------------------------------------------------------
+
+
+def test_a_hooked_stock_pipeline_runs_the_plans_and_reports_them():
+    """attach_geco_guidance: the stock tiny CogVideoX pipeline is a model the estimates know (auto
+    picks its least-recompute plan), every plan gives the same frames there too, and the handle
+    reports the plan; a Wan pipeline is not known: the safe plan."""
+    from geco_guide import tiny as T
+    from geco_guide.sampler.hooks import attach_geco_guidance
+
+    geometry, flow = T.tiny_estimators(0)
+    stock = T.tiny_cogvideox_pipeline(0)
+    kwargs = T.tiny_call_kwargs(stock, num_frames=9, output_type="pt")
+    config = {"anchors": [5, 8], "repeats": "0x3,1x1", "time_travel": [], "memory_budget_gb": 1000.0}
+    frames = {}
+    for plan in ("auto", "leanest", "explicit"):
+        flags = {"vae_checkpointing": True, "gradient_checkpointing": True} if plan == "explicit" else {}
+        with attach_geco_guidance(stock, {**config, "memory_plan": plan, **flags}, geometry_estimator=geometry,
+                                  flow_estimator=flow) as handle:
+            frames[plan] = stock(prompt=PROMPT, generator=torch.Generator().manual_seed(0), **kwargs).frames
+            frames[plan + " plan"] = handle.memory_plan["name"]
+    assert frames["auto plan"] == "fastest" and frames["leanest plan"] == "leanest"
+    assert torch.equal(frames["auto"], frames["explicit"]) and torch.equal(frames["leanest"], frames["explicit"])
+    wan = T.tiny_wan_pipeline(0)
+    with attach_geco_guidance(wan, {"anchors": [5, 8], "repeats": "0x3,1x1", "time_travel": []},
+                              geometry_estimator=geometry, flow_estimator=flow) as handle:
+        wan(prompt=PROMPT, generator=torch.Generator().manual_seed(0),
+            **T.tiny_call_kwargs(wan, num_frames=9, output_type="latent"))
+        assert handle.memory_plan["name"] == SAFE_PLAN.name and "no estimates" in handle.memory_plan["reason"]

@@ -126,6 +126,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         self.register_modules(geometry_estimator=geometry_estimator, flow_estimator=flow_estimator,
                               guidance_decoder=guidance_decoder)
         self.guidance_config = guidance_config  # a GuidanceConfig, and its dict in the config (__setattr__)
+        self.geco_memory_plan: dict[str, Any] | None = None  # the last guided call's (output.memory_plan)
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name == "guidance_config":
