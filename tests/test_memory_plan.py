@@ -318,3 +318,17 @@ def test_a_hooked_stock_pipeline_runs_the_plans_and_reports_them():
         wan(prompt=PROMPT, generator=torch.Generator().manual_seed(0),
             **T.tiny_call_kwargs(wan, num_frames=9, output_type="latent"))
         assert handle.memory_plan["name"] == SAFE_PLAN.name and "no estimates" in handle.memory_plan["reason"]
+
+
+def test_a_command_line_can_check_the_budget_before_loading():
+    from geco_guide.sampler.memory_plan import plan_before_loading
+
+    cfg = load_config(preset="cogvideox-5b", overrides=["guidance.memory_budget_gb=20"])
+    with pytest.raises(ValueError, match="the smallest, 'checkpointed', is predicted to peak at 40.3 GiB") as err:
+        plan_before_loading(cfg.guidance, cfg.model.id, 49, 480, 720, "cpu")
+    assert "\n" not in str(err.value)
+    fits = load_config(preset="cogvideox-5b", overrides=["guidance.memory_budget_gb=100"]).guidance
+    assert plan_before_loading(fits, "THUDM/CogVideoX-5b", 49, 480, 720, "cpu").plan.name == "chunked"
+    assert plan_before_loading(fits, "someone/else", 49, 480, 720, "cpu").plan == SAFE_PLAN
+    off = load_config(preset="cogvideox-5b", overrides=["guidance.enabled=false"]).guidance
+    assert plan_before_loading(off, "THUDM/CogVideoX-5b", 49, 480, 720, "cpu") is None

@@ -233,3 +233,17 @@ def choose_plan(config: Any, *, signature: Mapping[str, Any] | None = None, mode
     later = PLANS[PLANS.index(plan) + 1:]
     return PlanChoice(plan, f"auto: least recomputation predicted to fit {budget:.1f} GiB ({key})",
                       predicted_peak_gb=peaks[plan.name], budget_gb=budget, fallbacks=tuple(later))
+
+
+def plan_before_loading(config: Any, model_id: str, frames: int, height: int, width: int, device: Any) -> PlanChoice | None:
+    """The plan a guided call of the hub model ``model_id`` on ``device`` is predicted to get, for a
+    command line to check before any model loads (``None`` without guidance; a model id the
+    estimates do not know gets :data:`SAFE_PLAN`, as its call would).
+
+    Raises:
+        ValueError: (one line) where no plan fits the budget (:func:`choose_plan`).
+    """
+    if not config.enabled:
+        return None
+    return choose_plan(config, model_id=model_id, frames=frames, height=height, width=width,
+                       device_gb=device_memory_gb(device))
