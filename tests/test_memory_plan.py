@@ -332,3 +332,19 @@ def test_a_command_line_can_check_the_budget_before_loading():
     assert plan_before_loading(fits, "someone/else", 49, 480, 720, "cpu").plan == SAFE_PLAN
     off = load_config(preset="cogvideox-5b", overrides=["guidance.enabled=false"]).guidance
     assert plan_before_loading(off, "THUDM/CogVideoX-5b", 49, 480, 720, "cpu") is None
+
+
+def test_the_shipped_estimates_are_what_the_cost_model_traces_now():
+    """One plan of the tiny models traced again gives the shipped numbers (regenerate the file
+    with `scripts/benchmark.py plans` when this fails)."""
+    from geco_guide.perf.cost import cost_report, cost_settings
+    from geco_guide.perf.plans import plan_estimate
+
+    settings = cost_settings(preset="tiny", steps=None, frames=None, height=None, width=None, dtype=None,
+                             plan="chunked")
+    estimate = plan_estimate(cost_report(settings, "fast"))
+    shipped = load_estimates()["models"]["tiny"]["estimates"]["fast/vae"]["chunked"]
+    for key in ("weights_gb", "activations_gb", "peak_gb", "offload_peak_gb", "time_s"):
+        assert estimate[key] == pytest.approx(shipped[key], rel=1e-6), key
+    assert estimate["peak_gb"] == pytest.approx(estimate["weights_gb"] + estimate["activations_gb"])
+    assert estimate["offload_peak_gb"] <= estimate["peak_gb"]
