@@ -534,3 +534,15 @@ def test_cost_gpu_runs_the_planner_for_the_card_and_reports_its_plan(cli, monkey
     assert report["peak_memory_gb_without_offload"] >= report["peak_memory_gb"] > 0
     assert set(report["roofline"]["ratio_guided_over_unguided"]) == set(cost.GPU_SPECS)
     assert "RTX4090 (22.4 GiB): memory plan checkpointed with model CPU offload" in capsys.readouterr().out
+
+
+def test_sampling_measures_the_explicit_flags_unless_a_plan_is_asked_for() -> None:
+    """`sampling` runs the flags it was measured with (memory plan `explicit`) by default; `--memory-plan`
+    sets the guided arm's plan."""
+    common = {"full_size": False, "mode": "fast", "steps": 4, "frames": None, "height": None, "width": None,
+              "device": "cpu", "dtype": None, "threads": 1, "seed": 0, "warmup": 0}
+    default = sampling.sampling_spec(**common)
+    assert sampling.sampling_guidance({**default, "arm": "guided"}).memory_plan == "explicit"
+    leanest = sampling.sampling_spec(**common, memory_plan="leanest")
+    assert sampling.sampling_guidance({**leanest, "arm": "guided"}).memory_plan == "leanest"
+    assert sampling.sampling_guidance({**leanest, "arm": "unguided"}) is False
