@@ -155,8 +155,9 @@ def predicted_peaks(entry: Mapping[str, Any], mode: str, decoder: str, frames: i
     """Predicted peak (GiB) of each plan of a known model's ``entry`` for a ``frames x height x width``
     video: the weights as they are, the activations scaled by frames x pixels from the traced size
     (a straight-line approximation: the decode's and the estimators' activations grow with the
-    pixels and frames). ``offload``: only the model at work on the device (``enable_model_cpu_offload``).
-    ``None`` where the entry has no estimates for this mode and decoder."""
+    pixels and frames; the anchors and chunk length are the traced ones). ``offload``: under
+    ``enable_model_cpu_offload``, the estimators and the model at work on the device. ``None``
+    where the entry has no estimates for this mode and decoder."""
     table = entry["estimates"].get(f"{mode}/{decoder}")
     if table is None:
         return None
