@@ -111,6 +111,41 @@ def test_the_plan_switches_are_on_during_the_call_and_reported(pipe, monkeypatch
     assert seen[0] == (False, False, False, True)  # the denoiser is not differentiated in fast mode
 
 
+def test_partial_checkpoints_all_denoiser_blocks_but_every_fourth_and_changes_nothing():
+    """``partial`` on a 6-block tiny transformer: blocks 1-3 and 5 checkpointed one by one during the
+    faithful call (the model's own checkpointing off), blocks 0 and 4 kept; the frames are the
+    default's exactly, and the blocks are restored after the call."""
+    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from geco_guide.tiny import (
+        TinySizes,
+        tiny_cogvideox_components,
+        tiny_estimators,
+        tiny_guidance_config,
+    )
+
+    geometry, flow = tiny_estimators(0)
+    deep = GeCoCogVideoXPipeline(**tiny_cogvideox_components(0, TinySizes(layers=6)), geometry_estimator=geometry,
+                                 flow_estimator=flow, guidance_config=tiny_guidance_config())
+    deep.set_progress_bar_config(disable=True)
+    blocks = deep.transformer.transformer_blocks
+    seen = []
+    objective = GuidanceContext.objective
+
+    def spy(self, x0):
+        seen.append(([i for i, b in enumerate(blocks) if "forward" in b.__dict__], deep.transformer.is_gradient_checkpointing))
+        return objective(self, x0)
+
+    reference = run(deep, "faithful", **EXPLICIT_DEFAULT)
+    GuidanceContext.objective = spy
+    try:
+        partial_out = run(deep, "faithful", memory_plan="partial")
+    finally:
+        GuidanceContext.objective = objective
+    assert seen[0] == ([1, 2, 3, 5], False)
+    assert torch.equal(partial_out.frames, reference.frames)
+    assert not any("forward" in b.__dict__ for b in blocks)
+
+
 # ---- the planner ------------------------------------------------------------------------------
 
 
@@ -124,8 +159,8 @@ def estimates(peaks: dict[str, float], times: dict[str, float]) -> dict:
                                         "estimates": {"fast/vae": table}}}}
 
 
-TABLE = estimates({"fastest": 300, "chunked": 80, "checkpointed": 30, "leanest": 28},
-                  {"fastest": 500, "chunked": 600, "checkpointed": 800, "leanest": 810})
+TABLE = estimates({"fastest": 300, "partial": 120, "chunked": 80, "checkpointed": 30, "leanest": 28},
+                  {"fastest": 500, "partial": 560, "chunked": 600, "checkpointed": 800, "leanest": 810})
 
 
 def choose(budget=None, device_gb=None, offload=False, frames=49, **config):
@@ -136,6 +171,8 @@ def choose(budget=None, device_gb=None, offload=False, frames=49, **config):
 
 def test_auto_picks_the_least_time_that_fits_and_falls_back_in_order():
     assert choose(budget=400).plan.name == "fastest"
+    assert [p.name for p in choose(budget=400).fallbacks] == ["partial", "chunked", "checkpointed", "leanest"]
+    assert choose(budget=120).plan.name == "partial"
     choice = choose(budget=100)
     assert choice.plan.name == "chunked" and choice.predicted_peak_gb == 80
     assert [p.name for p in choice.fallbacks] == ["checkpointed", "leanest"]
@@ -233,7 +270,8 @@ def test_oom_at_the_first_update_falls_back_to_the_next_plan(pipe, monkeypatch, 
     budget = {"memory_budget_gb": 1000.0}  # auto picks the tiny models' least-recompute plan
     plain = run(pipe, mode, **budget)
     first = plain.memory_plan["name"]
-    expected = PLANS[[p.name for p in PLANS].index(first) + 1].name
+    expected = plain.memory_plan["fallbacks"][0]
+    assert PLANS.index(plan_named(expected)) > PLANS.index(plan_named(first))
     capsys.readouterr()
     fake_oom_at_calls(monkeypatch, {0})
     out = run(pipe, mode, **budget)
@@ -272,6 +310,7 @@ def test_the_shipped_estimates_know_the_models_and_are_package_data():
 def test_the_cards_get_the_plans_of_their_memory():
     h200 = card_plan("H200", "fast", "vae", 49, 480, 720)
     assert h200["plan"] == "chunked" and not h200["offload"]
+    assert card_plan("H200", "faithful", "vae", 49, 480, 720)["plan"] == "partial"
     h100 = card_plan("H100", "fast", "vae", 49, 480, 720)
     assert h100["plan"] == "checkpointed" and h100["predicted_peak_gb"] < DEVICE_HEADROOM * h100["memory_gib"]
     small = card_plan("RTX4090", "fast", "vae", 49, 480, 720)

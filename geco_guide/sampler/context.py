@@ -21,6 +21,7 @@ from typing import Any
 
 import torch
 from torch import Tensor, nn
+from torch.utils.checkpoint import checkpoint
 
 from ..estimators.tiny_decoder import TinyDecoder
 from ..loss.geco import GeCoLoss
@@ -73,6 +74,40 @@ def estimator_checkpointing(estimators: Iterable[Any], enable: bool | None):
     finally:
         for model, flag in zip(models, flags):
             model.gradient_checkpointing = flag
+
+
+@contextlib.contextmanager
+def partial_checkpointing(model: Any, keep_every: int):
+    """Checkpoint a denoiser's ``transformer_blocks`` one by one while differentiating, except every
+    ``keep_every``-th (blocks ``0, k, 2k, ...``), whose activations are kept; restored on exit. A
+    model without such a list, or one already checkpointing, gets its own full checkpointing."""
+    blocks = getattr(model, "transformer_blocks", None)
+    if blocks is None or getattr(model, "is_gradient_checkpointing", False):
+        with gradient_checkpointing(model, True):
+            yield
+        return
+    wrapped = [block for i, block in enumerate(blocks) if i % keep_every]
+    saved = [block.__dict__.get("forward") for block in wrapped]
+    try:
+        for block in wrapped:
+            block.forward = checkpointed_forward(block.forward)
+        yield
+    finally:
+        for block, forward in zip(wrapped, saved):
+            del block.forward
+            if forward is not None:
+                block.forward = forward
+
+
+def checkpointed_forward(forward: Callable[..., Any]) -> Callable[..., Any]:
+    """``forward`` in a checkpointed region when gradients are enabled (as diffusers' own block
+    checkpointing: non-reentrant), plain otherwise."""
+    def run(*args: Any, **kwargs: Any) -> Any:
+        if not torch.is_grad_enabled():
+            return forward(*args, **kwargs)
+        return checkpoint(forward, *args, use_reentrant=False, **kwargs)
+
+    return run
 
 
 def generator_states(generator: torch.Generator | list[torch.Generator] | None) -> list[tuple[torch.Generator, Tensor]]:
@@ -172,8 +207,12 @@ class GuidanceContext:
         """The checkpointing switches of :attr:`memory_plan` on the models of :meth:`models`."""
         plan, (denoisers, vae) = self.memory_plan.plan, self._plan_models
         stack = contextlib.ExitStack()
+        differentiated = self.config.denoiser_grad and plan.denoiser_checkpointing
         for module in denoisers:
-            stack.enter_context(gradient_checkpointing(module, self.config.denoiser_grad and plan.denoiser_checkpointing))
+            if differentiated and plan.denoiser_keep_every >= 2:
+                stack.enter_context(partial_checkpointing(module, plan.denoiser_keep_every))
+            else:
+                stack.enter_context(gradient_checkpointing(module, differentiated))
         stack.enter_context(gradient_checkpointing(vae, plan.vae_block_checkpointing))
         stack.enter_context(estimator_checkpointing(self.estimators, plan.estimator_checkpointing))
         return stack

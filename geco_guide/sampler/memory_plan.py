@@ -6,8 +6,12 @@ least recomputation to the least memory (:data:`PLANS`):
 
 * ``fastest``: nothing checkpointed: the anchor chunks decoded (one call each) and kept, the
   denoiser's blocks kept (faithful mode).
-* ``chunked``: each anchor chunk decoded in its own checkpointed region (one more forward decode
-  per chunk), the denoiser's blocks checkpointed.
+* ``partial``: each anchor chunk decoded in its own checkpointed region (one more forward decode
+  per chunk); in faithful mode the denoiser's blocks checkpointed except every
+  :data:`PARTIAL_KEEP_EVERY`-th, whose activations are kept (a quarter less recomputation than
+  ``chunked`` for a quarter of the transformer's activations). In fast mode it is ``chunked``.
+* ``chunked``: each anchor chunk decoded in its own checkpointed region, the denoiser's blocks
+  checkpointed.
 * ``checkpointed``: ``chunked`` plus the VAE's own block checkpointing inside each chunk (a third
   decode of each chunk); the configs' ``vae_checkpointing=true`` before the plans existed.
 * ``leanest``: ``checkpointed`` plus the geometry and flow estimators' block checkpointing.
@@ -55,6 +59,9 @@ class MemoryPlan:
         chunk_checkpointing: each anchor chunk decoded in its own checkpointed region.
         vae_block_checkpointing: the VAE's own block checkpointing during guidance.
         denoiser_checkpointing: the denoiser's block checkpointing when it is differentiated.
+        denoiser_keep_every: with ``denoiser_checkpointing``, ``k >= 2`` keeps the activations of
+            every ``k``-th block (blocks ``0, k, 2k, ...``) and checkpoints the others one by one
+            (a denoiser with a ``transformer_blocks`` list; others checkpoint all); ``0``: all.
         estimator_checkpointing: the estimators' block checkpointing; ``None`` leaves them as loaded.
         batch_chunks: without chunk checkpointing, decode the chunks of one length in one call (the
             ``explicit`` plan's, as before the plans); the named plans decode one chunk per call,
@@ -66,12 +73,17 @@ class MemoryPlan:
     vae_block_checkpointing: bool
     denoiser_checkpointing: bool
     estimator_checkpointing: bool | None
+    denoiser_keep_every: int = 0
     batch_chunks: bool = False
 
 
+#: The ``partial`` plan keeps every 4th denoiser block: at 49x480x720 a quarter of the faithful
+#: transformer's activations (about 25 GiB) is what fits beside ``chunked`` on a 141 GB card.
+PARTIAL_KEEP_EVERY = 4
 #: The named plans, from the least recomputation (and the most memory) to the least memory.
 PLANS = (
     MemoryPlan("fastest", False, False, False, False),
+    MemoryPlan("partial", True, False, True, False, denoiser_keep_every=PARTIAL_KEEP_EVERY),
     MemoryPlan("chunked", True, False, True, False),
     MemoryPlan("checkpointed", True, True, True, False),
     MemoryPlan("leanest", True, True, True, True),
@@ -90,7 +102,8 @@ class PlanChoice:
         predicted_peak_gb: the estimate's peak (GiB) for this plan, ``None`` where none is known.
         budget_gb: the budget it was chosen for (GiB), ``None`` for a named plan.
         fallbacks: the plans tried after an out-of-memory error at the first update (``auto``
-            only): the ones after :attr:`plan` in :data:`PLANS`.
+            only): the ones after :attr:`plan` in :data:`PLANS`, each predicted to need less
+            memory than the one before.
     """
 
     plan: MemoryPlan
@@ -190,7 +203,7 @@ def choose_plan(config: Any, *, signature: Mapping[str, Any] | None = None, mode
 
     ``auto``: among :data:`PLANS`, the one of least predicted time whose predicted peak
     (:func:`predicted_peaks`) fits the budget: ``memory_budget_gb`` as given, else
-    :data:`DEVICE_HEADROOM` x ``device_gb``; the first on a tie. A model (``signature`` of its
+    :data:`DEVICE_HEADROOM` x ``device_gb``; the more memory-saving on a tie. A model (``signature`` of its
     denoiser, or ``model_id``) or mode the estimates do not know, or no budget at all, gets
     :data:`SAFE_PLAN`.
 
@@ -216,9 +229,10 @@ def choose_plan(config: Any, *, signature: Mapping[str, Any] | None = None, mode
         return PlanChoice(SAFE_PLAN, f"auto: {why}: the most memory-saving plan", budget_gb=budget,
                           fallbacks=())
     times = entry["estimates"][f"{mode}/{config.decoder}"]
-    fitting = [p for p in PLANS if peaks[p.name] <= budget]
+    estimated = [p for p in PLANS if p.name in peaks]  # an older file may lack a newer plan
+    fitting = [p for p in estimated if peaks[p.name] <= budget]
     if not fitting:
-        smallest = min(PLANS, key=lambda p: peaks[p.name])
+        smallest = min(estimated, key=lambda p: peaks[p.name])
         hint = ""
         if not offload:
             offloaded = predicted_peaks(entry, mode, config.decoder, frames, height, width, True)
@@ -230,8 +244,14 @@ def choose_plan(config: Any, *, signature: Mapping[str, Any] | None = None, mode
             f"{peaks[smallest.name]:.1f} GiB{' with model CPU offload' if offload else ''} ({key}, {mode} mode, "
             f"{frames}x{height}x{width}){hint}; set "
             "guidance.memory_budget_gb to insist, or pick a plan with guidance.memory_plan")
-    plan = min(fitting, key=lambda p: (times[p.name]["time_s"], PLANS.index(p)))
-    later = PLANS[PLANS.index(plan) + 1:]
+    # a tie (a plan whose extra saving costs nothing here) goes to the one that saves more
+    plan = min(fitting, key=lambda p: (times[p.name]["time_s"], -PLANS.index(p)))
+    # the fallbacks: each predicted to need less than the one before (an equal one would fail again)
+    later, floor = [], peaks[plan.name]
+    for other in estimated[estimated.index(plan) + 1:]:
+        if peaks[other.name] < floor:
+            later.append(other)
+            floor = peaks[other.name]
     return PlanChoice(plan, f"auto: least recomputation predicted to fit {budget:.1f} GiB ({key})",
                       predicted_peak_gb=peaks[plan.name], budget_gb=budget, fallbacks=tuple(later))
 
