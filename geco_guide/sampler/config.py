@@ -66,7 +66,7 @@ class GuidanceConfig:
         memory_plan: what the guidance backward recomputes (:mod:`.memory_plan`): ``auto``
             (default: the plan of least predicted time that fits the memory budget),
             ``explicit`` (the three flags above as given, the estimators as loaded), or a named
-            plan, ``fastest``, ``chunked``, ``checkpointed`` or ``leanest``. No plan changes the
+            plan, ``fastest``, ``partial``, ``chunked``, ``checkpointed`` or ``leanest``. No plan changes the
             video.
         memory_budget_gb: the memory (GiB) ``auto`` plans for; ``None``: 94 % of the device's
             (a CUDA device's total, a CPU's physical RAM).
