@@ -132,7 +132,8 @@ def test_partial_checkpoints_all_denoiser_blocks_but_every_fourth_and_changes_no
     objective = GuidanceContext.objective
 
     def spy(self, x0):
-        seen.append(([i for i, b in enumerate(blocks) if "forward" in b.__dict__], deep.transformer.is_gradient_checkpointing))
+        wrapped = [i for i, b in enumerate(blocks) if "forward" in b.__dict__]
+        seen.append((wrapped, deep.transformer.is_gradient_checkpointing))
         return objective(self, x0)
 
     reference = run(deep, "faithful", **EXPLICIT_DEFAULT)

@@ -256,7 +256,8 @@ def choose_plan(config: Any, *, signature: Mapping[str, Any] | None = None, mode
                       predicted_peak_gb=peaks[plan.name], budget_gb=budget, fallbacks=tuple(later))
 
 
-def plan_before_loading(config: Any, model_id: str, frames: int, height: int, width: int, device: Any) -> PlanChoice | None:
+def plan_before_loading(config: Any, model_id: str, frames: int, height: int, width: int,
+                        device: Any) -> PlanChoice | None:
     """The plan a guided call of the hub model ``model_id`` on ``device`` is predicted to get, for a
     command line to check before any model loads (``None`` without guidance; a model id the
     estimates do not know gets :data:`SAFE_PLAN`, as its call would).
