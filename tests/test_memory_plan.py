@@ -247,7 +247,7 @@ def test_a_call_whose_budget_no_plan_fits_stops_before_any_step(pipe, monkeypatc
 
     monkeypatch.setattr(type(pipe), "model_output", no_step)
     with pytest.raises(ValueError, match="no memory plan fits 0.0 GiB"):
-        run(pipe, "fast", memory_budget_gb=1e-6)
+        run(pipe, "fast", memory_plan="auto", memory_budget_gb=1e-6)
 
 
 # ---- out of memory at the first update -----------------------------------------------------------
@@ -268,7 +268,7 @@ def fake_oom_at_calls(monkeypatch, calls: set[int]):
 
 @pytest.mark.parametrize("mode", ["fast", "faithful"])
 def test_oom_at_the_first_update_falls_back_to_the_next_plan(pipe, monkeypatch, capsys, mode):
-    budget = {"memory_budget_gb": 1000.0}  # auto picks the tiny models' least-recompute plan
+    budget = {"memory_plan": "auto", "memory_budget_gb": 1000.0}  # the tiny models' least-recompute plan
     plain = run(pipe, mode, **budget)
     first = plain.memory_plan["name"]
     expected = plain.memory_plan["fallbacks"][0]
@@ -285,7 +285,7 @@ def test_oom_at_the_first_update_falls_back_to_the_next_plan(pipe, monkeypatch, 
 def test_oom_after_the_first_update_or_with_a_named_plan_is_raised(pipe, monkeypatch):
     fake_oom_at_calls(monkeypatch, {1})
     with pytest.raises(torch.cuda.OutOfMemoryError):
-        run(pipe, "fast", memory_budget_gb=1000.0)
+        run(pipe, "fast", memory_plan="auto", memory_budget_gb=1000.0)
     fake_oom_at_calls(monkeypatch, {0})
     with pytest.raises(torch.cuda.OutOfMemoryError):
         run(pipe, "fast", memory_plan="chunked")
