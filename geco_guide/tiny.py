@@ -210,6 +210,7 @@ def tiny_guidance_config(**changes: Any):
         denoiser_grad=True,
         gradient_checkpointing=False,
         vae_checkpointing=False,
+        memory_plan="explicit",  # the flags above: the tiny models' batched chunk decode, as always
         loss=fused_guidance_loss(),
     )
     return replace(base, **changes)

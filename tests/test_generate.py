@@ -54,6 +54,7 @@ def test_cli_tiny_preset_writes_playable_mp4_and_sidecar(tmp_path: Path):
     assert {"fused", "motion", "structure", "anchors"} <= set(data["geco_scores"])
     assert data["scheduler"].startswith("CogVideoXDDIMScheduler")
     assert data["guidance_decoder"] == "vae (the model's own)"
+    assert data["memory_plan"]["name"] == "explicit"  # the tiny preset's: its flags as given
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.json", "run.mp4"]  # no temporaries
 
 
@@ -287,3 +288,11 @@ def test_scheduler_is_chosen_by_the_config_and_named_in_the_sidecar(choice, cls,
     assert load_config(preset="cogvideox-5b").sampling.scheduler == "ddim"
     with pytest.raises(ValueError, match="sampling.scheduler"):
         load_config(preset="tiny", overrides=["sampling.scheduler=euler"])
+
+
+def test_a_memory_budget_no_plan_fits_is_one_line_before_loading(tmp_path: Path, capsys, no_loading):
+    rc = main(["--preset", "cogvideox-5b", "--prompt", "a cat", "--out", str(tmp_path), "model.device=cpu",
+               "guidance.memory_budget_gb=1"])
+    assert rc == 2
+    err = _error_line(capsys)
+    assert err.startswith("error: no memory plan fits 1.0 GiB: the smallest, 'checkpointed', is predicted to peak at 40.3 GiB"), err

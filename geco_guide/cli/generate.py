@@ -37,6 +37,7 @@ from ..config import GeCoConfig, config_to_dict
 from ..io.devices import check_device, check_memory_fits
 from ..io.files import WriteError, write_json_atomic
 from ..sampler import loading
+from ..sampler.memory_plan import plan_before_loading
 from ..types import NonFiniteFramesError, check_frame_values
 from .kit import Parser, add_config_flags, config_from_args, interruptible
 
@@ -237,6 +238,8 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     start = time.perf_counter()
     if pipe is None:
         check_device(cfg.model.device)
+        s = cfg.sampling  # a budget no memory plan fits is found before the models load
+        plan_before_loading(cfg.guidance, cfg.model.id, s.num_frames, s.height, s.width, cfg.model.device)
         pipe = build_pipeline(cfg)
     timings["load_s"] = time.perf_counter() - start
 
@@ -296,6 +299,7 @@ def sidecar_of(cfg: GeCoConfig, prompt: str, pipe: Any, frames: torch.Tensor, vi
         "config": config_to_dict(cfg),
         "scheduler": getattr(pipe, "geco_scheduler_note", None) or type(pipe.scheduler).__name__,
         "guidance_decoder": getattr(pipe, "geco_decoder_note", None),
+        "memory_plan": getattr(pipe, "geco_memory_plan", None),
         "device": str(pipe.device),
         "versions": versions(),
         "timings": {**timings, "guidance_s": sum(r["seconds"] for r in log)},
