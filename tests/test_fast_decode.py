@@ -357,3 +357,18 @@ def anchor_decode_chunk(vae, latents):
     frames = decode_chunk(vae, latents, 0.7)
     (grad,) = torch.autograd.grad(frames.square().sum(), latents)
     return frames.detach(), grad
+
+
+def test_a_hooked_pipeline_of_another_vae_is_refused_before_its_first_denoiser_call():
+    from geco_guide.sampler.hooks import attach_geco_guidance
+    from geco_guide.tiny import tiny_call_kwargs, tiny_estimators, tiny_wan_pipeline
+
+    pipe = tiny_wan_pipeline(0)
+    calls = []
+    pipe.transformer.register_forward_pre_hook(lambda module, args: calls.append(1))
+    geometry, flow = tiny_estimators(0)
+    config = {"decode_layout": "channels_last", "anchors": [4, 8], "repeats": "1x4", "time_travel": []}
+    with attach_geco_guidance(pipe, config, geometry_estimator=geometry, flow_estimator=flow):
+        with pytest.raises(TypeError, match="written for the CogVideoX VAE"):
+            pipe(prompt="a cat", output_type="latent", **tiny_call_kwargs(pipe, num_frames=9))
+    assert calls == []

@@ -71,7 +71,7 @@ def agreement_context_class(pipe: Any, num_frames: int, rows: list[dict[str, Any
             super().__init__(config, *args, **kwargs)
             self.observer = "vae" if config.decoder == "tiny" else "tiny"
             observer_config = replace(config, decoder=self.observer)
-            self.observer_decode = anchor_decoder(observer_config, vae_decode, pipe.guidance_decoder, pipe.vae.config)
+            self.observer_decode = anchor_decoder(observer_config, vae_decode, pipe.guidance_decoder, pipe.vae)
             self.observer_chunks = observer_config.anchor_chunks(num_frames, pipe.vae_scale_factor_temporal)
             self.pending: dict[str, Any] = {}
             self.at: tuple[int, int] = (0, 0)

@@ -26,7 +26,7 @@ from torch.utils.checkpoint import checkpoint
 from ..estimators.tiny_decoder import TinyDecoder
 from ..loss.geco import GeCoLoss
 from .config import GuidanceConfig
-from .fast_decode import guidance_decode
+from .fast_decode import check_channels_last_vae, guidance_decode
 from .levels import NoiseLevels
 from .memory_plan import PlanChoice, explicit_plan
 from .schedule import GuidanceSchedule
@@ -117,11 +117,15 @@ def generator_states(generator: torch.Generator | list[torch.Generator] | None) 
 
 
 def anchor_decoder(config: GuidanceConfig, vae_decode: Callable[[Tensor], Tensor], guidance_decoder: Any,
-                   vae_config: Any) -> Callable[[Tensor], Tensor]:
+                   vae: Any) -> Callable[[Tensor], Tensor]:
     """The chunk decode of the loss' anchor frames: ``vae_decode`` with ``decoder="vae"``; with
     ``"tiny"`` the tiny decoder on the pipeline's latents ``[N, F, C, h, w]``, in its family's
-    convention taken from the VAE config (CogVideoX's divided by ``scaling_factor``, Wan's and
-    HunyuanVideo's as they are). ValueError (one line) for a missing or mismatched decoder."""
+    convention taken from ``vae``'s config (CogVideoX's divided by ``scaling_factor``, Wan's and
+    HunyuanVideo's as they are). Checked at the start of a call, before any denoiser runs:
+    ValueError (one line) for a missing or mismatched decoder, TypeError for
+    ``decode_layout="channels_last"`` on a VAE it is not written for."""
+    if config.decode_layout == "channels_last":
+        check_channels_last_vae(vae)
     if config.decoder == "vae":
         return vae_decode
     if guidance_decoder is None:
@@ -130,6 +134,7 @@ def anchor_decoder(config: GuidanceConfig, vae_decode: Callable[[Tensor], Tensor
             "(weights such as taecvx.pth from github.com/madebyollin/taehv; from a config: "
             "estimators.tiny_decoder=/path/to/taecvx.pth), or use guidance.decoder=vae"
         )
+    vae_config = vae.config
     channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)  # CogVideoX, Wan
     if channels is not None and guidance_decoder.latent_channels != channels:
         raise ValueError(

@@ -52,7 +52,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from ..types import FlowEstimator, GeometryEstimator, missing_estimators
+from ..types import FlowEstimator, GeometryEstimator, missing_estimators, one_of_names
 from .adapters import (
     CallGeometry,
     PipelineAdapter,
@@ -319,7 +319,7 @@ class GeCoGuidanceHandle:
         chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
         check_scheduler(self.pipe.scheduler)
         decode_chunk = anchor_decoder(config, functools.partial(self.adapter.decode, self.pipe), self.decoder,
-                                      self.pipe.vae.config)
+                                      self.pipe.vae)
         # the estimates know CogVideoX-5B, whose VAE is 8x spatially; other models get the safe plan
         scale = getattr(self.pipe, "vae_scale_factor_spatial", 8)
         memory_plan = choose_plan(
@@ -394,12 +394,6 @@ class GeCoGuidanceHandle:
         return z.to(sample.device), out.to(sample.device)
 
 
-def _one_of(value: Any, old: Any, name: str, old_name: str) -> Any:
-    if value is not None and old is not None:
-        raise ValueError(f"pass {name}= or its earlier name {old_name}=, not both")
-    return value if value is not None else old
-
-
 def attach_geco_guidance(
     pipe,
     config: GuidanceConfig | Mapping[str, Any] | None = None,
@@ -440,8 +434,8 @@ def attach_geco_guidance(
         raise ValueError(
             "GeCoCogVideoXPipeline guides itself: pass guidance=... to its call instead of attaching a hook"
         )
-    geometry_estimator = _one_of(geometry_estimator, geometry, "geometry_estimator", "geometry")
-    flow_estimator = _one_of(flow_estimator, flow, "flow_estimator", "flow")
+    geometry_estimator = one_of_names(geometry_estimator, geometry, "geometry_estimator", "geometry")
+    flow_estimator = one_of_names(flow_estimator, flow, "flow_estimator", "flow")
     adapter = adapter_for(pipe)
     config = resolve_guidance_config(None, config)
     missing = missing_estimators(geometry_estimator, flow_estimator)

@@ -237,7 +237,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 "geometry_estimator=..., flow_estimator=...) or to the call, or call with guidance=False"
             )
         decode = anchor_decoder(guidance, partial(decode_chunk, self.vae, scaling_factor=self.vae_scaling_factor_image),
-                                self.guidance_decoder, self.vae.config)
+                                self.guidance_decoder, self.vae)
         return schedule, chunks, decode
 
     def choose_memory_plan(self, guidance: GuidanceConfig, num_frames: int, height: int, width: int) -> PlanChoice:
