@@ -140,8 +140,8 @@ def _write_gif(path: Path, data: np.ndarray, fps: float) -> Path:
 def _written_video_problem(path: Path, expected_frames: int) -> str | None:
     """Why the mp4 at ``path`` is not a readable video of ``expected_frames`` frames, or None.
 
-    ffmpeg counts its packets without decoding (``-c copy``): about 0.1 s for any size, and it
-    fails on a file without its index (``moov atom not found``), as a truncated one is.
+    ffmpeg counts its packets without decoding (``-c copy``), cheap whatever the video's size,
+    and fails on a file without its index (``moov atom not found``), as a truncated one is.
     """
     import subprocess
 
