@@ -8,6 +8,7 @@ import csv
 import errno
 import json
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -156,7 +157,7 @@ def test_out_folders_that_cannot_be_written_are_one_line(tmp_path: Path, monkeyp
     def read_only(*args, **kwargs):
         raise PermissionError(errno.EACCES, "Permission denied")
 
-    monkeypatch.setattr(runs.tempfile, "mkstemp", read_only)  # root writes into a chmod 555 folder anyway
+    monkeypatch.setattr(tempfile, "mkstemp", read_only)  # root writes into a chmod 555 folder anyway
     with pytest.raises(ValueError, match="cannot write to --out .*: Permission denied$"):
         check_output_folder(tmp_path, cfg)
 

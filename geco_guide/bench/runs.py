@@ -19,7 +19,6 @@ import hashlib
 import json
 import os
 import sys
-import tempfile
 from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from datetime import timedelta
@@ -30,7 +29,7 @@ import torch
 
 from ..config import GeCoConfig, config_to_dict, config_to_yaml
 from ..io.devices import resolve_device
-from ..io.files import json_text
+from ..io.files import json_text, probe_writable
 
 MIB = 2**20
 T = TypeVar("T")
@@ -68,9 +67,7 @@ def _check_writable(out: Path) -> None:
         if not folder.is_dir():
             raise ValueError(f"--out {str(out)!r} exists and is not a folder" if folder == out else
                              f"--out {str(out)!r} cannot be made: a file is in the way ({str(folder)!r})")
-        fd, probe = tempfile.mkstemp(prefix=".write-check.", suffix=".tmp", dir=folder)
-        os.close(fd)
-        os.unlink(probe)
+        probe_writable(folder)
     except OSError as err:
         reason = "a file name in it is too long" if err.errno == errno.ENAMETOOLONG else (
             err.strerror or type(err).__name__)

@@ -134,6 +134,14 @@ def write_json_atomic(path: str | os.PathLike, data: Any) -> Path:
     return write_text_atomic(path, json_text(data))
 
 
+def probe_writable(folder: str | os.PathLike) -> None:
+    """Make and remove a temporary file in ``folder``; OSError where files cannot be made there
+    (read-only, full, a name too long), found before the work instead of after it."""
+    fd, probe = tempfile.mkstemp(prefix=".write-check.", suffix=".tmp", dir=folder)
+    os.close(fd)
+    os.unlink(probe)
+
+
 def check_output_dir(folder: str | os.PathLike, option: str = "--out") -> Path:
     """Create ``folder`` if needed and check that files can be made in it, before the work that
     fills it: otherwise a file in its place or a read-only folder shows only at the end.
@@ -146,9 +154,7 @@ def check_output_dir(folder: str | os.PathLike, option: str = "--out") -> Path:
         raise WriteError(f"{option} {str(folder)!r} is a file, not a folder")
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".write-check.", suffix=".tmp", dir=folder)
-        os.close(fd)
-        os.unlink(probe)
+        probe_writable(folder)
     except OSError as err:
         raise WriteError(f"cannot write to {option} {str(folder)!r}: {_reason(err)}") from err
     return folder
