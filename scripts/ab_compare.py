@@ -44,6 +44,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +56,7 @@ from geco_guide.bench.report import TINY_NOTE, fmt, markdown_table
 from geco_guide.bench.runs import (
     PeakMemory,
     config_fingerprint,
+    pin_config,
     process_config,
     process_state,
     read_finished,
@@ -751,12 +753,10 @@ def run(args: argparse.Namespace, inputs: Inputs, argv: list[str] | None) -> int
     state = process_state(cfg)
     tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
     try:
-        def pin_config() -> None:  # once the models loaded: missing weights leave no run.json behind
-            if state.is_main_process:
-                write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
-
         run_shard(process_config(cfg, state), shard(pairs, state.process_index, state.num_processes), out, args.maps,
-                  tag, redo=args.overwrite, on_loaded=pin_config, agreement=state.is_main_process)
+                  tag, redo=args.overwrite, agreement=state.is_main_process,
+                  # once the models loaded: missing weights leave no run.json behind
+                  on_loaded=partial(pin_config, out, cfg) if state.is_main_process else lambda: None)
         state.wait_for_everyone()
         if not state.is_main_process:
             return 0

@@ -29,9 +29,11 @@ import torch
 
 from ..config import GeCoConfig, config_to_dict, config_to_yaml
 from ..io.devices import resolve_device
-from ..io.files import json_text, probe_writable
+from ..io.files import json_text, probe_writable, write_json_atomic
 
 MIB = 2**20
+#: The file that pins a run folder to one config (:func:`pin_config`).
+RUN_FILE = "run.json"
 T = TypeVar("T")
 
 
@@ -54,6 +56,12 @@ def config_differences(previous: Any, current: Any, prefix: str = "") -> list[st
         else:
             changes += config_differences(previous[key], current[key], name)
     return changes
+
+
+def pin_config(out: Path, cfg: GeCoConfig) -> None:
+    """Write ``out/run.json``: the fingerprint and the config that :func:`check_output_folder`
+    compares a later run's config with."""
+    write_json_atomic(out / RUN_FILE, {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
 
 
 def _check_writable(out: Path) -> None:
@@ -80,7 +88,7 @@ def check_output_folder(out: Path, cfg: GeCoConfig, overwrite: bool | None = Non
     damaged ``run.json`` is named). ``overwrite``: True, the folder's config is not compared (the
     caller starts afresh); False, the refusal mentions ``--overwrite``; None, the command has none."""
     _check_writable(out)
-    run_file = out / "run.json"
+    run_file = out / RUN_FILE
     if overwrite or not run_file.is_file():  # also when out does not exist yet
         return
     try:

@@ -17,6 +17,7 @@ import shlex
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 from .. import __version__
@@ -34,15 +35,15 @@ from ..bench.geco_eval import (
 from ..bench.models import MODELS
 from ..bench.runs import (
     check_output_folder,
-    config_fingerprint,
+    pin_config,
     process_config,
     process_state,
     run_lock,
     shard,
 )
-from ..config import SEED_RANGE, GeCoConfig, config_to_dict
+from ..config import SEED_RANGE, GeCoConfig
 from ..io.devices import check_device
-from ..io.files import WriteError, write_json_atomic
+from ..io.files import WriteError
 from .kit import Parser, add_config_flags, config_from_args, interruptible
 
 
@@ -155,17 +156,15 @@ def execute(args: argparse.Namespace, run: Plan, out: Path, argv: list[str] | No
     """Every process's share of the jobs, then on the main process the report; the exit code."""
     cfg = run.cfg
 
-    def pin_config() -> None:  # once the models loaded: a run stopped by missing weights leaves no run.json
-        write_json_atomic(out / "run.json", {"config_sha": config_fingerprint(cfg), "config": config_to_dict(cfg)})
-
     try:
         state = process_state(cfg)
         tag = f"[rank {state.process_index} of {state.num_processes}] " if state.num_processes > 1 else ""
         if args.overwrite and state.is_main_process:
             remove_run_outputs(out)
         state.wait_for_everyone()  # no process reads results before they are removed
+        # run.json once the models loaded: a run stopped by missing weights leaves none
         run_jobs(shard(run.jobs, state.process_index, state.num_processes), out, process_config(cfg, state),
-                 run.weights, tag, on_loaded=pin_config if state.is_main_process else None)
+                 run.weights, tag, on_loaded=partial(pin_config, out, cfg) if state.is_main_process else None)
         state.wait_for_everyone()
         if not state.is_main_process:
             return 0
