@@ -74,6 +74,23 @@ class FlowEstimator(Protocol):
         ...
 
 
+@runtime_checkable
+class DynamicMaskSource(Protocol):
+    """Anything that says where a clip may move on its own: frames ``[S, 3, H, W]`` in ``[0, 1]``
+    (one clip) to a boolean ``[S, H, W]`` dynamic mask, true where content may move by itself
+    (GeCo leaves those pixels out). ``geometry`` / ``flow`` are what GeCo already estimated on the
+    same frames (``SceneGeometry`` with batch 1, and the ``Correspondences`` of ``pairs``); a
+    source that needs them (the automatic detector) reads them, a text segmenter ignores them.
+    ``source_name`` says where masks came from, for results and logs (e.g. ``"sam3: a dog"``)."""
+
+    source_name: str
+
+    def dynamic_masks(self, frames: Tensor, geometry: SceneGeometry | None = None,
+                      flow: Correspondences | None = None,
+                      pairs: Sequence[tuple[int, int]] | None = None) -> Tensor:
+        ...
+
+
 def missing_estimators(geometry: Any, flow: Any) -> list[str]:
     """Which of ``"geometry"`` / ``"flow"`` is not a :class:`GeometryEstimator` /
     :class:`FlowEstimator` (``[]`` when both are): the one protocol check of every entry point."""
@@ -209,3 +226,8 @@ def merge_dataclass(obj: T, changes: Mapping[str, Any], path: str = "") -> T:
         return replace(obj, **updates)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{path or 'config'}: {err}") from None
+
+
+def plural(count: int, noun: str) -> str:
+    """``"1 window"``, ``"2 windows"``: a count and its noun (regular plurals only)."""
+    return f"{count} {noun}" if count == 1 else f"{count} {noun}s"

@@ -29,7 +29,7 @@ import torch
 
 from ..config import GeCoConfig, config_to_dict, config_to_yaml
 from ..io.devices import resolve_device
-from ..io.files import json_text, probe_writable, write_json_atomic
+from ..io.files import json_text, probe_writable, take_pid_lock, write_json_atomic
 
 MIB = 2**20
 #: The file that pins a run folder to one config (:func:`pin_config`).
@@ -223,28 +223,16 @@ def is_launch_main() -> bool:
 
 
 def take_run_lock(out: Path, command: str) -> Path:
-    """Create ``out/.run.lock`` holding this pid (``O_CREAT | O_EXCL``: one run wins), taking over
-    a lock whose process is gone (a killed run). ValueError (one line) while a live run holds it
+    """Create ``out/.run.lock`` holding this pid (:func:`~geco_guide.io.files.take_pid_lock`: one
+    run wins, a killed run's lock is taken over). ValueError (one line) while a live run holds it
     (two runs in one folder delete each other's live temporary files) or if ``out`` cannot be
     written; ``command`` names the run in the message."""
-    lock = out / LOCK_NAME
-    for _ in range(2):
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            holder = lock_holder(lock)
-            if holder is not None and pid_alive(holder):
-                raise ValueError(f"another {command} run (pid {holder}) is writing to {out}; wait for it to end or "
-                                 "use another --out folder") from None
-            lock.unlink(missing_ok=True)  # its run was killed
-            continue
-        except OSError as err:
-            raise ValueError(f"cannot write to --out {str(out)!r}: {err.strerror or err}") from None
-        with os.fdopen(fd, "w") as fh:
-            fh.write(f"{os.getpid()}\n")
-        return lock
-    raise ValueError(f"another {command} run took {lock} at the same moment; use another --out folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"cannot write to --out {str(out)!r}: {err.strerror or err}") from None
+    return take_pid_lock(out / LOCK_NAME, f"another {command} run (pid {{pid}}) is writing to {out}; wait for it to "
+                                          "end or use another --out folder", "use another --out folder")
 
 
 @contextlib.contextmanager
@@ -257,22 +245,3 @@ def run_lock(out: Path, command: str) -> Iterator[None]:
     finally:
         if lock is not None:
             lock.unlink(missing_ok=True)
-
-
-def lock_holder(lock: Path) -> int | None:
-    """The pid in a lock file, or None when it holds none (a damaged or vanished lock)."""
-    try:
-        pid = int(lock.read_text(encoding="utf-8").strip())
-    except (OSError, ValueError):
-        return None
-    return pid if pid > 0 else None  # os.kill(0 or -1, ...) would ask about other processes
-
-
-def pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, another user's
-        return True
-    return True

@@ -1,7 +1,7 @@
 """Frozen GeCo backbones, and the one function that builds them from a config.
 
 :func:`load_estimators` is shared by ``python -m geco_guide.generate`` and
-``python -m geco_guide.evaluate``: hub ids, local folders, or ``tiny-random`` for the tiny,
+``python -m geco_guide evaluate``: hub ids, local folders, or ``tiny-random`` for the tiny,
 randomly initialised offline models of :func:`tiny_estimators`. This module stays light (no
 model code is imported until an estimator is built), because every ``geco_guide.estimators.*``
 import runs it.
@@ -32,6 +32,10 @@ class EstimatorsConfig:
     anchor frames with: a ``.pth`` / ``.safetensors`` file (``taecvx.pth`` for CogVideoX, from
     :data:`~geco_guide.estimators.tiny_decoder.WEIGHTS_URL`), a folder holding it, a hub id, or
     ``tiny-random``; unused (and not loaded) with ``guidance.decoder=vae``.
+    ``segmenter`` is the weights of the text segmenter that masks the subjects named by
+    ``guidance.dynamic`` (:mod:`~geco_guide.estimators.segmenters`, SAM 3 video): a hub id, a
+    local folder or ``tiny-random``; unused (and not loaded) unless ``guidance.dynamic`` names
+    subjects.
     """
 
     geometry: str = "facebook/VGGT-1B"
@@ -40,6 +44,7 @@ class EstimatorsConfig:
     gradient_checkpointing: bool = False
     init_seed: int = 0
     tiny_decoder: Optional[str] = None
+    segmenter: str = "facebook/sam3"
 
 
 def estimator_id(estimator: Any) -> str:

@@ -11,12 +11,14 @@ A :class:`FrozenEstimator` subclass builds its modules in ``__init__`` and ends 
   ``gradient_checkpointing`` flag :attr:`gradient_checkpointing` sets; the first one is read),
 * :meth:`reset_parameters` (a random initialisation that fills every parameter and buffer).
 
-It may override :meth:`load_checkpoint` (checks and key aliases beyond a strict load) and
-:meth:`_pretrained_config` (a config read next to the weights).
+It may override :meth:`load_checkpoint` (checks and key aliases beyond a strict load),
+:meth:`config_from_json` (a ``config.json`` in another schema too) and ``config_required``.
+:meth:`save_pretrained` writes a folder that :meth:`from_pretrained` loads as the same model.
 """
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -25,7 +27,14 @@ from typing import Any, ClassVar, TypeVar
 import torch
 from torch import Tensor, nn
 
-from .loading import fetch_checkpoint_file, load_state_dict_checked, load_weights
+from ..io.files import write_bytes_atomic, write_json_atomic
+from .loading import (
+    CheckpointMismatchError,
+    fetch_checkpoint_file,
+    fetch_config_file,
+    load_state_dict_checked,
+    load_weights,
+)
 
 E = TypeVar("E", bound="FrozenEstimator")
 
@@ -41,6 +50,9 @@ class FrozenEstimator(nn.Module):
     ignored_checkpoint_prefixes: ClassVar[tuple[str, ...]] = ()
     trunk_modules: ClassVar[tuple[str, ...]]
     checkpointed_modules: ClassVar[tuple[str, ...]]
+    #: Whether a pretrained model must come with a ``config.json``; without one, the default
+    #: architecture is assumed.
+    config_required: ClassVar[bool] = False
 
     @classmethod
     def resolve_config(cls, config: Any) -> Any:
@@ -114,9 +126,43 @@ class FrozenEstimator(nn.Module):
         return model
 
     @classmethod
+    def config_from_json(cls, raw: Mapping[str, Any]) -> Any:
+        """The architecture a parsed ``config.json`` describes (our ``to_dict`` schema)."""
+        return cls.config_class.from_dict(raw)
+
+    @classmethod
     def _pretrained_config(cls, repo_id_or_local_dir: str | os.PathLike, config: Any, **fetch: Any) -> Any:
-        """The architecture of a pretrained model: ``config`` as given (None = the default)."""
-        return config
+        """The architecture of a pretrained model: ``config`` as given, else the ``config.json``
+        beside the weights (so a folder of any size loads as what it is), else the default
+        (``config_required`` makes the file mandatory).
+
+        Raises:
+            CheckpointMismatchError: the ``config.json`` is not JSON or not a config of this model.
+        """
+        if config is not None:
+            return config
+        path = fetch_config_file(repo_id_or_local_dir, required=cls.config_required, **fetch)
+        if path is None:
+            return None
+        try:
+            return cls.config_from_json(json.loads(path.read_text(encoding="utf-8")))
+        except (UnicodeDecodeError, json.JSONDecodeError, ValueError, TypeError) as err:
+            reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+            raise CheckpointMismatchError(f"{cls.model_name}: {str(path)!r} is not a readable {cls.model_name} "
+                                          f"config.json ({reason})") from None
+
+    def save_pretrained(self, save_directory: str | os.PathLike) -> Path:
+        """Write ``config.json`` (this architecture, :meth:`config_from_json`'s schema) and
+        ``model.safetensors`` (the weights in their stored dtypes) into ``save_directory``, each
+        file atomically; :meth:`from_pretrained` of the folder loads the same model. Returns the
+        folder."""
+        from safetensors.torch import save
+
+        folder = Path(save_directory)
+        state = {key: value.detach().contiguous().cpu() for key, value in self.state_dict().items()}
+        write_json_atomic(folder / "config.json", self.config.to_dict())
+        write_bytes_atomic(folder / "model.safetensors", save(state, metadata={"format": "pt"}))
+        return folder
 
     @classmethod
     def from_pretrained(cls: type[E], repo_id_or_local_dir: str | os.PathLike | None = None, *,
@@ -136,6 +182,7 @@ class FrozenEstimator(nn.Module):
         fetch = dict(model_name=cls.model_name, revision=revision, cache_dir=cache_dir)
         config = cls._pretrained_config(source, config, **fetch)
         weights: Path = fetch_checkpoint_file(source, cls.checkpoint_files, **fetch)
+        state_dict = load_weights(weights)  # a file that is no checkpoint fails before the model is allocated
         model = cls._materialised(config, device, **kwargs)
-        model.load_checkpoint(load_weights(weights))
+        model.load_checkpoint(state_dict)
         return model.trunk_to(dtype)

@@ -1,8 +1,10 @@
 """Checkpoint loading shared by the estimators: hub ids or local folders, safetensors or torch files.
 
 Offline without weights ends in one :class:`WeightsNotFoundError` line that names the repository
-id and how to pass a local folder instead; a checkpoint whose keys do not fit the module ends in a
-:class:`CheckpointMismatchError` listing what is missing, unexpected or mis-shaped.
+id and how to pass a local folder instead; a file that cannot be read as a checkpoint (empty,
+truncated, random bytes) in one :class:`UnreadableCheckpointError` line naming it; a checkpoint
+whose keys do not fit the module in a :class:`CheckpointMismatchError` listing what is missing,
+unexpected or mis-shaped.
 """
 
 from __future__ import annotations
@@ -22,6 +24,10 @@ class WeightsNotFoundError(FileNotFoundError):
 
 class CheckpointMismatchError(ValueError):
     """A state dict does not fit the module it is loaded into."""
+
+
+class UnreadableCheckpointError(ValueError):
+    """A weights file that cannot be read: empty, truncated, or not a checkpoint at all."""
 
 
 # A path ending in one of these names a checkpoint file, not a folder or a repo id.
@@ -74,7 +80,7 @@ def fetch_checkpoint_file(
             f"{model_name}: none of {list(filenames)} found in local folder {str(path)!r}"
         )
     repo_id = str(repo_id_or_dir)
-    if repo_id.startswith((".", "/", "~")) or repo_id.count("/") > 1:
+    if looks_like_local_path(repo_id):
         raise WeightsNotFoundError(
             f"{model_name}: local folder {repo_id!r} does not exist "
             "(pass an existing folder or a Hugging Face repo id such as 'owner/name')"
@@ -93,9 +99,14 @@ def fetch_checkpoint_file(
         except EntryNotFoundError:
             continue  # the repo exists but stores the weights under another name
         except Exception as exc:  # offline, unknown repo, gated, network: all end the same way
-            reason = f" ({type(exc).__name__})"
+            reason = hub_failure_reason(exc)
             break
-    raise WeightsNotFoundError(
+    raise hub_weights_unavailable(model_name, repo_id, reason)
+
+
+def hub_weights_unavailable(model_name: str, repo_id: str, reason: str = "") -> WeightsNotFoundError:
+    """The one line for weights of hub repo ``repo_id`` that are neither cached nor reachable."""
+    return WeightsNotFoundError(
         f"{model_name}: could not load weights for {repo_id!r} from the Hugging Face hub or its "
         f"local cache{reason}; download them where you have network "
         f"(`hf download {repo_id}`; huggingface_hub < 0.34: `huggingface-cli download {repo_id}`) and pass the "
@@ -103,18 +114,130 @@ def fetch_checkpoint_file(
     )
 
 
-def load_weights(path: str | os.PathLike) -> dict[str, Tensor]:
-    """Read a state dict from ``.safetensors`` or a torch file (``.pt``, ``.pth``, ``.bin``)."""
-    path = Path(path)
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
+def looks_like_local_path(source: str) -> bool:
+    """Whether ``source`` names a local path rather than a hub id (``owner/name``)."""
+    return source.startswith((".", "/", "~")) or source.count("/") > 1 or os.sep in source.replace("/", "")
 
-        return load_file(str(path))
-    state = torch.load(path, map_location="cpu", weights_only=True)
+
+def check_weights_available(source: str | os.PathLike, filenames: Sequence[str], *, model_name: str,
+                            revision: str | None = None) -> None:
+    """Whether loading ``source`` can find its weights, found out cheaply before any model loads:
+    a local path must exist; a hub id must have one of ``filenames`` in the local cache, or be
+    reachable (one metadata request; loading then downloads it).
+
+    Raises:
+        WeightsNotFoundError: the line loading would end in, minutes earlier.
+    """
+    path = Path(source).expanduser()
+    if path.exists():
+        return
+    source = str(source)
+    if looks_like_local_path(source) or path.suffix.lower() in CHECKPOINT_SUFFIXES:
+        raise WeightsNotFoundError(f"{model_name}: local path {source!r} does not exist "
+                                   "(pass an existing folder or file, or a Hugging Face repo id such as 'owner/name')")
+    from huggingface_hub import file_exists, try_to_load_from_cache
+
+    if any(isinstance(try_to_load_from_cache(source, name, revision=revision), str) for name in filenames):
+        return
+    try:
+        with quiet_hub_retries():
+            if any(file_exists(source, name, revision=revision) for name in filenames):
+                return
+        reason = f" (the repo has none of {list(filenames)})"
+    except Exception as exc:  # offline, unknown repo, gated, network: all end the same way
+        reason = hub_failure_reason(exc)
+    raise hub_weights_unavailable(model_name, source, reason)
+
+
+def hub_failure_reason(exc: Exception) -> str:
+    """Why a hub request failed, as the parenthesis of :func:`hub_weights_unavailable`'s line."""
+    name = type(exc).__name__
+    if name == "GatedRepoError":
+        return " (a gated repo: accept its licence on the hub, then log in with `hf auth login`)"
+    if name == "OfflineModeIsEnabled" or "offline" in str(exc).lower():
+        return " (offline and not in the cache)"
+    if name == "RepositoryNotFoundError":
+        return " (no such repo, or it is private)"
+    return f" (not in the cache, and the hub cannot be reached: {name})"
+
+
+def fetch_config_file(
+    repo_id_or_dir: str | os.PathLike,
+    *,
+    model_name: str,
+    required: bool,
+    revision: str | None = None,
+    cache_dir: str | os.PathLike | None = None,
+) -> Path | None:
+    """The ``config.json`` that describes a checkpoint: in a local folder, beside a checkpoint
+    file, or in a hub repo; ``None`` where there is none and it is not ``required``.
+
+    Raises:
+        WeightsNotFoundError: a ``required`` file is missing or cannot be had (as
+            :func:`fetch_checkpoint_file`).
+    """
+    path = Path(repo_id_or_dir).expanduser()
+    if path.is_file() or path.is_dir():
+        beside = (path.parent if path.is_file() else path) / "config.json"
+        if beside.is_file():
+            return beside
+        if required:
+            raise WeightsNotFoundError(f"{model_name}: no config.json in local folder {str(beside.parent)!r}")
+        return None
+    try:
+        return fetch_checkpoint_file(repo_id_or_dir, ["config.json"], model_name=model_name, revision=revision,
+                                     cache_dir=cache_dir)
+    except WeightsNotFoundError:
+        if required:
+            raise
+        return None  # the weights' own fetch says what is missing, if anything
+
+
+def _short_reason(err: BaseException, limit: int = 100) -> str:
+    """``Type: first sentence`` of a reader's error (torch's run to paragraphs)."""
+    text = (str(err).strip().splitlines() or [""])[0].split(". ")[0]
+    text = text if len(text) <= limit else text[: limit - 3] + "..."
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
+def unreadable(path: Path, reason: str) -> UnreadableCheckpointError:
+    """The one line of a checkpoint file that cannot be read."""
+    return UnreadableCheckpointError(
+        f"{str(path)!r} is not a readable checkpoint ({reason}); it may be truncated or another kind of "
+        "file: download it again"
+    )
+
+
+def load_weights(path: str | os.PathLike) -> dict[str, Tensor]:
+    """Read a state dict from ``.safetensors`` or a torch file (``.pt``, ``.pth``, ``.bin``).
+
+    Raises:
+        UnreadableCheckpointError: one line naming the file, when it is empty, truncated or not a
+            checkpoint (the readers' own errors are pickle, EOF, zip or header errors).
+        CheckpointMismatchError: the file holds something other than a state dict of tensors.
+    """
+    path = Path(path)
+    try:
+        if path.stat().st_size == 0:
+            raise unreadable(path, "the file is empty")
+        if path.suffix == ".safetensors":
+            from safetensors.torch import load_file
+
+            state = load_file(str(path))
+        else:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except UnreadableCheckpointError:
+        raise
+    except Exception as err:  # UnpicklingError, EOFError, RuntimeError (zip), SafetensorError, OSError, ...
+        raise unreadable(path, _short_reason(err)) from None
     if isinstance(state, Mapping) and "model" in state and isinstance(state["model"], Mapping):
         state = state["model"]  # training checkpoints wrap the weights
     if not isinstance(state, Mapping):
         raise CheckpointMismatchError(f"{path} does not hold a state dict")
+    not_tensors = [str(key) for key, value in state.items() if not isinstance(value, Tensor)]
+    if not_tensors:
+        raise CheckpointMismatchError(f"{path} does not hold a state dict of tensors: {_summarise(not_tensors, 3)} "
+                                      "are not tensors")
     return dict(state)
 
 

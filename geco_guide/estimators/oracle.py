@@ -1,7 +1,7 @@
 """Ground-truth estimators for synthetic clips: the metric with perfect geometry and flow.
 
 They implement the :class:`GeometryEstimator` / :class:`FlowEstimator` protocols by looking the
-given frames up in a :class:`~geco_guide.synthetic.SyntheticClip` and returning its ground truth,
+given frames up in a :class:`~geco_guide.bench.synthetic.SyntheticClip` and returning its ground truth,
 resized to the resolution they are asked about. A frame that is not (a resized copy of) one of
 the clip's frames is an error, so an oracle can never silently answer for another video.
 """
@@ -42,7 +42,7 @@ class OracleGeometry:
     """Ground-truth depth, intrinsics and extrinsics of a synthetic clip.
 
     Args:
-        clip: a :class:`~geco_guide.synthetic.SyntheticClip`.
+        clip: a :class:`~geco_guide.bench.synthetic.SyntheticClip`.
         tolerance: largest mean absolute difference for a frame to count as a clip frame.
     """
 

@@ -21,8 +21,6 @@ lifecycle (construction, loading, ``trunk_to``, checkpointing, freezing) is
 
 from __future__ import annotations
 
-import json
-import os
 from collections.abc import Mapping, Sequence
 from contextlib import nullcontext
 from typing import Any
@@ -36,11 +34,7 @@ from ..geometry import pixel_grid
 from ..types import Correspondences
 from .base import FrozenEstimator
 from .dpt import FusionBlock, resample_layer
-from .loading import (
-    CheckpointMismatchError,
-    fetch_checkpoint_file,
-    load_state_dict_checked,
-)
+from .loading import CheckpointMismatchError, load_state_dict_checked
 from .ufm_config import (
     ADAPTOR_CHANNELS,
     COVISIBILITY_ADAPTOR,
@@ -456,6 +450,7 @@ class UFM(FrozenEstimator):
     model_name = "UFM"
     default_repo_id = "infinity1096/UFM-Base"
     checkpoint_files = ("model.safetensors", "pytorch_model.bin")
+    config_required = True  # the encoder size and adaptors are not knowable from the weights alone
     trunk_modules = ("encoder", "info_sharing")
     checkpointed_modules = ("info_sharing", "encoder.model")
 
@@ -560,13 +555,10 @@ class UFM(FrozenEstimator):
         load_state_dict_checked(self, state_dict, model_name="UFM", aliases=aliases)
 
     @classmethod
-    def _pretrained_config(cls, repo_id_or_local_dir: str | os.PathLike, config: Any, **fetch: Any) -> Any:
-        """``config.json`` of the repo or folder (upstream schema, translated by
-        :meth:`UFMConfig.from_config_json`, or our section-5 schema) unless ``config`` is given."""
-        if config is not None:
-            return config
-        path = fetch_checkpoint_file(repo_id_or_local_dir, ["config.json"], **fetch)
-        return config_from_json(json.loads(path.read_text()))
+    def config_from_json(cls, raw: Mapping[str, Any]) -> UFMConfig:
+        """A ``config.json`` in the upstream schema (translated by :meth:`UFMConfig.from_config_json`)
+        or ours (:meth:`save_pretrained`'s)."""
+        return config_from_json(raw)
 
     # -- network -----------------------------------------------------------------------------
 

@@ -307,6 +307,12 @@ class VGGT(FrozenEstimator):
     trunk_modules = ("aggregator",)
     checkpointed_modules = ("aggregator", "aggregator.patch_embed")
 
+    @classmethod
+    def config_from_json(cls, raw: Mapping[str, Any]) -> VGGTConfig:
+        """A ``config.json`` in ours (:meth:`save_pretrained`'s) or the upstream schema
+        (:meth:`VGGTConfig.from_json`)."""
+        return VGGTConfig.from_json(raw)
+
     def __init__(self, config: VGGTConfig | Mapping[str, Any] | None = None, *,
                  gradient_checkpointing: bool = False, autocast_dtype: torch.dtype | None = None) -> None:
         """``config``: a :class:`VGGTConfig` or section-5.1 dict; None = VGGT-1B."""

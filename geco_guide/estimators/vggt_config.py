@@ -18,6 +18,10 @@ __all__ = ["AggregatorConfig", "CameraHeadConfig", "DepthHeadConfig", "DinoConfi
 # --------------------------------------------------------------------------------------------
 # Configuration (spec 5.1)
 
+#: The keys of the upstream model's ``config.json`` (its constructor arguments).
+UPSTREAM_JSON_KEYS = ("img_size", "patch_size", "embed_dim", "enable_camera", "enable_point", "enable_depth",
+                      "enable_track")
+
 
 @dataclass
 class DinoConfig:
@@ -68,6 +72,18 @@ class VGGTConfig:
     def from_dict(cls, d: Mapping[str, Any]) -> "VGGTConfig":
         """Build from the section-5.1 dict (nested sub-dicts; missing keys keep defaults)."""
         return merge_dataclass(cls(), d)
+
+    @classmethod
+    def from_json(cls, raw: Mapping[str, Any]) -> "VGGTConfig":
+        """The architecture of a ``config.json``: ours (:meth:`to_dict`), or the upstream model's
+        constructor arguments (``img_size``, ``patch_size``, ``embed_dim`` and ``enable_*`` head
+        switches, written by its hub mixin), whose other sizes are fixed at VGGT-1B's."""
+        if not set(raw) <= set(UPSTREAM_JSON_KEYS):
+            return cls.from_dict(raw)
+        missing_heads = [key for key in ("enable_camera", "enable_depth") if raw.get(key) is False]
+        if missing_heads:
+            raise ValueError(f"GeCo needs the camera and depth heads, but the config disables {missing_heads}")
+        return cls(**{key: raw[key] for key in ("img_size", "patch_size", "embed_dim") if key in raw})
 
     def to_dict(self) -> dict[str, Any]:
         """The section-5.1 dict (lists for sequences), inverse of :meth:`from_dict`."""

@@ -15,23 +15,28 @@ def resolve_device(name: str | torch.device) -> torch.device:
     return torch.device(name)
 
 
-def check_device(name: str, key: str = "model.device") -> None:
-    """ValueError (one line, naming the config ``key``) unless this torch can use device ``name``
-    (``auto`` always works).
+def check_device(name: str | torch.device, key: str = "model.device", fix: str | None = None) -> torch.device:
+    """The device ``name`` stands for (``auto`` resolved), after checking that this torch can use
+    it; ValueError (one line, naming the config ``key``) otherwise.
 
-    Checked before any model loads: otherwise a missing CUDA shows as a traceback from ``.to()``.
+    Called once before any model loads, and its answer is what the memory planner, the loaders
+    and the sidecar see: otherwise a missing CUDA shows as a traceback from ``.to()``, and
+    ``auto`` reaches code that only knows real devices. ``fix`` ends the message of a device this
+    machine lacks (default: use ``key=cpu or auto``).
     """
+    fix = fix or f"use {key}=cpu or auto"
     try:
         device = resolve_device(name)
     except RuntimeError as err:  # e.g. "cuda:x"
-        raise ValueError(f"invalid device {name!r} ({key}): {err}") from None
+        raise ValueError(f"invalid device {str(name)!r} ({key}): {err.__str__().splitlines()[0]}") from None
     if device.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if (device.index or 0) >= count:
             found = "this torch has no CUDA support or no GPU" if count == 0 else f"only {count} CUDA device(s)"
-            raise ValueError(f"device {name!r} is not available ({found}); use {key}=cpu or auto")
+            raise ValueError(f"device {name!r} is not available ({found}); {fix}")
     elif device.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"device {name!r} is not available on this machine; use {key}=cpu or auto")
+        raise ValueError(f"device {name!r} is not available on this machine; {fix}")
+    return device
 
 
 def memory_limit(device: str | torch.device) -> int | None:

@@ -179,3 +179,66 @@ def unique_names(names: Iterable[str]) -> list[str]:
         seen.add(name)
         out.append(unique)
     return out
+
+
+def lock_holder(lock: Path) -> int | None:
+    """The pid in a lock file, or None when it holds none (a damaged or vanished lock)."""
+    try:
+        pid = int(lock.read_text(encoding="utf-8").strip())
+    except (OSError, ValueError):
+        return None
+    return pid if pid > 0 else None  # os.kill(0 or -1, ...) would ask about other processes
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this machine."""
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, OverflowError):  # OverflowError: a pid no process can have
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+def take_pid_lock(lock: Path, busy: str, elsewhere: str) -> Path:
+    """Create the file ``lock`` holding this pid (``O_CREAT | O_EXCL``: one process wins), taking
+    over a lock whose process is gone (a killed run). ValueError (one line) while a live process
+    holds it (``busy``, with ``{pid}`` for its pid), when ``lock`` is a folder, or when it cannot
+    be written; ``elsewhere`` says what to do instead (e.g. "use another --out folder")."""
+    for _ in range(2):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            if lock.is_dir():
+                raise ValueError(f"{lock} is a folder, not a run lock; remove it (or {elsewhere})") from None
+            holder = lock_holder(lock)
+            if holder is not None and pid_alive(holder):
+                raise ValueError(busy.format(pid=holder)) from None
+            lock.unlink(missing_ok=True)  # its run was killed
+            continue
+        except OSError as err:
+            raise ValueError(f"cannot write {str(lock)!r}: {err.strerror or err}") from None
+        with os.fdopen(fd, "w") as fh:
+            fh.write(f"{os.getpid()}\n")
+        return lock
+    raise ValueError(f"another run took {lock} at the same moment; {elsewhere}")
+
+
+@contextlib.contextmanager
+def output_lock(path: str | os.PathLike) -> Iterator[None]:
+    """Hold ``.<name>.lock`` beside the output ``path`` while a run makes it, released however the
+    block ends: a second run that would write the same file fails at once (one line naming the
+    pid of the first) instead of both writing and one result silently replacing the other."""
+    path = Path(path)
+    lock = path.with_name(f".{path.name}.lock")
+    try:
+        lock.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"cannot write {str(path)!r}: {_reason(err)}") from None
+    take_pid_lock(lock, f"another run (pid {{pid}}) is writing {str(path)!r}; wait for it to end or choose "
+                        "another --out or output.name", "choose another --out or output.name")
+    try:
+        yield
+    finally:
+        lock.unlink(missing_ok=True)

@@ -98,11 +98,27 @@ def marker(draw: Any, centre: tuple[float, float], color: tuple[int, int, int], 
         raise ValueError(f"shape must be one of {SHAPES}, got {shape!r}")
 
 
+#: Columns of a legend entry besides its label: the marker with the space after it, and the gap
+#: to the next entry.
+LEGEND_MARKER_W, LEGEND_GAP = 9, 24
+
+
+def text_width(draw: Any, text: str) -> int:
+    """Pixel width of ``text`` as :func:`text` draws it."""
+    left, _, right, _ = draw.textbbox((0, 0), text)
+    return right - left
+
+
+def legend_width(draw: Any, labels: Sequence[str]) -> int:
+    """Pixel width of the row :func:`legend` draws for ``labels`` (to size a canvas)."""
+    return sum(LEGEND_MARKER_W + text_width(draw, label) + LEGEND_GAP for label in labels) - LEGEND_GAP
+
+
 def legend(draw: Any, panel: Panel, entries: Sequence[tuple[str, tuple[int, int, int]]],
            shapes: Sequence[str] | None = None) -> None:
     """Coloured markers (``shapes``, one per entry; default circles) with labels in a row below
-    the panel's x label."""
+    the panel's x label (:func:`legend_width` wide)."""
     u, v = panel.box[0], panel.box[3] + 48
     for k, (label, color) in enumerate(entries):
         marker(draw, (u, v), color, 4, "circle" if shapes is None else shapes[k])
-        u += 9 + text(draw, (u + 9, v), label, "lm") + 24
+        u += LEGEND_MARKER_W + text(draw, (u + LEGEND_MARKER_W, v), label, "lm") + LEGEND_GAP

@@ -123,12 +123,17 @@ def write_video(path: str | os.PathLike, frames, fps: float = 8) -> Path:
 
 def _write_gif(path: Path, data: np.ndarray, fps: float) -> Path:
     """``data [S, H, W, 3]`` uint8 as a looping GIF at ``fps`` (Pillow stores whole
-    centiseconds, see :func:`gif_rate`), atomically, checked to open as an image sequence."""
+    centiseconds, see :func:`gif_rate`), atomically, checked to open as an image sequence.
+
+    The GIF is encoded in memory and then written as bytes: imageio's writer encodes when it
+    closes, and a write that fails there (a full disk) is retried when the writer is collected,
+    printing a second, ignored traceback after the error line."""
     import imageio.v2 as imageio
     from PIL import Image
 
+    encoded = imageio.mimsave("<bytes>", list(data), format="GIF", duration=1000.0 / fps, loop=0)
     with atomic_path(path) as tmp:
-        imageio.mimsave(tmp, list(data), format="GIF", duration=1000.0 / fps, loop=0)
+        tmp.write_bytes(encoded)
         try:
             with Image.open(tmp) as image:
                 image.seek(0)

@@ -1,0 +1,128 @@
+"""Where dynamic masks come from: one factory, :func:`mask_source`, for given, automatic and text masks.
+
+Every source meets :class:`~geco_guide.types.DynamicMaskSource`: frames ``[S, 3, H, W]`` (plus
+the geometry and flow GeCo estimated on them) -> a boolean ``[S, H, W]`` mask, true where content
+may move on its own. The three kinds:
+
+- **given** (:class:`GivenMasks`): a tensor, a mask video, a folder of PNGs or an ``.npz``
+  (:mod:`geco_guide.io.masks`), resized (nearest) to the frames;
+- **automatic** (``"auto"``, :class:`~.motion_masks.MotionMasks`): regions whose residual flow a
+  rigid motion of their own explains, found from GeCo's own depth, cameras and flow;
+- **text** (``"a dog, a person"``): an open-vocabulary video segmenter,
+  :func:`geco_guide.estimators.segmenters.text_segmenter`.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..io.masks import MASK_SUFFIXES, MaskReadError, check_masks, fit_masks, read_masks
+from ..io.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES
+from ..types import Correspondences, DynamicMaskSource, SceneGeometry
+
+AUTO = "auto"
+
+
+class GivenMasks:
+    """Masks known in advance, as a :class:`DynamicMaskSource`.
+
+    Args:
+        masks: ``[S, H, W]`` bool (or 0/1) for the ``S`` frames the source will be asked about;
+            any size of the frames' aspect ratio (resized, nearest, to the frames).
+        source_name: what results call them (``"given"``, ``"given: masks.npz"``).
+    """
+
+    def __init__(self, masks: Tensor, source_name: str = "given") -> None:
+        self.masks = check_masks(masks).cpu()
+        self.source_name = source_name
+
+    @classmethod
+    def from_path(cls, path: str | os.PathLike, select: Sequence[int] | None = None) -> GivenMasks:
+        """Masks read from a mask video, PNG folder or ``.npz`` (:func:`~geco_guide.io.masks.read_masks`);
+        ``select`` keeps those source frames only."""
+        masks, _ = read_masks(path, select)
+        return cls(masks, f"given: {path}")
+
+    def at(self, indices: Sequence[int], num_frames: int) -> GivenMasks:
+        """The masks of source frames ``indices`` of a video of ``num_frames`` frames (the
+        protocol's selection), after checking that the masks cover that video frame for frame."""
+        if self.masks.shape[0] != num_frames:
+            raise MaskReadError(f"dynamic masks ({self.source_name}) hold {self.masks.shape[0]} frame(s), the video {num_frames}")
+        return GivenMasks(self.masks[list(indices)], self.source_name)
+
+    def dynamic_masks(self, frames: Tensor, geometry: SceneGeometry | None = None,
+                      flow: Correspondences | None = None,
+                      pairs: Sequence[tuple[int, int]] | None = None) -> Tensor:
+        """``frames [S, 3, H, W]`` -> the given masks ``[S, H, W]`` bool at ``H x W``, on the
+        frames' device (MaskReadError when ``S`` differs)."""
+        masks = fit_masks(self.masks, frames.shape[-4], tuple(frames.shape[-2:]), f"dynamic masks ({self.source_name})")
+        return masks.to(frames.device)
+
+
+def looks_like_path(spec: str) -> bool:
+    """Whether ``spec`` names a mask file or folder rather than text: it exists, holds a path
+    separator or ends in a mask, video or image suffix."""
+    suffixes = MASK_SUFFIXES + VIDEO_SUFFIXES + IMAGE_SUFFIXES
+    return Path(spec).exists() or os.sep in spec or spec.lower().endswith(suffixes)
+
+
+def mask_source(spec: Any, *, device: str | torch.device = "cpu", **options: Any) -> DynamicMaskSource | None:
+    """The dynamic-mask source that ``spec`` names.
+
+    Args:
+        spec: ``None`` (no masks: GeCo as in the paper) -> ``None``; a
+            :class:`~geco_guide.types.DynamicMaskSource` -> itself; a tensor ``[S, H, W]`` ->
+            :class:`GivenMasks`; ``"auto"`` -> :class:`~.motion_masks.MotionMasks`; a path (an
+            existing file or folder, or a string with a path separator or a mask/video/image
+            suffix) -> :class:`GivenMasks` read from it; any other string is text naming what
+            moves (``"a dog, a person"``) for the text segmenter.
+        device: where a text segmenter runs (given and automatic masks follow the frames).
+        **options: the chosen source's options: ``dilation`` (pixels), ``seed`` ... of
+            :class:`~.motion_masks.MotionMasks`; ``source`` (weights), ``dtype`` ... of
+            :func:`~geco_guide.estimators.segmenters.text_segmenter`. None for given masks.
+
+    Raises:
+        MaskReadError: an unreadable or invalid mask file or tensor (one line, before any model
+            loads); ValueError: options the source does not take, or an empty spec.
+    """
+    if spec is None:
+        return None
+    if isinstance(spec, Tensor):
+        _no_options("given masks", options)
+        return GivenMasks(spec)
+    if isinstance(spec, DynamicMaskSource):
+        _no_options(spec.source_name, options)
+        return spec
+    if isinstance(spec, os.PathLike):
+        spec = os.fspath(spec)
+    if not isinstance(spec, str):
+        raise ValueError(f"dynamic masks must be None, a tensor, a path, 'auto', text or a mask source, got {type(spec).__name__}")
+    text = spec.strip()
+    if not text:
+        raise ValueError("dynamic masks must not be an empty string: give a path, 'auto' or what moves (e.g. 'a dog')")
+    if text == AUTO:
+        from .motion_masks import MotionMasks
+
+        return MotionMasks(**options)
+    if looks_like_path(text):
+        _no_options("given masks", options)
+        return GivenMasks.from_path(text)
+    try:
+        from .segmenters import text_segmenter
+    except ModuleNotFoundError as err:
+        if err.name != f"{__package__}.segmenters":
+            raise
+        raise ValueError(f"text dynamic masks ({text!r}) need a text segmenter, which this install lacks; "
+                         "pass a mask file or 'auto' instead") from None
+    return text_segmenter(text, device=device, **options)
+
+
+def _no_options(what: str, options: dict[str, Any]) -> None:
+    if options:
+        raise ValueError(f"{what} take no options, got {sorted(options)}")
