@@ -30,7 +30,7 @@ from geco_guide.io import devices, files
 from geco_guide.io.video import write_video
 from geco_guide.loss.geco import GeCoLossConfig
 from geco_guide.metric.evaluate import score_frames
-from geco_guide.metric.render import VIRIDIS
+from geco_guide.metric.render import READABLE_HEIGHT, VIRIDIS
 
 SIZE = ["5", "24", "32"]
 
@@ -126,7 +126,7 @@ def test_grids_carry_the_colour_scale_and_row_captions(clips):
     record = validate.validate_clip(bench, result)
     frames = validate.grid_frames(bench, record)
     grid = validate.grid_image(bench, result, frames)
-    assert grid.shape[-2] >= len(frames) * validate.GRID_MIN_HEIGHT  # small clips are enlarged
+    assert grid.shape[-2] >= len(frames) * READABLE_HEIGHT  # small clips are enlarged
     bottom = grid[:, -40:].permute(1, 2, 0).reshape(-1, 3)  # the colour bar under the rows
     for colour in (VIRIDIS[0], VIRIDIS[-1]):
         assert bool(((bottom - colour).abs().amax(1) < 0.02).any())

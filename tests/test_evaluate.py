@@ -30,8 +30,10 @@ from geco_guide.metric.evaluate import (
 )
 from geco_guide.metric.protocol import EvaluationConfig
 from geco_guide.metric.render import (
+    READABLE_HEIGHT,
     VIRIDIS,
     colorize,
+    enlarge,
     label_height,
     panel_layout,
     text_scale,
@@ -139,15 +141,18 @@ def test_maps_video_has_the_panel_layout(tmp_path: Path, clips, evaluated):
     assert maps.frames.shape == (5, 3, H, W) and maps.fused.shape == (5, H, W) and maps.fused_valid.dtype == torch.bool
     assert len(maps) == 5 and set(maps[0]) == {"frame", *(f"{c}{v}" for c in ("motion", "structure", "fused") for v in ("", "_valid"))}
     frames = render_maps(result)
-    (grid_h, grid_w), boxes = panel_layout([(H, W)] * len(MAP_PANELS))
-    gap = 2 * text_scale(H)  # black columns between panels
-    assert [left for _, left, _, _ in boxes] == [0, W + gap, 2 * (W + gap), 3 * (W + gap)] and grid_w == 4 * W + 3 * gap
+    # a small clip's panels are enlarged by a whole factor to a readable height, pixels kept square
+    k = math.ceil(READABLE_HEIGHT / H)
+    (grid_h, grid_w), boxes = panel_layout([(k * H, k * W)] * len(MAP_PANELS))
+    gap = 2 * text_scale(k * H)  # black columns between panels
+    assert [left for _, left, _, _ in boxes] == [0, k * W + gap, 2 * (k * W + gap), 3 * (k * W + gap)]
+    assert grid_w == 4 * k * W + 3 * gap
     assert frames.shape[0] == 5 and frames.shape[-1] == grid_w and frames.shape[-2] > grid_h + label_height(text_scale(H))
     top = boxes[0][0]
-    assert torch.allclose(frames[:, :, top : top + H, :W], clip.frames.float())
+    assert torch.allclose(frames[:, :, top : top + k * H, : k * W], enlarge(clip.frames.float()))
     for name, (_, left, _, _) in zip(MAP_PANELS[1:], boxes[1:]):
         expected = colorize(getattr(maps, name), getattr(maps, f"{name}_valid"))
-        assert torch.allclose(frames[:, :, top : top + H, left : left + W], expected)
+        assert torch.allclose(frames[:, :, top : top + k * H, left : left + k * W], enlarge(expected))
     # the legend under the panels: a colour bar from viridis' first to its last colour
     bar = frames[0, :, grid_h + gap + 1]  # the bar starts a margin of 2 * scale below the panels
     on_bar = [x for x in range(grid_w) if any(torch.allclose(bar[:, x], c) for c in (VIRIDIS[0], VIRIDIS[-1]))]

@@ -32,6 +32,7 @@ from geco_guide.metric.render import (
     colorbar,
     colorize,
     draw_text,
+    fitting_size,
     label_height,
     panel_layout,
     side_by_side,
@@ -396,8 +397,10 @@ def test_side_by_side_layout():
     top = boxes[0][0]
     assert torch.equal(out[:, :, top:, :48], a)
     assert torch.equal(out[2, :, top:, right:], out[1, :, top:, right:])  # held
-    assert torch.equal(out[:, :, :top, :48], text_strip("unguided", 48, scale).expand(4, -1, -1, -1))  # the labels
-    assert torch.equal(out[:, :, :top, right:], text_strip("guided", 32, scale).expand(4, -1, -1, -1))
+    # the labels, both at the largest size at which each fits its panel (one heading size per row)
+    size = min(fitting_size("unguided", 48, scale), fitting_size("guided", 32, scale))
+    assert torch.equal(out[:, :, :top, :48], text_strip("unguided", 48, scale, size).expand(4, -1, -1, -1))
+    assert torch.equal(out[:, :, :top, right:], text_strip("guided", 32, scale, size).expand(4, -1, -1, -1))
     assert out[0, :, :top, :48].max() > 0.8 and out[:, :, :, 48:right].max() == 0.0  # drawn; a black gap
     with pytest.raises(ValueError, match="one label per video"):
         side_by_side([a], ["x", "y"])
@@ -431,6 +434,33 @@ def test_write_video_writes_gifs_by_their_suffix(tmp_path: Path):
     assert (clip.frames - frames).abs().mean() < 0.1  # a GIF's palette is lossy
     with pytest.raises(ValueError, match=r"\[0.01, 100\] for a gif"):
         write_video(tmp_path / "w.gif", frames, fps=200)
+
+
+@pytest.mark.parametrize("suffix", [".gif", ".mp4"])
+def test_a_video_written_to_a_full_disk_is_one_error_and_nothing_else(tmp_path: Path, monkeypatch, suffix: str):
+    """The temporary file is /dev/full (every write fails with ENOSPC): one WriteError, no file left, and
+    no writer retrying its write when collected (an ignored traceback after the error line)."""
+    import gc
+    import os
+    import sys
+    import tempfile
+
+    made = tempfile.mkstemp
+
+    def on_a_full_disk(*args, **kwargs):
+        fd, name = made(*args, **kwargs)
+        os.close(fd)
+        os.unlink(name)
+        os.symlink("/dev/full", name)
+        return os.open(name, os.O_WRONLY), name
+
+    monkeypatch.setattr(tempfile, "mkstemp", on_a_full_disk)
+    unraisable: list = []
+    monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+    with pytest.raises(WriteError, match=rf"^cannot write '.*v\{suffix}': ") as err:
+        write_video(tmp_path / f"v{suffix}", torch.rand(4, 3, 16, 16), fps=10)
+    gc.collect()
+    assert "\n" not in str(err.value) and unraisable == [] and list(tmp_path.iterdir()) == []
 
 
 def test_every_window_of_a_very_slow_clip_holds_two_frames():

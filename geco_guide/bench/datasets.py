@@ -7,14 +7,14 @@ Each clip becomes a folder ``<out>/<name>-s<seed>/`` holding
 * ``truth.npz``: ``mask [S, H, W]`` (the artifact), and for a warp ``displacement [S, H, W, 2]``
   (``Ū_t``: frame ``t`` at ``p`` shows the source at ``p + Ū_t(p)``) and ``magnitude [S, H, W]``;
   for an occlusion edit ``labels [S, H, W]`` and ``offsets [3, S, 2]`` (see
-  :class:`~geco_guide.occlusion.OcclusionResult`);
+  :class:`~geco_guide.bench.occlusion.OcclusionResult`);
 * ``meta.json`` (written last: a folder without it is incomplete): the kind, mode, anomalous
   frame, phases, every parameter, the seed and the source.
 
-``synthetic`` renders :func:`geco_guide.synthetic.rigid_clip` instead of reading a video, and
-``synthetic-3d`` is :func:`geco_guide.synthetic.occlusion_swap_clip` (an occlusion edit made in
+``synthetic`` renders :func:`geco_guide.bench.synthetic.rigid_clip` instead of reading a video, and
+``synthetic-3d`` is :func:`geco_guide.bench.synthetic.occlusion_swap_clip` (an occlusion edit made in
 3D: the re-revealed box is a real surface the flow can follow); such folders record it, and :func:`oracle_clip` rebuilds their exact depth, cameras and flow, so
-``python -m geco_guide.validate --oracle`` can score them with ground-truth estimators.
+``python -m geco_guide validate --oracle`` can score them with ground-truth estimators.
 Everything is deterministic from the seed and written atomically.
 """
 

@@ -5,7 +5,7 @@ The suite is the paper's 80 prompts (supplement, "List of Text Prompt"; shipped 
 ``geco_guide/bench/data/geco_eval_prompts.jsonl``): four scenarios (object-centric, indoor, outdoor,
 appearance-complex) x slow / fast camera x 10. Each job is one (model, prompt, seed, guided?):
 the model generates the video at its documented default settings (:data:`geco_guide.bench.models.MODELS`), written at its
-native frame rate, and :func:`geco_guide.evaluate.evaluate_video` scores it with the GeCo-Eval
+native frame rate, and :func:`geco_guide.metric.evaluate.evaluate_video` scores it with the GeCo-Eval
 protocol (the config's ``evaluation`` section, the model's native rate from
 ``evaluation.model_fps``). ``--videos NAME=DIR`` scores videos that exist already. The models are
 the registry of :mod:`geco_guide.bench.models`.
@@ -18,7 +18,13 @@ a rerun tries it again. The report is rebuilt from every job's JSON at the end: 
 (one row per video, failed ones with their reason), ``summary.json`` and ``report.md`` (per model:
 all, per scenario, slow vs fast; mean and standard deviation of each score, as the paper's tables)
 and ``pareto.png`` (fused score vs Mean Motion, one point per model; one panel per scenario with
-data). ``run.json`` pins the config. Under ``accelerate launch`` the jobs are dealt round-robin to
+data). ``run.json`` pins the config.
+
+The ``dynamic`` suite is ours, not the paper's: 24 prompts (ids m1..m24, shipped as
+``geco_guide/bench/data/geco_eval_dynamic_prompts.jsonl``) over the same four scenarios and two
+camera speeds, each naming its moving subjects in a ``subjects`` field (``"a dog, a frisbee"``).
+Its videos are scored with the dynamic masks of those subjects (the text segmenter of
+``estimators.segmenter``), and its guided videos are guided with them (``guidance.dynamic``). Under ``accelerate launch`` the jobs are dealt round-robin to
 the processes and the main process writes the report once all are done.
 """
 
@@ -39,20 +45,29 @@ from typing import Any
 import torch
 
 from ..config import GeCoConfig, config_to_yaml
-from ..estimators import TINY_RANDOM, load_estimators
-from ..estimators.loading import WeightsNotFoundError
+from ..estimators import TINY_RANDOM, load_estimators, tiny_random_decoder
+from ..estimators.segmenters import SegmenterFactory, segmenters_from_spec
+from ..estimators.loading import WeightsNotFoundError, check_weights_available
 from ..io.devices import resolve_device
 from ..io.files import (
     WriteError,
     remove_temp_files,
     write_json_atomic,
 )
-from ..io.plots import Panel, legend, limits, text
+from ..io.plots import Panel, legend, legend_width, limits, text
 from ..io.video import VIDEO_SUFFIXES, write_video
 from ..loss.geco import CUES
 from ..metric.evaluate import PAPER_NAMES, evaluate_video
-from ..sampler.loading import pipeline_from_pretrained, quiet_hub_logs
+from ..sampler.loading import (
+    PIPELINE_INDEX,
+    TINY_DECODER_VARIANTS,
+    check_guidance_before_loading,
+    load_tiny_decoder,
+    pipeline_from_pretrained,
+    quiet_hub_logs,
+)
 from ..sampler.slicing import default_anchors
+from ..types import plural
 from . import report
 from .models import MODELS, VideoModel
 from .report import fmt
@@ -71,35 +86,42 @@ REPORT_FILES = ("results.csv", "summary.json", "report.md", "pareto.png", "run.j
 RESULT_KEYS = ("model", "guided", "prompt_id", "scenario", "camera", "seed", *METRICS, "generation_s",
                "peak_memory_mib", "video")
 SUITE = "geco-eval"
+#: Our own prompts with moving subjects (not the paper's): scored and guided with their masks.
+DYNAMIC_SUITE = "dynamic"
+PROMPT_FILES = {SUITE: "data/geco_eval_prompts.jsonl", DYNAMIC_SUITE: "data/geco_eval_dynamic_prompts.jsonl"}
 
 
 # ----------------------------------------------------------------------------------------------
 # the prompt suite
 
 
-def load_prompts(scenario: str | None = None, camera: str | None = None) -> list[dict[str, str]]:
-    """The GeCo-Eval prompts (``id``, ``scenario``, ``camera``, ``prompt``), optionally of one
-    scenario and/or camera speed, in the paper's order (a1..a20, b1..., c1..., d1...)."""
+def load_prompts(scenario: str | None = None, camera: str | None = None, suite: str = SUITE) -> list[dict[str, str]]:
+    """The prompts of ``suite`` (``id``, ``scenario``, ``camera``, ``prompt``; the dynamic suite's
+    also ``subjects``), optionally of one scenario and/or camera speed, in file order (the
+    paper's: a1..a20, b1..., c1..., d1...; ours: m1..m24)."""
+    if suite not in PROMPT_FILES:
+        raise ValueError(f"unknown prompt suite {suite!r}; known: {list(PROMPT_FILES)}")
     if scenario is not None and scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; known: {list(SCENARIOS)}")
     if camera is not None and camera not in CAMERAS:
         raise ValueError(f"unknown camera speed {camera!r}; known: {list(CAMERAS)}")
-    text = resources.files("geco_guide.bench").joinpath("data/geco_eval_prompts.jsonl").read_text(encoding="utf-8")
+    text = resources.files("geco_guide.bench").joinpath(PROMPT_FILES[suite]).read_text(encoding="utf-8")
     prompts = [json.loads(line) for line in text.splitlines() if line.strip()]
     return [p for p in prompts if scenario in (None, p["scenario"]) and camera in (None, p["camera"])]
 
 
 def select_prompts(spec: str) -> list[dict[str, str]]:
-    """``geco-eval``, ``geco-eval:indoor``, ``geco-eval:fast`` or ``geco-eval:indoor:fast``."""
+    """``geco-eval``, ``geco-eval:indoor``, ``geco-eval:fast``, ``geco-eval:indoor:fast``; the
+    same with ``dynamic`` (our suite of moving subjects)."""
     name, *filters = spec.split(":")
-    if name != SUITE:
-        raise ValueError(f"a prompt suite is named {SUITE}[:SCENARIO][:CAMERA], got {spec!r}")
+    if name not in PROMPT_FILES:
+        raise ValueError(f"a prompt suite is named {SUITE} or {DYNAMIC_SUITE}, then [:SCENARIO][:CAMERA], got {spec!r}")
     scenario = next((f for f in filters if f in SCENARIOS), None)
     camera = next((f for f in filters if f in CAMERAS), None)
     unknown = [f for f in filters if f not in SCENARIOS + CAMERAS]
     if unknown:
         raise ValueError(f"unknown filter {unknown[0]!r} in {spec!r}; scenarios {list(SCENARIOS)}, cameras {list(CAMERAS)}")
-    return load_prompts(scenario, camera)
+    return load_prompts(scenario, camera, name)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -214,7 +236,7 @@ def read_job_failure(out: Path, job: Job) -> dict[str, Any] | None:
     return read_finished(failure_path(out, job), [], f"job {job.arm}/{job.name}", warn=False, required=("error",))
 
 
-PROMPT_FILE_ID = re.compile(r"^(?P<id>[a-d]\d{1,2})-s(?P<seed>\d+)$")
+PROMPT_FILE_ID = re.compile(r"^(?P<id>[a-dm]\d{1,2})-s(?P<seed>\d+)$")
 
 
 def existing_video_jobs(name: str, folder: Path, prompts: Sequence[dict[str, str]]) -> list[Job]:
@@ -273,36 +295,105 @@ def guidance_for(model: VideoModel, cfg: GeCoConfig, num_frames: int) -> Any:
     return replace(cfg.guidance, enabled=True, anchors=default_anchors(num_frames, model.temporal_compression))
 
 
-class Generator:
-    """Generates the videos of one model (and its guided twin), loading it once."""
+def planned_call(model: VideoModel, cfg: GeCoConfig) -> tuple[int, int, int, int]:
+    """``(frames, height, width, steps)`` of the model's calls, known before it loads: its
+    documented settings, or with ``model.id=tiny-random`` the tiny family's video and the config's
+    step count (:func:`call_settings`)."""
+    if cfg.model.id != TINY_RANDOM:
+        call = model.call
+        return call["num_frames"], call["height"], call["width"], call["num_inference_steps"]
+    from ..tiny import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH
 
-    def __init__(self, model: VideoModel, cfg: GeCoConfig, weights: str | None, estimators: tuple[Any, Any]):
-        self.model, self.cfg, self.estimators = model, cfg, estimators
+    return TINY_NUM_FRAMES, TINY_HEIGHT, TINY_WIDTH, cfg.sampling.num_inference_steps
+
+
+def check_guided_models(cfg: GeCoConfig, names: Sequence[str]) -> None:
+    """What a guided call of each model would refuse and ``generate`` checks before loading (the
+    loss, the schedule, the decode layout for its VAE, the tiny decoder for its latents, a memory
+    plan that fits), before any model loads or any file is written.
+
+    Raises:
+        ValueError: one line naming the model.
+        WeightsNotFoundError: ``estimators.tiny_decoder`` names a file that does not exist.
+    """
+    for name in names:
+        model = MODELS[name]
+        frames, height, width, steps = planned_call(model, cfg)
+        guided = replace(cfg, guidance=guidance_for(model, cfg, frames))
+        model_id = cfg.model.id if cfg.model.id == TINY_RANDOM else model.hub_id
+        try:
+            check_guidance_before_loading(guided, model_id=model_id, num_frames=frames, height=height, width=width,
+                                          num_steps=steps, family=model.tiny)
+        except ValueError as err:
+            raise ValueError(f"{name} guided: {err}") from None
+
+
+def check_model_weights(cfg: GeCoConfig, names: Sequence[str], weights: dict[str, str]) -> None:
+    """The missing-weights line of each video model to generate, before any model loads (a cache
+    look-up or one metadata request per model), so that a run never stops at its second model
+    after hours of the first; nothing to check with ``model.id=tiny-random``.
+
+    Raises:
+        WeightsNotFoundError: one line naming the model and how to pass a local folder.
+    """
+    if cfg.model.id == TINY_RANDOM:
+        return
+    for name in names:
+        model = MODELS[name]
+        try:
+            check_weights_available(weights.get(name, model.hub_id), (PIPELINE_INDEX,), model_name=name)
+        except WeightsNotFoundError as err:
+            raise WeightsNotFoundError(f"{err} (--weights {name}=/path/to/{model.hub_id.split('/')[-1]})") from None
+
+
+class Generator:
+    """Generates the videos of one model (and its guided twin), loading it once; with ``guided``
+    and ``guidance.decoder=tiny``, also the tiny decoder of its latents (``estimators.tiny_decoder``)."""
+
+    def __init__(self, model: VideoModel, cfg: GeCoConfig, weights: str | None, estimators: tuple[Any, Any],
+                 guided: bool = False, segment: SegmenterFactory | None = None):
+        self.model, self.cfg, self.estimators, self.segment = model, cfg, estimators, segment
         self.pipe = load_model(model, cfg, weights)
         self.call = call_settings(model, cfg, self.pipe)
         self._guided_pipe: Any = None
+        self.decoder = self._tiny_decoder() if guided and cfg.guidance.decoder == "tiny" else None
 
-    def _guided(self) -> tuple[Any, dict[str, Any], Any]:
+    def _tiny_decoder(self) -> Any:
+        """The tiny decoder of this model's latents, on the pipeline's device and dtype."""
+        cfg, vae_config = self.cfg, self.pipe.vae.config
+        if cfg.estimators.tiny_decoder == TINY_RANDOM:
+            channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)
+            decoder = tiny_random_decoder(TINY_DECODER_VARIANTS[self.model.tiny], cfg.estimators.init_seed, channels)
+        else:
+            decoder = load_tiny_decoder(cfg, self.model.tiny)
+        return decoder.to(device=self.pipe.device, dtype=self.pipe.vae.dtype)
+
+    def _guided(self, job: Job) -> tuple[Any, dict[str, Any], Any]:
         """``(pipeline, extra call arguments, hook handle or None)`` of a guided call: CogVideoX 1.0
         through :class:`GeCoCogVideoXPipeline` (float32 latents between steps: the stock
-        pipeline's bf16 latents round updates away), the others through the hook."""
+        pipeline's bf16 latents round updates away), the others through the hook. A prompt with
+        ``subjects`` is guided with their masks."""
         geometry, flow = self.estimators
         guidance = guidance_for(self.model, self.cfg, self.call["num_frames"])
+        masks = subject_masks(job.prompt.get("subjects"), self.segment)
+        if masks is not None:
+            guidance = replace(guidance, dynamic=job.prompt["subjects"])
         if self.model.tiny == "cogvideox":
             if self._guided_pipe is None:
                 from ..sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
                 self._guided_pipe = GeCoCogVideoXPipeline(**self.pipe.components, geometry_estimator=geometry,
-                                                          flow_estimator=flow)
+                                                          flow_estimator=flow, guidance_decoder=self.decoder)
                 self._guided_pipe.set_progress_bar_config(disable=True)
-            return self._guided_pipe, {"guidance": guidance}, None
+            return self._guided_pipe, {"guidance": guidance, "dynamic_masks": masks}, None
         from ..sampler.hooks import attach_geco_guidance
 
-        return self.pipe, {}, attach_geco_guidance(self.pipe, guidance, geometry=geometry, flow=flow)
+        return self.pipe, {}, attach_geco_guidance(self.pipe, guidance, geometry=geometry, flow=flow,
+                                                   decoder=self.decoder, dynamic_masks=masks)
 
     def __call__(self, job: Job) -> tuple[torch.Tensor, float, float, int]:
         """``(frames [F, 3, H, W] in [0, 1], sampling seconds, peak MiB, guidance updates)``."""
-        pipe, extra, handle = self._guided() if job.guided else (self.pipe, {}, None)
+        pipe, extra, handle = self._guided(job) if job.guided else (self.pipe, {}, None)
         generator = torch.Generator(device="cpu").manual_seed(job.seed)
         start = time.perf_counter()
         try:
@@ -319,9 +410,28 @@ class Generator:
         return frames, seconds, memory.peak_mib, len(log)
 
 
-def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: tuple[Any, Any], generator: Generator | None) -> dict[str, Any]:
+def load_segmenters(cfg: GeCoConfig, device: Any, tag: str = "") -> SegmenterFactory:
+    """The text segmenter of ``estimators.segmenter``, loaded once for every prompt's subjects
+    (after one stderr line naming it)."""
+    print(f"{tag}loading segmenter: {cfg.estimators.segmenter}", file=sys.stderr, flush=True)
+    return segmenters_from_spec(cfg.estimators.segmenter, device=device, dtype=getattr(torch, cfg.estimators.dtype),
+                                seed=cfg.estimators.init_seed)
+
+
+def subject_masks(subjects: str | None, segment: SegmenterFactory | None) -> Any:
+    """The mask source of a prompt's ``subjects`` (``None`` for a prompt without)."""
+    if subjects is None:
+        return None
+    if segment is None:
+        raise ValueError(f"the subjects {subjects!r} need a segmenter, and none was loaded")
+    return segment(subjects)
+
+
+def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: tuple[Any, Any], generator: Generator | None,
+            segment: SegmenterFactory | None = None) -> dict[str, Any]:
     """Generate (for a job without ``video``) and score one job; its result JSON is written last
-    (and a failure record of an earlier try removed).
+    (and a failure record of an earlier try removed). A prompt with ``subjects`` is scored with
+    their masks (made by ``segment``).
 
     Raises:
         ValueError, FileNotFoundError: this video cannot be scored (unreadable, too short,
@@ -337,7 +447,8 @@ def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: tuple[Any, Any], g
         timing = {"generation_s": seconds, "peak_memory_mib": peak, "guidance_updates": updates}
     source = job.video or video
     start = time.perf_counter()
-    evaluation = evaluate_video(source, geometry_estimator=estimators[0], flow_estimator=estimators[1], config=cfg.evaluation, model=job.model)
+    evaluation = evaluate_video(source, geometry_estimator=estimators[0], flow_estimator=estimators[1], config=cfg.evaluation,
+                                model=job.model, dynamic_masks=subject_masks(job.prompt.get("subjects"), segment))
     result = {
         **job_identity(job), **{metric: evaluation.to_dict()[metric] for metric in METRICS},
         **timing, "evaluation_s": time.perf_counter() - start,
@@ -352,8 +463,11 @@ def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: tuple[Any, Any], g
 
 def job_identity(job: Job) -> dict[str, Any]:
     """The fields that name a job in its result and failure record (and in ``results.csv``)."""
-    return {"model": job.model, "guided": job.guided, "prompt_id": job.prompt["id"],
-            "scenario": job.prompt["scenario"], "camera": job.prompt["camera"], "seed": job.seed}
+    identity = {"model": job.model, "guided": job.guided, "prompt_id": job.prompt["id"],
+                "scenario": job.prompt["scenario"], "camera": job.prompt["camera"], "seed": job.seed}
+    if "subjects" in job.prompt:
+        identity["subjects"] = job.prompt["subjects"]
+    return identity
 
 
 def record_failure(out: Path, job: Job, err: Exception) -> str:
@@ -368,15 +482,16 @@ def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str,
              on_loaded: Callable[[], None] | None = None) -> None:
     """Run the jobs not done yet, one model at a time (models and estimators load only if needed).
 
-    A job whose video cannot be scored or generated is recorded as failed (:func:`record_failure`)
-    and the others go on. Progress goes to stderr, one line per job. ``on_loaded`` is called
+    A job whose video cannot be scored or generated (ValueError, FileNotFoundError, or a TypeError
+    of an option its pipeline refuses) is recorded as failed (:func:`record_failure`) and the
+    others go on. Progress goes to stderr, one line per job. ``on_loaded`` is called
     once, when the first model needed has loaded (or at once when nothing is left to do), before
     any job writes a file: the caller pins the run there, so that a run stopped by missing weights
     leaves nothing behind.
     """
     todo = [job for job in jobs if read_job_result(out, job) is None]
     retried = sum(1 for job in todo if failure_path(out, job).is_file())
-    print(f"{tag}{len(jobs) - len(todo)} of {len(jobs)} videos already done"
+    print(f"{tag}{len(jobs) - len(todo)} of {plural(len(jobs), 'video')} already done"
           + (f"; {retried} that failed before are tried again" if retried else ""), file=sys.stderr, flush=True)
     if not todo:
         if on_loaded is not None:
@@ -385,22 +500,26 @@ def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str,
     print(f"{tag}loading models: geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow}", file=sys.stderr,
           flush=True)
     estimators = load_estimators(cfg.estimators, resolve_device(cfg.evaluation.device))
+    subjects = any("subjects" in job.prompt for job in todo)
+    segment = load_segmenters(cfg, resolve_device(cfg.evaluation.device), tag) if subjects else None
     done = 0
     for name in dict.fromkeys(job.model for job in todo):
         generator = None
         if any(job.video is None for job in todo if job.model == name):
             print(f"{tag}loading models: {name} ({model_weights(cfg, [name], weights)[name]})", file=sys.stderr,
                   flush=True)
-            generator = Generator(MODELS[name], cfg, weights.get(name), estimators)
+            generator = Generator(MODELS[name], cfg, weights.get(name), estimators,
+                                  guided=any(job.guided for job in todo if job.model == name), segment=segment)
         if done == 0 and on_loaded is not None:
             on_loaded()
         for job in (j for j in todo if j.model == name):
             done += 1
             start = time.perf_counter()
             try:
-                result = run_job(job, out, cfg, estimators, generator)
+                result = run_job(job, out, cfg, estimators, generator, segment)
                 outcome = f"fused {fmt(result['fused'])}, TM {fmt(result['total_motion'])} %"
-            except (ValueError, FileNotFoundError) as err:  # this video only: unreadable, too short, non-finite
+            # this video only: unreadable, too short, non-finite, or an option its pipeline refuses (TypeError)
+            except (ValueError, TypeError, FileNotFoundError) as err:
                 outcome = f"failed: {record_failure(out, job, err)}"
             print(f"{tag}[{done}/{len(todo)}] {job.arm} {job.prompt['id']} seed {job.seed}: "
                   f"{time.perf_counter() - start:.1f} s, {outcome}", file=sys.stderr, flush=True)
@@ -443,7 +562,9 @@ CSV_COLUMNS = ("model", "guided", "prompt_id", "scenario", "camera", "seed", *ME
 
 
 def csv_text(results: Sequence[dict[str, Any]]) -> str:
-    return report.csv_text(results, CSV_COLUMNS)
+    """``results.csv``; the dynamic suite's rows add their ``subjects``."""
+    subjects = ("subjects",) if any("subjects" in r for r in results) else ()
+    return report.csv_text(results, (*CSV_COLUMNS, *subjects))
 
 
 def _cell(stats: dict[str, Any]) -> str:
@@ -462,9 +583,11 @@ def report_markdown(summary: dict[str, Any], missing: Sequence[str], config_yaml
     :func:`geco_guide.bench.report.models_section`. The summary's ``failed`` (job, reason) and
     ``no_video`` (prompts a ``--videos`` folder lacks) are listed too."""
     lines = ["# GeCo-Eval", "",
-             f"{summary['videos']} videos scored; command: `{command}`", ""]
+             f"{plural(summary['videos'], 'video')} scored; command: `{command}`", ""]
     if summary.get("tiny_models"):
         lines += [f"**{report.TINY_NOTE}.**", ""]
+    if summary.get("suite") is not None:
+        lines += [f"**{DYNAMIC_SUITE_NOTE}** (segmenter: {summary['suite']['segmenter']})", ""]
     lines += [*models,
              ("Scores: mean ± standard deviation over videos (lower motion / structure / fused is more "
              "consistent). TM = Total Motion (%), MM = Mean Motion (%/s): read the scores next to them, "
@@ -489,8 +612,19 @@ def report_markdown(summary: dict[str, Any], missing: Sequence[str], config_yaml
     return "\n".join(lines) + "\n"
 
 
+#: What the report says of the dynamic suite.
+DYNAMIC_SUITE_NOTE = ("The dynamic suite: 24 prompts of our own with moving subjects, not the paper's GeCo-Eval; "
+                      "each video is scored (and a guided one guided) with the dynamic masks of its prompt's "
+                      "subjects, so its numbers are not comparable with the paper's.")
+
+
 COLORS = [(60, 110, 200), (235, 125, 30), (40, 160, 70), (210, 50, 50), (140, 90, 190), (120, 80, 60),
           (220, 110, 180), (110, 110, 110), (180, 180, 40), (30, 170, 190)]
+
+
+#: ``pareto.png``'s layout in pixels: the first panel's left edge (room for the y labels), the
+#: distance from one panel to the next, a panel's width, and the margin right of the last.
+PARETO_LEFT, PARETO_PITCH, PARETO_PANEL_W, PARETO_RIGHT = 70, 290, 220, 40
 
 
 def plot_png(summary: dict[str, Any]) -> bytes:
@@ -499,24 +633,28 @@ def plot_png(summary: dict[str, Any]) -> bytes:
     "all" without any point says "no data")."""
     from PIL import Image, ImageDraw
 
-    image = Image.new("RGB", (1500, 480), (255, 255, 255))
-    draw = ImageDraw.Draw(image)
     arms = list(summary["arms"].items())
     points = {g: [(data["groups"][g]["mean_motion"]["mean"], data["groups"][g]["fused"]["mean"], k)
                   for k, (_, data) in enumerate(arms) if g in data["groups"]] for g in ("all", *SCENARIOS)}
     points = {g: [p for p in pts if p[0] is not None and p[1] is not None] for g, pts in points.items()}
     groups = ["all", *(g for g in SCENARIOS if points[g])]
+    # a canvas as wide as the panels drawn and the legend under them, not as all five panels
+    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    width = max(PARETO_LEFT + (len(groups) - 1) * PARETO_PITCH + PARETO_PANEL_W,
+                PARETO_LEFT + legend_width(probe, [arm for arm, _ in arms])) + PARETO_RIGHT
+    image = Image.new("RGB", (width, 480), (255, 255, 255))
+    draw = ImageDraw.Draw(image)
     for column, group in enumerate(groups):
         xs = [p[0] for p in points[group]] or [0.0]
         ys = [p[1] for p in points[group]] or [0.0]
-        left = 70 + column * 290
-        panel = Panel((left, 80, left + 220, 360), limits(xs), limits(ys))
+        left = PARETO_LEFT + column * PARETO_PITCH
+        panel = Panel((left, 80, left + PARETO_PANEL_W, 360), limits(xs), limits(ys))
         panel.draw_axes(draw, group, "Mean Motion (%/s)", "fused")
         if not points[group]:
-            text(draw, ((left + left + 220) / 2, 220), "no data", "mm")
+            text(draw, (left + PARETO_PANEL_W / 2, 220), "no data", "mm")
         for x, y, k in points[group]:
             panel.dot(draw, x, y, COLORS[k % len(COLORS)])
-    legend(draw, Panel((70, 80, 1400, 380), (0, 1), (0, 1)),
+    legend(draw, Panel((PARETO_LEFT, 80, width - PARETO_RIGHT, 380), (0, 1), (0, 1)),
            [(arm, COLORS[k % len(COLORS)]) for k, (arm, _) in enumerate(arms)])
     return report.png_bytes(image)
 
@@ -560,6 +698,8 @@ def write_report(out: Path, jobs: Sequence[Job], cfg: GeCoConfig, command: str,
                "models": models, "estimators": {"geometry": cfg.estimators.geometry, "flow": cfg.estimators.flow},
                "tiny_models": report.uses_tiny_models(cfg),
                "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    if any("subjects" in job.prompt for job in jobs):
+        summary["suite"] = {"name": DYNAMIC_SUITE, "ours": True, "segmenter": cfg.estimators.segmenter}
     markdown = report_markdown(summary, missing, config_to_yaml(cfg), command,
                                report.models_section(cfg, models))
     report.write_report_files(out, table=csv_text([*results, *failures]), summary=summary, plot=plot_png(summary), markdown=markdown)

@@ -8,7 +8,7 @@ of a second clip) or, by default, a seeded procedural texture.
 :func:`composite_occlusion` composites the two layers in image space and returns, besides the
 frames, a label map per frame (which layer each pixel shows) and each layer's per-frame
 translation, so the exact correspondences of the edited clip are known
-(:func:`geco_guide.synthetic.with_overlay` gives them to a synthetic scene's oracle). The
+(:func:`geco_guide.bench.synthetic.with_overlay` gives them to a synthetic scene's oracle). The
 ground-truth artifact mask is the object in the re-revealed frames.
 """
 

@@ -12,6 +12,7 @@ from typing import Any
 
 from ..estimators import TINY_RANDOM
 from ..io.files import write_bytes_atomic, write_json_atomic, write_text_atomic
+from ..types import plural
 
 TINY_NOTE = "tiny random models: the numbers show the mechanics, not quality"
 
@@ -31,6 +32,19 @@ def csv_text(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> str:
     return buffer.getvalue()
 
 
+#: Fewer values than this get no confidence interval: a bootstrap of a handful of values has few
+#: distinct resamples and covers the true mean far less often than its stated level.
+MIN_INTERVAL_N = 10
+
+
+def interval_text(ci: Sequence[float] | None, n: int, noun: str = "value") -> str:
+    """A confidence interval ``[low, high]`` for a table or a line, or, where ``ci`` is ``None``,
+    that ``n`` of ``noun`` (singular) are too few for one (:data:`MIN_INTERVAL_N`)."""
+    if ci is not None:
+        return f"[{fmt(ci[0])}, {fmt(ci[1])}]"
+    return f"none from {plural(n, noun)} (an interval needs {MIN_INTERVAL_N})"
+
+
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
     """The lines of a Markdown table."""
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -43,11 +57,9 @@ def uses_tiny_models(cfg: Any) -> bool:
 
 
 def models_section(cfg: Any, models: Mapping[str, str] | None = None) -> list[str]:
-    """Markdown lines naming the video model(s) and weights and the estimators the run used, and
-    saying plainly when they were the tiny random ones."""
+    """Markdown lines naming the video model(s) and weights and the estimators the run used (a
+    report says :data:`TINY_NOTE` once, at its top, when they were the tiny random ones)."""
     lines = ["## Models and weights", ""]
-    if uses_tiny_models(cfg):
-        lines += [f"**{TINY_NOTE}.**", ""]
     video = models or {"video model": cfg.model.id}
     rows = [[name, weights] for name, weights in video.items()]
     rows += [["geometry estimator", cfg.estimators.geometry], ["flow estimator", cfg.estimators.flow]]

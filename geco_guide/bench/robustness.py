@@ -1,8 +1,8 @@
 """How GeCo's detection degrades with noisy depth or flow (the paper's robustness study; the
 command is :mod:`geco_guide.cli.robustness`).
 
-The metric is scored as :mod:`geco_guide.evaluate` scores it (the evaluation protocol's loss
-options). On synthetic scenes with exact depth, cameras and flow (:mod:`geco_guide.synthetic`), Gaussian
+The metric is scored as :mod:`geco_guide.metric.evaluate` scores it (the evaluation protocol's loss
+options). On synthetic scenes with exact depth, cameras and flow (:mod:`geco_guide.bench.synthetic`), Gaussian
 noise is added to one input at a time, as the paper does on TartanAir with ground truth:
 
 * depth, multiplicatively in log space, ``D exp(sigma n)`` (so errors scale with distance;
@@ -27,7 +27,7 @@ from typing import Any
 import torch
 from PIL import Image, ImageDraw
 
-from ..io.plots import Panel, legend, limits
+from ..io.plots import Panel, legend, limits, text
 from ..loss.geco import GeCoLossConfig, frame_pairs, geco_from_geometry
 from ..metric.protocol import EvaluationConfig
 from ..types import Correspondences, SceneGeometry
@@ -135,21 +135,31 @@ def run_sweep(num_frames: int = 9, height: int = 48, width: int = 64, seed: int 
     return report
 
 
+#: The x axis of each row of the robustness plot, in a reader's words: sigma is the typical
+#: relative error of the depth (it is multiplied by exp(sigma n), n ~ N(0, 1)) or the flow's
+#: error in pixels (sigma n added).
+ROBUSTNESS_X_LABELS = {"depth": "noise sigma: relative depth error (0.1 = 10 %)",
+                       "flow": "noise sigma: flow error in pixels"}
+#: Under the title: the levels are spaced evenly whatever their values.
+ROBUSTNESS_AXIS_NOTE = "x axes: one noise level per tick (evenly spaced, not to scale)"
+
+
 def plot(report: dict[str, Any]) -> bytes:
     """PNG: AP against sigma, panels depth/flow x warp (Task 2)/occlusion (Task 3), one line per
     cue. The sigmas are evenly spaced levels on the x axis, each labelled with its value (they
     span decades and start at 0, which a log axis cannot show); non-finite APs are left out."""
     image = Image.new("RGB", (760, 760), (255, 255, 255))
     draw = ImageDraw.Draw(image)
+    text(draw, (90, 8), ROBUSTNESS_AXIS_NOTE, "lt")
     for row, noisy_input in enumerate(("depth", "flow")):
         sigmas = report[noisy_input]["sigmas"]
         levels = list(range(len(sigmas)))
-        unit = "relative: D exp(sigma n)" if noisy_input == "depth" else "pixels"
+        what = ROBUSTNESS_X_LABELS[noisy_input]
         for column, task in enumerate(("warp", "occlusion")):
             left, top = 90 + column * 360, 80 + row * 350
             panel = Panel((left, top, left + 260, top + 200), limits(levels), (0.0, 1.0))
             title = f"{noisy_input} noise: {'Task 2 (warp)' if task == 'warp' else 'Task 3 (occlusion)'} AP"
-            panel.draw_axes(draw, title, f"sigma ({unit}), one level per tick", "AP",
+            panel.draw_axes(draw, title, what, "AP",
                             xticks=[(k, f"{s:.2g}") for k, s in zip(levels, sigmas)])
             for cue in sorted(CUES, key=lambda c: -LINE_WIDTHS[c]):
                 points = [(k, ap) for k, ap in zip(levels, report[noisy_input][task][cue])

@@ -9,11 +9,11 @@ Artifacts with known ground truth turn a rigid clip into an inconsistent one:
 
 * :func:`inject_deformation` — a temporally smooth thin-plate-spline warp of an image region
   (affine + ``r^2 log r`` basis, feathered weight, exponential moving average over time), as in
-  the GeCo paper's WarpBench, with the maths of :mod:`geco_guide.warp`;
+  the GeCo paper's WarpBench, with the maths of :mod:`geco_guide.bench.warp`;
 * :func:`occlusion_swap_clip` — an object that is visible, then hidden behind an occluder, then
   re-revealed as a different object, as in the paper's OccluBench, in 3D (a pillar's parallax);
 * :func:`with_warp` / :func:`with_overlay` — the benchmark builders' edits
-  (:mod:`geco_guide.warp`, :mod:`geco_guide.occlusion`) applied to a synthetic clip with their
+  (:mod:`geco_guide.bench.warp`, :mod:`geco_guide.bench.occlusion`) applied to a synthetic clip with their
   exact ground truth, so oracle estimators can score them.
 
 Everything uses the conventions of :mod:`geco_guide.geometry`.
@@ -32,6 +32,7 @@ from ..geometry import (
     inside_image,
     invert_rigid,
     pixel_grid,
+    project,
     relative_pose,
     rigid_flow,
     sample_bilinear,
@@ -58,7 +59,8 @@ _NO_HIT = float("inf")
 class Box:
     """Axis-aligned box ``[lo, hi]`` in world coordinates.
 
-    ``inside=True`` renders its inner faces (a room around the camera).
+    ``inside=True`` renders its inner faces (a room around the camera). ``texture_shift`` moves
+    the texture with a box that has been translated by it (a moving object keeps its pattern).
     """
 
     lo: tuple[float, float, float]
@@ -66,6 +68,7 @@ class Box:
     color: tuple[float, float, float]
     inside: bool = False
     frequency: float = 3.0
+    texture_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -132,6 +135,8 @@ def raycast(scene: Scene, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor
 def _texture(points: Tensor, primitive: Box | Plane) -> Tensor:
     """Smooth colourful pattern ``[N, 3]`` in ``[0, 1]`` from world points ``[N, 3]``."""
     f = primitive.frequency
+    if isinstance(primitive, Box) and any(primitive.texture_shift):
+        points = points - points.new_tensor(primitive.texture_shift)
     x, y, z = points.unbind(-1)
     pattern = (
         torch.sin(f * (1.3 * x + 0.7 * y) + 0.5)
@@ -162,7 +167,7 @@ def default_intrinsics(height: int, width: int, fov_x_deg: float = 60.0, dtype=t
 
 @dataclass
 class Overlay:
-    """Image-space layers over a rendered scene (:mod:`geco_guide.occlusion`'s composite).
+    """Image-space layers over a rendered scene (:mod:`geco_guide.bench.occlusion`'s composite).
 
     Attributes:
         labels: ``[S, H, W]`` int64, the layer each pixel shows (0: the scene).
@@ -203,6 +208,9 @@ class SyntheticClip:
         warp: ``[S, H, W, 2]`` backward warp of each frame, ``frame(p)`` shows the content of the
             unwarped frame at ``p + warp(p)``; zeros for a clean clip.
         overlay: image-space layers composited over the scene (:func:`with_overlay`), or ``None``.
+        objects: ``[S, H, W]`` int64, the moving object each pixel shows (-1: the static
+            scene), or ``None`` for a static scene (:func:`moving_clip`).
+        object_paths: ``[K, S, 3]`` world translation of each moving object in each frame, or ``None``.
     """
 
     frames: Tensor
@@ -213,10 +221,21 @@ class SyntheticClip:
     mask: Tensor
     warp: Tensor
     overlay: Overlay | None = None
+    objects: Tensor | None = None
+    object_paths: Tensor | None = None
 
     @property
     def num_frames(self) -> int:
         return self.frames.shape[0]
+
+    @property
+    def dynamic_mask(self) -> Tensor:
+        """``[S, H, W]`` bool: pixels showing an object that moves on its own (the true dynamic
+        mask; all False for a static scene), under any overlay layer removed."""
+        if self.objects is None:
+            return torch.zeros_like(self.depth, dtype=torch.bool)
+        moving = self.objects >= 0
+        return moving if self.overlay is None else moving & (self.overlay.labels == 0)
 
     def geometry(self, dtype=torch.float32) -> SceneGeometry:
         """Ground-truth :class:`SceneGeometry` with a batch dimension of 1."""
@@ -246,7 +265,7 @@ class SyntheticClip:
 
     def _scene_correspondences(self, source: int, target: int) -> tuple[Tensor, Tensor]:
         """Flow ``[2, H, W]`` and covisibility ``[H, W]`` of the (possibly warped) scene alone."""
-        flow, visible = self.rigid_correspondences(source, target)
+        flow, visible = self._content_correspondences(source, target)
         if not self.warp.any():
             return flow, visible
         height, width = flow.shape[-2:]
@@ -259,6 +278,24 @@ class SyntheticClip:
         covisible = sample_bilinear(visible[None, None], q[None])[0, 0] > 0.5
         covisible = covisible & inside_image(r, height, width) & inside_image(q, height, width)
         return (r - grid).permute(2, 0, 1), covisible.to(flow.dtype)
+
+    def _content_correspondences(self, source: int, target: int) -> tuple[Tensor, Tensor]:
+        """Flow ``[2, H, W]`` and covisibility ``[H, W]`` of the rendered scene: the camera's
+        rigid flow, and for a moving object's pixels its own translation on top."""
+        if self.objects is None:
+            return self.rigid_correspondences(source, target)
+        height, width = self.depth.shape[-2:]
+        ids = self.objects[source].reshape(-1)
+        shift = self.object_paths[ids.clamp_min(0), target] - self.object_paths[ids.clamp_min(0), source]
+        points = _world_points(self, source) + torch.where((ids >= 0)[:, None], shift, torch.zeros_like(shift))
+        camera = transform_points(points[None], self.extrinsics[target][None])
+        uv, z = project(camera, self.intrinsics[target][None])
+        uv = uv[0].reshape(height, width, 2)
+        grid = pixel_grid(height, width, dtype=uv.dtype)
+        t = _first_hit_beyond(self, points, target).reshape(height, width)
+        visible = (self.depth[source] > 0) & (z[0].reshape(height, width) > 0) & inside_image(uv, height, width) & (t >= 1.0 - 1e-6)
+        flow = torch.where(visible[..., None], uv - grid, torch.zeros_like(uv))
+        return flow.permute(2, 0, 1), visible.to(flow.dtype)
 
     def pair_correspondences(self, pairs: list[tuple[int, int]], dtype=torch.float32) -> Correspondences:
         """Ground-truth :class:`Correspondences` for ``pairs`` (batch of 1, pair-major)."""
@@ -401,6 +438,64 @@ def rigid_clip(num_frames: int = 5, height: int = 48, width: int = 64, scene: Sc
     return render_clip(scene, orbit_cameras(num_frames), default_intrinsics(height, width), height, width)
 
 
+# --- objects that move on their own -----------------------------------------------------------
+
+
+@dataclass
+class MovingBox:
+    """A box that moves on its own: ``box`` where it stands in frame 0, translated by ``velocity``
+    (world units per frame) in later frames, its texture moving with it."""
+
+    box: Box
+    velocity: tuple[float, float, float]
+
+
+def moving_boxes() -> list[MovingBox]:
+    """The default movers of :func:`moving_clip`: a box sliding sideways in front of the left wall
+    and a smaller one rising and approaching on the right, together ~10 % of a frame."""
+    return [
+        MovingBox(Box(lo=(-1.3, 0.1, 3.6), hi=(-0.4, 1.0, 4.4), color=(0.85, 0.3, 0.25), frequency=4.0), (0.15, 0.0, 0.0)),
+        MovingBox(Box(lo=(0.6, -0.3, 4.0), hi=(1.2, 0.3, 4.6), color=(0.25, 0.35, 0.85), frequency=5.0), (0.0, -0.1, -0.08)),
+    ]
+
+
+def moving_clip(num_frames: int = 5, height: int = 48, width: int = 64, *, still: bool = False,
+                movers: list[MovingBox] | None = None, scene: Scene | None = None) -> SyntheticClip:
+    """The rigid clip of ``scene`` (default :func:`gallery_scene`, orbiting camera) with boxes that
+    move on their own (default :func:`moving_boxes`), with exact flow, depth and dynamic mask.
+
+    Args:
+        num_frames, height, width: clip size.
+        still: keep every mover where it stands in frame 0: the same scene, rigid (its
+            ``dynamic_mask`` still marks the boxes, for masking a still scene alike).
+        movers: the moving boxes.
+        scene: the static world around them.
+
+    Returns:
+        A :class:`SyntheticClip` with ``objects`` and ``object_paths`` set; its correspondences
+        move each box's pixels with the box.
+    """
+    base = scene or gallery_scene()
+    movers = movers if movers is not None else moving_boxes()
+    steps = torch.zeros(num_frames) if still else torch.arange(num_frames, dtype=torch.float64)
+    velocities = torch.tensor([m.velocity for m in movers], dtype=torch.float64).reshape(-1, 3)
+    paths = velocities[:, None] * steps.double()[None, :, None]  # [K, S, 3]
+    scenes = []
+    for k in range(num_frames):
+        boxes = []
+        for mover, path in zip(movers, paths):
+            shift = tuple(float(x) for x in path[k])
+            boxes.append(replace(mover.box, lo=tuple(a + d for a, d in zip(mover.box.lo, shift)),
+                                 hi=tuple(a + d for a, d in zip(mover.box.hi, shift)), texture_shift=shift))
+        scenes.append(Scene(boxes=boxes + base.boxes, planes=base.planes))
+    extrinsics, K = orbit_cameras(num_frames), default_intrinsics(height, width)
+    clip = render_clip(scenes, extrinsics, K, height, width)
+    # Movers are the first primitives of every frame's scene: a hit index below len(movers) is one.
+    hits = torch.stack([render_view(scenes[k], K, extrinsics[k], height, width)[2] for k in range(num_frames)])
+    objects = torch.where((hits >= 0) & (hits < len(movers)), hits, torch.full_like(hits, -1))
+    return replace(clip, objects=objects, object_paths=paths)
+
+
 # --- deformation (WarpBench-style) -------------------------------------------------------------
 
 
@@ -431,7 +526,7 @@ def inject_deformation(
     radius = radius if radius is not None else min(height, width) / 4
     generator = torch.Generator().manual_seed(seed)
     # A fixed 3x3 grid of controls over the disc keeps this injector's documented warp; the
-    # benchmark builder (geco_guide.warp.warp_clip) samples them by farthest-point sampling.
+    # benchmark builder (geco_guide.bench.warp.warp_clip) samples them by farthest-point sampling.
     offsets = torch.tensor([(du, dv) for du in (-0.5, 0.0, 0.5) for dv in (-0.5, 0.0, 0.5)], dtype=torch.float64)
     controls = torch.tensor([cu, cv], dtype=torch.float64) + radius * offsets
     dist = (pixel_grid(height, width, dtype=torch.float64) - controls.new_tensor([cu, cv])).norm(dim=-1)
@@ -442,7 +537,7 @@ def inject_deformation(
 
 
 def with_warp(clip: SyntheticClip, warped: WarpResult) -> SyntheticClip:
-    """``clip`` edited by :func:`geco_guide.warp.warp_clip` / :func:`~geco_guide.warp.warp_one_frame`
+    """``clip`` edited by :func:`geco_guide.bench.warp.warp_clip` / :func:`~geco_guide.bench.warp.warp_one_frame`
     (run on ``clip.frames``): its frames, warp and mask, so the ground truth follows the warp."""
     return replace(clip, frames=warped.frames, warp=warped.displacement.to(clip.depth.dtype), mask=warped.mask)
 
@@ -455,7 +550,7 @@ LAYER_DEPTH = {OCCLUDER: 0.5, OBJECT: 0.8}
 
 
 def with_overlay(clip: SyntheticClip, edit: OcclusionResult) -> SyntheticClip:
-    """``clip`` edited by :func:`geco_guide.occlusion.composite_occlusion` (run on ``clip.frames``).
+    """``clip`` edited by :func:`geco_guide.bench.occlusion.composite_occlusion` (run on ``clip.frames``).
 
     The layers become flat sprites at constant camera depths (:data:`LAYER_DEPTH`): their depth
     replaces the scene's where they show, and the correspondences follow their offsets, so an

@@ -1,7 +1,7 @@
 """Score built benchmarks on the GeCo paper's three detection tasks (the command is
 :mod:`geco_guide.cli.validate`).
 
-Each input is a folder made by :mod:`geco_guide.benchmarks` (one clip, or a folder of clips).
+Each input is a folder made by :mod:`geco_guide.cli.benchmarks` (one clip, or a folder of clips).
 GeCo runs on the whole clip (the config's ``evaluation.loss``: every ordered pair by default) and
 each cue's frame maps (motion, structure, fused; invalid pixels score 0) are judged against the
 ground truth:
@@ -29,13 +29,12 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
 from ..io.files import write_bytes_atomic
 from ..loss.geco import GeCoResult
-from ..metric.render import colorbar, colorize, side_by_side, text_scale, text_strip
+from ..metric.render import colorbar, colorize, enlarge, side_by_side, text_scale, text_strip
 from .datasets import Benchmark
 from .ranking import average_precision, best_threshold_iou_f1, spearman
 
@@ -143,11 +142,6 @@ def markdown_table(summary: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-#: Grid panels smaller than this are enlarged (nearest, whole factors: pixels stay pixels) so
-#: that their labels are legible at the PNG's native size.
-GRID_MIN_HEIGHT = 192
-
-
 def grid_image(bench: Benchmark, result: GeCoResult, frames: list[int]) -> Tensor:
     """``[3, H', W']`` rows of frame | ground truth | motion | structure | fused (viridis on the
     fixed map range, grey: no valid pixel) for ``frames``, each row under a caption naming its
@@ -157,8 +151,7 @@ def grid_image(bench: Benchmark, result: GeCoResult, frames: list[int]) -> Tenso
     for cue in ("motion", "structure", "fused"):
         values, valid = result.frame_maps.cue(cue)
         panels.append(colorize(values[0, frames].cpu(), valid[0, frames].cpu()))
-    factor = max(1, math.ceil(GRID_MIN_HEIGHT / bench.frames.shape[-2]))
-    panels = [F.interpolate(panel.float(), scale_factor=factor, mode="nearest") for panel in panels]
+    panels = [enlarge(panel.float()) for panel in panels]  # legible labels at the PNG's native size
     rows = side_by_side(panels, ["FRAME", "TRUTH (ARTIFACT)", "MOTION", "STRUCTURE", "FUSED"])
     width, scale = rows.shape[-1], text_scale(panels[0].shape[-2])
     body = []

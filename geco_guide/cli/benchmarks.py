@@ -1,10 +1,10 @@
-"""``python -m geco_guide.benchmarks``: build WarpBench/OccluBench clips (:mod:`geco_guide.bench.datasets`).
+"""``python -m geco_guide benchmarks``: build WarpBench/OccluBench clips (:mod:`geco_guide.bench.datasets`).
 
-    python -m geco_guide.benchmarks warp clip.mp4 frames/ --out bench/warp --mode frame --seeds 0 1 2
-    python -m geco_guide.benchmarks warp clip.mp4 --mask object.png --out bench/warp-clip
-    python -m geco_guide.benchmarks occlusion clip.mp4 --object duck.png --out bench/occlusion
-    python -m geco_guide.benchmarks warp synthetic --out bench/synthetic-warp --seeds 0 1 2   # offline, exact ground truth
-    python -m geco_guide.benchmarks occlusion synthetic-3d --out bench/synthetic-occlusion-3d
+    python -m geco_guide benchmarks warp clip.mp4 frames/ --out bench/warp --mode frame --seeds 0 1 2
+    python -m geco_guide benchmarks warp clip.mp4 --mask object.png --out bench/warp-clip
+    python -m geco_guide benchmarks occlusion clip.mp4 --object duck.png --out bench/occlusion
+    python -m geco_guide benchmarks warp synthetic --out bench/synthetic-warp --seeds 0 1 2   # offline, exact ground truth
+    python -m geco_guide benchmarks occlusion synthetic-3d --out bench/synthetic-occlusion-3d
 """
 
 from __future__ import annotations
@@ -29,20 +29,22 @@ from .kit import Parser, interruptible
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="python -m geco_guide.benchmarks", description="Build WarpBench/OccluBench-style clips with ground truth.")
-    p.add_argument("kind", choices=KINDS)
+    p = Parser(prog="python -m geco_guide benchmarks", description="Build WarpBench/OccluBench-style clips with ground truth.")
+    p.add_argument("kind", choices=KINDS, help="which benchmark's clips to build")
     p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|synthetic|synthetic-3d",
                    help="clips to edit; synthetic: the gallery scene with exact ground truth; synthetic-3d "
                         "(occlusion only): a pillar hides a wall region that re-appears with another box, in 3D")
     p.add_argument("--out", required=True, help="output folder (one sub-folder per clip and seed)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="one clip per input and seed")
     p.add_argument("--max-frames", type=int, default=20, help="frames kept per input, evenly spaced (paper: 20)")
-    p.add_argument("--synthetic-size", type=int, nargs=3, default=(9, 48, 64), metavar=("FRAMES", "H", "W"))
+    p.add_argument("--synthetic-size", type=int, nargs=3, default=(9, 48, 64), metavar=("FRAMES", "H", "W"),
+                   help="size of the synthetic scenes: frames, height, width (default: 9 48 64)")
     warp = p.add_argument_group("warp")
     warp.add_argument("--mode", choices=("clip", "frame"), default="clip",
                       help="clip: warp every frame (Task 2); frame: replace one random frame (Task 1)")
     warp.add_argument("--mask", default=None, help="foreground mask image, or folder/video of per-frame masks")
-    warp.add_argument("--controls", type=int, default=WarpParams.num_controls)
+    warp.add_argument("--controls", type=int, default=WarpParams.num_controls,
+                      help=f"thin-plate-spline control points of the warp, at least 3 (default: {WarpParams.num_controls})")
     warp.add_argument("--amplitude", type=float, default=WarpParams.amplitude, help="control displacement std (px)")
     warp.add_argument("--beta", type=float, default=WarpParams.beta, help="EMA factor over time")
     warp.add_argument("--feather", type=float, default=None, help="feather width in px")
@@ -50,7 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     occ = p.add_argument_group("occlusion")
     occ.add_argument("--object", default=None, help="the re-revealed object: an image, or a video / frame folder (its middle frame); default procedural")
     occ.add_argument("--object-mask", default=None, help="its alpha mask image (default: an ellipse)")
-    occ.add_argument("--region", type=int, nargs=4, default=None, metavar=("LEFT", "TOP", "RIGHT", "BOTTOM"))
+    occ.add_argument("--region", type=int, nargs=4, default=None, metavar=("LEFT", "TOP", "RIGHT", "BOTTOM"),
+                     help="the object's box in pixels, right and bottom exclusive (default: a "
+                          "central box of 35 %% of the height and width)")
     return p
 
 

@@ -1,7 +1,7 @@
-"""``python -m geco_guide.detection``: per-frame detection maps (:mod:`geco_guide.metric.detection`).
+"""``python -m geco_guide detection``: per-frame detection maps (:mod:`geco_guide.metric.detection`).
 
-    python -m geco_guide.detection clip.mp4 --out maps                  # VGGT-1B + UFM-Base, mp4
-    python -m geco_guide.detection frames/ --preset tiny --window 8 --anchor end --format gif png
+    python -m geco_guide detection clip.mp4 --out maps                  # VGGT-1B + UFM-Base, mp4
+    python -m geco_guide detection frames/ --preset tiny --window 8 --anchor end --format gif png
 
 Each input writes, inside ``--out``, ``<name>.detection.mp4`` / ``.gif`` / ``<name>.detection/NNNNN.png``
 (``--format``) and last ``<name>.detection.json``. Inputs are named as ``evaluate`` names them (a
@@ -16,6 +16,7 @@ import argparse
 import math
 import re
 import sys
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
@@ -30,7 +31,8 @@ from ..metric.detection import (
     render_detection,
     write_detection,
 )
-from .evaluate import expand_inputs
+from ..types import plural
+from .evaluate import check_scorable, expand_inputs
 from .kit import (
     Parser,
     add_config_flags,
@@ -41,18 +43,24 @@ from .kit import (
 
 #: The names :func:`geco_guide.metric.detection.write_pngs` gives the frames of a PNG folder.
 FRAME_PNG = re.compile(r"(\d{5})\.png")
+#: Inputs longer than this are told how to bound the work (a 49-frame clip is one typical video).
+LONG_INPUT_FRAMES = 200
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="python -m geco_guide.detection", description="Per-frame GeCo detection maps (a window per frame).")
-    p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|key=value")
+    p = Parser(prog="python -m geco_guide detection", description="Per-frame GeCo detection maps (a window per frame).")
+    p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|key=value",
+                   help="videos, frame folders or folders of videos, and config overrides (key=value)")
     p.add_argument("--out", default="detection", help="output folder: every file goes inside it")
     p.add_argument("--window", type=int, default=20, help="frames per window (the demo's default: 20)")
     p.add_argument("--anchor", choices=ANCHORS, default="center", help="where the frame sits in its window")
     p.add_argument("--one-way", action="store_true", help="structure occlusion test in one direction only")
-    p.add_argument("--format", nargs="+", choices=FORMATS, default=["mp4"], dest="formats")
+    p.add_argument("--format", nargs="+", choices=FORMATS, default=["mp4"], dest="formats",
+                   help="what to write: an mp4, a gif and/or a folder of PNG frames (default: mp4)")
     p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the input's)")
     p.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier run of the same names")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N",
+                   help="only the first N frames of each input (every frame costs a window of --window frames)")
     add_config_flags(p)
     return p
 
@@ -92,6 +100,35 @@ def remove_stale_frames(folder: Path, count: int) -> None:
             path.unlink()
 
 
+def remove_other_formats(stem: Path, formats: list[str]) -> None:
+    """Delete what an earlier run of ``stem`` wrote in the formats this run does not (an
+    ``--overwrite`` run's outputs are exactly the formats it was asked for): the files, and of a
+    PNG folder its frame PNGs (the folder too, once empty)."""
+    for path in output_paths(stem, [f for f in FORMATS if f not in formats])[:-1]:
+        if path.is_dir():
+            remove_stale_frames(path, 0)
+            if not any(path.iterdir()):
+                path.rmdir()
+        elif path.is_file():
+            path.unlink()
+
+
+def first_frames(limit: int | None) -> Callable[[int, float], list[int]] | None:
+    """The frame selector of ``--max-frames``: the first ``limit`` frames (``None``: all)."""
+    if limit is None:
+        return None
+    return lambda num_frames, fps: list(range(min(num_frames, limit)))
+
+
+def work_line(count: int, total: int, window: int) -> str:
+    """What the maps of ``count`` frames (of ``total`` in the input) take, said before the work:
+    a window of ``window`` frames per frame."""
+    of = f" (the first of {total}: --max-frames)" if count < total else ""
+    hint = "" if count < total or count <= LONG_INPUT_FRAMES else "; --max-frames N bounds it"
+    return (f"{plural(count, 'frame')}{of}: one window of {window} frames per frame, {count} geometry-estimator "
+            f"calls and {count * (window - 1)} flow pairs{hint}")
+
+
 def _resolved(video: str) -> str:
     """``.`` and ``..`` as the folder they name, so that the output is named after it (and stays inside ``--out``)."""
     return str(Path(video).resolve()) if Path(video).name in ("", "..") else video
@@ -107,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("no input video given")
         if args.window < 2:
             raise ValueError(f"--window must be >= 2, got {args.window}")
+        if args.max_frames is not None and args.max_frames < 2:
+            raise ValueError(f"--max-frames must be >= 2 (a window compares frames), got {args.max_frames}")
         if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
             raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
         if args.fps is not None:
@@ -114,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
                 check_fps(args.fps, f".{video_format}")
         cfg = config_from_args(args, overrides)
         items = expand_inputs([_resolved(v) for v in videos])
+        check_scorable(items)
         check_outputs(out, [out / item.name for item in items if item.error is None], args.formats, args.overwrite)
         geometry, flow = load_estimators(cfg.estimators, cfg.evaluation.device)
     except (ValueError, FileNotFoundError) as err:
@@ -126,10 +166,12 @@ def main(argv: list[str] | None = None) -> int:
         try:
             if item.error is not None:
                 raise ValueError(item.error)
-            clip = read_frames(item.path, min_frames=2)
-            if args.window > clip.num_frames:
-                print(f"warning: {video}: --window {args.window} is longer than its {clip.num_frames} frames; "
-                      f"each window holds all {clip.num_frames}", file=sys.stderr)
+            clip = read_frames(item.path, min_frames=2, select=first_frames(args.max_frames))
+            count = clip.frames.shape[0]
+            if args.window > count:
+                print(f"warning: {video}: --window {args.window} is longer than its {count} frames; "
+                      f"each window holds all {count}", file=sys.stderr)
+            print(f"  {work_line(count, clip.num_frames, min(args.window, count))}", file=sys.stderr, flush=True)
             maps = detection_maps(clip.frames, geometry, flow, cfg.evaluation.loss, window=args.window,
                                   anchor=args.anchor, two_way=not args.one_way,
                                   flow_batch_size=cfg.evaluation.flow_batch_size)
@@ -138,8 +180,9 @@ def main(argv: list[str] | None = None) -> int:
             written = write_detection(render_detection(maps, scores), stem, args.formats, args.fps or clip.fps)
             if "png" in args.formats:
                 remove_stale_frames(output_paths(stem, ["png"])[0], len(scores))
+            remove_other_formats(stem, args.formats)
             write_json_atomic(output_paths(stem, [])[0], {
-                "source": video, "window": min(args.window, clip.num_frames), "anchor": args.anchor,
+                "source": video, "window": min(args.window, count), "anchor": args.anchor,
                 "two_way": not args.one_way, "frames": [{"index": k, **row} for k, row in enumerate(scores)],
                 "estimators": {"geometry": estimator_id(geometry), "flow": estimator_id(flow)},
                 "loss": asdict(cfg.evaluation.loss)})
@@ -148,5 +191,5 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {video}: {str(err).splitlines()[0] if str(err) else type(err).__name__}", file=sys.stderr)
             continue
         worst = max(range(len(scores)), key=lambda k: -1.0 if scores[k]["fused"] is None else scores[k]["fused"])
-        print(f"{video}: {len(scores)} frames, least consistent frame {worst} -> {', '.join(map(str, written))}")
+        print(f"{video}: {plural(len(scores), 'frame')}, least consistent frame {worst} -> {', '.join(map(str, written))}")
     return 1 if failed == len(items) else 0

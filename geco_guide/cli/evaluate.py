@@ -1,13 +1,13 @@
-"""``python -m geco_guide.evaluate VIDEO [VIDEO ...|DIR]``: score videos with the GeCo metric.
+"""``python -m geco_guide evaluate VIDEO [VIDEO ...|DIR]``: score videos with the GeCo metric.
 
-    python -m geco_guide.evaluate clip.mp4 --maps                 # VGGT-1B + UFM-Base from the hub
-    python -m geco_guide.evaluate videos/ --geometry-estimator /data/VGGT-1B --flow-estimator /data/UFM-Base --out scores
-    python -m geco_guide.evaluate --preset tiny clip.mp4 frames/   # tiny random models, CPU, offline
-    python -m geco_guide.evaluate clip.mp4 --model cogvideox-5b    # timed at the model's native 16 fps
+    python -m geco_guide evaluate clip.mp4 --maps                 # VGGT-1B + UFM-Base from the hub
+    python -m geco_guide evaluate videos/ --geometry-estimator /data/VGGT-1B --flow-estimator /data/UFM-Base --out scores
+    python -m geco_guide evaluate --preset tiny clip.mp4 frames/   # tiny random models, CPU, offline
+    python -m geco_guide evaluate clip.mp4 --model cogvideox-5b    # timed at the model's native 16 fps
 
 The protocol is :func:`geco_guide.metric.evaluate.evaluate_video`'s. Per video:
 ``<out>/<stem>.geco.json`` and with ``--maps`` ``<out>/<stem>.maps.mp4`` (source | motion |
-structure | fused on the fixed colour scale of :data:`geco_guide.video.MAP_RANGE`, with a
+structure | fused on the fixed colour scale of :data:`geco_guide.metric.render.MAP_RANGE`, with a
 legend). Several inputs (or a folder of videos) add ``<out>/geco_scores.csv`` (one row per video,
 failures with an ``error``) and ``<out>/geco_summary.json`` (means over videos). Every output is
 written atomically, the table and summary both or neither. A bad input is one error line and does
@@ -31,6 +31,7 @@ from typing import Any
 from .. import __version__
 from ..config import GeCoConfig
 from ..estimators import estimator_id, load_estimators
+from ..estimators.dynamic_masks import AUTO, looks_like_path, mask_source
 from ..io.devices import check_device
 from ..io.files import (
     WriteError,
@@ -61,6 +62,7 @@ from ..metric.evaluate import (
     mean_or_nan,
     write_maps_video,
 )
+from ..types import plural
 from .kit import (
     Parser,
     add_config_flags,
@@ -73,8 +75,11 @@ from .kit import (
 
 def write_detection_video(video: str | os.PathLike, stem: Path, geometry: Any, flow: Any, cfg: GeCoConfig) -> Path:
     """``<stem>.detection.mp4``: the per-frame detection maps of every frame of ``video``
-    (:mod:`geco_guide.detection`, its defaults: a 20-frame window centred on the frame)."""
-    clip = read_frames(video, default_fps=cfg.evaluation.default_fps, min_frames=2)
+    (:mod:`geco_guide.metric.detection`, its defaults: a 20-frame window centred on the frame), the first
+    ``evaluation.max_frames`` of them when it is set."""
+    limit = cfg.evaluation.max_frames
+    first = None if limit is None else (lambda num_frames, fps: list(range(min(num_frames, limit))))
+    clip = read_frames(video, default_fps=cfg.evaluation.default_fps, min_frames=2, select=first)
     maps = detection_maps(clip.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
     (path,) = write_detection(render_detection(maps, frame_scores(maps)), stem, ["mp4"], clip.fps)
     return path
@@ -107,11 +112,41 @@ def expand_inputs(paths: list[str]) -> list[_Input]:
                 kinds = "/".join(s.lstrip(".") for s in VIDEO_SUFFIXES + IMAGE_SUFFIXES)
                 items.append(_Input(path, input_stem(path), f"folder {str(path)!r} holds no video ({kinds})"))
             items.extend(_Input(p, input_stem(p)) for p in videos)
+        elif not path.exists():
+            items.append(_Input(path, input_stem(path), "no such file or folder"))
         else:
             items.append(_Input(path, input_stem(path)))
     for item, name in zip(items, unique_names(item.name for item in items)):
         item.name = name
     return items
+
+
+def output_files(out: Path, name: str, maps: bool, detection: bool) -> list[Path]:
+    """What scoring the input ``name`` writes into ``out``."""
+    return [out / f"{name}.geco.json", *([out / f"{name}.maps.mp4"] if maps else []),
+            *([out / f"{name}.detection.mp4"] if detection else [])]
+
+
+def check_scorable(items: list[_Input]) -> None:
+    """ValueError (one line naming each input and why), before any model loads, when no input
+    can be scored (all missing, or folders without a video)."""
+    if all(item.error is not None for item in items):
+        raise ValueError("; ".join(f"{item.path}: {item.error}" for item in items))
+
+
+def check_inputs_and_outputs(items: list[_Input], out: Path, args: argparse.Namespace) -> None:
+    """ValueError (one line), before any model loads, when no input can be scored
+    (:func:`check_scorable`), or when an output is already there without ``--overwrite``
+    (another input's score of the same name, perhaps: ``b/g17.gif`` would replace the score of
+    ``a/g17.gif``)."""
+    check_scorable(items)
+    if args.overwrite:
+        return
+    for item in items:
+        taken = [p for p in output_files(out, item.name, args.maps, args.detection) if p.exists()]
+        if item.error is None and taken:
+            raise ValueError(f"{str(taken[0])!r} already exists (the score of an earlier run); pass --overwrite to "
+                             "replace it, or choose another --out folder")
 
 
 
@@ -153,7 +188,7 @@ def _write_table(out: Path, rows: list[dict[str, Any]], estimators: dict[str, st
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(
-        prog="python -m geco_guide.evaluate",
+        prog="python -m geco_guide evaluate",
         description="Score videos with GeCo (M_motion, M_struct, M_geo, Total/Mean Motion).",
     )
     p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
@@ -166,13 +201,40 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=None, help="source frame rate, overriding --model and the file's")
     p.add_argument("--out", default=None, help="output folder (default: the config's output.dir)")
     p.add_argument("--maps", action="store_true", help="also write <stem>.maps.mp4 with the heat maps")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the outputs of an earlier run in --out (without it, an existing output is an error)")
     p.add_argument("--detection", action="store_true",
                    help="also write <stem>.detection.mp4: every frame's own maps against a window of 20 frames "
-                        "around it (python -m geco_guide.detection for the window, anchor and formats)")
+                        "around it (python -m geco_guide detection for the window, anchor and formats)")
     p.add_argument("--pairs", choices=PAIR_MODES, default=None,
                    help="frame pairs per window: all (default, the paper's script: n(n-1) flow pairs for n frames), "
                         "center (2(n-1)) or adjacent (n-1)")
+    p.add_argument("--dynamic-masks", default=None, metavar="PATH|auto|TEXT",
+                   help="leave content that moves on its own out of the scores: a mask video, PNG folder or .npz "
+                        "(one video's masks), 'auto' (movers found from GeCo's own depth and flow) or text naming "
+                        "what moves (a segmenter); docs/metric.md, 'Dynamic masks'")
+    p.add_argument("--max-frames", type=int, default=None, metavar="N",
+                   help="score only the first N frames of each input (evaluation.max_frames): the motion "
+                        "statistics cover a whole clip, so a long one takes time in proportion to its length")
     return p
+
+
+def dynamic_mask_option(spec: str | None, cfg: GeCoConfig, device: Any) -> Any:
+    """``--dynamic-masks``: a mask path stays a path (each video reads the frames its protocol
+    picks), after checking that it exists; ``auto`` becomes one mask source for every input, and
+    text the segmenter of ``estimators.segmenter`` (loaded once) for its subjects."""
+    if spec is None:
+        return None
+    if looks_like_path(spec):
+        if not Path(spec).exists():
+            raise ValueError(f"--dynamic-masks {spec!r}: no such file or folder")
+        return spec
+    if spec.strip() == AUTO:
+        return mask_source(AUTO, device=device)
+    from ..estimators.segmenters import segmenter_from_spec
+
+    _progress(f"loading segmenter: {cfg.estimators.segmenter} for {spec!r} ...")
+    return segmenter_from_spec(spec, cfg.estimators.segmenter, device=device, seed=cfg.estimators.init_seed)
 
 
 def _progress(message: str) -> None:
@@ -193,18 +255,21 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("no input video given")
         if args.fps is not None and not (args.fps > 0 and math.isfinite(args.fps)):
             raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
-        cfg = config_from_args(args, overrides, {"evaluation.loss.pairs": args.pairs})
+        cfg = config_from_args(args, overrides, {"evaluation.loss.pairs": args.pairs,
+                                                 "evaluation.max_frames": args.max_frames})
         if args.model is not None:
             cfg.evaluation.fps_of_model(args.model)  # an unknown name fails before the estimators load
-        check_device(cfg.evaluation.device, "evaluation.device")
+        device = check_device(cfg.evaluation.device, "evaluation.device")  # "auto" resolved once
         out = check_output_dir(args.out if args.out is not None else cfg.output.dir)
-        _progress(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {cfg.evaluation.device}")
-        geometry, flow = load_estimators(cfg.estimators, cfg.evaluation.device)
+        items = expand_inputs(videos)
+        check_inputs_and_outputs(items, out, args)
+        dynamic = dynamic_mask_option(args.dynamic_masks, cfg, device)
+        _progress(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {device}")
+        geometry, flow = load_estimators(cfg.estimators, device)
     except (ValueError, FileNotFoundError, WriteError) as err:  # WeightsNotFoundError is a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)
         return 2
 
-    items = expand_inputs(videos)
     rows: list[dict[str, Any]] = []
     for k, item in enumerate(items, 1):
         row: dict[str, Any] = {"name": item.name, "path": str(item.path), "error": item.error}
@@ -212,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
             _progress(f"[{k}/{len(items)}] scoring {item.path}")
             try:
                 result = evaluate_video(item.path, geometry_estimator=geometry, flow_estimator=flow, config=cfg, fps=args.fps,
-                                        model=args.model, maps=args.maps,
+                                        model=args.model, maps=args.maps, dynamic_masks=dynamic,
                                         progress=lambda line, k=k: _progress(f"[{k}/{len(items)}]   {line}"))
                 json_path = write_json_atomic(out / f"{item.name}.geco.json", result.to_dict())
                 maps_note = ""
@@ -230,7 +295,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(
                     f"{item.name}: M_geo={result.fused:.4f} M_motion={result.motion:.4f} M_struct={result.structure:.4f} "
                     f"TM={result.total_motion:.2f}% MM={result.mean_motion:.2f}%/s "
-                    f"({len(result.windows)} windows at {result.sampled_fps:g} fps, source {result.fps:g} fps "
+                    f"({plural(len(result.windows), 'window')} at {result.sampled_fps:g} fps, source {result.fps:g} fps "
                     f"from {result.fps_source}) "
                     f"-> {json_path}{maps_note}"
                 )

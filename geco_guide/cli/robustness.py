@@ -1,6 +1,6 @@
-"""``python -m geco_guide.robustness``: the noise sweep of :mod:`geco_guide.bench.robustness`.
+"""``python -m geco_guide robustness``: the noise sweep of :mod:`geco_guide.bench.robustness`.
 
-    python -m geco_guide.robustness --out robustness            # CPU, offline, about a minute
+    python -m geco_guide robustness --out robustness            # CPU, offline, about a minute
 
 Every option is checked, the output folder included, and the sweep's memory predicted
 (:func:`~geco_guide.bench.robustness.sweep_memory_bytes`) before the sweep runs.
@@ -8,6 +8,7 @@ Every option is checked, the output folder included, and the sweep's memory pred
 
 from __future__ import annotations
 
+import argparse
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -33,19 +34,30 @@ def _sigmas(values: list[float], name: str) -> tuple[float, ...]:
     return tuple(sorted(values))
 
 
-@interruptible("nothing: the sweep writes its files only when it is complete")
-def main(argv: list[str] | None = None) -> int:
-    p = Parser(prog="python -m geco_guide.robustness",
+def build_parser() -> argparse.ArgumentParser:
+    p = Parser(prog="python -m geco_guide robustness",
                description="Sweep Gaussian noise on depth and flow; plot each cue's detection AP.")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--size", type=int, nargs=3, default=(9, 48, 64), metavar=("FRAMES", "H", "W"))
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--depth-sigmas", type=float, nargs="+", default=list(DEPTH_SIGMAS))
-    p.add_argument("--flow-sigmas", type=float, nargs="+", default=list(FLOW_SIGMAS))
-    p.add_argument("--pairs", choices=("all", "center", "adjacent"), default="all")
+    p.add_argument("--size", type=int, nargs=3, default=(9, 48, 64), metavar=("FRAMES", "H", "W"),
+                   help="the synthetic scene the noise is added to: frames, height, width (default: 9 48 64)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the scene's warps and occlusions and of the noise "
+                                                       "(default: 0); the same seed gives the same report")
+    p.add_argument("--depth-sigmas", type=float, nargs="+", default=list(DEPTH_SIGMAS), metavar="SIGMA",
+                   help="depth noise levels: each depth is multiplied by exp(sigma n), n ~ N(0, 1), so sigma is "
+                        f"about the relative error (default: {' '.join(f'{s:g}' for s in DEPTH_SIGMAS)})")
+    p.add_argument("--flow-sigmas", type=float, nargs="+", default=list(FLOW_SIGMAS), metavar="SIGMA",
+                   help="flow noise levels in pixels: sigma n is added to each flow vector "
+                        f"(default: {' '.join(f'{s:g}' for s in FLOW_SIGMAS)})")
+    p.add_argument("--pairs", choices=("all", "center", "adjacent"), default="all",
+                   help="frame pairs GeCo compares (default: all, the evaluation protocol's)")
     p.add_argument("--no-depth-edges", action="store_true",
                    help="keep structure pixels on depth edges (depth_edge_tau=None, the paper's behaviour)")
-    args = p.parse_args(argv)
+    return p
+
+
+@interruptible("nothing: the sweep writes its files only when it is complete")
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     out = Path(args.out)
     try:
         frames, height, width = args.size

@@ -1,9 +1,15 @@
-"""``python -m geco_guide.validate``: score built benchmarks on the paper's three detection tasks
+"""``python -m geco_guide validate``: score built benchmarks on the paper's three detection tasks
 (:mod:`geco_guide.bench.validate`).
 
-    python -m geco_guide.validate bench/synthetic-warp bench/synthetic-occlusion --oracle   # exact geometry, CPU
-    python -m geco_guide.validate bench/warp bench/occlusion                               # VGGT-1B + UFM-Base
-    python -m geco_guide.validate bench/warp --preset tiny                                 # tiny random models
+    python -m geco_guide validate bench/synthetic-warp bench/synthetic-occlusion --oracle   # exact geometry, CPU
+    python -m geco_guide validate bench/warp bench/occlusion                               # VGGT-1B + UFM-Base
+    python -m geco_guide validate bench/warp --preset tiny                                 # tiny random models
+    python -m geco_guide validate --dynamic --out validation-dynamic                       # dynamic masks vs ground truth
+
+``--dynamic`` needs no benchmark folder: it renders the synthetic scenes with objects that move on
+their own and reports, with the oracle estimators, the false positives, the artifact detection AP
+and the automatic mask's quality (:mod:`geco_guide.bench.dynamic`) in ``dynamic.json`` and
+``dynamic.md``.
 
 A clip that cannot be read or scored (a damaged ``meta.json`` or ``truth.npz``, ground truth that
 contradicts the clip) is one error line and a row of ``errors`` in the report; the others are
@@ -19,6 +25,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from ..bench.datasets import find_benchmarks, load_benchmark, oracle_clip
+from ..bench.dynamic import DynamicScenes, dynamic_validation, markdown_report
 from ..bench.validate import (
     grid_frames,
     grid_image,
@@ -42,14 +49,41 @@ from .kit import (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="python -m geco_guide.validate", description="Score benchmark clips on the paper's three detection tasks.")
-    p.add_argument("inputs", nargs="+", metavar="DIR|key=value", help="benchmark folders; key=value config overrides")
+    p = Parser(prog="python -m geco_guide validate", description="Score benchmark clips on the paper's three detection tasks.")
+    p.add_argument("inputs", nargs="*", metavar="DIR|key=value", help="benchmark folders; key=value config overrides")
     p.add_argument("--oracle", action="store_true", help="ground-truth estimators (clips built from 'synthetic')")
     add_config_flags(p)
     p.add_argument("--pairs", choices=("all", "center", "adjacent"), default=None, help="frame pairs (default: all)")
     p.add_argument("--out", default=None, help="output folder (default: <first input>/validation)")
     p.add_argument("--no-grids", action="store_true", help="skip the per-clip image grids")
+    p.add_argument("--dynamic", action="store_true",
+                   help="validate dynamic masks on synthetic scenes with moving objects (oracle estimators; no inputs)")
+    p.add_argument("--dynamic-size", type=int, nargs=3, default=None, metavar=("FRAMES", "HEIGHT", "WIDTH"),
+                   help="size of the --dynamic clips (default 9 96 128)")
     return p
+
+
+def dynamic_main(args: argparse.Namespace) -> int:
+    """``--dynamic``: the report of :func:`geco_guide.bench.dynamic.dynamic_validation`."""
+    try:
+        if args.inputs:
+            raise ValueError("--dynamic renders its own scenes: give no benchmark folder or override")
+        scenes = DynamicScenes(*args.dynamic_size) if args.dynamic_size else DynamicScenes()
+        out = check_output_dir(Path(args.out) if args.out else Path("validation-dynamic"))
+    except (ValueError, WriteError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    _progress(f"rendering and scoring the dynamic scenes ({scenes.num_frames} frames of {scenes.height}x{scenes.width})")
+    report = dynamic_validation(scenes)
+    table = markdown_report(report)
+    try:
+        write_texts_atomic({out / "dynamic.json": json_text(report), out / "dynamic.md": f"# GeCo dynamic masks (oracle)\n\n{table}"})
+    except WriteError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    print(table, end="")
+    print(f"wrote {out / 'dynamic.json'} and {out / 'dynamic.md'}")
+    return 0
 
 
 def _progress(message: str) -> None:
@@ -60,6 +94,11 @@ def _progress(message: str) -> None:
                "(grids of the clips scored so far stay in <out>/grids)")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.dynamic:
+        return dynamic_main(args)
+    if args.dynamic_size:
+        print("error: --dynamic-size needs --dynamic", file=sys.stderr)
+        return 2
     overrides, roots = split_overrides(args.inputs)
     try:
         if not roots:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..geometry import MIN_DEPTH, check_tensor, local_depth_ratio, sample_at_projection
+from ..geometry import MIN_DEPTH, check_tensor, local_depth_ratio, pixel_grid, sample_at_projection, sample_bilinear
 
 
 def safe_norm(x: Tensor, dim: int) -> Tensor:
@@ -124,3 +124,29 @@ def masked_mean(values: Tensor, valid: Tensor, dims: tuple[int, ...]) -> Tensor:
     total = (torch.where(valid, values, torch.zeros_like(values)) * weights).sum(dims)
     count = weights.sum(dims)
     return total / count.clamp_min(1.0)
+
+
+#: Bilinear weight above which a landing point touches a masked pixel: integer landings come out
+#: of the sampler's coordinate normalisation with ~1e-7 weights on their neighbours, which are no blend.
+MASK_TOUCH_WEIGHT = 1e-3
+
+
+def lands_on_mask(target_mask: Tensor, displacement: Tensor) -> Tensor:
+    """Which source pixels land on a masked target pixel.
+
+    Args:
+        target_mask: ``[B, H_t, W_t]`` bool, the target frame's dynamic mask.
+        displacement: ``[B, 2, H, W]`` where each source pixel goes, in target pixels (the
+            measured flow for the motion cue, the rigid flow, i.e. the reprojection, for the
+            structure cue).
+
+    Returns:
+        ``[B, H, W]`` bool: the landing point touches a masked pixel (any of the four a bilinear
+        sample there mixes with a weight above :data:`MASK_TOUCH_WEIGHT`), so content that moves
+        on its own never reaches a cue through a neighbour's blend.
+    """
+    check_tensor(displacement, "displacement", (target_mask.shape[0], 2, None, None))
+    height, width = displacement.shape[-2:]
+    grid = pixel_grid(height, width, device=displacement.device, dtype=displacement.dtype)
+    landing = grid + displacement.detach().permute(0, 2, 3, 1)
+    return sample_bilinear(target_mask[:, None].to(displacement.dtype), landing)[:, 0] > MASK_TOUCH_WEIGHT

@@ -12,15 +12,20 @@ adjacent pairs this is the mean over pairs of the per-pair means.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields, replace
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..geometry import check_tensor, relative_pose, resize_flow, rigid_flow
+from ..io.masks import MaskReadError, check_masks, fit_masks, read_masks
 from ..types import (
     Correspondences,
+    DynamicMaskSource,
     FlowEstimator,
     GeometryEstimator,
     OptionError,
@@ -30,11 +35,16 @@ from ..types import (
     missing_estimators,
     non_finite_fields,
 )
-from .cues import fuse_cues, masked_mean, motion_residual, structure_residual
+from .cues import fuse_cues, lands_on_mask, masked_mean, motion_residual, structure_residual
 
 PAIR_MODES = ("adjacent", "center", "all")
 CUES = ("fused", "motion", "structure")
 STRUCTURE_OCCLUSION = ("depth", "covisibility")
+
+#: With dynamic masks, a frame counts in a cue only where that cue's valid (unmasked) pixels cover
+#: at least this fraction of the frame: a score over a sliver left between masked objects is
+#: noise. Without masks every frame with any valid pixel counts, as in the paper.
+MIN_UNMASKED_FRACTION = 0.05
 
 
 @dataclass
@@ -139,7 +149,12 @@ class GeCoResult:
         frame_maps: :class:`GeCoMaps` ``[B, S, H, W]`` (frames that are no pair's source are
             all-invalid).
         frame_scores: cue name -> ``[B, S]`` mean over the frame's valid pixels.
-        frame_has_valid: cue name -> ``[B, S]`` bool, frames that count in the scalars.
+        frame_has_valid: cue name -> ``[B, S]`` bool, frames that count in the scalars (with
+            dynamic masks: valid pixels cover at least :data:`MIN_UNMASKED_FRACTION` of it).
+        dynamic_masks: ``[B, S, H, W]`` bool, the pixels left out as moving on their own, or
+            ``None`` (no masks: the paper's metric).
+        masked_fraction: ``[B, S]`` fraction of each frame's pixels masked, or ``None``.
+        mask_source: where the masks came from (``"given: masks.npz"``, ``"auto"``, ...), or ``None``.
     """
 
     loss: Tensor
@@ -151,6 +166,9 @@ class GeCoResult:
     frame_maps: GeCoMaps
     frame_scores: dict[str, Tensor]
     frame_has_valid: dict[str, Tensor]
+    dynamic_masks: Tensor | None = None
+    masked_fraction: Tensor | None = None
+    mask_source: str | None = None
 
     def scalars(self) -> dict[str, float]:
         """Plain floats: ``motion``, ``structure``, ``fused`` and ``loss``."""
@@ -226,6 +244,8 @@ def geco_from_geometry(
     correspondences: Correspondences,
     pairs: list[tuple[int, int]],
     config: GeCoLossConfig | None = None,
+    dynamic_masks: Tensor | str | os.PathLike | None = None,
+    mask_source: str | None = None,
 ) -> GeCoResult:
     """GeCo maps and scores from known geometry and correspondences (no estimator).
 
@@ -236,6 +256,14 @@ def geco_from_geometry(
             batch-major (all pairs of batch element 0 first).
         pairs: ``P`` ordered ``(source, target)`` frame indices.
         config: the options (defaults if ``None``).
+        dynamic_masks: ``[B, S, H, W]`` or ``[S, H, W]`` (every clip alike) bool, true where
+            content may move on its own, any size of the frames' aspect ratio (resized, nearest),
+            or a mask file (:func:`~geco_guide.io.masks.read_masks`). A pixel drops out of the
+            motion cue when it is masked or its flow lands on a masked pixel of the target, and
+            out of the structure cue when it is masked or its reprojection lands on one; a frame
+            counts only where :data:`MIN_UNMASKED_FRACTION` of it stays valid. ``None``: the
+            paper's metric, unchanged.
+        mask_source: what to record as the masks' source (default: ``"given"`` or the path).
 
     Returns:
         :class:`GeCoResult`.
@@ -249,6 +277,10 @@ def geco_from_geometry(
         raise ValueError(f"pairs must hold distinct frame indices in [0, {num_frames}), got {pairs}")
     check_tensor(correspondences.flow, "flow", (batch * num_pairs, 2, height, width))
     check_tensor(correspondences.covisibility, "covisibility", (batch * num_pairs, height, width))
+    masks = None
+    if dynamic_masks is not None:
+        masks, name = _given_masks(dynamic_masks, batch, num_frames, (height, width))
+        masks, mask_source = masks.to(geometry.depth.device), mask_source or name
 
     device = geometry.depth.device
     src = torch.tensor([i for i, _ in pairs], device=device)
@@ -282,6 +314,10 @@ def geco_from_geometry(
         trusted = gather(confidence_mask(confidence, config.confidence_percentile), src)
         motion_valid = motion_valid & trusted
         structure_valid = structure_valid & trusted
+    if masks is not None:
+        masked_source, masked_target = gather(masks, src), gather(masks, tgt)
+        motion_valid = motion_valid & ~masked_source & ~lands_on_mask(masked_target, _without_non_finite(flow))
+        structure_valid = structure_valid & ~masked_source & ~lands_on_mask(masked_target, rigid)
     fused, fused_valid = fuse_cues(motion, motion_valid, structure, structure_valid)
 
     def per_pair(x: Tensor) -> Tensor:
@@ -297,7 +333,10 @@ def geco_from_geometry(
     for name in CUES:
         values, valid = frame_maps.cue(name)
         frame_scores[name] = masked_mean(values, valid, dims=(-2, -1))
-        frame_has_valid[name] = valid.flatten(2).any(-1)
+        if masks is None:
+            frame_has_valid[name] = valid.flatten(2).any(-1)
+        else:
+            frame_has_valid[name] = valid.flatten(2).float().mean(-1) >= MIN_UNMASKED_FRACTION
         scalars[name] = masked_mean(frame_scores[name], frame_has_valid[name], dims=(0, 1))
     return GeCoResult(
         loss=scalars[config.cue],
@@ -309,7 +348,60 @@ def geco_from_geometry(
         frame_maps=frame_maps,
         frame_scores=frame_scores,
         frame_has_valid=frame_has_valid,
+        dynamic_masks=masks,
+        masked_fraction=None if masks is None else masks.flatten(2).float().mean(-1),
+        mask_source=mask_source,
     )
+
+
+def _given_masks(masks: Any, batch: int, num_frames: int, size: tuple[int, int]) -> tuple[Tensor, str]:
+    """A mask tensor or file -> ``([B, S, H, W] bool, source name)``, checked and resized."""
+    name = "given"
+    if isinstance(masks, (str, os.PathLike)):
+        masks, name = read_masks(masks)[0], f"given: {os.fspath(masks)}"
+    masks = fit_masks(check_masks(masks, batched=True), num_frames, size)
+    if masks.ndim == 3:
+        return masks[None].expand(batch, -1, -1, -1), name
+    if masks.shape[0] != batch:
+        raise MaskReadError(f"dynamic_masks hold {masks.shape[0]} clip(s), the frames {batch}")
+    return masks, name
+
+
+def resolve_dynamic_masks(
+    dynamic_masks: Any,
+    frames: Tensor,
+    geometry: SceneGeometry,
+    correspondences: Correspondences,
+    pairs: Sequence[tuple[int, int]],
+) -> tuple[Tensor | None, str | None]:
+    """The dynamic masks of ``frames [B, S, 3, H, W]`` and their source's name.
+
+    Args:
+        dynamic_masks: ``None``; a tensor ``[B, S, H, W]`` / ``[S, H, W]`` or a mask file (see
+            :func:`geco_from_geometry`); or a :class:`~geco_guide.types.DynamicMaskSource`, asked
+            once per clip with the clip's detached frames, geometry and correspondences.
+        frames, geometry, correspondences, pairs: what GeCo computed on the clips.
+
+    Returns:
+        ``(masks [B, S, H, W] bool | None, source name | None)``; masks carry no gradient.
+    """
+    if dynamic_masks is None:
+        return None, None
+    batch, num_frames, _, height, width = frames.shape
+    if not isinstance(dynamic_masks, DynamicMaskSource):
+        return _given_masks(dynamic_masks, batch, num_frames, (height, width))
+    num_pairs = len(pairs)
+    clips = []
+    with torch.no_grad():
+        for b in range(batch):
+            scene = SceneGeometry(**{f.name: None if getattr(geometry, f.name) is None else getattr(geometry, f.name)[b : b + 1].detach()
+                                     for f in fields(SceneGeometry)})
+            part = slice(b * num_pairs, (b + 1) * num_pairs)
+            flow = Correspondences(correspondences.flow[part].detach(), correspondences.covisibility[part].detach())
+            masks = dynamic_masks.dynamic_masks(frames[b].detach(), scene, flow, list(pairs))
+            name = f"dynamic masks ({dynamic_masks.source_name})"
+            clips.append(fit_masks(check_masks(masks, name), num_frames, (height, width), name).to(frames.device))
+    return torch.stack(clips), dynamic_masks.source_name
 
 
 def _resize_images(images: Tensor, size: tuple[int, int]) -> Tensor:
@@ -335,7 +427,10 @@ class GeCoLoss(nn.Module):
             non-finite decode then makes the scalars NaN (never a score of 0.0); its gradient is
             zero or non-finite, and ``guided_step`` moves nothing with either.
 
-    ``forward(frames [B, S, 3, H, W] in [0, 1]) -> GeCoResult``.
+    ``forward(frames [B, S, 3, H, W] in [0, 1], dynamic_masks=None) -> GeCoResult``; dynamic
+    masks (a tensor, a mask file or a :class:`~geco_guide.types.DynamicMaskSource`, see
+    :func:`resolve_dynamic_masks`) leave moving content out. In the loss an all-masked clip is
+    ``0`` with a zero gradient, as any clip without valid pixels.
     """
 
     def __init__(
@@ -382,13 +477,17 @@ class GeCoLoss(nn.Module):
         covisibility = _resize_images(result.covisibility[:, None], (height, width))[:, 0]
         return Correspondences(flow=flow, covisibility=covisibility)
 
-    def forward(self, frames: Tensor) -> GeCoResult:
-        """Raises ValueError for frames that are not finite or not in [0, 1] (see ``check_values``)."""
+    def forward(self, frames: Tensor, dynamic_masks: Any = None) -> GeCoResult:
+        """Raises ValueError for frames that are not finite or not in [0, 1] (see ``check_values``)
+        and MaskReadError (a ValueError) for dynamic masks of the wrong shape or not binary."""
         check_frames(frames)
         if frames.shape[1] < 2:
             raise ValueError(f"frames must hold at least 2 frames, got {frames.shape[1]}")
         if self.check_values:
             check_frame_values(frames)
+        given = None
+        if dynamic_masks is not None and not isinstance(dynamic_masks, DynamicMaskSource):
+            given = _given_masks(dynamic_masks, frames.shape[0], frames.shape[1], tuple(frames.shape[-2:]))  # before any estimator
         frames = frames.float()
         with torch.set_grad_enabled(torch.is_grad_enabled() and self.config.geometry_grad):
             geometry = self.geometry.estimate_geometry(frames)
@@ -400,7 +499,8 @@ class GeCoLoss(nn.Module):
                                             if isinstance(getattr(geometry, f.name), Tensor)})
         pairs = frame_pairs(frames.shape[1], self.config.pairs)
         correspondences = self.estimate_correspondences(frames, pairs)
-        result = geco_from_geometry(geometry, correspondences, pairs, self.config)
+        masks, source = given or resolve_dynamic_masks(dynamic_masks, frames, geometry, correspondences, pairs)
+        result = geco_from_geometry(geometry, correspondences, pairs, self.config, masks, source)
         if not self.check_values:
             _nan_unless_finite(result, frames)
         return result

@@ -1,7 +1,7 @@
 """Per-frame detection maps: where a video breaks, frame by frame (the paper code's detection demo;
 the command is :mod:`geco_guide.cli.detection`).
 
-:func:`geco_guide.evaluate.evaluate_video` scores the protocol's windows; here every frame gets
+:func:`geco_guide.metric.evaluate.evaluate_video` scores the protocol's windows; here every frame gets
 its own window of ``W`` frames (default 20) with the frame at its start, centre or end (clamped
 at the clip's ends), GeCo runs on the pairs ``frame -> each other frame of the window``, and the
 frame's motion / structure / fused maps are the means over those pairs. The structure cue checks
@@ -10,7 +10,7 @@ the target pixel it lands on to see it back), unless ``two_way=False``.
 
 Output per video: ``<out>/<stem>.detection.mp4`` / ``.gif`` and/or ``<out>/<stem>.detection/
 NNNNN.png``: source | motion | structure | fused on the fixed colour scale of
-:data:`geco_guide.video.MAP_RANGE` with a legend and the frame's scores; and
+:data:`geco_guide.metric.render.MAP_RANGE` with a legend and the frame's scores; and
 ``<out>/<stem>.detection.json`` with the per-frame scores. Written atomically.
 """
 
@@ -27,13 +27,15 @@ from PIL import Image
 from torch import Tensor
 
 from ..geometry import relative_pose, sample_at_projection
+from ..estimators.dynamic_masks import GivenMasks, mask_source
 from ..io.files import write_bytes_atomic
+from ..io.masks import fit_masks
 from ..io.video import check_fps, write_video
 from ..loss.cues import fuse_cues, masked_mean, structure_residual
 from ..loss.geco import GeCoLossConfig, GeCoMaps
 from ..types import SceneGeometry, check_frame_values
 from .evaluate import EvaluationMaps, score_frames
-from .render import colorbar, colorize, side_by_side, text_scale, text_strip
+from .render import colorize, hatch, map_frames, text_scale
 
 ANCHORS = ("start", "center", "end")
 FORMATS = ("mp4", "gif", "png")
@@ -69,11 +71,14 @@ def seen_back(geometry: SceneGeometry, pairs: list[tuple[int, int]], config: GeC
 
 
 def frame_maps(frames: Tensor, window: list[int], geometry: Any, flow: Any, config: GeCoLossConfig,
-               two_way: bool = True, flow_batch_size: int = 16) -> GeCoMaps:
+               two_way: bool = True, flow_batch_size: int = 16, dynamic_masks: Any = None) -> GeCoMaps:
     """Maps ``[1, H, W]`` of frame ``window[0]`` of ``frames [S, 3, H, W]`` against the other
-    frames of ``window``: the pixel-wise mean over the pairs ``window[0] -> window[k]``."""
+    frames of ``window``: the pixel-wise mean over the pairs ``window[0] -> window[k]``
+    (``dynamic_masks``: ``[S, H, W]`` bool of the whole clip, at the frames' size)."""
     pairs = [(0, k) for k in range(1, len(window))]
-    scene, result = score_frames(frames[window], geometry, flow, config, pairs, flow_batch_size)
+    if isinstance(dynamic_masks, Tensor):
+        dynamic_masks = dynamic_masks[window]
+    scene, result = score_frames(frames[window], geometry, flow, config, pairs, flow_batch_size, dynamic_masks)
     maps = result.pair_maps
     if two_way:
         structure_valid = maps.structure_valid & seen_back(scene, pairs, config)
@@ -89,18 +94,28 @@ def frame_maps(frames: Tensor, window: list[int], geometry: Any, flow: Any, conf
 @torch.no_grad()
 def detection_maps(frames: Tensor, geometry: Any, flow: Any, config: GeCoLossConfig | None = None, *,
                    window: int = 20, anchor: str = "center", two_way: bool = True,
-                   flow_batch_size: int = 16) -> EvaluationMaps:
+                   flow_batch_size: int = 16, dynamic_masks: Any = None) -> EvaluationMaps:
     """Every frame's own maps: ``frames [S, 3, H, W]`` in ``[0, 1]`` -> :class:`EvaluationMaps`
-    ``[S, H, W]`` (``window`` is capped at the clip's length)."""
+    ``[S, H, W]`` (``window`` is capped at the clip's length). ``dynamic_masks``: given masks of
+    the clip, ``[S, H, W]`` (any size of the frames' aspect ratio) or a mask file; the maps then
+    carry them, drawn striped by :func:`render_detection`. (Automatic and text masks differ per
+    window here; score with ``evaluate_video`` for them.)"""
     if frames.ndim != 4 or frames.shape[1] != 3 or frames.shape[0] < 2:
         raise ValueError(f"frames must be [S >= 2, 3, H, W], got {list(frames.shape)}")
     check_frame_values(frames)  # as evaluate_video: a NaN frame is an error, not maps of None
     config = config or GeCoLossConfig()
+    masks = None
+    if dynamic_masks is not None:  # the whole clip's masks, checked before any window
+        source = mask_source(dynamic_masks)
+        if not isinstance(source, GivenMasks):
+            raise ValueError("detection maps take given dynamic masks (a tensor or a mask file); "
+                             "automatic and text masks: use evaluate_video")
+        masks = fit_masks(source.masks, frames.shape[0], tuple(frames.shape[-2:]), f"dynamic masks ({source.source_name})")
     size = min(window, frames.shape[0])
-    per_frame = [frame_maps(frames, window_indices(frames.shape[0], t, size, anchor), geometry, flow, config,
-                            two_way, flow_batch_size) for t in range(frames.shape[0])]
+    windows = [window_indices(frames.shape[0], t, size, anchor) for t in range(frames.shape[0])]
+    per_frame = [frame_maps(frames, w, geometry, flow, config, two_way, flow_batch_size, masks) for w in windows]
     stacked = [torch.cat([getattr(m, f.name) for m in per_frame]) for f in fields(GeCoMaps)]
-    return EvaluationMaps(*stacked, frames=frames.detach().float().cpu())
+    return EvaluationMaps(*stacked, frames=frames.detach().float().cpu(), dynamic_masks=masks)
 
 
 def frame_scores(maps: EvaluationMaps) -> list[dict[str, float | None]]:
@@ -116,20 +131,20 @@ def frame_scores(maps: EvaluationMaps) -> list[dict[str, float | None]]:
 
 
 def render_detection(maps: EvaluationMaps, scores: list[dict[str, float | None]]) -> Tensor:
-    """``[S, 3, H', W']``: labelled panels source | motion | structure | fused, the legend, and a
-    line with the frame's index and scores."""
-    heat = [colorize(*maps.cue(name)) for name in PANELS]
-    grid = side_by_side([maps.frames, *heat], ["SOURCE", *(name.upper() for name in PANELS)])
-    num, _, _, width = grid.shape
+    """``[S, 3, H', W']``: labelled panels source | motion | structure | fused (enlarged to a
+    readable size: :func:`~.render.map_frames`), the legend, and a line with the frame's index and
+    scores."""
     scale = text_scale(maps.frames.shape[-2])
-    legend = colorbar(width, scale)[None].expand(num, -1, -1, -1)
+    heat = [colorize(*maps.cue(name)) for name in PANELS]
+    if maps.dynamic_masks is not None:  # left out as moving on its own: striped, not "consistent"
+        heat = [hatch(panel, maps.dynamic_masks, scale) for panel in heat]
 
     def text(value: float | None) -> str:
         return "N/A" if value is None else f"{value:.3f}"
 
-    lines = torch.stack([text_strip(f"FRAME {k} " + " ".join(f"{n.upper()} {text(row[n])}" for n in ("fused", "motion", "structure")),
-                                    width, scale) for k, row in enumerate(scores)])
-    return torch.cat((grid, legend, lines), dim=-2)
+    captions = [f"FRAME {k} " + " ".join(f"{n.upper()} {text(row[n])}" for n in ("fused", "motion", "structure"))
+                for k, row in enumerate(scores)]
+    return map_frames(maps.frames, heat, ["SOURCE", *(name.upper() for name in PANELS)], captions)
 
 
 def _uint8(frames: Tensor) -> np.ndarray:

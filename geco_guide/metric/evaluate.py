@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,8 @@ import torch
 from torch import Tensor
 
 from ..estimators import EstimatorsConfig, estimator_id, load_estimators
+from ..estimators.dynamic_masks import GivenMasks, looks_like_path, mask_source
+from ..io.masks import MaskReadError, fit_masks, read_masks
 from ..io.video import (
     VideoFrames,
     read_frames,
@@ -32,23 +35,26 @@ from ..io.video import (
 )
 from ..loss.geco import (
     CUES,
+    MIN_UNMASKED_FRACTION,
     GeCoLoss,
     GeCoLossConfig,
     GeCoMaps,
     GeCoResult,
     frame_pairs,
     geco_from_geometry,
+    resolve_dynamic_masks,
 )
 from ..loss.motion_stats import motion_statistics
-from ..types import Correspondences, SceneGeometry, check_frame_values, one_of_names
+from ..types import Correspondences, SceneGeometry, check_frame_values, one_of_names, plural
 from .protocol import (
     EvaluationConfig,
     Window,
     evaluation_windows,
     motion_grid,
     sampled_rate,
+    scoring_plan,
 )
-from .render import colorbar, colorize, side_by_side, text_scale, text_strip
+from .render import colorize, hatch, map_frames, text_scale
 
 MAP_PANELS = ("source", "motion", "structure", "fused")
 PAPER_NAMES = {
@@ -68,11 +74,13 @@ class EvaluationMaps(GeCoMaps):
         motion, structure, fused: ``[N, H, W]`` the frame maps (mean over the frame's pairs),
             with their ``*_valid`` masks, as in :class:`~geco_guide.loss.geco.GeCoMaps`.
         frames: ``[N, 3, H, W]`` the evaluated frames.
+        dynamic_masks: ``[N, H, W]`` bool, the pixels left out as moving on their own, or ``None``.
 
     ``maps[k]`` is a dict of frame ``k``'s ``frame [3, H, W]`` and maps ``[H, W]``.
     """
 
     frames: Tensor
+    dynamic_masks: Tensor | None = None
 
     def __len__(self) -> int:
         return self.frames.shape[0]
@@ -92,7 +100,7 @@ class EvaluationResult:
         motion, structure, fused: M_motion, M_struct, M_geo: means of the frame scores over
             evaluated frames with valid pixels (frame-weighted over windows); NaN if none.
         total_motion: Total Motion (%): the flow magnitude over the image diagonal, summed over
-            consecutive frames of the clip's time grid (:func:`geco_guide.video.motion_grid`).
+            consecutive frames of the clip's time grid (:func:`geco_guide.metric.protocol.motion_grid`).
         mean_motion: Mean Motion (%/s): Total Motion over the clip's duration.
         frame_scores: per evaluated frame and window ``{index, time_s, window, motion, structure,
             fused}`` (source frame index; a score is ``None`` when the frame has no valid pixel;
@@ -106,6 +114,10 @@ class EvaluationResult:
         config: the :class:`EvaluationConfig` used, as a dict.
         source: the input path, ``None`` for a tensor.
         maps: :class:`EvaluationMaps` when asked for (``maps=True``).
+        dynamic_masks: with dynamic masks, ``{source, masked_fraction, min_unmasked_fraction}``
+            (the mean masked fraction of the evaluated frames; each frame row then has its own
+            ``masked_fraction`` and, where a score is ``None`` because of the mask, a ``note``),
+            plus ``nan_reason`` when no frame kept enough unmasked pixels; ``None`` without.
     """
 
     motion: float
@@ -123,6 +135,7 @@ class EvaluationResult:
     config: dict[str, Any]
     source: str | None = None
     maps: EvaluationMaps | None = field(default=None, repr=False)
+    dynamic_masks: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (no tensors; NaN scores become ``None``)."""
@@ -141,6 +154,7 @@ class EvaluationResult:
             "frame_scores": self.frame_scores,
             "estimators": self.estimators,
             "config": self.config,
+            **({} if self.dynamic_masks is None else {"dynamic_masks": self.dynamic_masks}),
         }
 
 
@@ -181,15 +195,47 @@ def pair_correspondences(metric: GeCoLoss, frames: Tensor, pairs: list[tuple[int
 
 @torch.no_grad()
 def score_frames(frames: Tensor, geometry: Any, flow: Any, config: GeCoLossConfig,
-                 pairs: list[tuple[int, int]] | None = None, flow_batch_size: int = 16) -> tuple[SceneGeometry, GeCoResult]:
+                 pairs: list[tuple[int, int]] | None = None, flow_batch_size: int = 16,
+                 dynamic_masks: Any = None) -> tuple[SceneGeometry, GeCoResult]:
     """GeCo of one clip ``frames [S, 3, H, W]`` in ``[0, 1]`` (a batch of 1) over ``pairs``
-    (default: ``config.pairs``): one geometry call, the flow ``flow_batch_size`` pairs per call.
+    (default: ``config.pairs``): one geometry call, the flow ``flow_batch_size`` pairs per call;
+    ``dynamic_masks`` (``[S, H, W]``, a mask file or a mask source: see
+    :func:`~geco_guide.loss.geco.resolve_dynamic_masks`) leave moving content out.
     Returns the estimated geometry and the :class:`GeCoResult`."""
     device = estimator_device(geometry, flow)
     pairs = pairs if pairs is not None else frame_pairs(frames.shape[0], config.pairs)
     scene = geometry.estimate_geometry(frames[None].to(device))
     correspondences = pair_correspondences(GeCoLoss(geometry, flow, config), frames, pairs, flow_batch_size, device)
-    return scene, geco_from_geometry(scene, correspondences, pairs, config)
+    masks, source = resolve_dynamic_masks(dynamic_masks, frames[None].to(device), scene, correspondences, pairs)
+    return scene, geco_from_geometry(scene, correspondences, pairs, config, masks, source)
+
+
+def clip_mask_source(dynamic_masks: Any, clip: VideoFrames) -> Any:
+    """The dynamic-mask source of a read clip: given masks (a path or a tensor of the whole video)
+    are checked against the video's frame count and size and cut to the protocol's frames
+    (``clip.indices``), so windows and subsampling pick the same frames from masks and video;
+    ``"auto"``, text and mask sources pass through :func:`~geco_guide.estimators.dynamic_masks.mask_source`."""
+    if isinstance(dynamic_masks, (str, os.PathLike)) and looks_like_path(os.fspath(dynamic_masks)):
+        masks, count = read_masks(dynamic_masks, clip.indices)
+        if count != clip.num_frames:
+            raise MaskReadError(f"dynamic masks {os.fspath(dynamic_masks)!r} hold {count} frame(s), the video {clip.num_frames}")
+        source = GivenMasks(masks, f"given: {os.fspath(dynamic_masks)}")
+    else:
+        source = mask_source(dynamic_masks)
+        if isinstance(source, GivenMasks):
+            source = source.at(clip.indices, clip.num_frames)
+    if isinstance(source, GivenMasks):  # a size that cannot fit fails now, not after the models load
+        fit_masks(source.masks[:1], 1, tuple(clip.frames.shape[-2:]), f"dynamic masks ({source.source_name})")
+    return source
+
+
+def _mask_notes(rows: list[dict[str, Any]], result: GeCoResult) -> None:
+    """Add each frame's masked fraction, and why a score is missing where the mask took it."""
+    for k, row in enumerate(rows):
+        row["masked_fraction"] = float(result.masked_fraction[0, k])
+        if any(row[name] is None for name in CUES):
+            row["note"] = (f"scores are None where fewer than {MIN_UNMASKED_FRACTION:.0%} of the frame's pixels "
+                           "stay valid outside the dynamic mask")
 
 
 def _split_config(config: Any) -> tuple[EvaluationConfig, EstimatorsConfig]:
@@ -207,6 +253,7 @@ def _protocol_frames(cfg: EvaluationConfig) -> Callable[[int, float], list[int]]
     """The frame selector of the protocol: every window's frames and the motion grid."""
 
     def select(num_frames: int, fps: float) -> list[int]:
+        num_frames = min(num_frames, cfg.max_frames or num_frames)
         if num_frames < 2:
             return list(range(num_frames))
         windows = evaluation_windows(num_frames, fps, cfg.window_seconds, cfg.max_windows, cfg.max_fps)
@@ -236,10 +283,28 @@ def _load_frames(video: str | os.PathLike | Tensor, fps: float | None, cfg: Eval
             raise ValueError("fps (> 0) is required when video is a tensor")
         if video.shape[0] < 2:
             raise ValueError(f"video must hold at least 2 frames, got {video.shape[0]}")
+        video = video[: cfg.max_frames]
         indices = select(video.shape[0], fps)
         return VideoFrames(video.detach()[indices].float().cpu(), indices, float(fps), video.shape[0]), None
     clip = read_frames(video, fps=fps, default_fps=cfg.default_fps, select=select, min_frames=2)
-    return clip, str(video)
+    # the clip ends at max_frames: its windows and motion grid are planned on that length
+    return replace(clip, num_frames=min(clip.num_frames, cfg.max_frames or clip.num_frames)), str(video)
+
+
+def plan_text(plan: dict[str, int], num_frames: int, fps: float) -> str:
+    """One line saying what scoring a clip takes (:func:`~.protocol.scoring_plan`), before it starts."""
+    return (f"{num_frames} frames at {fps:g} fps ({num_frames / fps:.1f} s): {plural(plan['windows'], 'window')} of "
+            f"up to {plan['window_frames']} frames, motion statistics over {plan['motion_frames']} frames; "
+            f"{plan['flow_pairs']} flow-estimator pairs in all (evaluation.max_frames bounds a long clip)")
+
+
+def estimate_text(plan: dict[str, int], first_window_s: float, first_window_frames: int, pairs: str) -> str:
+    """The time left, estimated after the first window: its seconds per flow pair (the geometry
+    estimator's call included) times the pairs still to come. Rough: the motion statistics' pairs
+    have no geometry call, so it errs long."""
+    done = len(frame_pairs(first_window_frames, pairs))
+    left = (plan["flow_pairs"] - done) * first_window_s / done
+    return f"the first window took {first_window_s:.1f} s: about {left:.0f} s to go (estimated)"
 
 
 def _window_record(window: Window, rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -273,6 +338,7 @@ def evaluate_video(
     progress: Callable[[str], None] | None = None,
     geometry: Any = None,
     flow: Any = None,
+    dynamic_masks: Any = None,
 ) -> EvaluationResult:
     """GeCo scores of a video under the GeCo-Eval protocol (:class:`EvaluationConfig`).
 
@@ -299,6 +365,13 @@ def evaluate_video(
         maps: keep the per-frame maps (:class:`EvaluationMaps`) for :func:`write_maps_video`.
         progress: called with one line before each window and before the motion statistics
             (a long clip takes a while per window).
+        dynamic_masks: content that moves on its own, left out of the scores: ``None`` (the
+            paper's metric), masks of the whole video (a mask video, PNG folder or ``.npz`` path,
+            or a ``[S, H, W]`` tensor; cut to the protocol's frames), ``"auto"``, text for a
+            segmenter, or a :class:`~geco_guide.types.DynamicMaskSource` (asked per window). A
+            frame with fewer than :data:`~geco_guide.loss.geco.MIN_UNMASKED_FRACTION` of its
+            pixels valid outside the mask scores ``None`` with a note; Total / Mean Motion stay
+            unmasked (they describe the camera and the content alike).
 
     Raises:
         VideoReadError: unreadable input or fewer than 2 frames (a ValueError).
@@ -314,6 +387,7 @@ def evaluate_video(
         fps_source = clip.fps_source  # the file's rate, or default_fps for inputs without one
     # NaN pixels would score NaN (or 0.0 once masked), 0-255 frames garbage: refuse them, by index.
     check_frame_values(clip.frames, "video" if source is None else source, indices=clip.indices)
+    masks = clip_mask_source(dynamic_masks, clip)
     if geometry is None or flow is None:
         loaded = load_estimators(estimators_cfg, cfg.device)
         geometry = geometry if geometry is not None else loaded[0]
@@ -329,13 +403,24 @@ def evaluate_video(
     windows: list[dict[str, Any]] = []
     kept_maps: list[list[Tensor]] = []
     kept_frames: list[Tensor] = []
+    kept_masks: list[Tensor] = []
     planned = evaluation_windows(clip.num_frames, clip.fps, cfg.window_seconds, cfg.max_windows, cfg.max_fps)
+    plan = scoring_plan(clip.num_frames, clip.fps, cfg)
+    if progress is not None:  # before the work: a long clip's motion statistics alone take long
+        progress(plan_text(plan, clip.num_frames, clip.fps))
+    started = time.perf_counter()
     for w, window in enumerate(planned):
+        if progress is not None and w == 1:
+            progress(estimate_text(plan, time.perf_counter() - started, len(planned[0].indices), cfg.loss.pairs))
         if progress is not None:
             progress(f"window {w + 1}/{len(planned)}: {len(window.indices)} frames from "
                      f"{window.indices[0] / clip.fps:.2f} s to {window.indices[-1] / clip.fps:.2f} s")
         window_frames = frames_of(window.indices)
-        _, result = score_frames(window_frames, geometry, flow, cfg.loss, flow_batch_size=cfg.flow_batch_size)
+        window_masks = masks
+        if isinstance(masks, GivenMasks):
+            window_masks = GivenMasks(masks.masks[[position[i] for i in window.indices]], masks.source_name)
+        _, result = score_frames(window_frames, geometry, flow, cfg.loss, flow_batch_size=cfg.flow_batch_size,
+                                 dynamic_masks=window_masks)
         rows = []
         for k, index in enumerate(window.indices):
             scores = {
@@ -343,11 +428,15 @@ def evaluate_video(
                 for name in CUES
             }
             rows.append({"index": index, "time_s": index / clip.fps, "window": w, **scores})
+        if masks is not None:
+            _mask_notes(rows, result)
         frame_scores.extend(rows)
         windows.append(_window_record(window, rows))
         if maps:
             kept_maps.append([getattr(result.frame_maps, name)[0].cpu() for name in _MAP_FIELDS])
             kept_frames.append(window_frames)
+            if masks is not None:
+                kept_masks.append(result.dynamic_masks[0].cpu())
 
     if progress is not None:
         progress("motion statistics (consecutive frames)")
@@ -361,9 +450,19 @@ def evaluate_video(
     evaluation_maps = None
     if maps:
         stacked = [torch.cat(parts) if parts[0].dtype == torch.bool else torch.cat(parts).float() for parts in zip(*kept_maps)]
-        evaluation_maps = EvaluationMaps(*stacked, frames=torch.cat(kept_frames))
+        evaluation_maps = EvaluationMaps(*stacked, frames=torch.cat(kept_frames),
+                                         dynamic_masks=torch.cat(kept_masks) if kept_masks else None)
+    scores = {name: _clip_score(windows, name) for name in CUES}
+    mask_record = None
+    if masks is not None:
+        fractions = [row["masked_fraction"] for row in frame_scores]
+        mask_record = {"source": masks.source_name, "masked_fraction": mean_or_nan(fractions),
+                       "min_unmasked_fraction": MIN_UNMASKED_FRACTION}
+        if not math.isfinite(scores["fused"]):
+            mask_record["nan_reason"] = (f"no evaluated frame kept {MIN_UNMASKED_FRACTION:.0%} of its pixels valid "
+                                         "outside the dynamic mask")
     return EvaluationResult(
-        **{name: _clip_score(windows, name) for name in CUES},
+        **scores,
         total_motion=stats.total_motion,
         mean_motion=stats.mean_motion,
         frame_scores=frame_scores,
@@ -376,6 +475,7 @@ def evaluate_video(
         config=asdict(cfg),
         source=source,
         maps=evaluation_maps,
+        dynamic_masks=mask_record,
     )
 
 
@@ -390,26 +490,22 @@ def _score_text(value: float | None) -> str:
 def render_maps(result: EvaluationResult) -> Tensor:
     """The frames of the maps video: ``[N, 3, H', W']``.
 
-    Rows: labelled panels source | motion | structure | fused (:func:`side_by_side`, viridis on
-    the fixed :data:`~geco_guide.video.MAP_RANGE`, grey = no valid pixel), the legend
+    Rows: labelled panels source | motion | structure | fused (:func:`map_frames`: enlarged to a
+    readable size, viridis on
+    the fixed :data:`~geco_guide.metric.render.MAP_RANGE`, grey = no valid pixel, grey-and-white stripes
+    = left out by the dynamic mask), the legend
     (:func:`colorbar`), and a line with the frame's time and scores.
     """
     if result.maps is None:
         raise ValueError("the result holds no maps: evaluate with maps=True")
     m = result.maps
-    heat = [colorize(getattr(m, name), getattr(m, f"{name}_valid")) for name in MAP_PANELS[1:]]
-    grid = side_by_side([m.frames, *heat], [name.upper() for name in MAP_PANELS])
-    num, _, _, width = grid.shape
     scale = text_scale(m.frames.shape[-2])
-    legend = colorbar(width, scale)[None].expand(num, -1, -1, -1)
-    lines = []
-    for row in result.frame_scores:
-        text = (
-            f"T={row['time_s']:.2f}S FUSED {_score_text(row['fused'])} MOTION {_score_text(row['motion'])} "
-            f"STRUCTURE {_score_text(row['structure'])}"
-        )
-        lines.append(text_strip(text, width, scale))
-    return torch.cat((grid, legend, torch.stack(lines)), dim=-2)
+    heat = [colorize(getattr(m, name), getattr(m, f"{name}_valid")) for name in MAP_PANELS[1:]]
+    if m.dynamic_masks is not None:  # left out as moving on its own: striped, not "consistent"
+        heat = [hatch(panel, m.dynamic_masks, scale) for panel in heat]
+    captions = [f"T={row['time_s']:.2f}S FUSED {_score_text(row['fused'])} MOTION {_score_text(row['motion'])} "
+                f"STRUCTURE {_score_text(row['structure'])}" for row in result.frame_scores]
+    return map_frames(m.frames, heat, [name.upper() for name in MAP_PANELS], captions)
 
 
 def write_maps_video(result: EvaluationResult, path: str | os.PathLike) -> Path:

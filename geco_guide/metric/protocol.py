@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Optional
 
-from ..loss.geco import GeCoLossConfig
+from ..loss.geco import GeCoLossConfig, frame_pairs
 from ..loss.presets import evaluation_loss
 from ..types import OptionError
 
@@ -117,7 +118,7 @@ class EvaluationConfig:
 
     Attributes:
         window_seconds: length of an evaluation window; ``ceil(duration / window_seconds)``
-            windows of this length cover the clip, overlapping (:func:`geco_guide.video.evaluation_windows`).
+            windows of this length cover the clip, overlapping (:func:`geco_guide.metric.protocol.evaluation_windows`).
         max_windows: more windows than this are replaced by exactly ``max_windows`` equal windows
             tiling the clip (the script's ``max_windows=4``).
         max_fps: frames are sampled inside each window on a time grid at ``min(max_fps, fps)``.
@@ -130,6 +131,9 @@ class EvaluationConfig:
         loss: the metric's :class:`GeCoLossConfig`: frame pairs within a window (``all``, the
             script's; ``center``; ``adjacent``), covisibility threshold, occlusion tau,
             confidence percentile, ...; full-resolution flow input (``flow_downscale=1.0``).
+        max_frames: score only the first ``max_frames`` frames of a clip (``None``: all, the
+            protocol). Total / Mean Motion cover the whole clip, so a long clip costs time in
+            proportion to its length (:func:`scoring_plan`); this bounds it.
     """
 
     window_seconds: float = 3.0
@@ -140,8 +144,11 @@ class EvaluationConfig:
     flow_batch_size: int = 16
     device: str = "auto"
     loss: GeCoLossConfig = field(default_factory=evaluation_loss)
+    max_frames: Optional[int] = None
 
     def __post_init__(self) -> None:
+        if self.max_frames is not None and self.max_frames < 2:
+            raise OptionError("max_frames", f"must be >= 2 (GeCo compares frames), got {self.max_frames}")
         if not self.window_seconds > 0:
             raise OptionError("window_seconds", f"must be > 0, got {self.window_seconds}")
         if self.max_windows < 1:
@@ -164,3 +171,15 @@ class EvaluationConfig:
             raise ValueError(f"unknown model {name!r} for its frame rate; known: {sorted(self.model_fps)} "
                              "(add one with evaluation.model_fps.NAME=FPS, or pass --fps)")
         return float(self.model_fps[name])
+
+
+def scoring_plan(num_frames: int, fps: float, cfg: EvaluationConfig) -> dict[str, int]:
+    """What scoring a clip of ``num_frames`` at ``fps`` takes under ``cfg``: ``windows``,
+    ``window_frames`` (the largest window's), ``flow_pairs`` (the windows' frame pairs, the
+    geometry estimator running once per window, and the motion statistics' consecutive pairs: what
+    the time grows with) and ``motion_frames``. Cheap: no frame is read."""
+    windows = evaluation_windows(num_frames, fps, cfg.window_seconds, cfg.max_windows, cfg.max_fps)
+    motion = motion_grid(num_frames, fps, cfg.max_fps)
+    window_pairs = sum(len(frame_pairs(len(w.indices), cfg.loss.pairs)) for w in windows)
+    return {"windows": len(windows), "window_frames": max(len(w.indices) for w in windows),
+            "flow_pairs": window_pairs + len(motion) - 1, "motion_frames": len(motion)}

@@ -1,7 +1,9 @@
 """Rendering GeCo maps so a person reads them right: :func:`colorize` (viridis over the FIXED
 range :data:`MAP_RANGE`, so maps of different videos are comparable), :func:`colorbar` (its legend
 with tick labels), :func:`draw_text` / :func:`text_strip` (Pillow's default font, sized by
-:func:`text_scale`) and :func:`side_by_side` (labelled panels). Frames are ``[S, 3, H, W]`` in ``[0, 1]``."""
+:func:`text_scale`), :func:`side_by_side` (labelled panels) and :func:`map_frames` (the maps
+enlarged to a readable size, labelled, with the legend and a caption per frame). Frames are
+``[S, 3, H, W]`` in ``[0, 1]``."""
 
 from __future__ import annotations
 
@@ -157,48 +159,114 @@ def label_height(scale: int) -> int:
     return height + height % 2
 
 
-def text_strip(text: str, width: int, scale: int) -> Tensor:
+def fitting_size(text: str, width: int, scale: int) -> int:
+    """The font size in pixels a :func:`text_strip` of ``width`` draws ``text`` at: ``FONT_SIZE *
+    scale``, or smaller (down to :data:`MIN_FONT_SIZE`) where the line would not fit."""
+    size = FONT_SIZE * scale
+    while _coverage(text, size).shape[1] > width - 4 * scale and size > MIN_FONT_SIZE:
+        size -= 1
+    return size
+
+
+def text_strip(text: str, width: int, scale: int, size: int | None = None) -> Tensor:
     """``[3, label_height(scale), width]``: one line of white ``text`` on black, left-aligned.
 
-    A line too long for the width is drawn smaller (down to :data:`MIN_FONT_SIZE` pixels) on the
-    same baseline; what still does not fit is cut at the right border.
+    A line too long for the width is drawn smaller (:func:`fitting_size`) on the same baseline;
+    what still does not fit is cut at the right border. ``size`` (pixels, at most ``FONT_SIZE *
+    scale``) draws it at that size instead: headings of one row share one.
     """
-    margin, size = 2 * scale, FONT_SIZE * scale
-    mask = text_mask(text, scale)
-    while mask.shape[1] > width - 2 * margin and size > MIN_FONT_SIZE:
-        size -= 1
-        mask = _coverage(text, size)
+    margin, size = 2 * scale, fitting_size(text, width, scale) if size is None else size
+    mask = _coverage(text, size)
     strip = torch.zeros(3, label_height(scale), width)
     baseline = scale + _ascent(FONT_SIZE * scale)
     return _blend(strip, mask, margin, baseline - _ascent(size), (1.0, 1.0, 1.0))
 
 
+def colorbar_ticks(width: int, scale: int = 1, value_range: tuple[float, float] = MAP_RANGE,
+                   ticks: int = 5) -> tuple[tuple[int, int], list[tuple[int, str, int]]]:
+    """Where :func:`colorbar` draws its bar and ticks: ``((left, right), [(x, label, label_left), ...])``
+    (the bar spans columns ``[left, right)``; a tick at column ``x`` has its label's box from
+    ``label_left``, ``text_mask(label, scale).shape[1]`` wide). ``ticks`` evenly spaced ticks, or
+    fewer (3, then both ends) where their labels would come closer than the width of a digit; none
+    where even the two ends would, or the bar does not fit."""
+    margin, gap = 2 * scale, text_mask("0", scale).shape[1]
+    low, high = value_range
+    swatch_end = margin + text_mask("N/A", scale).shape[1]
+    left = swatch_end + gap + text_mask(f"{low:g}", scale).shape[1] // 2 + 1  # "0" a digit clear of "N/A"
+    top_label = f"{high:g}+"
+    right = width - margin - text_mask(top_label, scale).shape[1] // 2  # room for the last label
+    if right - left < 2:
+        return (left, left), []
+    for count in dict.fromkeys(n for n in (ticks, 3, 2) if 2 <= n <= ticks):
+        placed: list[tuple[int, str, int]] = []
+        end = swatch_end
+        for k in range(count):
+            x = left + round(k * (right - left - 1) / (count - 1))
+            label = f"{low + (high - low) * k / (count - 1):g}" + ("+" if k == count - 1 else "")
+            label_w = text_mask(label, scale).shape[1]
+            label_left = min(max(0, x - label_w // 2), width - label_w)
+            if label_left < end + gap:
+                break
+            placed.append((x, label, label_left))
+            end = label_left + label_w
+        else:
+            return (left, right), placed
+    return (left, right), []
+
+
 def colorbar(width: int, scale: int = 1, value_range: tuple[float, float] = MAP_RANGE, ticks: int = 5) -> Tensor:
     """Legend of :func:`colorize`: ``[3, h, width]`` (``h`` even), a grey ``N/A`` swatch (invalid
-    pixels), then the colour bar over ``value_range`` with ``ticks`` labelled ticks; the last
-    reads ``0.2+`` because larger values are clipped to its colour. Labels are as in a
-    :func:`text_strip` under the bar."""
+    pixels), then the colour bar over ``value_range`` with up to ``ticks`` labelled ticks
+    (:func:`colorbar_ticks`: labels never touch); the last reads ``0.2+`` because larger values are
+    clipped to its colour. Labels are as in a :func:`text_strip` under the bar."""
     margin, bar_h, tick_h = 2 * scale, 4 * scale, 2 * scale
     text_y = margin + bar_h + tick_h + scale  # the line's place in a text strip under the bar
     legend = torch.zeros(3, margin + bar_h + tick_h + label_height(scale), width)
     swatch_w = text_mask("N/A", scale).shape[1]
     legend[:, margin : margin + bar_h, margin : margin + swatch_w] = torch.tensor(INVALID_COLOR)[:, None, None]
     legend = draw_text(legend, "N/A", margin, text_y, scale)
-    left = 2 * margin + swatch_w + 4 * scale
-    right = width - margin - text_mask("0.2+", scale).shape[1] // 2  # room for the last label
+    (left, right), placed = colorbar_ticks(width, scale, value_range, ticks)
     if right - left < 2:
         return legend
-    low, high = value_range
-    ramp = torch.linspace(low, high, right - left)
-    legend[:, margin : margin + bar_h, left:right] = colorize(ramp[None])
-    for k in range(ticks):
-        value = low + (high - low) * k / (ticks - 1)
-        x = left + round(k * (right - left - 1) / (ticks - 1))
+    ramp = torch.linspace(*value_range, right - left)
+    legend[:, margin : margin + bar_h, left:right] = colorize(ramp[None], value_range=value_range)
+    for x, label, label_left in placed:
         legend[:, margin + bar_h : margin + bar_h + tick_h, x : x + scale] = 1.0
-        label = f"{value:g}" + ("+" if k == ticks - 1 else "")
-        label_w = text_mask(label, scale).shape[1]
-        legend = draw_text(legend, label, min(max(0, x - label_w // 2), width - label_w), text_y, scale)
+        legend = draw_text(legend, label, label_left, text_y, scale)
     return legend
+
+
+#: Panels lower than this are enlarged for a person to read (:func:`enlarge`): a 32x48 clip's maps
+#: would be 204 pixels wide with its labels shrunk to the smallest font.
+READABLE_HEIGHT = 192
+
+
+def enlarge(frames: Tensor, min_height: int = READABLE_HEIGHT) -> Tensor:
+    """``frames [..., H, W]`` enlarged by the smallest whole factor that makes them at least
+    ``min_height`` high (nearest: every pixel becomes a square block, no value is blended; factor 1
+    for frames already as high)."""
+    factor = max(1, math.ceil(min_height / frames.shape[-2]))
+    if factor == 1:
+        return frames
+    return frames.repeat_interleave(factor, -2).repeat_interleave(factor, -1)
+
+
+def map_frames(frames: Tensor, heat: list[Tensor], labels: list[str], captions: list[str]) -> Tensor:
+    """The frames of a maps video or detection picture: ``[S, 3, H', W']``.
+
+    ``frames [S, 3, H, W]`` and the colourised maps ``heat`` (each ``[S, 3, H, W]``), enlarged to a
+    readable height (:func:`enlarge`) and labelled side by side (``labels``, one per panel), the
+    colour scale (:func:`colorbar`) under them, then one caption line per frame (``captions``).
+    """
+    if len(captions) != frames.shape[0]:
+        raise ValueError(f"need one caption per frame, got {len(captions)} for {frames.shape[0]} frames")
+    panels = [enlarge(panel.detach().float().cpu()) for panel in (frames, *heat)]
+    grid = side_by_side(panels, labels)
+    num, _, _, width = grid.shape
+    scale = text_scale(panels[0].shape[-2])
+    legend = colorbar(width, scale)[None].expand(num, -1, -1, -1)
+    lines = torch.stack([text_strip(caption, width, scale) for caption in captions])
+    return torch.cat((grid, legend, lines), dim=-2)
 
 
 def panel_layout(sizes: list[tuple[int, int]]) -> tuple[tuple[int, int], list[tuple[int, int, int, int]]]:
@@ -224,7 +292,7 @@ def side_by_side(videos: list[Tensor], labels: list[str]) -> Tensor:
 
     Panels are resized (bilinear) to the tallest height keeping their aspect ratio; a shorter
     video holds its last frame, so ``S = max S_i``. Each label is drawn above its panel
-    (:func:`text_strip`). Layout: :func:`panel_layout`.
+    (:func:`text_strip`), all at one size. Layout: :func:`panel_layout`.
     """
     if not videos or len(videos) != len(labels):
         raise ValueError(f"need one label per video, got {len(videos)} videos and {len(labels)} labels")
@@ -244,8 +312,27 @@ def side_by_side(videos: list[Tensor], labels: list[str]) -> Tensor:
         panels.append(video.clamp(0, 1))
     (total_h, total_w), boxes = panel_layout([tuple(p.shape[-2:]) for p in panels])
     scale = text_scale(height)
+    # one size for every heading: the largest at which each fits over its panel
+    size = min(fitting_size(label, w, scale) for label, (_, _, _, w) in zip(labels, boxes))
     out = torch.zeros(num_frames, 3, total_h, total_w)
     for panel, label, (top, left, h, w) in zip(panels, labels, boxes):
-        out[:, :, :top, left : left + w] = text_strip(label, w, scale)
+        out[:, :, :top, left : left + w] = text_strip(label, w, scale, size)
         out[:, :, top : top + h, left : left + w] = panel
     return out
+
+
+#: Period in pixels (at text scale 1) of the stripes over pixels a dynamic mask left out.
+HATCH_PERIOD = 6
+
+
+def hatch(images: Tensor, mask: Tensor, scale: int = 1) -> Tensor:
+    """``images [..., 3, H, W]`` with diagonal grey-and-white stripes where ``mask [..., H, W]``:
+    pixels a dynamic mask left out, drawn so nobody reads them as consistent (plain grey means
+    "no valid pixel", a colour a score)."""
+    height, width = images.shape[-2:]
+    rows = torch.arange(height, device=images.device)[:, None]
+    cols = torch.arange(width, device=images.device)[None, :]
+    period = HATCH_PERIOD * max(1, scale)
+    stripe = ((rows + cols) % period) < period // 2  # [H, W]
+    pattern = torch.where(stripe, images.new_tensor(0.85), images.new_tensor(INVALID_COLOR[0]))
+    return torch.where(mask.to(images.device).bool()[..., None, :, :], pattern, images)

@@ -1,0 +1,92 @@
+"""The automatic dynamic masks: Kabsch, connected regions, movers found, deformations left in."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from geco_guide.bench.synthetic import inject_deformation, moving_clip, rigid_clip
+from geco_guide.estimators.motion_masks import MotionMasks, connected_regions, dilate, kabsch, splat
+from geco_guide.loss.geco import frame_pairs
+from geco_guide.types import DynamicMaskSource, OptionError
+
+
+def _rotation(axis, angle):
+    axis = torch.tensor(axis, dtype=torch.float64)
+    axis = axis / axis.norm()
+    k = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=torch.float64)
+    return torch.eye(3, dtype=torch.float64) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
+
+
+def test_kabsch_recovers_a_rigid_motion_in_float64():
+    generator = torch.Generator().manual_seed(0)
+    points = torch.randn(50, 3, generator=generator, dtype=torch.float64)
+    rotation, translation = _rotation((1.0, 2.0, -0.5), 0.7), torch.tensor([0.3, -1.0, 2.0], dtype=torch.float64)
+    moved = points @ rotation.T + translation
+    fitted_r, fitted_t = kabsch(points, moved)
+    assert torch.allclose(fitted_r, rotation, atol=1e-12) and torch.allclose(fitted_t, translation, atol=1e-12)
+    assert torch.linalg.det(fitted_r) == pytest.approx(1.0, abs=1e-12)
+    # A mirror image is no rotation: Kabsch still returns one (det +1).
+    mirrored = points * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)
+    assert torch.linalg.det(kabsch(points, mirrored)[0]) == pytest.approx(1.0, abs=1e-12)
+    # Weights: outliers with weight 0 do not move the fit.
+    noisy = moved.clone()
+    noisy[:5] += 10.0
+    weights = torch.ones(50, dtype=torch.float64)
+    weights[:5] = 0
+    assert torch.allclose(kabsch(points, noisy, weights)[0], rotation, atol=1e-12)
+
+
+def test_connected_regions_dilate_and_splat():
+    mask = torch.zeros(6, 7, dtype=torch.bool)
+    mask[0:2, 0:2] = True
+    mask[2, 2] = True  # diagonal neighbour: same region (8-connected)
+    mask[4:6, 5:7] = True
+    labels = connected_regions(mask)
+    assert labels[0, 0] == labels[2, 2] != labels[5, 6]
+    assert len(labels[mask].unique()) == 2 and (labels[~mask] == 0).all()
+    assert int(dilate(mask[None], 1)[0].sum()) > int(mask.sum()) and torch.equal(dilate(mask, 0), mask)
+    flow = torch.zeros(2, 6, 7, dtype=torch.float64)
+    flow[0] = 1.0  # everything moves one pixel right
+    carried = splat(mask, flow)
+    assert carried[0, 1] and carried[0, 2] and not carried[0, 0]
+
+
+@pytest.fixture(scope="module")
+def moving():
+    return moving_clip(5, 48, 64)
+
+
+@pytest.mark.parametrize("mode", ["adjacent", "all"])
+def test_auto_masks_find_the_moving_boxes(moving, mode):
+    pairs = frame_pairs(5, mode)
+    source = MotionMasks()
+    assert isinstance(source, DynamicMaskSource)
+    masks = source.dynamic_masks(moving.frames, moving.geometry(torch.float64), moving.pair_correspondences(pairs, torch.float64), pairs)
+    truth = moving.dynamic_mask
+    assert masks.shape == truth.shape and masks.dtype == torch.bool
+    assert int((masks & truth).sum()) / int((masks | truth).sum()) >= 0.75
+    again = MotionMasks().dynamic_masks(moving.frames, moving.geometry(torch.float64), moving.pair_correspondences(pairs, torch.float64), pairs)
+    assert torch.equal(masks, again)  # seeded RANSAC
+
+
+def test_auto_masks_leave_deformations_and_still_scenes_alone(moving):
+    pairs = frame_pairs(5, "adjacent")
+    still = rigid_clip(5, 48, 64)
+    nothing = MotionMasks().dynamic_masks(still.frames, still.geometry(torch.float64), still.pair_correspondences(pairs, torch.float64), pairs)
+    assert not nothing.any()
+    warped = inject_deformation(still, amplitude=3.0, seed=1)
+    assert warped.residual_displacement(0, 1).max() > 2.0  # the warp moves pixels well above the threshold
+    masks = MotionMasks().dynamic_masks(warped.frames, warped.geometry(torch.float64), warped.pair_correspondences(pairs, torch.float64), pairs)
+    assert int((masks & warped.mask).sum()) < 0.1 * int(warped.mask.sum())
+
+
+def test_auto_masks_need_geometry_and_flow_and_check_options(moving):
+    with pytest.raises(ValueError, match="need GeCo's geometry, flow and pairs"):
+        MotionMasks().dynamic_masks(moving.frames)
+    for key, value in (("min_residual_px", 0.0), ("min_inliers", 1.5), ("iterations", 0), ("dilation", -2),
+                       ("rigid_tolerance", math.nan)):
+        with pytest.raises(OptionError, match=f"^{key} must be"):
+            MotionMasks(**{key: value})
