@@ -207,7 +207,10 @@ def run_plans(args: argparse.Namespace) -> None:
 def run_decoder_agreement(args: argparse.Namespace) -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
-    report = decoder_agreement(args.cfg, args.prompt, sys.argv[1:])
+    try:
+        report = decoder_agreement(args.cfg, args.prompt, sys.argv[1:])
+    except (ValueError, FileNotFoundError) as err:  # a checkpoint that is not there or not readable
+        fail(str(err))
     print(agreement_table(report))
     if args.json:
         write_report(args.json, report)
@@ -286,14 +289,18 @@ def build_parser() -> argparse.ArgumentParser:
     geval.add_argument("--fps", type=positive_float, default=16.0, help="its native frame rate (default: 16, CogVideoX)")
     geval.add_argument("--height", type=positive_int, default=32, help="height of the tiny run (default: 32)")
     geval.add_argument("--width", type=positive_int, default=48, help="width of the tiny run (default: 48)")
-    geval.add_argument("--pairs", nargs="+", choices=PAIR_MODES, default=["all", "center", "adjacent"])
+    geval.add_argument("--pairs", nargs="+", choices=PAIR_MODES, default=["all", "center", "adjacent"],
+                       help="the frame pairs of each window to estimate, one row each (default: all center adjacent)")
     geval.add_argument("--videos", type=positive_int, default=320, help="videos per model (default: 320 = 80 prompts x 4 seeds)")
     geval.add_argument("--threads", type=positive_int, default=None, help="torch.set_num_threads")
     geval.add_argument("--seed", type=int, default=0, help="seed of the random clip (default: 0)")
     geval.add_argument("--json", metavar="PATH", help="also write the report as JSON to PATH")
 
-    worker = sub.add_parser("worker", help="internal: run one case given as JSON, print its result as JSON")
-    worker.add_argument("spec")
+    # internal: one case in its own process (no help= entry: it stays out of --help)
+    public = list(sub.choices)
+    worker = sub.add_parser("worker", description="internal: run one case given as JSON, print its result as JSON")
+    worker.add_argument("spec", help="the case, as JSON")
+    sub.metavar = "{" + ",".join(public) + "}"
     return parser
 
 

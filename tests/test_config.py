@@ -146,6 +146,9 @@ def test_undecodable_file_is_called_not_utf8(tmp_path: Path):
         ("sampling: [1]\n", "sampling", "a mapping of options", "[1]", "[1]"),
         ("evaluation:\n  model_fps: 5\n", "evaluation.model_fps", "a mapping", "5", "5"),
         ("guidance:\n  anchors: {a: 1}\n", "guidance.anchors", "a list", "{'a': 1}", "{a: 1}"),
+        ("guidance:\n  anchors: \"4,8\"\n", "guidance.anchors", "a list", "'4,8'", '"4,8"'),
+        ("guidance:\n  anchors: 12\n", "guidance.anchors", "a list", "12", "12"),
+        ("guidance:\n  time_travel: 15\n", "guidance.time_travel", "a list", "15", "15"),
     ],
 )
 def test_a_section_or_list_given_another_kind_of_value_is_named(tmp_path: Path, text, key, expected, shown, override):
@@ -161,3 +164,44 @@ def test_a_section_or_list_given_another_kind_of_value_is_named(tmp_path: Path, 
 def test_config_path_that_is_a_folder_is_called_a_folder(tmp_path: Path):
     with pytest.raises(ValueError, match=r"is a folder, not a config file$"):
         load_config(tmp_path)
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"anchors": [4.7, 8.9, 12, 16]}, "anchors must hold integers only, e.g. [12, 24, 36, 48], got 4.7 in"),
+    ({"anchors": "4,8"}, "anchors must be a list of integers, e.g. [12, 24, 36, 48], got '4,8'"),
+    ({"anchors": [4, True]}, "anchors must hold integers only"),
+    ({"eta": "3"}, "eta must be a number, got '3'"),
+    ({"grad_eps": None}, "grad_eps must be a number, got None"),
+    ({"memory_budget_gb": "8"}, "memory_budget_gb must be a number of GiB (or null: the device's memory), got '8'"),
+    ({"chunk_latents": 2.5}, "chunk_latents must be an integer, got 2.5"),
+    ({"time_travel": [15.5, 20]}, "time_travel must hold integers only, e.g. [15, 20], got 15.5"),
+    ({"enabled": "false"}, "enabled must be true or false, got 'false'"),
+    ({"vae_block_checkpointing": 1}, "vae_block_checkpointing must be true, false or null, got 1"),
+])
+def test_guidance_options_of_the_wrong_type_are_one_line_naming_the_key(changes, message):
+    """A float anchor would be truncated to another frame; a string step size would fail deep in a call."""
+    from geco_guide.sampler.hooks import attach_geco_guidance
+    from geco_guide.tiny import tiny_estimators, tiny_wan_pipeline
+
+    with pytest.raises(ValueError, match=re.escape(message)):
+        GuidanceConfig(**changes)
+    geometry, flow = tiny_estimators(0)
+    with pytest.raises(ValueError, match=f"^guidance: {re.escape(message)}"):  # the hook's dict, before any call
+        attach_geco_guidance(tiny_wan_pipeline(0), changes, geometry=geometry, flow=flow)
+
+
+def test_numbers_of_other_numeric_types_are_taken_as_they_are():
+    import numpy as np
+
+    config = GuidanceConfig(anchors=[np.int64(4), 8], eta=2, memory_budget_gb=np.float32(8.0), time_travel=(1, 2))
+    assert config.anchors == [4, 8] and config.eta == 2 and config.time_travel == (1, 2)
+    assert load_config(preset="tiny", overrides=["guidance.eta=2"]).guidance.eta == 2.0
+
+
+def test_a_float_anchor_in_a_config_is_refused_not_truncated(tmp_path: Path):
+    path = tmp_path / "c.yaml"
+    path.write_text("guidance:\n  anchors: [4.7, 8.9, 12, 16]\n")
+    with pytest.raises(ValueError, match=r"guidance.anchors\[0\].*4.7"):
+        load_config(path)
+    with pytest.raises(ValueError, match=r"guidance.anchors\[0\].*4.7"):
+        load_config(preset="tiny", overrides=["guidance.anchors=[4.7,8.9,12,16]"])

@@ -258,6 +258,20 @@ def test_compile_wraps_the_decoder_once_for_every_step(monkeypatch, fresh_compil
     assert instance_forwards(vae) == []
 
 
+def test_compiling_says_so_once_before_the_first_compiled_call(monkeypatch, fresh_compile_cache, caplog):
+    """Compiling takes minutes on a CPU: one line says it is under way, not one per call."""
+    recording = RecordingCompile()
+    monkeypatch.setattr(torch, "compile", recording)
+    decoder = tiny_guidance_decoder().requires_grad_(False)
+    latents = torch.randn(1, 3, 4, 4, 6, generator=torch.Generator().manual_seed(2))
+    with caplog.at_level("WARNING", logger="geco_guide.sampler.fast_decode"):
+        for _ in range(2):
+            with guidance_decode(GuidanceConfig(decoder="tiny", compile=True), vae=None, guidance_decoder=decoder):
+                decoder.decode(latents)
+    said = [r.getMessage() for r in caplog.records if "compiling the guidance decode" in r.getMessage()]
+    assert len(said) == 1 and "minutes" in said[0] and recording.calls == 2
+
+
 def test_compile_wraps_the_tiny_decoder(monkeypatch, fresh_compile_cache):
     recording = RecordingCompile()
     monkeypatch.setattr(torch, "compile", recording)

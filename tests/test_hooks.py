@@ -207,6 +207,15 @@ def test_bad_calls_are_rejected_before_any_denoising_step(family, changes, call,
     assert counter.n == 0
 
 
+def test_a_plain_dict_on_a_short_video_says_to_set_the_anchors_and_where(estimators):
+    pipe = T.tiny_wan_pipeline(0)  # 17 frames: the default anchors (12, 24, 36, 48) do not fit
+    with attach_geco_guidance(pipe, {"eta": 2.0}, geometry_estimator=estimators[0], flow_estimator=estimators[1]):
+        with pytest.raises(ValueError) as err:
+            run(pipe, num_frames=17)
+    assert str(err.value) == ("anchors [24, 36, 48] are out of range for a 17-frame video: set anchors "
+                              "(guidance.anchors) to frames in 1..16, e.g. [4, 8, 12, 16] (the quarter points)")
+
+
 def test_unsupported_pipelines_get_a_clear_error(estimators):
     from diffusers import DiffusionPipeline
 

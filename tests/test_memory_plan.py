@@ -374,6 +374,20 @@ def test_a_command_line_can_check_the_budget_before_loading():
     assert plan_before_loading(off, "THUDM/CogVideoX-5b", 49, 480, 720, "cpu") is None
 
 
+@pytest.mark.parametrize("frames, height, width, bad", [
+    (0, 480, 720, "frames=0"), (49, -32, 720, "height=-32"), (49, 480, 0, "width=0"), (49, 480.5, 720, "height=480.5"),
+    (True, 480, 720, "frames=True"),
+])
+@pytest.mark.parametrize("enabled", [True, False])
+def test_a_video_size_no_video_has_is_refused_before_any_plan(frames, height, width, bad, enabled):
+    from geco_guide.sampler.memory_plan import plan_before_loading
+
+    guidance = GuidanceConfig(enabled=enabled)
+    with pytest.raises(ValueError, match=rf"^a memory plan needs a video size of positive integers: {bad} ") as err:
+        plan_before_loading(guidance, "THUDM/CogVideoX-5b", frames, height, width, "cpu")
+    assert "\n" not in str(err.value)
+
+
 def test_the_shipped_estimates_are_what_the_cost_model_traces_now():
     """One plan of the tiny models traced again gives the shipped numbers (regenerate the file
     with `scripts/benchmark.py plans` when this fails)."""

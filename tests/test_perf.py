@@ -326,6 +326,7 @@ def test_cost_report_tiny(tmp_path: Path) -> None:
                            "--threads", "1", "--json", str(path)], check=False, capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr
+    assert "kept in float32" not in proc.stderr  # diffusers' warning about an empty list of modules
     report = json.loads(path.read_text())
     assert {"mode", "flops_unguided", "flops_guided", "flops_ratio_guided_over_unguided", "peak_memory_gb",
             "per_stage", "settings"} <= set(report)
@@ -339,6 +340,53 @@ def test_cost_report_tiny(tmp_path: Path) -> None:
     for name in ("anchor_decode", "vggt", "ufm"):
         assert stages[name]["count"] == 5 and stages[name]["flops_forward"] > 0 and stages[name]["flops_backward"] > 0
     assert sum(s["flops"] for s in stages.values()) == report["flops_guided"]
+
+
+def test_casting_a_model_warns_only_about_float32_modules_it_has() -> None:
+    """diffusers warns at every cast about modules to keep in float32, also when there are none:
+    ``cast_model`` skips that empty warning and keeps the real one."""
+    import logging
+
+    from diffusers.utils import logging as dlogging
+
+    from geco_guide.sampler.loading import cast_model
+    from geco_guide.tiny import tiny_cogvideox_components
+
+    said: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: said.append(record.getMessage())
+    logger, level = logging.getLogger("diffusers.models.modeling_utils"), dlogging.get_verbosity()
+    logger.addHandler(handler)
+    dlogging.set_verbosity_warning()
+    try:
+        vae = tiny_cogvideox_components(0)["vae"]
+        assert not vae._keep_in_fp32_modules
+        assert cast_model(vae, torch.bfloat16) is vae and next(vae.parameters()).dtype == torch.bfloat16
+        assert not said
+        vae._keep_in_fp32_modules = ["decoder"]
+        cast_model(vae, torch.float32)
+        assert len(said) == 1 and "kept in float32: ['decoder']" in said[0]
+    finally:
+        logger.removeHandler(handler)
+        dlogging.set_verbosity(level)
+
+
+def test_cost_time_scales_with_the_traced_size() -> None:
+    """The efficiency comes from the measured size whatever size is traced: a 9x16x16 video
+    predicts a fraction of the 49x480x720 run's unguided time (not the measured step's 50 x 1.78 s),
+    and the tiny models' plan times stay below the full-size model's."""
+    small = cost.cost_settings(preset="full", steps=None, frames=9, height=16, width=16, dtype=None)
+    assert not cost.at_calibration_size(small)
+    report = cost.cost_report(small, "unguided")
+    efficiency = cost.calibration_call_roofline_s() / cost.H200_UNGUIDED_STEP_S
+    assert report["roofline"]["efficiency"] == pytest.approx(efficiency)
+    measured_run = cost.NOMINAL_STEPS * cost.H200_UNGUIDED_STEP_S
+    assert report["roofline"]["wall_time_s"]["H200"]["unguided"] < 0.1 * measured_run
+
+    plans = json.loads((Path(cost.__file__).parents[1] / "sampler" / "data" / "memory_plans.json").read_text())
+    times = {model: [plan["time_s"] for table in entry["estimates"].values() for plan in table.values()]
+             for model, entry in plans["models"].items()}
+    assert max(times["tiny"]) < min(times["cogvideox-5b"])
 
 
 def test_geco_eval_cost_counts_the_estimator_calls_of_each_pair_mode(tmp_path: Path):
@@ -424,6 +472,9 @@ def _refused(cli, monkeypatch, capsys, argv: list[str]) -> str:
      "without --vae-checkpointing, --estimator-checkpointing"),
     (["plans", "--models", "cogvideox-2b"], "--models: invalid choice"),
     (["plans", "--threads", "0"], "--threads: must be >= 1"),
+    (["cost", "--height", "30", "--width", "30"], "--height must be a multiple of 16, got 30"),
+    (["sampling", "--width", "40"], "--width must be a multiple of 16, got 40"),
+    (["vae", "--height", "30"], "--height must be a multiple of 8, got 30"),
 ])
 def test_bad_option_is_one_error_line_before_any_work(cli, monkeypatch, capsys, argv, expected):
     assert expected in _refused(cli, monkeypatch, capsys, argv)

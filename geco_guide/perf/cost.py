@@ -7,12 +7,14 @@ backward) the FLOPs (``torch.utils.flop_counter`` formulas), bytes moved, ATen o
 memory. :func:`count_schedule_calls` drives the real :func:`~geco_guide.sampler.step.guided_step`
 with counting stubs over the schedule; :func:`whole_run_costs` combines units and counts, and
 :func:`cost_report` adds a roofline time on the cards of :data:`GPU_SPECS` with one efficiency
-calibrated on the measured unguided H200 step. :func:`compare_with_measured` sets it against a
+calibrated on the measured unguided H200 step (always at the size that was measured, so that a
+smaller video predicts less time). :func:`compare_with_measured` sets it against a
 ``sampling`` report.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 import weakref
@@ -32,7 +34,6 @@ from ..sampler.memory_plan import model_signature
 from ..sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
 from ..sampler.slicing import default_anchors
 from ..sampler.step import Update, guided_step, loss_terms
-from ..tiny import tiny_guidance_config
 from .measure import GIB, environment_info
 from .models import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_cost_pipeline, model_bytes
 from .profile import call_marking_backward
@@ -56,6 +57,9 @@ GPU_SPECS: dict[str, dict[str, float]] = {
 #: Measured on the H200 (docs/benchmarks/sampling_full_h200_*.json): one unguided CFG step of the
 #: CogVideoX-5B transformer at 49x480x720, steady state (steps 2-4 of the three unguided arms).
 H200_UNGUIDED_STEP_S = 1.78
+#: The settings of that measurement: the efficiency is the roofline time of one CFG call at this size
+#: over the measured step, whatever size a report traces (a report of another size reuses it).
+CALIBRATION_SETTINGS = {"preset": "full", **FULL_SIZE_VIDEO, "dtype": "bfloat16"}
 #: Stages of the cost report; ``denoiser_cfg`` is a CFG call without gradients (the unguided step,
 #: the final prediction of a guided step, fast mode's held prediction), ``denoiser`` the
 #: differentiated call of a faithful update; ``loss`` is everything else inside a guided update
@@ -221,6 +225,8 @@ def cost_guidance(settings: dict[str, Any], mode: str, repeats: str, time_travel
     """The guidance of a cost trace or count: the preset's config with the run's settings."""
     if mode == "unguided":
         return False
+    from ..tiny import tiny_guidance_config  # the tiny models pull in transformers: only when asked for
+
     # the fused loss (gradients through VGGT too): the costlier of the two presets, what was measured
     base = tiny_guidance_config() if settings["preset"] == "tiny" else fused_guidance_config()
     changes = {k: settings[k] for k in ("chunk_latents", "vae_checkpointing", "vae_block_checkpointing",
@@ -313,6 +319,20 @@ def trace_cost(settings: dict[str, Any], mode: str) -> dict[str, Any]:
                    signature=model_signature(pipe.transformer.config),
                    guided_updates=1 if mode != "unguided" else 0)
     return summary
+
+
+def at_calibration_size(settings: dict[str, Any]) -> bool:
+    """Whether ``settings`` trace the model, size and dtype of the measured step (:data:`CALIBRATION_SETTINGS`)."""
+    return all(settings.get(key) == value for key, value in CALIBRATION_SETTINGS.items())
+
+
+@functools.cache
+def calibration_call_roofline_s() -> float:
+    """H200 roofline seconds of one CFG call of the full-size denoiser at :data:`CALIBRATION_SETTINGS`
+    (one unguided call traced on fake tensors, a few seconds, once per process)."""
+    settings = cost_settings(preset="full", steps=1, frames=None, height=None, width=None, dtype=None)
+    cfg = trace_cost(settings, "unguided")["stages"]["denoiser_cfg"]
+    return _roofline(cfg, "H200") / cfg["calls"]
 
 
 def count_schedule_calls(mode: str, settings: dict[str, Any]) -> dict[str, int]:
@@ -416,7 +436,7 @@ def cost_settings(*, preset: str, steps: int | None, frames: int | None, height:
     tiny preset's 4-step schedule, or the paper's 50-step one with ``paper_schedule``.
     """
     if preset == "tiny":
-        from ..tiny import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH
+        from ..tiny import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH, tiny_guidance_config
 
         video = {"frames": TINY_NUM_FRAMES, "height": TINY_HEIGHT, "width": TINY_WIDTH}
         base = tiny_guidance_config()
@@ -450,8 +470,11 @@ def cost_report(settings: dict[str, Any], mode: str, argv: Sequence[str] = ()) -
     main = guided or unguided
     weights = sum(main["weights_bytes"].values())
     calibration = settings["calibration_step_s"]
-    # one efficiency for every op, from the measured unguided step on the H200
-    efficiency = run["cfg_call"]["roofline_s"]["H200"] / calibration
+    # one efficiency for every op, from the measured unguided step on the H200 at the size measured:
+    # calibrating at the traced size would give every size the measured step's time
+    reference = (run["cfg_call"]["roofline_s"]["H200"] if at_calibration_size(settings)
+                 else calibration_call_roofline_s())
+    efficiency = reference / calibration
     wall = {}
     for gpu in GPU_SPECS:
         wall[gpu] = {arm: (r["roofline_s"][gpu] / efficiency if r else None) for arm, r in
@@ -492,8 +515,9 @@ def cost_report(settings: dict[str, Any], mode: str, argv: Sequence[str] = ()) -
         "roofline": {
             "gpus": GPU_SPECS,
             "efficiency": efficiency,
-            "efficiency_note": (f"one efficiency for all ops: the roofline time of one unguided CFG call on the "
-                                f"H200 over the measured {calibration} s (docs/benchmarks/sampling_full_h200_*.json)"),
+            "efficiency_note": (f"one efficiency for all ops: the roofline time of one unguided CFG call of "
+                                f"CogVideoX-5B at 49x480x720 bfloat16 on the H200 over the measured {calibration} s "
+                                f"(docs/benchmarks/sampling_full_h200_*.json), whatever size is traced"),
             "roofline_s_at_peak": {gpu: {arm: (r["roofline_s"][gpu] if r else None) for arm, r in
                                          (("unguided", run["unguided"]), ("guided", run["guided"]))} for gpu in GPU_SPECS},
             "wall_time_s": wall,

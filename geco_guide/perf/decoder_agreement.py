@@ -36,7 +36,6 @@ from ..sampler import loading
 from ..sampler.context import GuidanceContext, anchor_decoder
 from ..sampler.slicing import decode_anchor_frames, decode_chunk
 from ..sampler.step import loss_terms
-from ..tiny import video_components
 from .measure import environment_info
 
 #: The PSNR's MSE floor: identical frames read 10 * log10(1 / 1e-10) = 100 dB.
@@ -64,14 +63,16 @@ def agreement_context_class(pipe: Any, num_frames: int, rows: list[dict[str, Any
     """A :class:`GuidanceContext` for ``pipe`` (which holds both its VAE and a ``guidance_decoder``)
     that decodes the anchor frames of every update with the other decoder too and appends one
     row per update to ``rows`` (see the module docstring); the update itself is unchanged."""
-    vae_decode = partial(decode_chunk, pipe.vae, scaling_factor=pipe.vae_scaling_factor_image)
+    def vae_decode_with(vae: Any) -> Callable[[Tensor], Tensor]:
+        return partial(decode_chunk, vae, scaling_factor=pipe.vae_scaling_factor_image)
+
 
     class AgreementContext(GuidanceContext):
         def __init__(self, config: Any, *args: Any, **kwargs: Any) -> None:
             super().__init__(config, *args, **kwargs)
             self.observer = "vae" if config.decoder == "tiny" else "tiny"
             observer_config = replace(config, decoder=self.observer)
-            self.observer_decode = anchor_decoder(observer_config, vae_decode, pipe.guidance_decoder, pipe.vae)
+            self.observer_decode = anchor_decoder(observer_config, vae_decode_with, pipe.guidance_decoder, pipe.vae)
             self.observer_chunks = observer_config.anchor_chunks(num_frames, pipe.vae_scale_factor_temporal)
             self.pending: dict[str, Any] = {}
             self.at: tuple[int, int] = (0, 0)
@@ -137,6 +138,7 @@ def check_agreement_config(cfg: GeCoConfig) -> None:
     if not cfg.guidance.enabled:
         raise ValueError("decoder-agreement compares the decoders inside guidance: guidance.enabled must be true")
     loading.check_tiny_decoder_source(cfg)
+    loading.check_weights_before_loading(cfg)
 
 
 def agreement_rows(pipe: Any, cfg: GeCoConfig, prompt: str) -> list[dict[str, Any]]:
@@ -171,6 +173,8 @@ def decoder_agreement(cfg: GeCoConfig, prompt: str, argv: Sequence[str] = ()) ->
             off or a tiny decoder that is not there (:func:`check_agreement_config`).
     """
     check_agreement_config(cfg)
+    from ..tiny import video_components  # the tiny models pull in transformers: only when a run starts
+
     pipe = loading.build_pipeline(cfg, components=video_components(cfg), tiny_decoder=True)
     pipe.set_progress_bar_config(disable=True)
     rows = agreement_rows(pipe, cfg, prompt)

@@ -16,6 +16,7 @@ from torch import Tensor
 from ..estimators.tiny_decoder import TinyDecoder
 from ..estimators.ufm import UFM, UFMConfig
 from ..estimators.vggt import VGGT, VGGTConfig
+from ..sampler.loading import cast_model
 
 #: Published ``THUDM/CogVideoX-5b`` configs (``transformer/config.json``, ``vae/config.json``,
 #: ``scheduler/scheduler_config.json``), written out so nothing is downloaded. The checkpoint ships
@@ -84,6 +85,15 @@ FULL_SIZE_VIDEO = {"frames": 49, "height": 480, "width": 720}
 TEXT_EMBED_SHAPE = (1, 226, 4096)
 
 
+def cast_components(pipe: Any, dtype: torch.dtype) -> Any:
+    """Every model of the diffusers pipeline ``pipe`` cast to ``dtype`` (:func:`cast_model`: no
+    empty float32 warning per model), as ``pipe.to(dtype=dtype)``; returns ``pipe``."""
+    for model in pipe.components.values():
+        if isinstance(model, torch.nn.Module):
+            cast_model(model, dtype)
+    return pipe
+
+
 def init_weights_(model: torch.nn.Module, seed: int) -> None:
     """Cheap random init of a model materialised with ``to_empty``: weight matrices / kernels
     ``N(0, 1 / fan_in)``, other weights (norm scales) 1, biases and other 1-D tensors 0; buffers
@@ -109,7 +119,7 @@ def materialise(cls: type, config: dict[str, Any], device: str | torch.device, d
     :func:`init_weights_` (left on meta when ``device`` is meta), in eval mode."""
     with torch.device("meta"):
         model = cls(**config)
-    model.to(dtype)
+    cast_model(model, dtype)
     if torch.device(device).type != "meta":
         model.to_empty(device=device)
         init_weights_(model, seed)
@@ -186,7 +196,7 @@ def build_cost_pipeline(settings: dict[str, Any], fake_mode: Any) -> tuple[Any, 
             from ..tiny import tiny_guidance_decoder
 
             pipe.register_modules(guidance_decoder=tiny_guidance_decoder("cogvideox", settings["seed"]))
-        pipe.to(dtype=dtype)
+        cast_components(pipe, dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
     else:
         ckpt = settings["estimator_checkpointing"]

@@ -88,6 +88,18 @@ def check_frames(frames: int, guided: bool) -> None:
         fail(f"--frames: {err}")
 
 
+#: CogVideoX's VAE downsamples 8x and its transformer patches the latents 2x2: a video side is a
+#: multiple of 16 (the config's ``sampling.height`` / ``width`` rule); the VAE alone needs 8.
+PIPELINE_SIDE_MULTIPLE, VAE_SIDE_MULTIPLE = 16, 8
+
+
+def check_video_size(height: int | None, width: int | None, multiple: int) -> None:
+    """Refuse a side the model cannot take (``None``: the preset's default, which fits)."""
+    for name, value in (("--height", height), ("--width", width)):
+        if value is not None and value % multiple:
+            fail(f"{name} must be a multiple of {multiple}, got {value}")
+
+
 def agreement_config(args: argparse.Namespace) -> Any:
     """The validated config of ``decoder-agreement`` (preset <- file <- overrides), its device and
     tiny decoder checked; :func:`fail` on any problem."""
@@ -112,6 +124,7 @@ def check_options(args: argparse.Namespace) -> None:
             fail(f"--json: {reason}")
     if args.command == "vae":
         check_frames(args.frames, guided=False)
+        check_video_size(args.height, args.width, VAE_SIDE_MULTIPLE)
     elif args.command == "sampling":
         if args.full_size and torch.device(args.device).type == "cpu" and not args.allow_cpu:
             fail("sampling --full-size on CPU is refused: CogVideoX-5B + VGGT-1B + UFM-Base weights alone are "
@@ -121,6 +134,7 @@ def check_options(args: argparse.Namespace) -> None:
             fail(f"--steps must be in [1, {NOMINAL_STEPS}], got {args.steps}")
         if args.frames is not None:
             check_frames(args.frames, guided=args.mode != "unguided")
+        check_video_size(args.height, args.width, PIPELINE_SIDE_MULTIPLE)
     elif args.command == "cost":
         if args.decoder != "vae" and args.mode == "unguided":
             fail(f"--decoder {args.decoder} decodes the anchor frames of guidance: use --mode fast or faithful")
@@ -137,6 +151,7 @@ def check_options(args: argparse.Namespace) -> None:
             fail(f"--steps must be >= 1, got {args.steps}")
         if args.frames is not None:
             check_frames(args.frames, guided=args.mode != "unguided")
+        check_video_size(args.height, args.width, PIPELINE_SIDE_MULTIPLE)
         if args.measured:
             try:
                 args.measured_report = load_measured(args.measured)
@@ -184,8 +199,8 @@ def add_sampling_parser(sub: Any) -> argparse.ArgumentParser:
                       help=f"denoising steps run (default {NOMINAL_STEPS}); fewer scale the paper schedule "
                            f"and extrapolate the times to {NOMINAL_STEPS} steps")
     samp.add_argument("--frames", type=positive_int, default=None, help="frames (default: 17 tiny, 49 full size)")
-    samp.add_argument("--height", type=positive_int, default=None, help="height (default: 32 tiny, 480 full size)")
-    samp.add_argument("--width", type=positive_int, default=None, help="width (default: 48 tiny, 720 full size)")
+    samp.add_argument("--height", type=positive_int, default=None, help="height, a multiple of 16 (default: 32 tiny, 480 full size)")
+    samp.add_argument("--width", type=positive_int, default=None, help="width, a multiple of 16 (default: 48 tiny, 720 full size)")
     samp.add_argument("--dtype", choices=("bfloat16", "float32"), default=None,
                       help="transformer/VAE dtype; estimators autocast to it (default: bfloat16 for full size "
                            "on CUDA, else float32)")
@@ -223,8 +238,8 @@ def add_cost_parser(sub: Any) -> argparse.ArgumentParser:
                       help="guided mode to model beside the unguided run (default: faithful)")
     cost.add_argument("--steps", type=int, default=None, help="denoising steps (default: 50 full, 4 tiny)")
     cost.add_argument("--frames", type=positive_int, default=None, help="frames (default: 49 full, 17 tiny)")
-    cost.add_argument("--height", type=positive_int, default=None, help="height (default: 480 full, 32 tiny)")
-    cost.add_argument("--width", type=positive_int, default=None, help="width (default: 720 full, 48 tiny)")
+    cost.add_argument("--height", type=positive_int, default=None, help="height, a multiple of 16 (default: 480 full, 32 tiny)")
+    cost.add_argument("--width", type=positive_int, default=None, help="width, a multiple of 16 (default: 720 full, 48 tiny)")
     cost.add_argument("--dtype", choices=("bfloat16", "float32"), default=None,
                       help="transformer/VAE dtype and the estimators' trunks (default: bfloat16 full, float32 tiny)")
     cost.add_argument("--chunk-latents", type=chunk_latents, default=None, help="latents per anchor chunk (default: the preset's)")

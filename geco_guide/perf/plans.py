@@ -71,6 +71,11 @@ def plan_estimate(report: dict[str, Any]) -> dict[str, Any]:
             "ratio_guided_over_unguided": report["roofline"]["ratio_guided_over_unguided"]}
 
 
+def seconds_text(seconds: float) -> str:
+    """Whole seconds, or three significant digits below 10 s (a tiny model's call is milliseconds)."""
+    return f"{seconds:.0f} s" if seconds >= 10 else f"{seconds:.3g} s"
+
+
 def plan_estimates(models: Sequence[str] = tuple(KNOWN_MODELS), argv: Sequence[str] = (),
                    on_report: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The estimates file: for each model of :data:`KNOWN_MODELS`, its denoiser signature, hub ids,
@@ -96,7 +101,7 @@ def plan_estimates(models: Sequence[str] = tuple(KNOWN_MODELS), argv: Sequence[s
                     if on_report is not None:
                         on_report(f"{key} {mode}/{decoder} {plan.name}: peak {table[plan.name]['peak_gb']:.1f} GiB, "
                                   f"offload {table[plan.name]['offload_peak_gb']:.1f} GiB, "
-                                  f"H200 {table[plan.name]['time_s']:.0f} s")
+                                  f"H200 {seconds_text(table[plan.name]['time_s'])}")
                 entry["estimates"][f"{mode}/{decoder}"] = table
         out["models"][key] = entry
     return out

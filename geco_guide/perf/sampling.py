@@ -30,7 +30,6 @@ from ..sampler.schedule import (
     scale_schedule,
 )
 from ..sampler.slicing import default_anchors
-from ..tiny import tiny_guidance_config
 from .measure import (
     GIB,
     environment_info,
@@ -40,7 +39,7 @@ from .measure import (
     run_case_subprocess,
     synchronize,
 )
-from .models import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_full_size_components
+from .models import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_full_size_components, cast_components
 from .profile import StageProfiler, breakdown_of, summarize_profile
 
 NOMINAL_STEPS = 50
@@ -64,6 +63,8 @@ def sampling_guidance(spec: dict[str, Any]) -> GuidanceConfig | bool:
     if spec["arm"] == "unguided":
         return False
     repeats, time_travel = paper_schedule_for(spec["steps"])
+    from ..tiny import tiny_guidance_config  # the tiny models pull in transformers: only when asked for
+
     # the fused loss (gradients through VGGT too): the costlier of the two presets, what was measured
     base = tiny_guidance_config() if spec["preset"] == "tiny" else fused_guidance_config()
     chunk_latents = base.chunk_latents if spec["chunk_latents"] is None else spec["chunk_latents"]
@@ -83,7 +84,7 @@ def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: t
     if spec["preset"] == "tiny":
         from ..tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_pipeline
 
-        pipe = tiny_pipeline(seed).to(device=device, dtype=dtype)
+        pipe = cast_components(tiny_pipeline(seed), dtype).to(device)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
     else:
         # trunks in the sampling dtype, heads float32: what generate's from_pretrained(dtype=...) builds
@@ -311,8 +312,9 @@ SAMPLING_COLUMNS: tuple[tuple[str, str, str], ...] = (
 
 #: Printed under a tiny run's ratio: its models are too small for the ratio to mean anything at full size.
 TINY_RATIO_NOTE = ("note: the tiny random models make this ratio meaningless for full size (their denoiser is "
-                   "nearly free, so the estimators and the decode dominate); `scripts/benchmark.py cost` predicts "
-                   "the full-size run.")
+                   "nearly free, so the estimators and the decode dominate), and the unguided arm's sub-second time "
+                   "makes it swing between runs: compare the guided arm's seconds to catch a regression; "
+                   "`scripts/benchmark.py cost` predicts the full-size run.")
 
 
 def sampling_table(report: dict[str, Any]) -> str:

@@ -8,6 +8,7 @@ method section's fused loss (the ``cogvideox-5b-fused`` preset). See docs/guidan
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Optional
@@ -89,6 +90,24 @@ class GuidanceConfig:
             structure cue only gives gradients with ``loss.geometry_grad=True``, since it depends
             on the frames only through the geometry estimator: ``cue="structure"`` with
             ``geometry_grad=False`` is refused before any denoising step.
+        dynamic: what moves on its own and stays out of the loss (docs/guidance.md, Moving
+            subjects): ``None`` (default, the paper: nothing), ``"auto"`` (the training-free
+            detector on GeCo's own depth and flow) or subjects to segment, ``"a dog, a person"``
+            (the text segmenter of ``estimators.segmenter``). The masks are computed on the anchor
+            frames decoded from x0-hat, without gradients.
+        dynamic_dilation: pixels by which the masks grow (0: as found), to cover the subjects'
+            blurred edges.
+        dynamic_refresh: the masks are computed at the first update of every
+            ``dynamic_refresh``-th guided step and reused until then (1: each step's own, shared
+            by its repeats).
+        devices: where the anchor decode runs (how guidance runs, not what it computes, like
+            ``memory_plan``): ``None`` (default) on the pipeline's device; a list of devices
+            (``["cuda:0", "cuda:1"]``, ``["auto"]`` for every visible GPU) deals the anchor
+            chunks round-robin over them, each with its own replica of the guidance decoder,
+            decoded forward and backward at once; the frames meet on the pipeline's device for
+            the loss. One chunk per decode call, as the chunked plans: the same frames as one
+            device's chunked decode (bitwise on CPU; to float rounding across kinds of device).
+            See docs/performance.md (Several GPUs).
     """
 
     enabled: bool = True
@@ -108,8 +127,13 @@ class GuidanceConfig:
     decode_layout: str = "default"
     compile: bool = False
     loss: GeCoLossConfig = field(default_factory=guidance_loss)
+    dynamic: Optional[str] = None
+    dynamic_dilation: int = 0
+    dynamic_refresh: int = 1
+    devices: Optional[list[str]] = None
 
     def __post_init__(self) -> None:
+        check_option_types(self)
         for key, value in non_finite_fields(self):  # the first one
             raise OptionError(key, f"must be a finite number, got {value}")
         if not 0 <= self.eta <= MAX_ETA:
@@ -125,13 +149,16 @@ class GuidanceConfig:
         if self.decode_layout != "default" and self.decoder != "vae":
             raise OptionError("decode_layout", f"{self.decode_layout} lays out the VAE's decode, but decoder={self.decoder!r}: "
                                                "use decode_layout=default with the tiny decoder")
-        if not isinstance(self.compile, bool):
-            raise OptionError("compile", f"must be true or false, got {self.compile!r}")
         if self.memory_plan not in PLAN_NAMES:
             raise OptionError("memory_plan", f"must be one of {', '.join(PLAN_NAMES)}, got {self.memory_plan!r}")
         if self.memory_budget_gb is not None and not self.memory_budget_gb > 0:
             raise OptionError("memory_budget_gb", f"must be a positive number of GiB (or null: the device's memory), "
                                                   f"got {self.memory_budget_gb}")
+        check_dynamic_options(self)
+        if self.devices is not None and (not isinstance(self.devices, (list, tuple)) or not self.devices
+                                         or not all(isinstance(d, str) and d.strip() for d in self.devices)):
+            raise OptionError("devices", f"must be null or a list of devices (e.g. [cuda:0, cuda:1], or [auto]), "
+                                         f"got {self.devices!r}")
 
     def schedule(self, num_steps: int) -> GuidanceSchedule:
         """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see
@@ -163,6 +190,65 @@ class GuidanceConfig:
         self.check_loss()
         chunks = self.anchor_chunks(num_frames, temporal_compression)
         return self.schedule(num_steps), chunks
+
+
+def check_dynamic_options(config: GuidanceConfig) -> None:
+    """OptionError (one line naming the key) for moving-subject options that cannot work."""
+    if config.dynamic is not None and (not isinstance(config.dynamic, str) or not config.dynamic.strip(" ,")):
+        raise OptionError("dynamic", f"must be null, 'auto' or the subjects that move, e.g. 'a dog, a person'; "
+                                     f"got {config.dynamic!r}")
+    if not _is_integer(config.dynamic_dilation) or config.dynamic_dilation < 0:
+        raise OptionError("dynamic_dilation", f"must be a whole number of pixels >= 0, got {config.dynamic_dilation!r}")
+    if not _is_integer(config.dynamic_refresh) or config.dynamic_refresh < 1:
+        raise OptionError("dynamic_refresh", f"must be a whole number of steps >= 1, got {config.dynamic_refresh!r}")
+
+
+#: The options of :class:`GuidanceConfig` that take true or false (``vae_block_checkpointing``
+#: also null).
+FLAGS = ("enabled", "denoiser_grad", "gradient_checkpointing", "vae_checkpointing", "compile")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _is_integer(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _frame_list_problem(value: Any, example: list[int]) -> str | None:
+    """Why ``value`` is not a list of integer frame or step indices, or None."""
+    if not isinstance(value, (list, tuple)):
+        return f"must be a list of integers, e.g. {example}, got {value!r}"
+    bad = [v for v in value if not _is_integer(v)]
+    return f"must hold integers only, e.g. {example}, got {bad[0]!r} in {list(value)!r}" if bad else None
+
+
+def check_option_types(config: GuidanceConfig) -> None:
+    """OptionError (one line naming the key) for an option of the wrong type, before any value
+    check: a float anchor would be truncated to another frame, a string step size would fail deep
+    inside a call."""
+    for key in FLAGS:
+        value = getattr(config, key)
+        if not isinstance(value, bool):
+            raise OptionError(key, f"must be true or false, got {value!r}")
+    if config.vae_block_checkpointing is not None and not isinstance(config.vae_block_checkpointing, bool):
+        raise OptionError("vae_block_checkpointing", f"must be true, false or null, got {config.vae_block_checkpointing!r}")
+    for key in ("eta", "grad_eps"):
+        if not _is_number(getattr(config, key)):
+            raise OptionError(key, f"must be a number, got {getattr(config, key)!r}")
+    if config.memory_budget_gb is not None and not _is_number(config.memory_budget_gb):
+        raise OptionError("memory_budget_gb", f"must be a number of GiB (or null: the device's memory), "
+                                              f"got {config.memory_budget_gb!r}")
+    if not _is_integer(config.chunk_latents):
+        raise OptionError("chunk_latents", f"must be an integer, got {config.chunk_latents!r}")
+    problem = _frame_list_problem(config.anchors, list(PAPER_ANCHORS))
+    if problem is not None:
+        raise OptionError("anchors", problem)
+    if config.time_travel is not None:
+        problem = _frame_list_problem(config.time_travel, list(PAPER_TIME_TRAVEL))
+        if problem is not None:
+            raise OptionError("time_travel", problem)
 
 
 def paper_guidance_config() -> GuidanceConfig:

@@ -26,11 +26,13 @@ from torch.utils.checkpoint import checkpoint
 from ..estimators.tiny_decoder import TinyDecoder
 from ..loss.geco import GeCoLoss
 from .config import GuidanceConfig
+from .dynamic import RefreshedMasks
 from .fast_decode import check_channels_last_vae, guidance_decode
 from .levels import NoiseLevels
 from .memory_plan import PlanChoice, explicit_plan
 from .schedule import GuidanceSchedule
-from .slicing import AnchorChunk, decode_anchor_frames
+from .devices import decoder_replicas
+from .slicing import AnchorChunk, decode_anchor_frames, decode_anchor_frames_across
 from .step import GuidanceRecord, Update, guided_step, loss_terms, read_scalars
 
 
@@ -116,18 +118,41 @@ def generator_states(generator: torch.Generator | list[torch.Generator] | None) 
     return [(g, g.get_state()) for g in generators]
 
 
-def anchor_decoder(config: GuidanceConfig, vae_decode: Callable[[Tensor], Tensor], guidance_decoder: Any,
-                   vae: Any) -> Callable[[Tensor], Tensor]:
-    """The chunk decode of the loss' anchor frames: ``vae_decode`` with ``decoder="vae"``; with
-    ``"tiny"`` the tiny decoder on the pipeline's latents ``[N, F, C, h, w]``, in its family's
-    convention taken from ``vae``'s config (CogVideoX's divided by ``scaling_factor``, Wan's and
-    HunyuanVideo's as they are). Checked at the start of a call, before any denoiser runs:
-    ValueError (one line) for a missing or mismatched decoder, TypeError for
-    ``decode_layout="channels_last"`` on a VAE it is not written for."""
+class AnchorDecode:
+    """The chunk decode of the loss' anchor frames: ``latents [N, F, C, h, w] -> frames [N, T, 3,
+    H, W]`` in ``[0, 1]`` by ``module`` (the VAE, or the tiny decoder), and :meth:`on` a replica
+    of that module (another device's).
+
+    Args:
+        module: the frozen decoder.
+        decode_with: ``module -> decode``: the decode by a given copy of ``module``.
+    """
+
+    def __init__(self, module: nn.Module, decode_with: Callable[[nn.Module], Callable[[Tensor], Tensor]]):
+        self.module, self.decode_with = module, decode_with
+        self._decode = decode_with(module)
+
+    def __call__(self, latents: Tensor) -> Tensor:
+        return self._decode(latents)
+
+    def on(self, replica: nn.Module) -> Callable[[Tensor], Tensor]:
+        """The same decode by ``replica`` (a copy of :attr:`module`, e.g. on another device)."""
+        return self.decode_with(replica)
+
+
+def anchor_decoder(config: GuidanceConfig, vae_decode_with: Callable[[nn.Module], Callable[[Tensor], Tensor]],
+                   guidance_decoder: Any, vae: Any) -> AnchorDecode:
+    """The :class:`AnchorDecode` of the loss' anchor frames: ``vae_decode_with(vae)`` with
+    ``decoder="vae"`` (``vae_decode_with``: a VAE -> its chunk decode); with ``"tiny"`` the tiny
+    decoder on the pipeline's latents ``[N, F, C, h, w]``, in its family's convention taken from
+    ``vae``'s config (CogVideoX's divided by ``scaling_factor``, Wan's and HunyuanVideo's as they
+    are). Checked at the start of a call, before any denoiser runs: ValueError (one line) for a
+    missing or mismatched decoder, TypeError for ``decode_layout="channels_last"`` on a VAE it is
+    not written for."""
     if config.decode_layout == "channels_last":
         check_channels_last_vae(vae)
     if config.decoder == "vae":
-        return vae_decode
+        return AnchorDecode(vae, vae_decode_with)
     if guidance_decoder is None:
         raise ValueError(
             "guidance.decoder='tiny' needs a tiny decoder: pass guidance_decoder=TinyDecoder.from_pretrained(PATH) "
@@ -141,7 +166,8 @@ def anchor_decoder(config: GuidanceConfig, vae_decode: Callable[[Tensor], Tensor
             f"the tiny decoder ({guidance_decoder.variant.name}) takes {guidance_decoder.latent_channels} latent "
             f"channels but this VAE makes {channels}: load the tiny decoder trained for this model"
         )
-    return lambda latents: guidance_decoder.decode(guidance_decoder.pipeline_latents(latents, vae_config, layout="NTCHW"))
+    return AnchorDecode(guidance_decoder, lambda decoder: lambda latents: decoder.decode(
+        decoder.pipeline_latents(latents, vae_config, layout="NTCHW")))
 
 
 class GuidanceContext:
@@ -161,6 +187,11 @@ class GuidanceContext:
         log: the list the records are appended to as dicts (a new one by default).
         memory_plan: the call's :class:`~.memory_plan.PlanChoice` (default: the config's explicit
             flags, no fallback); :attr:`memory_plan` is the one in use (after a fallback, the new one).
+        dynamic_masks: what moves on its own, left out of the loss
+            (:func:`~.dynamic.guidance_mask_source`), or ``None`` (the paper: no masks).
+        devices: the devices the anchor chunks are dealt over
+            (:func:`~.devices.resolve_devices` of ``guidance.devices``), each with a replica of
+            ``decode_chunk``'s module (an :class:`AnchorDecode`), or ``None``: one device.
     """
 
     def __init__(
@@ -177,8 +208,13 @@ class GuidanceContext:
         on_record: Callable[[GuidanceRecord], None] | None = None,
         log: list[dict[str, Any]] | None = None,
         memory_plan: PlanChoice | None = None,
+        dynamic_masks: RefreshedMasks | None = None,
+        devices: Sequence[torch.device] | None = None,
     ):
         self.config, self.schedule, self.chunks = config, schedule, list(chunks)
+        self.devices = list(devices) if devices else None
+        self._placed: list[tuple[torch.device, Callable[[Tensor], Tensor]]] | None = None
+        self.dynamic_masks = dynamic_masks
         self.decode_chunk, self.latent_frames = decode_chunk, latent_frames
         self.estimators = (geometry_estimator, flow_estimator)
         self.generator, self.on_record = generator, on_record
@@ -235,15 +271,29 @@ class GuidanceContext:
         if self._plan_stack is not None:
             self._plan_stack.close()
             self._plan_stack = self._enter_plan()
+        self._placed = None  # the replicas are copied again, with the new plan's switches
         print(f"guidance: out of memory at the first update with memory plan {failed!r}; retrying it with "
               f"{new.name!r}", file=sys.stderr)
 
+    def decode_anchors(self, latents: Tensor) -> Tensor:
+        """The anchor frames ``[B, S, 3, H, W]`` of ``latents [B, F, C, h, w]``: on one device as the
+        memory plan says, or dealt over :attr:`devices` (replicas made at the first update)."""
+        checkpointed = self.memory_plan.plan.chunk_checkpointing
+        if self.devices is None:
+            return decode_anchor_frames(self.decode_chunk, latents, self.chunks, checkpoint_chunks=checkpointed,
+                                        batch_chunks=self.memory_plan.plan.batch_chunks)
+        if self._placed is None:
+            replicas = decoder_replicas(self.decode_chunk.module, self.devices)
+            self._placed = [(device, self.decode_chunk.on(replica)) for device, replica in zip(self.devices, replicas)]
+        return decode_anchor_frames_across(self._placed, latents, self.chunks, checkpoint_chunks=checkpointed)
+
     def objective(self, x0: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """GeCo loss of the anchor frames decoded from ``x0`` (differentiable), and its terms."""
-        frames = decode_anchor_frames(self.decode_chunk, self.latent_frames(x0), self.chunks,
-                                      checkpoint_chunks=self.memory_plan.plan.chunk_checkpointing,
-                                      batch_chunks=self.memory_plan.plan.batch_chunks)
-        return loss_terms(self.loss_fn(frames))
+        frames = self.decode_anchors(self.latent_frames(x0))
+        if self.dynamic_masks is None:
+            return loss_terms(self.loss_fn(frames))
+        self.dynamic_masks.start_update()
+        return loss_terms(self.loss_fn(frames, dynamic_masks=self.dynamic_masks))
 
     def read_scalars(self, values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
         """The numbers of one update's record: its one device-to-host copy."""
@@ -269,6 +319,8 @@ class GuidanceContext:
     def _guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: NoiseLevels, step: int,
                t: int) -> tuple[Tensor, Tensor]:
         config, schedule = self.config, self.schedule
+        if self.dynamic_masks is not None:
+            self.dynamic_masks.start_step(step)
 
         def on_update(update: Update) -> None:
             scalars = self.read_scalars(update.terms, z.device)
@@ -284,6 +336,8 @@ class GuidanceContext:
                 seconds=time.perf_counter() - update.started,
                 time_travel=update.time_travel,
                 skipped=not scalars["finite"],
+                masked_fraction=scalars.get("masked_fraction"),
+                mask_source=None if self.dynamic_masks is None else self.dynamic_masks.source_name,
             )
             self.log.append(record.to_dict())
             if self.on_record is not None:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 import warnings
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -185,6 +186,7 @@ def channels_last_decode(vae: Any) -> Iterator[None]:
 # ---- torch.compile --------------------------------------------------------------------------------
 
 _COMPILED: dict[Callable, CompiledOrEager] = {}
+logger = logging.getLogger(__name__)
 
 
 class CompiledOrEager:
@@ -193,7 +195,7 @@ class CompiledOrEager:
     raised as they are."""
 
     def __init__(self, function: Callable):
-        self.function, self.compiled = function, None
+        self.function, self.compiled, self.announced = function, None, False
         try:
             self.compiled = torch.compile(function)
         except RuntimeError as error:  # torch.compile refuses this Python or platform
@@ -207,6 +209,10 @@ class CompiledOrEager:
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         if self.compiled is not None:
+            if not self.announced:  # the first call compiles: minutes of silence otherwise
+                logger.warning("guidance.compile: compiling the guidance decode; the first guided update waits for "
+                               "it (minutes on a CPU, longer when the machine is busy)")
+                self.announced = True
             try:
                 return self.compiled(*args, **kwargs)
             except (torch._dynamo.exc.BackendCompilerFailed, torch._dynamo.exc.InternalTorchDynamoError) as error:

@@ -52,7 +52,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from ..types import FlowEstimator, GeometryEstimator, missing_estimators, one_of_names
+from ..types import DynamicMaskSource, FlowEstimator, GeometryEstimator, missing_estimators, one_of_names
 from .adapters import (
     CallGeometry,
     PipelineAdapter,
@@ -65,9 +65,12 @@ from .adapters import (
 )
 from .config import GuidanceConfig, resolve_guidance_config
 from .context import GuidanceContext, anchor_decoder
+from .devices import resolve_devices
+from .dynamic import RefreshedMasks, guidance_mask_source
 from .memory_plan import PlanChoice, choose_plan, device_memory_gb, model_signature
 from .pipeline_cogvideox import GeCoCogVideoXPipeline
 from .slicing import AnchorChunk, check_latents
+from .step import LatentsWatch
 
 __all__ = ["GeCoGuidanceHandle", "attach_geco_guidance"]
 
@@ -90,9 +93,22 @@ class _CallState:
     generator: Any
     config: GuidanceConfig
     memory_plan: PlanChoice
+    dynamic_masks: RefreshedMasks | None = None
+    devices: list[torch.device] | None = None  # guidance.devices, resolved
     context: GuidanceContext | None = None  # from the first denoiser call on (it fixes the schedule)
     counter: int = 0
     calls: list[_Call] = field(default_factory=list)
+    watch: LatentsWatch | None = None  # from the first scheduler step on
+
+
+class _WithVae:
+    """A pipeline seen with another VAE (a replica on another device), for an adapter's decode."""
+
+    def __init__(self, pipe: Any, vae: nn.Module):
+        self._pipe, self.vae = pipe, vae
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._pipe, name)
 
 
 def _output_tensor(output: Any) -> Tensor:
@@ -195,14 +211,17 @@ class GeCoGuidanceHandle:
         adapter: its family's :class:`~geco_guide.sampler.adapters.PipelineAdapter`.
         config: the :class:`GuidanceConfig` used by the next call (may be replaced between calls).
         geometry_estimator, flow_estimator: the GeCo loss' estimators.
+        dynamic_masks: the :class:`~geco_guide.types.DynamicMaskSource` of ``config.dynamic``
+            (``None``: the automatic detector for ``"auto"``, nothing without ``config.dynamic``).
         log: one dict per guided update of the last call (``step, repeat, t, loss, motion,
             structure, fused, grad_norm, seconds, time_travel, skipped``).
         geometry: the :class:`~geco_guide.sampler.adapters.CallGeometry` of the last call.
     """
 
     def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, geometry_estimator, flow_estimator,
-                 decoder=None):
+                 decoder=None, dynamic_masks=None):
         self.pipe = pipe
+        self.dynamic_masks = dynamic_masks
         self.decoder = decoder
         self.adapter = adapter
         self.config = config
@@ -292,6 +311,13 @@ class GeCoGuidanceHandle:
         self.detach()
 
     @property
+    def devices(self) -> list[str] | None:
+        """The devices the last guided call dealt its anchor chunks over (``guidance.devices``),
+        ``None`` for one device or before a call."""
+        state = self._state
+        return [str(device) for device in state.devices] if state is not None and state.devices else None
+
+    @property
     def memory_plan(self) -> dict[str, Any] | None:
         """The memory plan of the last guided call (:meth:`PlanChoice.to_dict
         <geco_guide.sampler.memory_plan.PlanChoice.to_dict>`, after any fallback), ``None`` before one."""
@@ -318,15 +344,22 @@ class GeCoGuidanceHandle:
         check_no_denoiser_cache(self.adapter.denoisers(self.pipe))
         chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
         check_scheduler(self.pipe.scheduler)
-        decode_chunk = anchor_decoder(config, functools.partial(self.adapter.decode, self.pipe), self.decoder,
-                                      self.pipe.vae)
+        decode_chunk = anchor_decoder(config, self._vae_decode_with, self.decoder, self.pipe.vae)
+        devices = resolve_devices(config.devices)
+        masks = guidance_mask_source(config, self.dynamic_masks, self.pipe._execution_device)
         # the estimates know CogVideoX-5B, whose VAE is 8x spatially; other models get the safe plan
         scale = getattr(self.pipe, "vae_scale_factor_spatial", 8)
         memory_plan = choose_plan(
             config, signature=model_signature(self.adapter.denoisers(self.pipe)[0].config), frames=geometry.num_frames,
             height=geometry.latent_height * scale, width=geometry.latent_width * scale,
             device_gb=device_memory_gb(self.pipe._execution_device), offload=bool(getattr(self.pipe, "_all_hooks", None)))
-        self._state = _CallState(geometry, chunks, decode_chunk, args.get("generator"), config, memory_plan)
+        self._state = _CallState(geometry, chunks, decode_chunk, args.get("generator"), config, memory_plan, masks,
+                                 devices)
+
+    def _vae_decode_with(self, vae: nn.Module) -> Any:
+        """The adapter's chunk decode by ``vae``: the pipeline's own, or a replica of it on another
+        device (``guidance.devices``), seen as the pipeline's VAE."""
+        return functools.partial(self.adapter.decode, self.pipe if vae is self.pipe.vae else _WithVae(self.pipe, vae))
 
     def _pre_hook(self, module, args, kwargs):
         state = self._state
@@ -342,6 +375,7 @@ class GeCoGuidanceHandle:
                 latent_frames=functools.partial(adapter.frames_first, pipe, geometry=state.geometry),
                 geometry_estimator=self.geometry_estimator, flow_estimator=self.flow_estimator,
                 generator=state.generator, log=self.log, memory_plan=state.memory_plan,
+                dynamic_masks=state.dynamic_masks, devices=state.devices,
             )
         return None
 
@@ -363,16 +397,35 @@ class GeCoGuidanceHandle:
         schedule = state.context.schedule if state.context is not None else None
         repeats = schedule.repeats_at(i) if schedule is not None and i < schedule.num_steps else 0
         if repeats == 0:
-            return original(*args, **kwargs)
-        model_output = bound.arguments["model_output"]
-        sample = bound.arguments["sample"]
-        timestep = bound.arguments["timestep"]
-        new_sample, new_output = self._guide(scheduler, state.context, i, timestep, sample, model_output, calls)
-        keep_update(scheduler, sample, new_sample)
-        bound.arguments["model_output"] = new_output.to(model_output.dtype)
-        # fp32 (or the pipeline's fp64): a low-precision copy would round the update away
-        bound.arguments["sample"] = new_sample.double() if sample.dtype == torch.float64 else new_sample
-        return original(*bound.args, **bound.kwargs)
+            result = original(*args, **kwargs)
+        else:
+            model_output = bound.arguments["model_output"]
+            sample = bound.arguments["sample"]
+            timestep = bound.arguments["timestep"]
+            self._watch_latents(state, sample, i, check=True)  # a callback may have set them since the last step
+            new_sample, new_output = self._guide(scheduler, state.context, i, timestep, sample, model_output, calls)
+            keep_update(scheduler, sample, new_sample)
+            bound.arguments["model_output"] = new_output.to(model_output.dtype)
+            # fp32 (or the pipeline's fp64): a low-precision copy would round the update away
+            bound.arguments["sample"] = new_sample.double() if sample.dtype == torch.float64 else new_sample
+            result = original(*bound.args, **bound.kwargs)
+        # NaN latents are refused at a guided step (its log already waited for the device) and at
+        # the last step, before the pipeline decodes NaN frames
+        latents = result[0] if isinstance(result, tuple) else getattr(result, "prev_sample", None)
+        self._watch_latents(state, latents, i, check=repeats > 0 or schedule is None or i >= schedule.num_steps - 1)
+        return result
+
+    @staticmethod
+    def _watch_latents(state: _CallState, latents: Any, i: int, check: bool) -> None:
+        """Note the latents of step ``i`` in the call's :class:`LatentsWatch`; with ``check``, raise
+        NonFiniteLatentsError if any seen so far held NaN or inf."""
+        if not isinstance(latents, Tensor):
+            return
+        if state.watch is None:
+            state.watch = LatentsWatch(state.context.schedule.num_steps if state.context is not None else i + 1)
+        state.watch.see(latents, i)
+        if check:
+            state.watch.check()
 
     def _guide(self, scheduler, context: GuidanceContext, i: int, timestep, sample, model_output, calls):
         pipe, adapter = self.pipe, self.adapter
@@ -403,6 +456,7 @@ def attach_geco_guidance(
     geometry: GeometryEstimator | None = None,
     flow: FlowEstimator | None = None,
     decoder: Any = None,
+    dynamic_masks: DynamicMaskSource | None = None,
 ) -> GeCoGuidanceHandle:
     """Guide every following call of a stock diffusers video pipeline with GeCo.
 
@@ -420,6 +474,10 @@ def attach_geco_guidance(
         decoder: the tiny decoder of ``config.decoder="tiny"``
             (:class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` of the pipeline's family):
             it decodes the loss' anchor frames; the video is always the VAE's.
+        dynamic_masks: what moves on its own, for ``config.dynamic``: a
+            :class:`~geco_guide.types.DynamicMaskSource`, e.g.
+            :func:`~geco_guide.estimators.segmenters.text_segmenter` of the subjects (``"auto"``
+            needs none); see docs/guidance.md, Moving subjects.
 
     Returns:
         A :class:`GeCoGuidanceHandle`; ``handle.detach()`` (or leaving ``with handle:``)
@@ -447,6 +505,6 @@ def attach_geco_guidance(
     current = pipe.__dict__.get("prepare_latents")
     if getattr(current, "_geco_handle", None) is not None:
         raise ValueError("this pipeline already has GeCo guidance attached; detach() it first")
-    handle = GeCoGuidanceHandle(pipe, adapter, config, geometry_estimator, flow_estimator, decoder)
+    handle = GeCoGuidanceHandle(pipe, adapter, config, geometry_estimator, flow_estimator, decoder, dynamic_masks)
     handle._attach()
     return handle

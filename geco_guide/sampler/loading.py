@@ -10,7 +10,6 @@ duck-typed (``cfg.model``, ``cfg.sampling``, ``cfg.guidance``, ``cfg.estimators`
 from __future__ import annotations
 
 import contextlib
-import os
 from pathlib import Path
 from typing import Any
 
@@ -25,9 +24,12 @@ from ..estimators import (
 from ..estimators.loading import (
     CHECKPOINT_SUFFIXES,
     WeightsNotFoundError,
+    check_weights_available,
+    looks_like_local_path,
     quiet_hub_retries,
 )
 from ..io.devices import resolve_device
+from .memory_plan import plan_before_loading
 
 
 @contextlib.contextmanager
@@ -45,8 +47,13 @@ def quiet_hub_logs():
         dlogging.set_verbosity(level)
 
 
-def _looks_like_path(model_id: str) -> bool:
-    return model_id.startswith((".", "/", "~")) or model_id.count("/") > 1 or os.sep in model_id.replace("/", "")
+def cast_model(model: torch.nn.Module, dtype: torch.dtype) -> torch.nn.Module:
+    """``model`` cast to ``dtype`` in place (and returned). diffusers' ``ModelMixin.to(dtype)``
+    warns about the modules it should keep in float32 even when the model names none (an empty
+    list, at every cast); such a model is cast without the warning, one that names some keeps it."""
+    if getattr(model, "_keep_in_fp32_modules", None):
+        return model.to(dtype)
+    return torch.nn.Module.to(model, dtype)
 
 
 def _dtype_kwarg() -> str:
@@ -66,7 +73,7 @@ def pipeline_from_pretrained(cls, model_id: str, name: str, folder_hint: str, *,
             weights are neither in the hub cache nor reachable.
     """
     path = Path(model_id).expanduser()
-    if _looks_like_path(model_id) and not path.is_dir():
+    if looks_like_local_path(model_id) and not path.is_dir():
         raise WeightsNotFoundError(f"{name}: local folder {model_id!r} does not exist (pass an existing folder or a "
                                    f"hub id: {folder_hint})")
     try:
@@ -81,6 +88,37 @@ def pipeline_from_pretrained(cls, model_id: str, name: str, folder_hint: str, *,
             f"cannot be reached (offline?). Download them once with `hf download {model_id}` (huggingface_hub "
             f"< 0.34: `huggingface-cli download`) or pass a local folder: {folder_hint}"
         ) from None
+
+
+#: The file whose presence says a diffusers pipeline folder or repo is there.
+PIPELINE_INDEX = "model_index.json"
+
+
+def check_weights_before_loading(cfg: Any) -> None:
+    """The missing-weights line of :func:`build_pipeline`, found before any model loads (a cache
+    look-up or one metadata request per model, instead of minutes of loading first): the video
+    model, the two estimators and, where the guidance decodes with it, the tiny decoder.
+
+    Raises:
+        WeightsNotFoundError: one line naming the repo id, the config key and how to pass a local
+            path.
+        ValueError: the tiny decoder is asked for but not named.
+    """
+    from ..estimators.ufm import UFM
+    from ..estimators.vggt import VGGT
+
+    checks = [("model.id", cfg.model.id, "CogVideoX", (PIPELINE_INDEX,), cfg.model.revision),
+              ("estimators.geometry", cfg.estimators.geometry, VGGT.model_name, VGGT.checkpoint_files, None),
+              ("estimators.flow", cfg.estimators.flow, UFM.model_name, ("config.json",), None)]
+    for key, source, name, filenames, revision in checks:
+        if source == TINY_RANDOM:
+            continue
+        try:
+            check_weights_available(source, filenames, model_name=name, revision=revision)
+        except WeightsNotFoundError as err:
+            raise with_config_key(err, key, f"/path/to/{Path(str(source)).name}") from None
+    if wants_tiny_decoder(cfg):
+        check_tiny_decoder_source(cfg)
 
 
 def load_video_pipeline(cfg: Any, geometry_estimator=None, flow_estimator=None,
@@ -106,7 +144,7 @@ def load_video_pipeline(cfg: Any, geometry_estimator=None, flow_estimator=None,
         pipe = GeCoCogVideoXPipeline(**components, **extra)
         if dtype != torch.float32:
             for model in (pipe.text_encoder, pipe.transformer, pipe.vae):
-                model.to(dtype)
+                cast_model(model, dtype)
     elif model_id == TINY_RANDOM:
         raise ValueError(f"model.id={TINY_RANDOM} needs its components (geco_guide.tiny.tiny_cogvideox_components)")
     else:
@@ -147,6 +185,24 @@ def choose_scheduler(pipe, name: str | None) -> str:
     return f"{cls.__name__} (sampling.scheduler={name}, built from the checkpoint's {shipped} config)"
 
 
+def load_dynamic_masks(cfg: Any) -> Any:
+    """The mask source of ``guidance.dynamic`` (:func:`~.dynamic.load_mask_source`), on
+    ``model.device``: ``None`` without guidance or without ``guidance.dynamic``; a text segmenter
+    loads ``estimators.segmenter`` in ``estimators.dtype`` (``tiny-random``: seeded with
+    ``estimators.init_seed``).
+
+    Raises:
+        WeightsNotFoundError: one line naming the segmenter's repo id, ``estimators.segmenter``
+            and how to pass a local folder.
+    """
+    from .dynamic import load_mask_source
+
+    if not cfg.guidance.enabled:
+        return None
+    return load_mask_source(cfg.guidance, cfg.estimators.segmenter, device=resolve_device(cfg.model.device),
+                            dtype=getattr(torch, cfg.estimators.dtype), seed=cfg.estimators.init_seed)
+
+
 def wants_tiny_decoder(cfg: Any) -> bool:
     """Whether the config's guidance decodes its anchor frames with the tiny decoder."""
     return bool(cfg.guidance.enabled and cfg.guidance.decoder == "tiny")
@@ -175,31 +231,82 @@ def check_tiny_decoder_source(cfg: Any) -> None:
         )
 
 
-def load_tiny_decoder(cfg: Any) -> Any:
-    """The CogVideoX tiny decoder of ``estimators.tiny_decoder`` (a file, a folder or a hub id;
-    ``tiny-random`` is built by :func:`build_pipeline`, which knows the VAE's latent channels), in
-    ``model.dtype`` on the CPU (the pipeline moves it). A file must be the CogVideoX variant.
+def load_tiny_decoder(cfg: Any, family: str = "cogvideox") -> Any:
+    """The tiny decoder of ``estimators.tiny_decoder`` (a file, a folder or a hub id; ``tiny-random``
+    is built by :func:`build_pipeline`, which knows the VAE's latent channels) for the video
+    ``family`` (:data:`TINY_DECODER_VARIANTS`), in ``model.dtype`` on the CPU (the pipeline moves
+    it). A file must be that family's variant.
 
     Raises:
         WeightsNotFoundError: one line naming the source and the config key.
-        ValueError: the file is the tiny decoder of another model.
+        ValueError: the family has no tiny decoder, or the file is the tiny decoder of another model.
     """
-    from ..estimators.tiny_decoder import TinyDecoder, variant_from_filename
+    from ..estimators.tiny_decoder import TinyDecoder
 
     check_tiny_decoder_source(cfg)
-    source = cfg.estimators.tiny_decoder
+    variant = check_tiny_decoder_family(cfg.estimators.tiny_decoder, family)
+    try:
+        return TinyDecoder.from_pretrained(cfg.estimators.tiny_decoder, variant.name, dtype=getattr(torch, cfg.model.dtype))
+    except WeightsNotFoundError as err:
+        raise with_config_key(err, "estimators.tiny_decoder", f"/path/to/{variant.checkpoint}.pth") from None
+
+
+#: The tiny decoder variant that decodes each video family's latents (the families of the
+#: GeCo-Eval model registry); LTX-Video has none.
+TINY_DECODER_VARIANTS = {"cogvideox": "cogvideox", "cogvideox1.5": "cogvideox", "wan": "wan2.1",
+                         "hunyuan": "hunyuanvideo"}
+#: How messages name the families.
+FAMILY_NAMES = {"cogvideox": "CogVideoX", "cogvideox1.5": "CogVideoX 1.5", "wan": "Wan", "hunyuan": "HunyuanVideo",
+                "ltx": "LTX-Video"}
+#: The families whose VAE ``guidance.decode_layout=channels_last`` is written for (the CogVideoX VAE).
+CHANNELS_LAST_FAMILIES = ("cogvideox", "cogvideox1.5")
+
+
+def check_tiny_decoder_family(source: str, family: str) -> Any:
+    """The :class:`~geco_guide.estimators.tiny_decoder.TinyDecoderVariant` of ``family``; ValueError
+    (one line) when the family has none or the checkpoint file ``source`` is named for another
+    model's (a name that tells no variant is left to the strict load, which checks the keys)."""
+    from ..estimators.tiny_decoder import resolve_variant, variant_from_filename
+
+    if family not in TINY_DECODER_VARIANTS:
+        raise ValueError(f"guidance.decoder=tiny: there is no tiny decoder for {FAMILY_NAMES.get(family, family)} "
+                         "latents; use guidance.decoder=vae")
+    variant = resolve_variant(TINY_DECODER_VARIANTS[family])
     path = Path(source).expanduser()
     try:
-        named = variant_from_filename(path) if path.is_file() else None
-    except ValueError:  # a name that tells no variant: the strict load checks the keys
+        named = variant_from_filename(path) if source != TINY_RANDOM and path.is_file() else None
+    except ValueError:
         named = None
-    if named is not None and named.name != "cogvideox":
+    if named is not None and named.name != variant.name:
         raise ValueError(f"estimators.tiny_decoder={source} is the tiny decoder of {named.models}; "
-                         "CogVideoX needs taecvx.pth")
-    try:
-        return TinyDecoder.from_pretrained(source, "cogvideox", dtype=getattr(torch, cfg.model.dtype))
-    except WeightsNotFoundError as err:
-        raise with_config_key(err, "estimators.tiny_decoder", "/path/to/taecvx.pth") from None
+                         f"{FAMILY_NAMES.get(family, family)} needs {variant.checkpoint}.pth")
+    return variant
+
+
+def check_guidance_before_loading(cfg: Any, *, model_id: str, num_frames: int, height: int, width: int,
+                                  num_steps: int, family: str = "cogvideox") -> Any:
+    """Every check of the config's guidance that needs no model, for a command to make before any
+    model loads and before it writes anything: the loss, the schedule for ``num_steps``, the decode
+    layout for the ``family``'s VAE, the tiny decoder's weights (named, there, of this family) and a
+    memory plan that fits (:func:`~.memory_plan.plan_before_loading` for a ``num_frames x height x
+    width`` video of ``model_id`` on ``model.device``). Returns the predicted plan (None without
+    guidance).
+
+    Raises:
+        ValueError: one line naming the option.
+        WeightsNotFoundError: ``estimators.tiny_decoder`` names a file that does not exist.
+    """
+    guidance = cfg.guidance
+    if guidance.enabled:
+        guidance.check_loss()
+        guidance.schedule(num_steps)
+        if guidance.decode_layout != "default" and family not in CHANNELS_LAST_FAMILIES:
+            raise ValueError(f"guidance.decode_layout={guidance.decode_layout} is written for the CogVideoX VAE, not "
+                             f"{FAMILY_NAMES.get(family, family)}'s: use guidance.decode_layout=default")
+        if guidance.decoder == "tiny":
+            check_tiny_decoder_source(cfg)
+            check_tiny_decoder_family(cfg.estimators.tiny_decoder, family)
+    return plan_before_loading(guidance, model_id, num_frames, height, width, cfg.model.device)
 
 
 def tiny_decoder_note(decoder: Any, init_seed: int) -> str:

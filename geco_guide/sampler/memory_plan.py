@@ -30,7 +30,6 @@ device's memory (a CUDA device's total, a CPU's physical RAM).
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from functools import lru_cache
@@ -152,6 +151,31 @@ def model_signature(transformer_config: Any) -> dict[str, Any]:
     return {key: get(key) for key in SIGNATURE_FIELDS}
 
 
+#: Where a diffusers pipeline folder keeps its denoiser's config.
+DENOISER_CONFIG = "transformer/config.json"
+
+
+def stored_signature(model_id: str, revision: str | None = None) -> dict[str, Any] | None:
+    """The denoiser signature of a pipeline before it loads: from a local folder's or the hub
+    cache's ``transformer/config.json`` (a small file; no weights are read); ``None`` where neither
+    has it."""
+    path = Path(model_id).expanduser() / DENOISER_CONFIG
+    if not path.is_file():
+        try:
+            from huggingface_hub import try_to_load_from_cache
+
+            cached = try_to_load_from_cache(model_id, DENOISER_CONFIG, revision=revision)
+        except (ValueError, OSError):  # not a valid repo id
+            return None
+        if not isinstance(cached, str):
+            return None
+        path = Path(cached)
+    try:
+        return model_signature(json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, ValueError):  # unreadable: the model's own loading says why
+        return None
+
+
 def known_model(estimates: Mapping[str, Any], *, signature: Mapping[str, Any] | None = None,
                 model_id: str | None = None) -> str | None:
     """The key of the estimates' model with this denoiser signature or hub id, ``None`` if unknown."""
@@ -181,18 +205,17 @@ def predicted_peaks(entry: Mapping[str, Any], mode: str, decoder: str, frames: i
 
 
 def device_memory_gb(device: Any) -> float | None:
-    """Total memory (GiB) of a CUDA device, or a CPU's physical RAM; ``None`` where unknown."""
-    import torch
+    """Total memory (GiB) of a CUDA device (``auto`` resolved), or a CPU's physical RAM; ``None``
+    where unknown.
 
-    device = torch.device(device)
-    if device.type == "cuda":
-        return torch.cuda.get_device_properties(device).total_memory / GIB
-    if device.type == "cpu":
-        try:
-            return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / GIB
-        except (ValueError, OSError, AttributeError):
-            return None
-    return None
+    Raises:
+        ValueError: (one line) a device this machine lacks, e.g. ``cuda`` without CUDA.
+    """
+    from ..io.devices import check_device, memory_limit
+
+    device = check_device(device)
+    limit = memory_limit(device) if device.type in ("cuda", "cpu") else None
+    return None if limit is None else limit / GIB
 
 
 def choose_plan(config: Any, *, signature: Mapping[str, Any] | None = None, model_id: str | None = None,
@@ -258,14 +281,27 @@ def choose_plan(config: Any, *, signature: Mapping[str, Any] | None = None, mode
 
 def plan_before_loading(config: Any, model_id: str, frames: int, height: int, width: int,
                         device: Any) -> PlanChoice | None:
-    """The plan a guided call of the hub model ``model_id`` on ``device`` is predicted to get, for a
-    command line to check before any model loads (``None`` without guidance; a model id the
-    estimates do not know gets :data:`SAFE_PLAN`, as its call would).
+    """The plan a guided call of the pipeline ``model_id`` (a hub id or a local folder, known by its
+    denoiser's stored config or by its id) on ``device`` (``auto`` resolved as the loaders resolve
+    it) is predicted to get, for a command line to check before any model loads
+    (``None`` without guidance; a model id the estimates do not know gets :data:`SAFE_PLAN`, as
+    its call would).
 
     Raises:
-        ValueError: (one line) where no plan fits the budget (:func:`choose_plan`).
+        ValueError: (one line) where no plan fits the budget (:func:`choose_plan`), or ``device``
+            is not one this machine has, or a size no video has (not a positive integer).
     """
+    check_video_size(frames, height, width)
     if not config.enabled:
         return None
-    return choose_plan(config, model_id=model_id, frames=frames, height=height, width=width,
-                       device_gb=device_memory_gb(device))
+    return choose_plan(config, signature=stored_signature(model_id), model_id=model_id, frames=frames,
+                       height=height, width=width, device_gb=device_memory_gb(device))
+
+
+def check_video_size(frames: Any, height: Any, width: Any) -> None:
+    """ValueError (one line) unless ``frames``, ``height`` and ``width`` are positive integers: a
+    plan for any other size would predict a peak from nothing (a negative one for ``height=-32``)."""
+    for name, value in (("frames", frames), ("height", height), ("width", width)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"a memory plan needs a video size of positive integers: {name}={value!r} "
+                             f"(frames={frames!r}, height={height!r}, width={width!r})")

@@ -36,10 +36,12 @@ from diffusers.pipelines.cogvideo.pipeline_output import CogVideoXPipelineOutput
 from diffusers.utils import logging
 from torch import Tensor, nn
 
-from ..types import FlowEstimator, GeometryEstimator, missing_estimators
+from ..types import DynamicMaskSource, FlowEstimator, GeometryEstimator, missing_estimators
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .config import GuidanceConfig, resolve_guidance_config
 from .context import GuidanceContext, anchor_decoder
+from .devices import resolve_devices
+from .dynamic import guidance_mask_source
 from .memory_plan import PlanChoice, choose_plan, device_memory_gb, model_signature
 from .slicing import (
     check_latents,
@@ -47,6 +49,7 @@ from .slicing import (
     check_paired_latent_frames,
     decode_chunk,
 )
+from .step import LatentsWatch
 
 try:
     from diffusers.pipelines.cogvideo.pipeline_cogvideox import XLA_AVAILABLE
@@ -73,6 +76,10 @@ class GeCoCogVideoXPipelineOutput(CogVideoXPipelineOutput):
     guidance_log: list[dict[str, Any]] | None = None
     guidance: dict[str, Any] | None = None
     memory_plan: dict[str, Any] | None = None
+
+
+#: What ``output_type`` may be: the video processor's kinds, or the latents themselves.
+OUTPUT_TYPES = ("pil", "np", "pt", "latent")
 
 
 class GeCoCogVideoXPipeline(CogVideoXPipeline):
@@ -127,6 +134,10 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                               guidance_decoder=guidance_decoder)
         self.guidance_config = guidance_config  # a GuidanceConfig, and its dict in the config (__setattr__)
         self.geco_memory_plan: dict[str, Any] | None = None  # the last guided call's (output.memory_plan)
+        self.geco_devices: list[str] | None = None  # the devices of its anchor decode (guidance.devices)
+        # What moves on its own, for guidance.dynamic (a loaded text segmenter); not a component,
+        # so never saved with the pipeline.
+        self.dynamic_mask_source: DynamicMaskSource | None = None
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name == "guidance_config":
@@ -236,7 +247,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 f"GeCo guidance needs {' and '.join(missing)}: pass them to from_pretrained(..., "
                 "geometry_estimator=..., flow_estimator=...) or to the call, or call with guidance=False"
             )
-        decode = anchor_decoder(guidance, partial(decode_chunk, self.vae, scaling_factor=self.vae_scaling_factor_image),
+        decode = anchor_decoder(guidance, lambda vae: partial(decode_chunk, vae, scaling_factor=self.vae_scaling_factor_image),
                                 self.guidance_decoder, self.vae)
         return schedule, chunks, decode
 
@@ -326,6 +337,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         guidance: GuidanceConfig | Mapping[str, Any] | bool | None = None,
         geometry_estimator: GeometryEstimator | None = None,
         flow_estimator: FlowEstimator | None = None,
+        dynamic_masks: DynamicMaskSource | None = None,
     ) -> GeCoCogVideoXPipelineOutput | tuple:
         """Generate a video; arguments as :meth:`CogVideoXPipeline.__call__`, plus:
 
@@ -334,6 +346,10 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 ``self.guidance_config`` (e.g. ``{"eta": 2.0, "loss": {"cue": "motion"}}``),
                 ``False`` to sample without guidance, or ``None`` for the default.
             geometry_estimator, flow_estimator: override the pipeline's estimators for this call.
+            dynamic_masks: what moves on its own, for ``guidance.dynamic`` (default
+                ``self.dynamic_mask_source``): a :class:`~geco_guide.types.DynamicMaskSource` such as
+                :func:`~geco_guide.estimators.segmenters.text_segmenter` of the subjects; ``"auto"``
+                needs none. See docs/guidance.md, Moving subjects.
             eta: the scheduler's eta, passed to its ``step`` as in the stock pipeline (DDIM noise;
                 ``CogVideoXDDIMScheduler`` ignores it). The GeCo step size is ``guidance.eta``.
 
@@ -353,6 +369,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         self.check_inputs(
             prompt, height, width, negative_prompt, callback_on_step_end_tensor_inputs, prompt_embeds, negative_prompt_embeds
         )
+        if output_type not in OUTPUT_TYPES:  # the stock pipeline finds out after the whole denoising
+            raise ValueError(f"output_type must be one of {list(OUTPUT_TYPES)}, got {output_type!r}")
         config = resolve_guidance_config(self.guidance_config, guidance)
         geometry_estimator = geometry_estimator if geometry_estimator is not None else self.geometry_estimator
         flow_estimator = flow_estimator if flow_estimator is not None else self.flow_estimator
@@ -361,6 +379,11 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             height, width, num_frames, num_steps, config, geometry_estimator, flow_estimator
         )
         memory_plan = self.choose_memory_plan(config, num_frames, height, width) if config.enabled else None
+        devices = resolve_devices(config.devices) if config.enabled else None
+        masks = None
+        if config.enabled:
+            source = dynamic_masks if dynamic_masks is not None or config.dynamic is None else self.dynamic_mask_source
+            masks = guidance_mask_source(config, source, self._execution_device)
         self._guidance_scale = guidance_scale
         self._attention_kwargs = attention_kwargs
         self._current_timestep = None
@@ -434,12 +457,15 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 decode_chunk=decode,
                 latent_frames=lambda x0: x0[:, additional_frames:],
                 geometry_estimator=geometry_estimator, flow_estimator=flow_estimator, generator=generator,
-                memory_plan=memory_plan,
+                memory_plan=memory_plan, dynamic_masks=masks, devices=devices,
             )
+            if devices:
+                logger.info("guidance: anchor chunks dealt over %s", ", ".join(map(str, devices)))
 
         # 9. Denoising loop
         num_warmup_steps = max(len(timesteps) - num_inference_steps * self.scheduler.order, 0)
         step_values = [int(v) for v in timesteps.tolist()]  # host copies: the guided steps add no device sync
+        watch = LatentsWatch(len(timesteps))  # read once, after the loop: NaN latents are refused, not decoded
         with (
             geco.models([self.transformer], self.vae, [self.text_encoder, self.guidance_decoder]) if geco else contextlib.nullcontext(),
             self.progress_bar(total=num_inference_steps) as progress_bar,
@@ -500,12 +526,15 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                     latents = latents.float() if keep_fp32 else latents
                     prompt_embeds = callback_outputs.pop("prompt_embeds", prompt_embeds)
                     negative_prompt_embeds = callback_outputs.pop("negative_prompt_embeds", negative_prompt_embeds)
+                watch.see(latents, i)
 
                 if i == len(timesteps) - 1 or ((i + 1) > num_warmup_steps and (i + 1) % self.scheduler.order == 0):
                     progress_bar.update()
 
         self._current_timestep = None
         self.geco_memory_plan = geco.memory_plan.to_dict() if geco else None
+        self.geco_devices = [str(device) for device in devices] if geco and devices else None
+        watch.check()
 
         if not output_type == "latent":
             latents = latents[:, additional_frames:]

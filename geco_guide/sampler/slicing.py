@@ -139,10 +139,15 @@ def anchor_latent_chunks(
         raise ValueError(f"guidance needs at least two anchor frames to form a pair, got anchors={anchors}")
     if any(b <= a for a, b in zip(anchors, anchors[1:])):
         raise ValueError(f"anchors must be strictly increasing, got {anchors}")
+    first_group = list(latent_to_pixels(0, temporal_compression))
     bad = [a for a in anchors if not 0 <= a < num_frames]
     if bad:
-        raise ValueError(f"anchors {bad} are out of range for a {num_frames}-frame video (valid: 0..{num_frames - 1})")
-    first_group = list(latent_to_pixels(0, temporal_compression))
+        suggested = [a for a in default_anchors(num_frames, temporal_compression) if a < num_frames]
+        example = f", e.g. {suggested} (the quarter points)" if len(suggested) >= 2 else ""
+        raise ValueError(
+            f"anchors {bad} are out of range for a {num_frames}-frame video: set anchors (guidance.anchors) to "
+            f"frames in {first_group[-1] + 1}..{num_frames - 1}{example}"
+        )
     inside = [a for a in anchors if a in first_group]
     if inside:
         raise ValueError(
@@ -241,6 +246,59 @@ def decode_anchor_frames(
             )
         frames.append(video[:, video.shape[1] - 1 - chunk.from_end])
     return torch.stack(frames, dim=1).float()
+
+
+def decode_anchor_frames_across(
+    placed: Sequence[tuple[torch.device, Callable[[Tensor], Tensor]]],
+    latents: Tensor,
+    chunks: Sequence[AnchorChunk],
+    checkpoint_chunks: bool = False,
+) -> Tensor:
+    """:func:`decode_anchor_frames` with the chunks dealt round-robin over several devices.
+
+    Chunk span ``k`` (in order) is decoded by ``placed[k mod N]``: its latents go to that device,
+    its decode (that device's replica of the decoder) runs there, and only its anchor frames come
+    back to ``latents``' device. Each span is one decode call (checkpointed with
+    ``checkpoint_chunks`` when gradients are enabled), as :func:`decode_anchor_frames` makes them
+    without batching: the same numbers on devices of one kind.
+
+    Args:
+        placed: ``(device, decode)`` pairs, ``decode`` as in :func:`decode_anchor_frames`, with a
+            decoder that lives on ``device``.
+        latents: ``[B, F, C, h, w]`` clean-latent estimate (differentiable).
+        chunks: from :func:`anchor_latent_chunks`.
+        checkpoint_chunks: one checkpointed region per span.
+
+    Returns:
+        ``[B, S, 3, H, W]`` fp32 frames in ``[0, 1]`` on ``latents``' device, one per chunk, in order.
+    """
+    if len(chunks) == 0:
+        raise ValueError("chunks must not be empty")
+    if len(placed) == 0:
+        raise ValueError("placed must hold at least one (device, decode) pair")
+    num_latents, home = latents.shape[1], latents.device
+    for chunk in chunks:
+        if chunk.stop > num_latents:
+            raise ValueError(f"anchor {chunk.anchor} needs latent {chunk.latent} but latents has only {num_latents}")
+    spans = sorted({(chunk.start, chunk.stop) for chunk in chunks})
+    picked: dict[tuple[int, int], Tensor] = {}
+    for k, span in enumerate(spans):
+        device, decode = placed[k % len(placed)]
+        from_ends = sorted({chunk.from_end for chunk in chunks if (chunk.start, chunk.stop) == span})
+
+        def anchors_of_span(part: Tensor, decode=decode, device=device, from_ends=from_ends) -> Tensor:
+            video = decode(part.to(device, non_blocking=True))
+            if max(from_ends) >= video.shape[1]:
+                raise ValueError(f"decoding a chunk gave {video.shape[1]} frames, expected at least {max(from_ends) + 1}: "
+                                 "is the VAE causal with the configured temporal compression?")
+            frames = torch.stack([video[:, video.shape[1] - 1 - end] for end in from_ends], dim=1)
+            return frames.to(home, non_blocking=True)  # only the anchor frames travel
+
+        part = latents[:, span[0]:span[1]]
+        frames = (checkpoint(anchors_of_span, part, use_reentrant=False) if checkpoint_chunks and torch.is_grad_enabled()
+                  else anchors_of_span(part))
+        picked.update({(span, end): frames[:, i] for i, end in enumerate(from_ends)})
+    return torch.stack([picked[((chunk.start, chunk.stop), chunk.from_end)] for chunk in chunks], dim=1).float()
 
 
 def default_anchors(num_frames: int, temporal_compression: int) -> list[int]:

@@ -58,7 +58,8 @@ class Update:
 @dataclass
 class GuidanceRecord:
     """One guided update of the guidance log: step index, timestep, loss and cues before the
-    update, ``||g||``, seconds."""
+    update, ``||g||``, seconds; with dynamic masks also the mean fraction of the anchor frames'
+    pixels masked and the masks' source (absent from :meth:`to_dict` without masks)."""
 
     step: int
     repeat: int
@@ -71,17 +72,26 @@ class GuidanceRecord:
     seconds: float
     time_travel: bool
     skipped: bool = False
+    masked_fraction: float | None = None
+    mask_source: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        record = asdict(self)
+        if self.mask_source is None:
+            del record["masked_fraction"], record["mask_source"]
+        return record
 
 
 def loss_terms(result: Any) -> tuple[Tensor, dict[str, Tensor]]:
     """The loss to differentiate and the scalars to record of a loss result (a ``GeCoResult`` or a
-    scalar tensor), as tensors: reading them is a host sync."""
+    scalar tensor), as tensors: reading them is a host sync. A result with dynamic masks adds
+    ``masked_fraction``, the mean over clips and frames."""
     if isinstance(result, Tensor):
         return result, {"loss": result}
-    return result.loss, {name: getattr(result, name) for name in ("loss", "motion", "structure", "fused")}
+    terms = {name: getattr(result, name) for name in ("loss", "motion", "structure", "fused")}
+    if getattr(result, "masked_fraction", None) is not None:
+        terms["masked_fraction"] = result.masked_fraction.mean()
+    return result.loss, terms
 
 
 def read_scalars(values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
@@ -175,3 +185,40 @@ def score_anchor_frames(video: Tensor, anchors: Sequence[int], loss_fn: Callable
     with torch.no_grad():
         _, terms = loss_terms(loss_fn(video[:, list(anchors)].float()))
     return read_scalars(terms, video.device)
+
+
+class NonFiniteLatentsError(ValueError):
+    """The latents of a sampling call turned NaN or inf: the video would be NaN frames."""
+
+
+class LatentsWatch:
+    """The first denoising step after which a call's latents hold NaN or inf, kept on the
+    latents' device: :meth:`see` queues the test without waiting for it (no host sync per step),
+    :meth:`check` reads it (one device-to-host copy) and refuses."""
+
+    def __init__(self, num_steps: int) -> None:
+        self.num_steps = num_steps
+        self._first: Tensor | None = None  # -1 while every latent seen is finite
+
+    def see(self, latents: Tensor, step: int) -> None:
+        """Note the latents of denoising step ``step`` (0-based): what it made, or what it starts from."""
+        from torch._subclasses.fake_tensor import is_fake
+
+        if is_fake(latents):  # the cost model's trace: no values to check, and no ops to add to its count
+            return
+        if self._first is None:
+            self._first = torch.full((), -1, dtype=torch.long, device=latents.device)
+        turned = (self._first < 0) & ~torch.isfinite(latents).all().to(self._first.device)
+        self._first = self._first.masked_fill(turned, step)
+
+    def check(self) -> None:
+        """Raises:
+            NonFiniteLatentsError: one line naming the first step whose latents hold NaN or inf.
+        """
+        step = -1 if self._first is None else int(self._first)
+        if step >= 0:
+            raise NonFiniteLatentsError(
+                f"the latents hold NaN or inf from denoising step {step} on (0-based, of {self.num_steps}); the "
+                "video would be NaN frames, so the call stops (lower guidance.eta or the guidance scale, or check "
+                "latents set by a callback)"
+            )

@@ -1,0 +1,117 @@
+"""One guided call over several devices (``guidance.devices``): the anchor chunks dealt round-robin,
+each device with its own replica of the decoder; the same frames as one device, bitwise on CPU."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from geco_guide.sampler.config import GuidanceConfig
+from geco_guide.sampler.devices import decoder_replicas, resolve_devices
+from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across
+from geco_guide.tiny import TINY_CALL_KWARGS, tiny_call_kwargs, tiny_estimators, tiny_guidance_config, tiny_pipeline
+
+
+def test_chunks_are_dealt_round_robin_and_only_anchor_frames_come_back():
+    chunks = anchor_latent_chunks([4, 8, 12, 16], 17, 4, 3)
+    latents = torch.randn(1, 5, 2, 3, 3, requires_grad=True)
+    calls = []
+
+    def decoder(tag):
+        def decode(part):
+            calls.append((tag, part.shape[1]))
+            return part.mean(2, keepdim=True).repeat_interleave(4, dim=1)[:, :1 + 4 * (part.shape[1] - 1)].expand(
+                -1, -1, 3, -1, -1)
+        return decode
+
+    one = decode_anchor_frames(decoder("home"), latents, chunks, batch_chunks=False)
+    calls.clear()
+    two = decode_anchor_frames_across([(torch.device("cpu"), decoder("a")), (torch.device("cpu"), decoder("b"))],
+                                      latents, chunks, checkpoint_chunks=True)
+    assert [tag for tag, _ in calls] == ["a", "b", "a", "b"]  # four spans, alternately
+    assert torch.equal(one, two) and two.shape == (1, 4, 3, 3, 3)
+    (g1,) = torch.autograd.grad(one.sum(), latents)
+    (g2,) = torch.autograd.grad(two.sum(), latents)
+    assert torch.equal(g1, g2)
+
+
+def test_each_extra_device_gets_a_replica_of_its_own():
+    module = torch.nn.Linear(2, 2)
+    replicas = decoder_replicas(module, [torch.device("cpu"), torch.device("cpu"), torch.device("cpu")])
+    assert replicas[0] is module and replicas[1] is not module and replicas[2] is not replicas[1]
+    assert all(torch.equal(r.weight, module.weight) for r in replicas)
+
+
+def _pipe_frames(config):
+    pipe = tiny_pipeline(seed=0)
+    out = pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="pt", guidance=config,
+               **TINY_CALL_KWARGS)
+    return out.frames, out.guidance_log, pipe
+
+
+@pytest.mark.parametrize("denoiser_grad", [False, True], ids=["fast", "faithful"])
+def test_two_devices_give_the_frames_of_one_in_the_pipeline(denoiser_grad):
+    base = replace(tiny_guidance_config(), denoiser_grad=denoiser_grad, memory_plan="chunked")
+    one, log_one, _ = _pipe_frames(base)
+    listed, _, _ = _pipe_frames(replace(base, devices=["cpu"]))
+    two, log_two, pipe = _pipe_frames(replace(base, devices=["cpu", "cpu"]))
+    assert torch.equal(one, two) and torch.equal(one, listed)
+    assert [r["loss"] for r in log_one] == [r["loss"] for r in log_two]
+    assert pipe.geco_devices == ["cpu", "cpu"]
+
+
+def test_two_devices_give_the_frames_of_one_through_a_hook():
+    from geco_guide import attach_geco_guidance
+    from geco_guide.tiny import tiny_wan_pipeline
+
+    geometry, flow = tiny_estimators(0)
+    config = GuidanceConfig(anchors=[4, 8], repeats="0x3,2x1", time_travel=[], eta=1.0, memory_plan="chunked")
+    videos = []
+    for devices in (None, ["cpu", "cpu"]):
+        pipe = tiny_wan_pipeline(0)
+        with attach_geco_guidance(pipe, replace(config, devices=devices), geometry_estimator=geometry,
+                                  flow_estimator=flow) as handle:
+            videos.append(pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="pt",
+                               **tiny_call_kwargs(pipe, num_frames=9)).frames)
+            assert handle.devices == (None if devices is None else ["cpu", "cpu"]) and handle.log
+    assert torch.equal(videos[0], videos[1])
+
+
+@pytest.mark.parametrize("devices, message", [
+    (["tpu"], "invalid device 'tpu' (guidance.devices)"),
+    (["cpu", "cuda:7"], "device 'cuda:7' is not available"),
+])
+def test_a_device_this_machine_lacks_is_one_line(devices, message):
+    if torch.cuda.device_count() > 7:
+        pytest.skip("this machine has a cuda:7")
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")) as err:
+        resolve_devices(devices)
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("devices", ["cuda:0", [], [""], [3]])
+def test_devices_must_be_a_list_of_names(devices):
+    with pytest.raises(ValueError, match="devices must be null or a list of devices"):
+        GuidanceConfig(devices=devices)
+
+
+def test_generate_refuses_unknown_devices_before_loading(tmp_path, capsys, monkeypatch):
+    from geco_guide.cli import generate as generate_cli
+
+    monkeypatch.setattr(generate_cli, "build_pipeline", lambda cfg: pytest.fail("models were loaded"))
+    assert generate_cli.main(["--preset", "tiny", "--prompt", "a cat", "--out", str(tmp_path / "o"),
+                              "--devices", "cpu", "cuda:7"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: device 'cuda:7' is not available") and "guidance.devices" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_devices_do_not_change_the_video_name():
+    from geco_guide.cli.generate import default_name
+    from geco_guide.config import load_config
+
+    plain = load_config(preset="tiny")
+    spread = load_config(preset="tiny", overrides=["guidance.devices=[cpu,cpu]"])
+    assert spread.guidance.devices == ["cpu", "cpu"] and default_name(plain, "a") == default_name(spread, "a")
