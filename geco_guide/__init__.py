@@ -1,10 +1,11 @@
 """GeCo: geometric-consistency metric and training-free guidance for diffusers video models.
 
 Public names are imported lazily, so ``import geco_guide`` stays light (no diffusers import)
-until a sampler name is used.
+until a name of the sampler that needs diffusers (``GeCoCogVideoXPipeline``,
+``attach_geco_guidance``) is used.
 """
 
-from importlib import import_module
+from importlib import import_module as _import_module
 from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
@@ -25,6 +26,8 @@ _EXPORTS = {
     "UFMConfig": "geco_guide.estimators.ufm",
     "TinyDecoder": "geco_guide.estimators.tiny_decoder",
     "attach_geco_guidance": "geco_guide.sampler.hooks",
+    "GeCoCogVideoXPipeline": "geco_guide.sampler.pipeline_cogvideox",
+    "GuidanceConfig": "geco_guide.sampler.config",
     "evaluate_video": "geco_guide.metric.evaluate",
     "load_prompts": "geco_guide.bench.geco_eval",
 }
@@ -39,16 +42,21 @@ if TYPE_CHECKING:  # pragma: no cover
     from .loss.geco import GeCoLoss, GeCoLossConfig, GeCoResult, geco_from_geometry
     from .loss.motion_stats import motion_statistics
     from .metric.evaluate import evaluate_video
+    from .sampler.config import GuidanceConfig
+    from .sampler.hooks import attach_geco_guidance
+    from .sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
     from .types import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry
 
 
 def __getattr__(name: str):
     if name not in _EXPORTS:
         raise AttributeError(f"module 'geco_guide' has no attribute {name!r}")
-    value = getattr(import_module(_EXPORTS[name]), name)
+    value = getattr(_import_module(_EXPORTS[name]), name)
     globals()[name] = value
     return value
 
 
 def __dir__():
-    return sorted(set(globals()) | set(__all__))
+    # the public names and the subpackages already imported, not this file's own helpers
+    loaded = {name for name, value in globals().items() if getattr(value, "__name__", "").startswith(f"{__name__}.")}
+    return sorted(set(__all__) | loaded | {"__version__"})

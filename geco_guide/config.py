@@ -3,7 +3,7 @@
 Sections: ``model`` (the CogVideoX checkpoint), ``estimators`` (geometry + flow backbones),
 ``sampling`` (steps, CFG, size), ``guidance`` (:class:`GuidanceConfig`: anchors, schedule,
 step size, time travel, and ``guidance.loss``, which *is* :class:`GeCoLossConfig`), ``output``,
-``evaluation`` (:class:`EvaluationConfig`: how ``python -m geco_guide.evaluate`` samples a video,
+``evaluation`` (:class:`EvaluationConfig`: how ``python -m geco_guide evaluate`` samples a video,
 with the metric's own ``evaluation.loss``) and ``seed``. Defaults are the GeCo paper's CogVideoX-5b setting; the presets are
 the checkout's ``configs/<name>.yaml``, installed as the package data ``geco_guide/configs`` (so
 ``--preset`` works after a plain ``pip install``).
@@ -132,8 +132,9 @@ def _merge(base: DictConfig, other: Any, source: str) -> DictConfig:
 
 def _container_mismatch(base: DictConfig, other: Any, prefix: str = "") -> tuple[str, str, Any] | None:
     """The first ``(dotted key, what it must be, value)`` of ``other`` that gives a plain value
-    or a list where ``base`` has a section (``sampling: 5``), or a mapping where ``base`` has a
-    list (``guidance.anchors: {a: 1}``); None if there is none."""
+    or a list where ``base`` has a section (``sampling: 5``), or a mapping or a plain value where
+    ``base`` has a list (``guidance.anchors: {a: 1}``, ``guidance.anchors: "4,8"``); None if there
+    is none."""
     if not isinstance(other, (DictConfig, Mapping)):
         return None
     for key, value in other.items():
@@ -146,7 +147,8 @@ def _container_mismatch(base: DictConfig, other: Any, prefix: str = "") -> tuple
             found = _container_mismatch(node, value, f"{prefix}{key}.")
             if found is not None:
                 return found
-        elif isinstance(node, ListConfig) and is_mapping:
+        elif isinstance(node, ListConfig) and value is not None and (
+                isinstance(value, str) or not isinstance(value, Sequence)):
             return f"{prefix}{key}", "a list", value
     return None
 

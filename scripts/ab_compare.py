@@ -6,12 +6,14 @@
 
 The prompts file holds one prompt per line, or JSON lines ``{"id": "bust", "prompt": "..."}``
 (``id`` optional; blank lines and ``#`` comments are skipped). A prompt's id (its slug when not
-given) names its output folders, so ids must be unique and filesystem-safe.
+given) names its output folders, so ids must be unique and filesystem-safe. A JSON line's optional
+``"subjects": "a dog, a ball"`` (what moves on its own; ``--prompts dynamic``: our suite) are masked
+in both arms' scores and in the guided arm's guidance, by the segmenter of ``estimators.segmenter``.
 
-For every prompt x seed ("pair"), both arms run :func:`geco_guide.generate.generate` with the same
+For every prompt x seed ("pair"), both arms run :func:`geco_guide.cli.generate.generate` with the same
 config and seed, so both start from the same initial noise (``torch.Generator("cpu").manual_seed
 (seed)``); the unguided arm is exactly ``python -m geco_guide.generate --no-guidance --seed S``.
-Both videos are scored by :func:`geco_guide.evaluate.evaluate_video` with the same estimators and
+Both videos are scored by :func:`geco_guide.metric.evaluate.evaluate_video` with the same estimators and
 the config's ``evaluation`` protocol. ``<out>/pairs/<id>-s<seed>/`` then holds ``unguided.mp4``,
 ``guided.mp4`` (each with its generation sidecar ``.json``), ``side_by_side.mp4``, with
 ``--maps`` the maps videos, and last ``result.json``, whose presence marks the pair complete.
@@ -24,7 +26,8 @@ another prompt or config) are refused unless ``--overwrite``, which redoes every
 works in a folder it holds ``<out>/.run.lock`` (its pid): a second run there is refused,
 and the lock of a run that was killed is taken over. ``--maps`` on a resumed folder also makes
 the maps of complete pairs that have none (their videos are scored again; only the estimators
-load). Under ``accelerate launch`` the pairs are dealt round-robin to the processes; at the end
+load), and with ``guidance.decoder=tiny`` a folder without a whole ``decoder_agreement.json`` gets
+it measured, whatever the pairs' state. Under ``accelerate launch`` the pairs are dealt round-robin to the processes; at the end
 the main process rebuilds ``results.csv`` (one row per pair and arm), ``summary.json``,
 ``report.md`` and ``pareto.png`` from the pairs' ``result.json`` files; scores that are not finite
 are left out of its statistics and named. ``run.json`` pins the config: reusing an output folder
@@ -36,8 +39,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import re
 import shlex
 import sys
 import time
@@ -51,8 +52,8 @@ from typing import Any
 import numpy as np
 
 from geco_guide.bench import report
-from geco_guide.bench.geco_eval import SUITE, select_prompts
-from geco_guide.bench.report import TINY_NOTE, fmt, markdown_table
+from geco_guide.bench.geco_eval import load_segmenters, subject_masks
+from geco_guide.bench.report import MIN_INTERVAL_N, TINY_NOTE, fmt, interval_text, markdown_table
 from geco_guide.bench.runs import (
     PeakMemory,
     config_fingerprint,
@@ -66,8 +67,10 @@ from geco_guide.bench.runs import (
 from geco_guide.bench.runs import check_output_folder as check_run_folder
 from geco_guide.cli import generate as generate_cli
 from geco_guide.cli.kit import Parser, add_config_flags, config_from_args, interruptible
+from geco_guide.cli.prompt_files import Prompt, read_prompts
 from geco_guide.config import GeCoConfig, config_to_dict, config_to_yaml
 from geco_guide.estimators import load_estimators
+from geco_guide.estimators.segmenters import SegmenterFactory
 from geco_guide.io.devices import check_device, resolve_device
 from geco_guide.io.files import WriteError, remove_temp_files, write_json_atomic
 from geco_guide.io.plots import Panel, legend, limits
@@ -76,6 +79,8 @@ from geco_guide.loss.geco import CUES
 from geco_guide.metric.evaluate import PAPER_NAMES, evaluate_video, write_maps_video
 from geco_guide.metric.render import side_by_side
 from geco_guide.perf.decoder_agreement import agreement_rows, agreement_summary
+from geco_guide.sampler.loading import check_guidance_before_loading, check_weights_before_loading
+from geco_guide.types import plural
 
 ARMS = ("unguided", "guided")
 METRICS = (*CUES, "total_motion", "mean_motion")
@@ -87,7 +92,6 @@ BOOTSTRAP_RESAMPLES = 10_000
 BOOTSTRAP_SEED = 0
 CI_LEVEL = 0.95
 MAX_SEED = 2**63 - 1
-SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 #: The fields of a result.json that the report reads: a result without one of them is redone.
 RESULT_KEYS = ("pair", "prompt_id", "prompt", "seed", "device", "side_by_side", "arms")
 ARM_KEYS = ("video", "sidecar", *METRICS, "generation_s", "evaluation_s", "peak_memory_mib", "memory_kind",
@@ -107,12 +111,6 @@ class InputError(ValueError):
 
 
 @dataclass(frozen=True)
-class Prompt:
-    id: str
-    text: str
-
-
-@dataclass(frozen=True)
 class Pair:
     """One prompt x seed: the unit of work, of resuming and of sharding."""
 
@@ -122,64 +120,6 @@ class Pair:
     @property
     def name(self) -> str:
         return f"{self.prompt.id}-s{self.seed}"
-
-
-def _parse_prompt_line(line: str, where: str) -> Prompt:
-    """One non-empty line: plain text, or a JSON object with ``prompt`` and optional ``id``."""
-    if not line.startswith("{"):
-        return Prompt(generate_cli.slugify(line), line)
-    try:
-        item = json.loads(line)
-    except json.JSONDecodeError as err:
-        raise InputError(f"{where}: not valid JSON ({err.msg})") from None
-    text = item.get("prompt") if isinstance(item, dict) else None
-    if not isinstance(text, str) or not text.strip():
-        raise InputError(f"{where}: a JSON line needs a non-empty string 'prompt'")
-    if item.get("id") is None:
-        return Prompt(generate_cli.slugify(text), text.strip())
-    prompt_id = str(item["id"])
-    if not SAFE_ID.fullmatch(prompt_id):
-        raise InputError(
-            f"{where}: id {prompt_id!r} is not filesystem-safe (1-64 letters, digits, '.', '_', '-', "
-            f"not starting with '.', '_' or '-'), e.g. {generate_cli.slugify(prompt_id)!r}"
-        )
-    return Prompt(prompt_id, text.strip())
-
-
-def read_prompts(path: str | os.PathLike) -> list[Prompt]:
-    """The prompts of a file, or of the GeCo-Eval suite (``geco-eval[:SCENARIO][:CAMERA]``, ids
-    a1..d20); InputError naming the file and line for anything wrong."""
-    if str(path).startswith(SUITE) and not Path(path).exists():
-        try:
-            return [Prompt(p["id"], p["prompt"]) for p in select_prompts(str(path))]
-        except ValueError as err:
-            raise InputError(str(err)) from None
-    path = Path(path)
-    if path.is_dir():
-        raise InputError(f"prompts file {str(path)!r} is a folder, not a prompt file")
-    if not path.is_file():
-        raise InputError(f"prompts file {str(path)!r} does not exist")
-    prompts: list[Prompt] = []
-    first_line: dict[str, int] = {}
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as err:
-        raise InputError(f"prompts file {str(path)!r} is not UTF-8 text (byte {err.start}: {err.reason})") from None
-    for number, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        prompt = _parse_prompt_line(line, f"{path}:{number}")
-        if prompt.id in first_line:
-            raise InputError(
-                f"{path}:{number}: prompt id {prompt.id!r} already used on line {first_line[prompt.id]}; "
-                'give distinct ids with JSON lines {"id": ..., "prompt": ...}'
-            )
-        first_line[prompt.id] = number
-        prompts.append(prompt)
-    if not prompts:
-        raise InputError(f"prompts file {str(path)!r} holds no prompts")
-    return prompts
 
 
 def parse_seeds(values: Sequence[str]) -> list[int]:
@@ -225,8 +165,11 @@ def check_output_folder(out: Path, cfg: GeCoConfig, pairs: Sequence[Pair], overw
 
 
 def arm_config(cfg: GeCoConfig, pair: Pair, arm: str) -> GeCoConfig:
-    """The config one arm generates with: the pair's seed, guidance on for the guided arm only."""
-    return replace(cfg, seed=pair.seed, guidance=replace(cfg.guidance, enabled=arm == "guided"))
+    """The config one arm generates with: the pair's seed, guidance on for the guided arm only,
+    with the masks of the prompt's subjects (if any)."""
+    guided = arm == "guided"
+    dynamic = pair.prompt.subjects if guided and pair.prompt.subjects is not None else cfg.guidance.dynamic
+    return replace(cfg, seed=pair.seed, guidance=replace(cfg.guidance, enabled=guided, dynamic=dynamic))
 
 
 def foreign_video(out: Path, cfg: GeCoConfig, pair: Pair, arm: str) -> bool:
@@ -305,12 +248,15 @@ def videos_problem(folder: Path) -> str | None:
 # one pair
 
 
-def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps: bool) -> dict[str, Any]:
+def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps: bool,
+            segment: SegmenterFactory | None = None) -> dict[str, Any]:
     """Generate one arm of a pair into ``folder/<arm>.mp4`` (+ sidecar) and score it; what an
-    unfinished run of this pair left there is replaced (other runs' outputs were refused before)."""
+    unfinished run of this pair left there is replaced (other runs' outputs were refused before).
+    A prompt's subjects are masked in both arms' scores and in the guided arm's guidance."""
+    masks = subject_masks(pair.prompt.subjects, segment)
     with PeakMemory(pipe.device) as memory:
         generated = generate_cli.generate(arm_config(cfg, pair, arm), pair.prompt.text, out=folder / f"{arm}.mp4",
-                                          pipe=pipe, overwrite=True)
+                                          pipe=pipe, overwrite=True, dynamic_masks=masks if arm == "guided" else None)
     start = time.perf_counter()
     evaluation = evaluate_video(
         generated.video_path,
@@ -318,6 +264,7 @@ def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps
         flow=pipe.flow_estimator,
         config=cfg.evaluation,
         maps=maps,
+        dynamic_masks=masks,
     )
     evaluation_s = time.perf_counter() - start
     record = {
@@ -340,12 +287,14 @@ def has_maps(out: Path, pair: Pair) -> bool:
     return all((pair_dir(out, pair) / f"{arm}_maps.mp4").is_file() for arm in ARMS)
 
 
-def add_maps(cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], geometry: Any, flow: Any) -> None:
+def add_maps(cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], geometry: Any, flow: Any,
+             segment: SegmenterFactory | None = None) -> None:
     """The maps videos of a pair completed without ``--maps``: both videos are scored again with
     maps (deterministic: the scores in ``result.json`` stay), then ``result.json`` names them."""
     folder = pair_dir(out, pair)
     for arm in ARMS:
-        evaluation = evaluate_video(folder / f"{arm}.mp4", geometry_estimator=geometry, flow_estimator=flow, config=cfg.evaluation, maps=True)
+        evaluation = evaluate_video(folder / f"{arm}.mp4", geometry_estimator=geometry, flow_estimator=flow, config=cfg.evaluation, maps=True,
+                                    dynamic_masks=subject_masks(pair.prompt.subjects, segment))
         result["arms"][arm]["maps_video"] = write_maps_video(evaluation, folder / f"{arm}_maps.mp4").name
     write_json_atomic(folder / "result.json", result)
 
@@ -356,7 +305,8 @@ def write_side_by_side(folder: Path, fps: float) -> None:
     write_video(folder / "side_by_side.mp4", side_by_side(videos, list(ARMS)), fps=fps)
 
 
-def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, where: str | None = None) -> dict[str, Any]:
+def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, where: str | None = None,
+             segment: SegmenterFactory | None = None) -> dict[str, Any]:
     """Both arms (with ``where``, a stderr line ``<where>: <arm> arm ...`` before each), the
     side-by-side video, then ``result.json`` (last: it marks the pair complete)."""
     folder = pair_dir(out, pair)
@@ -365,12 +315,13 @@ def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, wher
     for arm in ARMS:
         if where is not None:
             print(f"{where}: {arm} arm ...", file=sys.stderr, flush=True)
-        arms[arm] = run_arm(pipe, cfg, pair, arm, folder, maps)
+        arms[arm] = run_arm(pipe, cfg, pair, arm, folder, maps, segment)
     write_side_by_side(folder, cfg.sampling.fps)
     result = {
         "pair": pair.name,
         "prompt_id": pair.prompt.id,
         "prompt": pair.prompt.text,
+        **({} if pair.prompt.subjects is None else {"subjects": pair.prompt.subjects}),
         "seed": pair.seed,
         "device": str(pipe.device),
         "side_by_side": "side_by_side.mp4",
@@ -387,8 +338,24 @@ def measure_decoder_agreement(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path)
     anchor PSNR: :func:`geco_guide.perf.decoder_agreement.agreement_rows`)."""
     print(f"measuring the tiny decoder against the VAE on {pair.name} (one more guided call) ...", file=sys.stderr,
           flush=True)
-    rows = agreement_rows(pipe, arm_config(cfg, pair, "guided"), pair.prompt.text)
+    unmasked = replace(pair, prompt=replace(pair.prompt, subjects=None))  # the decoders compared, without a segmenter
+    rows = agreement_rows(pipe, arm_config(cfg, unmasked, "guided"), pair.prompt.text)
     write_json_atomic(out / AGREEMENT_FILE, {"pair": pair.name, "summary": agreement_summary(rows), "updates": rows})
+
+
+def read_agreement(out: Path, warn: bool = False) -> dict[str, Any] | None:
+    """What ``out/decoder_agreement.json`` measured (``pair`` and the ``summary``), or None when it
+    is missing or damaged (with ``warn``, a warning names a damaged one: it is measured again)."""
+    path = out / AGREEMENT_FILE
+    if not path.is_file():
+        return None
+    try:
+        measured = json.loads(path.read_text(encoding="utf-8"))
+        return {"pair": measured["pair"], **measured["summary"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        if warn:
+            print(f"warning: {path} is damaged; it is measured again", file=sys.stderr)
+        return None
 
 
 def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag: str, redo: bool = False,
@@ -396,17 +363,20 @@ def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag
     """Run the pairs of this process that are not complete yet (all of them with ``redo``), and
     with ``maps`` make the maps of complete pairs that have none (models load only if needed: for
     maps alone, the estimators; ``on_loaded`` runs once they did). With ``agreement`` and
-    ``guidance.decoder=tiny``, the first pair it runs also measures the tiny decoder against the
-    VAE (:func:`measure_decoder_agreement`), once per folder. Outside a terminal, where no progress bar shows, one stderr line
-    says which pair and arm runs."""
+    ``guidance.decoder=tiny``, the tiny decoder is measured against the VAE on the first pair
+    (:func:`measure_decoder_agreement`) unless the folder holds that measurement already (a run
+    stopped before it measures it when resumed). Outside a terminal, where no progress bar shows,
+    one stderr line says which pair and arm runs."""
     finished = {pair.name: None if redo else read_result(out, pair, warn=True, verify=True) for pair in pairs}
     todo = [pair for pair in pairs if finished[pair.name] is None]
     unmapped = [pair for pair in pairs if maps and finished[pair.name] is not None and not has_maps(out, pair)]
-    print(f"{tag}{len(pairs) - len(todo)} of {len(pairs)} pairs already complete", flush=True)
-    if not todo and not unmapped:
+    measure = (agreement and bool(pairs) and cfg.guidance.decoder == "tiny"
+               and (redo or read_agreement(out, warn=True) is None))
+    print(f"{tag}{len(pairs) - len(todo)} of {plural(len(pairs), 'pair')} already complete", flush=True)
+    if not todo and not unmapped and not measure:
         on_loaded()
         return
-    if todo:
+    if todo or measure:
         pipe = generate_cli.build_pipeline(cfg)
         pipe.set_progress_bar_config(disable=not sys.stderr.isatty())
         geometry, flow = pipe.geometry_estimator, pipe.flow_estimator
@@ -414,22 +384,25 @@ def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag
         print(f"loading models: geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow} ...", file=sys.stderr,
               flush=True)
         geometry, flow = load_estimators(cfg.estimators, resolve_device(cfg.model.device))
+    subjects = any(pair.prompt.subjects is not None for pair in [*todo, *unmapped])
+    segment = load_segmenters(cfg, resolve_device(cfg.model.device)) if subjects else None
     on_loaded()
     if unmapped:
         print(f"{tag}making the maps of {len(unmapped)} complete pair(s) that have none", flush=True)
     for pair in unmapped:
-        add_maps(cfg, pair, out, finished[pair.name], geometry, flow)
+        add_maps(cfg, pair, out, finished[pair.name], geometry, flow, segment)
     lines = not sys.stderr.isatty()
     for index, pair in enumerate(todo, start=1):
-        result = run_pair(pipe, cfg, pair, out, maps, f"{tag}[{index}/{len(todo)}] {pair.name}" if lines else None)
+        result = run_pair(pipe, cfg, pair, out, maps, f"{tag}[{index}/{len(todo)}] {pair.name}" if lines else None,
+                          segment)
         unguided, guided = (result["arms"][arm] for arm in ARMS)
         print(
             f"{tag}[{index}/{len(todo)}] {pair.name}: fused {unguided['fused']:.4f} -> {guided['fused']:.4f} "
             f"(sampling {unguided['generation_s']:.1f} s -> {guided['generation_s']:.1f} s)",
             flush=True,
         )
-    if agreement and todo and cfg.guidance.decoder == "tiny" and (redo or not (out / AGREEMENT_FILE).exists()):
-        measure_decoder_agreement(pipe, cfg, todo[0], out)
+    if measure:
+        measure_decoder_agreement(pipe, cfg, pairs[0], out)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -448,10 +421,11 @@ def bootstrap_ci(diffs: np.ndarray, resamples: int = BOOTSTRAP_RESAMPLES, seed: 
 
 
 def paired_difference(results: Sequence[dict[str, Any]], metric: str) -> dict[str, Any]:
-    """Mean of ``guided - unguided`` over the pairs where both values are finite, with its CI."""
+    """Mean of ``guided - unguided`` over the pairs where both values are finite, with its CI
+    (``None`` below :data:`~geco_guide.bench.report.MIN_INTERVAL_N` such pairs)."""
     diffs = np.array([r["arms"]["guided"][metric] - r["arms"]["unguided"][metric] for r in results], dtype=float)
     diffs = diffs[np.isfinite(diffs)]
-    ci = bootstrap_ci(diffs)
+    ci = bootstrap_ci(diffs) if len(diffs) >= MIN_INTERVAL_N else None
     return {
         "n": len(diffs),
         "mean_diff": float(diffs.mean()) if len(diffs) else None,
@@ -530,7 +504,8 @@ def _versions() -> dict[str, str]:
 def csv_text(results: Sequence[dict[str, Any]]) -> str:
     """``results.csv``: one row per pair and arm."""
     columns = ["pair", "prompt_id", "seed", "arm", *METRICS, "generation_s", "evaluation_s",
-               "peak_memory_mib", "memory_kind", "guidance_updates", "video", "prompt"]
+               "peak_memory_mib", "memory_kind", "guidance_updates", "video", "prompt",
+               *(["subjects"] if any("subjects" in result for result in results) else [])]
     rows = [{**result, **result["arms"][arm], "arm": arm, "video": f"pairs/{result['pair']}/{result['arms'][arm]['video']}"}
             for result in results for arm in ARMS]
     return report.csv_text(rows, columns)
@@ -561,7 +536,7 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
     lines = [
         "# GeCo guidance A/B: unguided vs guided",
         "",
-        (f"{n} pairs complete of {summary['pairs_planned']} planned ({summary['prompts']} prompts x seeds "
+        (f"{plural(n, 'pair')} complete of {summary['pairs_planned']} planned ({summary['prompts']} prompts x seeds "
          f"{summary['seeds']}), same initial noise per pair; device {', '.join(summary['devices']) or '-'}; "
          f"config `{summary['config_sha']}`; {summary['created']}."),
         "",
@@ -581,11 +556,9 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
     rows = []
     for metric in METRICS:
         diff = paired[metric]
-        ci = diff["ci95"]
-        ci_text = f"[{fmt(ci[0])}, {fmt(ci[1])}]" if ci else "undefined (fewer than 2 pairs)"
         label = f"{metric} ({PAPER_NAMES[metric]})" if metric in CUES else PAPER_NAMES[metric]
         rows.append([label, fmt(arms["unguided"][metric]), fmt(arms["guided"][metric]),
-                     fmt(diff["mean_diff"]), ci_text])
+                     fmt(diff["mean_diff"]), interval_text(diff["ci95"], diff["n"], "pair")])
     lines += [
         "## Scores (mean over pairs; lower fused/motion/structure is more consistent)",
         "",
@@ -676,13 +649,9 @@ def write_report(out: Path, pairs: Sequence[Pair], cfg: GeCoConfig, command: str
     remove_temp_files(out, REPORT_STEMS)
     results = [r for r in (read_result(out, pair) for pair in pairs) if r is not None]
     summary = summarize(results, pairs, cfg)
-    if cfg.guidance.decoder == "tiny" and (out / AGREEMENT_FILE).is_file():
-        try:
-            measured = json.loads((out / AGREEMENT_FILE).read_text(encoding="utf-8"))
-            summary["decoder_agreement"] = {"pair": measured["pair"], **measured["summary"]}
-        except (OSError, ValueError, KeyError, TypeError):
-            print(f"warning: {out / AGREEMENT_FILE} is damaged and left out of the report; rerun with --overwrite "
-                  "to measure it again", file=sys.stderr)
+    measured = read_agreement(out) if cfg.guidance.decoder == "tiny" else None
+    if measured is not None:
+        summary["decoder_agreement"] = measured
     markdown = report_markdown(summary, results, config_to_yaml(cfg), command, report.models_section(cfg))
     report.write_report_files(out, table=csv_text(results), summary=summary, plot=plot_png(results), markdown=markdown)
     return summary
@@ -698,8 +667,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="A/B test of GeCo guidance: unguided vs guided video per prompt x seed, from the same noise.",
     )
     p.add_argument("--prompts", required=True,
-                   help="text file: one prompt per line, or JSON lines {id, prompt}; or the paper's suite: "
-                        "geco-eval, geco-eval:indoor, geco-eval:fast, geco-eval:outdoor:slow, ...")
+                   help="text file: one prompt per line, or JSON lines {id, prompt[, subjects]}; or the paper's suite: "
+                        "geco-eval, geco-eval:indoor, geco-eval:fast, geco-eval:outdoor:slow, ...; or ours with moving "
+                        "subjects: dynamic, dynamic:indoor, ...")
     p.add_argument("--seeds", required=True, nargs="+", metavar="SEED", help="sampling seeds (integers)")
     p.add_argument("--out", required=True, help="output folder (reuse it to resume)")
     add_config_flags(p, preset_help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
@@ -718,13 +688,19 @@ class Inputs:
 
 
 def validate_inputs(args: argparse.Namespace) -> Inputs:
-    """Every check that needs no model: prompts, seeds, config, output folder."""
+    """Every check that needs no model: prompts, seeds, config (what generate checks before loading),
+    output folder."""
     prompts = read_prompts(args.prompts)
     seeds = parse_seeds(args.seeds)
     cfg = config_from_args(args, args.overrides)
     if not cfg.guidance.enabled:
         raise InputError("guidance.enabled=false leaves nothing to compare: the guided arm needs guidance")
     check_device(cfg.model.device)
+    # what generate checks before loading, here before run.json is pinned or any video written
+    s = cfg.sampling
+    check_weights_before_loading(cfg)
+    check_guidance_before_loading(cfg, model_id=cfg.model.id, num_frames=s.num_frames, height=s.height, width=s.width,
+                                  num_steps=s.num_inference_steps)
     pairs = plan_pairs(prompts, seeds)
     out = Path(args.out)
     check_output_folder(out, cfg, pairs, args.overwrite)
@@ -766,10 +742,10 @@ def run(args: argparse.Namespace, inputs: Inputs, argv: list[str] | None) -> int
         print(f"error: {err}", file=sys.stderr)
         return 2
     fused = summary["paired_differences"]["fused"]
-    ci = f"[{fmt(fused['ci95'][0])}, {fmt(fused['ci95'][1])}]" if fused["ci95"] else "undefined"
-    tiny = f" {TINY_GUIDANCE_NOTE}" if summary["tiny_models"] else ""
-    print(f"{summary['pairs']} pairs: fused guided - unguided = {fmt(fused['mean_diff'])}, 95% CI {ci}; "
-          f"report: {out / 'report.md'}{tiny}")
+    if summary["tiny_models"]:
+        print(TINY_GUIDANCE_NOTE)
+    print(f"{plural(summary['pairs'], 'pair')}: fused guided - unguided = {fmt(fused['mean_diff'])}, 95% CI "
+          f"{interval_text(fused['ci95'], fused['n'], 'pair')}; report: {out / 'report.md'}")
     return 0 if not summary["missing_pairs"] else 1
 
 

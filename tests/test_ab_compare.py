@@ -7,7 +7,6 @@ statistics, report and input checks run in process on hand-made results.
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import os
 import shutil
@@ -28,6 +27,8 @@ from geco_guide.config import load_config
 from geco_guide.io.video import read_video, write_video
 from geco_guide.metric.render import panel_layout
 
+from script_modules import load_script
+
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "ab_compare.py"
 FAST = [  # the tiny preset, shortened: 9 frames, 2 steps with one guided update each, 5 scored frames
@@ -39,15 +40,7 @@ PAIRS = ("a-marble-bust-s0", "bridge-s0")
 SCORES = ("fused", "motion", "structure", "total_motion", "mean_motion")
 
 
-def _load_script():
-    spec = importlib.util.spec_from_file_location("ab_compare", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["ab_compare"] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
-ab = _load_script()
+ab = load_script("ab_compare.py")
 
 
 def _command(prompts: Path, out: Path) -> list[str]:
@@ -89,7 +82,10 @@ def reference(prompts_file: Path, tmp_path_factory: pytest.TempPathFactory) -> P
     proc = subprocess.run(_command(prompts_file, out), env=_env(), capture_output=True, text=True, check=False, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "0 of 2 pairs already complete" in proc.stdout and "2 pairs: fused guided - unguided" in proc.stdout
-    assert ab.TINY_GUIDANCE_NOTE in proc.stdout
+    # the last line is the result, one sentence; the tiny models' note is a line of its own before it
+    *_, note, last = proc.stdout.strip().splitlines()
+    assert note == ab.TINY_GUIDANCE_NOTE
+    assert last.startswith("2 pairs: fused guided - unguided") and last.endswith(str(out / "report.md"))
     # no terminal, no progress bar: a line when the models load and one per pair and arm instead
     assert "loading models: CogVideoX tiny-random, geometry tiny-random, flow tiny-random ..." in proc.stderr
     assert "[1/2] a-marble-bust-s0: unguided arm ...\n[1/2] a-marble-bust-s0: guided arm ...\n" in proc.stderr
@@ -120,15 +116,17 @@ def test_end_to_end_report(reference: Path):
     by_arm = {(r["pair"], r["arm"]): float(r["fused"]) for r in rows}
     diffs = [by_arm[p, "guided"] - by_arm[p, "unguided"] for p in PAIRS]
     assert fused["n"] == 2 and fused["mean_diff"] == pytest.approx(np.mean(diffs))
-    assert fused["ci95"][0] <= fused["mean_diff"] <= fused["ci95"][1]
+    assert fused["ci95"] is None  # 2 pairs: too few for an interval
     assert summary["guidance_lowered_fused"]["count"] == sum(d < 0 for d in diffs)
     assert summary["config"]["sampling"]["num_frames"] == 9 and summary["devices"] == ["cpu"]
 
     report = (reference / "report.md").read_text()
-    assert "tiny random models: the numbers show the mechanics, not quality" in report and "## Models and weights" in report
+    assert report.count("tiny random models: the numbers show the mechanics, not quality") == 1
+    assert "## Models and weights" in report
+    assert f"none from 2 pairs (an interval needs {ab.MIN_INTERVAL_N})" in report
     assert ab.TINY_GUIDANCE_NOTE in report
     for text in ("## Configuration", "num_frames: 9", "## Versions", "| torch |", "pareto.png",
-                 "seeds [0]", "95% CI"):
+                 "seeds [0]", "95% CI (paired bootstrap)"):
         assert text in report, text
 
     image = imageio.imread(reference / "pareto.png")
@@ -197,7 +195,7 @@ def test_sharded_run_matches_the_single_process_run(reference: Path, prompts_fil
     proc = subprocess.run([*launcher, *_command(prompts_file, out)[1:]], env=_env(), capture_output=True, text=True, check=False,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr
-    assert "[rank 0 of 2] 0 of 1 pairs" in proc.stdout and "[rank 1 of 2] 0 of 1 pairs" in proc.stdout
+    assert "[rank 0 of 2] 0 of 1 pair already" in proc.stdout and "[rank 1 of 2] 0 of 1 pair already" in proc.stdout
     _assert_same_scores(_rows(out), _rows(reference))
 
 
@@ -246,6 +244,11 @@ def test_bootstrap_ci():
     low, high = ab.bootstrap_ci(diffs)
     assert low < diffs.mean() < high and (low, high) == ab.bootstrap_ci(diffs)  # seeded
     assert ab.bootstrap_ci(np.full(4, 0.5)) == (0.5, 0.5)
+    # the report's interval needs MIN_INTERVAL_N finite pairs
+    results = [_result(f"p{i}-s0", 0.2, 0.1 + 0.01 * i) for i in range(ab.MIN_INTERVAL_N)]
+    assert ab.paired_difference(results[:-1], "fused")["ci95"] is None
+    low, high = ab.paired_difference(results, "fused")["ci95"]
+    assert low <= ab.paired_difference(results, "fused")["mean_diff"] <= high
 
 
 def test_single_pair_reports_an_undefined_interval():
@@ -257,7 +260,7 @@ def test_single_pair_reports_an_undefined_interval():
     assert summary["guidance_lowered_fused"] == {"count": 1, "n": 1, "fraction": 1.0}
     assert summary["missing_pairs"] == ["two-s0"]
     report = ab.report_markdown(summary, results, "config: yaml", "cmd")
-    assert "undefined (fewer than 2 pairs)" in report and "Missing pairs" in report and "two-s0" in report
+    assert "none from 1 pair (an interval needs 10)" in report and "Missing pairs" in report and "two-s0" in report
     assert ab.plot_png(results).startswith(b"\x89PNG")
 
 
@@ -464,6 +467,20 @@ def test_a_second_run_in_one_folder_is_refused_while_the_first_holds_the_lock(tm
     assert lock.read_text() == f"{os.getpid()}\n"
 
 
+def test_a_lock_of_an_impossible_pid_is_taken_over_and_a_folder_in_its_place_is_one_line(tmp_path, capsys,
+                                                                                         no_models):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / LOCK_NAME).write_text("99999999999999\n")  # beyond any pid: no process holds it
+    assert take_run_lock(out, "A/B").read_text() == f"{os.getpid()}\n"
+    (out / LOCK_NAME).unlink()
+    (out / LOCK_NAME).mkdir()
+    argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out), "--preset", "tiny"]
+    assert ab.main(argv) == 2
+    assert capsys.readouterr().err == (f"error: {out / LOCK_NAME} is a folder, not a run lock; remove it (or use "
+                                       "another --out folder)\n")
+
+
 def test_ctrl_c_is_one_line_exit_130_and_releases_the_lock(tmp_path, capsys, monkeypatch):
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
@@ -531,3 +548,42 @@ def test_a_run_guided_by_the_tiny_decoder_measures_it_against_the_vae(tmp_path: 
     assert summary["decoder_agreement"]["pair"] == "a-cat-s0"
     assert "**Tiny decoder vs VAE**" in (out / "report.md").read_text()
     assert "measuring the tiny decoder against the VAE on a-cat-s0" in capsys.readouterr().err
+
+
+def test_a_resumed_run_measures_the_agreement_that_an_interrupted_run_did_not(tmp_path: Path, capsys):
+    out = tmp_path / "out"
+    argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out),
+            *FAST, "guidance.decoder=tiny"]
+    assert ab.main(argv) == 0
+    first = json.loads((out / ab.AGREEMENT_FILE).read_text())
+    (out / ab.AGREEMENT_FILE).unlink()  # what a run killed while measuring it leaves: every pair complete
+    capsys.readouterr()
+    assert ab.main(argv) == 0
+    captured = capsys.readouterr()
+    assert "1 of 1 pair" in captured.out and "already complete" in captured.out  # no pair is redone
+    assert "measuring the tiny decoder against the VAE on a-cat-s0" in captured.err
+    assert json.loads((out / ab.AGREEMENT_FILE).read_text())["summary"] == first["summary"]
+    assert "**Tiny decoder vs VAE**" in (out / "report.md").read_text()
+    (out / ab.AGREEMENT_FILE).write_text('{"pair": "a-cat-s0"')  # cut short
+    assert ab.main(argv) == 0
+    assert f"warning: {out / ab.AGREEMENT_FILE} is damaged; it is measured again" in capsys.readouterr().err
+    assert json.loads((out / ab.AGREEMENT_FILE).read_text())["summary"] == first["summary"]
+    assert ab.main(argv) == 0  # nothing missing: nothing loads, nothing is measured
+    captured = capsys.readouterr()
+    assert "measuring" not in captured.err and "loading models" not in captured.err
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["guidance.memory_plan=auto", "guidance.memory_budget_gb=0.001"], "no memory plan fits 0.0 GiB"),
+    (["guidance.repeats=1,1,1"], "repeats"),  # 3 per-step values for 4 steps
+    (["guidance.decoder=tiny", "estimators.tiny_decoder=null"], "guidance.decoder=tiny needs the tiny decoder's weights"),
+])
+def test_what_generate_checks_before_loading_is_checked_before_the_run_starts(tmp_path, capsys, no_models, overrides,
+                                                                             message):
+    out = tmp_path / "out"
+    argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out), "--preset",
+            "tiny", *overrides]
+    assert ab.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and message in err, err
+    assert not out.exists()  # no run.json pinned, no video written

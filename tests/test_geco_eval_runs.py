@@ -8,6 +8,7 @@ import csv
 import errno
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -50,7 +51,7 @@ def test_bad_videos_are_recorded_as_failed_and_the_others_scored(tmp_path: Path,
     out = tmp_path / "out"
     assert _score(videos, out, "--limit", "3") == 1  # some failed
     captured = capsys.readouterr()
-    assert captured.out.strip() == f"1 videos scored (2 failed, 0 missing); report: {out / 'report.md'}"
+    assert captured.out.strip() == f"1 video scored (2 failed, 0 missing); report: {out / 'report.md'}"
     assert "[1/3] sora-2 a1 seed 0: " in captured.err and "failed: cannot use video" in captured.err
     rows = {row["prompt_id"]: row for row in csv.DictReader((out / "results.csv").open())}
     assert rows["a1"]["error"] == "" and float(rows["a1"]["fused"]) >= 0
@@ -75,7 +76,7 @@ def test_an_fps_that_leaves_one_frame_per_window_still_scores_the_video(tmp_path
     # a window left with one frame keeps the one before it (the protocol), so a slow clip scores
     videos = _videos(tmp_path / "in", {"a1-s0": 2})
     assert _score(videos, tmp_path / "out", "--limit", "1", "--fps", "0.01") == 0
-    assert "1 videos scored (0 failed, 0 missing)" in capsys.readouterr().out
+    assert "1 video scored (0 failed, 0 missing)" in capsys.readouterr().out
 
 
 def test_videos_covering_part_of_the_selection_count_the_rest_missing(tmp_path: Path, capsys):
@@ -200,7 +201,7 @@ def test_overwrite_starts_afresh_removing_only_the_runs_files(tmp_path: Path, ca
     assert _score(videos, out, "--limit", "1", "evaluation.loss.pairs=center") == 2
     assert 'evaluation.loss.pairs: "all" -> "center"' in _one_line(capsys.readouterr().err)
     assert _score(videos, out, "--limit", "1", "evaluation.loss.pairs=center", "--overwrite") == 0
-    assert "0 of 1 videos already done" in capsys.readouterr().err
+    assert "0 of 1 video already done" in capsys.readouterr().err
     assert json.loads((out / "run.json").read_text())["config_sha"] != before
     assert (out / "notes.txt").read_text() == "mine" and (out / "videos" / "sora-2" / "keep.txt").is_file()
     assert (out / "videos" / "sora-2" / "a1-s0.json").is_file()
@@ -238,3 +239,91 @@ def test_the_lock_is_released_when_the_run_ends(tmp_path: Path, capsys):
     out = tmp_path / "out"
     assert _score(_videos(tmp_path / "in", {"a1-s0": 17}), out, "--limit", "1") == 0
     assert not (out / runs.LOCK_NAME).exists()
+
+
+def test_a_lock_of_an_impossible_pid_is_taken_over_and_a_folder_in_its_place_is_one_line(tmp_path: Path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    videos = _videos(tmp_path / "in", {"a1-s0": 17})
+    (out / runs.LOCK_NAME).write_text("99999999999999\n")  # beyond any pid: no process holds it
+    assert _score(videos, out, "--limit", "1") == 0
+    assert not (out / runs.LOCK_NAME).exists()
+    capsys.readouterr()
+    (out / runs.LOCK_NAME).mkdir()
+    assert _score(videos, out, "--limit", "1", "--overwrite") == 2
+    assert _one_line(capsys.readouterr().err) == (f"error: {out / runs.LOCK_NAME} is a folder, not a run lock; remove it "
+                                                  "(or use another --out folder)\n")
+    assert (out / "videos" / "sora-2" / "a1-s0.json").is_file()  # refused before --overwrite removed anything
+
+
+
+def _generate(out: Path, *extra: str) -> int:
+    return main(["--preset", "tiny", "--seeds", "0", "--limit", "1", "--out", str(out), *extra])
+
+
+@pytest.mark.parametrize("models, overrides, message", [
+    (["ltx-video"], ["guidance.decode_layout=channels_last"],
+     "ltx-video guided: guidance.decode_layout=channels_last is written for the CogVideoX VAE, not LTX-Video's"),
+    (["cogvideox-5b", "ltx-video"], ["guidance.decoder=tiny"],
+     "ltx-video guided: guidance.decoder=tiny: there is no tiny decoder for LTX-Video latents"),
+    (["wan2.1-t2v-1.3b"], ["guidance.decoder=tiny", "estimators.tiny_decoder=null"],
+     "wan2.1-t2v-1.3b guided: guidance.decoder=tiny needs the tiny decoder's weights"),
+    (["cogvideox-5b"], ["guidance.memory_plan=auto", "guidance.memory_budget_gb=0.001"],
+     "cogvideox-5b guided: no memory plan fits 0.0 GiB"),
+])
+def test_guided_options_a_model_refuses_are_one_line_before_the_run_starts(tmp_path: Path, monkeypatch, capsys,
+                                                                            models, overrides, message):
+    monkeypatch.setattr(cli, "process_state", lambda cfg: pytest.fail("the run started"))
+    out = tmp_path / "out"
+    assert _generate(out, "--models", *models, "--guided", *overrides) == 2
+    assert _one_line(capsys.readouterr().err).startswith(f"error: {message}")
+    assert not out.exists()
+
+
+def test_a_named_tiny_decoder_of_another_family_is_refused_before_the_run_starts(tmp_path: Path, monkeypatch, capsys):
+    from geco_guide.estimators import tiny_random_decoder
+
+    torch.save(tiny_random_decoder("wan2.1").state_dict(), tmp_path / "taew2_1.pth")
+    monkeypatch.setattr(cli, "process_state", lambda cfg: pytest.fail("the run started"))
+    assert _generate(tmp_path / "out", "--models", "cogvideox-5b", "--guided", "guidance.decoder=tiny",
+                     f"estimators.tiny_decoder={tmp_path / 'taew2_1.pth'}") == 2
+    assert "is the tiny decoder of Wan 2.1, Wan 2.2 14B; CogVideoX needs taecvx.pth" in _one_line(capsys.readouterr().err)
+
+
+def test_guidance_by_the_tiny_decoder_loads_the_one_each_family_needs(tmp_path: Path, capsys):
+    out = tmp_path / "out"
+    assert _generate(out, "--models", "cogvideox-5b", "wan2.1-t2v-1.3b", "--guided", "guidance.decoder=tiny",
+                     "sampling.num_inference_steps=2", "guidance.repeats=1x2", "guidance.time_travel=[]") == 0
+    assert "4 videos scored (0 failed, 0 missing)" in capsys.readouterr().out
+    for arm in ("cogvideox-5b-guided", "wan2.1-t2v-1.3b-guided"):
+        assert json.loads((out / "videos" / arm / "a1-s0.json").read_text())["guidance_updates"] > 0
+
+
+def test_a_guided_call_that_fails_on_an_option_is_recorded_and_the_run_goes_on(tmp_path: Path, monkeypatch, capsys):
+    original = geco_eval.Generator.__call__
+
+    def refused(self, job):
+        if job.guided:  # what a pipeline raises for an option it cannot take
+            raise TypeError(f"{self.model.name}: this pipeline cannot take that option")
+        return original(self, job)
+
+    monkeypatch.setattr(geco_eval.Generator, "__call__", refused)
+    out = tmp_path / "out"
+    assert _generate(out, "--models", "cogvideox-5b", "--guided", "sampling.num_inference_steps=2",
+                     "guidance.repeats=1x2", "guidance.time_travel=[]") == 1
+    assert re.search(r"^1 videos? scored \(1 failed, 0 missing\)", capsys.readouterr().out)
+    failure = json.loads((out / "videos" / "cogvideox-5b-guided" / "a1-s0.failed.json").read_text())
+    assert failure["error"] == "cogvideox-5b: this pipeline cannot take that option"
+    assert (out / "videos" / "cogvideox-5b" / "a1-s0.json").is_file()
+
+
+def test_the_weights_of_every_model_are_checked_before_the_run_starts(tmp_path: Path, monkeypatch, capsys):
+    monkeypatch.setattr(cli, "process_state", lambda cfg: pytest.fail("the run started"))
+    out = tmp_path / "out"
+    rc = main(["--preset", "cogvideox-5b", "--models", "wan2.1-t2v-1.3b", "cogvideox-5b", "--seeds", "0",
+               "--limit", "1", "--weights", f"wan2.1-t2v-1.3b={tmp_path / 'nowhere'}", "--out", str(out)])
+    assert rc == 2
+    err = _one_line(capsys.readouterr().err)
+    assert err.startswith(f"error: wan2.1-t2v-1.3b: local path '{tmp_path / 'nowhere'}' does not exist")
+    assert err.rstrip().endswith("(--weights wan2.1-t2v-1.3b=/path/to/Wan2.1-T2V-1.3B-Diffusers)")
+    assert not out.exists()

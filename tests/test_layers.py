@@ -23,6 +23,10 @@ FLOORS = [
     [f"geco_guide.{name}" for name in ENTRY_POINTS],
 ]
 DIFFUSION_PACKAGES = ("diffusers", "transformers", "accelerate")
+#: The text segmenters are transformers' models (SAM 3 video, Grounding DINO, SAM 2 video): their
+#: module imports transformers inside its functions only, so nothing loads it unless text masks
+#: are asked for.
+LAZY_TRANSFORMERS = ("geco_guide.estimators.segmenters",)
 
 
 def module_name(path: Path) -> str:
@@ -136,7 +140,17 @@ def test_the_metric_and_the_floors_below_import_no_diffusion_code():
         floor, room = floor_of(module_name(path))
         if floor <= 1 or room == "geco_guide.metric":
             found = imported_modules(path, external=True) & set(DIFFUSION_PACKAGES)
+            if module_name(path) in LAZY_TRANSFORMERS:
+                found -= {"transformers"}
             assert not found, f"{path.relative_to(PACKAGE)} imports {sorted(found)}"
+
+
+def test_the_text_segmenters_import_transformers_lazily():
+    for name in LAZY_TRANSFORMERS:
+        tree = ast.parse((PACKAGE.parent / (name.replace(".", "/") + ".py")).read_text())
+        top = {alias.name.split(".")[0] for node in tree.body if isinstance(node, ast.Import) for alias in node.names}
+        top |= {(node.module or "").split(".")[0] for node in tree.body if isinstance(node, ast.ImportFrom)}
+        assert not top & set(DIFFUSION_PACKAGES), name
 
 
 def test_scoring_a_video_with_the_public_api_loads_no_diffusers():

@@ -59,3 +59,5 @@ def test_a_built_wheel_runs_the_tiny_preset_outside_the_checkout(tmp_path: Path)
     run([env_dir / "bin" / "geco-generate", "--preset", "tiny", "--prompt", "a marble bust",
          "--out", work / "bust.mp4", "output.score_anchors=false"], cwd=work)
     assert (work / "bust.mp4").is_file() and (work / "bust.json").is_file()
+    listing = run([env_dir / "bin" / "geco", "--help"], cwd=work).stdout  # the one command with subcommands
+    assert "generate" in listing and "geco-eval" in listing

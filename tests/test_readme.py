@@ -60,6 +60,9 @@ def test_first_bash_block_holds_the_two_setup_commands():
     commands = [line for line in block.group(1).splitlines() if line.strip() and not line.startswith("#")]
     assert len(commands) == 2, commands
     assert all(c.startswith("pip install torch==") for c in commands), commands
+    # the CPU build: plain PyPI torch on Linux pulls GB of CUDA wheels onto a CPU-only machine
+    assert all(c.split("&&")[0].strip().endswith("--index-url https://download.pytorch.org/whl/cpu")
+               for c in commands), commands
     assert "python -m geco_guide.generate --preset tiny" in commands[0]
     assert "python -m pytest" in commands[1]
 

@@ -1,10 +1,11 @@
-"""``python -m geco_guide.geco_eval --models ... --out DIR``: the GeCo-Eval benchmark
+"""``python -m geco_guide geco-eval --models ... --out DIR``: the GeCo-Eval benchmark
 (:mod:`geco_guide.bench.geco_eval`).
 
-    python -m geco_guide.geco_eval --models cogvideox-5b wan2.1-t2v-1.3b --seeds 0 1 2 3 --out bench
-    python -m geco_guide.geco_eval --models cogvideox-5b --guided --scenario indoor --out bench
-    python -m geco_guide.geco_eval --videos sora-2=downloads/sora --out bench
-    python -m geco_guide.geco_eval --preset tiny --models cogvideox-5b wan2.1-t2v-1.3b --limit 2 --out bench-tiny
+    python -m geco_guide geco-eval --models cogvideox-5b wan2.1-t2v-1.3b --seeds 0 1 2 3 --out bench
+    python -m geco_guide geco-eval --models cogvideox-5b --guided --scenario indoor --out bench
+    python -m geco_guide geco-eval --videos sora-2=downloads/sora --out bench
+    python -m geco_guide geco-eval --suite dynamic --models cogvideox-5b --guided --out bench-dynamic
+    python -m geco_guide geco-eval --preset tiny --models cogvideox-5b wan2.1-t2v-1.3b --limit 2 --out bench-tiny
 
 The same command resumes a stopped run; ``--overwrite`` starts afresh in its folder.
 """
@@ -23,8 +24,13 @@ from pathlib import Path
 from .. import __version__
 from ..bench.geco_eval import (
     CAMERAS,
+    DYNAMIC_SUITE,
+    PROMPT_FILES,
     SCENARIOS,
+    SUITE,
     Job,
+    check_guided_models,
+    check_model_weights,
     existing_video_jobs,
     load_prompts,
     prompts_without_video,
@@ -44,11 +50,12 @@ from ..bench.runs import (
 from ..config import SEED_RANGE, GeCoConfig
 from ..io.devices import check_device
 from ..io.files import WriteError
+from ..types import plural
 from .kit import Parser, add_config_flags, config_from_args, interruptible
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="python -m geco_guide.geco_eval",
+    p = Parser(prog="python -m geco_guide geco-eval",
                 description="GeCo-Eval: generate the paper's 80 prompts with video models and score them with GeCo.")
     p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
     p.add_argument("--models", nargs="+", default=[], metavar="NAME", help=f"models to generate with: {', '.join(MODELS)}")
@@ -57,6 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "NAME's native frame rate (evaluation.model_fps) unless --fps")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3], help="sampling seeds (default: 0 1 2 3, the paper's 4)")
     p.add_argument("--guided", action="store_true", help="also generate every video with GeCo guidance")
+    p.add_argument("--suite", choices=tuple(PROMPT_FILES), default=SUITE,
+                   help=f"the prompts: {SUITE} (the paper's 80, default) or {DYNAMIC_SUITE} (our 24 with moving "
+                        "subjects, scored and guided with the subjects' masks from estimators.segmenter)")
     p.add_argument("--scenario", choices=SCENARIOS, default=None, help="only this scenario")
     p.add_argument("--camera", choices=CAMERAS, default=None, help="only this camera speed")
     p.add_argument("--limit", type=int, default=None, help="only the first N prompts of the selection")
@@ -123,7 +133,7 @@ def plan(args: argparse.Namespace) -> Plan:
                                                                          **{n: args.fps for n in videos}}))
     for name in [*args.models, *videos]:
         cfg.evaluation.fps_of_model(name)  # every model needs its native frame rate
-    prompts = load_prompts(args.scenario, args.camera)[: args.limit]
+    prompts = load_prompts(args.scenario, args.camera, args.suite)[: args.limit]
     if not prompts:
         raise ValueError("the selection holds no prompt")
     jobs = [Job(m, p, s, guided) for m in args.models for guided in ((False, True) if args.guided else (False,))
@@ -145,6 +155,9 @@ def main(argv: list[str] | None = None) -> int:
         check_output_folder(out, cfg, overwrite=args.overwrite)
         check_device(cfg.model.device)
         check_device(cfg.evaluation.device, "evaluation.device")
+        check_model_weights(cfg, args.models, run.weights)  # what a fresh machine lacks first, as generate
+        if args.guided:
+            check_guided_models(cfg, args.models)
         with run_lock(out, "GeCo-Eval"):
             return execute(args, run, out, argv)
     except (ValueError, FileNotFoundError) as err:
@@ -168,11 +181,11 @@ def execute(args: argparse.Namespace, run: Plan, out: Path, argv: list[str] | No
         state.wait_for_everyone()
         if not state.is_main_process:
             return 0
-        command = shlex.join(["python", "-m", "geco_guide.geco_eval", *(sys.argv[1:] if argv is None else argv)])
+        command = shlex.join(["python", "-m", "geco_guide", "geco-eval", *(sys.argv[1:] if argv is None else argv)])
         summary = write_report(out, run.jobs, cfg, command, run.weights, run.no_video)
     except (FileNotFoundError, WriteError) as err:  # weights not available (WeightsNotFoundError), disk full
         print(f"error: {err}", file=sys.stderr)
         return 2
     failed, missing = len(summary["failed"]), len(summary["missing"]) + len(summary["no_video"])
-    print(f"{summary['videos']} videos scored ({failed} failed, {missing} missing); report: {out / 'report.md'}")
+    print(f"{plural(summary['videos'], 'video')} scored ({failed} failed, {missing} missing); report: {out / 'report.md'}")
     return 0 if not failed and not missing else 1

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import hashlib
 import json
 import math
@@ -25,7 +26,7 @@ import re
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -35,10 +36,10 @@ import torch
 from .. import __version__
 from ..config import GeCoConfig, config_to_dict
 from ..io.devices import check_device, check_memory_fits
-from ..io.files import WriteError, write_json_atomic
+from ..io.files import WriteError, output_lock, write_json_atomic
 from ..sampler import loading
-from ..sampler.memory_plan import plan_before_loading
-from ..types import NonFiniteFramesError, check_frame_values
+from ..sampler.devices import resolve_devices
+from ..types import NonFiniteFramesError, check_frame_values, plural
 from .kit import Parser, add_config_flags, config_from_args, interruptible
 
 # --------------------------------------------------------------------------------------------
@@ -52,6 +53,16 @@ def build_pipeline(cfg: GeCoConfig):
 
     print(loading_line(cfg), file=sys.stderr, flush=True)
     return loading.build_pipeline(cfg, components=video_components(cfg))
+
+
+def load_dynamic_masks(cfg: GeCoConfig):
+    """The mask source of ``guidance.dynamic`` (``None`` without), after one stderr line naming
+    the segmenter when there is one to load: before the video model, so that missing weights end
+    the run at once."""
+    dynamic = cfg.guidance.dynamic if cfg.guidance.enabled else None
+    if dynamic is not None and dynamic != "auto":
+        print(f"loading segmenter: {cfg.estimators.segmenter} for {dynamic!r} ...", file=sys.stderr, flush=True)
+    return loading.load_dynamic_masks(cfg)
 
 
 def loading_line(cfg: GeCoConfig) -> str:
@@ -69,11 +80,16 @@ OUT_SUFFIXES = (".mp4", ".gif")
 #: Config sections that cannot change the frames, left out of :func:`video_key`: where the files
 #: go, whether the anchors are scored afterwards, the evaluation protocol.
 KEYLESS_SECTIONS = ("output", "evaluation")
+#: The moving-subject options, which make no frame while ``guidance.dynamic`` is null: left out of
+#: :func:`video_key` then, so that every video made before they existed keeps its name.
+DYNAMIC_KEYS = ("dynamic", "dynamic_dilation", "dynamic_refresh")
+#: Guidance options that say where it runs, left out of :func:`video_key` as ``model.device`` is.
+RUN_PLACEMENT_KEYS = ("devices",)
 #: Longest name a temporary of an atomic write adds to ``<name>``: ``.<name>.<8 random>.tmp``
 #: before the suffix (see :func:`geco_guide.io.files.atomic_path`).
 TEMP_NAME_EXTRA = len("..12345678.tmp")
 SCORES_NOTE = ("These are the anchor frames' scores with the guidance loss' settings; "
-               "python -m geco_guide.evaluate scores the whole video with the paper's protocol (a different number).")
+               "python -m geco_guide evaluate scores the whole video with the paper's protocol (a different number).")
 
 
 def slugify(text: str, max_len: int = 48) -> str:
@@ -85,13 +101,23 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
     """8 hex characters of SHA-256 over the prompt and the config that makes the frames
     (``config``: :func:`geco_guide.config.config_to_dict`'s form, e.g. a sidecar's ``config``).
 
-    Left out: :data:`KEYLESS_SECTIONS` and ``model.device``. The device can change the bytes
+    Left out: :data:`KEYLESS_SECTIONS`, ``model.device`` and ``guidance.devices``. The device can change the bytes
     (CPU and GPU kernels round differently), but a video moved to another device is the same
-    experiment, so it does not rename it. The JSON is canonical (sorted keys), so the key is the
-    same in every process and on every machine.
+    experiment, so it does not rename it. Left out too while unused: the :data:`DYNAMIC_KEYS` of
+    a null ``guidance.dynamic`` (or of a video made without guidance), and ``estimators.segmenter``
+    unless ``guidance.dynamic`` names subjects. The JSON is canonical (sorted keys), so the key is the same in every process and on
+    every machine.
     """
     kept = {section: value for section, value in config.items() if section not in KEYLESS_SECTIONS}
     kept["model"] = {key: value for key, value in kept.get("model", {}).items() if key != "device"}
+    guidance = kept.get("guidance", {})
+    if "guidance" in kept:  # like model.device: where the decode runs is not what it computes
+        kept["guidance"] = guidance = {key: value for key, value in guidance.items() if key not in RUN_PLACEMENT_KEYS}
+    dynamic = guidance.get("dynamic") if guidance.get("enabled", True) else None
+    if dynamic is None and "guidance" in kept:
+        kept["guidance"] = {key: value for key, value in kept["guidance"].items() if key not in DYNAMIC_KEYS}
+    if dynamic in (None, "auto") and "estimators" in kept:
+        kept["estimators"] = {key: value for key, value in kept["estimators"].items() if key != "segmenter"}
     text = json.dumps({"prompt": prompt, "config": kept}, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:8]
 
@@ -120,6 +146,17 @@ def output_paths(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = N
 def _suffix_problem(out: Path) -> str:
     return (f"--out {str(out)!r}: a video path must end with {' or '.join(OUT_SUFFIXES)}; a path without a suffix "
             "is a folder (the default name inside it)")
+
+
+def with_resolved_device(cfg: GeCoConfig) -> GeCoConfig:
+    """``cfg`` with ``model.device`` resolved once (``auto``: cuda where there is one, else cpu), so
+    that the memory planner, the loaders and the sidecar all see the same real device.
+
+    Raises:
+        ValueError: (one line naming ``model.device``) a device this machine lacks.
+    """
+    device = check_device(cfg.model.device)
+    return replace(cfg, model=replace(cfg.model, device=str(device)))
 
 
 def check_video_fits(cfg: GeCoConfig) -> None:
@@ -218,28 +255,68 @@ class GenerationResult:
     sidecar_path: Path
     scores: dict[str, float] | None
     sidecar: dict[str, Any]
+    #: the pipeline that made the video (loaded, or the one passed in), for a caller's next video
+    pipe: Any = None
+
+
+def check_prompt(prompt: str) -> None:
+    """ValueError (one line) for a prompt that is empty or not UTF-8 text (before any model loads:
+    the tokenizer would fail on it after loading them all)."""
+    if not prompt or not prompt.strip():
+        raise ValueError("prompt must not be empty")
+    try:
+        prompt.encode("utf-8")
+    except UnicodeEncodeError as err:  # bytes the terminal could not decode reach Python as surrogates
+        raise ValueError(f"the prompt is not valid UTF-8 text (an undecodable byte at character {err.start + 1}); "
+                         "check the encoding of the terminal or file it came from") from None
 
 
 def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None, pipe=None,
-             overwrite: bool = False) -> GenerationResult:
-    """Run one generation of ``cfg`` and write the mp4 + JSON sidecar. ``pipe`` skips loading;
-    existing outputs are replaced only with ``overwrite`` (checked before anything loads)."""
-    from ..io.video import check_fps, write_video
-    from ..loss.geco import GeCoLoss
-    from ..sampler.step import score_anchor_frames
+             overwrite: bool = False, dynamic_masks: Any = None) -> GenerationResult:
+    """Run one generation of ``cfg`` and write the mp4 + JSON sidecar. ``pipe`` skips loading, and
+    ``dynamic_masks`` (the mask source of ``guidance.dynamic``, e.g. a text segmenter of loaded
+    models) loading the segmenter; existing outputs are replaced only with ``overwrite`` (checked
+    before anything loads).
 
-    if not prompt or not prompt.strip():
-        raise ValueError("prompt must not be empty")
+    Once every check passed, the run holds its video's :func:`~geco_guide.io.files.output_lock`: a
+    second run of the same output name at the same time is refused (one line naming the first's
+    pid), and the existence check, made again under the lock, holds until the files are written.
+    """
+    from ..io.video import check_fps
+
+    check_prompt(prompt)
     video_path, sidecar_path = output_paths(cfg, prompt, out)
     check_outputs((video_path, sidecar_path), overwrite)
     check_fps(cfg.sampling.fps, video_path.suffix)
+    cfg = with_resolved_device(cfg)
+    if cfg.guidance.enabled:
+        resolve_devices(cfg.guidance.devices)  # a device this machine lacks: one line before loading
     check_video_fits(cfg)
     timings: dict[str, float] = {}
     start = time.perf_counter()
     if pipe is None:
-        check_device(cfg.model.device)
-        s = cfg.sampling  # a budget no memory plan fits is found before the models load
-        plan_before_loading(cfg.guidance, cfg.model.id, s.num_frames, s.height, s.width, cfg.model.device)
+        # weights that are not there first (the problem a fresh machine has), then a budget no memory
+        # plan fits, a schedule or decoder that cannot work: all before loading
+        loading.check_weights_before_loading(cfg)
+        s = cfg.sampling
+        loading.check_guidance_before_loading(cfg, model_id=cfg.model.id, num_frames=s.num_frames, height=s.height,
+                                              width=s.width, num_steps=s.num_inference_steps)
+    with output_lock(video_path):  # every check passed: from here on the name is this run's
+        check_outputs((video_path, sidecar_path), overwrite)  # again: a run that ended meanwhile wrote it
+        return _load_sample_and_write(cfg, prompt, video_path, sidecar_path, pipe, dynamic_masks, timings, start)
+
+
+def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidecar_path: Path, pipe: Any,
+                           masks: Any, timings: dict[str, float], start: float) -> GenerationResult:
+    """The heavy part of :func:`generate`, once every check passed and the output name is held."""
+    from ..io.video import write_video
+    from ..loss.geco import GeCoLoss
+    from ..sampler.dynamic import RefreshedMasks
+    from ..sampler.step import score_anchor_frames
+
+    if masks is None:
+        masks = load_dynamic_masks(cfg)
+    if pipe is None:
         pipe = build_pipeline(cfg)
     timings["load_s"] = time.perf_counter() - start
 
@@ -259,6 +336,7 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
         output_type="pt",
         max_sequence_length=s.max_sequence_length,
         guidance=cfg.guidance,
+        dynamic_masks=masks,
     )
     timings["sampling_s"] = time.perf_counter() - start
     frames = output.frames  # [1, F, 3, H, W] in [0, 1]
@@ -273,6 +351,8 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     if cfg.output.score_anchors:
         start = time.perf_counter()
         loss = GeCoLoss(pipe.geometry_estimator, pipe.flow_estimator, cfg.guidance.loss)
+        if masks is not None:  # the anchors scored as guidance scored them: without what moves
+            loss = functools.partial(loss, dynamic_masks=RefreshedMasks(masks, dilation=cfg.guidance.dynamic_dilation))
         scores = score_anchor_frames(frames, cfg.guidance.anchors, loss)
         timings["scoring_s"] = time.perf_counter() - start
 
@@ -281,8 +361,74 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     timings["write_video_s"] = time.perf_counter() - start
     with removed_on_failure(video_path, sidecar_path):
         sidecar = sidecar_of(cfg, prompt, pipe, frames, video_path.name, timings, scores, output.guidance_log or [])
+        if masks is not None:
+            sidecar["dynamic_masks"] = masks.source_name
         write_json_atomic(sidecar_path, sidecar)
-    return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=scores, sidecar=sidecar)
+    return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=scores, sidecar=sidecar, pipe=pipe)
+
+
+#: The score best-of-N selection keeps the lowest of: the fused map under the GeCo protocol.
+SELECTION_SCORE = "fused"
+
+
+def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.PathLike | None = None,
+                     overwrite: bool = False, on_candidate: Any = None) -> GenerationResult:
+    """Selection, the other way to spend compute on geometry: ``count`` videos of the seeds
+    ``cfg.seed`` .. ``cfg.seed + count - 1`` (guided or not, as ``cfg`` says), each scored with the
+    GeCo protocol (:func:`~geco_guide.metric.evaluate.evaluate_video`, the config's ``evaluation``
+    section); the one of least fused score is kept (a NaN score ranks last, ties go to the
+    earlier seed).
+
+    Writes the kept video and its sidecar, which adds ``best_of``: every candidate's seed and
+    protocol scores and the seed kept. The default name ends in ``-best-of-<count>``. The
+    candidates are made in a hidden folder beside the output and removed however the run ends.
+    ``on_candidate(k, seed, result)`` is called after each candidate is scored.
+
+    Raises:
+        ValueError: (one line, before any model loads) ``count`` below 1, and what :func:`generate`
+            refuses.
+    """
+    import shutil
+
+    from ..metric.evaluate import evaluate_video, finite_or_none
+
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise ValueError(f"--best-of must be an integer >= 1, got {count!r}")
+    check_prompt(prompt)
+    if not cfg.output.name:
+        cfg = replace(cfg, output=replace(cfg.output, name=f"{default_name(cfg, prompt)}-best-of-{count}"))
+    video_path, sidecar_path = output_paths(cfg, prompt, out)
+    check_outputs((video_path, sidecar_path), overwrite)
+    work = video_path.with_name(f".{video_path.stem}.candidates")
+    pipe, candidates = None, []
+    with output_lock(video_path):
+        check_outputs((video_path, sidecar_path), overwrite)
+        shutil.rmtree(work, ignore_errors=True)  # the candidates of a killed run
+        try:
+            for k in range(count):
+                seed_cfg = replace(cfg, seed=cfg.seed + k, output=replace(cfg.output, name=None))
+                result = generate(seed_cfg, prompt, out=work / f"seed{seed_cfg.seed}.mp4", pipe=pipe)
+                pipe = result.pipe
+                scored = evaluate_video(result.video_path, geometry_estimator=pipe.geometry_estimator,
+                                        flow_estimator=pipe.flow_estimator, config=cfg)
+                candidates.append((result, scored))
+                if on_candidate is not None:
+                    on_candidate(k, seed_cfg.seed, scored)
+            rank = [getattr(scored, SELECTION_SCORE) for _, scored in candidates]
+            best = min(range(count), key=lambda k: (not math.isfinite(rank[k]), rank[k] if math.isfinite(rank[k]) else 0))
+            kept, _ = candidates[best]
+            sidecar = {**kept.sidecar, "video": video_path.name, "best_of": {
+                "n": count, "kept_seed": kept.sidecar["seed"], "score": f"{SELECTION_SCORE} (the GeCo protocol, evaluation.*)",
+                "candidates": [{"seed": result.sidecar["seed"], **{key: finite_or_none(getattr(scored, key))
+                                                                   for key in ("fused", "motion", "structure")}}
+                               for result, scored in candidates]}}
+            os.replace(kept.video_path, video_path)
+            with removed_on_failure(video_path, sidecar_path):
+                write_json_atomic(sidecar_path, sidecar)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=kept.scores, sidecar=sidecar,
+                            pipe=pipe)
 
 
 def sidecar_of(cfg: GeCoConfig, prompt: str, pipe: Any, frames: torch.Tensor, video_name: str,
@@ -300,6 +446,7 @@ def sidecar_of(cfg: GeCoConfig, prompt: str, pipe: Any, frames: torch.Tensor, vi
         "scheduler": getattr(pipe, "geco_scheduler_note", None) or type(pipe.scheduler).__name__,
         "guidance_decoder": getattr(pipe, "geco_decoder_note", None),
         "memory_plan": getattr(pipe, "geco_memory_plan", None),
+        "guidance_devices": getattr(pipe, "geco_devices", None),
         "device": str(pipe.device),
         "versions": versions(),
         "timings": {**timings, "guidance_s": sum(r["seconds"] for r in log)},
@@ -322,27 +469,54 @@ def build_parser() -> argparse.ArgumentParser:
     add_config_flags(p, preset_help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
     p.add_argument("--seed", type=int, default=None, help="sampling seed (overrides the config's seed)")
     p.add_argument("--no-guidance", action="store_true", help="sample without GeCo guidance")
+    p.add_argument("--dynamic", default=None, metavar="SUBJECTS",
+                   help="leave what moves on its own out of the guidance loss: 'auto' (detected from depth and flow) "
+                        "or the moving subjects, e.g. 'a dog, a person' (segmented by estimators.segmenter, SAM 3); "
+                        "sets guidance.dynamic")
     p.add_argument("--out", default=None,
                    help="output path ending in .mp4 or .gif (the sidecar: the same path with .json), or a folder (no suffix) "
                         "for the default name <prompt slug>-<8 hex of prompt and config>-seed<N>[-unguided].mp4; "
                         "default: output.dir")
     p.add_argument("--overwrite", action="store_true", help="replace an existing video and sidecar of the same name")
+    p.add_argument("--devices", nargs="+", default=None, metavar="DEVICE",
+                   help="deal the guidance's anchor decode over these devices, e.g. cuda:0 cuda:1 (or auto: every "
+                        "GPU), each with a replica of the decoder; sets guidance.devices")
+    p.add_argument("--best-of", type=int, default=None, metavar="N",
+                   help="selection: make N videos (seeds --seed .. --seed+N-1), score each with the GeCo protocol and "
+                        "keep the one of least fused score; its sidecar lists every candidate's scores")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.eta=2.0")
     return p
+
+
+def _print_candidate(count: int) -> Any:
+    def show(k: int, seed: int, scored: Any) -> None:
+        print(f"candidate {k + 1}/{count} (seed {seed}): protocol fused={scored.fused:.4f} motion={scored.motion:.4f} "
+              f"structure={scored.structure:.4f}", file=sys.stderr, flush=True)
+    return show
 
 
 @interruptible("nothing was written (outputs are written atomically)")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    options = {"seed": args.seed, "guidance.enabled": "false" if args.no_guidance else None}
+    options = {"seed": args.seed, "guidance.enabled": "false" if args.no_guidance else None,
+               "guidance.dynamic": args.dynamic,
+               "guidance.devices": f"[{','.join(args.devices)}]" if args.devices else None}
     try:
         cfg = config_from_args(args, args.overrides, options)
-        result = generate(cfg, args.prompt, out=args.out, overwrite=args.overwrite)
+        if args.best_of is None:
+            result = generate(cfg, args.prompt, out=args.out, overwrite=args.overwrite)
+        else:
+            result = generate_best_of(cfg, args.prompt, args.best_of, out=args.out, overwrite=args.overwrite,
+                                      on_candidate=_print_candidate(args.best_of))
     except (ValueError, FileNotFoundError, WriteError) as err:  # WeightsNotFoundError: a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(f"wrote video:   {result.video_path}")
     print(f"wrote sidecar: {result.sidecar_path}")
+    if "best_of" in result.sidecar:
+        chosen = result.sidecar["best_of"]
+        print(f"best of {chosen['n']}: kept seed {chosen['kept_seed']} (least fused score under the GeCo protocol; "
+              "every candidate's scores are in the sidecar)")
     if result.scores is not None:
         s = result.scores
         print(
@@ -352,7 +526,10 @@ def main(argv: list[str] | None = None) -> int:
         print(SCORES_NOTE)
     log = result.sidecar["guidance_log"]
     if log:
-        print(f"guidance: {len(log)} updates in {result.sidecar['timings']['guidance_s']:.1f} s")
+        # the progress bar counts denoising steps; a guided step makes R_t (0 or more) updates
+        steps = plural(cfg.sampling.num_inference_steps, "denoising step")
+        print(f"guidance: {plural(len(log), 'update')} over {steps} in "
+              f"{result.sidecar['timings']['guidance_s']:.1f} s (the progress bar counts steps)")
         idle = [r for r in log if r["skipped"] or not math.isfinite(r["loss"])]
         if idle:  # a NaN decode or gradient leaves the latents unchanged (see GeCoLoss check_values)
             steps = sorted({r["step"] for r in idle})

@@ -1,0 +1,104 @@
+"""The dynamic GeCo-Eval suite (ours, not the paper's): its prompts, ``geco_eval --suite dynamic``
+and the A/B script's subject column, on the tiny models with a tiny random segmenter."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from geco_guide.bench.geco_eval import CAMERAS, SCENARIOS, csv_text, load_prompts, select_prompts
+from geco_guide.cli.geco_eval import main
+from geco_guide.estimators.segmenters import subjects_of
+
+from script_modules import load_script
+
+REPO = Path(__file__).resolve().parents[1]
+#: Grounding DINO + SAM 2 tiny random models: their masks cover part of a frame (SAM 3's tiny
+#: detector keeps every query and masks nearly all of it).
+SEGMENTER = "estimators.segmenter=tiny-random-grounding-sam2"
+CAMERA_WORDS = re.compile(r"\b(camera|orbit|pan|dolly|tracks?|tracking|drone|crane|arc|push-in|shot)\b", re.I)
+
+
+ab = load_script("ab_compare.py")
+
+
+def test_the_dynamic_suite_covers_the_scenarios_and_speeds_with_named_subjects():
+    prompts = load_prompts(suite="dynamic")
+    assert [p["id"] for p in prompts] == [f"m{i}" for i in range(1, 25)]
+    assert Counter((p["scenario"], p["camera"]) for p in prompts) == {(s, c): 3 for s in SCENARIOS for c in CAMERAS}
+    papers = {p["prompt"] for p in load_prompts()}
+    for p in prompts:
+        assert subjects_of(p["subjects"]) and CAMERA_WORDS.search(p["prompt"]), p["id"]
+        assert p["prompt"] not in papers
+    assert len(select_prompts("dynamic:indoor:fast")) == 3 and len(select_prompts("geco-eval:indoor")) == 20
+    with pytest.raises(ValueError, match="a prompt suite is named geco-eval or dynamic"):
+        select_prompts("moving")
+    with pytest.raises(ValueError, match="unknown prompt suite"):
+        load_prompts(suite="moving")
+
+
+def test_results_csv_has_a_subjects_column_for_the_dynamic_suite_only():
+    row = {"model": "m", "guided": False, "prompt_id": "a1", "scenario": "indoor", "camera": "slow", "seed": 0}
+    assert "subjects" not in csv_text([row]).splitlines()[0]
+    assert csv_text([{**row, "subjects": "a dog"}]).splitlines()[0].endswith(",subjects")
+
+
+def test_geco_eval_dynamic_scores_and_guides_with_the_subjects_masks(tmp_path: Path, capsys):
+    out = tmp_path / "run"
+    argv = ["--preset", "tiny", "--suite", "dynamic", "--models", "cogvideox-5b", "--guided", "--limit", "1",
+            "--seeds", "0", "--out", str(out), SEGMENTER]
+    assert main(argv) == 0
+    assert "loading segmenter: tiny-random-grounding-sam2" in capsys.readouterr().err
+    for arm in ("cogvideox-5b", "cogvideox-5b-guided"):
+        result = json.loads((out / "videos" / arm / "m1-s0.json").read_text())
+        assert result["subjects"] == "a dog" and result["prompt_id"] == "m1"
+        masks = result["evaluation"]["dynamic_masks"]
+        assert masks["source"] == "grounding-sam2: a dog" and 0 <= masks["masked_fraction"] < 1
+    assert json.loads((out / "videos" / "cogvideox-5b-guided" / "m1-s0.json").read_text())["guidance_updates"] > 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["suite"] == {"name": "dynamic", "ours": True, "segmenter": "tiny-random-grounding-sam2"}
+    assert "24 prompts of our own with moving subjects, not the paper's" in (out / "report.md").read_text()
+    rows = list(csv.DictReader((out / "results.csv").open()))
+    assert [r["subjects"] for r in rows] == ["a dog", "a dog"]
+
+
+def test_ab_prompts_take_a_subject_column(tmp_path: Path):
+    path = tmp_path / "prompts.jsonl"
+    path.write_text('{"id": "dog", "prompt": "a dog runs on a lawn", "subjects": "a dog, a ball"}\na stone bridge\n')
+    dog, bridge = ab.read_prompts(path)
+    assert dog.subjects == "a dog, a ball" and bridge.subjects is None
+    path.write_text('{"id": "dog", "prompt": "a dog", "subjects": " , "}\n')
+    with pytest.raises(ValueError, match=r"prompts.jsonl:1: 'subjects' subject text ' , ' names no subject"):
+        ab.read_prompts(path)
+    suite = ab.read_prompts("dynamic:outdoor:fast")
+    assert [p.id for p in suite] == ["m16", "m17", "m18"] and suite[2].subjects == "a dog, a frisbee"
+    cfg = ab.config_from_args(ab.build_parser().parse_args(["--prompts", "x", "--seeds", "0", "--out", "o",
+                                                            "--preset", "tiny"]), [])
+    pair = ab.Pair(dog, 3)
+    assert ab.arm_config(cfg, pair, "guided").guidance.dynamic == "a dog, a ball"
+    assert ab.arm_config(cfg, pair, "unguided").guidance.dynamic is None
+
+
+def test_ab_run_masks_both_scores_and_the_guided_arm(tmp_path: Path):
+    prompts = tmp_path / "prompts.jsonl"
+    prompts.write_text('{"id": "dog", "prompt": "a dog runs on a lawn", "subjects": "a dog"}\n')
+    fast = ["sampling.num_frames=9", "guidance.anchors=[4,8]", "sampling.num_inference_steps=2", "guidance.repeats=1x2",
+            "guidance.time_travel=[]", "output.score_anchors=false", "evaluation.max_fps=4"]
+    out = tmp_path / "ab"
+    assert ab.main(["--prompts", str(prompts), "--seeds", "0", "--out", str(out), "--preset", "tiny", SEGMENTER,
+                    *fast]) == 0
+    result = json.loads((out / "pairs" / "dog-s0" / "result.json").read_text())
+    assert result["subjects"] == "a dog"
+    assert {arm: result["arms"][arm]["evaluation"]["dynamic_masks"]["source"] for arm in ("unguided", "guided")} == {
+        "unguided": "grounding-sam2: a dog", "guided": "grounding-sam2: a dog"}
+    guided = json.loads((out / "pairs" / "dog-s0" / "guided.json").read_text())
+    unguided = json.loads((out / "pairs" / "dog-s0" / "unguided.json").read_text())
+    assert guided["config"]["guidance"]["dynamic"] == "a dog" and guided["dynamic_masks"] == "grounding-sam2: a dog"
+    assert all(r["mask_source"] == "grounding-sam2: a dog" for r in guided["guidance_log"])
+    assert unguided["config"]["guidance"]["dynamic"] is None and "dynamic_masks" not in unguided
+    assert list(csv.DictReader((out / "results.csv").open()))[0]["subjects"] == "a dog"

@@ -1,0 +1,44 @@
+"""The top-level names: the pipeline and its config import from ``geco_guide`` lazily, so that
+importing the package and scoring a video load no diffusion code, and ``dir(geco_guide)`` lists
+the public names, not the module's helpers."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import geco_guide
+
+
+def test_the_pipeline_and_its_config_are_top_level_names():
+    from geco_guide import GeCoCogVideoXPipeline, GuidanceConfig
+    from geco_guide.sampler.config import GuidanceConfig as config_class
+    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline as pipeline_class
+
+    assert GeCoCogVideoXPipeline is pipeline_class and GuidanceConfig is config_class
+    assert {"GeCoCogVideoXPipeline", "GuidanceConfig"} <= set(geco_guide.__all__)
+    assert all(getattr(geco_guide, name) is not None for name in geco_guide.__all__)
+
+
+def test_dir_lists_the_public_names_only():
+    names = dir(geco_guide)
+    assert set(geco_guide.__all__) <= set(names) and "__version__" in names
+    assert not {"TYPE_CHECKING", "import_module", "_import_module", "_EXPORTS"} & set(names)
+
+
+def test_importing_the_package_and_scoring_a_video_load_no_diffusion_code():
+    probe = """
+import sys
+import geco_guide
+from geco_guide import GuidanceConfig
+from geco_guide.bench.synthetic import rigid_clip
+from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
+clip = rigid_clip(num_frames=4, height=24, width=32)
+result = geco_guide.evaluate_video(clip.frames, fps=8, geometry_estimator=OracleGeometry(clip),
+                                   flow_estimator=OracleFlow(clip))
+assert result.fused == result.fused  # a score, not NaN
+print(sorted(m for m in ("diffusers", "transformers", "accelerate") if m in sys.modules))
+"""
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
