@@ -53,6 +53,8 @@ from geco_guide.perf.cost import (
     cost_report,
     cost_settings,
     cost_table,
+    dynamic_mask_costs,
+    dynamic_masks_table,
 )
 from geco_guide.perf.decoder_agreement import agreement_table, decoder_agreement
 from geco_guide.perf.geco_eval import geco_eval_cost, geco_eval_table
@@ -191,7 +193,11 @@ def run_cost(args: argparse.Namespace) -> None:
         report = with_card(report, card)
     if args.measured:
         report["validation"] = compare_with_measured(report, args.measured_report, args.measured)
+    if args.dynamic_masks:
+        report["dynamic_masks"] = dynamic_mask_costs(settings["steps"])
     print(cost_table(report))
+    if args.dynamic_masks:
+        print(dynamic_masks_table(report["dynamic_masks"]))
     if args.json:
         write_report(args.json, report)
 

@@ -389,6 +389,20 @@ def test_cost_time_scales_with_the_traced_size() -> None:
     assert max(times["tiny"]) < min(times["cogvideox-5b"])
 
 
+def test_the_dynamic_masks_overhead_follows_the_schedule_and_the_cards() -> None:
+    """SAM 3's vision encoder on the anchors, predicted per card; the automatic masks' measured
+    time; one refresh per guided step of the paper's schedule (steps 3-49: 47 of its 111 updates)."""
+    costs = cost.dynamic_mask_costs()
+    assert (costs["refreshes"], costs["updates"]) == (47, 111)
+    sam3 = costs["sam3"]
+    assert 15e12 < cost.sam3_refresh_cost()["flops"] < 25e12  # a ViT over 4 frames of 1008x1008
+    assert 0 < sam3["H200"]["refresh_s"] < sam3["L40S"]["refresh_s"] < sam3["L4"]["refresh_s"]
+    assert sam3["H200"]["run_s"] == pytest.approx(47 * sam3["H200"]["refresh_s"])
+    assert costs["auto"]["per_update_s"] == pytest.approx(cost.AUTO_MASK_REFRESH_S * 47 / 111)
+    assert cost.dynamic_mask_costs(refresh=2)["refreshes"] == 24
+    assert "| auto (measured, one CPU thread) | any | 0.68 |" in cost.dynamic_masks_table(costs)
+
+
 def test_geco_eval_cost_counts_the_estimator_calls_of_each_pair_mode(tmp_path: Path):
     """9 frames at 8 fps (1.125 s): one window of floor(1.125 * 8) = 9 frames and a motion grid of
     the same 9 frames, so all pairs = 9 * 8 + 8 UFM pairs, adjacent = 8 + 8, one VGGT call."""
