@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
-import sys
+import logging
 import time
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
@@ -34,6 +34,8 @@ from .schedule import GuidanceSchedule
 from .devices import decoder_replicas
 from .slicing import AnchorChunk, decode_anchor_frames, decode_anchor_frames_across
 from .step import GuidanceRecord, Update, guided_step, loss_terms, read_scalars
+
+logger = logging.getLogger(__name__)
 
 
 @contextlib.contextmanager
@@ -272,8 +274,8 @@ class GuidanceContext:
             self._plan_stack.close()
             self._plan_stack = self._enter_plan()
         self._placed = None  # the replicas are copied again, with the new plan's switches
-        print(f"guidance: out of memory at the first update with memory plan {failed!r}; retrying it with "
-              f"{new.name!r}", file=sys.stderr)
+        logger.warning("guidance: out of memory at the first update with memory plan %r; retrying it with %r",
+                       failed, new.name)
 
     def decode_anchors(self, latents: Tensor) -> Tensor:
         """The anchor frames ``[B, S, 3, H, W]`` of ``latents [B, F, C, h, w]``: on one device as the

@@ -51,9 +51,13 @@ from .slicing import (
 )
 from .step import LatentsWatch
 
-try:
-    from diffusers.pipelines.cogvideo.pipeline_cogvideox import XLA_AVAILABLE
-except ImportError:  # pragma: no cover
+from diffusers.utils import is_torch_xla_available
+
+if is_torch_xla_available():  # pragma: no cover (as the stock pipeline: an XLA graph per step)
+    import torch_xla.core.xla_model as xm
+
+    XLA_AVAILABLE = True
+else:
     XLA_AVAILABLE = False
 
 logger = logging.get_logger(__name__)
@@ -530,6 +534,9 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
                 if i == len(timesteps) - 1 or ((i + 1) > num_warmup_steps and (i + 1) % self.scheduler.order == 0):
                     progress_bar.update()
+
+                if XLA_AVAILABLE:
+                    xm.mark_step()
 
         self._current_timestep = None
         self.geco_memory_plan = geco.memory_plan.to_dict() if geco else None
