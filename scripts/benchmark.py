@@ -55,6 +55,8 @@ from geco_guide.perf.cost import (
     cost_table,
     dynamic_mask_costs,
     dynamic_masks_table,
+    several_gpus,
+    several_gpus_table,
 )
 from geco_guide.perf.decoder_agreement import agreement_table, decoder_agreement
 from geco_guide.perf.geco_eval import geco_eval_cost, geco_eval_table
@@ -195,7 +197,11 @@ def run_cost(args: argparse.Namespace) -> None:
         report["validation"] = compare_with_measured(report, args.measured_report, args.measured)
     if args.dynamic_masks:
         report["dynamic_masks"] = dynamic_mask_costs(settings["steps"])
+    if args.num_gpus > 1 and args.mode != "unguided":
+        report["several_gpus"] = several_gpus(report, args.num_gpus)
     print(cost_table(report))
+    if "several_gpus" in report:
+        print(several_gpus_table(report["several_gpus"]))
     if args.dynamic_masks:
         print(dynamic_masks_table(report["dynamic_masks"]))
     if args.json:

@@ -403,6 +403,28 @@ def test_the_dynamic_masks_overhead_follows_the_schedule_and_the_cards() -> None
     assert "| auto (measured, one CPU thread) | any | 0.68 |" in cost.dynamic_masks_table(costs)
 
 
+def test_several_gpus_divide_the_anchor_decode_by_the_chunks_each_gpu_decodes() -> None:
+    cards = list(cost.GPU_SPECS)
+    report = {"settings": {"frames": 49, "height": 480, "width": 720, "chunk_latents": 3},
+              "counts": {"updates": 100},
+              "per_stage": {"anchor_decode": {"time_s": {gpu: 400.0 for gpu in cards}}},
+              "roofline": {"wall_time_s": {gpu: {"unguided": 100.0, "guided": 800.0} for gpu in cards}}}
+    one = cost.several_gpus(report, 1)["cards"]["H200"]
+    assert one["guided_s"] == 800.0 and one["transfer_s"] == 0.0  # every chunk on the pipeline's GPU
+    two, four, eight = (cost.several_gpus(report, n) for n in (2, 4, 8))
+    assert (two["chunks"], two["chunks_per_gpu"], four["chunks_per_gpu"]) == (4, 2, 1)
+    h200 = four["cards"]["H200"]
+    chunk_bytes = 3 * 16 * 60 * 90 * 4 + 3 * 480 * 720 * 4  # a chunk's latents out, its anchor frame back
+    assert h200["transfer_s"] == pytest.approx(100 * 3 * 2 * chunk_bytes / cost.INTERCONNECT_BYTES_PER_S["H200"])
+    assert h200["guided_s"] == pytest.approx(800 - 400 + 100 + h200["transfer_s"])
+    assert h200["over_unguided_1gpu"] == pytest.approx(h200["guided_s"] / 100)
+    assert eight["cards"]["H200"]["decode_s"] == h200["decode_s"]  # four chunks: no fifth GPU to use
+    assert four["cards"]["L4"]["transfer_s"] > h200["transfer_s"]  # PCIe is slower than NVLink
+    assert "| H200 | " in cost.several_gpus_table(four)
+    with pytest.raises(ValueError, match="--num-gpus must be >= 1"):
+        cost.several_gpus(report, 0)
+
+
 def test_geco_eval_cost_counts_the_estimator_calls_of_each_pair_mode(tmp_path: Path):
     """9 frames at 8 fps (1.125 s): one window of floor(1.125 * 8) = 9 frames and a motion grid of
     the same 9 frames, so all pairs = 9 * 8 + 8 UFM pairs, adjacent = 8 + 8, one VGGT call."""

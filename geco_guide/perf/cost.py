@@ -603,6 +603,57 @@ def cost_report(settings: dict[str, Any], mode: str, argv: Sequence[str] = ()) -
     return report
 
 
+#: One direction's bandwidth between two GPUs of one node (bytes/s), from the data sheets: NVLink 4 on
+#: the H200 and H100 SXM (900 GB/s both ways), PCIe 4.0 x16 for the PCIe cards (32 GB/s; an A6000
+#: pair's NVLink bridge is faster, the common node has none).
+INTERCONNECT_BYTES_PER_S = {"H200": 450e9, "H100": 450e9, "L40S": 32e9, "A6000": 32e9, "RTX4090": 32e9, "L4": 32e9}
+
+
+def several_gpus(report: dict[str, Any], num_gpus: int) -> dict[str, Any]:
+    """Predicted wall time of ``report``'s guided run with ``guidance.devices`` over ``num_gpus``
+    GPUs of one card: the anchor chunks of an update decode on different GPUs at once (forward and
+    backward), so the decode stage takes the time of the ``ceil(chunks / num_gpus)`` chunks one GPU
+    decodes, plus the transfers of the chunks decoded elsewhere (their latents out and anchor
+    frames back, and both gradients in the backward, fp32) over the card's interconnect. The rest
+    (the denoiser, the estimators, the loss, the unguided steps) stays on one GPU.
+
+    Returns per card: ``guided_s``, ``over_unguided_1gpu`` (guided on N GPUs over unguided on one)
+    and ``over_unguided_ngpus`` (over unguided on N GPUs, which for one video is the one-GPU time:
+    its denoiser is not split), and ``decode_s`` / ``transfer_s`` per run.
+    """
+    if num_gpus < 1:
+        raise ValueError(f"--num-gpus must be >= 1, got {num_gpus}")
+    settings, counts = report["settings"], report["counts"]
+    chunks = len(default_anchors(settings["frames"], COGVIDEOX_TEMPORAL_COMPRESSION))
+    per_gpu_chunks = -(-chunks // num_gpus)
+    remote = chunks - len(range(0, chunks, num_gpus))  # chunk k runs on GPU k mod N; GPU 0 is the pipeline's
+    latent_h, latent_w = settings["height"] // 8, settings["width"] // 8
+    chunk_bytes = (settings.get("chunk_latents") or 3) * 16 * latent_h * latent_w * 4 + 3 * settings["height"] * settings["width"] * 4
+    decode = report["per_stage"].get("anchor_decode")
+    rows = {}
+    for gpu in GPU_SPECS:
+        wall = report["roofline"]["wall_time_s"][gpu]
+        if wall["guided"] is None or decode is None:
+            continue
+        decode_s = decode["time_s"][gpu] * per_gpu_chunks / chunks
+        transfer_s = counts["updates"] * remote * 2 * chunk_bytes / INTERCONNECT_BYTES_PER_S[gpu]
+        guided = wall["guided"] - decode["time_s"][gpu] + decode_s + transfer_s
+        rows[gpu] = {"guided_s": guided, "over_unguided_1gpu": guided / wall["unguided"],
+                     "over_unguided_ngpus": guided / wall["unguided"], "decode_s": decode_s, "transfer_s": transfer_s}
+    return {"num_gpus": num_gpus, "chunks": chunks, "chunks_per_gpu": per_gpu_chunks, "cards": rows}
+
+
+def several_gpus_table(rows: dict[str, Any]) -> str:
+    """Markdown: :func:`several_gpus` per card."""
+    lines = [f"guidance.devices over {rows['num_gpus']} GPUs ({rows['chunks']} anchor chunks, "
+             f"{rows['chunks_per_gpu']} per GPU at most), predicted:",
+             "| card | guided (s) | / unguided on 1 GPU | / unguided on N GPUs | decode (s) | transfers (s) |",
+             "|---|---|---|---|---|---|"]
+    lines += [f"| {gpu} | {r['guided_s']:.0f} | {r['over_unguided_1gpu']:.2f} | {r['over_unguided_ngpus']:.2f} | "
+              f"{r['decode_s']:.0f} | {r['transfer_s']:.2f} |" for gpu, r in rows["cards"].items()]
+    return "\n".join(lines)
+
+
 #: Measured breakdown keys (``sampling`` JSON) of each cost stage; the denoiser's calls with and
 #: without gradients are one measured stage.
 MEASURED_STAGES: dict[str, tuple[str, ...]] = {

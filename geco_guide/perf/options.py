@@ -266,6 +266,9 @@ def add_cost_parser(sub: Any) -> argparse.ArgumentParser:
                       help=f"measured seconds of one unguided CFG step on the H200 (default {H200_UNGUIDED_STEP_S})")
     cost.add_argument("--measured", metavar="JSON",
                       help="a `sampling` report of the same settings on an H200: add predicted vs measured")
+    cost.add_argument("--num-gpus", type=positive_int, default=1,
+                      help="also predict the guided run with guidance.devices over this many GPUs of the card "
+                           "(the anchor chunks decoded on different GPUs at once)")
     cost.add_argument("--dynamic-masks", action="store_true",
                       help="add the overhead of guidance.dynamic masks refreshed at each guided step: SAM 3 "
                            "(predicted, its vision encoder) and the automatic masks (measured on a CPU thread)")
