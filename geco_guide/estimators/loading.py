@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -112,6 +113,37 @@ def hub_weights_unavailable(model_name: str, repo_id: str, reason: str = "") -> 
         f"(`hf download {repo_id}`; huggingface_hub < 0.34: `huggingface-cli download {repo_id}`) and pass the "
         "local folder instead of the repo id"
     )
+
+
+def pretrained_or_one_line(load: Callable[[str], Any], source: str, *, model_name: str, folder_hint: str,
+                           gated: bool = False) -> Any:
+    """``load(source)`` (a ``from_pretrained``) of a hub id or a local folder, with the one-line
+    errors of every loader here.
+
+    Args:
+        load: a hub id or a folder's path -> the model.
+        source: the hub id or local folder the user gave.
+        model_name: what the message calls the model.
+        folder_hint: how to pass a local folder instead (e.g. ``model.id=/path/to/CogVideoX-5b``).
+        gated: the repo is gated on the hub: the message says how to get access.
+
+    Raises:
+        WeightsNotFoundError: the folder does not exist, or the weights are neither in the hub
+            cache nor reachable (the reason named: offline, gated, unknown repo, network).
+    """
+    path = Path(source).expanduser()
+    if looks_like_local_path(source) and not path.is_dir():
+        raise WeightsNotFoundError(f"{model_name}: local folder {source!r} does not exist (pass an existing folder or "
+                                   f"a hub id: {folder_hint})")
+    try:
+        with quiet_hub_retries():
+            return load(str(path) if path.is_dir() else source)
+    except (OSError, ValueError) as err:
+        if isinstance(err, ValueError) and type(err).__name__ != "HFValidationError":
+            raise
+        reason = (" (a gated repo: accept its licence on the hub, then log in with `hf auth login`)" if gated
+                  else hub_failure_reason(err))
+        raise WeightsNotFoundError(f"{hub_weights_unavailable(model_name, source, reason)} ({folder_hint})") from None
 
 
 def looks_like_local_path(source: str) -> bool:

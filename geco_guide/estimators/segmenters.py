@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -40,7 +39,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..types import Correspondences, DynamicMaskSource, SceneGeometry
-from .loading import WeightsNotFoundError, quiet_hub_retries
+from .loading import pretrained_or_one_line
 
 logger = logging.getLogger(__name__)
 
@@ -220,20 +219,8 @@ def _from_pretrained(cls: Any, source: str, what: str, folder: str, gated: bool 
     """``cls.from_pretrained(source)`` of a hub id or a local folder; one-line
     :class:`WeightsNotFoundError` naming the id, :data:`CONFIG_KEY` and how to pass a folder
     (``folder``: the example value)."""
-    path = Path(source).expanduser()
-    if source.startswith((".", "/", "~")) and not path.is_dir():
-        raise WeightsNotFoundError(f"{what}: local folder {source!r} does not exist ({CONFIG_KEY}={folder})")
-    login = " (gated: accept its licence on the hub, then `hf auth login`)" if gated else ""
-    try:
-        with quiet_hub_retries():
-            return cls.from_pretrained(str(path) if path.is_dir() else source)
-    except (OSError, ValueError) as err:
-        if isinstance(err, ValueError) and type(err).__name__ != "HFValidationError":
-            raise
-        raise WeightsNotFoundError(
-            f"{what}: could not load {source!r} from the Hugging Face hub or its local cache{login}; download it "
-            f"where you have network (`hf download {source}`) and pass the local folder: {CONFIG_KEY}={folder}"
-        ) from None
+    return pretrained_or_one_line(cls.from_pretrained, source, model_name=what, folder_hint=f"{CONFIG_KEY}={folder}",
+                                  gated=gated)
 
 
 #: Makes the mask source of a subject text (``"a dog, a person"``) with models loaded once.

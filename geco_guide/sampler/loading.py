@@ -25,7 +25,7 @@ from ..estimators.loading import (
     CHECKPOINT_SUFFIXES,
     WeightsNotFoundError,
     check_weights_available,
-    looks_like_local_path,
+    pretrained_or_one_line,
     quiet_hub_retries,
 )
 from ..io.devices import resolve_device
@@ -72,22 +72,10 @@ def pipeline_from_pretrained(cls, model_id: str, name: str, folder_hint: str, *,
             ``folder_hint`` (how to pass a local folder), when the folder does not exist or the
             weights are neither in the hub cache nor reachable.
     """
-    path = Path(model_id).expanduser()
-    if looks_like_local_path(model_id) and not path.is_dir():
-        raise WeightsNotFoundError(f"{name}: local folder {model_id!r} does not exist (pass an existing folder or a "
-                                   f"hub id: {folder_hint})")
-    try:
-        with quiet_hub_logs():
-            return cls.from_pretrained(str(path) if path.is_dir() else model_id, revision=revision,
-                                       **{_dtype_kwarg(): dtype}, **kwargs)
-    except (OSError, ValueError) as err:
-        if isinstance(err, ValueError) and type(err).__name__ != "HFValidationError":
-            raise
-        raise WeightsNotFoundError(
-            f"{name} weights {model_id!r} are not available: not in the local Hugging Face cache and the hub "
-            f"cannot be reached (offline?). Download them once with `hf download {model_id}` (huggingface_hub "
-            f"< 0.34: `huggingface-cli download`) or pass a local folder: {folder_hint}"
-        ) from None
+    with quiet_hub_logs():
+        return pretrained_or_one_line(
+            lambda source: cls.from_pretrained(source, revision=revision, **{_dtype_kwarg(): dtype}, **kwargs),
+            model_id, model_name=name, folder_hint=folder_hint)
 
 
 #: The file whose presence says a diffusers pipeline folder or repo is there.
