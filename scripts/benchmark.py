@@ -161,7 +161,7 @@ def run_sampling(args: argparse.Namespace) -> None:
         width=args.width, device=args.device, dtype=args.dtype, threads=args.threads, seed=args.seed,
         warmup=args.warmup, estimator_checkpointing=args.estimator_checkpointing, chunk_latents=args.chunk_latents,
         vae_tiling=args.vae_tiling, rss_exact=args.rss_exact, no_denoiser_checkpointing=args.no_denoiser_checkpointing,
-        memory_plan=args.memory_plan)
+        memory_plan=args.memory_plan, devices=args.devices)
     # the defaults filled in: the default frame count of a preset is checked too
     check_frames(spec["frames"], guided=args.mode != "unguided")
     report = sampling_report(spec, WORKER, sys.argv[1:])

@@ -403,6 +403,18 @@ def test_the_dynamic_masks_overhead_follows_the_schedule_and_the_cards() -> None
     assert "| auto (measured, one CPU thread) | any | 0.68 |" in cost.dynamic_masks_table(costs)
 
 
+def test_sampling_deals_the_guided_arms_anchor_decode_over_the_devices_asked_for() -> None:
+    from geco_guide.perf.sampling import sampling_guidance, sampling_spec
+
+    spec = sampling_spec(full_size=False, mode="fast", steps=2, frames=None, height=None, width=None, device="cpu",
+                         dtype=None, threads=1, seed=0, warmup=0, devices=["cpu", "cpu"])
+    assert sampling_guidance({**spec, "arm": "guided"}).devices == ["cpu", "cpu"]
+    assert sampling_guidance({**spec, "arm": "unguided"}) is False
+    plain = sampling_spec(full_size=False, mode="fast", steps=2, frames=None, height=None, width=None, device="cpu",
+                          dtype=None, threads=1, seed=0, warmup=0)
+    assert sampling_guidance({**plain, "arm": "guided"}).devices is None
+
+
 def test_several_gpus_divide_the_anchor_decode_by_the_chunks_each_gpu_decodes() -> None:
     cards = list(cost.GPU_SPECS)
     report = {"settings": {"frames": 49, "height": 480, "width": 720, "chunk_latents": 3},
@@ -510,6 +522,9 @@ def _refused(cli, monkeypatch, capsys, argv: list[str]) -> str:
     (["plans", "--threads", "0"], "--threads: must be >= 1"),
     (["cost", "--height", "30", "--width", "30"], "--height must be a multiple of 16, got 30"),
     (["sampling", "--width", "40"], "--width must be a multiple of 16, got 40"),
+    (["sampling", "--devices", "cpu", "tpu"], "invalid device 'tpu' (--devices)"),
+    (["sampling", "--devices", "cuda:99"], "device 'cuda:99' is not available"),
+    (["cost", "--num-gpus", "0"], "--num-gpus: must be >= 1"),
     (["vae", "--height", "30"], "--height must be a multiple of 8, got 30"),
 ])
 def test_bad_option_is_one_error_line_before_any_work(cli, monkeypatch, capsys, argv, expected):

@@ -19,6 +19,7 @@ from ..config import COGVIDEOX_TEMPORAL_COMPRESSION, load_config
 from ..estimators.loading import WeightsNotFoundError
 from ..io.devices import check_device as check_config_device
 from ..sampler.config import DECODERS
+from ..sampler.devices import resolve_devices
 from ..sampler.memory_plan import PLAN_NAMES
 from ..sampler.slicing import check_num_frames, check_paired_latent_frames
 from .cost import GPU_SPECS, H200_UNGUIDED_STEP_S, load_measured
@@ -126,6 +127,11 @@ def check_options(args: argparse.Namespace) -> None:
         check_frames(args.frames, guided=False)
         check_video_size(args.height, args.width, VAE_SIDE_MULTIPLE)
     elif args.command == "sampling":
+        if args.devices:
+            try:
+                resolve_devices(args.devices, "--devices")
+            except ValueError as err:
+                fail(str(err))
         if args.full_size and torch.device(args.device).type == "cpu" and not args.allow_cpu:
             fail("sampling --full-size on CPU is refused: CogVideoX-5B + VGGT-1B + UFM-Base weights alone are "
                  "about 30 GiB in float32 (7.4 G parameters) and a 49x480x720 step would take hours; run it on a "
@@ -216,6 +222,9 @@ def add_sampling_parser(sub: Any) -> argparse.ArgumentParser:
     samp.add_argument("--memory-plan", choices=PLAN_NAMES, default="explicit",
                       help="guidance.memory_plan of the guided arm (default: explicit, the flags above as "
                            "measured; auto: the plan chosen for the device's memory, recorded in the report)")
+    samp.add_argument("--devices", nargs="+", default=None, metavar="DEVICE",
+                      help="guidance.devices of the guided arm: deal its anchor decode over these devices, e.g. "
+                           "cuda:0 cuda:1 (each with a replica of the decoder)")
     samp.add_argument("--allow-cpu", action="store_true",
                       help="allow --full-size on CPU (the weights alone are ~30 GiB in float32)")
     samp.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (default: cpu)")

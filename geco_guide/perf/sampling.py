@@ -72,7 +72,7 @@ def sampling_guidance(spec: dict[str, Any]) -> GuidanceConfig | bool:
     # the flags as measured unless a memory plan is asked for
     return replace(base, anchors=anchors, repeats=repeats, time_travel=time_travel,
                    denoiser_grad=spec["mode"] == "faithful", chunk_latents=chunk_latents,
-                   memory_plan=spec.get("memory_plan") or "explicit",
+                   memory_plan=spec.get("memory_plan") or "explicit", devices=spec.get("devices"),
                    gradient_checkpointing=base.gradient_checkpointing and not spec.get("no_denoiser_checkpointing"))
 
 
@@ -202,10 +202,11 @@ def sampling_spec(*, full_size: bool, mode: str, steps: int | None, frames: int 
                   width: int | None, device: str, dtype: str | None, threads: int | None, seed: int, warmup: int,
                   estimator_checkpointing: bool = False, chunk_latents: int | None = None, vae_tiling: bool = False,
                   rss_exact: bool = False, no_denoiser_checkpointing: bool = False,
-                  memory_plan: str = "explicit") -> dict[str, Any]:
+                  memory_plan: str = "explicit", devices: Sequence[str] | None = None) -> dict[str, Any]:
     """The case of a sampling benchmark with the presets' defaults filled in (``None``: the
     preset's; tiny: 17x32x48 float32; full size: 49x480x720, bfloat16 on CUDA). ``memory_plan``:
-    ``guidance.memory_plan`` (default ``explicit``: the checkpointing flags of the preset and options)."""
+    ``guidance.memory_plan`` (default ``explicit``: the checkpointing flags of the preset and options);
+    ``devices``: ``guidance.devices`` of the guided arm (the anchor decode dealt over them)."""
     preset = "full-size" if full_size else "tiny"
     if preset == "tiny":
         from ..tiny import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH
@@ -220,7 +221,8 @@ def sampling_spec(*, full_size: bool, mode: str, steps: int | None, frames: int 
             "device": device, "dtype": dtype, "threads": threads, "seed": seed,
             "warmup": warmup, "estimator_checkpointing": estimator_checkpointing,
             "chunk_latents": chunk_latents, "vae_tiling": vae_tiling, "rss_exact": rss_exact,
-            "no_denoiser_checkpointing": no_denoiser_checkpointing, "memory_plan": memory_plan}
+            "no_denoiser_checkpointing": no_denoiser_checkpointing, "memory_plan": memory_plan,
+            "devices": list(devices) if devices else None}
 
 
 def sampling_report(spec: dict[str, Any], worker: Sequence[str], argv: Sequence[str] = ()) -> dict[str, Any]:
