@@ -181,6 +181,18 @@ def decode_chunk(vae, latents: Tensor, scaling_factor: float) -> Tensor:
     return (video.float() / 2 + 0.5).clamp(0, 1).permute(0, 2, 1, 3, 4)
 
 
+def chunk_spans(latents: Tensor, chunks: Sequence[AnchorChunk]) -> list[tuple[int, int]]:
+    """The distinct ``(start, stop)`` latent spans of ``chunks``, in order, after checking that
+    there are chunks and that ``latents [B, F, C, h, w]`` hold every latent they need."""
+    if len(chunks) == 0:
+        raise ValueError("chunks must not be empty")
+    num_latents = latents.shape[1]
+    for chunk in chunks:
+        if chunk.stop > num_latents:
+            raise ValueError(f"anchor {chunk.anchor} needs latent {chunk.latent} but latents has only {num_latents}")
+    return sorted({(chunk.start, chunk.stop) for chunk in chunks})
+
+
 def decode_anchor_frames(
     decode: Callable[[Tensor], Tensor],
     latents: Tensor,
@@ -217,13 +229,8 @@ def decode_anchor_frames(
     Returns:
         ``[B, S, 3, H, W]`` fp32 frames in ``[0, 1]``, one per chunk, in order.
     """
-    if len(chunks) == 0:
-        raise ValueError("chunks must not be empty")
-    batch, num_latents = latents.shape[:2]
-    for chunk in chunks:
-        if chunk.stop > num_latents:
-            raise ValueError(f"anchor {chunk.anchor} needs latent {chunk.latent} but latents has only {num_latents}")
-    spans = sorted({(chunk.start, chunk.stop) for chunk in chunks})
+    spans = chunk_spans(latents, chunks)
+    batch = latents.shape[0]
     decoded: dict[tuple[int, int], Tensor] = {}
     if checkpoint_chunks and torch.is_grad_enabled():
         for start, stop in spans:
@@ -272,15 +279,9 @@ def decode_anchor_frames_across(
     Returns:
         ``[B, S, 3, H, W]`` fp32 frames in ``[0, 1]`` on ``latents``' device, one per chunk, in order.
     """
-    if len(chunks) == 0:
-        raise ValueError("chunks must not be empty")
     if len(placed) == 0:
         raise ValueError("placed must hold at least one (device, decode) pair")
-    num_latents, home = latents.shape[1], latents.device
-    for chunk in chunks:
-        if chunk.stop > num_latents:
-            raise ValueError(f"anchor {chunk.anchor} needs latent {chunk.latent} but latents has only {num_latents}")
-    spans = sorted({(chunk.start, chunk.stop) for chunk in chunks})
+    spans, home = chunk_spans(latents, chunks), latents.device
     picked: dict[tuple[int, int], Tensor] = {}
     for k, span in enumerate(spans):
         device, decode = placed[k % len(placed)]
