@@ -40,3 +40,18 @@ def test_best_of_below_one_is_one_line_before_loading(tmp_path, capsys, monkeypa
         assert generate_cli.main([*TINY, "--best-of", count, "--out", str(tmp_path)]) == 2
         err = capsys.readouterr().err.strip()
         assert err == f"error: --best-of must be an integer >= 1, got {count}" and not any(tmp_path.iterdir())
+
+
+def test_best_of_loads_the_segmenter_once_for_every_candidate(tmp_path, monkeypatch):
+    loads = []
+    real = generate_cli.loading.load_dynamic_masks
+
+    def counted(cfg):
+        loads.append(1)
+        return real(cfg)
+
+    monkeypatch.setattr(generate_cli.loading, "load_dynamic_masks", counted)
+    out = tmp_path / "moving.mp4"
+    assert generate_cli.main([*TINY, "--best-of", "2", "--dynamic", "auto", "--out", str(out),
+                              "output.score_anchors=false"]) == 0
+    assert len(loads) == 1 and json.loads(out.with_suffix(".json").read_text())["dynamic_masks"] == "auto"

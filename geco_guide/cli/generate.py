@@ -257,6 +257,8 @@ class GenerationResult:
     sidecar: dict[str, Any]
     #: the pipeline that made the video (loaded, or the one passed in), for a caller's next video
     pipe: Any = None
+    #: the mask source of ``guidance.dynamic`` it used (``None`` without), likewise
+    dynamic_masks: Any = None
 
 
 def check_prompt(prompt: str) -> None:
@@ -364,7 +366,8 @@ def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidec
         if masks is not None:
             sidecar["dynamic_masks"] = masks.source_name
         write_json_atomic(sidecar_path, sidecar)
-    return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=scores, sidecar=sidecar, pipe=pipe)
+    return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=scores, sidecar=sidecar, pipe=pipe,
+                            dynamic_masks=masks)
 
 
 #: The score best-of-N selection keeps the lowest of: the fused map under the GeCo protocol.
@@ -400,15 +403,16 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
     video_path, sidecar_path = output_paths(cfg, prompt, out)
     check_outputs((video_path, sidecar_path), overwrite)
     work = video_path.with_name(f".{video_path.stem}.candidates")
-    pipe, candidates = None, []
+    pipe, masks, candidates = None, None, []
     with output_lock(video_path):
         check_outputs((video_path, sidecar_path), overwrite)
         shutil.rmtree(work, ignore_errors=True)  # the candidates of a killed run
         try:
             for k in range(count):
                 seed_cfg = replace(cfg, seed=cfg.seed + k, output=replace(cfg.output, name=None))
-                result = generate(seed_cfg, prompt, out=work / f"seed{seed_cfg.seed}.mp4", pipe=pipe)
-                pipe = result.pipe
+                result = generate(seed_cfg, prompt, out=work / f"seed{seed_cfg.seed}.mp4", pipe=pipe,
+                                  dynamic_masks=masks)
+                pipe, masks = result.pipe, result.dynamic_masks  # loaded once, for every candidate
                 scored = evaluate_video(result.video_path, geometry_estimator=pipe.geometry_estimator,
                                         flow_estimator=pipe.flow_estimator, config=cfg)
                 candidates.append((result, scored))
@@ -428,7 +432,7 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
         finally:
             shutil.rmtree(work, ignore_errors=True)
     return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=kept.scores, sidecar=sidecar,
-                            pipe=pipe)
+                            pipe=pipe, dynamic_masks=masks)
 
 
 def sidecar_of(cfg: GeCoConfig, prompt: str, pipe: Any, frames: torch.Tensor, video_name: str,
