@@ -28,6 +28,7 @@ _EXPORTS = {
     "attach_geco_guidance": "geco_guide.sampler.hooks",
     "GeCoCogVideoXPipeline": "geco_guide.sampler.pipeline_cogvideox",
     "GuidanceConfig": "geco_guide.sampler.config",
+    "RunOptions": "geco_guide.sampler.run_options",
     "evaluate_video": "geco_guide.metric.evaluate",
     "load_prompts": "geco_guide.bench.geco_eval",
 }
@@ -45,6 +46,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .sampler.config import GuidanceConfig
     from .sampler.hooks import attach_geco_guidance
     from .sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from .sampler.run_options import RunOptions
     from .types import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry
 
 

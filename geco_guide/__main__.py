@@ -13,6 +13,8 @@ from importlib import import_module
 
 from . import __version__
 
+__all__ = ["COMMANDS", "main"]
+
 #: command -> (its module in geco_guide.cli, what it does)
 COMMANDS = {
     "generate": ("generate", "generate a video with GeCo guidance (or without: --no-guidance)"),
@@ -22,6 +24,7 @@ COMMANDS = {
     "benchmarks": ("benchmarks", "build WarpBench/OccluBench-style clips with ground truth"),
     "validate": ("validate", "score those clips on the paper's three detection tasks"),
     "robustness": ("robustness", "the metric against noisy depth and flow"),
+    "ab": ("ab", "A/B test of guidance on your prompts: unguided vs guided (vs best-of-N), same noise"),
 }
 
 

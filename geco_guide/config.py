@@ -1,8 +1,10 @@
 """One structured config (omegaconf) for a GeCo generation run.
 
 Sections: ``model`` (the CogVideoX checkpoint), ``estimators`` (geometry + flow backbones),
-``sampling`` (steps, CFG, size), ``guidance`` (:class:`GuidanceConfig`: anchors, schedule,
-step size, time travel, and ``guidance.loss``, which *is* :class:`GeCoLossConfig`), ``output``,
+``sampling`` (steps, CFG, size), ``guidance`` (:class:`GuidanceConfig`, what guidance computes:
+anchors, schedule, step size, time travel, and ``guidance.loss``, which *is*
+:class:`GeCoLossConfig`), ``run`` (:class:`RunOptions`, how this machine runs it: memory plan,
+decode layout, devices; the old ``guidance.<key>`` spellings still work, with a warning), ``output``,
 ``evaluation`` (:class:`EvaluationConfig`: how ``python -m geco_guide evaluate`` samples a video,
 with the metric's own ``evaluation.loss``) and ``seed``. Defaults are the GeCo paper's CogVideoX-5b setting; the presets are
 the checkout's ``configs/<name>.yaml``, installed as the package data ``geco_guide/configs`` (so
@@ -33,8 +35,13 @@ from omegaconf.errors import (
 from .estimators import EstimatorsConfig
 from .metric.protocol import EvaluationConfig
 from .sampler.config import GuidanceConfig, paper_guidance_config
+from .sampler.run_options import RUN_KEYS, RunOptions, check_run_for_guidance, split_legacy_run_keys
 from .sampler.slicing import check_paired_latent_frames
 from .types import OptionError, non_finite_fields
+
+__all__ = ["COGVIDEOX_TEMPORAL_COMPRESSION", "CONFIG_DIR", "DTYPES", "SEED_RANGE", "GeCoConfig", "ModelConfig",
+           "OutputConfig", "SamplingConfig", "config_to_dict", "config_to_yaml", "load_config", "preset_path",
+           "to_config", "validate_config"]
 
 DTYPES = ("float32", "float16", "bfloat16")
 # Frames per latent of the CogVideoX VAE, whose pipeline the sampling section configures.
@@ -95,6 +102,7 @@ class GeCoConfig:
     estimators: EstimatorsConfig = field(default_factory=EstimatorsConfig)
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     guidance: GuidanceConfig = field(default_factory=paper_guidance_config)  # the paper's experiment (motion cue)
+    run: RunOptions = field(default_factory=RunOptions)
     output: OutputConfig = field(default_factory=OutputConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     seed: int = 0
@@ -117,7 +125,24 @@ def _key_error(err: OmegaConfBaseException, source: str) -> ValueError:
     return ValueError(f"invalid value for config key {key!r} ({source}): {msg}")
 
 
+def _with_run_keys_moved(other: Any, source: str) -> Any:
+    """``other`` (a config mapping) with run options written under ``guidance`` moved to ``run``
+    (:func:`~geco_guide.sampler.run_options.split_legacy_run_keys`: one warning each); a section
+    ``run`` of its own wins over the old spelling."""
+    if not isinstance(other, (DictConfig, Mapping)) or not isinstance(other.get("guidance"), (DictConfig, Mapping)):
+        return other
+    guidance = other["guidance"]
+    if not any(key in RUN_KEYS for key in guidance):
+        return other
+    plain = OmegaConf.to_container(other) if isinstance(other, DictConfig) else dict(other)
+    plain["guidance"], moved = split_legacy_run_keys(plain["guidance"], source)
+    own = plain.get("run")
+    plain["run"] = {**moved, **own} if isinstance(own, Mapping) else moved if own is None else own
+    return plain
+
+
 def _merge(base: DictConfig, other: Any, source: str) -> DictConfig:
+    other = _with_run_keys_moved(other, source)
     try:
         return OmegaConf.merge(base, other)
     except (OmegaConfBaseException, TypeError) as err:  # TypeError: a mapping merged into a list
@@ -211,6 +236,10 @@ def _parse_override(cfg: DictConfig, item: str) -> DictConfig:
     take the text as is (YAML would read ``guidance.repeats=0x2`` as the hex number 2)."""
     key, _, raw = item.partition("=")
     key = key.strip()
+    section, _, leaf = key.partition(".")
+    if section == "guidance" and leaf in RUN_KEYS:
+        split_legacy_run_keys({leaf: None}, "command line")  # the warning naming the new key
+        key = f"run.{leaf}"
     parent_key, _, leaf = key.rpartition(".")
     try:
         parent = OmegaConf.select(cfg, parent_key) if parent_key else cfg
@@ -248,7 +277,7 @@ def to_config(cfg: DictConfig | dict | GeCoConfig) -> GeCoConfig:
 def _section_of(cfg: DictConfig) -> str:
     """Which checked section of ``cfg`` fails its dataclass's checks: built one by one, innermost
     first, since the same dataclass (GeCoLossConfig) sits in two places."""
-    for section in ("guidance.loss", "guidance", "evaluation.loss", "evaluation"):
+    for section in ("guidance.loss", "guidance", "run", "evaluation.loss", "evaluation"):
         try:
             OmegaConf.to_object(OmegaConf.select(cfg, section))
         except OptionError:
@@ -303,6 +332,10 @@ def validate_config(cfg: GeCoConfig) -> None:
             check()
         except ValueError as err:
             raise ValueError(f"invalid value for config key {key!r}: {err}") from None
+    try:
+        check_run_for_guidance(cfg.run, g.decoder)
+    except OptionError as err:
+        raise ValueError(f"invalid value for config key 'run.{err.key}': {err}") from None
     _require(bool(cfg.output.dir), "output.dir", "must not be empty")
     name = cfg.output.name
     _require(

@@ -21,6 +21,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+__all__ = ["MIN_DEPTH", "check_tensor", "crop_intrinsics", "inside_image", "invert_rigid",
+           "local_depth_ratio", "pixel_grid", "pose_encoding_to_cameras", "project", "quaternion_to_matrix",
+           "relative_pose", "resize_flow", "resize_intrinsics", "rigid_flow", "sample_at_projection",
+           "sample_bilinear", "transform_points", "unproject"]
+
 # Depths below this are treated as "not in front of the camera"; it also keeps divisions finite.
 MIN_DEPTH = 1e-6
 

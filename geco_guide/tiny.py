@@ -19,6 +19,12 @@ from transformers import PreTrainedTokenizerFast
 
 from .estimators import TINY_RANDOM, tiny_estimators, tiny_random_decoder
 
+__all__ = ["TINY_ANCHORS", "TINY_CALL_KWARGS", "TINY_HEIGHT", "TINY_MAX_SEQUENCE_LENGTH", "TINY_NUM_FRAMES",
+           "TINY_WIDTH", "TinySizes", "TinyTokenizer", "tiny_call_kwargs", "tiny_cogvideox_components",
+           "tiny_cogvideox_i2v_pipeline", "tiny_cogvideox_pipeline", "tiny_cogvideox_transformer",
+           "tiny_estimators", "tiny_guidance_config", "tiny_guidance_decoder", "tiny_hunyuan_pipeline",
+           "tiny_ltx_pipeline", "tiny_pipeline", "tiny_run_options", "tiny_tokenizer", "tiny_wan_pipeline", "video_components"]
+
 # Tiny sampling settings that fit the tiny models (17 frames = 5 latents, 32x48 pixels).
 TINY_NUM_FRAMES = 17
 TINY_HEIGHT = 32
@@ -208,12 +214,18 @@ def tiny_guidance_config(**changes: Any):
         eta=3.0,
         time_travel=[2, 2],
         denoiser_grad=True,
-        gradient_checkpointing=False,
-        vae_checkpointing=False,
-        memory_plan="explicit",  # the flags above: the tiny models' batched chunk decode, as always
         loss=fused_guidance_loss(),
     )
     return replace(base, **changes)
+
+
+def tiny_run_options(**changes: Any):
+    """How guidance runs on the tiny models: no checkpointing (``explicit`` plan, flags off: the
+    batched chunk decode; they need no memory plan), as ``configs/tiny.yaml``'s ``run``."""
+    from .sampler.run_options import RunOptions
+
+    return RunOptions(**{"memory_plan": "explicit", "gradient_checkpointing": False, "vae_checkpointing": False,
+                         **changes})
 
 
 def tiny_pipeline(seed: int = 0, *, geometry_estimator: Any = None, flow_estimator: Any = None, guidance_config: Any = None):
@@ -236,6 +248,7 @@ def tiny_pipeline(seed: int = 0, *, geometry_estimator: Any = None, flow_estimat
         flow_estimator=flow_estimator,
         guidance_config=guidance_config if guidance_config is not None else tiny_guidance_config(),
     )
+    pipe.run_options = tiny_run_options()
     pipe.set_progress_bar_config(disable=True)
     return pipe
 

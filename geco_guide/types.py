@@ -26,6 +26,10 @@ from typing import Any, Protocol, TypeVar, runtime_checkable
 import torch
 from torch import Tensor
 
+__all__ = ["Correspondences", "DynamicMaskSource", "FlowEstimator", "GeometryEstimator",
+           "NonFiniteFramesError", "OptionError", "SceneGeometry", "check_frame_values", "check_frames",
+           "merge_dataclass", "missing_estimators", "non_finite_fields", "one_of_names", "plural"]
+
 
 @dataclass
 class SceneGeometry:

@@ -41,6 +41,7 @@ from torch import Tensor
 
 from geco_guide.bench.synthetic import default_intrinsics, orbit_cameras
 from geco_guide.config import CONFIG_DIR
+from geco_guide.io.logs import log_to_stderr
 from geco_guide.loss.geco import (
     PAIR_MODES,
     GeCoLossConfig,
@@ -272,7 +273,7 @@ def build_parser() -> argparse.ArgumentParser:
     vae.add_argument("--dtype", choices=("float32", "bfloat16"), default="bfloat16",
                      help="VAE dtype (default: bfloat16, as the pipeline on a GPU)")
     vae.add_argument("--vae-checkpointing", action="store_true",
-                     help="guidance.vae_checkpointing: one checkpointed decode per chunk, and the VAE's own "
+                     help="run.vae_checkpointing: one checkpointed decode per chunk, and the VAE's own "
                           "block checkpointing inside")
     vae.add_argument("--vae-tiling", action="store_true",
                      help="vae.enable_tiling with tiles of half the video size, as at 480x720")
@@ -325,6 +326,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         spec = json.loads(args.spec)
         print(json.dumps(run_sampling_worker(spec) if spec["workload"] == "sampling" else run_worker(spec, WORKLOADS)))
         return
+    log_to_stderr()  # each case's progress lines
     check_options(args)
     if args.command == "sampling":
         run_sampling(args)

@@ -2,15 +2,19 @@
 
 Tiny configurations, state dicts under upstream key names, inputs and reference outputs, kept in
 the repository so that every clone runs the parity tests; ``test_parity_fixtures_are_the_reference_files``
-notices a fixture changed by accident.
+notices a fixture changed by accident. Every test sees the package's log lines on stderr, as a
+command shows them (:func:`command_logs`).
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pytest
 import torch
+
+from geco_guide.io.logs import log_to_stderr
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 
@@ -28,3 +32,15 @@ def vggt_fixture() -> dict:
 @pytest.fixture(scope="session")
 def ufm_fixture() -> dict:
     return load_parity_fixture("ufm_tiny")
+
+
+@pytest.fixture(autouse=True)
+def command_logs():
+    """The package's log lines on stderr, as every command shows them (:func:`log_to_stderr`),
+    and taken away after each test: a command run in-process leaves its handler to no other test."""
+    package = logging.getLogger("geco_guide")
+    level = package.level
+    handler = log_to_stderr()
+    yield
+    package.removeHandler(handler)
+    package.setLevel(level)

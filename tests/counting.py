@@ -2,6 +2,7 @@
 
 from collections import Counter
 
+from diffusers.hooks import ModelHook
 from torch.utils._python_dispatch import TorchDispatchMode
 
 
@@ -14,6 +15,19 @@ class CountingForward:
 
     def __call__(self, *args):
         self.n += 1
+
+
+class CountingHook(ModelHook):
+    """Counts the calls of a module's forward as a hook in diffusers' ``HookRegistry`` (register
+    it with ``HookRegistry.check_if_exists_or_initialize(module).register_hook(hook, name)``)."""
+
+    def __init__(self):
+        super().__init__()
+        self.n = 0
+
+    def pre_forward(self, module, *args, **kwargs):
+        self.n += 1
+        return args, kwargs
 
 
 class HostSyncCounter(TorchDispatchMode):

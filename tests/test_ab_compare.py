@@ -1,7 +1,8 @@
-"""scripts/ab_compare.py: the A/B run end to end (tiny models, CPU), resuming after a kill, bad inputs.
+"""The A/B command (``geco ab``, ``scripts/ab_compare.py``): the run end to end (tiny models, CPU),
+resuming after a kill, bad inputs, and the best-of-N arm.
 
 The end-to-end and interruption tests run the script in subprocesses with 2 sampling steps; the
-statistics, report and input checks run in process on hand-made results.
+statistics, report and input checks run in process (:mod:`geco_guide.cli.ab`) on hand-made results.
 """
 
 from __future__ import annotations
@@ -22,12 +23,16 @@ import numpy as np
 import pytest
 import torch
 
-from geco_guide.bench.runs import LOCK_NAME, take_run_lock
-from geco_guide.config import load_config
+from geco_guide.bench import ab as core
+from geco_guide.bench import ab_report
+from geco_guide.bench.report import MIN_INTERVAL_N
+from geco_guide.bench.runs import LOCK_NAME, shard, take_run_lock
+from geco_guide.cli import ab
+from geco_guide.cli.prompt_files import Prompt, read_prompts
+from geco_guide.config import config_to_dict, load_config
+from geco_guide.io.files import write_json_atomic
 from geco_guide.io.video import read_video, write_video
 from geco_guide.metric.render import panel_layout
-
-from script_modules import load_script
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "ab_compare.py"
@@ -39,8 +44,6 @@ PROMPTS = 'a marble bust\n# a comment\n\n{"id": "bridge", "prompt": "a stone bri
 PAIRS = ("a-marble-bust-s0", "bridge-s0")
 SCORES = ("fused", "motion", "structure", "total_motion", "mean_motion")
 
-
-ab = load_script("ab_compare.py")
 
 
 def _command(prompts: Path, out: Path) -> list[str]:
@@ -84,7 +87,7 @@ def reference(prompts_file: Path, tmp_path_factory: pytest.TempPathFactory) -> P
     assert "0 of 2 pairs already complete" in proc.stdout and "2 pairs: fused guided - unguided" in proc.stdout
     # the last line is the result, one sentence; the tiny models' note is a line of its own before it
     *_, note, last = proc.stdout.strip().splitlines()
-    assert note == ab.TINY_GUIDANCE_NOTE
+    assert note == core.TINY_GUIDANCE_NOTE
     assert last.startswith("2 pairs: fused guided - unguided") and last.endswith(str(out / "report.md"))
     # no terminal, no progress bar: a line when the models load and one per pair and arm instead
     assert "loading models: CogVideoX tiny-random, geometry tiny-random, flow tiny-random ..." in proc.stderr
@@ -123,8 +126,8 @@ def test_end_to_end_report(reference: Path):
     report = (reference / "report.md").read_text()
     assert report.count("tiny random models: the numbers show the mechanics, not quality") == 1
     assert "## Models and weights" in report
-    assert f"none from 2 pairs (an interval needs {ab.MIN_INTERVAL_N})" in report
-    assert ab.TINY_GUIDANCE_NOTE in report
+    assert f"none from 2 pairs (an interval needs {MIN_INTERVAL_N})" in report
+    assert core.TINY_GUIDANCE_NOTE in report
     for text in ("## Configuration", "num_frames: 9", "## Versions", "| torch |", "pareto.png",
                  "seeds [0]", "95% CI (paired bootstrap)"):
         assert text in report, text
@@ -239,123 +242,123 @@ def _result(name: str, unguided: float, guided: float) -> dict:
 
 
 def test_bootstrap_ci():
-    assert ab.bootstrap_ci(np.array([0.1])) is None
+    assert core.bootstrap_ci(np.array([0.1])) is None
     diffs = np.array([-0.02, -0.01, 0.0, -0.03, 0.01])
-    low, high = ab.bootstrap_ci(diffs)
-    assert low < diffs.mean() < high and (low, high) == ab.bootstrap_ci(diffs)  # seeded
-    assert ab.bootstrap_ci(np.full(4, 0.5)) == (0.5, 0.5)
+    low, high = core.bootstrap_ci(diffs)
+    assert low < diffs.mean() < high and (low, high) == core.bootstrap_ci(diffs)  # seeded
+    assert core.bootstrap_ci(np.full(4, 0.5)) == (0.5, 0.5)
     # the report's interval needs MIN_INTERVAL_N finite pairs
-    results = [_result(f"p{i}-s0", 0.2, 0.1 + 0.01 * i) for i in range(ab.MIN_INTERVAL_N)]
-    assert ab.paired_difference(results[:-1], "fused")["ci95"] is None
-    low, high = ab.paired_difference(results, "fused")["ci95"]
-    assert low <= ab.paired_difference(results, "fused")["mean_diff"] <= high
+    results = [_result(f"p{i}-s0", 0.2, 0.1 + 0.01 * i) for i in range(MIN_INTERVAL_N)]
+    assert core.paired_difference(results[:-1], "fused")["ci95"] is None
+    low, high = core.paired_difference(results, "fused")["ci95"]
+    assert low <= core.paired_difference(results, "fused")["mean_diff"] <= high
 
 
 def test_single_pair_reports_an_undefined_interval():
     cfg = load_config(preset="tiny")
-    pairs = ab.plan_pairs([ab.Prompt("one", "one"), ab.Prompt("two", "two")], [0])
+    pairs = core.plan_pairs([Prompt("one", "one"), Prompt("two", "two")], [0])
     results = [_result("one-s0", 0.2, 0.1)]
-    summary = ab.summarize(results, pairs, cfg)
+    summary = core.summarize(results, pairs, cfg, {})
     assert summary["paired_differences"]["fused"] == {"n": 1, "mean_diff": pytest.approx(-0.1), "ci95": None}
     assert summary["guidance_lowered_fused"] == {"count": 1, "n": 1, "fraction": 1.0}
     assert summary["missing_pairs"] == ["two-s0"]
-    report = ab.report_markdown(summary, results, "config: yaml", "cmd")
+    report = ab_report.report_markdown(summary, results, "config: yaml", "cmd")
     assert "none from 1 pair (an interval needs 10)" in report and "Missing pairs" in report and "two-s0" in report
-    assert ab.plot_png(results).startswith(b"\x89PNG")
+    assert ab_report.plot_png(results).startswith(b"\x89PNG")
 
 
 def test_a_video_without_valid_pixels_is_left_out_of_the_statistics():
     cfg = load_config(preset="tiny")
     results = [_result("nan-s0", float("nan"), 0.1)]
-    summary = ab.summarize(results, ab.plan_pairs([ab.Prompt("nan", "nan")], [0]), cfg)
+    summary = core.summarize(results, core.plan_pairs([Prompt("nan", "nan")], [0]), cfg, {})
     assert summary["arms"]["unguided"]["fused"] is None and summary["arms"]["guided"]["fused"] == 0.1
     assert summary["paired_differences"]["fused"] == {"n": 0, "mean_diff": None, "ci95": None}
     assert summary["guidance_lowered_fused"] == {"count": 0, "n": 0, "fraction": None}
-    assert "in **0 of 0** pairs (-)" in ab.report_markdown(summary, results, "", "cmd")
-    assert ab.plot_png(results).startswith(b"\x89PNG")
+    assert "in **0 of 0** pairs (-)" in ab_report.report_markdown(summary, results, "", "cmd")
+    assert ab_report.plot_png(results).startswith(b"\x89PNG")
 
 
 def test_non_finite_scores_are_counted_and_named():
     cfg = load_config(preset="tiny")
     results = [_result("nan-s0", float("nan"), 0.1), _result("ok-s0", 0.2, 0.1)]
-    pairs = ab.plan_pairs([ab.Prompt("nan", "nan"), ab.Prompt("ok", "ok")], [0])
-    summary = ab.summarize(results, pairs, cfg)
+    pairs = core.plan_pairs([Prompt("nan", "nan"), Prompt("ok", "ok")], [0])
+    summary = core.summarize(results, pairs, cfg, {})
     assert summary["non_finite_scores"] == {"nan-s0": ["unguided fused", "unguided motion", "unguided structure"]}
     assert summary["arms"]["unguided"]["fused"] == pytest.approx(0.2)  # the finite one: not a NaN mean
     assert summary["paired_differences"]["fused"]["n"] == 1
-    report = ab.report_markdown(summary, results, "", "cmd")
+    report = ab_report.report_markdown(summary, results, "", "cmd")
     assert ("**Non-finite scores** in 1 pair(s), left out of the means, differences and counts (no valid pixels "
             "to measure): nan-s0 (unguided fused, unguided motion, unguided structure)") in report
-    assert "Non-finite" not in ab.report_markdown(ab.summarize(results[1:], pairs[1:], cfg), results[1:], "", "cmd")
+    assert "Non-finite" not in ab_report.report_markdown(core.summarize(results[1:], pairs[1:], cfg, {}), results[1:], "", "cmd")
 
 
 def test_a_pair_with_a_deleted_video_or_a_damaged_result_is_not_complete(tmp_path: Path, capsys):
-    pair = ab.Pair(ab.Prompt("cat", "a cat"), 0)
-    folder = ab.pair_dir(tmp_path, pair)
+    pair = core.Pair(Prompt("cat", "a cat"), 0)
+    folder = core.pair_dir(tmp_path, pair)
     result = _result(pair.name, 0.2, 0.1)
-    ab.write_json_atomic(folder / "result.json", result)
-    for name in ab.PAIR_OUTPUTS:
+    write_json_atomic(folder / "result.json", result)
+    for name in core.PAIR_OUTPUTS:
         (folder / name).write_bytes(b"x")
-    assert ab.read_result(tmp_path, pair, warn=True) == result and capsys.readouterr().err == ""
+    assert core.read_result(tmp_path, pair, warn=True) == result and capsys.readouterr().err == ""
     (folder / "guided.mp4").unlink()
-    assert ab.read_result(tmp_path, pair) is None and capsys.readouterr().err == ""  # the report reads quietly
-    assert ab.read_result(tmp_path, pair, warn=True) is None
+    assert core.read_result(tmp_path, pair) is None and capsys.readouterr().err == ""  # the report reads quietly
+    assert core.read_result(tmp_path, pair, warn=True) is None
     assert capsys.readouterr().err == f"warning: {folder / 'guided.mp4'} is missing; pair cat-s0 is redone\n"
     (folder / "guided.mp4").write_bytes(b"x")
     (folder / "result.json").write_bytes(b"\xff{")
-    assert ab.read_result(tmp_path, pair, warn=True) is None
+    assert core.read_result(tmp_path, pair, warn=True) is None
     assert capsys.readouterr().err == f"warning: {folder / 'result.json'} is damaged; pair cat-s0 is redone\n"
 
 
 def _whole_pair(folder: Path, frames: int = 3) -> dict:
     """A complete pair folder of real (tiny) videos and its result; the result."""
     video = torch.rand(frames, 3, 16, 16)
-    for arm in ab.ARMS:
+    for arm in core.ARMS:
         write_video(folder / f"{arm}.mp4", video, fps=8)
-        ab.write_json_atomic(folder / f"{arm}.json", {"num_frames": frames})
+        write_json_atomic(folder / f"{arm}.json", {"num_frames": frames})
     write_video(folder / "side_by_side.mp4", video, fps=8)
     result = _result(folder.name, 0.2, 0.1)
-    ab.write_json_atomic(folder / "result.json", result)
+    write_json_atomic(folder / "result.json", result)
     return result
 
 
 def test_resume_checks_the_fields_and_the_videos_of_a_pair(tmp_path: Path, capsys):
-    pair = ab.Pair(ab.Prompt("cat", "a cat"), 0)
-    folder = ab.pair_dir(tmp_path, pair)
+    pair = core.Pair(Prompt("cat", "a cat"), 0)
+    folder = core.pair_dir(tmp_path, pair)
     result = _whole_pair(folder)
-    assert ab.read_result(tmp_path, pair, warn=True, verify=True) == result and capsys.readouterr().err == ""
+    assert core.read_result(tmp_path, pair, warn=True, verify=True) == result and capsys.readouterr().err == ""
 
     guided = (folder / "guided.mp4").read_bytes()
     (folder / "guided.mp4").write_bytes(guided[: len(guided) // 2])  # a copy cut short
-    assert ab.read_result(tmp_path, pair, warn=True) == result  # without verify: only that it is there
-    assert ab.read_result(tmp_path, pair, warn=True, verify=True) is None
+    assert core.read_result(tmp_path, pair, warn=True) == result  # without verify: only that it is there
+    assert core.read_result(tmp_path, pair, warn=True, verify=True) is None
     err = capsys.readouterr().err
     assert err.startswith(f"warning: cannot read video {str(folder / 'guided.mp4')!r}") and err.count("\n") == 1
     assert err.endswith("; pair cat-s0 is redone\n")
 
     write_video(folder / "guided.mp4", torch.rand(2, 3, 16, 16), fps=8)
-    assert ab.read_result(tmp_path, pair, warn=True, verify=True) is None
+    assert core.read_result(tmp_path, pair, warn=True, verify=True) is None
     assert f"{folder / 'guided.mp4'} holds 2 frame(s), not 3" in capsys.readouterr().err
 
     _whole_pair(folder)
     del result["arms"]["guided"]["fused"]
-    ab.write_json_atomic(folder / "result.json", result)
-    assert ab.read_result(tmp_path, pair, warn=True, verify=True) is None
+    write_json_atomic(folder / "result.json", result)
+    assert core.read_result(tmp_path, pair, warn=True, verify=True) is None
     assert f"{folder / 'result.json'} lacks 'arms.guided.fused'" in capsys.readouterr().err
     del result["arms"]
-    ab.write_json_atomic(folder / "result.json", result)
-    assert ab.read_result(tmp_path, pair, warn=True) is None
+    write_json_atomic(folder / "result.json", result)
+    assert core.read_result(tmp_path, pair, warn=True) is None
     assert "lacks 'arms'" in capsys.readouterr().err
 
     result = _whole_pair(folder)
     result["arms"]["guided"]["fused"] = None  # a score that was not finite, written as null
-    ab.write_json_atomic(folder / "result.json", result)
-    assert np.isnan(ab.read_result(tmp_path, pair, verify=True)["arms"]["guided"]["fused"])
+    write_json_atomic(folder / "result.json", result)
+    assert np.isnan(core.read_result(tmp_path, pair, verify=True)["arms"]["guided"]["fused"])
 
 
 def test_shards_cover_every_pair_once():
-    pairs = ab.plan_pairs([ab.Prompt(f"p{i}", f"p{i}") for i in range(3)], [0, 1])
-    shards = [ab.shard(pairs, rank, 4) for rank in range(4)]
+    pairs = core.plan_pairs([Prompt(f"p{i}", f"p{i}") for i in range(3)], [0, 1])
+    shards = [shard(pairs, rank, 4) for rank in range(4)]
     assert sorted(p.name for s in shards for p in s) == sorted(p.name for p in pairs)
 
 
@@ -407,12 +410,12 @@ def test_bad_inputs_are_one_line(prompts, seeds, extra, message, tmp_path, capsy
 def test_reusing_an_output_folder_for_other_work_is_refused(tmp_path, capsys, no_models):
     out = tmp_path / "out"
     argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out), "--preset", "tiny"]
-    ab.write_json_atomic(out / "pairs" / "a-cat-s0" / "result.json", {"prompt": "a black cat"})
+    write_json_atomic(out / "pairs" / "a-cat-s0" / "result.json", {"prompt": "a black cat"})
     assert ab.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert "was made for the prompt 'a black cat', not 'a cat'" in err and "\n" not in err
 
-    ab.write_json_atomic(out / "run.json", {"config_sha": "0123456789abcdef"})
+    write_json_atomic(out / "run.json", {"config_sha": "0123456789abcdef"})
     assert ab.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert "holds results of another config" in err and "\n" not in err
@@ -438,15 +441,15 @@ def test_outputs_of_another_run_in_a_pair_folder_are_refused_unless_overwrite(tm
     out = tmp_path / "out"
     argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out), "--preset", "tiny"]
     cfg = load_config(preset="tiny")
-    pair = ab.Pair(ab.Prompt("a-cat", "a cat"), 0)
-    sidecar = {"prompt": "a cat", "config": ab.config_to_dict(ab.arm_config(cfg, pair, "guided"))}
-    ab.write_json_atomic(ab.pair_dir(out, pair) / "guided.json", sidecar)  # this run's, unfinished: redone
+    pair = core.Pair(Prompt("a-cat", "a cat"), 0)
+    sidecar = {"prompt": "a cat", "config": config_to_dict(core.arm_config(cfg, pair, "guided"))}
+    write_json_atomic(core.pair_dir(out, pair) / "guided.json", sidecar)  # this run's, unfinished: redone
     assert ab.validate_inputs(ab.build_parser().parse_args(argv)).pairs == [pair]
     sidecar["config"]["guidance"]["eta"] = 123.0
-    ab.write_json_atomic(ab.pair_dir(out, pair) / "guided.json", sidecar)
+    write_json_atomic(core.pair_dir(out, pair) / "guided.json", sidecar)
     assert ab.main(argv) == 2
     err = capsys.readouterr().err.strip()
-    assert err == (f"error: {ab.pair_dir(out, pair) / 'guided.json'} was made by another run (its prompt or config "
+    assert err == (f"error: {core.pair_dir(out, pair) / 'guided.json'} was made by another run (its prompt or config "
                    "differ); pass --overwrite to replace it, or use a new --out folder")
     assert ab.validate_inputs(ab.build_parser().parse_args([*argv, "--overwrite"])).pairs == [pair]
 
@@ -527,9 +530,9 @@ def test_cuda_without_cuda_is_one_line(tmp_path, capsys, no_models):
 
 
 def test_the_geco_eval_suite_as_prompts(tmp_path, capsys, no_models):
-    prompts = ab.read_prompts("geco-eval:indoor:fast")
+    prompts = read_prompts("geco-eval:indoor:fast")
     assert [p.id for p in prompts] == [f"b{k}" for k in range(11, 21)] and prompts[0].text.startswith(("A", "T", "I"))
-    assert len(ab.read_prompts("geco-eval")) == 80
+    assert len(read_prompts("geco-eval")) == 80
     assert ab.main(["--prompts", "geco-eval:underwater", "--seeds", "0", "--out", str(tmp_path / "o"),
                     "--preset", "tiny"]) == 2
     err = capsys.readouterr().err
@@ -541,7 +544,7 @@ def test_a_run_guided_by_the_tiny_decoder_measures_it_against_the_vae(tmp_path: 
     argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out),
             *FAST, "guidance.decoder=tiny"]
     assert ab.main(argv) == 0
-    measured = json.loads((out / ab.AGREEMENT_FILE).read_text())
+    measured = json.loads((out / core.AGREEMENT_FILE).read_text())
     assert measured["pair"] == "a-cat-s0" and measured["summary"]["updates"] == len(measured["updates"]) > 0
     assert -1 <= measured["summary"]["cosine_min"] <= measured["summary"]["cosine_median"] <= 1
     summary = json.loads((out / "summary.json").read_text())
@@ -555,26 +558,26 @@ def test_a_resumed_run_measures_the_agreement_that_an_interrupted_run_did_not(tm
     argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out),
             *FAST, "guidance.decoder=tiny"]
     assert ab.main(argv) == 0
-    first = json.loads((out / ab.AGREEMENT_FILE).read_text())
-    (out / ab.AGREEMENT_FILE).unlink()  # what a run killed while measuring it leaves: every pair complete
+    first = json.loads((out / core.AGREEMENT_FILE).read_text())
+    (out / core.AGREEMENT_FILE).unlink()  # what a run killed while measuring it leaves: every pair complete
     capsys.readouterr()
     assert ab.main(argv) == 0
     captured = capsys.readouterr()
     assert "1 of 1 pair" in captured.out and "already complete" in captured.out  # no pair is redone
     assert "measuring the tiny decoder against the VAE on a-cat-s0" in captured.err
-    assert json.loads((out / ab.AGREEMENT_FILE).read_text())["summary"] == first["summary"]
+    assert json.loads((out / core.AGREEMENT_FILE).read_text())["summary"] == first["summary"]
     assert "**Tiny decoder vs VAE**" in (out / "report.md").read_text()
-    (out / ab.AGREEMENT_FILE).write_text('{"pair": "a-cat-s0"')  # cut short
+    (out / core.AGREEMENT_FILE).write_text('{"pair": "a-cat-s0"')  # cut short
     assert ab.main(argv) == 0
-    assert f"warning: {out / ab.AGREEMENT_FILE} is damaged; it is measured again" in capsys.readouterr().err
-    assert json.loads((out / ab.AGREEMENT_FILE).read_text())["summary"] == first["summary"]
+    assert f"warning: {out / core.AGREEMENT_FILE} is damaged; it is measured again" in capsys.readouterr().err
+    assert json.loads((out / core.AGREEMENT_FILE).read_text())["summary"] == first["summary"]
     assert ab.main(argv) == 0  # nothing missing: nothing loads, nothing is measured
     captured = capsys.readouterr()
     assert "measuring" not in captured.err and "loading models" not in captured.err
 
 
 @pytest.mark.parametrize("overrides, message", [
-    (["guidance.memory_plan=auto", "guidance.memory_budget_gb=0.001"], "no memory plan fits 0.0 GiB"),
+    (["run.memory_plan=auto", "run.memory_budget_gb=0.001"], "no memory plan fits 0.0 GiB"),
     (["guidance.repeats=1,1,1"], "repeats"),  # 3 per-step values for 4 steps
     (["guidance.decoder=tiny", "estimators.tiny_decoder=null"], "guidance.decoder=tiny needs the tiny decoder's weights"),
 ])
@@ -584,6 +587,188 @@ def test_what_generate_checks_before_loading_is_checked_before_the_run_starts(tm
     argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out), "--preset",
             "tiny", *overrides]
     assert ab.main(argv) == 2
+    # a renamed key's deprecation may precede it: the error itself is one line
+    (err,) = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("warning: ")]
+    assert err.startswith("error: ") and message in err, err
+    assert not out.exists()  # no run.json pinned, no video written
+
+
+# ----------------------------------------------------------------------------------------------
+# the best-of arm: selection among unguided seeds
+
+
+@pytest.fixture(scope="module")
+def best_of_2(reference: Path, prompts_file: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """The reference folder rerun with ``--best-of 2``: the arm added to its complete pairs; the
+    folder and the run's stderr."""
+    out = tmp_path_factory.mktemp("ab") / "best-of-2"
+    shutil.copytree(reference, out)
+    proc = subprocess.run([*_command(prompts_file, out), "--best-of", "2"], env=_env(), capture_output=True, text=True,
+                          check=False, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "best-of-2: N = 2, given (--best-of)" in proc.stdout
+    assert "0 of 2 pairs already complete" in proc.stdout
+    assert "adding the best-of-2 arm to 2 complete pair(s) that lack it" in proc.stdout
+    last = proc.stdout.strip().splitlines()[-1]
+    assert "fused guided - unguided = " in last and "; best-of-2 - unguided = " in last
+    return out, proc.stderr
+
+
+def test_the_best_of_arm_keeps_the_candidate_of_least_fused_score(best_of_2, reference: Path):
+    out, stderr = best_of_2
+    assert "[1/2] a-marble-bust-s0: best-of-2 arm, candidate 2/2 (seed 1) ..." in stderr
+    assert "unguided arm ..." not in stderr  # the complete pairs' arms are not made again
+    _assert_same_scores([r for r in _rows(out) if r["arm"] != "best_of"], _rows(reference))
+    for name in PAIRS:
+        folder = out / "pairs" / name
+        result = json.loads((folder / "result.json").read_text())
+        arm = result["arms"]["best_of"]
+        chosen = arm["best_of"]
+        candidates = chosen["candidates"]
+        assert [c["seed"] for c in candidates] == [0, 1] and chosen["n"] == 2
+        assert candidates[0]["fused"] == result["arms"]["unguided"]["fused"]  # the first is the unguided arm
+        scores = json.loads((folder / "candidates" / "seed1.scores.json").read_text())
+        assert candidates[1]["fused"] == scores["fused"]
+        assert chosen["kept_seed"] == min(candidates, key=lambda c: c["fused"])["seed"]
+        kept = next(c for c in candidates if c["seed"] == chosen["kept_seed"])
+        assert arm["fused"] == kept["fused"]
+        assert (folder / "best_of.mp4").read_bytes() == (folder / kept["video"]).read_bytes()
+        assert json.loads((folder / "best_of.json").read_text())["best_of"]["kept_seed"] == chosen["kept_seed"]
+        # the arm's cost is every candidate's sampling
+        assert arm["generation_s"] == pytest.approx(result["arms"]["unguided"]["generation_s"] + scores["generation_s"])
+        both, _ = read_video(folder / "side_by_side.mp4")
+        one, _ = read_video(folder / "unguided.mp4")
+        assert both.shape[-1] >= 3 * one.shape[-1]  # three panels
+    rows = _rows(out)
+    assert sorted({r["arm"] for r in rows}) == ["best_of", "guided", "unguided"] and len(rows) == 6
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["best_of"]["n"] == 2 and summary["best_of"]["chosen"] == "given"
+    assert summary["best_of"]["vs_unguided"]["paired_differences"]["fused"]["ci95"] is None  # 2 pairs: too few
+    assert summary["best_of"]["guided_vs_best_of"]["lowered_fused"]["n"] == 2
+    report = (out / "report.md").read_text()
+    for text in ("unguided vs guided vs best-of-2", "| best-of-2 - unguided |", "| guided - best-of-2 |",
+                 "N = 2, given (--best-of)", "kept seed (best-of-2)", "none from 2 pairs (an interval needs 10)"):
+        assert text in report, text
+    assert not _temporaries(out)
+
+
+def test_a_killed_best_of_run_resumes_with_the_candidates_it_made(best_of_2, prompts_file: Path, tmp_path: Path):
+    """Killed after a candidate was scored: the rerun makes only the missing candidates and arms,
+    and every output of the run is there."""
+    done, _ = best_of_2
+    out = tmp_path / "killed"
+    shutil.copytree(done, out)
+    scored = out / "pairs" / PAIRS[0] / "candidates" / "seed2.scores.json"
+    proc = subprocess.Popen([*_command(prompts_file, out), "--best-of", "3"], env=_env(), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 240
+    while not scored.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert scored.exists(), proc.stderr.read().decode()
+    assert "best_of" in json.loads((out / "pairs" / PAIRS[1] / "result.json").read_text())["arms"]  # still best-of-2
+    made = {path: path.read_bytes() for path in (out / "pairs").rglob("seed*.mp4")}
+
+    rerun = subprocess.run([*_command(prompts_file, out), "--best-of", "3"], env=_env(), capture_output=True, text=True,
+                           check=False, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    assert "candidate 3/3 (seed 2)" in rerun.stderr and "candidate 2/3" not in rerun.stderr
+    assert f"{PAIRS[0]}: best-of-3 arm, candidate 3/3" not in rerun.stderr  # its candidates were all made
+    assert all(path.read_bytes() == data for path, data in made.items())  # kept, not made again
+    for name in PAIRS:
+        folder = out / "pairs" / name
+        chosen = json.loads((folder / "result.json").read_text())["arms"]["best_of"]["best_of"]
+        assert [c["seed"] for c in chosen["candidates"]] == [0, 1, 2]
+        assert chosen["kept_seed"] == min(chosen["candidates"], key=lambda c: c["fused"])["seed"]
+        assert {p.name for p in folder.iterdir()} >= {"best_of.mp4", "best_of.json", "side_by_side.mp4", "result.json"}
+    assert len(_rows(out)) == 6 and json.loads((out / "summary.json").read_text())["best_of"]["n"] == 3
+    assert (out / "report.md").is_file() and (out / "pareto.png").is_file() and not _temporaries(out)
+
+
+def test_matched_best_of_takes_n_from_the_cost_model_on_the_named_card():
+    """N = round of the guided / unguided time ratio of ``scripts/benchmark.py cost --gpu``'s model:
+    the card's memory plan, the run's size, steps and schedule."""
+    from geco_guide.perf.cost import cost_report, cost_settings
+    from geco_guide.perf.plans import card_plan
+
+    cfg = load_config(preset="tiny", overrides=FAST[2:])
+    chosen = ab.choose_best_of("matched", "L40S", cfg, [0, 1])
+    s = cfg.sampling
+    plan = card_plan("L40S", "faithful", "vae", s.num_frames, s.height, s.width)["plan"]
+    settings = cost_settings(preset="tiny", steps=2, frames=9, height=s.height, width=s.width, dtype=None, plan=plan)
+    settings.update(repeats="1x2", time_travel=None)
+    ratio = cost_report(settings, "faithful")["roofline"]["ratio_guided_over_unguided"]["L40S"]
+    assert chosen == core.BestOf(max(2, round(ratio)), "L40S", pytest.approx(ratio))
+    assert "matched: round(" in chosen.how and "on the L40S" in chosen.how
+
+
+def test_the_candidate_kept_is_the_least_finite_score_the_earlier_on_ties():
+    from geco_guide.cli.generate import best_candidate
+
+    assert best_candidate([float("nan"), 0.3, 0.2, 0.2]) == 2
+    assert best_candidate([float("nan"), float("nan")]) == 0
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--best-of", "1"], "--best-of takes an integer >= 2 or 'matched', got 1"),
+    (["--best-of", "two"], "--best-of takes an integer >= 2 or 'matched', got 'two'"),
+    (["--best-of", "matched", "--gpu", "V100"], "--gpu must be one of H200, H100"),
+    (["--gpu", "H200"], "pass --best-of matched too"),
+    (["--best-of", "3", "--gpu", "H200"], "an integer --best-of N needs no card"),
+    (["--best-of", "3", "--seeds", "0", str(2**63 - 2)], "--best-of 3 from seed 9223372036854775806 runs past"),
+])
+def test_bad_best_of_values_are_one_line_before_any_work(extra, message, tmp_path, capsys, no_models):
+    out = tmp_path / "out"
+    argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--out", str(out), "--preset", "tiny",
+            "--seeds", "0", *extra]
+    assert ab.main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1 and message in err, err
-    assert not out.exists()  # no run.json pinned, no video written
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("name, card", [("NVIDIA H200", "H200"), ("NVIDIA L40S", "L40S"), ("NVIDIA L4", "L4"),
+                                        ("NVIDIA GeForce RTX 4090", "RTX4090"), ("NVIDIA RTX A6000", "A6000"),
+                                        ("NVIDIA H100 80GB HBM3", "H100"), ("Tesla V100-SXM2-16GB", None)])
+def test_the_local_gpu_names_the_card_matched_predicts_for(name, card, monkeypatch):
+    monkeypatch.setattr(ab, "resolve_device", lambda device: torch.device("cuda", 0))
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: name)
+    assert ab.local_card(load_config(preset="tiny")) == card
+
+
+def test_matched_for_a_model_the_cost_model_does_not_know_is_refused():
+    cfg = load_config(preset="tiny", overrides=["model.id=my/model"])
+    with pytest.raises(core.InputError, match="not model.id 'my/model'; pass an integer --best-of N"):
+        ab.choose_best_of("matched", "H200", cfg, [0])
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_matched_on_a_cpu_asks_for_a_card(tmp_path, capsys, no_models):
+    argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--out", str(tmp_path / "out"), "--preset", "tiny",
+            "--best-of", "matched", "--seeds", "0"]
+    assert ab.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the device here (cpu) is none: pass --gpu NAME or an integer --best-of N" in err
+
+
+def test_a_three_arm_report_from_hand_made_results():
+    cfg = load_config(preset="tiny")
+    best_of = core.BestOf(7, "H200", 6.55)
+    results = []
+    for i in range(MIN_INTERVAL_N):
+        result = _result(f"p{i}-s0", 0.2, 0.1 + 0.001 * i)
+        result["arms"]["best_of"] = {**result["arms"]["unguided"], "fused": 0.15, "best_of": {"kept_seed": 3}}
+        results.append(result)
+    pairs = core.plan_pairs([Prompt(f"p{i}", f"p{i}") for i in range(len(results))], [0])
+    summary = core.summarize(results, pairs, cfg, {}, best_of)
+    assert summary["best_of"]["chosen"] == "matched" and summary["best_of"]["predicted_ratio"] == 6.55
+    assert summary["best_of"]["vs_unguided"]["paired_differences"]["fused"]["mean_diff"] == pytest.approx(-0.05)
+    assert summary["best_of"]["vs_unguided"]["lowered_fused"]["count"] == len(results)
+    low, high = summary["best_of"]["guided_vs_best_of"]["paired_differences"]["fused"]["ci95"]
+    assert low <= high < 0
+    report = ab_report.report_markdown(summary, results, "", "cmd")
+    assert "N = 7, matched: round(6.55), the guided / unguided sampling time ratio the cost model predicts" in report
+    assert "on the H200 (predicted, not measured); measured here:" in report
+    assert ab_report.plot_png(results, best_of).startswith(b"\x89PNG")
+    assert "best_of" in ab_report.csv_text(results, core.run_arms(best_of))

@@ -10,6 +10,7 @@ import pytest
 from geco_guide.config import GeCoConfig, config_to_dict, load_config, to_config
 from geco_guide.loss.geco import GeCoLossConfig
 from geco_guide.sampler.config import GuidanceConfig
+from geco_guide.sampler.run_options import RunOptions
 
 
 def test_schema_defaults_are_the_paper():
@@ -172,11 +173,9 @@ def test_config_path_that_is_a_folder_is_called_a_folder(tmp_path: Path):
     ({"anchors": [4, True]}, "anchors must hold integers only"),
     ({"eta": "3"}, "eta must be a number, got '3'"),
     ({"grad_eps": None}, "grad_eps must be a number, got None"),
-    ({"memory_budget_gb": "8"}, "memory_budget_gb must be a number of GiB (or null: the device's memory), got '8'"),
     ({"chunk_latents": 2.5}, "chunk_latents must be an integer, got 2.5"),
     ({"time_travel": [15.5, 20]}, "time_travel must hold integers only, e.g. [15, 20], got 15.5"),
     ({"enabled": "false"}, "enabled must be true or false, got 'false'"),
-    ({"vae_block_checkpointing": 1}, "vae_block_checkpointing must be true, false or null, got 1"),
 ])
 def test_guidance_options_of_the_wrong_type_are_one_line_naming_the_key(changes, message):
     """A float anchor would be truncated to another frame; a string step size would fail deep in a call."""
@@ -190,11 +189,29 @@ def test_guidance_options_of_the_wrong_type_are_one_line_naming_the_key(changes,
         attach_geco_guidance(tiny_wan_pipeline(0), changes, geometry=geometry, flow=flow)
 
 
+@pytest.mark.parametrize("changes, message", [
+    ({"memory_budget_gb": "8"}, "memory_budget_gb must be a number of GiB (or null: the device's memory), got '8'"),
+    ({"vae_block_checkpointing": 1}, "vae_block_checkpointing must be true, false or null, got 1"),
+    ({"compile": "yes"}, "compile must be true or false, got 'yes'"),
+    ({"memory_plan": "smallest"}, "memory_plan must be one of auto, explicit, fastest"),
+])
+def test_run_options_of_the_wrong_type_are_one_line_naming_the_key(changes, message):
+    from geco_guide.sampler.hooks import attach_geco_guidance
+    from geco_guide.tiny import tiny_estimators, tiny_wan_pipeline
+
+    with pytest.raises(ValueError, match=re.escape(message)):
+        RunOptions(**changes)
+    geometry, flow = tiny_estimators(0)
+    with pytest.raises(ValueError, match=f"^run: {re.escape(message)}"):  # the hook's dict, before any call
+        attach_geco_guidance(tiny_wan_pipeline(0), run_options=changes, geometry=geometry, flow=flow)
+
+
 def test_numbers_of_other_numeric_types_are_taken_as_they_are():
     import numpy as np
 
-    config = GuidanceConfig(anchors=[np.int64(4), 8], eta=2, memory_budget_gb=np.float32(8.0), time_travel=(1, 2))
+    config = GuidanceConfig(anchors=[np.int64(4), 8], eta=2, time_travel=(1, 2))
     assert config.anchors == [4, 8] and config.eta == 2 and config.time_travel == (1, 2)
+    assert RunOptions(memory_budget_gb=np.float32(8.0)).memory_budget_gb == 8.0
     assert load_config(preset="tiny", overrides=["guidance.eta=2"]).guidance.eta == 2.0
 
 

@@ -1,4 +1,4 @@
-"""One guided call over several devices (``guidance.devices``): the anchor chunks dealt round-robin,
+"""One guided call over several devices (``run.devices``): the anchor chunks dealt round-robin,
 each device with its own replica of the decoder; the same frames as one device, bitwise on CPU."""
 
 from __future__ import annotations
@@ -10,8 +10,10 @@ import torch
 
 from geco_guide.sampler.config import GuidanceConfig
 from geco_guide.sampler.devices import decoder_replicas, resolve_devices
+from geco_guide.sampler.run_options import RunOptions
 from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across
-from geco_guide.tiny import TINY_CALL_KWARGS, tiny_call_kwargs, tiny_estimators, tiny_guidance_config, tiny_pipeline
+from geco_guide.tiny import TINY_CALL_KWARGS, tiny_call_kwargs, tiny_estimators, tiny_guidance_config, tiny_pipeline, \
+    tiny_run_options
 
 
 def test_chunks_are_dealt_round_robin_and_only_anchor_frames_come_back():
@@ -44,19 +46,19 @@ def test_each_extra_device_gets_a_replica_of_its_own():
     assert all(torch.equal(r.weight, module.weight) for r in replicas)
 
 
-def _pipe_frames(config):
+def _pipe_frames(config, run):
     pipe = tiny_pipeline(seed=0)
     out = pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="pt", guidance=config,
-               **TINY_CALL_KWARGS)
+               run_options=run, **TINY_CALL_KWARGS)
     return out.frames, out.guidance_log, pipe
 
 
 @pytest.mark.parametrize("denoiser_grad", [False, True], ids=["fast", "faithful"])
 def test_two_devices_give_the_frames_of_one_in_the_pipeline(denoiser_grad):
-    base = replace(tiny_guidance_config(), denoiser_grad=denoiser_grad, memory_plan="chunked")
-    one, log_one, _ = _pipe_frames(base)
-    listed, _, _ = _pipe_frames(replace(base, devices=["cpu"]))
-    two, log_two, pipe = _pipe_frames(replace(base, devices=["cpu", "cpu"]))
+    config, run = replace(tiny_guidance_config(), denoiser_grad=denoiser_grad), tiny_run_options(memory_plan="chunked")
+    one, log_one, _ = _pipe_frames(config, run)
+    listed, _, _ = _pipe_frames(config, replace(run, devices=["cpu"]))
+    two, log_two, pipe = _pipe_frames(config, replace(run, devices=["cpu", "cpu"]))
     assert torch.equal(one, two) and torch.equal(one, listed)
     assert [r["loss"] for r in log_one] == [r["loss"] for r in log_two]
     assert pipe.geco_devices == ["cpu", "cpu"]
@@ -67,12 +69,12 @@ def test_two_devices_give_the_frames_of_one_through_a_hook():
     from geco_guide.tiny import tiny_wan_pipeline
 
     geometry, flow = tiny_estimators(0)
-    config = GuidanceConfig(anchors=[4, 8], repeats="0x3,2x1", time_travel=[], eta=1.0, memory_plan="chunked")
+    config = GuidanceConfig(anchors=[4, 8], repeats="0x3,2x1", time_travel=[], eta=1.0)
     videos = []
     for devices in (None, ["cpu", "cpu"]):
         pipe = tiny_wan_pipeline(0)
-        with attach_geco_guidance(pipe, replace(config, devices=devices), geometry_estimator=geometry,
-                                  flow_estimator=flow) as handle:
+        with attach_geco_guidance(pipe, config, run_options=RunOptions(memory_plan="chunked", devices=devices),
+                                  geometry_estimator=geometry, flow_estimator=flow) as handle:
             videos.append(pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="pt",
                                **tiny_call_kwargs(pipe, num_frames=9)).frames)
             assert handle.devices == (None if devices is None else ["cpu", "cpu"]) and handle.log
@@ -80,7 +82,7 @@ def test_two_devices_give_the_frames_of_one_through_a_hook():
 
 
 @pytest.mark.parametrize("devices, message", [
-    (["tpu"], "invalid device 'tpu' (guidance.devices)"),
+    (["tpu"], "invalid device 'tpu' (run.devices)"),
     (["cpu", "cuda:7"], "device 'cuda:7' is not available"),
 ])
 def test_a_device_this_machine_lacks_is_one_line(devices, message):
@@ -94,7 +96,7 @@ def test_a_device_this_machine_lacks_is_one_line(devices, message):
 @pytest.mark.parametrize("devices", ["cuda:0", [], [""], [3]])
 def test_devices_must_be_a_list_of_names(devices):
     with pytest.raises(ValueError, match="devices must be null or a list of devices"):
-        GuidanceConfig(devices=devices)
+        RunOptions(devices=devices)
 
 
 def test_generate_refuses_unknown_devices_before_loading(tmp_path, capsys, monkeypatch):
@@ -104,7 +106,7 @@ def test_generate_refuses_unknown_devices_before_loading(tmp_path, capsys, monke
     assert generate_cli.main(["--preset", "tiny", "--prompt", "a cat", "--out", str(tmp_path / "o"),
                               "--devices", "cpu", "cuda:7"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: device 'cuda:7' is not available") and "guidance.devices" in err
+    assert err.startswith("error: device 'cuda:7' is not available") and "run.devices" in err
     assert not (tmp_path / "o").exists()
 
 
@@ -113,5 +115,30 @@ def test_devices_do_not_change_the_video_name():
     from geco_guide.config import load_config
 
     plain = load_config(preset="tiny")
-    spread = load_config(preset="tiny", overrides=["guidance.devices=[cpu,cpu]"])
-    assert spread.guidance.devices == ["cpu", "cpu"] and default_name(plain, "a") == default_name(spread, "a")
+    spread = load_config(preset="tiny", overrides=["run.devices=[cpu,cpu]"])
+    assert spread.run.devices == ["cpu", "cpu"] and default_name(plain, "a") == default_name(spread, "a")
+
+
+def test_one_plan_fits_the_smallest_of_the_devices(monkeypatch):
+    from geco_guide.sampler import memory_plan
+
+    memory = {"cuda:0": 80.0, "cuda:1": 24.0, "cuda:2": None}
+    monkeypatch.setattr(memory_plan, "device_memory_gb", lambda device: memory[str(device)])
+    assert memory_plan.planning_memory_gb("cuda:0") == 80.0
+    assert memory_plan.planning_memory_gb("cuda:0", ["cuda:1", "cuda:2"]) == 24.0  # an unknown one adds nothing
+    assert memory_plan.planning_memory_gb("cuda:2") is None
+
+
+def test_the_pipeline_plans_for_the_devices_it_deals_the_decode_over(monkeypatch):
+    from geco_guide.sampler import pipeline_cogvideox
+
+    seen = []
+
+    def planning(home, devices=None):
+        seen.append((str(home), [str(d) for d in devices] if devices else None))
+        return 1000.0
+
+    monkeypatch.setattr(pipeline_cogvideox, "planning_memory_gb", planning)
+    _pipe_frames(tiny_guidance_config(repeats="0x3,1x1", time_travel=[]),
+                 tiny_run_options(memory_plan="auto", devices=["cpu", "cpu"]))
+    assert seen == [("cpu", ["cpu", "cpu"])]

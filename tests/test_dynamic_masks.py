@@ -41,9 +41,11 @@ def _score(clip, masks=None, mode="adjacent", **kwargs):
                               GeCoLossConfig(pairs=mode, **kwargs), dynamic_masks=masks)
 
 
-# --- None is the paper's metric, bit for bit ---------------------------------------------------
+# --- None is the paper's metric -----------------------------------------------------------------
 
-# Computed by the code before dynamic masks existed, on the same input (float64, exact hex).
+# Computed by the code before dynamic masks existed, on the same input (float64, exact hex). A CPU
+# of another vector width sums in another order, so the last bits may differ from machine to
+# machine: the check allows a few units in the last place, far below any change of the metric.
 BEFORE_MASKS = {
     "adjacent": (["0x1.d54d70e3bd7fcp-9", "0x1.35b2986de279fp-13", "0x1.e8a202d11bf21p-9"],
                  ["0x1.d36d19e114f88p-9", "0x1.22728225ee069p-8", "0x1.a193ea4662d0bp-9", "0x0.0p+0"]),
@@ -53,7 +55,7 @@ BEFORE_MASKS = {
 
 
 @pytest.mark.parametrize("mode", ["adjacent", "all"])
-def test_no_masks_keep_the_numbers_of_before_bit_for_bit(mode):
+def test_no_masks_keep_the_numbers_of_before(mode):
     clip = inject_deformation(rigid_clip(4, 24, 32), amplitude=2.0, seed=1)
     pairs = frame_pairs(4, mode)
     geometry = clip.geometry(torch.float64)
@@ -61,8 +63,10 @@ def test_no_masks_keep_the_numbers_of_before_bit_for_bit(mode):
     result = geco_from_geometry(geometry, clip.pair_correspondences(pairs, torch.float64), pairs, GeCoLossConfig(pairs=mode),
                                 dynamic_masks=None)
     scalars, frames = BEFORE_MASKS[mode]
-    assert [float(getattr(result, n)).hex() for n in ("motion", "structure", "fused")] == scalars
-    assert [x.hex() for x in result.frame_scores["fused"][0].tolist()] == frames
+    before = [float.fromhex(x) for x in scalars]
+    assert [float(getattr(result, n)) for n in ("motion", "structure", "fused")] == pytest.approx(before, rel=1e-14)
+    before_frames = [float.fromhex(x) for x in frames]
+    assert result.frame_scores["fused"][0].tolist() == pytest.approx(before_frames, rel=1e-14, abs=0)
     assert result.dynamic_masks is None and result.masked_fraction is None and result.mask_source is None
 
 

@@ -12,19 +12,15 @@ from pathlib import Path
 import pytest
 
 from geco_guide.bench.geco_eval import CAMERAS, SCENARIOS, csv_text, load_prompts, select_prompts
+from geco_guide.cli import ab
 from geco_guide.cli.geco_eval import main
 from geco_guide.estimators.segmenters import subjects_of
-
-from script_modules import load_script
 
 REPO = Path(__file__).resolve().parents[1]
 #: Grounding DINO + SAM 2 tiny random models: their masks cover part of a frame (SAM 3's tiny
 #: detector keeps every query and masks nearly all of it).
 SEGMENTER = "estimators.segmenter=tiny-random-grounding-sam2"
 CAMERA_WORDS = re.compile(r"\b(camera|orbit|pan|dolly|tracks?|tracking|drone|crane|arc|push-in|shot)\b", re.I)
-
-
-ab = load_script("ab_compare.py")
 
 
 def test_the_dynamic_suite_covers_the_scenarios_and_speeds_with_named_subjects():

@@ -1,5 +1,5 @@
 """The faster guidance decode (geco_guide/sampler/fast_decode.py): the channels-last-3d layout of the
-CogVideoX VAE decoder and ``guidance.compile``, against the stock eager decode, on the tiny models."""
+CogVideoX VAE decoder and ``run.compile``, against the stock eager decode, on the tiny models."""
 
 from __future__ import annotations
 
@@ -8,16 +8,19 @@ from functools import partial
 
 import pytest
 import torch
+from counting import CountingHook
+from diffusers.hooks import HookRegistry
 from torch import nn
 
 from geco_guide.sampler import fast_decode
-from geco_guide.sampler.config import GuidanceConfig, resolve_guidance_config
+from geco_guide.sampler.devices import decoder_replicas
 from geco_guide.sampler.fast_decode import (
     CompileFallbackWarning,
     causal_time_pad,
     channels_last_group_norm,
     guidance_decode,
 )
+from geco_guide.sampler.run_options import RunOptions, check_run_for_guidance, resolve_run_options
 from geco_guide.sampler.slicing import decode_anchor_frames, decode_chunk
 from geco_guide.tiny import (
     TINY_CALL_KWARGS,
@@ -30,7 +33,7 @@ from geco_guide.tiny import (
 )
 
 CL3D = torch.channels_last_3d
-CHANNELS_LAST = GuidanceConfig(decode_layout="channels_last")
+CHANNELS_LAST = RunOptions(decode_layout="channels_last")
 # float32 accumulates other kernels' rounding over ~30 layers: frames in [0, 1] agree to a few 1e-6
 TOLERANCE = {torch.float32: 2e-5, torch.float64: 1e-10}
 
@@ -79,7 +82,7 @@ def fresh_compile_cache(monkeypatch):
 def test_channels_last_decode_gives_the_stock_frames_and_gradients(dtype, checkpoint_chunks):
     vae, latents = frozen_vae(dtype), latents_of(dtype)
     frames, grad = anchor_decode(vae, latents, checkpoint_chunks)
-    with guidance_decode(CHANNELS_LAST, vae):
+    with guidance_decode(CHANNELS_LAST, "vae", vae):
         fast_frames, fast_grad = anchor_decode(vae, latents, checkpoint_chunks)
     assert fast_frames.shape == frames.shape and fast_frames.stride() == frames.stride()
     assert_close(fast_frames, frames, dtype)
@@ -92,7 +95,7 @@ def test_every_convolution_sees_channels_last_inputs_for_a_batch_of_one():
     seen = []
     hooks = [m.register_forward_pre_hook(lambda m, args, name=name: seen.append((name, args[0].is_contiguous(memory_format=CL3D))))
              for name, m in vae.decoder.named_modules() if isinstance(m, nn.Conv3d) and m.kernel_size != (1, 1, 1)]
-    with guidance_decode(CHANNELS_LAST, vae):
+    with guidance_decode(CHANNELS_LAST, "vae", vae):
         anchor_decode(vae, latents_of(), checkpoint_chunks=True)  # one chunk per decode: batch 1
     for hook in hooks:
         hook.remove()
@@ -104,7 +107,7 @@ def test_the_vae_is_restored_on_exit_even_after_an_error(fresh_compile_cache):
     vae = frozen_vae()
     weights = {name: p.detach().clone() for name, p in vae.named_parameters()}
     before = instance_forwards(vae)
-    with pytest.raises(RuntimeError, match="inside"), guidance_decode(GuidanceConfig(decode_layout="channels_last", compile=True), vae):
+    with pytest.raises(RuntimeError, match="inside"), guidance_decode(RunOptions(decode_layout="channels_last", compile=True), "vae", vae):
         assert "forward" in vae.decoder.__dict__ and len(instance_forwards(vae)) > 10
         raise RuntimeError("inside")
     assert instance_forwards(vae) == before == []
@@ -115,14 +118,14 @@ def test_the_vae_is_restored_on_exit_even_after_an_error(fresh_compile_cache):
 def test_the_default_options_patch_nothing():
     vae = frozen_vae()
     pointers = [p.data_ptr() for p in vae.parameters()]
-    with guidance_decode(GuidanceConfig(), vae):
+    with guidance_decode(RunOptions(), "vae", vae):
         assert instance_forwards(vae) == []
         assert [p.data_ptr() for p in vae.parameters()] == pointers
 
 
 def test_channels_last_refuses_another_vae_in_one_line():
-    refused = r"^guidance.decode_layout=channels_last is written for the CogVideoX VAE .*not Linear"
-    with pytest.raises(TypeError, match=refused) as err, guidance_decode(CHANNELS_LAST, nn.Linear(2, 2)):
+    refused = r"^run.decode_layout=channels_last is written for the CogVideoX VAE .*not Linear"
+    with pytest.raises(TypeError, match=refused) as err, guidance_decode(CHANNELS_LAST, "vae", nn.Linear(2, 2)):
         pass
     assert "\n" not in str(err.value)
 
@@ -131,15 +134,45 @@ def test_channels_last_refuses_a_decoder_with_hooked_forwards():
     vae = frozen_vae()
     norm = next(m for m in vae.decoder.modules() if isinstance(m, nn.GroupNorm))
     norm.forward = norm.forward  # as an offload hook installs it
-    hooked = r"already have their own forward \(1, e.g. .*norm_layer.*offload hook"
-    with pytest.raises(ValueError, match=hooked), guidance_decode(CHANNELS_LAST, vae):
+    hooked = r"1 of the modules whose forward it replaces .* own forward \(e.g. .*norm_layer.*offload hook"
+    with pytest.raises(ValueError, match=hooked), guidance_decode(CHANNELS_LAST, "vae", vae):
         pass
     assert all(p.is_contiguous() for p in vae.parameters())
 
 
+def test_channels_last_refuses_a_diffusers_hook_on_a_module_it_replaces_and_leaves_it_in_place():
+    vae = frozen_vae()
+    norm = next(m for m in vae.decoder.modules() if isinstance(m, nn.GroupNorm))
+    counting = CountingHook()
+    HookRegistry.check_if_exists_or_initialize(norm).register_hook(counting, "counting")
+    forward = norm.__dict__["forward"]
+    with pytest.raises(ValueError, match="already have their own forward"), guidance_decode(CHANNELS_LAST, "vae", vae):
+        pass
+    assert list(norm._diffusers_hook.hooks) == ["counting"] and norm.__dict__["forward"] is forward
+
+
+def test_channels_last_keeps_a_diffusers_hook_on_a_module_it_does_not_replace():
+    """A hook on one of the decoder's blocks (as diffusers' group offloading registers them) runs
+    in the laid-out decode, which gives the same frames and gradients as without it; the block's
+    registry is left as found."""
+    vae, latents = frozen_vae(), latents_of()
+    with guidance_decode(CHANNELS_LAST, "vae", vae):
+        expected = anchor_decode(vae, latents, checkpoint_chunks=False)
+    block = vae.decoder.up_blocks[0]
+    counting = CountingHook()
+    HookRegistry.check_if_exists_or_initialize(block).register_hook(counting, "counting")
+    forward = block.__dict__["forward"]
+    with guidance_decode(CHANNELS_LAST, "vae", vae):
+        frames, grad = anchor_decode(vae, latents, checkpoint_chunks=False)
+    assert counting.n == 2  # one decode per chunk length
+    assert torch.equal(frames, expected[0]) and torch.equal(grad, expected[1])
+    assert list(block._diffusers_hook.hooks) == ["counting"] and block.__dict__["forward"] is forward
+    assert instance_forwards(vae) == ["decoder.up_blocks.0"]
+
+
 def test_compile_refuses_a_vae_without_a_decoder_in_one_line(fresh_compile_cache):
-    refused = r"^guidance.compile compiles the VAE's decoder module, and Linear has none"
-    with pytest.raises(TypeError, match=refused), guidance_decode(GuidanceConfig(compile=True), nn.Linear(2, 2)):
+    refused = r"^run.compile compiles the VAE's decoder module, and Linear has none"
+    with pytest.raises(TypeError, match=refused), guidance_decode(RunOptions(compile=True), "vae", nn.Linear(2, 2)):
         pass
 
 
@@ -187,6 +220,25 @@ def test_causal_time_pad_is_the_stock_padding_in_channels_last(with_cache):
     assert padded.is_contiguous(memory_format=CL3D)
 
 
+@pytest.mark.parametrize("compile", [False, True])
+def test_a_replica_of_the_laid_out_vae_decodes_with_its_own_weights(monkeypatch, fresh_compile_cache, compile):
+    """The replicas of ``run.devices`` are deep copies made inside the region: their layout's
+    forwards must call the copy, not the module they were copied from."""
+    monkeypatch.setattr(torch, "compile", RecordingCompile())
+    vae, halved, latents = frozen_vae(), frozen_vae(), latents_of()[:, 1:4]
+    with torch.no_grad():
+        for p in halved.parameters():
+            p.mul_(0.5)
+        expected = decode_chunk(halved, latents, 0.7)
+        with guidance_decode(RunOptions(decode_layout="channels_last", compile=compile), "vae", vae):
+            _, replica = decoder_replicas(vae, [torch.device("cpu"), torch.device("cpu")])
+            for p in replica.parameters():
+                p.mul_(0.5)
+            frames = decode_chunk(replica, latents, 0.7)
+    assert_close(frames, expected, torch.float32)
+    assert instance_forwards(vae) == []
+
+
 def test_a_guided_run_decodes_its_final_video_with_the_stock_vae():
     pipe = tiny_pipeline(0)
     final = {}
@@ -196,8 +248,8 @@ def test_a_guided_run_decodes_its_final_video_with_the_stock_vae():
         return tensors
 
     out = pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="pt",
-               guidance={"decode_layout": "channels_last"}, callback_on_step_end=keep_latents, **TINY_CALL_KWARGS)
-    assert len(out.guidance_log) > 0 and out.guidance["decode_layout"] == "channels_last"
+               run_options={"decode_layout": "channels_last"}, callback_on_step_end=keep_latents, **TINY_CALL_KWARGS)
+    assert len(out.guidance_log) > 0
     assert instance_forwards(pipe.vae) == [] and all(p.is_contiguous() for p in pipe.vae.parameters())
     with torch.no_grad():
         stock = pipe.video_processor.postprocess_video(video=pipe.decode_latents(final["latents"]), output_type="pt")
@@ -208,18 +260,24 @@ def test_a_guided_run_decodes_its_final_video_with_the_stock_vae():
 
 
 def test_the_defaults_are_the_stock_decode():
-    config = GuidanceConfig()
-    assert (config.decode_layout, config.compile) == ("default", False)
+    run = RunOptions()
+    assert (run.decode_layout, run.compile) == ("default", False)
 
 
 @pytest.mark.parametrize("changes, message", [
     ({"decode_layout": "nhwc"}, r"decode_layout must be one of default, channels_last, got 'nhwc'"),
-    ({"decode_layout": "channels_last", "decoder": "tiny"}, r"decode_layout channels_last lays out the VAE's decode, but decoder='tiny'"),
     ({"compile": "yes"}, r"compile must be true or false, got 'yes'"),
 ])
 def test_bad_options_are_refused_in_one_line(changes, message):
     with pytest.raises(ValueError, match=message) as err:
-        resolve_guidance_config(GuidanceConfig(), changes)
+        resolve_run_options(RunOptions(), changes)
+    assert "\n" not in str(err.value)
+
+
+def test_the_layout_with_the_tiny_decoder_is_refused_in_one_line():
+    laid_out = r"decode_layout channels_last lays out the VAE's decode, but guidance.decoder='tiny'"
+    with pytest.raises(ValueError, match=laid_out) as err:
+        check_run_for_guidance(CHANNELS_LAST, "tiny")
     assert "\n" not in str(err.value)
 
 
@@ -248,9 +306,9 @@ def test_compile_wraps_the_decoder_once_for_every_step(monkeypatch, fresh_compil
     monkeypatch.setattr(torch, "compile", recording)
     vae, latents = frozen_vae(), latents_of()
     expected = anchor_decode(vae, latents, checkpoint_chunks=False)
-    config = GuidanceConfig(decode_layout=layout, compile=True)
+    run = RunOptions(decode_layout=layout, compile=True)
     for _ in range(3):  # three guided steps
-        with guidance_decode(config, vae):
+        with guidance_decode(run, "vae", vae):
             frames, grad = anchor_decode(vae, latents, checkpoint_chunks=False)
         assert_close(frames, expected[0], torch.float32)
         assert_close(grad, expected[1], torch.float32)
@@ -266,7 +324,7 @@ def test_compiling_says_so_once_before_the_first_compiled_call(monkeypatch, fres
     latents = torch.randn(1, 3, 4, 4, 6, generator=torch.Generator().manual_seed(2))
     with caplog.at_level("WARNING", logger="geco_guide.sampler.fast_decode"):
         for _ in range(2):
-            with guidance_decode(GuidanceConfig(decoder="tiny", compile=True), vae=None, guidance_decoder=decoder):
+            with guidance_decode(RunOptions(compile=True), "tiny", vae=None, guidance_decoder=decoder):
                 decoder.decode(latents)
     said = [r.getMessage() for r in caplog.records if "compiling the guidance decode" in r.getMessage()]
     assert len(said) == 1 and "minutes" in said[0] and recording.calls == 2
@@ -278,7 +336,7 @@ def test_compile_wraps_the_tiny_decoder(monkeypatch, fresh_compile_cache):
     decoder = tiny_guidance_decoder().requires_grad_(False)
     latents = torch.randn(1, 3, 4, 4, 6, generator=torch.Generator().manual_seed(2))
     expected = decoder.decode(latents)
-    with guidance_decode(GuidanceConfig(decoder="tiny", compile=True), vae=None, guidance_decoder=decoder):
+    with guidance_decode(RunOptions(compile=True), "tiny", vae=None, guidance_decoder=decoder):
         frames = decoder.decode(latents)
     assert torch.equal(frames, expected) and recording.calls == 1
     assert "decode" not in decoder.__dict__
@@ -289,7 +347,7 @@ def test_a_guided_run_with_compile_calls_the_compiled_decoder(monkeypatch, fresh
     monkeypatch.setattr(torch, "compile", recording)
     pipe = tiny_pipeline(0)
     out = pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="latent",
-               guidance={"compile": True}, **TINY_CALL_KWARGS)
+               run_options={"compile": True}, **TINY_CALL_KWARGS)
     assert len(recording.wrapped) == 1
     assert recording.calls >= 2 * len(out.guidance_log) > 0  # the tiny anchors: two chunk lengths per update
     assert instance_forwards(pipe.vae) == []
@@ -309,7 +367,7 @@ def test_a_failed_compile_warns_once_and_decodes_eagerly(monkeypatch, fresh_comp
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for _ in range(2):
-            with guidance_decode(GuidanceConfig(compile=True), vae):
+            with guidance_decode(RunOptions(compile=True), "vae", vae):
                 frames, grad = anchor_decode(vae, latents, checkpoint_chunks=False)
             assert torch.equal(frames, expected[0]) and torch.equal(grad, expected[1])
     fallbacks = [w for w in caught if issubclass(w.category, CompileFallbackWarning)]
@@ -325,7 +383,7 @@ def test_torch_compile_refusing_the_platform_warns_and_decodes_eagerly(monkeypat
     monkeypatch.setattr(torch, "compile", refuse)
     vae, latents = frozen_vae(), latents_of()
     expected = anchor_decode(vae, latents, checkpoint_chunks=False)
-    with pytest.warns(CompileFallbackWarning, match="not supported on this Python"), guidance_decode(GuidanceConfig(compile=True), vae):
+    with pytest.warns(CompileFallbackWarning, match="not supported on this Python"), guidance_decode(RunOptions(compile=True), "vae", vae):
         frames, _ = anchor_decode(vae, latents, checkpoint_chunks=False)
     assert torch.equal(frames, expected[0])
 
@@ -351,10 +409,10 @@ def test_compiled_channels_last_decode_traces_forward_and_backward_once(monkeypa
     vae = frozen_vae(sizes=TinySizes(vae_channels=(8, 8)))  # two blocks: tracing takes seconds, not tens
     latents = latents_of()[:, 1:4]  # one chunk of three latents: one graph
     expected = anchor_decode_chunk(vae, latents)
-    config = GuidanceConfig(decode_layout="channels_last", compile=True)
+    run = RunOptions(decode_layout="channels_last", compile=True)
     try:
         for step in range(2):
-            with guidance_decode(config, vae):
+            with guidance_decode(run, "vae", vae):
                 frames, grad = anchor_decode_chunk(vae, latents)
             assert_close(frames, expected[0], torch.float32)
             assert_close(grad, expected[1], torch.float32)
@@ -381,8 +439,9 @@ def test_a_hooked_pipeline_of_another_vae_is_refused_before_its_first_denoiser_c
     calls = []
     pipe.transformer.register_forward_pre_hook(lambda module, args: calls.append(1))
     geometry, flow = tiny_estimators(0)
-    config = {"decode_layout": "channels_last", "anchors": [4, 8], "repeats": "1x4", "time_travel": []}
-    with attach_geco_guidance(pipe, config, geometry_estimator=geometry, flow_estimator=flow):
+    config = {"anchors": [4, 8], "repeats": "1x4", "time_travel": []}
+    with attach_geco_guidance(pipe, config, run_options={"decode_layout": "channels_last"}, geometry_estimator=geometry,
+                              flow_estimator=flow):
         with pytest.raises(TypeError, match="written for the CogVideoX VAE"):
             pipe(prompt="a cat", output_type="latent", **tiny_call_kwargs(pipe, num_frames=9))
     assert calls == []

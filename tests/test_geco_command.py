@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -17,6 +18,21 @@ def test_help_lists_every_command_without_importing_torch():
     assert last == "False 0"
     for name in COMMANDS:
         assert f"  {name} " in listing
+
+
+@pytest.mark.parametrize("arguments", [["generate", "--help"], ["evaluate", "--no-such-option"]])
+def test_the_installed_geco_script_answers_help_and_errors_without_torch(arguments):
+    script = Path(sys.executable).with_name("geco")
+    if not script.is_file():
+        pytest.skip("no geco script beside this interpreter (the package is not installed in its environment)")
+    done = subprocess.run([sys.executable, "-X", "importtime", str(script), *arguments], capture_output=True, text=True,
+                          timeout=120)
+    imported = {line.rpartition("|")[2].strip() for line in done.stderr.splitlines() if line.startswith("import time:")}
+    if "--help" in arguments:
+        assert done.returncode == 0 and done.stdout.startswith("usage:")
+    else:
+        assert done.returncode == 2 and done.stderr.splitlines()[-1].startswith("error:")
+    assert "torch" not in imported and "geco_guide.cli.kit" in imported, done.stderr[-2000:]
 
 
 @pytest.mark.parametrize("name", sorted(COMMANDS))

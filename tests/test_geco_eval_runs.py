@@ -262,13 +262,13 @@ def _generate(out: Path, *extra: str) -> int:
 
 
 @pytest.mark.parametrize("models, overrides, message", [
-    (["ltx-video"], ["guidance.decode_layout=channels_last"],
-     "ltx-video guided: guidance.decode_layout=channels_last is written for the CogVideoX VAE, not LTX-Video's"),
+    (["ltx-video"], ["run.decode_layout=channels_last"],
+     "ltx-video guided: run.decode_layout=channels_last is written for the CogVideoX VAE, not LTX-Video's"),
     (["cogvideox-5b", "ltx-video"], ["guidance.decoder=tiny"],
      "ltx-video guided: guidance.decoder=tiny: there is no tiny decoder for LTX-Video latents"),
     (["wan2.1-t2v-1.3b"], ["guidance.decoder=tiny", "estimators.tiny_decoder=null"],
      "wan2.1-t2v-1.3b guided: guidance.decoder=tiny needs the tiny decoder's weights"),
-    (["cogvideox-5b"], ["guidance.memory_plan=auto", "guidance.memory_budget_gb=0.001"],
+    (["cogvideox-5b"], ["run.memory_plan=auto", "run.memory_budget_gb=0.001"],
      "cogvideox-5b guided: no memory plan fits 0.0 GiB"),
 ])
 def test_guided_options_a_model_refuses_are_one_line_before_the_run_starts(tmp_path: Path, monkeypatch, capsys,

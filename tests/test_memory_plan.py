@@ -13,6 +13,7 @@ from geco_guide.config import load_config
 from geco_guide.perf.plans import KNOWN_MODELS, card_plan, offload_peak
 from geco_guide.sampler.config import GuidanceConfig
 from geco_guide.sampler.context import GuidanceContext
+from geco_guide.sampler.run_options import RUN_KEYS, RunOptions
 from geco_guide.sampler.memory_plan import (
     DEVICE_HEADROOM,
     ESTIMATES_PATH,
@@ -44,9 +45,12 @@ def pipe():
     return tiny_pipeline(0)
 
 
-def run(pipe, mode: str, seed: int = 3, **guidance):
+def run(pipe, mode: str, seed: int = 3, **options):
+    """A call in ``mode`` with ``options``: the run options (``memory_plan``, ...) and guidance's."""
     args = dict(TINY_CALL_KWARGS, output_type="pt")
-    return pipe(PROMPT, generator=torch.Generator().manual_seed(seed), **args,
+    run_options = {key: value for key, value in options.items() if key in RUN_KEYS}
+    guidance = {key: value for key, value in options.items() if key not in RUN_KEYS}
+    return pipe(PROMPT, generator=torch.Generator().manual_seed(seed), **args, run_options=run_options,
                 guidance={**SCHEDULE, "denoiser_grad": mode == "faithful", **guidance})
 
 
@@ -164,9 +168,8 @@ TABLE = estimates({"fastest": 300, "partial": 120, "chunked": 80, "checkpointed"
                   {"fastest": 500, "partial": 560, "chunked": 600, "checkpointed": 800, "leanest": 810})
 
 
-def choose(budget=None, device_gb=None, offload=False, frames=49, **config):
-    cfg = GuidanceConfig(denoiser_grad=False, memory_budget_gb=budget, **config)
-    return choose_plan(cfg, model_id="THUDM/CogVideoX-5b", frames=frames, height=480, width=720,
+def choose(budget=None, device_gb=None, offload=False, frames=49, **run):
+    return choose_plan(GuidanceConfig(denoiser_grad=False), RunOptions(memory_budget_gb=budget, **run), model_id="THUDM/CogVideoX-5b", frames=frames, height=480, width=720,
                        device_gb=device_gb, offload=offload, estimates=TABLE)
 
 
@@ -188,11 +191,11 @@ def test_auto_picks_the_least_time_that_fits_and_falls_back_in_order():
 
 def test_unknown_model_or_budget_gets_the_safe_plan_and_named_plans_are_kept():
     cfg = GuidanceConfig(denoiser_grad=False)
-    unknown = choose_plan(cfg, model_id="someone/other-model", frames=49, height=480, width=720, device_gb=80,
+    unknown = choose_plan(cfg, RunOptions(), model_id="someone/other-model", frames=49, height=480, width=720, device_gb=80,
                           estimates=TABLE)
     assert unknown.plan == SAFE_PLAN and "no estimates" in unknown.reason and unknown.fallbacks == ()
     assert choose().plan == SAFE_PLAN  # no budget known
-    faithful = choose_plan(GuidanceConfig(), model_id="THUDM/CogVideoX-5b", frames=49, height=480, width=720,
+    faithful = choose_plan(GuidanceConfig(), RunOptions(), model_id="THUDM/CogVideoX-5b", frames=49, height=480, width=720,
                            device_gb=80, estimates=TABLE)
     assert faithful.plan == SAFE_PLAN  # the table has no faithful estimates
     named = choose(budget=1, memory_plan="chunked")
@@ -212,10 +215,10 @@ def test_no_plan_fits_is_one_line_naming_the_smallest_peak_and_offload():
 
 def test_explicit_plan_reproduces_the_one_flag_of_before():
     for flag in (True, False):
-        plan = explicit_plan(GuidanceConfig(vae_checkpointing=flag, gradient_checkpointing=flag))
+        plan = explicit_plan(RunOptions(vae_checkpointing=flag, gradient_checkpointing=flag))
         assert plan.chunk_checkpointing is plan.vae_block_checkpointing is plan.denoiser_checkpointing is flag
         assert plan.estimator_checkpointing is None  # the estimators as loaded
-    split = explicit_plan(GuidanceConfig(vae_checkpointing=True, vae_block_checkpointing=False))
+    split = explicit_plan(RunOptions(vae_checkpointing=True, vae_block_checkpointing=False))
     assert split.chunk_checkpointing and not split.vae_block_checkpointing
     # the named plans, least recomputation first: each adds one
     flags = [sum((p.chunk_checkpointing, p.vae_block_checkpointing, p.denoiser_checkpointing,
@@ -229,16 +232,16 @@ def test_explicit_plan_reproduces_the_one_flag_of_before():
 @pytest.mark.parametrize("value", [0, -1.5, math.nan, math.inf])
 def test_a_budget_that_is_not_a_positive_finite_number_is_one_line(value):
     with pytest.raises(ValueError, match="memory_budget_gb") as err:
-        GuidanceConfig(memory_budget_gb=value)
+        RunOptions(memory_budget_gb=value)
     assert "\n" not in str(err.value)
 
 
 def test_an_unknown_plan_is_one_line_listing_the_plans():
     with pytest.raises(ValueError) as err:
-        load_config(preset="tiny", overrides=["guidance.memory_plan=smallest"])
+        load_config(preset="tiny", overrides=["run.memory_plan=smallest"])
     message = str(err.value)
     assert "\n" not in message and all(name in message for name in PLAN_NAMES)
-    assert load_config(preset="tiny", overrides=["guidance.memory_budget_gb=12.5"]).guidance.memory_budget_gb == 12.5
+    assert load_config(preset="tiny", overrides=["run.memory_budget_gb=12.5"]).run.memory_budget_gb == 12.5
 
 
 def test_a_call_whose_budget_no_plan_fits_stops_before_any_step(pipe, monkeypatch):
@@ -342,11 +345,12 @@ def test_a_hooked_stock_pipeline_runs_the_plans_and_reports_them():
     geometry, flow = T.tiny_estimators(0)
     stock = T.tiny_cogvideox_pipeline(0)
     kwargs = T.tiny_call_kwargs(stock, num_frames=9, output_type="pt")
-    config = {"anchors": [5, 8], "repeats": "0x3,1x1", "time_travel": [], "memory_budget_gb": 1000.0}
+    config = {"anchors": [5, 8], "repeats": "0x3,1x1", "time_travel": []}
     frames = {}
     for plan in ("auto", "leanest", "explicit"):
         flags = {"vae_checkpointing": True, "gradient_checkpointing": True} if plan == "explicit" else {}
-        with attach_geco_guidance(stock, {**config, "memory_plan": plan, **flags}, geometry_estimator=geometry,
+        run_options = {"memory_budget_gb": 1000.0, "memory_plan": plan, **flags}
+        with attach_geco_guidance(stock, config, run_options=run_options, geometry_estimator=geometry,
                                   flow_estimator=flow) as handle:
             frames[plan] = stock(prompt=PROMPT, generator=torch.Generator().manual_seed(0), **kwargs).frames
             frames[plan + " plan"] = handle.memory_plan["name"]
@@ -363,15 +367,15 @@ def test_a_hooked_stock_pipeline_runs_the_plans_and_reports_them():
 def test_a_command_line_can_check_the_budget_before_loading():
     from geco_guide.sampler.memory_plan import plan_before_loading
 
-    cfg = load_config(preset="cogvideox-5b", overrides=["guidance.memory_budget_gb=20"])
+    cfg = load_config(preset="cogvideox-5b", overrides=["run.memory_budget_gb=20"])
     with pytest.raises(ValueError, match="the smallest, 'checkpointed', is predicted to peak at 40.3 GiB") as err:
-        plan_before_loading(cfg.guidance, cfg.model.id, 49, 480, 720, "cpu")
+        plan_before_loading(cfg.guidance, cfg.run, cfg.model.id, 49, 480, 720, "cpu")
     assert "\n" not in str(err.value)
-    fits = load_config(preset="cogvideox-5b", overrides=["guidance.memory_budget_gb=100"]).guidance
-    assert plan_before_loading(fits, "THUDM/CogVideoX-5b", 49, 480, 720, "cpu").plan.name == "chunked"
-    assert plan_before_loading(fits, "someone/else", 49, 480, 720, "cpu").plan == SAFE_PLAN
-    off = load_config(preset="cogvideox-5b", overrides=["guidance.enabled=false"]).guidance
-    assert plan_before_loading(off, "THUDM/CogVideoX-5b", 49, 480, 720, "cpu") is None
+    fits = load_config(preset="cogvideox-5b", overrides=["run.memory_budget_gb=100"])
+    assert plan_before_loading(fits.guidance, fits.run, "THUDM/CogVideoX-5b", 49, 480, 720, "cpu").plan.name == "chunked"
+    assert plan_before_loading(fits.guidance, fits.run, "someone/else", 49, 480, 720, "cpu").plan == SAFE_PLAN
+    off = load_config(preset="cogvideox-5b", overrides=["guidance.enabled=false"])
+    assert plan_before_loading(off.guidance, off.run, "THUDM/CogVideoX-5b", 49, 480, 720, "cpu") is None
 
 
 @pytest.mark.parametrize("frames, height, width, bad", [
@@ -384,7 +388,7 @@ def test_a_video_size_no_video_has_is_refused_before_any_plan(frames, height, wi
 
     guidance = GuidanceConfig(enabled=enabled)
     with pytest.raises(ValueError, match=rf"^a memory plan needs a video size of positive integers: {bad} ") as err:
-        plan_before_loading(guidance, "THUDM/CogVideoX-5b", frames, height, width, "cpu")
+        plan_before_loading(guidance, RunOptions(), "THUDM/CogVideoX-5b", frames, height, width, "cpu")
     assert "\n" not in str(err.value)
 
 

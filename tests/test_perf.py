@@ -404,15 +404,15 @@ def test_the_dynamic_masks_overhead_follows_the_schedule_and_the_cards() -> None
 
 
 def test_sampling_deals_the_guided_arms_anchor_decode_over_the_devices_asked_for() -> None:
-    from geco_guide.perf.sampling import sampling_guidance, sampling_spec
+    from geco_guide.perf.sampling import sampling_guidance, sampling_run_options, sampling_spec
 
     spec = sampling_spec(full_size=False, mode="fast", steps=2, frames=None, height=None, width=None, device="cpu",
                          dtype=None, threads=1, seed=0, warmup=0, devices=["cpu", "cpu"])
-    assert sampling_guidance({**spec, "arm": "guided"}).devices == ["cpu", "cpu"]
+    assert sampling_run_options({**spec, "arm": "guided"}).devices == ["cpu", "cpu"]
     assert sampling_guidance({**spec, "arm": "unguided"}) is False
     plain = sampling_spec(full_size=False, mode="fast", steps=2, frames=None, height=None, width=None, device="cpu",
                           dtype=None, threads=1, seed=0, warmup=0)
-    assert sampling_guidance({**plain, "arm": "guided"}).devices is None
+    assert sampling_run_options({**plain, "arm": "guided"}).devices is None
 
 
 def test_several_gpus_divide_the_anchor_decode_by_the_chunks_each_gpu_decodes() -> None:
@@ -644,7 +644,7 @@ def test_sampling_measures_the_explicit_flags_unless_a_plan_is_asked_for() -> No
     common = {"full_size": False, "mode": "fast", "steps": 4, "frames": None, "height": None, "width": None,
               "device": "cpu", "dtype": None, "threads": 1, "seed": 0, "warmup": 0}
     default = sampling.sampling_spec(**common)
-    assert sampling.sampling_guidance({**default, "arm": "guided"}).memory_plan == "explicit"
+    assert sampling.sampling_run_options({**default, "arm": "guided"}).memory_plan == "explicit"
     leanest = sampling.sampling_spec(**common, memory_plan="leanest")
-    assert sampling.sampling_guidance({**leanest, "arm": "guided"}).memory_plan == "leanest"
+    assert sampling.sampling_run_options({**leanest, "arm": "guided"}).memory_plan == "leanest"
     assert sampling.sampling_guidance({**leanest, "arm": "unguided"}) is False

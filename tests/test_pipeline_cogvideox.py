@@ -320,10 +320,12 @@ def test_from_pretrained_takes_estimators_and_keeps_the_checkpoints_scheduler(tm
 
 
 def test_gradient_checkpointing_gives_the_same_update(pipe):
-    cfg = {"repeats": "0x2,1x1,0x1", "time_travel": [], "memory_plan": "explicit"}  # the flags, as given
-    plain = run(pipe, seed=4, output_type="latent", guidance={**cfg, "gradient_checkpointing": False})
-    ckpt = run(pipe, seed=4, output_type="latent",
-               guidance={**cfg, "gradient_checkpointing": True, "vae_checkpointing": True})
+    cfg = {"repeats": "0x2,1x1,0x1", "time_travel": []}
+    explicit = {"memory_plan": "explicit"}  # the flags, as given
+    plain = run(pipe, seed=4, output_type="latent", guidance=cfg,
+                run_options={**explicit, "gradient_checkpointing": False})
+    ckpt = run(pipe, seed=4, output_type="latent", guidance=cfg,
+               run_options={**explicit, "gradient_checkpointing": True, "vae_checkpointing": True})
     # restored after the call
     assert not pipe.transformer.is_gradient_checkpointing and not pipe.vae.is_gradient_checkpointing
     torch.testing.assert_close(ckpt.frames, plain.frames, rtol=1e-4, atol=1e-5)

@@ -1,13 +1,20 @@
 """The top-level names: the pipeline and its config import from ``geco_guide`` lazily, so that
 importing the package and scoring a video load no diffusion code, and ``dir(geco_guide)`` lists
-the public names, not the module's helpers."""
+the public names, not the module's helpers. Every module says what its public names are
+(``__all__``): names that exist, none of them a private ``_name``."""
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
 import subprocess
 import sys
 
+import pytest
+
 import geco_guide
+
+MODULES = sorted(info.name for info in pkgutil.walk_packages(geco_guide.__path__, "geco_guide."))
 
 
 def test_the_pipeline_and_its_config_are_top_level_names():
@@ -42,3 +49,13 @@ print(sorted(m for m in ("diffusers", "transformers", "accelerate") if m in sys.
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("name", ["geco_guide", *MODULES])
+def test_every_module_lists_its_public_names(name):
+    module = importlib.import_module(name)
+    assert isinstance(getattr(module, "__all__", None), (list, tuple)), f"{name} has no __all__"
+    public = list(module.__all__)
+    assert len(public) == len(set(public)), f"{name}.__all__ lists a name twice"
+    assert not [n for n in public if n.startswith("_")], f"{name}.__all__ lists private names"
+    assert not [n for n in public if not hasattr(module, n)], f"{name}.__all__ lists names it lacks"

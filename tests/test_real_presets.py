@@ -1,6 +1,6 @@
 """The shipped presets run as a user runs them, with only the weights swapped.
 
-A user's first command is ``--preset cogvideox-5b``: ``model.device: auto``, ``memory_plan: auto``,
+A user's first command is ``--preset cogvideox-5b``: ``model.device: auto``, ``run.memory_plan: auto``,
 bfloat16, hub ids, the estimators' and the pipeline's real loading. Here each preset runs exactly
 as shipped (device, memory plan, dtypes, schedule, loss), except that ``model.id``,
 ``estimators.geometry`` and ``estimators.flow`` name local folders written with
@@ -52,7 +52,7 @@ def test_every_shipped_preset_loads_and_validates(name):
     cfg = load_config(preset=name)
     assert preset_path(name).is_file() and cfg.guidance.anchors
     if name != "tiny":
-        assert (cfg.model.device, cfg.guidance.memory_plan, cfg.model.dtype) == ("auto", "auto", "bfloat16")
+        assert (cfg.model.device, cfg.run.memory_plan, cfg.model.dtype) == ("auto", "auto", "bfloat16")
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +112,7 @@ def test_a_real_preset_generates_from_local_folders_as_shipped(preset, local_wei
     assert config["model"]["device"] == sidecar["device"] == ("cuda:0" if torch.cuda.is_available() else "cpu")
     assert config["model"]["dtype"] == "bfloat16" and config["estimators"]["dtype"] == "bfloat16"
     guidance = config["guidance"]
-    assert guidance["memory_plan"] == "auto" and guidance["repeats"] == shipped.guidance.repeats
+    assert config["run"]["memory_plan"] == "auto" and guidance["repeats"] == shipped.guidance.repeats
     assert guidance["loss"]["cue"] == shipped.guidance.loss.cue
     assert config["sampling"]["num_inference_steps"] == shipped.sampling.num_inference_steps
     # the planner knew the folder's denoiser by its stored config (the tiny model's estimates)
@@ -144,7 +144,7 @@ def test_the_planner_knows_a_local_folder_by_its_denoiser_config(tmp_path, capsy
          "patch_size_t": None}))
     rc = generate_module.main(["--preset", "cogvideox-5b", "--prompt", PROMPT, "--out", str(tmp_path),
                                f"model.id={folder}", "estimators.geometry=tiny-random", "estimators.flow=tiny-random",
-                               "guidance.memory_budget_gb=1"])
+                               "run.memory_budget_gb=1"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "\n" not in err
     assert err.startswith("error: no memory plan fits 1.0 GiB: the smallest, 'checkpointed', is predicted to peak "
@@ -160,18 +160,17 @@ def test_an_unusable_device_is_one_line_naming_the_key(tmp_path, capsys):
 
 
 def test_the_memory_planner_resolves_auto_and_refuses_a_missing_device():
-    from dataclasses import replace
-
     from geco_guide.sampler.config import paper_guidance_config
     from geco_guide.sampler.memory_plan import device_memory_gb, plan_before_loading
+    from geco_guide.sampler.run_options import RunOptions
 
     assert device_memory_gb("auto") == device_memory_gb("cuda" if torch.cuda.is_available() else "cpu")
-    choice = plan_before_loading(replace(paper_guidance_config(), memory_budget_gb=200.0), "THUDM/CogVideoX-5b", 49, 480, 720,
-                                 "auto")
+    choice = plan_before_loading(paper_guidance_config(), RunOptions(memory_budget_gb=200.0), "THUDM/CogVideoX-5b",
+                                 49, 480, 720, "auto")
     assert choice is not None and choice.plan.name
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="device 'cuda' is not available"):
-            plan_before_loading(paper_guidance_config(), "THUDM/CogVideoX-5b", 49, 480, 720, "cuda")
+            plan_before_loading(paper_guidance_config(), RunOptions(), "THUDM/CogVideoX-5b", 49, 480, 720, "cuda")
 
 
 def test_the_ab_script_runs_the_paper_preset_from_local_folders(local_weights, tmp_path, capsys):
@@ -186,7 +185,7 @@ def test_the_ab_script_runs_the_paper_preset_from_local_folders(local_weights, t
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     run = json.loads((out / "run.json").read_text())
-    assert run["config"]["model"]["dtype"] == "bfloat16" and run["config"]["guidance"]["memory_plan"] == "auto"
+    assert run["config"]["model"]["dtype"] == "bfloat16" and run["config"]["run"]["memory_plan"] == "auto"
     assert (out / "report.md").is_file()
 
 

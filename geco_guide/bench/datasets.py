@@ -35,6 +35,7 @@ from torch import Tensor
 
 from ..io.files import write_bytes_atomic, write_json_atomic
 from ..io.video import VIDEO_SUFFIXES, input_stem, read_frames
+from .kinds import KINDS, SYNTHETIC, SYNTHETIC_3D
 from .occlusion import (
     OcclusionParams,
     OcclusionResult,
@@ -51,9 +52,9 @@ from .synthetic import (
 )
 from .warp import WarpParams, WarpResult, warp_clip, warp_one_frame
 
-KINDS = ("warp", "occlusion")
-SYNTHETIC = "synthetic"  # the gallery scene (rigid_clip): any edit
-SYNTHETIC_3D = "synthetic-3d"  # occlusion_swap_clip: an occlusion inconsistency built in 3D
+__all__ = ["KINDS", "SYNTHETIC", "SYNTHETIC_3D", "Benchmark", "build_one", "check_synthetic_size",
+           "evenly_spaced", "find_benchmarks", "load_benchmark", "load_clip", "oracle_clip", "output_stem",
+           "scene_track", "write_benchmark"]
 
 
 @dataclass

@@ -36,6 +36,8 @@ from .synthetic import SyntheticClip, moving_clip, with_overlay, with_warp
 from .validate import cue_map, localisation
 from .warp import WarpParams, warp_clip
 
+__all__ = ["DynamicScenes", "dynamic_validation", "edited_clips", "markdown_report"]
+
 MASKS = ("none", "true", "auto")
 
 #: The issue's targets on these scenes.

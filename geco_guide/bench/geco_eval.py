@@ -31,9 +31,9 @@ the processes and the main process writes the report once all are done.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import re
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -76,19 +76,21 @@ from .runs import (
     config_fingerprint,
     read_finished,
 )
+from .suites import CAMERAS, DYNAMIC_SUITE, PROMPT_FILES, SCENARIOS, SUITE
 
-SCENARIOS = ("object-centric", "indoor", "outdoor", "appearance-complex")
-CAMERAS = ("slow", "fast")
+__all__ = ["CAMERAS", "DYNAMIC_SUITE", "PARETO_LEFT", "PROMPT_FILES", "SCENARIOS", "SUITE", "Generator",
+           "Job", "check_guided_models", "check_model_weights", "csv_text", "existing_video_jobs",
+           "load_model", "load_prompts", "load_segmenters", "plot_png", "prompts_without_video",
+           "remove_run_outputs", "run_jobs", "select_prompts", "subject_masks", "write_report"]
+
+logger = logging.getLogger(__name__)
+
 METRICS = (*CUES, "total_motion", "mean_motion")
 REPORT_STEMS = ("results", "summary", "report", "pareto", "run")
 REPORT_FILES = ("results.csv", "summary.json", "report.md", "pareto.png", "run.json")
 #: What the report reads of a job's result JSON: one without them is redone.
 RESULT_KEYS = ("model", "guided", "prompt_id", "scenario", "camera", "seed", *METRICS, "generation_s",
                "peak_memory_mib", "video")
-SUITE = "geco-eval"
-#: Our own prompts with moving subjects (not the paper's): scored and guided with their masks.
-DYNAMIC_SUITE = "dynamic"
-PROMPT_FILES = {SUITE: "data/geco_eval_prompts.jsonl", DYNAMIC_SUITE: "data/geco_eval_dynamic_prompts.jsonl"}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -225,8 +227,8 @@ def read_job_result(out: Path, job: Job, warn: bool = True) -> dict[str, Any] | 
     result = read_finished(path, [video if job.video is None else job.video], unit, warn=warn, required=RESULT_KEYS)
     if result is not None and result["video"] != job_video(out, job):
         if warn:
-            print(f"warning: {path} scores {result['video']!r}, not {job_video(out, job)!r}; {unit} is redone",
-                  file=sys.stderr)
+            logger.warning("warning: %s scores %r, not %r; %s is redone", path, result["video"], job_video(out, job),
+                           unit)
         return None
     return result
 
@@ -385,11 +387,11 @@ class Generator:
                 self._guided_pipe = GeCoCogVideoXPipeline(**self.pipe.components, geometry_estimator=geometry,
                                                           flow_estimator=flow, guidance_decoder=self.decoder)
                 self._guided_pipe.set_progress_bar_config(disable=True)
-            return self._guided_pipe, {"guidance": guidance, "dynamic_masks": masks}, None
+            return self._guided_pipe, {"guidance": guidance, "run_options": self.cfg.run, "dynamic_masks": masks}, None
         from ..sampler.hooks import attach_geco_guidance
 
-        return self.pipe, {}, attach_geco_guidance(self.pipe, guidance, geometry=geometry, flow=flow,
-                                                   decoder=self.decoder, dynamic_masks=masks)
+        return self.pipe, {}, attach_geco_guidance(self.pipe, guidance, run_options=self.cfg.run, geometry=geometry,
+                                                   flow=flow, decoder=self.decoder, dynamic_masks=masks)
 
     def __call__(self, job: Job) -> tuple[torch.Tensor, float, float, int]:
         """``(frames [F, 3, H, W] in [0, 1], sampling seconds, peak MiB, guidance updates)``."""
@@ -412,8 +414,8 @@ class Generator:
 
 def load_segmenters(cfg: GeCoConfig, device: Any, tag: str = "") -> SegmenterFactory:
     """The text segmenter of ``estimators.segmenter``, loaded once for every prompt's subjects
-    (after one stderr line naming it)."""
-    print(f"{tag}loading segmenter: {cfg.estimators.segmenter}", file=sys.stderr, flush=True)
+    (after a log line naming it)."""
+    logger.info("%sloading segmenter: %s", tag, cfg.estimators.segmenter)
     return segmenters_from_spec(cfg.estimators.segmenter, device=device, dtype=getattr(torch, cfg.estimators.dtype),
                                 seed=cfg.estimators.init_seed)
 
@@ -484,21 +486,20 @@ def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str,
 
     A job whose video cannot be scored or generated (ValueError, FileNotFoundError, or a TypeError
     of an option its pipeline refuses) is recorded as failed (:func:`record_failure`) and the
-    others go on. Progress goes to stderr, one line per job. ``on_loaded`` is called
+    others go on. Progress is logged, one line per job. ``on_loaded`` is called
     once, when the first model needed has loaded (or at once when nothing is left to do), before
     any job writes a file: the caller pins the run there, so that a run stopped by missing weights
     leaves nothing behind.
     """
     todo = [job for job in jobs if read_job_result(out, job) is None]
     retried = sum(1 for job in todo if failure_path(out, job).is_file())
-    print(f"{tag}{len(jobs) - len(todo)} of {plural(len(jobs), 'video')} already done"
-          + (f"; {retried} that failed before are tried again" if retried else ""), file=sys.stderr, flush=True)
+    logger.info("%s%d of %s already done%s", tag, len(jobs) - len(todo), plural(len(jobs), "video"),
+                f"; {retried} that failed before are tried again" if retried else "")
     if not todo:
         if on_loaded is not None:
             on_loaded()
         return
-    print(f"{tag}loading models: geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow}", file=sys.stderr,
-          flush=True)
+    logger.info("%sloading models: geometry %s, flow %s", tag, cfg.estimators.geometry, cfg.estimators.flow)
     estimators = load_estimators(cfg.estimators, resolve_device(cfg.evaluation.device))
     subjects = any("subjects" in job.prompt for job in todo)
     segment = load_segmenters(cfg, resolve_device(cfg.evaluation.device), tag) if subjects else None
@@ -506,8 +507,7 @@ def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str,
     for name in dict.fromkeys(job.model for job in todo):
         generator = None
         if any(job.video is None for job in todo if job.model == name):
-            print(f"{tag}loading models: {name} ({model_weights(cfg, [name], weights)[name]})", file=sys.stderr,
-                  flush=True)
+            logger.info("%sloading models: %s (%s)", tag, name, model_weights(cfg, [name], weights)[name])
             generator = Generator(MODELS[name], cfg, weights.get(name), estimators,
                                   guided=any(job.guided for job in todo if job.model == name), segment=segment)
         if done == 0 and on_loaded is not None:
@@ -521,8 +521,8 @@ def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str,
             # this video only: unreadable, too short, non-finite, or an option its pipeline refuses (TypeError)
             except (ValueError, TypeError, FileNotFoundError) as err:
                 outcome = f"failed: {record_failure(out, job, err)}"
-            print(f"{tag}[{done}/{len(todo)}] {job.arm} {job.prompt['id']} seed {job.seed}: "
-                  f"{time.perf_counter() - start:.1f} s, {outcome}", file=sys.stderr, flush=True)
+            logger.info("%s[%d/%d] %s %s seed %s: %.1f s, %s", tag, done, len(todo), job.arm, job.prompt["id"],
+                        job.seed, time.perf_counter() - start, outcome)
         del generator
 
 

@@ -1,6 +1,6 @@
 """The video models GeCo-Eval runs: one registry (:data:`MODELS`) of checkpoints, pipelines and
 default call settings, whose native frame rates are the metric's table
-(:data:`geco_guide.metric.protocol.PAPER_MODEL_FPS`: the metric floor times videos without
+(:data:`geco_guide.metric.model_fps.PAPER_MODEL_FPS`: the metric floor times videos without
 knowing about generation, so the registry reads its rates from there and never repeats them)."""
 
 from __future__ import annotations
@@ -8,7 +8,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..metric.protocol import PAPER_MODEL_FPS
+from ..metric.model_fps import PAPER_MODEL_FPS
+
+__all__ = ["MODELS", "SCORED_ONLY", "VideoModel"]
 
 #: Models of the paper's table that GeCo-Eval only scores (``--videos NAME=DIR``): no open weights.
 SCORED_ONLY = ("sora-2", "veo-3.1")

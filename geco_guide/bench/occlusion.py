@@ -23,6 +23,9 @@ from torch import Tensor
 
 from ..geometry import pixel_grid
 
+__all__ = ["OBJECT", "OCCLUDER", "OcclusionParams", "OcclusionResult", "check_region", "composite_occlusion",
+           "default_region", "occlusion_phases"]
+
 SCENE, OCCLUDER, OBJECT = 0, 1, 2  # layer labels, back to front
 
 

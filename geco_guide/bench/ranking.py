@@ -17,6 +17,8 @@ import math
 import torch
 from torch import Tensor
 
+__all__ = ["average_precision", "best_threshold_iou_f1", "spearman"]
+
 
 def _ranked_hits(scores: Tensor, labels: Tensor) -> tuple[Tensor, Tensor]:
     """Labels sorted by descending score (stable) ``[N]`` float64, and ``[N]`` bool marking the

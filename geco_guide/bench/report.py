@@ -14,6 +14,9 @@ from ..estimators import TINY_RANDOM
 from ..io.files import write_bytes_atomic, write_json_atomic, write_text_atomic
 from ..types import plural
 
+__all__ = ["MIN_INTERVAL_N", "TINY_NOTE", "csv_text", "fmt", "interval_text", "markdown_table",
+           "models_section", "png_bytes", "uses_tiny_models", "write_report_files"]
+
 TINY_NOTE = "tiny random models: the numbers show the mechanics, not quality"
 
 

@@ -32,13 +32,15 @@ from ..loss.geco import GeCoLossConfig, frame_pairs, geco_from_geometry
 from ..metric.protocol import EvaluationConfig
 from ..types import Correspondences, SceneGeometry
 from .datasets import scene_track
+from .noise_levels import DEPTH_SIGMAS, FLOW_SIGMAS
 from .occlusion import OcclusionParams, composite_occlusion, default_region
 from .ranking import average_precision
 from .synthetic import SyntheticClip, rigid_clip, with_overlay, with_warp
 from .warp import WarpParams, warp_clip
 
-DEPTH_SIGMAS = (0.0, 0.01, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0)
-FLOW_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0)
+__all__ = ["CUES", "DEPTH_SIGMAS", "FLOW_SIGMAS", "ROBUSTNESS_AXIS_NOTE", "ROBUSTNESS_X_LABELS", "plot",
+           "run_sweep", "sweep_memory_bytes"]
+
 CUES = ("structure", "motion", "fused")
 COLORS = {"structure": (31, 119, 180), "motion": (255, 127, 14), "fused": (44, 160, 44)}
 # Drawn in this order, widest first, with their own markers: a line that coincides with another

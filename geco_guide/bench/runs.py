@@ -17,6 +17,7 @@ import contextlib
 import errno
 import hashlib
 import json
+import logging
 import os
 import sys
 from collections.abc import Iterator, Sequence
@@ -30,6 +31,11 @@ import torch
 from ..config import GeCoConfig, config_to_dict, config_to_yaml
 from ..io.devices import resolve_device
 from ..io.files import json_text, probe_writable, take_pid_lock, write_json_atomic
+
+__all__ = ["LOCK_NAME", "PeakMemory", "check_output_folder", "config_fingerprint", "pin_config",
+           "process_config", "process_state", "read_finished", "run_lock", "shard", "take_run_lock"]
+
+logger = logging.getLogger(__name__)
 
 MIB = 2**20
 #: The file that pins a run folder to one config (:func:`pin_config`).
@@ -140,7 +146,7 @@ def read_finished(path: Path, outputs: Sequence[Path], unit: str, warn: bool = T
     if problem is None:
         return result
     if warn:
-        print(f"warning: {problem}; {unit} is redone", file=sys.stderr)
+        logger.warning("warning: %s; %s is redone", problem, unit)
     return None
 
 

@@ -52,6 +52,10 @@ from .warp import (
     warp_fields,
 )
 
+__all__ = ["SyntheticClip", "default_intrinsics", "inject_deformation", "look_at", "moving_clip",
+           "occlusion_swap_clip", "orbit_cameras", "rigid_clip", "thin_plate_spline", "with_overlay",
+           "with_warp"]
+
 _NO_HIT = float("inf")
 
 

@@ -38,6 +38,9 @@ from ..metric.render import colorbar, colorize, enlarge, side_by_side, text_scal
 from .datasets import Benchmark
 from .ranking import average_precision, best_threshold_iou_f1, spearman
 
+__all__ = ["cue_map", "grid_frames", "grid_image", "localisation", "markdown_table", "summarise",
+           "validate_clip", "write_png"]
+
 CUES = ("structure", "motion", "fused")  # the paper's row order
 CUE_NAMES = {"structure": "Structure M_struct", "motion": "Motion M_motion", "fused": "Fused M_geo"}
 GRID_ROWS = 4

@@ -12,20 +12,23 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from ..bench.datasets import (
-    KINDS,
-    SYNTHETIC,
-    SYNTHETIC_3D,
-    build_one,
-    check_synthetic_size,
-    load_clip,
-    output_stem,
-    write_benchmark,
-)
-from ..bench.warp import WarpParams
+from ..bench.kinds import KINDS, SYNTHETIC, SYNTHETIC_3D
+from ..bench.warp_params import WarpParams
 from ..io.files import WriteError, check_output_dir, unique_names
-from .kit import Parser, interruptible
+from .kit import DeferredImports, Parser, interruptible
+
+if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
+    from ..bench.datasets import build_one, check_synthetic_size, load_clip, output_stem, write_benchmark
+
+__all__ = ["main"]
+
+#: What main runs on, imported once the arguments parsed: it loads torch.
+_IMPLEMENTATION = DeferredImports(__name__, {
+    "..bench.datasets": ("build_one", "check_synthetic_size", "load_clip", "output_stem", "write_benchmark"),
+})
+__getattr__ = _IMPLEMENTATION.attribute
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
 @interruptible("the clip folders finished so far (each complete with its meta.json); a folder without meta.json is incomplete")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _IMPLEMENTATION.load()
     try:
         if args.max_frames < 3:
             raise ValueError(f"--max-frames must be >= 3, got {args.max_frames}")

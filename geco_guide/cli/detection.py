@@ -19,27 +19,36 @@ import sys
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from ..estimators import estimator_id, load_estimators
 from ..io.files import write_json_atomic
-from ..io.video import check_fps, read_frames
-from ..metric.detection import (
-    ANCHORS,
-    FORMATS,
-    detection_maps,
-    frame_scores,
-    render_detection,
-    write_detection,
-)
-from ..types import plural
+from ..metric.detection_options import ANCHORS, FORMATS
 from .evaluate import check_scorable, expand_inputs
 from .kit import (
+    DeferredImports,
     Parser,
     add_config_flags,
     config_from_args,
     interruptible,
     split_overrides,
 )
+
+if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
+    from ..estimators import estimator_id, load_estimators
+    from ..io.video import check_fps, read_frames
+    from ..metric.detection import detection_maps, frame_scores, render_detection, write_detection
+    from ..types import plural
+
+__all__ = ["main", "remove_other_formats", "work_line"]
+
+#: What main runs on, imported once the arguments parsed: it loads torch.
+_IMPLEMENTATION = DeferredImports(__name__, {
+    "..estimators": ("estimator_id", "load_estimators"),
+    "..io.video": ("check_fps", "read_frames"),
+    "..metric.detection": ("detection_maps", "frame_scores", "render_detection", "write_detection"),
+    "..types": ("plural",),
+})
+__getattr__ = _IMPLEMENTATION.attribute
 
 #: The names :func:`geco_guide.metric.detection.write_pngs` gives the frames of a PNG folder.
 FRAME_PNG = re.compile(r"(\d{5})\.png")
@@ -123,6 +132,8 @@ def first_frames(limit: int | None) -> Callable[[int, float], list[int]] | None:
 def work_line(count: int, total: int, window: int) -> str:
     """What the maps of ``count`` frames (of ``total`` in the input) take, said before the work:
     a window of ``window`` frames per frame."""
+    from ..types import plural
+
     of = f" (the first of {total}: --max-frames)" if count < total else ""
     hint = "" if count < total or count <= LONG_INPUT_FRAMES else "; --max-frames N bounds it"
     return (f"{plural(count, 'frame')}{of}: one window of {window} frames per frame, {count} geometry-estimator "
@@ -137,6 +148,7 @@ def _resolved(video: str) -> str:
 @interruptible("the videos already done keep their outputs (each .detection.json is written last)")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _IMPLEMENTATION.load()
     overrides, videos = split_overrides(args.inputs)
     out = Path(args.out)
     try:

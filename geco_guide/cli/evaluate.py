@@ -26,13 +26,9 @@ import os
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .. import __version__
-from ..config import GeCoConfig
-from ..estimators import estimator_id, load_estimators
-from ..estimators.dynamic_masks import AUTO, looks_like_path, mask_source
-from ..io.devices import check_device
 from ..io.files import (
     WriteError,
     check_output_dir,
@@ -41,29 +37,9 @@ from ..io.files import (
     write_json_atomic,
     write_texts_atomic,
 )
-from ..io.video import (
-    IMAGE_SUFFIXES,
-    VIDEO_SUFFIXES,
-    frame_files,
-    input_stem,
-    read_frames,
-)
-from ..loss.geco import PAIR_MODES
-from ..metric.detection import (
-    detection_maps,
-    frame_scores,
-    render_detection,
-    write_detection,
-)
-from ..metric.evaluate import (
-    PAPER_NAMES,
-    evaluate_video,
-    finite_or_none,
-    mean_or_nan,
-    write_maps_video,
-)
-from ..types import plural
+from ..loss.pair_modes import PAIR_MODES
 from .kit import (
+    DeferredImports,
     Parser,
     add_config_flags,
     config_from_args,
@@ -72,11 +48,32 @@ from .kit import (
     split_overrides,
 )
 
+if TYPE_CHECKING:  # GeCoConfig: annotations only; the rest bound at run time by _IMPLEMENTATION
+    from ..config import GeCoConfig
+    from ..estimators import estimator_id, load_estimators
+    from ..io.devices import check_device
+    from ..metric.evaluate import PAPER_NAMES, evaluate_video, finite_or_none, mean_or_nan, write_maps_video
+    from ..types import plural
+
+__all__ = ["check_scorable", "expand_inputs", "main"]
+
+#: What main runs on, imported once the arguments parsed: it loads torch.
+_IMPLEMENTATION = DeferredImports(__name__, {
+    "..estimators": ("estimator_id", "load_estimators"),
+    "..io.devices": ("check_device",),
+    "..metric.evaluate": ("PAPER_NAMES", "evaluate_video", "finite_or_none", "mean_or_nan", "write_maps_video"),
+    "..types": ("plural",),
+})
+__getattr__ = _IMPLEMENTATION.attribute
+
 
 def write_detection_video(video: str | os.PathLike, stem: Path, geometry: Any, flow: Any, cfg: GeCoConfig) -> Path:
     """``<stem>.detection.mp4``: the per-frame detection maps of every frame of ``video``
     (:mod:`geco_guide.metric.detection`, its defaults: a 20-frame window centred on the frame), the first
     ``evaluation.max_frames`` of them when it is set."""
+    from ..io.video import read_frames
+    from ..metric.detection import detection_maps, frame_scores, render_detection, write_detection
+
     limit = cfg.evaluation.max_frames
     first = None if limit is None else (lambda num_frames, fps: list(range(min(num_frames, limit))))
     clip = read_frames(video, default_fps=cfg.evaluation.default_fps, min_frames=2, select=first)
@@ -95,6 +92,8 @@ class _Input:
 
 
 def _holds_frames(folder: Path) -> bool:
+    from ..io.video import frame_files
+
     return bool(frame_files(folder))
 
 
@@ -102,6 +101,8 @@ def expand_inputs(paths: list[str]) -> list[_Input]:
     """Command-line inputs -> videos. A folder with png/jpg frames is one video; any other
     folder stands for its video files and frame sub-folders (one level), and is an error when it
     holds none. Names (output stems) are made unique with ``-2``, ``-3``, ..."""
+    from ..io.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES, input_stem
+
     items: list[_Input] = []
     for arg in paths:
         path = Path(arg)
@@ -223,6 +224,8 @@ def dynamic_mask_option(spec: str | None, cfg: GeCoConfig, device: Any) -> Any:
     """``--dynamic-masks``: a mask path stays a path (each video reads the frames its protocol
     picks), after checking that it exists; ``auto`` becomes one mask source for every input, and
     text the segmenter of ``estimators.segmenter`` (loaded once) for its subjects."""
+    from ..estimators.dynamic_masks import AUTO, looks_like_path, mask_source
+
     if spec is None:
         return None
     if looks_like_path(spec):
@@ -244,6 +247,7 @@ def _progress(message: str) -> None:
 @interruptible("the <stem>.geco.json (and maps) of the videos finished so far; geco_scores.csv and geco_summary.json were not written")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)  # options may follow the inputs
+    _IMPLEMENTATION.load()
     overrides, videos = split_overrides(args.inputs)
     # Neither an input nor an option (a=b.mp4): a missing file, or a mistyped key.
     strays = [a for a in overrides if not is_config_key(a.partition("=")[0])]

@@ -20,38 +20,43 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .. import __version__
-from ..bench.geco_eval import (
-    CAMERAS,
-    DYNAMIC_SUITE,
-    PROMPT_FILES,
-    SCENARIOS,
-    SUITE,
-    Job,
-    check_guided_models,
-    check_model_weights,
-    existing_video_jobs,
-    load_prompts,
-    prompts_without_video,
-    remove_run_outputs,
-    run_jobs,
-    write_report,
-)
 from ..bench.models import MODELS
-from ..bench.runs import (
-    check_output_folder,
-    pin_config,
-    process_config,
-    process_state,
-    run_lock,
-    shard,
-)
-from ..config import SEED_RANGE, GeCoConfig
-from ..io.devices import check_device
+from ..bench.suites import CAMERAS, DYNAMIC_SUITE, PROMPT_FILES, SCENARIOS, SUITE
 from ..io.files import WriteError
-from ..types import plural
-from .kit import Parser, add_config_flags, config_from_args, interruptible
+from .kit import DeferredImports, Parser, add_config_flags, config_from_args, interruptible
+
+if TYPE_CHECKING:  # GeCoConfig: annotations only; the rest bound at run time by _IMPLEMENTATION
+    from ..bench.geco_eval import (
+        Job,
+        check_guided_models,
+        check_model_weights,
+        existing_video_jobs,
+        load_prompts,
+        prompts_without_video,
+        remove_run_outputs,
+        run_jobs,
+        write_report,
+    )
+    from ..bench.runs import check_output_folder, pin_config, process_config, process_state, run_lock, shard
+    from ..config import SEED_RANGE, GeCoConfig
+    from ..io.devices import check_device
+    from ..types import plural
+
+__all__ = ["main"]
+
+#: What main runs on, imported once the arguments parsed: it loads torch.
+_IMPLEMENTATION = DeferredImports(__name__, {
+    "..bench.geco_eval": ("Job", "check_guided_models", "check_model_weights", "existing_video_jobs", "load_prompts",
+                          "prompts_without_video", "remove_run_outputs", "run_jobs", "write_report"),
+    "..bench.runs": ("check_output_folder", "pin_config", "process_config", "process_state", "run_lock", "shard"),
+    "..config": ("SEED_RANGE",),
+    "..io.devices": ("check_device",),
+    "..types": ("plural",),
+})
+__getattr__ = _IMPLEMENTATION.attribute
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -149,6 +154,7 @@ def plan(args: argparse.Namespace) -> Plan:
 @interruptible("finished videos and scores are kept; rerun the same command to resume")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _IMPLEMENTATION.load()
     try:
         run = plan(args)
         cfg, out = run.cfg, Path(args.out)

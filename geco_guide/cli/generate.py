@@ -29,18 +29,23 @@ from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
-
-import torch
+from typing import TYPE_CHECKING, Any
 
 from .. import __version__
-from ..config import GeCoConfig, config_to_dict
-from ..io.devices import check_device, check_memory_fits
 from ..io.files import WriteError, output_lock, write_json_atomic
-from ..sampler import loading
-from ..sampler.devices import resolve_devices
-from ..types import NonFiniteFramesError, check_frame_values, plural
-from .kit import Parser, add_config_flags, config_from_args, interruptible
+from .kit import DeferredImports, Parser, add_config_flags, config_from_args, interruptible
+
+if TYPE_CHECKING:
+    import torch
+
+    from ..config import GeCoConfig
+
+__all__ = ["SCORES_NOTE", "SELECTION_SCORE", "best_candidate", "build_pipeline", "check_video_fits",
+           "default_name", "generate", "main", "output_paths", "slugify", "versions", "video_key"]
+
+# Each module that imports torch is imported where it is used, so that parsing the arguments needs
+# none of them; ``loading`` stays an attribute of this module, imported on first use.
+__getattr__ = DeferredImports(__name__, {"..sampler": ("loading",)}).attribute
 
 # --------------------------------------------------------------------------------------------
 # building the pipeline from a config
@@ -49,6 +54,7 @@ from .kit import Parser, add_config_flags, config_from_args, interruptible
 def build_pipeline(cfg: GeCoConfig):
     """:func:`geco_guide.sampler.loading.build_pipeline` with the tiny models when the config asks
     for them, after one stderr line naming them (loading takes minutes)."""
+    from ..sampler import loading
     from ..tiny import video_components
 
     print(loading_line(cfg), file=sys.stderr, flush=True)
@@ -59,6 +65,8 @@ def load_dynamic_masks(cfg: GeCoConfig):
     """The mask source of ``guidance.dynamic`` (``None`` without), after one stderr line naming
     the segmenter when there is one to load: before the video model, so that missing weights end
     the run at once."""
+    from ..sampler import loading
+
     dynamic = cfg.guidance.dynamic if cfg.guidance.enabled else None
     if dynamic is not None and dynamic != "auto":
         print(f"loading segmenter: {cfg.estimators.segmenter} for {dynamic!r} ...", file=sys.stderr, flush=True)
@@ -83,8 +91,6 @@ KEYLESS_SECTIONS = ("output", "evaluation")
 #: The moving-subject options, which make no frame while ``guidance.dynamic`` is null: left out of
 #: :func:`video_key` then, so that every video made before they existed keeps its name.
 DYNAMIC_KEYS = ("dynamic", "dynamic_dilation", "dynamic_refresh")
-#: Guidance options that say where it runs, left out of :func:`video_key` as ``model.device`` is.
-RUN_PLACEMENT_KEYS = ("devices",)
 #: Longest name a temporary of an atomic write adds to ``<name>``: ``.<name>.<8 random>.tmp``
 #: before the suffix (see :func:`geco_guide.io.files.atomic_path`).
 TEMP_NAME_EXTRA = len("..12345678.tmp")
@@ -101,18 +107,23 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
     """8 hex characters of SHA-256 over the prompt and the config that makes the frames
     (``config``: :func:`geco_guide.config.config_to_dict`'s form, e.g. a sidecar's ``config``).
 
-    Left out: :data:`KEYLESS_SECTIONS`, ``model.device`` and ``guidance.devices``. The device can change the bytes
+    Left out: :data:`KEYLESS_SECTIONS`, ``model.device``, and the ``run`` section (how this machine
+    runs guidance: memory plans and devices give the same frames) except its
+    :data:`~geco_guide.sampler.run_options.FRAME_ROUNDING_KEYS`, which can change the frames to
+    float rounding and so name another video. The device can change the bytes
     (CPU and GPU kernels round differently), but a video moved to another device is the same
     experiment, so it does not rename it. Left out too while unused: the :data:`DYNAMIC_KEYS` of
     a null ``guidance.dynamic`` (or of a video made without guidance), and ``estimators.segmenter``
     unless ``guidance.dynamic`` names subjects. The JSON is canonical (sorted keys), so the key is the same in every process and on
     every machine.
     """
+    from ..sampler.run_options import FRAME_ROUNDING_KEYS
+
     kept = {section: value for section, value in config.items() if section not in KEYLESS_SECTIONS}
     kept["model"] = {key: value for key, value in kept.get("model", {}).items() if key != "device"}
+    if "run" in kept:
+        kept["run"] = {key: value for key, value in kept["run"].items() if key in FRAME_ROUNDING_KEYS}
     guidance = kept.get("guidance", {})
-    if "guidance" in kept:  # like model.device: where the decode runs is not what it computes
-        kept["guidance"] = guidance = {key: value for key, value in guidance.items() if key not in RUN_PLACEMENT_KEYS}
     dynamic = guidance.get("dynamic") if guidance.get("enabled", True) else None
     if dynamic is None and "guidance" in kept:
         kept["guidance"] = {key: value for key, value in kept["guidance"].items() if key not in DYNAMIC_KEYS}
@@ -124,6 +135,8 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
 
 def default_name(cfg: GeCoConfig, prompt: str) -> str:
     """``<slug>-<video key>-seed<N>``, with ``-unguided`` when guidance is off."""
+    from ..config import config_to_dict
+
     suffix = "" if cfg.guidance.enabled else "-unguided"
     return f"{slugify(prompt)}-{video_key(config_to_dict(cfg), prompt)}-seed{cfg.seed}{suffix}"
 
@@ -155,6 +168,8 @@ def with_resolved_device(cfg: GeCoConfig) -> GeCoConfig:
     Raises:
         ValueError: (one line naming ``model.device``) a device this machine lacks.
     """
+    from ..io.devices import check_device
+
     device = check_device(cfg.model.device)
     return replace(cfg, model=replace(cfg.model, device=str(device)))
 
@@ -163,6 +178,8 @@ def check_video_fits(cfg: GeCoConfig) -> None:
     """ValueError (one line) for a video size that cannot fit the device, before any model loads:
     the decoded video alone, in float32, is a lower bound of the run's peak (the models, latents
     and activations come on top), so a refusal is certain."""
+    from ..io.devices import check_memory_fits
+
     s = cfg.sampling
     nbytes = s.num_frames * 3 * s.height * s.width * 4
     check_memory_fits(nbytes, cfg.model.device,
@@ -233,6 +250,7 @@ def versions() -> dict[str, str]:
 
     import diffusers
     import numpy
+    import torch
     import transformers
 
     try:
@@ -285,6 +303,8 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     pid), and the existence check, made again under the lock, holds until the files are written.
     """
     from ..io.video import check_fps
+    from ..sampler import loading
+    from ..sampler.devices import resolve_devices
 
     check_prompt(prompt)
     video_path, sidecar_path = output_paths(cfg, prompt, out)
@@ -292,7 +312,7 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     check_fps(cfg.sampling.fps, video_path.suffix)
     cfg = with_resolved_device(cfg)
     if cfg.guidance.enabled:
-        resolve_devices(cfg.guidance.devices)  # a device this machine lacks: one line before loading
+        resolve_devices(cfg.run.devices)  # a device this machine lacks: one line before loading
     check_video_fits(cfg)
     timings: dict[str, float] = {}
     start = time.perf_counter()
@@ -311,10 +331,13 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
 def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidecar_path: Path, pipe: Any,
                            masks: Any, timings: dict[str, float], start: float) -> GenerationResult:
     """The heavy part of :func:`generate`, once every check passed and the output name is held."""
+    import torch
+
     from ..io.video import write_video
     from ..loss.geco import GeCoLoss
     from ..sampler.dynamic import RefreshedMasks
     from ..sampler.step import score_anchor_frames
+    from ..types import NonFiniteFramesError, check_frame_values
 
     if masks is None:
         masks = load_dynamic_masks(cfg)
@@ -338,6 +361,7 @@ def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidec
         output_type="pt",
         max_sequence_length=s.max_sequence_length,
         guidance=cfg.guidance,
+        run_options=cfg.run,
         dynamic_masks=masks,
     )
     timings["sampling_s"] = time.perf_counter() - start
@@ -372,6 +396,12 @@ def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidec
 
 #: The score best-of-N selection keeps the lowest of: the fused map under the GeCo protocol.
 SELECTION_SCORE = "fused"
+
+
+def best_candidate(scores: list[float]) -> int:
+    """The index of the candidate best-of-N selection keeps among their :data:`SELECTION_SCORE`
+    ``scores``: the least (a NaN ranks last, ties go to the earlier seed)."""
+    return min(range(len(scores)), key=lambda k: (not math.isfinite(scores[k]), scores[k] if math.isfinite(scores[k]) else 0))
 
 
 def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.PathLike | None = None,
@@ -418,8 +448,7 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
                 candidates.append((result, scored))
                 if on_candidate is not None:
                     on_candidate(k, seed_cfg.seed, scored)
-            rank = [getattr(scored, SELECTION_SCORE) for _, scored in candidates]
-            best = min(range(count), key=lambda k: (not math.isfinite(rank[k]), rank[k] if math.isfinite(rank[k]) else 0))
+            best = best_candidate([getattr(scored, SELECTION_SCORE) for _, scored in candidates])
             kept, _ = candidates[best]
             sidecar = {**kept.sidecar, "video": video_path.name, "best_of": {
                 "n": count, "kept_seed": kept.sidecar["seed"], "score": f"{SELECTION_SCORE} (the GeCo protocol, evaluation.*)",
@@ -438,6 +467,8 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
 def sidecar_of(cfg: GeCoConfig, prompt: str, pipe: Any, frames: torch.Tensor, video_name: str,
                timings: dict[str, float], scores: dict[str, float] | None, log: list[dict[str, Any]]) -> dict[str, Any]:
     """The sidecar of a video ``frames [1, F, 3, H, W]``: what made it and how long it took."""
+    from ..config import config_to_dict
+
     return {
         "prompt": prompt,
         "seed": cfg.seed,
@@ -484,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing video and sidecar of the same name")
     p.add_argument("--devices", nargs="+", default=None, metavar="DEVICE",
                    help="deal the guidance's anchor decode over these devices, e.g. cuda:0 cuda:1 (or auto: every "
-                        "GPU), each with a replica of the decoder; sets guidance.devices")
+                        "GPU), each with a replica of the decoder; sets run.devices")
     p.add_argument("--best-of", type=int, default=None, metavar="N",
                    help="selection: make N videos (seeds --seed .. --seed+N-1), score each with the GeCo protocol and "
                         "keep the one of least fused score; its sidecar lists every candidate's scores")
@@ -504,7 +535,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     options = {"seed": args.seed, "guidance.enabled": "false" if args.no_guidance else None,
                "guidance.dynamic": args.dynamic,
-               "guidance.devices": f"[{','.join(args.devices)}]" if args.devices else None}
+               "run.devices": f"[{','.join(args.devices)}]" if args.devices else None}
     try:
         cfg = config_from_args(args, args.overrides, options)
         if args.best_of is None:
@@ -530,6 +561,8 @@ def main(argv: list[str] | None = None) -> int:
         print(SCORES_NOTE)
     log = result.sidecar["guidance_log"]
     if log:
+        from ..types import plural
+
         # the progress bar counts denoising steps; a guided step makes R_t (0 or more) updates
         steps = plural(cfg.sampling.num_inference_steps, "denoising step")
         print(f"guidance: {plural(len(log), 'update')} over {steps} in "

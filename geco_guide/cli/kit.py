@@ -1,6 +1,9 @@
 """What every command shares: one-line argparse errors, the config flags (``--preset``,
-``--config``, the estimators), telling ``key=value`` overrides from inputs, and the config they
-make together."""
+``--config``, the estimators), telling ``key=value`` overrides from inputs, the config they
+make together, and importing the implementation only once the arguments parsed.
+
+Imports no torch (nor the config, which does), so that ``--help`` and argument errors answer at
+once: a command's parser takes its choices from modules that import nothing heavy."""
 
 from __future__ import annotations
 
@@ -8,13 +11,17 @@ import argparse
 import functools
 import re
 import sys
-from collections.abc import Callable, Iterable, Sequence
+import warnings
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from importlib import import_module
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from omegaconf import DictConfig, OmegaConf
+if TYPE_CHECKING:
+    from ..config import GeCoConfig
 
-from ..config import GeCoConfig, load_config
+__all__ = ["DeferredImports", "ESTIMATOR_KEYS", "Parser", "add_config_flags", "config_from_args",
+           "interruptible", "is_config_key", "one_line_warnings", "split_overrides"]
 
 #: The config keys the estimator flags set (the config's section is ``estimators``).
 ESTIMATOR_KEYS = {"geometry_estimator": "estimators.geometry", "flow_estimator": "estimators.flow"}
@@ -52,6 +59,10 @@ def split_overrides(arguments: Iterable[str]) -> tuple[list[str], list[str]]:
 def is_config_key(key: str) -> bool:
     """Whether ``key`` (dotted) names a config option, or an entry of a free mapping such as
     ``evaluation.model_fps.<model>``."""
+    from omegaconf import DictConfig, OmegaConf
+
+    from ..config import GeCoConfig
+
     node: Any = OmegaConf.structured(GeCoConfig)
     for part in key.split("."):
         if not isinstance(node, DictConfig):
@@ -67,6 +78,8 @@ def config_from_args(args: argparse.Namespace, overrides: Sequence[str] = (),
     """The validated config of ``--preset`` / ``--config``, the ``key=value`` ``overrides``,
     the estimator flags and ``options`` (``{config key: value}``, ``None`` values skipped), the
     flags last so that they win over a stray override of the same key."""
+    from ..config import load_config
+
     items = list(overrides)
     flags = {key: getattr(args, dest, None) for dest, key in ESTIMATOR_KEYS.items()}
     for key, value in {**flags, **(options or {})}.items():
@@ -75,15 +88,37 @@ def config_from_args(args: argparse.Namespace, overrides: Sequence[str] = (),
     return load_config(getattr(args, "config", None), getattr(args, "preset", None), items)
 
 
+def one_line_warnings() -> Callable[..., None]:
+    """A ``warnings.showwarning`` for commands: ``warning: <message>`` on stderr, once per
+    message, without the file, line and source line Python adds (they point into the library, not
+    at what to change; a check run at several stages of a command would repeat it)."""
+    shown: set[tuple[type[Warning], str]] = set()
+
+    def show(message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None,
+             line: str | None = None) -> None:
+        if (category, str(message)) not in shown:
+            shown.add((category, str(message)))
+            print(f"warning: {message}", file=sys.stderr if file is None else file)
+
+    return show
+
+
 def interruptible(kept: str) -> Callable[[Callable[..., int]], Callable[..., int]]:
     """Ctrl-C ends the decorated ``main`` with one line saying what was kept (``kept``) and exit
-    code 130, the shell's code for SIGINT, instead of a traceback from wherever it stopped."""
+    code 130, the shell's code for SIGINT, instead of a traceback from wherever it stopped; while
+    it runs, each warning is one line (:func:`one_line_warnings`) and the library's log lines
+    show on stderr (:func:`~geco_guide.io.logs.log_to_stderr`)."""
 
     def decorate(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
         def run(argv: list[str] | None = None) -> int:
+            from ..io.logs import log_to_stderr
+
+            log_to_stderr()
             try:
-                return main(argv)
+                with warnings.catch_warnings():
+                    warnings.showwarning = one_line_warnings()
+                    return main(argv)
             except KeyboardInterrupt:
                 print(f"interrupted: {kept}", file=sys.stderr)
                 return 130
@@ -91,3 +126,40 @@ def interruptible(kept: str) -> Callable[[Callable[..., int]], Callable[..., int
         return run
 
     return decorate
+
+
+class DeferredImports:
+    """The names a command's implementation takes from modules that import torch, imported once
+    its arguments parsed, so that ``--help`` and an argument error answer without torch.
+
+    ``imports`` maps each module (relative to the command's package, as in its own imports) to the
+    names imported from it, as ``from MODULE import NAMES`` would (a submodule by its package and
+    name too). The command's module sets ``__getattr__ = deferred.attribute`` (PEP 562), so that
+    ``module.NAME`` is the name as before, imported then; its ``main`` calls :meth:`load` after
+    parsing, which binds every name in the module for its functions, keeping one already bound
+    there (a stand-in a test put in its place).
+    """
+
+    def __init__(self, module: str, imports: Mapping[str, Sequence[str]]) -> None:
+        self.module = module
+        self.names = {name: source for source, names in imports.items() for name in names}
+
+    def attribute(self, name: str) -> Any:
+        if name not in self.names:
+            raise AttributeError(f"module {self.module!r} has no attribute {name!r}")
+        return self._bind(name)
+
+    def load(self) -> None:
+        bound = vars(sys.modules[self.module])
+        for name in self.names:
+            if name not in bound:
+                self._bind(name)
+
+    def _bind(self, name: str) -> Any:
+        source = import_module(self.names[name], self.module.rpartition(".")[0])
+        try:
+            value = getattr(source, name)
+        except AttributeError:  # a submodule its package has not imported
+            value = import_module(f"{source.__name__}.{name}")
+        setattr(sys.modules[self.module], name, value)
+        return value

@@ -20,6 +20,8 @@ from ..bench.geco_eval import PROMPT_FILES, select_prompts
 from ..estimators.segmenters import subjects_of
 from .generate import slugify
 
+__all__ = ["Prompt", "read_prompts"]
+
 SAFE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 
 

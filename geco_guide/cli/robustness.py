@@ -12,20 +12,29 @@ import argparse
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from ..bench.robustness import (
-    CUES,
-    DEPTH_SIGMAS,
-    FLOW_SIGMAS,
-    plot,
-    run_sweep,
-    sweep_memory_bytes,
-)
-from ..config import SEED_RANGE
-from ..io.devices import check_memory_fits
+from ..bench.noise_levels import DEPTH_SIGMAS, FLOW_SIGMAS
 from ..io.files import WriteError, check_output_dir, json_text, write_texts_atomic
-from ..metric.protocol import EvaluationConfig
-from .kit import Parser, interruptible
+from ..loss.pair_modes import PAIR_MODES
+from .kit import DeferredImports, Parser, interruptible
+
+if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
+    from ..bench.robustness import CUES, plot, run_sweep, sweep_memory_bytes
+    from ..config import SEED_RANGE
+    from ..io.devices import check_memory_fits
+    from ..metric.protocol import EvaluationConfig
+
+__all__ = ["main"]
+
+#: What main runs on, imported once the arguments parsed: it loads torch.
+_IMPLEMENTATION = DeferredImports(__name__, {
+    "..bench.robustness": ("CUES", "plot", "run_sweep", "sweep_memory_bytes"),
+    "..config": ("SEED_RANGE",),
+    "..io.devices": ("check_memory_fits",),
+    "..metric.protocol": ("EvaluationConfig",),
+})
+__getattr__ = _IMPLEMENTATION.attribute
 
 
 def _sigmas(values: list[float], name: str) -> tuple[float, ...]:
@@ -48,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--flow-sigmas", type=float, nargs="+", default=list(FLOW_SIGMAS), metavar="SIGMA",
                    help="flow noise levels in pixels: sigma n is added to each flow vector "
                         f"(default: {' '.join(f'{s:g}' for s in FLOW_SIGMAS)})")
-    p.add_argument("--pairs", choices=("all", "center", "adjacent"), default="all",
+    p.add_argument("--pairs", choices=PAIR_MODES, default="all",
                    help="frame pairs GeCo compares (default: all, the evaluation protocol's)")
     p.add_argument("--no-depth-edges", action="store_true",
                    help="keep structure pixels on depth edges (depth_edge_tau=None, the paper's behaviour)")
@@ -58,6 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
 @interruptible("nothing: the sweep writes its files only when it is complete")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _IMPLEMENTATION.load()
     out = Path(args.out)
     try:
         frames, height, width = args.size

@@ -23,23 +23,12 @@ import argparse
 import sys
 from dataclasses import asdict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from ..bench.datasets import find_benchmarks, load_benchmark, oracle_clip
-from ..bench.dynamic import DynamicScenes, dynamic_validation, markdown_report
-from ..bench.validate import (
-    grid_frames,
-    grid_image,
-    markdown_table,
-    summarise,
-    validate_clip,
-    write_png,
-)
-from ..estimators import estimator_id, load_estimators
-from ..estimators.oracle import OracleFlow, OracleGeometry
-from ..io.devices import check_device
 from ..io.files import WriteError, check_output_dir, json_text, write_texts_atomic
-from ..metric.evaluate import score_frames
+from ..loss.pair_modes import PAIR_MODES
 from .kit import (
+    DeferredImports,
     Parser,
     add_config_flags,
     config_from_args,
@@ -47,13 +36,36 @@ from .kit import (
     split_overrides,
 )
 
+if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
+    from ..bench.datasets import find_benchmarks, load_benchmark, oracle_clip
+    from ..bench.dynamic import DynamicScenes, dynamic_validation, markdown_report
+    from ..bench.validate import grid_frames, grid_image, markdown_table, summarise, validate_clip, write_png
+    from ..estimators import estimator_id, load_estimators
+    from ..estimators.oracle import OracleFlow, OracleGeometry
+    from ..io.devices import check_device
+    from ..metric.evaluate import score_frames
+
+__all__ = ["main"]
+
+#: What main runs on, imported once the arguments parsed: it loads torch.
+_IMPLEMENTATION = DeferredImports(__name__, {
+    "..bench.datasets": ("find_benchmarks", "load_benchmark", "oracle_clip"),
+    "..bench.dynamic": ("DynamicScenes", "dynamic_validation", "markdown_report"),
+    "..bench.validate": ("grid_frames", "grid_image", "markdown_table", "summarise", "validate_clip", "write_png"),
+    "..estimators": ("estimator_id", "load_estimators"),
+    "..estimators.oracle": ("OracleFlow", "OracleGeometry"),
+    "..io.devices": ("check_device",),
+    "..metric.evaluate": ("score_frames",),
+})
+__getattr__ = _IMPLEMENTATION.attribute
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="python -m geco_guide validate", description="Score benchmark clips on the paper's three detection tasks.")
     p.add_argument("inputs", nargs="*", metavar="DIR|key=value", help="benchmark folders; key=value config overrides")
     p.add_argument("--oracle", action="store_true", help="ground-truth estimators (clips built from 'synthetic')")
     add_config_flags(p)
-    p.add_argument("--pairs", choices=("all", "center", "adjacent"), default=None, help="frame pairs (default: all)")
+    p.add_argument("--pairs", choices=PAIR_MODES, default=None, help="frame pairs (default: all)")
     p.add_argument("--out", default=None, help="output folder (default: <first input>/validation)")
     p.add_argument("--no-grids", action="store_true", help="skip the per-clip image grids")
     p.add_argument("--dynamic", action="store_true",
@@ -94,6 +106,7 @@ def _progress(message: str) -> None:
                "(grids of the clips scored so far stay in <out>/grids)")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _IMPLEMENTATION.load()
     if args.dynamic:
         return dynamic_main(args)
     if args.dynamic_size:

@@ -17,6 +17,9 @@ import torch
 from ..io.devices import resolve_device
 from .loading import WeightsNotFoundError
 
+__all__ = ["TINY_RANDOM", "EstimatorsConfig", "estimator_id", "load_estimators", "tiny_estimators",
+           "tiny_random_decoder", "with_config_key"]
+
 TINY_RANDOM = "tiny-random"
 
 

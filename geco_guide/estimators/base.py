@@ -36,6 +36,8 @@ from .loading import (
     load_weights,
 )
 
+__all__ = ["FrozenEstimator"]
+
 E = TypeVar("E", bound="FrozenEstimator")
 
 

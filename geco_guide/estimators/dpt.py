@@ -12,6 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+__all__ = ["FusionBlock", "ResidualConvUnit", "add_position_embedding", "resample_layer"]
+
 
 class ResidualConvUnit(nn.Module):
     """ReLU -> conv3x3 -> ReLU -> conv3x3, plus a skip; ``[N, F, H, W] -> [N, F, H, W]``.

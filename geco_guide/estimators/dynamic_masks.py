@@ -26,6 +26,8 @@ from ..io.masks import MASK_SUFFIXES, MaskReadError, check_masks, fit_masks, rea
 from ..io.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES
 from ..types import Correspondences, DynamicMaskSource, SceneGeometry
 
+__all__ = ["AUTO", "GivenMasks", "looks_like_path", "mask_source"]
+
 AUTO = "auto"
 
 

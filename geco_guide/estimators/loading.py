@@ -18,6 +18,10 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+__all__ = ["CHECKPOINT_SUFFIXES", "CheckpointMismatchError", "UnreadableCheckpointError",
+           "WeightsNotFoundError", "check_weights_available", "fetch_checkpoint_file", "fetch_config_file",
+           "load_state_dict_checked", "load_weights", "pretrained_or_one_line", "quiet_hub_retries"]
+
 
 class WeightsNotFoundError(FileNotFoundError):
     """A checkpoint could be found neither in a local folder nor in the hub cache / on the hub."""

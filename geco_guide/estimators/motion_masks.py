@@ -45,6 +45,8 @@ from ..geometry import (
 )
 from ..types import Correspondences, OptionError, SceneGeometry
 
+__all__ = ["MotionMasks", "connected_regions", "dilate", "kabsch", "splat"]
+
 
 def connected_regions(mask: Tensor) -> Tensor:
     """8-connected regions of ``mask [H, W]`` bool -> labels ``[H, W]`` int64 (0 outside, each

@@ -15,6 +15,8 @@ from torch import Tensor
 from ..geometry import resize_flow, resize_intrinsics
 from ..types import Correspondences, SceneGeometry, check_frames
 
+__all__ = ["OracleFlow", "OracleGeometry"]
+
 
 class _ClipLookup:
     """Finds which frames of a reference clip an image batch shows."""

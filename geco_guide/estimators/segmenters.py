@@ -41,6 +41,11 @@ from torch import Tensor
 from ..types import Correspondences, DynamicMaskSource, SceneGeometry
 from .loading import pretrained_or_one_line
 
+__all__ = ["GROUNDING_DINO_WEIGHTS", "SAM3_WEIGHTS", "GroundedSam2Segmenter", "Sam3Segmenter",
+           "SegmenterFactory", "detector_and_tracker", "model_pixels", "segmenter_from_spec",
+           "segmenters_from_spec", "subjects_of", "text_segmenter", "tiny_grounded_sam2", "tiny_sam3",
+           "union_mask"]
+
 logger = logging.getLogger(__name__)
 
 SEGMENTER_MODELS = ("sam3", "grounding-sam2")

@@ -54,11 +54,13 @@ from .loading import (
 )
 
 __all__ = [
+    "CONTEXT_LATENTS",
     "DEFAULT_DECODER_WIDTHS",
     "DEFAULT_ENCODER_WIDTH",
     "TINY_DECODER_WIDTHS",
     "TINY_ENCODER_WIDTH",
     "VARIANTS",
+    "WEIGHTS_URL",
     "TinyDecoder",
     "TinyDecoderVariant",
     "resolve_variant",

@@ -20,6 +20,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
+__all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "Attention", "Block", "DinoV2", "Mlp", "RotaryEmbedding2D",
+           "grid_positions", "imagenet_normalise", "init_weights_", "resize_pos_embed", "run_block"]
+
 RopeFn = Callable[[Tensor], Tensor]
 PosEmbedVariant = Literal["classic", "registers"]
 

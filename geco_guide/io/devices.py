@@ -7,6 +7,8 @@ import os
 
 import torch
 
+__all__ = ["check_device", "check_memory_fits", "memory_limit", "resolve_device"]
+
 
 def resolve_device(name: str | torch.device) -> torch.device:
     """``"auto"`` -> cuda if available, else cpu; anything else as ``torch.device``."""

@@ -22,6 +22,10 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+__all__ = ["WriteError", "atomic_path", "check_output_dir", "json_ready", "json_text", "output_lock",
+           "probe_writable", "remove_temp_files", "take_pid_lock", "unique_names", "write_bytes_atomic",
+           "write_json_atomic", "write_text_atomic", "write_texts_atomic"]
+
 
 class WriteError(OSError):
     """An output could not be written (disk full, no permission, a writer that failed); one line

@@ -24,6 +24,8 @@ from torch import Tensor
 
 from .video import VideoReadError, frame_files, read_frames
 
+__all__ = ["MASK_SUFFIXES", "MaskReadError", "check_masks", "fit_masks", "read_masks"]
+
 #: Largest fraction of a lossy mask video's pixels allowed between 1/4 and 3/4 (codec blur at
 #: edges); more means the file is not a mask.
 LOSSY_GREY_FRACTION = 0.05

@@ -13,6 +13,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+__all__ = ["Panel", "legend", "legend_width", "limits", "text", "text_width"]
+
 #: Marker shapes of :func:`marker`.
 SHAPES = ("circle", "square", "triangle", "diamond")
 

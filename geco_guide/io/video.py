@@ -23,6 +23,9 @@ from torch import Tensor
 
 from .files import WriteError, atomic_path
 
+__all__ = ["FPS_RANGE", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "VideoFrames", "VideoReadError", "check_fps",
+           "frame_files", "gif_rate", "input_stem", "read_frames", "read_video", "write_video"]
+
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".gif")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEFAULT_FPS = 8.0

@@ -13,6 +13,9 @@ from torch import Tensor
 
 from ..geometry import MIN_DEPTH, check_tensor, local_depth_ratio, pixel_grid, sample_at_projection, sample_bilinear
 
+__all__ = ["MASK_TOUCH_WEIGHT", "fuse_cues", "lands_on_mask", "masked_mean", "motion_residual", "safe_norm",
+           "structure_residual"]
+
 
 def safe_norm(x: Tensor, dim: int) -> Tensor:
     """Euclidean norm along ``dim`` whose gradient is finite (zero) where the norm is 0.

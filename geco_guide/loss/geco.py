@@ -36,8 +36,11 @@ from ..types import (
     non_finite_fields,
 )
 from .cues import fuse_cues, lands_on_mask, masked_mean, motion_residual, structure_residual
+from .pair_modes import PAIR_MODES
 
-PAIR_MODES = ("adjacent", "center", "all")
+__all__ = ["CUES", "MIN_UNMASKED_FRACTION", "PAIR_MODES", "GeCoLoss", "GeCoLossConfig", "GeCoMaps",
+           "GeCoResult", "frame_pairs", "geco_from_geometry", "resolve_dynamic_masks"]
+
 CUES = ("fused", "motion", "structure")
 STRUCTURE_OCCLUSION = ("depth", "covisibility")
 

@@ -17,6 +17,8 @@ from torch import Tensor
 from ..geometry import check_tensor
 from .cues import masked_mean, safe_norm
 
+__all__ = ["MotionStats", "motion_statistics"]
+
 
 @dataclass
 class MotionStats:

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 from .geco import GeCoLossConfig
 
+__all__ = ["evaluation_loss", "fused_guidance_loss", "guidance_loss"]
+
 
 def guidance_loss() -> GeCoLossConfig:
     """The paper's guidance experiment: residual motion, adjacent pairs, flow x0.5, no VGGT gradient."""

@@ -34,11 +34,13 @@ from ..io.video import check_fps, write_video
 from ..loss.cues import fuse_cues, masked_mean, structure_residual
 from ..loss.geco import GeCoLossConfig, GeCoMaps
 from ..types import SceneGeometry, check_frame_values
+from .detection_options import ANCHORS, FORMATS
 from .evaluate import EvaluationMaps, score_frames
 from .render import colorize, hatch, map_frames, text_scale
 
-ANCHORS = ("start", "center", "end")
-FORMATS = ("mp4", "gif", "png")
+__all__ = ["ANCHORS", "FORMATS", "detection_maps", "frame_scores", "render_detection", "window_indices",
+           "write_detection", "write_pngs"]
+
 PANELS = ("motion", "structure", "fused")
 
 

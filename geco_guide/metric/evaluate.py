@@ -56,6 +56,9 @@ from .protocol import (
 )
 from .render import colorize, hatch, map_frames, text_scale
 
+__all__ = ["MAP_PANELS", "PAPER_NAMES", "EvaluationMaps", "EvaluationResult", "evaluate_video",
+           "finite_or_none", "mean_or_nan", "render_maps", "score_frames", "write_maps_video"]
+
 MAP_PANELS = ("source", "motion", "structure", "fused")
 PAPER_NAMES = {
     "motion": "M_motion",

@@ -13,6 +13,10 @@ from typing import Optional
 from ..loss.geco import GeCoLossConfig, frame_pairs
 from ..loss.presets import evaluation_loss
 from ..types import OptionError
+from .model_fps import PAPER_MODEL_FPS
+
+__all__ = ["PAPER_MODEL_FPS", "EvaluationConfig", "Window", "evaluation_windows", "motion_grid",
+           "sampled_rate", "scoring_plan", "time_grid_indices"]
 
 
 def sampled_rate(fps: float, max_fps: float) -> float:
@@ -92,23 +96,6 @@ def motion_grid(num_frames: int, fps: float, max_fps: float) -> list[int]:
     """The frames Total / Mean Motion are measured on: the whole clip on the windows' time grid
     (:func:`time_grid_indices` from 0 over the clip's duration at ``min(max_fps, fps)``)."""
     return time_grid_indices(num_frames, fps, 0.0, num_frames / fps, sampled_rate(fps, max_fps))
-
-
-#: Native frame rate of each video model (GeCo paper, supplement "Frame rate of evaluated
-#: models"; the Wan 2.1 checkpoints, not in the paper, export at 16 fps like Wan 2.2). GeCo-Eval
-#: times its windows with these rates, not with the rate written in the file.
-PAPER_MODEL_FPS = {
-    "sora-2": 30.0,
-    "veo-3.1": 24.0,
-    "wan2.2-t2v-a14b": 16.0,
-    "wan2.1-t2v-1.3b": 16.0,
-    "wan2.1-t2v-14b": 16.0,
-    "hunyuanvideo": 24.0,
-    "cogvideox1.5-5b": 16.0,
-    "cogvideox-5b": 16.0,
-    "cogvideox-2b": 16.0,
-    "ltx-video": 30.0,
-}
 
 
 @dataclass

@@ -16,6 +16,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+__all__ = ["FONT_SIZE", "INVALID_COLOR", "MAP_RANGE", "MIN_FONT_SIZE", "READABLE_HEIGHT", "VIRIDIS",
+           "colorbar", "colorbar_ticks", "colorize", "draw_text", "enlarge", "fitting_size", "hatch",
+           "label_height", "map_frames", "panel_layout", "side_by_side", "text_mask", "text_scale",
+           "text_strip"]
+
 # Viridis (matplotlib's perceptually uniform, colour-blind-safe map): 9 evenly spaced samples,
 # linearly interpolated in between (sRGB, 0-255).
 VIRIDIS = torch.tensor(

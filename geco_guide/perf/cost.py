@@ -31,12 +31,19 @@ from ..sampler.config import GuidanceConfig, fused_guidance_config
 from ..sampler.context import GuidanceContext
 from ..sampler.levels import VPLevels
 from ..sampler.memory_plan import model_signature
+from ..sampler.run_options import RunOptions
 from ..sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
 from ..sampler.slicing import default_anchors
 from ..sampler.step import Update, guided_step, loss_terms
 from .measure import GIB, environment_info
 from .models import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_cost_pipeline, model_bytes
 from .profile import call_marking_backward
+
+__all__ = ["AUTO_MASK_REFRESH_S", "GPU_SPECS", "H200_UNGUIDED_STEP_S", "INTERCONNECT_BYTES_PER_S",
+           "NOMINAL_STEPS", "CostTracker", "at_calibration_size", "calibration_call_roofline_s",
+           "compare_with_measured", "cost_report", "cost_settings", "cost_table", "count_schedule_calls",
+           "counting_context_class", "dynamic_mask_costs", "dynamic_masks_table", "load_measured",
+           "sam3_refresh_cost", "several_gpus", "several_gpus_table", "trace_cost"]
 
 NOMINAL_STEPS = 50
 
@@ -229,14 +236,22 @@ def cost_guidance(settings: dict[str, Any], mode: str, repeats: str, time_travel
 
     # the fused loss (gradients through VGGT too): the costlier of the two presets, what was measured
     base = tiny_guidance_config() if settings["preset"] == "tiny" else fused_guidance_config()
-    changes = {k: settings[k] for k in ("chunk_latents", "vae_checkpointing", "vae_block_checkpointing",
-                                        "denoiser_checkpointing") if settings.get(k) is not None}
+    chunk_latents = settings.get("chunk_latents")
     anchors = default_anchors(settings["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
-    # a named plan sets every checkpointing flag, the estimators' too; else the flags as given
     return replace(base, anchors=anchors, repeats=repeats, time_travel=time_travel,
                    denoiser_grad=mode == "faithful", decoder=settings.get("decoder", "vae"),
-                   memory_plan=settings.get("plan") or "explicit",
-                   chunk_latents=changes.get("chunk_latents", base.chunk_latents),
+                   chunk_latents=base.chunk_latents if chunk_latents is None else chunk_latents)
+
+
+def cost_run_options(settings: dict[str, Any]) -> RunOptions:
+    """How the guidance of a cost trace runs: a named plan sets every checkpointing flag, the
+    estimators' too; else the preset's flags with the run's changes, as given."""
+    from ..tiny import tiny_run_options  # the tiny models pull in transformers: only when asked for
+
+    base = tiny_run_options() if settings["preset"] == "tiny" else RunOptions()
+    changes = {k: settings[k] for k in ("vae_checkpointing", "vae_block_checkpointing", "denoiser_checkpointing")
+               if settings.get(k) is not None}
+    return replace(base, memory_plan=settings.get("plan") or "explicit",
                    vae_checkpointing=changes.get("vae_checkpointing", base.vae_checkpointing),
                    vae_block_checkpointing=changes.get("vae_block_checkpointing", base.vae_block_checkpointing),
                    gradient_checkpointing=changes.get("denoiser_checkpointing", base.gradient_checkpointing))
@@ -310,7 +325,8 @@ def trace_cost(settings: dict[str, Any], mode: str) -> dict[str, Any]:
             dtype = getattr(torch, settings["dtype"])
             call["prompt_embeds"], call["negative_prompt_embeds"] = (
                 torch.empty(TEXT_EMBED_SHAPE, dtype=dtype) for _ in range(2))
-        out = pipe(**call, num_inference_steps=1, guidance=guidance, guidance_scale=6.0)
+        out = pipe(**call, num_inference_steps=1, guidance=guidance, run_options=cost_run_options(settings),
+                   guidance_scale=6.0)
         frames_shape = list(out.frames.shape)
         del out
     summary = tracker.summary()
@@ -610,7 +626,7 @@ INTERCONNECT_BYTES_PER_S = {"H200": 450e9, "H100": 450e9, "L40S": 32e9, "A6000":
 
 
 def several_gpus(report: dict[str, Any], num_gpus: int) -> dict[str, Any]:
-    """Predicted wall time of ``report``'s guided run with ``guidance.devices`` over ``num_gpus``
+    """Predicted wall time of ``report``'s guided run with ``run.devices`` over ``num_gpus``
     GPUs of one card: the anchor chunks of an update decode on different GPUs at once (forward and
     backward), so the decode stage takes the time of the ``ceil(chunks / num_gpus)`` chunks one GPU
     decodes, plus the transfers of the chunks decoded elsewhere (their latents out and anchor
@@ -645,7 +661,7 @@ def several_gpus(report: dict[str, Any], num_gpus: int) -> dict[str, Any]:
 
 def several_gpus_table(rows: dict[str, Any]) -> str:
     """Markdown: :func:`several_gpus` per card."""
-    lines = [f"guidance.devices over {rows['num_gpus']} GPUs ({rows['chunks']} anchor chunks, "
+    lines = [f"run.devices over {rows['num_gpus']} GPUs ({rows['chunks']} anchor chunks, "
              f"{rows['chunks_per_gpu']} per GPU at most), predicted:",
              "| card | guided (s) | / unguided on 1 GPU | / unguided on N GPUs | decode (s) | transfers (s) |",
              "|---|---|---|---|---|---|"]

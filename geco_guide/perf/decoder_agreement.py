@@ -38,6 +38,9 @@ from ..sampler.slicing import decode_anchor_frames, decode_chunk
 from ..sampler.step import loss_terms
 from .measure import environment_info
 
+__all__ = ["agreement_rows", "agreement_summary", "agreement_table", "check_agreement_config",
+           "decoder_agreement", "gradient_cosine", "psnr_db"]
+
 #: The PSNR's MSE floor: identical frames read 10 * log10(1 / 1e-10) = 100 dB.
 MSE_FLOOR = 1e-10
 
@@ -72,7 +75,10 @@ def agreement_context_class(pipe: Any, num_frames: int, rows: list[dict[str, Any
             super().__init__(config, *args, **kwargs)
             self.observer = "vae" if config.decoder == "tiny" else "tiny"
             observer_config = replace(config, decoder=self.observer)
-            self.observer_decode = anchor_decoder(observer_config, vae_decode_with, pipe.guidance_decoder, pipe.vae)
+            # the observer decodes in the stock layout: channels-last is for the VAE that guides
+            observer_run = replace(self.run, decode_layout="default")
+            self.observer_decode = anchor_decoder(observer_config, observer_run, vae_decode_with, pipe.guidance_decoder,
+                                                  pipe.vae)
             self.observer_chunks = observer_config.anchor_chunks(num_frames, pipe.vae_scale_factor_temporal)
             self.pending: dict[str, Any] = {}
             self.at: tuple[int, int] = (0, 0)
@@ -154,7 +160,8 @@ def agreement_rows(pipe: Any, cfg: GeCoConfig, prompt: str) -> list[dict[str, An
         pipe(prompt=prompt, negative_prompt=s.negative_prompt, height=s.height, width=s.width,
              num_frames=s.num_frames, num_inference_steps=s.num_inference_steps, guidance_scale=s.guidance_scale,
              use_dynamic_cfg=s.use_dynamic_cfg, generator=torch.Generator(device="cpu").manual_seed(cfg.seed),
-             output_type="latent", max_sequence_length=s.max_sequence_length, guidance=cfg.guidance)
+             output_type="latent", max_sequence_length=s.max_sequence_length, guidance=cfg.guidance,
+             run_options=cfg.run)
     finally:
         if own is None:
             del pipe.guidance_context_class  # the class's again

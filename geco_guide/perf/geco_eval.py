@@ -15,6 +15,8 @@ from torch import Tensor
 
 from .measure import environment_info
 
+__all__ = ["geco_eval_cost", "geco_eval_table"]
+
 
 def _counting(estimator: Any, method: str, counts: dict[str, int], calls: str, items: str, dim: int) -> None:
     """Count ``estimator.method``'s calls and the size of its first argument along ``dim``."""

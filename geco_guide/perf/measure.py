@@ -9,6 +9,7 @@ no truncated file behind.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import platform
 import resource
@@ -23,6 +24,13 @@ from typing import Any
 import torch
 
 from ..io.files import write_json_atomic
+
+__all__ = ["CASE_COLUMNS", "GIB", "MIB", "RSS_EXACT_MMAP_THRESHOLD", "current_memory_bytes",
+           "environment_info", "markdown_table", "memory_kind", "peak_memory_bytes", "reset_peak_memory",
+           "run_case_subprocess", "run_cases", "synchronize", "time_callable", "unwritable_reason",
+           "write_report"]
+
+logger = logging.getLogger(__name__)
 
 #: ``--rss-exact``: allocations from 64 KiB up are mapped on their own and unmapped when freed.
 RSS_EXACT_MMAP_THRESHOLD = 64 * 1024
@@ -122,13 +130,12 @@ def run_case_subprocess(spec: dict[str, Any], worker: Sequence[str]) -> dict[str
 
 
 def run_cases(specs: Sequence[dict[str, Any]], worker: Sequence[str]) -> list[dict[str, Any]]:
-    """Run every case in its own subprocess, logging progress to stderr."""
+    """Run every case in its own subprocess, logging its progress."""
     results = []
     for spec in specs:
-        print(f"running {spec['case']} / {spec['mode']} ...", file=sys.stderr, flush=True)
+        logger.info("running %s / %s ...", spec["case"], spec["mode"])
         result = run_case_subprocess(spec, worker)
-        print(f"  median {result['time_median_s']:.4g} s, peak {result['peak_mib']:.0f} MiB",
-              file=sys.stderr, flush=True)
+        logger.info("  median %.4g s, peak %.0f MiB", result["time_median_s"], result["peak_mib"])
         results.append(result)
     return results
 

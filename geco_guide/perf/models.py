@@ -18,6 +18,9 @@ from ..estimators.ufm import UFM, UFMConfig
 from ..estimators.vggt import VGGT, VGGTConfig
 from ..sampler.loading import cast_model
 
+__all__ = ["FULL_SIZE_VIDEO", "TEXT_EMBED_SHAPE", "build_cost_pipeline", "build_full_size_components",
+           "cast_components", "full_size_vae", "model_bytes", "to_fake"]
+
 #: Published ``THUDM/CogVideoX-5b`` configs (``transformer/config.json``, ``vae/config.json``,
 #: ``scheduler/scheduler_config.json``), written out so nothing is downloaded. The checkpoint ships
 #: ``CogVideoXDPMScheduler``; the GeCo pipeline samples with DDIM from the same settings.

@@ -27,6 +27,10 @@ from .decoder_agreement import check_agreement_config
 from .measure import RSS_EXACT_MMAP_THRESHOLD, unwritable_reason
 from .sampling import NOMINAL_STEPS, SAMPLING_MODES
 
+__all__ = ["OneLineParser", "add_common_options", "add_cost_parser", "add_plans_parser",
+           "add_sampling_parser", "check_frames", "check_options", "fail", "frame_count", "positive_float",
+           "positive_int"]
+
 
 class OneLineParser(argparse.ArgumentParser):
     """An argument parser whose errors are one line (``prog: error: ...``), exit code 2."""
@@ -218,12 +222,12 @@ def add_sampling_parser(sub: Any) -> argparse.ArgumentParser:
                       help="latents per anchor chunk (default: the paper's 3; 2 decodes 5 frames per anchor instead of 9)")
     samp.add_argument("--no-denoiser-checkpointing", action="store_true",
                       help="faithful mode: backpropagate through the transformer without gradient checkpointing "
-                           "(guidance.gradient_checkpointing=false: one forward less per update, more memory)")
+                           "(run.gradient_checkpointing=false: one forward less per update, more memory)")
     samp.add_argument("--memory-plan", choices=PLAN_NAMES, default="explicit",
-                      help="guidance.memory_plan of the guided arm (default: explicit, the flags above as "
+                      help="run.memory_plan of the guided arm (default: explicit, the flags above as "
                            "measured; auto: the plan chosen for the device's memory, recorded in the report)")
     samp.add_argument("--devices", nargs="+", default=None, metavar="DEVICE",
-                      help="guidance.devices of the guided arm: deal its anchor decode over these devices, e.g. "
+                      help="run.devices of the guided arm: deal its anchor decode over these devices, e.g. "
                            "cuda:0 cuda:1 (each with a replica of the decoder)")
     samp.add_argument("--allow-cpu", action="store_true",
                       help="allow --full-size on CPU (the weights alone are ~30 GiB in float32)")
@@ -253,16 +257,16 @@ def add_cost_parser(sub: Any) -> argparse.ArgumentParser:
                       help="transformer/VAE dtype and the estimators' trunks (default: bfloat16 full, float32 tiny)")
     cost.add_argument("--chunk-latents", type=chunk_latents, default=None, help="latents per anchor chunk (default: the preset's)")
     cost.add_argument("--vae-checkpointing", choices=("on", "off"), default=None,
-                      help="guidance.vae_checkpointing, the anchor chunks one at a time (default: the preset's: "
+                      help="run.vae_checkpointing, the anchor chunks one at a time (default: the preset's: "
                            "on full, off tiny)")
     cost.add_argument("--vae-block-checkpointing", choices=("on", "off"), default=None,
-                      help="guidance.vae_block_checkpointing: the VAE's own block checkpointing (default: as "
+                      help="run.vae_block_checkpointing: the VAE's own block checkpointing (default: as "
                            "--vae-checkpointing)")
     cost.add_argument("--gpu", choices=tuple(GPU_SPECS), default=None,
-                      help="model the memory plan that guidance.memory_plan=auto picks for this card's memory "
+                      help="model the memory plan that run.memory_plan=auto picks for this card's memory "
                            "(with model CPU offload where none fits without)")
     cost.add_argument("--denoiser-checkpointing", choices=("on", "off"), default=None,
-                      help="guidance.gradient_checkpointing (default: the preset's: on full, off tiny)")
+                      help="run.gradient_checkpointing (default: the preset's: on full, off tiny)")
     cost.add_argument("--estimator-checkpointing", action="store_true", help="VGGT and UFM gradient checkpointing")
     cost.add_argument("--vae-tiling", action="store_true", help="the VAE's spatial tiles (model.vae_tiling)")
     cost.add_argument("--decoder", choices=DECODERS, default="vae",
@@ -276,7 +280,7 @@ def add_cost_parser(sub: Any) -> argparse.ArgumentParser:
     cost.add_argument("--measured", metavar="JSON",
                       help="a `sampling` report of the same settings on an H200: add predicted vs measured")
     cost.add_argument("--num-gpus", type=positive_int, default=1,
-                      help="also predict the guided run with guidance.devices over this many GPUs of the card "
+                      help="also predict the guided run with run.devices over this many GPUs of the card "
                            "(the anchor chunks decoded on different GPUs at once)")
     cost.add_argument("--dynamic-masks", action="store_true",
                       help="add the overhead of guidance.dynamic masks refreshed at each guided step: SAM 3 "
@@ -292,7 +296,7 @@ def add_plans_parser(sub: Any) -> argparse.ArgumentParser:
     from .plans import KNOWN_MODELS
 
     plans = sub.add_parser("plans", help="the memory plans' estimates of the known models (the package data "
-                                         "guidance.memory_plan=auto reads), from the cost model")
+                                         "run.memory_plan=auto reads), from the cost model")
     plans.add_argument("--models", nargs="+", choices=tuple(KNOWN_MODELS), default=list(KNOWN_MODELS),
                        help="the models to trace (default: all)")
     plans.add_argument("--threads", type=positive_int, default=None, help="torch.set_num_threads")

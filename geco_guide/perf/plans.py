@@ -4,7 +4,7 @@
 every known model, mode and anchor decoder with :func:`~.cost.cost_report` and keeps what the
 planner needs: the peak as weights + activations, the peak with model CPU offload, and the
 predicted H200 time. The result is the package data ``geco_guide/sampler/data/memory_plans.json``
-that ``guidance.memory_plan=auto`` reads at a call (no tracing at start-up).
+that ``run.memory_plan=auto`` reads at a call (no tracing at start-up).
 
 With model CPU offload (``enable_model_cpu_offload()``) the pipeline keeps the estimators and the
 tiny decoder on the device (they are excluded from offload) and moves the transformer and the VAE
@@ -20,8 +20,11 @@ from typing import Any
 from ..estimators import TINY_RANDOM
 from ..sampler.config import GuidanceConfig
 from ..sampler.memory_plan import PLANS, choose_plan
+from ..sampler.run_options import RunOptions
 from .cost import GPU_SPECS, cost_report, cost_settings
 from .measure import GIB
+
+__all__ = ["KNOWN_MODELS", "card_plan", "offload_peak", "plan_estimate", "plan_estimates", "with_card"]
 
 #: The models the estimates know: the cost preset that builds each, and the hub ids that name it
 #: (so that a command line can check a budget before any model loads).
@@ -117,7 +120,7 @@ def card_plan(gpu: str, mode: str, decoder: str, frames: int, height: int, width
     errors = []
     for offload in (False, True):
         try:
-            choice = choose_plan(config, model_id=KNOWN_MODELS["cogvideox-5b"]["model_ids"][0], frames=frames,
+            choice = choose_plan(config, RunOptions(), model_id=KNOWN_MODELS["cogvideox-5b"]["model_ids"][0], frames=frames,
                                  height=height, width=width, device_gb=device_gb, offload=offload, estimates=estimates)
         except ValueError as err:
             errors.append(str(err))

@@ -19,6 +19,9 @@ from torch import Tensor
 
 from .measure import synchronize
 
+__all__ = ["StageProfiler", "breakdown_of", "call_marking_backward", "summarize_profile", "union_seconds",
+           "update_windows"]
+
 
 def output_tensors(obj: Any) -> list[Tensor]:
     """Tensors in a (nested) output: tensors, tuples/lists, dicts (diffusers outputs), dataclasses."""

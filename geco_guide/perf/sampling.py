@@ -9,8 +9,8 @@ extrapolated to 50 steps and the paper's 111 updates (``extrapolated: true``).
 
 from __future__ import annotations
 
+import logging
 import os
-import sys
 import time
 import warnings
 from collections.abc import Sequence
@@ -23,6 +23,7 @@ from ..config import COGVIDEOX_TEMPORAL_COMPRESSION
 from ..estimators.ufm import UFM, UFMConfig
 from ..estimators.vggt import VGGT, VGGTConfig
 from ..sampler.config import GuidanceConfig, fused_guidance_config
+from ..sampler.run_options import RunOptions
 from ..sampler.schedule import (
     PAPER_REPEATS,
     PAPER_TIME_TRAVEL,
@@ -41,6 +42,11 @@ from .measure import (
 )
 from .models import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_full_size_components, cast_components
 from .profile import StageProfiler, breakdown_of, summarize_profile
+
+__all__ = ["NOMINAL_STEPS", "SAMPLING_MODES", "paper_schedule_for", "run_sampling_worker",
+           "sampling_guidance", "sampling_run_options", "sampling_report", "sampling_spec", "sampling_table"]
+
+logger = logging.getLogger(__name__)
 
 NOMINAL_STEPS = 50
 SAMPLING_MODES = ("faithful", "fast", "unguided")
@@ -69,10 +75,17 @@ def sampling_guidance(spec: dict[str, Any]) -> GuidanceConfig | bool:
     base = tiny_guidance_config() if spec["preset"] == "tiny" else fused_guidance_config()
     chunk_latents = base.chunk_latents if spec["chunk_latents"] is None else spec["chunk_latents"]
     anchors = default_anchors(spec["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
-    # the flags as measured unless a memory plan is asked for
     return replace(base, anchors=anchors, repeats=repeats, time_travel=time_travel,
-                   denoiser_grad=spec["mode"] == "faithful", chunk_latents=chunk_latents,
-                   memory_plan=spec.get("memory_plan") or "explicit", devices=spec.get("devices"),
+                   denoiser_grad=spec["mode"] == "faithful", chunk_latents=chunk_latents)
+
+
+def sampling_run_options(spec: dict[str, Any]) -> RunOptions:
+    """The ``run_options=`` argument of an arm: the preset's checkpointing flags as measured
+    (``explicit``) unless a memory plan is asked for, and the arm's devices."""
+    from ..tiny import tiny_run_options
+
+    base = tiny_run_options() if spec["preset"] == "tiny" else RunOptions()
+    return replace(base, memory_plan=spec.get("memory_plan") or "explicit", devices=spec.get("devices"),
                    gradient_checkpointing=base.gradient_checkpointing and not spec.get("no_denoiser_checkpointing"))
 
 
@@ -124,10 +137,10 @@ def run_sampling_worker(spec: dict[str, Any]) -> dict[str, Any]:
     profiler.wrap(pipe.geometry_estimator, "estimate_geometry", "vggt")
     profiler.wrap(pipe.flow_estimator, "estimate_flow", "ufm")
     profiler.mark_loop_start(pipe)
-    guidance = sampling_guidance(spec)
+    guidance, run = sampling_guidance(spec), sampling_run_options(spec)
 
     def sample(steps: int, guidance_arg: Any) -> Any:
-        return pipe(**call, num_inference_steps=steps, guidance=guidance_arg, guidance_scale=6.0,
+        return pipe(**call, num_inference_steps=steps, guidance=guidance_arg, run_options=run, guidance_scale=6.0,
                     generator=torch.Generator().manual_seed(spec["seed"]), callback_on_step_end=profiler.on_step_end)
 
     for _ in range(spec["warmup"]):  # 2 steps: with guidance, step 1 has updates (scaled schedule)
@@ -205,8 +218,8 @@ def sampling_spec(*, full_size: bool, mode: str, steps: int | None, frames: int 
                   memory_plan: str = "explicit", devices: Sequence[str] | None = None) -> dict[str, Any]:
     """The case of a sampling benchmark with the presets' defaults filled in (``None``: the
     preset's; tiny: 17x32x48 float32; full size: 49x480x720, bfloat16 on CUDA). ``memory_plan``:
-    ``guidance.memory_plan`` (default ``explicit``: the checkpointing flags of the preset and options);
-    ``devices``: ``guidance.devices`` of the guided arm (the anchor decode dealt over them)."""
+    ``run.memory_plan`` (default ``explicit``: the checkpointing flags of the preset and options);
+    ``devices``: ``run.devices`` of the guided arm (the anchor decode dealt over them)."""
     preset = "full-size" if full_size else "tiny"
     if preset == "tiny":
         from ..tiny import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH
@@ -235,10 +248,9 @@ def sampling_report(spec: dict[str, Any], worker: Sequence[str], argv: Sequence[
     arms = {}
     for arm in arms_to_run:
         case = {**spec, "arm": arm, "case": f"sampling-{preset}-{arm}"}
-        print(f"running {case['case']} ({mode}, {steps} steps) ...", file=sys.stderr, flush=True)
+        logger.info("running %s (%s, %s steps) ...", case["case"], mode, steps)
         arms[arm] = run_case_subprocess(case, worker)
-        print(f"  wall {arms[arm]['wall_s']:.4g} s, peak {arms[arm]['peak_memory_gb']:.3f} GiB",
-              file=sys.stderr, flush=True)
+        logger.info("  wall %.4g s, peak %.3f GiB", arms[arm]["wall_s"], arms[arm]["peak_memory_gb"])
 
     extrapolated = steps < NOMINAL_STEPS
     paper_updates = sum(parse_repeats(PAPER_REPEATS))

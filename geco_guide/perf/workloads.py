@@ -37,6 +37,8 @@ from .measure import (
 )
 from .models import full_size_vae
 
+__all__ = ["WORKLOADS", "Workload", "estimator_specs", "loss_specs", "make_step", "run_worker", "vae_specs"]
+
 MODES = ("forward", "forward_backward")
 
 

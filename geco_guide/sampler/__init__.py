@@ -7,8 +7,10 @@ from .config import (
     GuidanceConfig,
     fused_guidance_config,
     paper_guidance_config,
+    resolve_call_options,
     resolve_guidance_config,
 )
+from .run_options import RunOptions
 from .context import GuidanceContext
 from .levels import FlowLevels, NoiseLevels, VPLevels, ddim_step, renoise, v_to_x0
 from .schedule import GuidanceSchedule, paper_schedule, parse_repeats, scale_schedule
@@ -55,7 +57,9 @@ __all__ = [
     "paper_schedule",
     "parse_repeats",
     "renoise",
+    "resolve_call_options",
     "resolve_guidance_config",
+    "RunOptions",
     "scale_schedule",
     "score_anchor_frames",
     "v_to_x0",

@@ -31,6 +31,10 @@ from torch import Tensor, nn
 from .levels import FlowLevels, NoiseLevels, VPLevels
 from .slicing import decode_chunk
 
+__all__ = ["CallGeometry", "CogVideoXAdapter", "HunyuanVideoAdapter", "LTXAdapter", "PipelineAdapter",
+           "WanAdapter", "adapter_for", "check_no_denoiser_cache", "check_scheduler", "fit_combination",
+           "keep_update", "noise_levels", "register_adapter"]
+
 
 @dataclass(frozen=True)
 class CallGeometry:

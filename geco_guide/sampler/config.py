@@ -17,8 +17,6 @@ from ..estimators.tiny_decoder import CONTEXT_LATENTS
 from ..loss.geco import GeCoLossConfig
 from ..loss.presets import fused_guidance_loss, guidance_loss
 from ..types import OptionError, merge_dataclass, non_finite_fields
-from .fast_decode import DECODE_LAYOUTS
-from .memory_plan import PLAN_NAMES
 from .schedule import (
     PAPER_ETA,
     PAPER_REPEATS,
@@ -26,7 +24,11 @@ from .schedule import (
     GuidanceSchedule,
     scale_schedule,
 )
+from .run_options import RunOptions, check_run_for_guidance, resolve_run_options, split_legacy_run_keys
 from .slicing import AnchorChunk, anchor_latent_chunks
+
+__all__ = ["DECODERS", "MAX_ETA", "PAPER_ANCHORS", "GuidanceConfig", "fused_guidance_config",
+           "paper_guidance_config", "resolve_call_options", "resolve_guidance_config"]
 
 PAPER_ANCHORS = (12, 24, 36, 48)
 # An update of eta moves the latents by eta in L2 norm; 1000 is about the norm of the whole latent
@@ -38,8 +40,10 @@ DECODERS = ("vae", "tiny")
 
 @dataclass
 class GuidanceConfig:
-    """GeCo guidance options (defaults: the paper's guidance experiment, for 50 DDIM steps of a
-    49-frame video; :func:`fused_guidance_config` is the method section's fused loss).
+    """GeCo guidance options: what guidance computes (defaults: the paper's guidance experiment,
+    for 50 DDIM steps of a 49-frame video; :func:`fused_guidance_config` is the method section's
+    fused loss). How one machine runs it (memory plan, decode layout, devices) is
+    :class:`~geco_guide.sampler.run_options.RunOptions`.
 
     Attributes:
         enabled: ``False`` samples without guidance (plain deterministic DDIM).
@@ -55,22 +59,6 @@ class GuidanceConfig:
             ``False`` is the fast mode that holds the model output constant through the step
             (``dx0/dz_t = sqrt(a_t)``), so the denoiser runs once per step as without guidance
             (plus once after each time-travel re-noising).
-        gradient_checkpointing: checkpoint the denoiser's blocks while differentiating it.
-        vae_checkpointing: decode the anchor chunks one at a time in checkpointed regions: the
-            backward then holds one chunk's decode instead of all of them, for one extra forward
-            decode per chunk. The CogVideoX-5B VAE needs it at 480x720 (docs/performance.md);
-            ``False`` batches the chunks in one decode and keeps everything (fastest, for small
-            videos). With ``memory_plan=explicit`` only, as the next two flags.
-        vae_block_checkpointing: the VAE's own block checkpointing while guiding (where the VAE
-            supports it; a third decode of each chunk, less memory); ``None`` follows
-            ``vae_checkpointing``, which meant both before the two were split.
-        memory_plan: what the guidance backward recomputes (:mod:`.memory_plan`): ``auto``
-            (default: the plan of least predicted time that fits the memory budget),
-            ``explicit`` (the three flags above as given, the estimators as loaded), or a named
-            plan, ``fastest``, ``partial``, ``chunked``, ``checkpointed`` or ``leanest``. No plan changes the
-            video.
-        memory_budget_gb: the memory (GiB) ``auto`` plans for; ``None``: 94 % of the device's
-            (a CUDA device's total, a CPU's physical RAM).
         grad_eps: ``eps`` of the normalised update.
         decoder: what decodes the anchor frames for the loss: ``vae`` (the model's own VAE,
             exact) or ``tiny`` (an approximation: a :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder`
@@ -79,13 +67,6 @@ class GuidanceConfig:
             whose weights a config names in ``estimators.tiny_decoder``. The final video always
             comes from the VAE. See docs/performance.md for what it saves (predicted) and how
             to measure what it costs in fidelity (``scripts/benchmark.py decoder-agreement``).
-        decode_layout: memory layout of the VAE's guidance decode (:mod:`.fast_decode`):
-            ``default`` (the stock decode) or ``channels_last`` (the CogVideoX VAE decoder in
-            ``torch.channels_last_3d``, the same frames and gradients to float rounding, not
-            bitwise, hence off by default; ``decoder=vae`` only). The final video is decoded as stock.
-        compile: ``torch.compile`` the guidance decoder (the VAE decoder, or the tiny decoder),
-            forward and backward, once per decoder and input shape; if compiling fails, one
-            warning and an eager decode. See docs/guidance.md (Faster anchor decode).
         loss: the GeCo loss options (default :func:`~geco_guide.loss.presets.guidance_loss`); the
             structure cue only gives gradients with ``loss.geometry_grad=True``, since it depends
             on the frames only through the geometry estimator: ``cue="structure"`` with
@@ -100,14 +81,6 @@ class GuidanceConfig:
         dynamic_refresh: the masks are computed at the first update of every
             ``dynamic_refresh``-th guided step and reused until then (1: each step's own, shared
             by its repeats).
-        devices: where the anchor decode runs (how guidance runs, not what it computes, like
-            ``memory_plan``): ``None`` (default) on the pipeline's device; a list of devices
-            (``["cuda:0", "cuda:1"]``, ``["auto"]`` for every visible GPU) deals the anchor
-            chunks round-robin over them, each with its own replica of the guidance decoder,
-            decoded forward and backward at once; the frames meet on the pipeline's device for
-            the loss. One chunk per decode call, as the chunked plans: the same frames as one
-            device's chunked decode (bitwise on CPU; to float rounding across kinds of device).
-            See docs/performance.md (Several GPUs).
     """
 
     enabled: bool = True
@@ -117,20 +90,12 @@ class GuidanceConfig:
     eta: float = PAPER_ETA
     time_travel: Optional[list[int]] = field(default_factory=lambda: list(PAPER_TIME_TRAVEL))
     denoiser_grad: bool = True
-    gradient_checkpointing: bool = True
-    vae_checkpointing: bool = True
-    vae_block_checkpointing: Optional[bool] = None
-    memory_plan: str = "auto"
-    memory_budget_gb: Optional[float] = None
     grad_eps: float = 1e-8
     decoder: str = "vae"
-    decode_layout: str = "default"
-    compile: bool = False
     loss: GeCoLossConfig = field(default_factory=guidance_loss)
     dynamic: Optional[str] = None
     dynamic_dilation: int = 0
     dynamic_refresh: int = 1
-    devices: Optional[list[str]] = None
 
     def __post_init__(self) -> None:
         check_option_types(self)
@@ -144,21 +109,7 @@ class GuidanceConfig:
             raise OptionError("chunk_latents", f"must be >= 2, got {self.chunk_latents}")
         if self.decoder not in DECODERS:
             raise OptionError("decoder", f"must be one of {DECODERS}, got {self.decoder!r}")
-        if self.decode_layout not in DECODE_LAYOUTS:
-            raise OptionError("decode_layout", f"must be one of {', '.join(DECODE_LAYOUTS)}, got {self.decode_layout!r}")
-        if self.decode_layout != "default" and self.decoder != "vae":
-            raise OptionError("decode_layout", f"{self.decode_layout} lays out the VAE's decode, but decoder={self.decoder!r}: "
-                                               "use decode_layout=default with the tiny decoder")
-        if self.memory_plan not in PLAN_NAMES:
-            raise OptionError("memory_plan", f"must be one of {', '.join(PLAN_NAMES)}, got {self.memory_plan!r}")
-        if self.memory_budget_gb is not None and not self.memory_budget_gb > 0:
-            raise OptionError("memory_budget_gb", f"must be a positive number of GiB (or null: the device's memory), "
-                                                  f"got {self.memory_budget_gb}")
         check_dynamic_options(self)
-        if self.devices is not None and (not isinstance(self.devices, (list, tuple)) or not self.devices
-                                         or not all(isinstance(d, str) and d.strip() for d in self.devices)):
-            raise OptionError("devices", f"must be null or a list of devices (e.g. [cuda:0, cuda:1], or [auto]), "
-                                         f"got {self.devices!r}")
 
     def schedule(self, num_steps: int) -> GuidanceSchedule:
         """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see
@@ -203,9 +154,8 @@ def check_dynamic_options(config: GuidanceConfig) -> None:
         raise OptionError("dynamic_refresh", f"must be a whole number of steps >= 1, got {config.dynamic_refresh!r}")
 
 
-#: The options of :class:`GuidanceConfig` that take true or false (``vae_block_checkpointing``
-#: also null).
-FLAGS = ("enabled", "denoiser_grad", "gradient_checkpointing", "vae_checkpointing", "compile")
+#: The options of :class:`GuidanceConfig` that take true or false.
+FLAGS = ("enabled", "denoiser_grad")
 
 
 def _is_number(value: Any) -> bool:
@@ -232,14 +182,9 @@ def check_option_types(config: GuidanceConfig) -> None:
         value = getattr(config, key)
         if not isinstance(value, bool):
             raise OptionError(key, f"must be true or false, got {value!r}")
-    if config.vae_block_checkpointing is not None and not isinstance(config.vae_block_checkpointing, bool):
-        raise OptionError("vae_block_checkpointing", f"must be true, false or null, got {config.vae_block_checkpointing!r}")
     for key in ("eta", "grad_eps"):
         if not _is_number(getattr(config, key)):
             raise OptionError(key, f"must be a number, got {getattr(config, key)!r}")
-    if config.memory_budget_gb is not None and not _is_number(config.memory_budget_gb):
-        raise OptionError("memory_budget_gb", f"must be a number of GiB (or null: the device's memory), "
-                                              f"got {config.memory_budget_gb!r}")
     if not _is_integer(config.chunk_latents):
         raise OptionError("chunk_latents", f"must be an integer, got {config.chunk_latents!r}")
     problem = _frame_list_problem(config.anchors, list(PAPER_ANCHORS))
@@ -281,3 +226,30 @@ def resolve_guidance_config(
     if hasattr(override, "keys"):  # dict or omegaconf DictConfig
         return merge_dataclass(base, override, "guidance")
     raise ValueError(f"guidance must be a GuidanceConfig, a dict, True/False or None, got {type(override).__name__}")
+
+
+def resolve_call_options(
+    base: GuidanceConfig | None,
+    override: GuidanceConfig | Mapping[str, Any] | bool | None,
+    run_base: RunOptions | None = None,
+    run_override: RunOptions | Mapping[str, Any] | None = None,
+) -> tuple[GuidanceConfig, RunOptions]:
+    """What one call's guidance computes and how it runs: :func:`resolve_guidance_config` and
+    :func:`~.run_options.resolve_run_options`. A ``guidance`` dict may still hold run options
+    under their old keys (``{"memory_plan": "chunked"}``): they apply below ``run_override``, with
+    one :class:`~.run_options.RenamedOptionWarning` each.
+
+    Raises:
+        ValueError: (one line naming the key) an unknown key, or run options this guidance
+            cannot use (``run.decode_layout=channels_last`` with the tiny decoder).
+    """
+    moved: dict[str, Any] = {}
+    if hasattr(override, "keys") and not isinstance(override, GuidanceConfig):
+        override, moved = split_legacy_run_keys(override)
+    config = resolve_guidance_config(base, override)
+    run = resolve_run_options(resolve_run_options(run_base, moved or None), run_override)
+    try:
+        check_run_for_guidance(run, config.decoder)
+    except OptionError as err:
+        raise ValueError(f"run.{err}") from None
+    return config, run

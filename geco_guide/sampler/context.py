@@ -21,7 +21,6 @@ from typing import Any
 
 import torch
 from torch import Tensor, nn
-from torch.utils.checkpoint import checkpoint
 
 from ..estimators.tiny_decoder import TinyDecoder
 from ..loss.geco import GeCoLoss
@@ -30,10 +29,14 @@ from .dynamic import RefreshedMasks
 from .fast_decode import check_channels_last_vae, guidance_decode
 from .levels import NoiseLevels
 from .memory_plan import PlanChoice, explicit_plan
+from .run_options import RunOptions
 from .schedule import GuidanceSchedule
 from .devices import decoder_replicas
 from .slicing import AnchorChunk, decode_anchor_frames, decode_anchor_frames_across
 from .step import GuidanceRecord, Update, guided_step, loss_terms, read_scalars
+
+__all__ = ["AnchorDecode", "GuidanceContext", "anchor_decoder", "estimator_checkpointing", "frozen",
+           "generator_states", "gradient_checkpointing", "partial_checkpointing"]
 
 logger = logging.getLogger(__name__)
 
@@ -83,35 +86,22 @@ def estimator_checkpointing(estimators: Iterable[Any], enable: bool | None):
 @contextlib.contextmanager
 def partial_checkpointing(model: Any, keep_every: int):
     """Checkpoint a denoiser's ``transformer_blocks`` one by one while differentiating, except every
-    ``keep_every``-th (blocks ``0, k, 2k, ...``), whose activations are kept; restored on exit. A
-    model without such a list, or one already checkpointing, gets its own full checkpointing."""
+    ``keep_every``-th (blocks ``0, k, 2k, ...``), whose activations are kept: a
+    :class:`~.module_hooks.CheckpointedForward` hook on each, removed on exit. A model without such
+    a list, or one already checkpointing, gets its own full checkpointing."""
     blocks = getattr(model, "transformer_blocks", None)
     if blocks is None or getattr(model, "is_gradient_checkpointing", False):
         with gradient_checkpointing(model, True):
             yield
         return
-    wrapped = [block for i, block in enumerate(blocks) if i % keep_every]
-    saved = [block.__dict__.get("forward") for block in wrapped]
-    try:
-        for block in wrapped:
-            block.forward = checkpointed_forward(block.forward)
+    # imports diffusers, which importing the package leaves out
+    from .module_hooks import CHECKPOINT_HOOK, CheckpointedForward, hooked
+
+    with contextlib.ExitStack() as stack:
+        for i, block in enumerate(blocks):
+            if i % keep_every:
+                stack.enter_context(hooked(block, CheckpointedForward(), CHECKPOINT_HOOK))
         yield
-    finally:
-        for block, forward in zip(wrapped, saved):
-            del block.forward
-            if forward is not None:
-                block.forward = forward
-
-
-def checkpointed_forward(forward: Callable[..., Any]) -> Callable[..., Any]:
-    """``forward`` in a checkpointed region when gradients are enabled (as diffusers' own block
-    checkpointing: non-reentrant), plain otherwise."""
-    def run(*args: Any, **kwargs: Any) -> Any:
-        if not torch.is_grad_enabled():
-            return forward(*args, **kwargs)
-        return checkpoint(forward, *args, use_reentrant=False, **kwargs)
-
-    return run
 
 
 def generator_states(generator: torch.Generator | list[torch.Generator] | None) -> list[tuple[torch.Generator, Tensor]]:
@@ -142,16 +132,16 @@ class AnchorDecode:
         return self.decode_with(replica)
 
 
-def anchor_decoder(config: GuidanceConfig, vae_decode_with: Callable[[nn.Module], Callable[[Tensor], Tensor]],
+def anchor_decoder(config: GuidanceConfig, run: RunOptions, vae_decode_with: Callable[[nn.Module], Callable[[Tensor], Tensor]],
                    guidance_decoder: Any, vae: Any) -> AnchorDecode:
     """The :class:`AnchorDecode` of the loss' anchor frames: ``vae_decode_with(vae)`` with
     ``decoder="vae"`` (``vae_decode_with``: a VAE -> its chunk decode); with ``"tiny"`` the tiny
     decoder on the pipeline's latents ``[N, F, C, h, w]``, in its family's convention taken from
     ``vae``'s config (CogVideoX's divided by ``scaling_factor``, Wan's and HunyuanVideo's as they
     are). Checked at the start of a call, before any denoiser runs: ValueError (one line) for a
-    missing or mismatched decoder, TypeError for ``decode_layout="channels_last"`` on a VAE it is
-    not written for."""
-    if config.decode_layout == "channels_last":
+    missing or mismatched decoder, TypeError for ``run.decode_layout="channels_last"`` on a VAE it
+    is not written for."""
+    if run.decode_layout == "channels_last":
         check_channels_last_vae(vae)
     if config.decoder == "vae":
         return AnchorDecode(vae, vae_decode_with)
@@ -187,12 +177,14 @@ class GuidanceContext:
         generator: source of the time-travel noise (the call's).
         on_record: called with each :class:`GuidanceRecord` as it is logged.
         log: the list the records are appended to as dicts (a new one by default).
-        memory_plan: the call's :class:`~.memory_plan.PlanChoice` (default: the config's explicit
+        run: how the call runs (:class:`~.run_options.RunOptions`; default: the defaults): its
+            decode layout and compilation, and the explicit flags ``memory_plan`` defaults to.
+        memory_plan: the call's :class:`~.memory_plan.PlanChoice` (default: ``run``'s explicit
             flags, no fallback); :attr:`memory_plan` is the one in use (after a fallback, the new one).
         dynamic_masks: what moves on its own, left out of the loss
             (:func:`~.dynamic.guidance_mask_source`), or ``None`` (the paper: no masks).
         devices: the devices the anchor chunks are dealt over
-            (:func:`~.devices.resolve_devices` of ``guidance.devices``), each with a replica of
+            (:func:`~.devices.resolve_devices` of ``run.devices``), each with a replica of
             ``decode_chunk``'s module (an :class:`AnchorDecode`), or ``None``: one device.
     """
 
@@ -209,6 +201,7 @@ class GuidanceContext:
         generator: torch.Generator | list[torch.Generator] | None = None,
         on_record: Callable[[GuidanceRecord], None] | None = None,
         log: list[dict[str, Any]] | None = None,
+        run: RunOptions | None = None,
         memory_plan: PlanChoice | None = None,
         dynamic_masks: RefreshedMasks | None = None,
         devices: Sequence[torch.device] | None = None,
@@ -224,7 +217,8 @@ class GuidanceContext:
         # scalars and no update instead (see guided_step).
         self.loss_fn = GeCoLoss(geometry_estimator, flow_estimator, config.loss, check_values=False)
         self.log = log if log is not None else []
-        self.memory_plan = memory_plan or PlanChoice(explicit_plan(config), "the config's explicit flags")
+        self.run = run if run is not None else RunOptions()
+        self.memory_plan = memory_plan or PlanChoice(explicit_plan(self.run), "the run options' explicit flags")
         self._plan_stack: contextlib.ExitStack | None = None
         self._plan_models: tuple[list[nn.Module], Any] = ([], None)
 
@@ -237,7 +231,7 @@ class GuidanceContext:
         tiny_decoder = next((m for m in others if isinstance(m, TinyDecoder)), None)
         with contextlib.ExitStack() as stack:
             stack.enter_context(frozen(*others, vae, *denoisers, *self.estimators))
-            stack.enter_context(guidance_decode(self.config, vae, tiny_decoder))
+            stack.enter_context(guidance_decode(self.run, self.config.decoder, vae, tiny_decoder))
             self._plan_models = (denoisers, vae)
             self._plan_stack = self._enter_plan()
             try:

@@ -1,5 +1,5 @@
 """Several devices for one guided call: the anchor chunks of an update decoded on different
-devices at once (``guidance.devices``).
+devices at once (``run.devices``).
 
 The chunks of one update are independent: they meet only in the loss. Chunk ``k`` goes to device
 ``k mod N`` with that device's replica of the guidance decoder; each device's forward is issued
@@ -18,12 +18,14 @@ from torch import nn
 
 from ..io.devices import check_device
 
-#: ``guidance.devices: [auto]``: every GPU torch sees.
+__all__ = ["decoder_replicas", "resolve_devices"]
+
+#: ``run.devices: [auto]``: every GPU torch sees.
 AUTO = "auto"
 
 
-def resolve_devices(names: Sequence[str] | None, key: str = "guidance.devices") -> list[torch.device] | None:
-    """The devices of ``guidance.devices``: ``None`` (the pipeline's one device) -> ``None``;
+def resolve_devices(names: Sequence[str] | None, key: str = "run.devices") -> list[torch.device] | None:
+    """The devices of ``run.devices``: ``None`` (the pipeline's one device) -> ``None``;
     ``["auto"]`` -> every visible CUDA device; names -> those devices, each checked.
 
     Raises:

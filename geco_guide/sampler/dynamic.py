@@ -21,6 +21,8 @@ from ..estimators.motion_masks import dilate
 from ..types import Correspondences, DynamicMaskSource, SceneGeometry
 from .config import GuidanceConfig
 
+__all__ = ["RefreshedMasks", "guidance_mask_source", "load_mask_source"]
+
 
 class RefreshedMasks:
     """A :class:`~geco_guide.types.DynamicMaskSource` that asks ``source`` only when a refresh is

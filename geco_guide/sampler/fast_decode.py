@@ -2,9 +2,13 @@
 
 Both act only on the guidance decode: :func:`guidance_decode` patches instances of the pipeline's
 modules for the duration of :meth:`~.context.GuidanceContext.models` and restores them on exit,
-even on error, so the final video decode stays the stock one.
+even on error, so the final video decode stays the stock one. The patches are instance
+``forward``s, not hooks in diffusers' ``HookRegistry`` (:mod:`.module_hooks`): a compiled decode
+needs the same forward objects at every call, and a deep copy of the patched VAE (a replica of
+``run.devices``) needs forwards that call the copy (docs/architecture.md, How we patch
+third-party code).
 
-``guidance.decode_layout=channels_last`` runs the VAE decoder with its activations in
+``run.decode_layout=channels_last`` runs the VAE decoder with its activations in
 ``torch.channels_last_3d`` (``N T H W C`` in memory, the layout cuDNN's 3-D convolutions work in
 natively) instead of ``N C T H W``. Two things of the stock decode would give the layout up: the
 causal time padding (``torch.cat`` of copies of the first frame makes a contiguous tensor when
@@ -12,7 +16,7 @@ the batch is 1, since a one-frame slice of a one-video batch has no recognisable
 ``GroupNorm`` on CUDA (its kernel copies the input to contiguous). Here both keep the layout;
 the values are the same to float rounding, not bitwise (other kernels, other summation orders).
 
-``guidance.compile=true`` wraps the guidance decoder (the VAE decoder's ``forward``, or the tiny
+``run.compile=true`` wraps the guidance decoder (the VAE decoder's ``forward``, or the tiny
 decoder's ``decode``) in ``torch.compile``, forward and backward. One compiled wrapper per function
 for the process (:func:`compiled`): dynamo compiles it for each new module, input shape or layout
 and reuses it on every later step and call. If compiling fails (no C++ compiler for the CPU
@@ -32,12 +36,15 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+__all__ = ["CHANNELS_LAST", "DECODE_LAYOUTS", "CompileFallbackWarning", "causal_time_pad",
+           "channels_last_decode", "channels_last_group_norm", "check_channels_last_vae", "guidance_decode"]
+
 DECODE_LAYOUTS = ("default", "channels_last")
 CHANNELS_LAST = "channels_last"
 
 
 class CompileFallbackWarning(UserWarning):
-    """``guidance.compile`` could not compile the guidance decode; it runs eagerly."""
+    """``run.compile`` could not compile the guidance decode; it runs eagerly."""
 
 
 # ---- layout-preserving pieces ---------------------------------------------------------------------
@@ -155,8 +162,8 @@ def check_channels_last_vae(vae: Any) -> None:
 
     if not isinstance(vae, AutoencoderKLCogVideoX):
         raise TypeError(
-            f"guidance.decode_layout=channels_last is written for the CogVideoX VAE (AutoencoderKLCogVideoX), "
-            f"not {type(vae).__name__}: use guidance.decode_layout=default"
+            f"run.decode_layout=channels_last is written for the CogVideoX VAE (AutoencoderKLCogVideoX), "
+            f"not {type(vae).__name__}: use run.decode_layout=default"
         )
 
 
@@ -164,22 +171,28 @@ def check_channels_last_vae(vae: Any) -> None:
 def channels_last_decode(vae: Any) -> Iterator[None]:
     """The CogVideoX ``vae``'s decoder in channels-last-3d for the duration (weights, input, causal
     padding, group norms); all restored on exit."""
-    from diffusers.models.autoencoders import autoencoder_kl_cogvideox
+    from diffusers.models.autoencoders.autoencoder_kl_cogvideox import CogVideoXCausalConv3d
 
     check_channels_last_vae(vae)
     decoder = vae.decoder
-    hooked = [name or "decoder" for name, m in decoder.named_modules() if "forward" in m.__dict__]
-    if hooked:  # e.g. accelerate's sequential CPU offload, whose hooks the layout's forwards would bypass
-        raise ValueError(f"guidance.decode_layout=channels_last cannot lay out a VAE decoder whose modules already have "
-                         f"their own forward ({len(hooked)}, e.g. {hooked[0]}: an offload hook?): use "
-                         "guidance.decode_layout=default")
+    replaced = {}
+    for name, module in decoder.named_modules():
+        if isinstance(module, nn.GroupNorm):
+            replaced[name] = (module, _group_norm_forward)
+        elif isinstance(module, CogVideoXCausalConv3d) and module.pad_mode != "replicate" and module.time_kernel_size > 1:
+            replaced[name] = (module, _causal_conv_forward)
+    # The layout's forwards of these modules and of the decoder itself would bypass a forward they
+    # already have (e.g. accelerate's sequential CPU offload); the other modules' hooks still run.
+    taken = [name or "decoder" for name, module in decoder.named_modules()
+             if "forward" in module.__dict__ and (module is decoder or name in replaced)]
+    if taken:
+        raise ValueError(f"run.decode_layout=channels_last cannot lay out this VAE decoder: {len(taken)} of the modules "
+                         "whose forward it replaces (the decoder, its group norms and causal convolutions) already "
+                         f"have their own forward (e.g. {taken[0]}: an offload hook?): use run.decode_layout=default")
     with contextlib.ExitStack() as stack:
         stack.enter_context(channels_last_weights(decoder))
-        for module in decoder.modules():
-            if isinstance(module, nn.GroupNorm):
-                stack.enter_context(patched(module, "forward", _group_norm_forward))
-            elif isinstance(module, autoencoder_kl_cogvideox.CogVideoXCausalConv3d) and module.pad_mode != "replicate" and module.time_kernel_size > 1:
-                stack.enter_context(patched(module, "forward", _causal_conv_forward))
+        for module, function in replaced.values():
+            stack.enter_context(patched(module, "forward", function))
         yield
 
 
@@ -204,13 +217,13 @@ class CompiledOrEager:
     def _fall_back(self, error: BaseException) -> None:
         self.compiled = None
         first_line = next((line for line in str(error).splitlines() if line.strip()), "")
-        warnings.warn(f"guidance.compile: torch.compile failed ({type(error).__name__}: {first_line[:300]}); "
+        warnings.warn(f"run.compile: torch.compile failed ({type(error).__name__}: {first_line[:300]}); "
                       "the guidance decode runs eagerly", CompileFallbackWarning, stacklevel=3)
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         if self.compiled is not None:
             if not self.announced:  # the first call compiles: minutes of silence otherwise
-                logger.warning("guidance.compile: compiling the guidance decode; the first guided update waits for "
+                logger.warning("run.compile: compiling the guidance decode; the first guided update waits for "
                                "it (minutes on a CPU, longer when the machine is busy)")
                 self.announced = True
             try:
@@ -235,23 +248,22 @@ def _tiny_decode(decoder: nn.Module, latents: Tensor) -> Tensor:
 
 
 @contextlib.contextmanager
-def guidance_decode(config: Any, vae: Any, guidance_decoder: Any = None) -> Iterator[None]:
-    """The guidance decode of ``config`` (a :class:`~.config.GuidanceConfig`) for the duration: with
+def guidance_decode(run: Any, decoder: str, vae: Any, guidance_decoder: Any = None) -> Iterator[None]:
+    """The guidance decode of ``run`` (a :class:`~.run_options.RunOptions`) for the duration: with
     ``decode_layout=channels_last`` the VAE decoder in channels-last-3d (:func:`channels_last_decode`),
-    with ``compile`` the decoder that ``decoder`` names compiled (the VAE decoder's ``forward``,
-    the tiny ``guidance_decoder``'s ``decode``). Nothing is patched with the defaults."""
-    layout = config.decode_layout == CHANNELS_LAST
-    if config.compile and config.decoder == "vae" and not isinstance(getattr(vae, "decoder", None), nn.Module):
-        raise TypeError(f"guidance.compile compiles the VAE's decoder module, and {type(vae).__name__} has none: "
-                        "use guidance.compile=false")
+    with ``compile`` the decoder that ``decoder`` (``guidance.decoder``: ``vae`` or ``tiny``) names
+    compiled (the VAE decoder's ``forward``, the tiny ``guidance_decoder``'s ``decode``). Nothing is
+    patched with the defaults."""
+    layout, compile_vae = run.decode_layout == CHANNELS_LAST, run.compile and decoder == "vae"
+    if compile_vae and not isinstance(getattr(vae, "decoder", None), nn.Module):
+        raise TypeError(f"run.compile compiles the VAE's decoder module, and {type(vae).__name__} has none: "
+                        "use run.compile=false")
     with contextlib.ExitStack() as stack:
         if layout:
             stack.enter_context(channels_last_decode(vae))
-        if config.compile and config.decoder == "vae":
+        if layout or compile_vae:
             forward = _channels_last_decoder_forward if layout else _stock_decoder_forward
-            stack.enter_context(patched(vae.decoder, "forward", compiled(forward)))
-        elif layout:
-            stack.enter_context(patched(vae.decoder, "forward", _channels_last_decoder_forward))
-        if config.compile and config.decoder == "tiny" and guidance_decoder is not None:
+            stack.enter_context(patched(vae.decoder, "forward", compiled(forward) if compile_vae else forward))
+        if run.compile and decoder == "tiny" and guidance_decoder is not None:
             stack.enter_context(patched(guidance_decoder, "decode", compiled(_tiny_decode)))
         yield

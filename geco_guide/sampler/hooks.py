@@ -52,7 +52,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from ..types import DynamicMaskSource, FlowEstimator, GeometryEstimator, missing_estimators, one_of_names
+from ..types import DynamicMaskSource, FlowEstimator, GeometryEstimator, OptionError, missing_estimators, one_of_names
 from .adapters import (
     CallGeometry,
     PipelineAdapter,
@@ -63,11 +63,12 @@ from .adapters import (
     keep_update,
     noise_levels,
 )
-from .config import GuidanceConfig, resolve_guidance_config
+from .config import GuidanceConfig, resolve_call_options
 from .context import GuidanceContext, anchor_decoder
 from .devices import resolve_devices
 from .dynamic import RefreshedMasks, guidance_mask_source
-from .memory_plan import PlanChoice, choose_plan, device_memory_gb, model_signature
+from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
+from .run_options import RunOptions, check_run_for_guidance
 from .pipeline_cogvideox import GeCoCogVideoXPipeline
 from .slicing import AnchorChunk, check_latents
 from .step import LatentsWatch
@@ -92,9 +93,10 @@ class _CallState:
     decode_chunk: Any  # the anchor chunks' decode (the VAE's or the tiny decoder's)
     generator: Any
     config: GuidanceConfig
+    run: RunOptions
     memory_plan: PlanChoice
     dynamic_masks: RefreshedMasks | None = None
-    devices: list[torch.device] | None = None  # guidance.devices, resolved
+    devices: list[torch.device] | None = None  # run.devices, resolved
     context: GuidanceContext | None = None  # from the first denoiser call on (it fixes the schedule)
     counter: int = 0
     calls: list[_Call] = field(default_factory=list)
@@ -210,6 +212,8 @@ class GeCoGuidanceHandle:
         pipe: the guided pipeline.
         adapter: its family's :class:`~geco_guide.sampler.adapters.PipelineAdapter`.
         config: the :class:`GuidanceConfig` used by the next call (may be replaced between calls).
+        run_options: how the next call's guidance runs (a :class:`~.run_options.RunOptions`;
+            may be replaced between calls).
         geometry_estimator, flow_estimator: the GeCo loss' estimators.
         dynamic_masks: the :class:`~geco_guide.types.DynamicMaskSource` of ``config.dynamic``
             (``None``: the automatic detector for ``"auto"``, nothing without ``config.dynamic``).
@@ -219,8 +223,9 @@ class GeCoGuidanceHandle:
     """
 
     def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, geometry_estimator, flow_estimator,
-                 decoder=None, dynamic_masks=None):
+                 decoder=None, dynamic_masks=None, run_options: RunOptions | None = None):
         self.pipe = pipe
+        self.run_options = run_options if run_options is not None else RunOptions()
         self.dynamic_masks = dynamic_masks
         self.decoder = decoder
         self.adapter = adapter
@@ -312,7 +317,7 @@ class GeCoGuidanceHandle:
 
     @property
     def devices(self) -> list[str] | None:
-        """The devices the last guided call dealt its anchor chunks over (``guidance.devices``),
+        """The devices the last guided call dealt its anchor chunks over (``run.devices``),
         ``None`` for one device or before a call."""
         state = self._state
         return [str(device) for device in state.devices] if state is not None and state.devices else None
@@ -330,7 +335,7 @@ class GeCoGuidanceHandle:
     # per call
 
     def _begin_call(self, args: dict[str, Any], latents: Tensor) -> None:
-        config = self.config
+        config, run = self.config, self.run_options
         geometry = self.adapter.call_geometry(self.pipe, args, latents)
         self.geometry = geometry
         self.log = []
@@ -341,24 +346,28 @@ class GeCoGuidanceHandle:
                       f"this {type(self.pipe).__name__} call")
         self.adapter.check(self.pipe, geometry)
         config.check_loss()
+        try:
+            check_run_for_guidance(run, config.decoder)
+        except OptionError as err:
+            raise ValueError(f"run.{err}") from None
         check_no_denoiser_cache(self.adapter.denoisers(self.pipe))
         chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
         check_scheduler(self.pipe.scheduler)
-        decode_chunk = anchor_decoder(config, self._vae_decode_with, self.decoder, self.pipe.vae)
-        devices = resolve_devices(config.devices)
+        decode_chunk = anchor_decoder(config, run, self._vae_decode_with, self.decoder, self.pipe.vae)
+        devices = resolve_devices(run.devices)
         masks = guidance_mask_source(config, self.dynamic_masks, self.pipe._execution_device)
         # the estimates know CogVideoX-5B, whose VAE is 8x spatially; other models get the safe plan
         scale = getattr(self.pipe, "vae_scale_factor_spatial", 8)
         memory_plan = choose_plan(
-            config, signature=model_signature(self.adapter.denoisers(self.pipe)[0].config), frames=geometry.num_frames,
+            config, run, signature=model_signature(self.adapter.denoisers(self.pipe)[0].config), frames=geometry.num_frames,
             height=geometry.latent_height * scale, width=geometry.latent_width * scale,
-            device_gb=device_memory_gb(self.pipe._execution_device), offload=bool(getattr(self.pipe, "_all_hooks", None)))
-        self._state = _CallState(geometry, chunks, decode_chunk, args.get("generator"), config, memory_plan, masks,
-                                 devices)
+            device_gb=planning_memory_gb(self.pipe._execution_device, devices), offload=bool(getattr(self.pipe, "_all_hooks", None)))
+        self._state = _CallState(geometry, chunks, decode_chunk, args.get("generator"), config, run, memory_plan,
+                                 masks, devices)
 
     def _vae_decode_with(self, vae: nn.Module) -> Any:
         """The adapter's chunk decode by ``vae``: the pipeline's own, or a replica of it on another
-        device (``guidance.devices``), seen as the pipeline's VAE."""
+        device (``run.devices``), seen as the pipeline's VAE."""
         return functools.partial(self.adapter.decode, self.pipe if vae is self.pipe.vae else _WithVae(self.pipe, vae))
 
     def _pre_hook(self, module, args, kwargs):
@@ -374,7 +383,7 @@ class GeCoGuidanceHandle:
                 decode_chunk=state.decode_chunk,
                 latent_frames=functools.partial(adapter.frames_first, pipe, geometry=state.geometry),
                 geometry_estimator=self.geometry_estimator, flow_estimator=self.flow_estimator,
-                generator=state.generator, log=self.log, memory_plan=state.memory_plan,
+                generator=state.generator, log=self.log, run=state.run, memory_plan=state.memory_plan,
                 dynamic_masks=state.dynamic_masks, devices=state.devices,
             )
         return None
@@ -451,6 +460,7 @@ def attach_geco_guidance(
     pipe,
     config: GuidanceConfig | Mapping[str, Any] | None = None,
     *,
+    run_options: RunOptions | Mapping[str, Any] | None = None,
     geometry_estimator: GeometryEstimator | None = None,
     flow_estimator: FlowEstimator | None = None,
     geometry: GeometryEstimator | None = None,
@@ -468,6 +478,9 @@ def attach_geco_guidance(
         config: a :class:`GuidanceConfig` or a dict of fields over the default one. Its
             ``repeats`` schedule must cover the call's ``num_inference_steps``; its anchors are
             pixel frames of the output video.
+        run_options: how the guidance runs on this machine (a
+            :class:`~geco_guide.sampler.run_options.RunOptions` or a dict of its fields: memory
+            plan, decode layout, devices).
         geometry_estimator, flow_estimator: the GeCo loss' estimators (e.g. ``VGGT``, ``UFM``), as
             the components of ``GeCoCogVideoXPipeline`` are named; ``geometry=`` / ``flow=`` are
             the same arguments under their earlier names.
@@ -495,7 +508,7 @@ def attach_geco_guidance(
     geometry_estimator = one_of_names(geometry_estimator, geometry, "geometry_estimator", "geometry")
     flow_estimator = one_of_names(flow_estimator, flow, "flow_estimator", "flow")
     adapter = adapter_for(pipe)
-    config = resolve_guidance_config(None, config)
+    config, run_options = resolve_call_options(None, config, None, run_options)
     missing = missing_estimators(geometry_estimator, flow_estimator)
     if missing:
         raise ValueError(
@@ -505,6 +518,7 @@ def attach_geco_guidance(
     current = pipe.__dict__.get("prepare_latents")
     if getattr(current, "_geco_handle", None) is not None:
         raise ValueError("this pipeline already has GeCo guidance attached; detach() it first")
-    handle = GeCoGuidanceHandle(pipe, adapter, config, geometry_estimator, flow_estimator, decoder, dynamic_masks)
+    handle = GeCoGuidanceHandle(pipe, adapter, config, geometry_estimator, flow_estimator, decoder, dynamic_masks,
+                                run_options)
     handle._attach()
     return handle

@@ -23,6 +23,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+__all__ = ["FlowLevels", "NoiseLevels", "VPLevels", "ddim_step", "flow_renoise", "flow_step", "flow_to_x0",
+           "randn_like", "renoise", "v_to_x0"]
+
 
 def v_to_x0(z: Tensor, v: Tensor, alpha_t: Tensor | float) -> Tensor:
     """Clean-sample estimate of v-prediction: ``x0 = sqrt(a_t) z_t - sqrt(1 - a_t) v``."""

@@ -31,6 +31,11 @@ from ..estimators.loading import (
 from ..io.devices import resolve_device
 from .memory_plan import plan_before_loading
 
+__all__ = ["PIPELINE_INDEX", "TINY_DECODER_VARIANTS", "build_pipeline", "cast_model",
+           "check_guidance_before_loading", "check_tiny_decoder_source", "check_weights_before_loading",
+           "choose_scheduler", "load_dynamic_masks", "load_tiny_decoder", "load_video_pipeline",
+           "pipeline_from_pretrained", "quiet_hub_logs", "tiny_decoder_note"]
+
 
 @contextlib.contextmanager
 def quiet_hub_logs():
@@ -140,6 +145,7 @@ def load_video_pipeline(cfg: Any, geometry_estimator=None, flow_estimator=None,
             GeCoCogVideoXPipeline, model_id, "CogVideoX", f"model.id=/path/to/{model_id.split('/')[-1]}",
             dtype=dtype, revision=cfg.model.revision, **extra,
         )
+    pipe.run_options = cfg.run
     pipe.geco_scheduler_note = choose_scheduler(pipe, cfg.sampling.scheduler)
     if cfg.model.vae_tiling:
         pipe.vae.enable_tiling()
@@ -246,7 +252,7 @@ TINY_DECODER_VARIANTS = {"cogvideox": "cogvideox", "cogvideox1.5": "cogvideox", 
 #: How messages name the families.
 FAMILY_NAMES = {"cogvideox": "CogVideoX", "cogvideox1.5": "CogVideoX 1.5", "wan": "Wan", "hunyuan": "HunyuanVideo",
                 "ltx": "LTX-Video"}
-#: The families whose VAE ``guidance.decode_layout=channels_last`` is written for (the CogVideoX VAE).
+#: The families whose VAE ``run.decode_layout=channels_last`` is written for (the CogVideoX VAE).
 CHANNELS_LAST_FAMILIES = ("cogvideox", "cogvideox1.5")
 
 
@@ -284,17 +290,17 @@ def check_guidance_before_loading(cfg: Any, *, model_id: str, num_frames: int, h
         ValueError: one line naming the option.
         WeightsNotFoundError: ``estimators.tiny_decoder`` names a file that does not exist.
     """
-    guidance = cfg.guidance
+    guidance, run = cfg.guidance, cfg.run
     if guidance.enabled:
         guidance.check_loss()
         guidance.schedule(num_steps)
-        if guidance.decode_layout != "default" and family not in CHANNELS_LAST_FAMILIES:
-            raise ValueError(f"guidance.decode_layout={guidance.decode_layout} is written for the CogVideoX VAE, not "
-                             f"{FAMILY_NAMES.get(family, family)}'s: use guidance.decode_layout=default")
+        if run.decode_layout != "default" and family not in CHANNELS_LAST_FAMILIES:
+            raise ValueError(f"run.decode_layout={run.decode_layout} is written for the CogVideoX VAE, not "
+                             f"{FAMILY_NAMES.get(family, family)}'s: use run.decode_layout=default")
         if guidance.decoder == "tiny":
             check_tiny_decoder_source(cfg)
             check_tiny_decoder_family(cfg.estimators.tiny_decoder, family)
-    return plan_before_loading(guidance, model_id, num_frames, height, width, cfg.model.device)
+    return plan_before_loading(guidance, run, model_id, num_frames, height, width, cfg.model.device)
 
 
 def tiny_decoder_note(decoder: Any, init_seed: int) -> str:

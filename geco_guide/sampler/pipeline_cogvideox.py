@@ -38,11 +38,12 @@ from torch import Tensor, nn
 
 from ..types import DynamicMaskSource, FlowEstimator, GeometryEstimator, missing_estimators
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
-from .config import GuidanceConfig, resolve_guidance_config
+from .config import GuidanceConfig, resolve_call_options
 from .context import GuidanceContext, anchor_decoder
 from .devices import resolve_devices
 from .dynamic import guidance_mask_source
-from .memory_plan import PlanChoice, choose_plan, device_memory_gb, model_signature
+from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
+from .run_options import RunOptions, resolve_run_options
 from .slicing import (
     check_latents,
     check_num_frames,
@@ -52,6 +53,8 @@ from .slicing import (
 from .step import LatentsWatch
 
 from diffusers.utils import is_torch_xla_available
+
+__all__ = ["GeCoCogVideoXPipeline", "GeCoCogVideoXPipelineOutput"]
 
 if is_torch_xla_available():  # pragma: no cover (as the stock pipeline: an XLA graph per step)
     import torch_xla.core.xla_model as xm
@@ -95,7 +98,11 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
     ``guidance_decoder`` (a :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder`, used for the
     loss' anchor frames with ``guidance.decoder="tiny"``; the video is always the VAE's), and
     ``guidance_config``: the default :class:`GuidanceConfig` (a dict of its fields works too), kept
-    in the pipeline's config so that ``save_pretrained`` / ``from_pretrained`` round-trip it.
+    in the pipeline's config so that ``save_pretrained`` / ``from_pretrained`` round-trip it. How
+    guidance runs on this machine (memory plan, decode layout, devices) is the attribute
+    ``run_options`` (a :class:`~geco_guide.sampler.run_options.RunOptions`, or a dict of its
+    fields), never saved with the pipeline: a folder saved on one card plans for the card that
+    loads it.
 
     The scheduler is the one given, kept as is: the paper samples with deterministic DDIM, so
     choose ``CogVideoXDDIMScheduler.from_config(pipe.scheduler.config)`` for its setting (the
@@ -136,9 +143,10 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         # execution device by ``enable_model_cpu_offload`` / ``enable_sequential_cpu_offload``.
         self.register_modules(geometry_estimator=geometry_estimator, flow_estimator=flow_estimator,
                               guidance_decoder=guidance_decoder)
+        self.run_options = RunOptions()  # before guidance_config: an old saved config may move options here
         self.guidance_config = guidance_config  # a GuidanceConfig, and its dict in the config (__setattr__)
         self.geco_memory_plan: dict[str, Any] | None = None  # the last guided call's (output.memory_plan)
-        self.geco_devices: list[str] | None = None  # the devices of its anchor decode (guidance.devices)
+        self.geco_devices: list[str] | None = None  # the devices of its anchor decode (run.devices)
         # What moves on its own, for guidance.dynamic (a loaded text segmenter); not a component,
         # so never saved with the pipeline.
         self.dynamic_mask_source: DynamicMaskSource | None = None
@@ -146,11 +154,15 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
     def __setattr__(self, name: str, value: Any) -> None:
         if name == "guidance_config":
             # The attribute is a GuidanceConfig (a dict or None is resolved over the defaults); the
-            # pipeline's config keeps its plain dict, for model_index.json and repr().
-            value = resolve_guidance_config(None, value)
+            # pipeline's config keeps its plain dict, for model_index.json and repr(). A dict saved
+            # before the run options left it may still hold them: they go to run_options.
+            value, run = resolve_call_options(None, value, self.run_options)
+            object.__setattr__(self, "run_options", run)
             object.__setattr__(self, name, value)
             self.register_to_config(guidance_config=asdict(value))
             return
+        if name == "run_options":
+            value = resolve_run_options(None, value)
         super().__setattr__(name, value)
 
     @property
@@ -220,6 +232,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         num_frames: int,
         num_steps: int,
         guidance: GuidanceConfig,
+        run: RunOptions,
         geometry_estimator: Any,
         flow_estimator: Any,
     ):
@@ -251,16 +264,17 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 f"GeCo guidance needs {' and '.join(missing)}: pass them to from_pretrained(..., "
                 "geometry_estimator=..., flow_estimator=...) or to the call, or call with guidance=False"
             )
-        decode = anchor_decoder(guidance, lambda vae: partial(decode_chunk, vae, scaling_factor=self.vae_scaling_factor_image),
+        decode = anchor_decoder(guidance, run, lambda vae: partial(decode_chunk, vae, scaling_factor=self.vae_scaling_factor_image),
                                 self.guidance_decoder, self.vae)
         return schedule, chunks, decode
 
-    def choose_memory_plan(self, guidance: GuidanceConfig, num_frames: int, height: int, width: int) -> PlanChoice:
+    def choose_memory_plan(self, guidance: GuidanceConfig, run: RunOptions, num_frames: int, height: int,
+                           width: int, devices: list[torch.device] | None = None) -> PlanChoice:
         """The memory plan of a guided call (:func:`~geco_guide.sampler.memory_plan.choose_plan`) for
-        this transformer, video size and execution device (model CPU offload counted); ValueError
-        (one line) where ``auto`` finds no plan that fits."""
-        return choose_plan(guidance, signature=model_signature(self.transformer.config), frames=num_frames,
-                           height=height, width=width, device_gb=device_memory_gb(self._execution_device),
+        this transformer, video size and execution device, or the smallest of it and ``devices``
+        (model CPU offload counted); ValueError (one line) where ``auto`` finds no plan that fits."""
+        return choose_plan(guidance, run, signature=model_signature(self.transformer.config), frames=num_frames,
+                           height=height, width=width, device_gb=planning_memory_gb(self._execution_device, devices),
                            offload=bool(getattr(self, "_all_hooks", None)))
 
     def latents_shape(self, batch_size: int, num_frames: int, height: int, width: int) -> tuple[tuple[int, ...], int]:
@@ -339,6 +353,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         callback_on_step_end_tensor_inputs: list[str] = ["latents"],
         max_sequence_length: int = 226,
         guidance: GuidanceConfig | Mapping[str, Any] | bool | None = None,
+        run_options: RunOptions | Mapping[str, Any] | None = None,
         geometry_estimator: GeometryEstimator | None = None,
         flow_estimator: FlowEstimator | None = None,
         dynamic_masks: DynamicMaskSource | None = None,
@@ -349,6 +364,9 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             guidance: a :class:`GuidanceConfig`, a dict of fields overriding
                 ``self.guidance_config`` (e.g. ``{"eta": 2.0, "loss": {"cue": "motion"}}``),
                 ``False`` to sample without guidance, or ``None`` for the default.
+            run_options: how this call's guidance runs: a :class:`~geco_guide.sampler.run_options.RunOptions`
+                or a dict of fields overriding ``self.run_options`` (e.g. ``{"memory_plan": "chunked",
+                "devices": ["cuda:0", "cuda:1"]}``).
             geometry_estimator, flow_estimator: override the pipeline's estimators for this call.
             dynamic_masks: what moves on its own, for ``guidance.dynamic`` (default
                 ``self.dynamic_mask_source``): a :class:`~geco_guide.types.DynamicMaskSource` such as
@@ -375,15 +393,15 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         )
         if output_type not in OUTPUT_TYPES:  # the stock pipeline finds out after the whole denoising
             raise ValueError(f"output_type must be one of {list(OUTPUT_TYPES)}, got {output_type!r}")
-        config = resolve_guidance_config(self.guidance_config, guidance)
+        config, run = resolve_call_options(self.guidance_config, guidance, self.run_options, run_options)
         geometry_estimator = geometry_estimator if geometry_estimator is not None else self.geometry_estimator
         flow_estimator = flow_estimator if flow_estimator is not None else self.flow_estimator
         num_steps = len(timesteps) if timesteps is not None else num_inference_steps
         schedule, chunks, decode = self.check_geco_inputs(
-            height, width, num_frames, num_steps, config, geometry_estimator, flow_estimator
+            height, width, num_frames, num_steps, config, run, geometry_estimator, flow_estimator
         )
-        memory_plan = self.choose_memory_plan(config, num_frames, height, width) if config.enabled else None
-        devices = resolve_devices(config.devices) if config.enabled else None
+        devices = resolve_devices(run.devices) if config.enabled else None
+        memory_plan = self.choose_memory_plan(config, run, num_frames, height, width, devices) if config.enabled else None
         masks = None
         if config.enabled:
             source = dynamic_masks if dynamic_masks is not None or config.dynamic is None else self.dynamic_mask_source
@@ -461,7 +479,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 decode_chunk=decode,
                 latent_frames=lambda x0: x0[:, additional_frames:],
                 geometry_estimator=geometry_estimator, flow_estimator=flow_estimator, generator=generator,
-                memory_plan=memory_plan, dynamic_masks=masks, devices=devices,
+                run=run, memory_plan=memory_plan, dynamic_masks=masks, devices=devices,
             )
             if devices:
                 logger.info("guidance: anchor chunks dealt over %s", ", ".join(map(str, devices)))

@@ -22,6 +22,9 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+__all__ = ["PAPER_ETA", "PAPER_REPEATS", "PAPER_TIME_TRAVEL", "GuidanceSchedule", "ScheduleScaledWarning",
+           "paper_schedule", "parse_repeats", "scale_schedule"]
+
 
 class ScheduleScaledWarning(UserWarning):
     """A schedule written for another step count was scaled (the message names the result)."""

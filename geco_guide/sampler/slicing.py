@@ -23,6 +23,10 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+__all__ = ["AnchorChunk", "anchor_latent_chunks", "check_latents", "check_num_frames",
+           "check_paired_latent_frames", "decode_anchor_frames", "decode_anchor_frames_across",
+           "decode_chunk", "default_anchors", "latent_to_pixels", "pixel_to_latent"]
+
 
 def check_num_frames(num_frames: int, temporal_compression: int) -> int:
     """Number of latent frames of a ``num_frames`` video; ValueError if the VAE cannot make it."""

@@ -26,6 +26,9 @@ from torch import Tensor
 
 from .levels import NoiseLevels, randn_like
 
+__all__ = ["GuidanceRecord", "LatentsWatch", "NonFiniteLatentsError", "Update", "guided_step", "loss_terms",
+           "normalized_update", "read_scalars", "score_anchor_frames"]
+
 Objective = Callable[[Tensor], "tuple[Tensor, dict[str, Tensor]]"]
 
 

@@ -1,0 +1,157 @@
+"""How one machine runs guidance (:class:`RunOptions`), apart from what guidance computes
+(:class:`~geco_guide.sampler.config.GuidanceConfig`).
+
+A :class:`GuidanceConfig` is the algorithm: it is saved with a pipeline and names the videos it
+makes. A :class:`RunOptions` is this machine's way of running it: what the guidance backward
+recomputes to fit the memory, the layout and compilation of the anchor decode, the devices it
+runs on. It is the config's ``run`` section, is never written by ``save_pretrained`` (a folder
+saved on an 80 GB card would otherwise impose that card's budget on a 24 GB one), and stays out
+of the video key, except for the options that change frames to float rounding
+(:data:`FRAME_ROUNDING_KEYS`).
+
+These options sat in ``guidance`` before; the old keys (``guidance.memory_plan=...`` in a config
+file, a ``key=value`` override or a dict) still work for one release, each with one
+:class:`RenamedOptionWarning` naming the new key (:func:`split_legacy_run_keys`).
+"""
+
+from __future__ import annotations
+
+import numbers
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any, Optional
+
+from ..types import OptionError, merge_dataclass, non_finite_fields
+from .fast_decode import DECODE_LAYOUTS
+from .memory_plan import PLAN_NAMES
+
+__all__ = [
+    "FRAME_ROUNDING_KEYS",
+    "RUN_KEYS",
+    "RenamedOptionWarning",
+    "RunOptions",
+    "check_run_for_guidance",
+    "resolve_run_options",
+    "split_legacy_run_keys",
+]
+
+
+@dataclass
+class RunOptions:
+    """How guidance runs on this machine (defaults: the memory plan fitted to the device, the
+    stock decode, one device). No option here changes what guidance computes; the memory plans
+    and devices give the same frames bit for bit, ``decode_layout`` and ``compile`` the same
+    frames to float rounding (hence :data:`FRAME_ROUNDING_KEYS`).
+
+    Attributes:
+        memory_plan: what the guidance backward recomputes (:mod:`.memory_plan`): ``auto``
+            (default: the plan of least predicted time that fits the memory budget),
+            ``explicit`` (the three checkpointing flags below as given, the estimators as loaded),
+            or a named plan, ``fastest``, ``partial``, ``chunked``, ``checkpointed`` or ``leanest``.
+        memory_budget_gb: the memory (GiB) ``auto`` plans for; ``None``: 94 % of the device's
+            (a CUDA device's total, a CPU's physical RAM).
+        gradient_checkpointing: ``explicit`` plan only: checkpoint the denoiser's blocks while
+            differentiating it.
+        vae_checkpointing: ``explicit`` plan only: decode the anchor chunks one at a time in
+            checkpointed regions (the backward then holds one chunk's decode instead of all of
+            them, for one extra forward decode per chunk); ``False`` batches the chunks in one
+            decode and keeps everything.
+        vae_block_checkpointing: ``explicit`` plan only: the VAE's own block checkpointing while
+            guiding (where the VAE supports it); ``None`` follows ``vae_checkpointing``.
+        decode_layout: memory layout of the VAE's guidance decode (:mod:`.fast_decode`):
+            ``default`` (the stock decode) or ``channels_last`` (the CogVideoX VAE decoder in
+            ``torch.channels_last_3d``: the same frames and gradients to float rounding, not
+            bitwise, hence off by default; with ``guidance.decoder=vae`` only). The final video
+            is decoded as stock.
+        compile: ``torch.compile`` the guidance decoder (the VAE decoder, or the tiny decoder),
+            forward and backward, once per decoder and input shape; if compiling fails, one
+            warning and an eager decode. See docs/guidance.md (Faster anchor decode).
+        devices: where the anchor decode runs: ``None`` (default) on the pipeline's device; a
+            list of devices (``["cuda:0", "cuda:1"]``, ``["auto"]`` for every visible GPU) deals
+            the anchor chunks round-robin over them, each with its own replica of the guidance
+            decoder, decoded forward and backward at once; the frames meet on the pipeline's
+            device for the loss. The same frames as one device's chunked decode (bitwise on CPU;
+            to float rounding across kinds of device). See docs/performance.md (Several GPUs).
+    """
+
+    memory_plan: str = "auto"
+    memory_budget_gb: Optional[float] = None
+    gradient_checkpointing: bool = True
+    vae_checkpointing: bool = True
+    vae_block_checkpointing: Optional[bool] = None
+    decode_layout: str = "default"
+    compile: bool = False
+    devices: Optional[list[str]] = None
+
+    def __post_init__(self) -> None:
+        for key in ("gradient_checkpointing", "vae_checkpointing", "compile"):
+            if not isinstance(getattr(self, key), bool):
+                raise OptionError(key, f"must be true or false, got {getattr(self, key)!r}")
+        if self.vae_block_checkpointing is not None and not isinstance(self.vae_block_checkpointing, bool):
+            raise OptionError("vae_block_checkpointing", f"must be true, false or null, got {self.vae_block_checkpointing!r}")
+        if self.memory_budget_gb is not None and (not isinstance(self.memory_budget_gb, numbers.Real)
+                                                  or isinstance(self.memory_budget_gb, bool)):
+            raise OptionError("memory_budget_gb", f"must be a number of GiB (or null: the device's memory), "
+                                                  f"got {self.memory_budget_gb!r}")
+        for key, value in non_finite_fields(self):  # the first one
+            raise OptionError(key, f"must be a finite number, got {value}")
+        if self.memory_budget_gb is not None and not self.memory_budget_gb > 0:
+            raise OptionError("memory_budget_gb", f"must be a positive number of GiB (or null: the device's memory), "
+                                                  f"got {self.memory_budget_gb}")
+        if self.memory_plan not in PLAN_NAMES:
+            raise OptionError("memory_plan", f"must be one of {', '.join(PLAN_NAMES)}, got {self.memory_plan!r}")
+        if self.decode_layout not in DECODE_LAYOUTS:
+            raise OptionError("decode_layout", f"must be one of {', '.join(DECODE_LAYOUTS)}, got {self.decode_layout!r}")
+        if self.devices is not None and (not isinstance(self.devices, (list, tuple)) or not self.devices
+                                         or not all(isinstance(d, str) and d.strip() for d in self.devices)):
+            raise OptionError("devices", f"must be null or a list of devices (e.g. [cuda:0, cuda:1], or [auto]), "
+                                         f"got {self.devices!r}")
+
+
+#: The options of :class:`RunOptions`, which ``guidance`` held before.
+RUN_KEYS = tuple(f.name for f in fields(RunOptions))
+#: The run options that can change the frames to float rounding, and so stay in the video key
+#: (the memory plans and devices give the same frames bit for bit on one kind of device).
+FRAME_ROUNDING_KEYS = ("decode_layout", "compile")
+
+
+class RenamedOptionWarning(FutureWarning):
+    """A config key used under its old name, which works until the next release."""
+
+
+def split_legacy_run_keys(guidance: Mapping[str, Any], source: str | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(guidance without run options, the run options it held)`` of a ``guidance`` mapping
+    written before :class:`RunOptions` existed, with one :class:`RenamedOptionWarning` per old
+    key naming the new one (and ``source``, where the mapping came from, if given)."""
+    kept, moved = {}, {}
+    where = f" ({source})" if source else ""
+    for key, value in guidance.items():
+        if key in RUN_KEYS:
+            moved[key] = value
+            warnings.warn(f"guidance.{key}{where} is now run.{key}: the old key works until the next release",
+                          RenamedOptionWarning, stacklevel=3)
+        else:
+            kept[key] = value
+    return kept, moved
+
+
+def resolve_run_options(base: RunOptions | None, override: RunOptions | Mapping[str, Any] | None) -> RunOptions:
+    """The run options of one call: ``override`` (options, or a dict of changes) over ``base``
+    (default :class:`RunOptions`); ValueError naming an unknown key."""
+    base = base if base is not None else RunOptions()
+    if override is None:
+        return base
+    if isinstance(override, RunOptions):
+        return override
+    if hasattr(override, "keys"):  # dict or omegaconf DictConfig
+        return merge_dataclass(base, override, "run")
+    raise ValueError(f"run options must be a RunOptions or a dict, got {type(override).__name__}")
+
+
+def check_run_for_guidance(run: RunOptions, decoder: str) -> None:
+    """OptionError (one line naming the key) for run options the guidance of ``decoder``
+    (``guidance.decoder``) cannot use."""
+    if run.decode_layout != "default" and decoder != "vae":
+        raise OptionError("decode_layout", f"{run.decode_layout} lays out the VAE's decode, but guidance.decoder="
+                                           f"{decoder!r}: use run.decode_layout=default with the tiny decoder")
