@@ -20,6 +20,7 @@ _EXPORTS = {
     "Correspondences": "geco_guide.types",
     "GeometryEstimator": "geco_guide.types",
     "FlowEstimator": "geco_guide.types",
+    "Estimators": "geco_guide.estimators.bundle",
     "VGGT": "geco_guide.estimators.vggt",
     "VGGTConfig": "geco_guide.estimators.vggt",
     "UFM": "geco_guide.estimators.ufm",
@@ -37,6 +38,7 @@ __all__ = sorted(_EXPORTS)
 
 if TYPE_CHECKING:  # pragma: no cover
     from .bench.geco_eval import load_prompts
+    from .estimators.bundle import Estimators
     from .estimators.tiny_decoder import TinyDecoder
     from .estimators.ufm import UFM, UFMConfig
     from .estimators.vggt import VGGT, VGGTConfig

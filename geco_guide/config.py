@@ -34,8 +34,8 @@ from omegaconf.errors import (
 
 from .estimators import EstimatorsConfig
 from .metric.protocol import EvaluationConfig
-from .sampler.config import GuidanceConfig, paper_guidance_config
-from .sampler.run_options import RUN_KEYS, RunOptions, check_run_for_guidance, split_legacy_run_keys
+from .sampler.config import RENAMED_GUIDANCE_KEYS, GuidanceConfig, paper_guidance_config, upgrade_guidance_keys
+from .sampler.run_options import MOVED_GUIDANCE_KEYS, RunOptions, check_run_for_guidance
 from .sampler.slicing import check_paired_latent_frames
 from .types import OptionError, non_finite_fields
 
@@ -47,7 +47,7 @@ DTYPES = ("float32", "float16", "bfloat16")
 # Frames per latent of the CogVideoX VAE, whose pipeline the sampling section configures.
 COGVIDEOX_TEMPORAL_COMPRESSION = 4
 # CFG scales in use are 1-20 (CogVideoX: 6); absurd ones only overflow the latents to NaN/inf
-# after minutes of sampling (a black video), so they are refused at once (guidance.eta likewise,
+# after minutes of sampling (a black video), so they are refused at once (guidance.step_size likewise,
 # in GuidanceConfig).
 MAX_GUIDANCE_SCALE = 100.0
 # torch.Generator.manual_seed takes 64-bit seeds, signed or unsigned.
@@ -125,24 +125,26 @@ def _key_error(err: OmegaConfBaseException, source: str) -> ValueError:
     return ValueError(f"invalid value for config key {key!r} ({source}): {msg}")
 
 
-def _with_run_keys_moved(other: Any, source: str) -> Any:
-    """``other`` (a config mapping) with run options written under ``guidance`` moved to ``run``
-    (:func:`~geco_guide.sampler.run_options.split_legacy_run_keys`: one warning each); a section
+def _with_keys_upgraded(other: Any, source: str) -> Any:
+    """``other`` (a config mapping) with the guidance keys of earlier names upgraded: run options
+    written under ``guidance`` moved to ``run``, renamed keys renamed
+    (:func:`~geco_guide.sampler.config.upgrade_guidance_keys`: one warning each); a section
     ``run`` of its own wins over the old spelling."""
     if not isinstance(other, (DictConfig, Mapping)) or not isinstance(other.get("guidance"), (DictConfig, Mapping)):
         return other
     guidance = other["guidance"]
-    if not any(key in RUN_KEYS for key in guidance):
+    if not any(key in MOVED_GUIDANCE_KEYS or key in RENAMED_GUIDANCE_KEYS for key in guidance):
         return other
     plain = OmegaConf.to_container(other) if isinstance(other, DictConfig) else dict(other)
-    plain["guidance"], moved = split_legacy_run_keys(plain["guidance"], source)
+    plain["guidance"], moved = upgrade_guidance_keys(plain["guidance"], source)
     own = plain.get("run")
-    plain["run"] = {**moved, **own} if isinstance(own, Mapping) else moved if own is None else own
+    if moved:
+        plain["run"] = {**moved, **own} if isinstance(own, Mapping) else moved if own is None else own
     return plain
 
 
 def _merge(base: DictConfig, other: Any, source: str) -> DictConfig:
-    other = _with_run_keys_moved(other, source)
+    other = _with_keys_upgraded(other, source)
     try:
         return OmegaConf.merge(base, other)
     except (OmegaConfBaseException, TypeError) as err:  # TypeError: a mapping merged into a list
@@ -237,9 +239,9 @@ def _parse_override(cfg: DictConfig, item: str) -> DictConfig:
     key, _, raw = item.partition("=")
     key = key.strip()
     section, _, leaf = key.partition(".")
-    if section == "guidance" and leaf in RUN_KEYS:
-        split_legacy_run_keys({leaf: None}, "command line")  # the warning naming the new key
-        key = f"run.{leaf}"
+    if section == "guidance" and (leaf in MOVED_GUIDANCE_KEYS or leaf in RENAMED_GUIDANCE_KEYS):
+        upgrade_guidance_keys({leaf: None}, "command line")  # the warning naming the new key
+        key = f"run.{leaf}" if leaf in MOVED_GUIDANCE_KEYS else f"guidance.{RENAMED_GUIDANCE_KEYS[leaf]}"
     parent_key, _, leaf = key.rpartition(".")
     try:
         parent = OmegaConf.select(cfg, parent_key) if parent_key else cfg

@@ -211,7 +211,7 @@ def tiny_guidance_config(**changes: Any):
         anchors=list(TINY_ANCHORS),
         chunk_latents=3,
         repeats="0x1,2x2,1x1",
-        eta=3.0,
+        step_size=3.0,
         time_travel=[2, 2],
         denoiser_grad=True,
         loss=fused_guidance_loss(),

@@ -199,7 +199,7 @@ def run_cost(args: argparse.Namespace) -> None:
     if args.dynamic_masks:
         report["dynamic_masks"] = dynamic_mask_costs(settings["steps"])
     if args.num_gpus > 1 and args.mode != "unguided":
-        report["several_gpus"] = several_gpus(report, args.num_gpus)
+        report["several_gpus"] = several_gpus(report, args.num_gpus, split_cfg=args.split_cfg)
     print(cost_table(report))
     if "several_gpus" in report:
         print(several_gpus_table(report["several_gpus"]))

@@ -392,7 +392,7 @@ def _write(path: Path, text: str) -> Path:
         ("a cat\n", ["zero"], [], "--seeds takes integers, got 'zero'"),
         ("a cat\n", ["-1"], [], "must be in [0, 2**63)"),
         ("a cat\n", ["1", "1"], [], "lists 1 twice"),
-        ("a cat\n", ["0", "guidance.eta=2"], [], "put key=value overrides before --seeds"),
+        ("a cat\n", ["0", "guidance.step_size=2"], [], "put key=value overrides before --seeds"),
         ("a cat\n", ["0"], ["sampling.nope=1"], "unknown config key 'sampling.nope'"),
         ("a cat\n", ["0"], ["sampling.num_frames=10"], "sampling.num_frames"),
         ("a cat\n", ["0"], ["guidance.enabled=false"], "nothing to compare"),
@@ -445,7 +445,7 @@ def test_outputs_of_another_run_in_a_pair_folder_are_refused_unless_overwrite(tm
     sidecar = {"prompt": "a cat", "config": config_to_dict(core.arm_config(cfg, pair, "guided"))}
     write_json_atomic(core.pair_dir(out, pair) / "guided.json", sidecar)  # this run's, unfinished: redone
     assert ab.validate_inputs(ab.build_parser().parse_args(argv)).pairs == [pair]
-    sidecar["config"]["guidance"]["eta"] = 123.0
+    sidecar["config"]["guidance"]["step_size"] = 123.0
     write_json_atomic(core.pair_dir(out, pair) / "guided.json", sidecar)
     assert ab.main(argv) == 2
     err = capsys.readouterr().err.strip()

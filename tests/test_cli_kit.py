@@ -40,9 +40,9 @@ def test_estimator_flags_and_their_aliases_share_a_destination(flags):
 def test_overrides_are_told_from_inputs(tmp_path: Path):
     existing = tmp_path / "a=b.mp4"
     existing.write_bytes(b"")
-    overrides, others = split_overrides(["guidance.eta=2", str(existing), "clip.mp4", "x=1"])
-    assert overrides == ["guidance.eta=2", "x=1"] and others == [str(existing), "clip.mp4"]
-    assert is_config_key("guidance.eta") and is_config_key("evaluation.model_fps.mine") and not is_config_key("x")
+    overrides, others = split_overrides(["guidance.step_size=2", str(existing), "clip.mp4", "x=1"])
+    assert overrides == ["guidance.step_size=2", "x=1"] and others == [str(existing), "clip.mp4"]
+    assert is_config_key("guidance.step_size") and is_config_key("evaluation.model_fps.mine") and not is_config_key("x")
 
 
 def test_the_config_takes_preset_overrides_and_flags_in_that_order():
@@ -51,7 +51,7 @@ def test_the_config_takes_preset_overrides_and_flags_in_that_order():
                                                                             "seed": None})
     assert cfg.seed == 5 and cfg.estimators.geometry == "tiny-random" and cfg.evaluation.loss.pairs == "center"
     with pytest.raises(ValueError):
-        config_from_args(args, ["guidance.etaa=1"])
+        config_from_args(args, ["guidance.step_sizea=1"])
 
 
 def test_ctrl_c_is_one_line_and_exit_code_130(capsys):

@@ -17,7 +17,7 @@ import pytest
 from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
-COMMANDS = ("generate", "evaluate", "geco_eval", "detection", "validate", "robustness", "benchmarks")
+COMMANDS = ("generate", "evaluate", "geco_eval", "detection", "validate", "robustness", "benchmarks", "ab")
 SCRIPTS = ("benchmark.py", "ab_compare.py")
 
 
@@ -62,6 +62,7 @@ REFUSED = {
     "validate": [["--pairs", "every"]],
     "robustness": [[], ["--out", "sweep", "--pairs", "every"]],
     "benchmarks": [["blur", "clip.mp4", "--out", "bench"]],
+    "ab": [["--prompts", "p.txt", "--seeds", "0"]],
 }
 
 

@@ -20,7 +20,7 @@ def test_schema_defaults_are_the_paper():
     assert (s.num_inference_steps, s.guidance_scale, s.num_frames, s.height, s.width) == (50, 6.0, 49, 480, 720)
     g = cfg.guidance
     assert g.anchors == [12, 24, 36, 48] and g.chunk_latents == 3
-    assert g.repeats == "0x3,3x17,2x30" and g.eta == 3.0 and g.time_travel == [15, 20]
+    assert g.repeats == "0x3,3x17,2x30" and g.step_size == 3.0 and g.time_travel == [15, 20]
     assert g.denoiser_grad and g.enabled
     assert isinstance(g.loss, GeCoLossConfig)
     # the paper's experiment: residual motion, depth and cameras constant in the update
@@ -39,9 +39,9 @@ def test_presets_load_and_paper_preset_equals_schema_defaults():
 
 def test_file_and_overrides_merge_in_order(tmp_path: Path):
     path = tmp_path / "c.yaml"
-    path.write_text("seed: 5\nguidance:\n  eta: 1.0\n")
-    cfg = load_config(path, preset="tiny", overrides=["guidance.eta=2.5", "guidance.loss.cue=motion"])
-    assert cfg.seed == 5 and cfg.guidance.eta == 2.5 and cfg.guidance.loss.cue == "motion"
+    path.write_text("seed: 5\nguidance:\n  step_size: 1.0\n")
+    cfg = load_config(path, preset="tiny", overrides=["guidance.step_size=2.5", "guidance.loss.cue=motion"])
+    assert cfg.seed == 5 and cfg.guidance.step_size == 2.5 and cfg.guidance.loss.cue == "motion"
     assert cfg.model.id == "tiny-random"
 
 
@@ -71,7 +71,7 @@ def test_unknown_keys_in_yaml_are_rejected(tmp_path: Path):
         ("sampling.num_inference_steps=abc", "sampling.num_inference_steps"),
         ("sampling.height=100", "sampling.height"),
         ("sampling.num_frames=16", "sampling.num_frames"),
-        ("guidance.eta=-1", "guidance.eta"),
+        ("guidance.step_size=-1", "guidance.step_size"),
         ("guidance.loss.cue=colour", "guidance.loss.cue"),
         ("guidance.loss.flow_downscale=0", "guidance.loss.flow_downscale"),
         ("model.dtype=float8", "model.dtype"),
@@ -110,8 +110,8 @@ def test_merge_dataclass_is_the_one_dict_to_config_merger():
     from geco_guide.sampler import GuidanceConfig
     from geco_guide.types import merge_dataclass
 
-    merged = merge_dataclass(GuidanceConfig(), {"eta": 2.0, "anchors": (4, 8), "loss": {"cue": "motion"}}, "guidance")
-    assert merged.eta == 2.0 and merged.anchors == [4, 8] and merged.loss.cue == "motion"  # list stays a list
+    merged = merge_dataclass(GuidanceConfig(), {"step_size": 2.0, "anchors": (4, 8), "loss": {"cue": "motion"}}, "guidance")
+    assert merged.step_size == 2.0 and merged.anchors == [4, 8] and merged.loss.cue == "motion"  # list stays a list
     assert merged.loss.pairs == GuidanceConfig().loss.pairs  # untouched nested keys keep their values
     tiny = VGGTConfig.tiny()
     assert VGGTConfig.from_dict(tiny.to_dict()) == tiny  # JSON lists become the config's tuples again
@@ -171,7 +171,7 @@ def test_config_path_that_is_a_folder_is_called_a_folder(tmp_path: Path):
     ({"anchors": [4.7, 8.9, 12, 16]}, "anchors must hold integers only, e.g. [12, 24, 36, 48], got 4.7 in"),
     ({"anchors": "4,8"}, "anchors must be a list of integers, e.g. [12, 24, 36, 48], got '4,8'"),
     ({"anchors": [4, True]}, "anchors must hold integers only"),
-    ({"eta": "3"}, "eta must be a number, got '3'"),
+    ({"step_size": "3"}, "step_size must be a number, got '3'"),
     ({"grad_eps": None}, "grad_eps must be a number, got None"),
     ({"chunk_latents": 2.5}, "chunk_latents must be an integer, got 2.5"),
     ({"time_travel": [15.5, 20]}, "time_travel must hold integers only, e.g. [15, 20], got 15.5"),
@@ -209,10 +209,10 @@ def test_run_options_of_the_wrong_type_are_one_line_naming_the_key(changes, mess
 def test_numbers_of_other_numeric_types_are_taken_as_they_are():
     import numpy as np
 
-    config = GuidanceConfig(anchors=[np.int64(4), 8], eta=2, time_travel=(1, 2))
-    assert config.anchors == [4, 8] and config.eta == 2 and config.time_travel == (1, 2)
+    config = GuidanceConfig(anchors=[np.int64(4), 8], step_size=2, time_travel=(1, 2))
+    assert config.anchors == [4, 8] and config.step_size == 2 and config.time_travel == (1, 2)
     assert RunOptions(memory_budget_gb=np.float32(8.0)).memory_budget_gb == 8.0
-    assert load_config(preset="tiny", overrides=["guidance.eta=2"]).guidance.eta == 2.0
+    assert load_config(preset="tiny", overrides=["guidance.step_size=2"]).guidance.step_size == 2.0
 
 
 def test_a_float_anchor_in_a_config_is_refused_not_truncated(tmp_path: Path):

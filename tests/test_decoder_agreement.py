@@ -110,7 +110,7 @@ def cli():
      "estimators.tiny_decoder=/path/to/taecvx.pth"),
     (["decoder-agreement", "--preset", "tiny", "estimators.tiny_decoder=/nowhere/taecvx.pth"], "no such file"),
     (["decoder-agreement", "--preset", "tiny", "guidance.enabled=false"], "guidance.enabled must be true"),
-    (["decoder-agreement", "--preset", "tiny", "guidance.eta=-1"], "guidance.eta"),
+    (["decoder-agreement", "--preset", "tiny", "guidance.step_size=-1"], "guidance.step_size"),
     (["decoder-agreement", "--preset", "tiny", "no.such=1"], "unknown config key"),
     (["decoder-agreement", "--preset", "tiny", "--prompt", " "], "--prompt must not be empty"),
     (["decoder-agreement", "--preset", "nope"], "invalid choice"),

@@ -69,7 +69,7 @@ def test_two_devices_give_the_frames_of_one_through_a_hook():
     from geco_guide.tiny import tiny_wan_pipeline
 
     geometry, flow = tiny_estimators(0)
-    config = GuidanceConfig(anchors=[4, 8], repeats="0x3,2x1", time_travel=[], eta=1.0)
+    config = GuidanceConfig(anchors=[4, 8], repeats="0x3,2x1", time_travel=[], step_size=1.0)
     videos = []
     for devices in (None, ["cpu", "cpu"]):
         pipe = tiny_wan_pipeline(0)
@@ -142,3 +142,55 @@ def test_the_pipeline_plans_for_the_devices_it_deals_the_decode_over(monkeypatch
     _pipe_frames(tiny_guidance_config(repeats="0x3,1x1", time_travel=[]),
                  tiny_run_options(memory_plan="auto", devices=["cpu", "cpu"]))
     assert seen == [("cpu", ["cpu", "cpu"])]
+
+
+@pytest.mark.parametrize("denoiser_grad", [False, True], ids=["fast", "faithful"])
+def test_the_cfg_halves_on_two_devices_give_the_frames_of_one(denoiser_grad):
+    """run.split_cfg: the unconditional and conditional halves as two calls, on two devices (two
+    replicas) or one after the other on one: bitwise the same; the stock one-call batch to float
+    rounding only."""
+    config = replace(tiny_guidance_config(), denoiser_grad=denoiser_grad)
+    run = tiny_run_options(split_cfg=True, memory_plan="chunked")  # the anchor decode as it is across devices
+    one, log_one, _ = _pipe_frames(config, run)
+    two, log_two, pipe = _pipe_frames(config, replace(run, devices=["cpu", "cpu"]))
+    assert torch.equal(one, two) and [r["loss"] for r in log_one] == [r["loss"] for r in log_two]
+    assert pipe._cfg_halves is None  # the replicas are the call's only
+
+
+def test_the_cfg_halves_give_the_one_call_output_to_float_rounding():
+    """One denoiser output, split in two calls or not: equal to float rounding (a whole guided run
+    then follows another path, since normalised updates of tiny random models amplify it)."""
+    from geco_guide.sampler.devices import CfgHalves
+
+    pipe = tiny_pipeline(seed=0)
+    z = torch.randn(1, 5, 4, 4, 6, generator=torch.Generator().manual_seed(0))
+    embeds = torch.randn(2, 16, pipe.transformer.config.text_embed_dim, generator=torch.Generator().manual_seed(1))
+    pipe._guidance_scale = 6.0
+    pipe.scheduler.set_timesteps(4)
+    kwargs = dict(t=pipe.scheduler.timesteps[1], prompt_embeds=embeds, image_rotary_emb=None, attention_kwargs=None,
+                  do_classifier_free_guidance=True)
+    stock = pipe.model_output(z, **kwargs)
+    pipe._cfg_halves = CfgHalves(pipe.transformer, [torch.device("cpu"), torch.device("cpu")], torch.device("cpu"))
+    split = pipe.model_output(z, **kwargs)
+    torch.testing.assert_close(split, stock, rtol=1e-5, atol=1e-6)
+
+
+def test_the_cfg_halves_split_every_batched_input_and_share_the_rest():
+    from geco_guide.sampler.devices import CfgHalves
+
+    seen = []
+
+    class Denoiser(torch.nn.Module):
+        def forward(self, hidden_states, encoder_hidden_states, timestep, image_rotary_emb=None, return_dict=False):
+            seen.append((hidden_states.shape[0], encoder_hidden_states.shape[0], timestep.shape[0],
+                         image_rotary_emb[0].shape[0]))
+            return (hidden_states * encoder_hidden_states.mean() + timestep.view(-1, 1),)
+
+    halves = CfgHalves(Denoiser(), [torch.device("cpu"), torch.device("cpu")], torch.device("cpu"))
+    x, e, t = torch.randn(4, 3), torch.randn(4, 5), torch.arange(4.0)
+    out = halves(hidden_states=x, encoder_hidden_states=e, timestep=t, image_rotary_emb=(torch.ones(7, 2),),
+                 return_dict=False)
+    assert seen == [(2, 2, 2, 7), (2, 2, 2, 7)] and out.shape == (4, 3)
+    assert torch.equal(out[:2], x[:2] * e[:2].mean() + t[:2].view(-1, 1))
+    assert torch.equal(out[2:], x[2:] * e[2:].mean() + t[2:].view(-1, 1))
+    assert halves.replicas[0] is not halves.replicas[1]

@@ -125,10 +125,10 @@ def test_mask_options_that_cannot_work_fail_before_any_denoising(estimators):
 
 
 def test_without_dynamic_the_video_its_name_and_log_stay_as_before(estimators):
-    # The names the presets give without masks (since the run options left the key: before,
-    # 61238450 and 3e3f47ff held the memory plan too).
-    assert default_name(load_config(preset="tiny"), "a marble bust") == "a-marble-bust-b3866b8b-seed0"
-    assert default_name(load_config(preset="cogvideox-5b"), "a marble bust") == "a-marble-bust-72176677-seed0"
+    # The names the presets give without masks (since the run options left the key and eta became
+    # step_size: before, 61238450 and 3e3f47ff).
+    assert default_name(load_config(preset="tiny"), "a marble bust") == "a-marble-bust-21df29c8-seed0"
+    assert default_name(load_config(preset="cogvideox-5b"), "a marble bust") == "a-marble-bust-e56702e3-seed0"
     pipe = T.tiny_pipeline(0, geometry_estimator=estimators[0], flow_estimator=estimators[1])
     before = run_pipeline(pipe)
     unused = LeftHalf()

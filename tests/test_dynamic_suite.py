@@ -58,6 +58,9 @@ def test_geco_eval_dynamic_scores_and_guides_with_the_subjects_masks(tmp_path: P
     assert json.loads((out / "videos" / "cogvideox-5b-guided" / "m1-s0.json").read_text())["guidance_updates"] > 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["suite"] == {"name": "dynamic", "ours": True, "segmenter": "tiny-random-grounding-sam2"}
+    # the ids the loaded estimators carry (a report rebuilt without loading them says the same)
+    assert summary["estimators"] == {"geometry": "tiny-random(seed=0)", "flow": "tiny-random(seed=0)",
+                                     "segmenter": "tiny-random-grounding-sam2(seed=0)"}
     assert "24 prompts of our own with moving subjects, not the paper's" in (out / "report.md").read_text()
     rows = list(csv.DictReader((out / "results.csv").open()))
     assert [r["subjects"] for r in rows] == ["a dog", "a dog"]
@@ -98,3 +101,5 @@ def test_ab_run_masks_both_scores_and_the_guided_arm(tmp_path: Path):
     assert all(r["mask_source"] == "grounding-sam2: a dog" for r in guided["guidance_log"])
     assert unguided["config"]["guidance"]["dynamic"] is None and "dynamic_masks" not in unguided
     assert list(csv.DictReader((out / "results.csv").open()))[0]["subjects"] == "a dog"
+    models = json.loads((out / "summary.json").read_text())["models"]
+    assert models["segmenter"] == "tiny-random-grounding-sam2(seed=0)" and models["geometry"] == "tiny-random(seed=0)"

@@ -219,13 +219,15 @@ def test_invalid_evaluation_keys_are_named(override, key):
 
 
 def test_shared_estimator_loader_builds_tiny_models():
-    geometry, flow = load_estimators(EstimatorsConfig(geometry="tiny-random", flow="tiny-random"), "cpu")
+    estimators = load_estimators(EstimatorsConfig(geometry="tiny-random", flow="tiny-random"), "cpu")
+    geometry, flow = estimators.geometry, estimators.flow
     assert geometry.geco_estimator_id == "tiny-random(seed=0)" and flow.geco_estimator_id == "tiny-random(seed=0)"
     assert not any(p.requires_grad for p in geometry.parameters()) and not geometry.training
     assert not geometry.gradient_checkpointing and not flow.gradient_checkpointing
+    assert estimators.segmenter is None  # loaded only when asked for
     cfg = load_config(preset="tiny", overrides=["estimators.gradient_checkpointing=true"])
-    geometry, flow = load_estimators(cfg.estimators, "cpu")
-    assert geometry.gradient_checkpointing and flow.gradient_checkpointing
+    estimators = load_estimators(cfg.estimators, "cpu")
+    assert estimators.geometry.gradient_checkpointing and estimators.flow.gradient_checkpointing
 
 
 # --- CLI ----------------------------------------------------------------------------------

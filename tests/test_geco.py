@@ -109,7 +109,7 @@ def test_geco_loss_runs_end_to_end_with_tiny_vggt_and_ufm():
     assert frames.grad is not None and frames.grad.abs().sum() > 0
     # Without gradients through the geometry estimator, the structure cue alone gives none.
     frames.grad = None
-    no_geometry_grad = GeCoLoss(loss.geometry, loss.flow, GeCoLossConfig(cue="structure", geometry_grad=False))
+    no_geometry_grad = GeCoLoss(loss.geometry_estimator, loss.flow_estimator, GeCoLossConfig(cue="structure", geometry_grad=False))
     out = no_geometry_grad(frames)
     assert not out.loss.requires_grad
 
@@ -170,6 +170,18 @@ def test_bad_inputs_to_geco_loss(rigid):
         geco_from_geometry(rigid.geometry(), Correspondences(corr.flow[:2], corr.covisibility), pairs)
     with pytest.raises(ValueError, match="pairs"):
         geco_from_geometry(rigid.geometry(), corr, [(0, 7)] * 4)
+
+
+def test_the_estimators_are_named_as_the_pipeline_names_them_and_the_earlier_names_still_work(rigid):
+    geometry, flow = OracleGeometry(rigid), OracleFlow(rigid)
+    named = GeCoLoss(geometry_estimator=geometry, flow_estimator=flow)
+    earlier = GeCoLoss(geometry=geometry, flow=flow)
+    assert named.geometry_estimator is earlier.geometry_estimator is geometry and earlier.flow_estimator is flow
+    assert float(named(rigid.frames[None]).fused) == float(earlier(rigid.frames[None]).fused)
+    with pytest.raises(ValueError, match="^pass geometry_estimator= or its earlier name geometry=, not both$"):
+        GeCoLoss(geometry, flow, geometry=geometry)
+    with pytest.raises(ValueError, match="^geometry_estimator must implement estimate_geometry"):
+        GeCoLoss(object(), flow)
 
 
 def test_motion_statistics():

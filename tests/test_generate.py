@@ -72,10 +72,10 @@ def test_no_guidance_seed_and_overrides_in_process(tmp_path: Path, capsys):
 
 
 def test_bad_override_is_one_error_line(capsys):
-    rc = main(["--preset", "tiny", "--prompt", "x", "guidance.etaa=1"])
+    rc = main(["--preset", "tiny", "--prompt", "x", "guidance.step_sizea=1"])
     assert rc == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error:") and "guidance.etaa" in err and "\n" not in err
+    assert err.startswith("error:") and "guidance.step_sizea" in err and "\n" not in err
 
 
 def test_offline_without_weights_is_one_clear_error(monkeypatch):
@@ -105,7 +105,7 @@ def test_default_names_differ_for_prompts_with_one_prefix_and_for_configs_that_c
     prefix = "a very long prompt about a marble bust on a wooden table in a quiet"  # longer than the slug
     first, second = default_name(cfg, prefix + " room"), default_name(cfg, prefix + " hall")
     assert first != second and first.split("-seed")[0].rsplit("-", 1)[0] == second.split("-seed")[0].rsplit("-", 1)[0]
-    for override in ("guidance.eta=2.0", "sampling.num_inference_steps=3", "model.init_seed=1", "seed=1",
+    for override in ("guidance.step_size=2.0", "sampling.num_inference_steps=3", "model.init_seed=1", "seed=1",
                      "guidance.loss.cue=fused", "estimators.flow=some/other-flow"):
         assert default_name(load_config(preset="tiny", overrides=[override]), "a cat") != default_name(cfg, "a cat")
     # where the files go, whether the anchors are scored, the evaluation protocol and the device do not rename
@@ -186,7 +186,7 @@ def test_default_names_in_one_folder_do_not_overwrite(tmp_path: Path, capsys, st
     assert _run(tmp_path) == 0
     capsys.readouterr()
     assert _run(tmp_path) == 2 and "already exists" in _error_line(capsys)
-    assert _run(tmp_path, "guidance.eta=2.0") == 0  # another config: another name
+    assert _run(tmp_path, "guidance.step_size=2.0") == 0  # another config: another name
     assert len(list(tmp_path.glob("*.mp4"))) == 2 and len(list(tmp_path.glob("*.json"))) == 2
 
 

@@ -89,7 +89,7 @@ def test_tiny_without_a_decoder_or_with_the_wrong_one_is_one_line_before_any_ste
 def test_the_hook_takes_the_tiny_decoder_too():
     estimators = T.tiny_estimators(0)
     pipe = T.tiny_wan_pipeline(0)
-    config = T.tiny_guidance_config(anchors=[4, 8], chunk_latents=3, repeats="0x3,2x1", time_travel=[], eta=1.0,
+    config = T.tiny_guidance_config(anchors=[4, 8], chunk_latents=3, repeats="0x3,2x1", time_travel=[], step_size=1.0,
                                     decoder="tiny")
     decoder = T.tiny_guidance_decoder("wan2.1")
     tiny_calls = Counted(decoder, "decode")

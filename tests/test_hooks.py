@@ -20,7 +20,7 @@ PROMPT = "a marble bust on a table"
 NUM_FRAMES = 9  # 3 latents at r=4 (2 at r=8, LTX)
 ANCHORS = [5, 8]  # both in the last latent: one causal chunk, the whole (short) video
 # guidance on the last of 4 steps only: what it changes is what comes out
-LAST_STEP = dict(anchors=ANCHORS, chunk_latents=3, repeats="0x3,2x1", time_travel=[], eta=1.0)
+LAST_STEP = dict(anchors=ANCHORS, chunk_latents=3, repeats="0x3,2x1", time_travel=[], step_size=1.0)
 
 BUILDERS = {
     "cogvideox": lambda seed: T.tiny_cogvideox_pipeline(seed),
@@ -105,7 +105,7 @@ def test_hook_on_stock_cogvideox_matches_geco_pipeline(faithful, estimators):
     from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     config = T.tiny_guidance_config(
-        anchors=ANCHORS, repeats="0x2,1x1,1x1", time_travel=[2, 2], eta=1.0, denoiser_grad=faithful
+        anchors=ANCHORS, repeats="0x2,1x1,1x1", time_travel=[2, 2], step_size=1.0, denoiser_grad=faithful
     )
     geco = GeCoCogVideoXPipeline(**T.tiny_cogvideox_components(0), geometry_estimator=estimators[0], flow_estimator=estimators[1])
     geco.set_progress_bar_config(disable=True)
@@ -123,7 +123,7 @@ def test_hook_on_stock_cogvideox_matches_geco_pipeline(faithful, estimators):
 
 def test_time_travel_is_reproducible_from_the_generator(estimators):
     pipe = T.tiny_hunyuan_pipeline(0)
-    config = T.tiny_guidance_config(anchors=ANCHORS, repeats="0x2,1x2", time_travel=[2, 3], eta=1.0, denoiser_grad=False)
+    config = T.tiny_guidance_config(anchors=ANCHORS, repeats="0x2,1x2", time_travel=[2, 3], step_size=1.0, denoiser_grad=False)
     with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
         a, b, c = run(pipe, seed=7), run(pipe, seed=7), run(pipe, seed=8)
     assert len(handle.log) == 2 and all(e["time_travel"] for e in handle.log)
@@ -209,7 +209,7 @@ def test_bad_calls_are_rejected_before_any_denoising_step(family, changes, call,
 
 def test_a_plain_dict_on_a_short_video_says_to_set_the_anchors_and_where(estimators):
     pipe = T.tiny_wan_pipeline(0)  # 17 frames: the default anchors (12, 24, 36, 48) do not fit
-    with attach_geco_guidance(pipe, {"eta": 2.0}, geometry_estimator=estimators[0], flow_estimator=estimators[1]):
+    with attach_geco_guidance(pipe, {"step_size": 2.0}, geometry_estimator=estimators[0], flow_estimator=estimators[1]):
         with pytest.raises(ValueError) as err:
             run(pipe, num_frames=17)
     assert str(err.value) == ("anchors [24, 36, 48] are out of range for a 17-frame video: set anchors "

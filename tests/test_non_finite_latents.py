@@ -28,7 +28,7 @@ def poison_at(step: int):
 
 def _message(step: int, steps: int) -> str:
     return (f"the latents hold NaN or inf from denoising step {step} on (0-based, of {steps}); the video would be NaN "
-            "frames, so the call stops (lower guidance.eta or the guidance scale, or check latents set by a callback)")
+            "frames, so the call stops (lower guidance.step_size or the guidance scale, or check latents set by a callback)")
 
 
 @pytest.mark.parametrize("guidance", [None, False], ids=["guided", "unguided"])

@@ -61,7 +61,7 @@ def test_guided_step_without_repeats_is_a_ddim_step():
     z = torch.randn(1, 3, 2, 4, 4)
     v = torch.randn_like(z)
     a_t, a_prev = torch.tensor(0.3, dtype=torch.float64), torch.tensor(0.6, dtype=torch.float64)
-    z_prev, x0, records = ddim_guided(z, lambda z, grad: v, VPLevels(a_t, a_prev), None, 0, eta=3.0)
+    z_prev, x0, records = ddim_guided(z, lambda z, grad: v, VPLevels(a_t, a_prev), None, 0, step_size=3.0)
     assert records == []
     torch.testing.assert_close(x0, a_t.sqrt().float() * z - (1 - a_t).sqrt().float() * v)
     eps = ((z - a_t.sqrt().float() * x0) / (1 - a_t).sqrt().float())
@@ -80,7 +80,7 @@ def test_fast_mode_update_is_the_normalised_gradient_through_sqrt_alpha():
         seen.append(grad)
         return v
 
-    z_prev, _, records = ddim_guided(z, predict, VPLevels(a_t, a_prev), squared(target), 2, eta=0.5,
+    z_prev, _, records = ddim_guided(z, predict, VPLevels(a_t, a_prev), squared(target), 2, step_size=0.5,
                                      denoiser_grad=False)
     z_upd, norms = z, []
     for _ in range(2):
@@ -100,7 +100,7 @@ def test_fast_mode_predicts_again_after_each_time_travel():
         seen.append(z_in.clone())
         return torch.sin(z_in)  # an output that depends on z
 
-    z_prev, x0, _ = ddim_guided(z, predict, VPLevels(a_t, a_prev), squared(), 2, eta=1.0, time_travel=True,
+    z_prev, x0, _ = ddim_guided(z, predict, VPLevels(a_t, a_prev), squared(), 2, step_size=1.0, time_travel=True,
                                 denoiser_grad=False, generator=torch.Generator().manual_seed(3))
     # start, after the first re-noising (second update), after the second (final prediction)
     assert len(seen) == 3 and torch.equal(seen[0], z)
@@ -111,7 +111,7 @@ def test_time_travel_renoises_back_to_t_with_the_generator():
     z = torch.randn(1, 2, 2, 3, 3)
     v = torch.zeros_like(z)
     a_t, a_prev = torch.tensor(0.4, dtype=torch.float64), torch.tensor(0.7, dtype=torch.float64)
-    kwargs = dict(predict=lambda z, g: v, levels=VPLevels(a_t, a_prev), objective=squared(), repeats=1, eta=1.0,
+    kwargs = dict(predict=lambda z, g: v, levels=VPLevels(a_t, a_prev), objective=squared(), repeats=1, step_size=1.0,
                   time_travel=True)
     out1 = ddim_guided(z, generator=torch.Generator().manual_seed(5), **kwargs)[0]
     out2 = ddim_guided(z, generator=torch.Generator().manual_seed(5), **kwargs)[0]
@@ -129,8 +129,8 @@ def test_resolve_guidance_config():
     base = GuidanceConfig()
     assert resolve_guidance_config(base, None) is base
     assert resolve_guidance_config(base, False).enabled is False
-    changed = resolve_guidance_config(base, {"eta": 1.5, "loss": {"cue": "motion"}})
-    assert changed.eta == 1.5 and changed.loss.cue == "motion" and changed.loss.flow_downscale == 0.5
+    changed = resolve_guidance_config(base, {"step_size": 1.5, "loss": {"cue": "motion"}})
+    assert changed.step_size == 1.5 and changed.loss.cue == "motion" and changed.loss.flow_downscale == 0.5
     with pytest.raises(ValueError, match="guidance.bogus"):
         resolve_guidance_config(base, {"bogus": 1})
     with pytest.raises(ValueError, match="guidance.loss"):
@@ -269,7 +269,7 @@ def test_callback_on_step_end_still_works(pipe):
         # (runs like "0x1,2x2,1x1" are scaled to other step counts; a per-step list must match)
         (dict(num_inference_steps=5, guidance={"repeats": [0, 2, 2, 1]}), "covers 4 steps but the sampler runs 5"),
         (dict(guidance={"loss": {"cue": "structure", "geometry_grad": False}}), "geometry_grad=true"),
-        (dict(guidance={"eta": -1.0}), r"eta must be in \[0, 1000\]"),
+        (dict(guidance={"step_size": -1.0}), r"step_size must be in \[0, 1000\]"),
         (dict(guidance={"time_travel": [3, 4]}), "time_travel"),
     ],
 )
@@ -408,8 +408,8 @@ def test_an_update_with_a_nan_loss_moves_nothing_even_with_a_finite_gradient():
         return loss_terms(x0.sum() + float("nan"))  # its gradient is finite: ones
 
     updates = []
-    guided, _ = guided_step(z, lambda z, grad: v, levels, nan_loss, 2, eta=1.0, on_update=updates.append)
+    guided, _ = guided_step(z, lambda z, grad: v, levels, nan_loss, 2, step_size=1.0, on_update=updates.append)
     assert torch.equal(guided, z)
     assert [bool(u.terms["finite"]) for u in updates] == [False, False]
-    moved, _ = guided_step(z, lambda z, grad: v, levels, squared(), 1, eta=1.0)
+    moved, _ = guided_step(z, lambda z, grad: v, levels, squared(), 1, step_size=1.0)
     assert not torch.equal(moved, z)  # a finite loss does move it

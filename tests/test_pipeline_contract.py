@@ -89,7 +89,7 @@ def test_guided_pipeline_uses_the_schedulers_alpha_prev_like_the_hooks(spacing, 
     # uses; the hooks use it too, so the pipeline and the hooked stock pipeline agree
     scheduler = CogVideoXDDIMScheduler.from_config(ddim_settings(timestep_spacing=spacing))
     stock, ours = pair(estimators, scheduler)
-    config = tiny_guidance_config(repeats="0x2,1x2", time_travel=[2, 3], eta=1.0, denoiser_grad=False)
+    config = tiny_guidance_config(repeats="0x2,1x2", time_travel=[2, 3], step_size=1.0, denoiser_grad=False)
     ours_out = call(ours, 1, guidance=config)
     with attach_geco_guidance(stock, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
         hooked = call(stock, 1).frames
@@ -294,14 +294,14 @@ def test_denoiser_caches_are_refused_with_guidance_and_work_without(cache, estim
 
 def test_save_load_round_trips_the_guidance_config(tmp_path, estimators):
     # mirrors test_save_load_local and test_save_load_optional_components
-    _, ours = pair(estimators, eta=1.5)
+    _, ours = pair(estimators, step_size=1.5)
     ours.guidance_config.loss.cue = "motion"  # changed after construction: saved as it is now
     ours.save_pretrained(tmp_path)
     loaded = GeCoCogVideoXPipeline.from_pretrained(tmp_path, geometry_estimator=estimators[0],
                                                    flow_estimator=estimators[1])
     loaded.set_progress_bar_config(disable=True)
     assert loaded.guidance_config == ours.guidance_config
-    assert loaded.guidance_config.eta == 1.5 and loaded.guidance_config.loss.cue == "motion"
+    assert loaded.guidance_config.step_size == 1.5 and loaded.guidance_config.loss.cue == "motion"
     assert loaded.geometry_estimator is estimators[0] and loaded.flow_estimator is estimators[1]
     a, b = call(ours, 4), call(loaded, 4)
     assert [e["loss"] for e in a.guidance_log] == [e["loss"] for e in b.guidance_log]
@@ -312,11 +312,11 @@ def test_save_load_round_trips_the_guidance_config(tmp_path, estimators):
     with pytest.raises(ValueError, match="geometry_estimator and flow_estimator"):
         call(bare, 4)
     # a config assigned later (object or dict of changes) is what is saved; repr() still works
-    ours.guidance_config = {"eta": 0.5}
-    assert isinstance(ours.guidance_config, GuidanceConfig) and ours.guidance_config.eta == 0.5
+    ours.guidance_config = {"step_size": 0.5}
+    assert isinstance(ours.guidance_config, GuidanceConfig) and ours.guidance_config.step_size == 0.5
     assert "guidance_config" in repr(ours)
     ours.save_pretrained(tmp_path / "again")
-    assert GeCoCogVideoXPipeline.from_pretrained(tmp_path / "again").guidance_config.eta == 0.5
+    assert GeCoCogVideoXPipeline.from_pretrained(tmp_path / "again").guidance_config.step_size == 0.5
 
 
 def test_model_cpu_offload_with_guidance(estimators):

@@ -33,7 +33,7 @@ def test_paper_preset_is_the_papers_experiment_and_fused_differs_only_in_the_los
     p = paper.guidance.loss
     assert (p.cue, p.pairs, p.flow_downscale, p.geometry_grad) == ("motion", "adjacent", 0.5, False)
     assert paper.guidance.anchors == [12, 24, 36, 48] and paper.guidance.repeats == "0x3,3x17,2x30"
-    assert paper.guidance.eta == 3.0 and paper.guidance.time_travel == [15, 20] and paper.guidance.denoiser_grad
+    assert paper.guidance.step_size == 3.0 and paper.guidance.time_travel == [15, 20] and paper.guidance.denoiser_grad
     assert paper.sampling.scheduler == "ddim" and fused.sampling.scheduler == "ddim"  # DDIM, chosen explicitly
     assert (fused.guidance.loss.cue, fused.guidance.loss.geometry_grad) == ("fused", True)
     a, b = _flatten(config_to_dict(paper)), _flatten(config_to_dict(fused))

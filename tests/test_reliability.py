@@ -141,7 +141,7 @@ def test_geco_loss_on_good_frames_is_finite_forward_and_backward(clip, tiny_loss
 def test_sampler_mode_gives_nan_scalars_and_no_update_for_nan_frames(clip, tiny_loss):
     """The samplers' loss (check_values=False: no host sync per update) never scores a NaN decode
     as consistent, and its gradient moves nothing (guided_step drops a non-finite one)."""
-    sampler_loss = GeCoLoss(tiny_loss.geometry, tiny_loss.flow, tiny_loss.config, check_values=False)
+    sampler_loss = GeCoLoss(tiny_loss.geometry_estimator, tiny_loss.flow_estimator, tiny_loss.config, check_values=False)
     frames = clip.frames[None].float().clone()
     frames[0, 1, :, :4] = math.nan
     frames.requires_grad_(True)
@@ -202,7 +202,7 @@ def _float_keys(obj, prefix=""):
 
 def test_every_float_option_refuses_nan_and_inf_naming_the_key():
     keys = list(_float_keys(load_config(preset="tiny")))
-    expected = {"guidance.eta", "sampling.guidance_scale", "guidance.loss.occlusion_tau", "evaluation.window_seconds"}
+    expected = {"guidance.step_size", "sampling.guidance_scale", "guidance.loss.occlusion_tau", "evaluation.window_seconds"}
     assert expected <= set(keys)
     for key in keys:
         for value in ("nan", "inf", "-inf"):
@@ -236,7 +236,7 @@ def test_loss_config_refuses_non_finite_values():
 @pytest.mark.parametrize(
     "override, key",
     [
-        ("guidance.eta=1e30", "guidance.eta"),
+        ("guidance.step_size=1e30", "guidance.step_size"),
         ("sampling.guidance_scale=1e30", "sampling.guidance_scale"),
         ("seed=18446744073709551616", "seed"),  # 2**64: torch.Generator would overflow after loading
         ("output.name=../../x", "output.name"),
@@ -265,7 +265,7 @@ def _one_error_line(capsys) -> str:
     return err
 
 
-@pytest.mark.parametrize("overrides", [["sampling.guidance_scale=1e30", "--no-guidance"], ["guidance.eta=inf"]])
+@pytest.mark.parametrize("overrides", [["sampling.guidance_scale=1e30", "--no-guidance"], ["guidance.step_size=inf"]])
 def test_cli_absurd_values_are_one_line_and_write_nothing(tmp_path: Path, capsys, no_loading, overrides):
     rc = main(["--preset", "tiny", "--prompt", "a cat", f"output.dir={tmp_path}", *overrides])
     assert rc == 2 and list(tmp_path.iterdir()) == []
@@ -425,7 +425,7 @@ def test_geco_eval_cuda_without_cuda_is_one_line_before_loading(tmp_path: Path, 
 
 
 @pytest.mark.parametrize("changes, key", [
-    ({"eta": float("inf")}, "eta"), ({"eta": 1e30}, "eta"), ({"eta": -1.0}, "eta"),
+    ({"step_size": float("inf")}, "step_size"), ({"step_size": 1e30}, "step_size"), ({"step_size": -1.0}, "step_size"),
     ({"grad_eps": float("nan")}, "grad_eps"), ({"grad_eps": 0.0}, "grad_eps"), ({"chunk_latents": 1}, "chunk_latents"),
 ])
 def test_guidance_config_refuses_bad_values_in_the_python_api_and_the_hook(changes, key):

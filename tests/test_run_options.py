@@ -61,22 +61,24 @@ def test_old_keys_work_in_config_files_and_overrides_with_one_line_each(tmp_path
     old = tmp_path / "old.yaml"
     old.write_text("guidance:\n  eta: 2.0\n  memory_plan: chunked\n  devices: [cpu, cpu]\n")
     new = tmp_path / "new.yaml"
-    new.write_text("guidance:\n  eta: 2.0\nrun:\n  memory_plan: chunked\n  devices: [cpu, cpu]\n")
+    new.write_text("guidance:\n  step_size: 2.0\nrun:\n  memory_plan: chunked\n  devices: [cpu, cpu]\n")
     with warnings.catch_warnings(record=True) as record:
         warnings.simplefilter("always")
         from_old = load_config(old, preset="tiny")
         from_override = load_config(preset="tiny", overrides=["guidance.memory_budget_gb=5", "guidance.eta=2"])
     messages = renamed(record)
-    assert len(messages) == 3 and all("\n" not in m for m in messages)
-    assert messages[0] == (f"guidance.memory_plan ({old}) is now run.memory_plan: the old key works until the "
+    assert len(messages) == 5 and all("\n" not in m for m in messages)
+    assert messages[0] == f"guidance.eta ({old}) is now guidance.step_size: the old key works until the next release"
+    assert messages[1] == (f"guidance.memory_plan ({old}) is now run.memory_plan: the old key works until the "
                            "next release")
-    assert messages[2].startswith("guidance.memory_budget_gb (command line) is now run.memory_budget_gb")
+    assert messages[3].startswith("guidance.memory_budget_gb (command line) is now run.memory_budget_gb")
+    assert messages[4].startswith("guidance.eta (command line) is now guidance.step_size")
     with warnings.catch_warnings():
         warnings.simplefilter("error", RenamedOptionWarning)  # the new spelling says nothing
         from_new = load_config(new, preset="tiny")
         assert load_config(preset="tiny", overrides=["run.memory_budget_gb=5"]).run.memory_budget_gb == 5
     assert from_old == from_new and from_old.run.devices == ["cpu", "cpu"]
-    assert from_override.run.memory_budget_gb == 5 and from_override.guidance.eta == 2
+    assert from_override.run.memory_budget_gb == 5 and from_override.guidance.step_size == 2
 
 
 def test_a_run_section_wins_over_the_old_spelling_in_the_same_file(tmp_path):
@@ -95,7 +97,7 @@ def test_old_keys_in_a_call_dict_give_the_same_video_as_run_options():
 
     with pytest.warns(RenamedOptionWarning, match="guidance.vae_checkpointing is now run.vae_checkpointing"):
         old = frames(guidance={"eta": 2.0, "vae_checkpointing": True})
-    new = frames(guidance={"eta": 2.0}, run_options={"vae_checkpointing": True})
+    new = frames(guidance={"step_size": 2.0}, run_options={"vae_checkpointing": True})
     assert torch.equal(old, new)
     assert pipe.geco_memory_plan["chunk_checkpointing"]  # the moved flag was used
 
@@ -104,7 +106,7 @@ def test_a_call_dict_with_old_keys_resolves_below_the_new_ones():
     with pytest.warns(RenamedOptionWarning):
         config, run = resolve_call_options(None, {"memory_plan": "leanest", "eta": 1.0}, tiny_run_options(),
                                            {"memory_plan": "chunked"})
-    assert config.eta == 1.0 and run.memory_plan == "chunked" and run.vae_checkpointing is False
+    assert config.step_size == 1.0 and run.memory_plan == "chunked" and run.vae_checkpointing is False
 
 
 def test_the_video_key_holds_what_guidance_computes_and_the_options_that_round_frames():
@@ -113,10 +115,14 @@ def test_the_video_key_holds_what_guidance_computes_and_the_options_that_round_f
     for override in ("run.memory_plan=leanest", "run.memory_budget_gb=3", "run.devices=[cpu,cpu]",
                      "run.vae_checkpointing=true", "run.gradient_checkpointing=true"):
         assert default_name(load_config(preset="tiny", overrides=[override]), PROMPT) == name, override
-    for override in ("run.decode_layout=channels_last", "run.compile=true", "guidance.eta=2"):
+    for override in ("run.decode_layout=channels_last", "run.compile=true", "run.split_cfg=true",
+                     "guidance.step_size=2"):
         assert default_name(load_config(preset="tiny", overrides=[override]), PROMPT) != name, override
     plain = config_to_dict(base)
-    assert "run" in plain and video_key(plain, PROMPT) == video_key({**plain, "run": asdict(RunOptions())}, PROMPT)
+    # the rounding options at their defaults name nothing: a run option added later renames no video
+    without_run = {section: value for section, value in plain.items() if section != "run"}
+    assert video_key(plain, PROMPT) == video_key(without_run, PROMPT)
+    assert video_key({**plain, "run": asdict(RunOptions(memory_plan="leanest"))}, PROMPT) == video_key(plain, PROMPT)
 
 
 def test_a_channels_last_decode_with_the_tiny_decoder_is_one_line_naming_the_run_key():

@@ -13,7 +13,7 @@ def test_paper_schedule():
     assert s.repeats[:3] == (0, 0, 0)
     assert set(s.repeats[3:20]) == {3} and set(s.repeats[20:]) == {2}
     assert s.total_updates == 17 * 3 + 30 * 2
-    assert s.eta == 3.0
+    assert s.step_size == 3.0
     assert [i for i in range(50) if s.time_travel_at(i)] == [15, 16, 17, 18, 19, 20]
 
 
@@ -31,8 +31,8 @@ def test_schedule_length_must_match_step_count():
 
 
 def test_negative_eta_and_bad_windows_are_rejected():
-    with pytest.raises(ValueError, match="eta must be >= 0"):
-        GuidanceSchedule.build("1x4", 4, eta=-0.5)
+    with pytest.raises(ValueError, match="step_size must be >= 0"):
+        GuidanceSchedule.build("1x4", 4, step_size=-0.5)
     with pytest.raises(ValueError, match="time_travel"):
         GuidanceSchedule.build("1x4", 4, time_travel=[3, 4])
     with pytest.raises(ValueError, match="time_travel"):

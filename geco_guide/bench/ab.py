@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..config import GeCoConfig, config_to_dict
+from ..estimators import estimator_ids
 from ..io.video import read_frames
 from ..loss.geco import CUES
 from .report import MIN_INTERVAL_N, uses_tiny_models
@@ -377,7 +378,8 @@ def summarize(results: Sequence[dict[str, Any]], pairs: Sequence[Pair], cfg: GeC
         "guidance_lowered_fused": lowered_fused(results),
         "bootstrap": {"resamples": BOOTSTRAP_RESAMPLES, "seed": BOOTSTRAP_SEED, "level": CI_LEVEL},
         "config_sha": config_fingerprint(cfg),
-        "models": {"video": cfg.model.id, "geometry": cfg.estimators.geometry, "flow": cfg.estimators.flow},
+        "models": {"video": cfg.model.id,
+                   **estimator_ids(cfg.estimators, segmenter=any(p.prompt.subjects is not None for p in pairs))},
         "tiny_models": uses_tiny_models(cfg),
         "config": config_to_dict(cfg),
         "devices": sorted({r["device"] for r in results}),

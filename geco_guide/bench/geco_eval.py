@@ -45,8 +45,7 @@ from typing import Any
 import torch
 
 from ..config import GeCoConfig, config_to_yaml
-from ..estimators import TINY_RANDOM, load_estimators, tiny_random_decoder
-from ..estimators.segmenters import SegmenterFactory, segmenters_from_spec
+from ..estimators import TINY_RANDOM, Estimators, estimator_ids, load_estimators, tiny_random_decoder
 from ..estimators.loading import WeightsNotFoundError, check_weights_available
 from ..io.devices import resolve_device
 from ..io.files import (
@@ -80,8 +79,8 @@ from .suites import CAMERAS, DYNAMIC_SUITE, PROMPT_FILES, SCENARIOS, SUITE
 
 __all__ = ["CAMERAS", "DYNAMIC_SUITE", "PARETO_LEFT", "PROMPT_FILES", "SCENARIOS", "SUITE", "Generator",
            "Job", "check_guided_models", "check_model_weights", "csv_text", "existing_video_jobs",
-           "load_model", "load_prompts", "load_segmenters", "plot_png", "prompts_without_video",
-           "remove_run_outputs", "run_jobs", "select_prompts", "subject_masks", "write_report"]
+           "load_model", "load_prompts", "plot_png", "prompts_without_video", "remove_run_outputs", "run_jobs",
+           "select_prompts", "write_report"]
 
 logger = logging.getLogger(__name__)
 
@@ -350,11 +349,12 @@ def check_model_weights(cfg: GeCoConfig, names: Sequence[str], weights: dict[str
 
 class Generator:
     """Generates the videos of one model (and its guided twin), loading it once; with ``guided``
-    and ``guidance.decoder=tiny``, also the tiny decoder of its latents (``estimators.tiny_decoder``)."""
+    and ``guidance.decoder=tiny``, also the tiny decoder of its latents (``estimators.tiny_decoder``).
+    The ``estimators`` guide it, their segmenter masking the subjects a prompt names."""
 
-    def __init__(self, model: VideoModel, cfg: GeCoConfig, weights: str | None, estimators: tuple[Any, Any],
-                 guided: bool = False, segment: SegmenterFactory | None = None):
-        self.model, self.cfg, self.estimators, self.segment = model, cfg, estimators, segment
+    def __init__(self, model: VideoModel, cfg: GeCoConfig, weights: str | None, estimators: Estimators,
+                 guided: bool = False):
+        self.model, self.cfg, self.estimators = model, cfg, estimators
         self.pipe = load_model(model, cfg, weights)
         self.call = call_settings(model, cfg, self.pipe)
         self._guided_pipe: Any = None
@@ -375,23 +375,25 @@ class Generator:
         through :class:`GeCoCogVideoXPipeline` (float32 latents between steps: the stock
         pipeline's bf16 latents round updates away), the others through the hook. A prompt with
         ``subjects`` is guided with their masks."""
-        geometry, flow = self.estimators
         guidance = guidance_for(self.model, self.cfg, self.call["num_frames"])
-        masks = subject_masks(job.prompt.get("subjects"), self.segment)
+        masks = self.estimators.masks_for(job.prompt.get("subjects"))
         if masks is not None:
             guidance = replace(guidance, dynamic=job.prompt["subjects"])
         if self.model.tiny == "cogvideox":
             if self._guided_pipe is None:
                 from ..sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
-                self._guided_pipe = GeCoCogVideoXPipeline(**self.pipe.components, geometry_estimator=geometry,
-                                                          flow_estimator=flow, guidance_decoder=self.decoder)
+                self._guided_pipe = GeCoCogVideoXPipeline(**self.pipe.components,
+                                                          geometry_estimator=self.estimators.geometry,
+                                                          flow_estimator=self.estimators.flow,
+                                                          guidance_decoder=self.decoder)
                 self._guided_pipe.set_progress_bar_config(disable=True)
             return self._guided_pipe, {"guidance": guidance, "run_options": self.cfg.run, "dynamic_masks": masks}, None
         from ..sampler.hooks import attach_geco_guidance
 
-        return self.pipe, {}, attach_geco_guidance(self.pipe, guidance, run_options=self.cfg.run, geometry=geometry,
-                                                   flow=flow, decoder=self.decoder, dynamic_masks=masks)
+        return self.pipe, {}, attach_geco_guidance(self.pipe, guidance, run_options=self.cfg.run,
+                                                   estimators=self.estimators, decoder=self.decoder,
+                                                   dynamic_masks=masks)
 
     def __call__(self, job: Job) -> tuple[torch.Tensor, float, float, int]:
         """``(frames [F, 3, H, W] in [0, 1], sampling seconds, peak MiB, guidance updates)``."""
@@ -412,28 +414,10 @@ class Generator:
         return frames, seconds, memory.peak_mib, len(log)
 
 
-def load_segmenters(cfg: GeCoConfig, device: Any, tag: str = "") -> SegmenterFactory:
-    """The text segmenter of ``estimators.segmenter``, loaded once for every prompt's subjects
-    (after a log line naming it)."""
-    logger.info("%sloading segmenter: %s", tag, cfg.estimators.segmenter)
-    return segmenters_from_spec(cfg.estimators.segmenter, device=device, dtype=getattr(torch, cfg.estimators.dtype),
-                                seed=cfg.estimators.init_seed)
-
-
-def subject_masks(subjects: str | None, segment: SegmenterFactory | None) -> Any:
-    """The mask source of a prompt's ``subjects`` (``None`` for a prompt without)."""
-    if subjects is None:
-        return None
-    if segment is None:
-        raise ValueError(f"the subjects {subjects!r} need a segmenter, and none was loaded")
-    return segment(subjects)
-
-
-def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: tuple[Any, Any], generator: Generator | None,
-            segment: SegmenterFactory | None = None) -> dict[str, Any]:
+def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: Estimators, generator: Generator | None) -> dict[str, Any]:
     """Generate (for a job without ``video``) and score one job; its result JSON is written last
     (and a failure record of an earlier try removed). A prompt with ``subjects`` is scored with
-    their masks (made by ``segment``).
+    their masks (made by the segmenter of ``estimators``).
 
     Raises:
         ValueError, FileNotFoundError: this video cannot be scored (unreadable, too short,
@@ -449,8 +433,8 @@ def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: tuple[Any, Any], g
         timing = {"generation_s": seconds, "peak_memory_mib": peak, "guidance_updates": updates}
     source = job.video or video
     start = time.perf_counter()
-    evaluation = evaluate_video(source, geometry_estimator=estimators[0], flow_estimator=estimators[1], config=cfg.evaluation,
-                                model=job.model, dynamic_masks=subject_masks(job.prompt.get("subjects"), segment))
+    evaluation = evaluate_video(source, estimators=estimators, config=cfg.evaluation, model=job.model,
+                                dynamic_masks=estimators.masks_for(job.prompt.get("subjects")))
     result = {
         **job_identity(job), **{metric: evaluation.to_dict()[metric] for metric in METRICS},
         **timing, "evaluation_s": time.perf_counter() - start,
@@ -500,23 +484,24 @@ def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str,
             on_loaded()
         return
     logger.info("%sloading models: geometry %s, flow %s", tag, cfg.estimators.geometry, cfg.estimators.flow)
-    estimators = load_estimators(cfg.estimators, resolve_device(cfg.evaluation.device))
     subjects = any("subjects" in job.prompt for job in todo)
-    segment = load_segmenters(cfg, resolve_device(cfg.evaluation.device), tag) if subjects else None
+    if subjects:  # loaded once for every prompt's subjects
+        logger.info("%sloading segmenter: %s", tag, cfg.estimators.segmenter)
+    estimators = load_estimators(cfg.estimators, resolve_device(cfg.evaluation.device), segmenter=subjects)
     done = 0
     for name in dict.fromkeys(job.model for job in todo):
         generator = None
         if any(job.video is None for job in todo if job.model == name):
             logger.info("%sloading models: %s (%s)", tag, name, model_weights(cfg, [name], weights)[name])
             generator = Generator(MODELS[name], cfg, weights.get(name), estimators,
-                                  guided=any(job.guided for job in todo if job.model == name), segment=segment)
+                                  guided=any(job.guided for job in todo if job.model == name))
         if done == 0 and on_loaded is not None:
             on_loaded()
         for job in (j for j in todo if j.model == name):
             done += 1
             start = time.perf_counter()
             try:
-                result = run_job(job, out, cfg, estimators, generator, segment)
+                result = run_job(job, out, cfg, estimators, generator)
                 outcome = f"fused {fmt(result['fused'])}, TM {fmt(result['total_motion'])} %"
             # this video only: unreadable, too short, non-finite, or an option its pipeline refuses (TypeError)
             except (ValueError, TypeError, FileNotFoundError) as err:
@@ -693,12 +678,13 @@ def write_report(out: Path, jobs: Sequence[Job], cfg: GeCoConfig, command: str,
     failed = [{"job": f"{f['model']}{'-guided' if f['guided'] else ''}/{f['prompt_id']}-s{f['seed']}",
                "video": f["video"], "error": f["error"]} for f in failures]
     models = model_weights(cfg, list(dict.fromkeys(job.model for job in jobs)), weights)
+    dynamic = any("subjects" in job.prompt for job in jobs)
     summary = {**summarize(results), "missing": missing, "failed": failed, "no_video": list(no_video),
                "config_sha": config_fingerprint(cfg),
-               "models": models, "estimators": {"geometry": cfg.estimators.geometry, "flow": cfg.estimators.flow},
+               "models": models, "estimators": estimator_ids(cfg.estimators, dynamic),
                "tiny_models": report.uses_tiny_models(cfg),
                "created": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-    if any("subjects" in job.prompt for job in jobs):
+    if dynamic:
         summary["suite"] = {"name": DYNAMIC_SUITE, "ours": True, "segmenter": cfg.estimators.segmenter}
     markdown = report_markdown(summary, missing, config_to_yaml(cfg), command,
                                report.models_section(cfg, models))

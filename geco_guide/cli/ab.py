@@ -1,7 +1,7 @@
 """A/B test of GeCo guidance on your prompts: unguided vs guided video from the same noise.
 
     geco ab --prompts prompts.txt --seeds 0 1 2 --out ab/ --preset tiny
-    geco ab --prompts prompts.jsonl --seeds 0 --out ab/ --config my.yaml guidance.eta=2.0
+    geco ab --prompts prompts.jsonl --seeds 0 --out ab/ --config my.yaml guidance.step_size=2.0
     geco ab --prompts prompts.jsonl --seeds 0 10 20 --out ab/ --preset cogvideox-5b --best-of matched --gpu H100
     accelerate launch scripts/ab_compare.py --prompts prompts.txt --seeds 0 1 --out ab/ --preset cogvideox-5b
 
@@ -55,59 +55,73 @@ from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from ..bench.ab import (
-    AGREEMENT_FILE,
-    ARMS,
-    BEST_OF,
-    MAX_SEED,
-    METRICS,
-    TINY_GUIDANCE_NOTE,
-    UNIT_STEMS,
-    BestOf,
-    InputError,
-    Pair,
-    arm_config,
-    best_of_problem,
-    candidate_paths,
-    has_maps,
-    pair_dir,
-    parse_seeds,
-    plan_pairs,
-    read_agreement,
-    read_candidate,
-    read_result,
-    run_arms,
-)
-from ..bench.ab_report import write_report
-from ..bench.geco_eval import load_segmenters, subject_masks
-from ..bench.report import fmt, interval_text
-from ..bench.runs import (
-    PeakMemory,
-    check_output_folder as check_run_folder,
-    pin_config,
-    process_config,
-    process_state,
-    read_finished,
-    run_lock,
-    shard,
-)
-from ..config import GeCoConfig, config_to_dict
-from ..estimators import load_estimators
-from ..estimators.segmenters import SegmenterFactory
-from ..io.devices import check_device, resolve_device
 from ..io.files import WriteError, remove_temp_files, write_bytes_atomic, write_json_atomic
 from ..io.logs import log_to_stderr
-from ..io.video import read_video, write_video
-from ..metric.evaluate import evaluate_video, finite_or_none, write_maps_video
-from ..metric.render import side_by_side
-from ..perf.decoder_agreement import agreement_rows, agreement_summary
-from ..sampler.loading import check_guidance_before_loading, check_weights_before_loading
-from ..types import plural
 from . import generate as generate_cli
-from .kit import Parser, add_config_flags, config_from_args, interruptible
-from .prompt_files import read_prompts
+from .kit import DeferredImports, Parser, add_config_flags, config_from_args, interruptible
+
+if TYPE_CHECKING:  # the rest bound at run time by _IMPLEMENTATION
+    from ..bench.ab import (
+        AGREEMENT_FILE,
+        ARMS,
+        BEST_OF,
+        MAX_SEED,
+        METRICS,
+        TINY_GUIDANCE_NOTE,
+        UNIT_STEMS,
+        BestOf,
+        InputError,
+        Pair,
+        arm_config,
+        best_of_problem,
+        candidate_paths,
+        has_maps,
+        pair_dir,
+        parse_seeds,
+        plan_pairs,
+        read_agreement,
+        read_candidate,
+        read_result,
+        run_arms,
+    )
+    from ..bench.ab_report import write_report
+    from ..bench.report import fmt, interval_text
+    from ..bench.runs import PeakMemory, pin_config, process_config, process_state, read_finished, run_lock, shard
+    from ..config import GeCoConfig, config_to_dict
+    from ..estimators import Estimators, load_estimators, load_segmenter
+    from ..io.devices import check_device, resolve_device
+    from ..io.video import read_video, write_video
+    from ..metric.evaluate import evaluate_video, finite_or_none, write_maps_video
+    from ..metric.render import side_by_side
+    from ..perf.decoder_agreement import agreement_rows, agreement_summary
+    from ..sampler.loading import check_guidance_before_loading, check_weights_before_loading
+    from ..types import plural
+    from .prompt_files import read_prompts
+
+#: What the command runs on, imported once the arguments parsed: it loads torch.
+_IMPLEMENTATION = DeferredImports(__name__, {
+    "..bench.ab": ("AGREEMENT_FILE", "ARMS", "BEST_OF", "MAX_SEED", "METRICS", "TINY_GUIDANCE_NOTE", "UNIT_STEMS",
+                   "BestOf", "InputError", "Pair", "arm_config", "best_of_problem", "candidate_paths", "has_maps",
+                   "pair_dir", "parse_seeds", "plan_pairs", "read_agreement", "read_candidate", "read_result",
+                   "run_arms"),
+    "..bench.ab_report": ("write_report",),
+    "..bench.report": ("fmt", "interval_text"),
+    "..bench.runs": ("PeakMemory", "pin_config", "process_config", "process_state", "read_finished", "run_lock",
+                     "shard"),
+    "..config": ("config_to_dict",),
+    "..estimators": ("Estimators", "load_estimators", "load_segmenter"),
+    "..io.devices": ("check_device", "resolve_device"),
+    "..io.video": ("read_video", "write_video"),
+    "..metric.evaluate": ("evaluate_video", "finite_or_none", "write_maps_video"),
+    "..metric.render": ("side_by_side",),
+    "..perf.decoder_agreement": ("agreement_rows", "agreement_summary"),
+    "..sampler.loading": ("check_guidance_before_loading", "check_weights_before_loading"),
+    "..types": ("plural",),
+    ".prompt_files": ("read_prompts",),
+})
+__getattr__ = _IMPLEMENTATION.attribute
 
 __all__ = ["PROG", "build_parser", "choose_best_of", "command", "local_card", "main", "run_shard",
            "validate_inputs"]
@@ -119,6 +133,8 @@ def check_output_folder(out: Path, cfg: GeCoConfig, pairs: Sequence[Pair], overw
                         best_of: BestOf | None = None) -> None:
     """Refuse an output folder that holds results of another config or other prompt texts, or
     videos another run left (their sidecars name another prompt or config), unless ``overwrite``."""
+    from ..bench.runs import check_output_folder as check_run_folder
+
     check_run_folder(out, cfg, overwrite)
     if overwrite:
         return
@@ -156,21 +172,21 @@ def foreign_video(sidecar_path: Path, cfg: GeCoConfig, pair: Pair, arm: str) -> 
 # one pair
 
 
-def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps: bool,
-            segment: SegmenterFactory | None = None, stem: str | None = None) -> dict[str, Any]:
+def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps: bool, estimators: Estimators,
+            stem: str | None = None) -> dict[str, Any]:
     """Generate one arm of a pair into ``folder/<stem>.mp4`` (``stem``: the arm's name) + sidecar
-    and score it; what an unfinished run left there is replaced (other runs' outputs were refused
-    before). A prompt's subjects are masked in every arm's scores and in the guided arm's guidance."""
+    and score it with ``estimators``; what an unfinished run left there is replaced (other runs'
+    outputs were refused before). A prompt's subjects are masked, by the estimators' segmenter, in
+    every arm's scores and in the guided arm's guidance."""
     stem = stem or arm
-    masks = subject_masks(pair.prompt.subjects, segment)
+    masks = estimators.masks_for(pair.prompt.subjects)
     with PeakMemory(pipe.device) as memory:
         generated = generate_cli.generate(arm_config(cfg, pair, arm), pair.prompt.text, out=folder / f"{stem}.mp4",
                                           pipe=pipe, overwrite=True, dynamic_masks=masks if arm == "guided" else None)
     start = time.perf_counter()
     evaluation = evaluate_video(
         generated.video_path,
-        geometry=pipe.geometry_estimator,
-        flow=pipe.flow_estimator,
+        estimators=estimators,
         config=cfg.evaluation,
         maps=maps,
         dynamic_masks=masks,
@@ -192,29 +208,33 @@ def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps
     return record
 
 
-def add_maps(cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], geometry: Any, flow: Any,
-             segment: SegmenterFactory | None = None, arms: Sequence[str] = ARMS) -> None:
-    """The maps videos of the ``arms`` of a complete pair that have none: their videos are scored
-    again with maps (deterministic: the scores in ``result.json`` stay), then ``result.json`` names them."""
+def add_maps(cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], estimators: Estimators,
+             arms: Sequence[str] | None = None) -> None:
+    """The maps videos of the ``arms`` (default: :data:`~geco_guide.bench.ab.ARMS`) of a complete
+    pair that have none: their videos are scored again with maps (deterministic: the scores in
+    ``result.json`` stay), then ``result.json`` names them."""
     folder = pair_dir(out, pair)
-    for arm in arms:
+    for arm in ARMS if arms is None else arms:
         if (folder / f"{arm}_maps.mp4").is_file():
             result["arms"][arm]["maps_video"] = f"{arm}_maps.mp4"
             continue
-        evaluation = evaluate_video(folder / f"{arm}.mp4", geometry=geometry, flow=flow, config=cfg.evaluation,
-                                    maps=True, dynamic_masks=subject_masks(pair.prompt.subjects, segment))
+        evaluation = evaluate_video(folder / f"{arm}.mp4", estimators=estimators, config=cfg.evaluation,
+                                    maps=True, dynamic_masks=estimators.masks_for(pair.prompt.subjects))
         result["arms"][arm]["maps_video"] = write_maps_video(evaluation, folder / f"{arm}_maps.mp4").name
     write_json_atomic(folder / "result.json", result)
 
 
-def write_side_by_side(folder: Path, fps: float, arms: Sequence[str] = ARMS, labels: Sequence[str] = ARMS) -> None:
-    """``side_by_side.mp4``: the arms' videos next to each other, labelled."""
+def write_side_by_side(folder: Path, fps: float, arms: Sequence[str] | None = None,
+                       labels: Sequence[str] | None = None) -> None:
+    """``side_by_side.mp4``: the arms' videos next to each other, labelled (default: every arm of
+    :data:`~geco_guide.bench.ab.ARMS`, by its name)."""
+    arms = ARMS if arms is None else arms
     videos = [read_video(folder / f"{arm}.mp4")[0] for arm in arms]
-    write_video(folder / "side_by_side.mp4", side_by_side(videos, list(labels)), fps=fps)
+    write_video(folder / "side_by_side.mp4", side_by_side(videos, list(arms if labels is None else labels)), fps=fps)
 
 
-def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, where: str | None = None,
-             segment: SegmenterFactory | None = None) -> dict[str, Any]:
+def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, estimators: Estimators,
+             where: str | None = None) -> dict[str, Any]:
     """Both arms (with ``where``, a stderr line ``<where>: <arm> arm ...`` before each), the
     side-by-side video, then ``result.json`` (last: it marks the pair complete)."""
     folder = pair_dir(out, pair)
@@ -223,7 +243,7 @@ def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, wher
     for arm in ARMS:
         if where is not None:
             print(f"{where}: {arm} arm ...", file=sys.stderr, flush=True)
-        arms[arm] = run_arm(pipe, cfg, pair, arm, folder, maps, segment)
+        arms[arm] = run_arm(pipe, cfg, pair, arm, folder, maps, estimators)
     write_side_by_side(folder, cfg.sampling.fps)
     result = {
         "pair": pair.name,
@@ -241,8 +261,7 @@ def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, wher
 
 
 def add_best_of(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], best_of: BestOf,
-                maps: bool, where: str | None = None, segment: SegmenterFactory | None = None,
-                redo: bool = False) -> dict[str, Any]:
+                maps: bool, estimators: Estimators, where: str | None = None, redo: bool = False) -> dict[str, Any]:
     """The best-of arm of a complete pair: the candidates not made whole yet (all of them with
     ``redo``; with ``where``, a stderr line before each), the one
     :func:`~geco_guide.cli.generate.best_candidate` picks copied to ``best_of.mp4`` with a sidecar
@@ -258,7 +277,7 @@ def add_best_of(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, result: dict[
             if where is not None:
                 print(f"{where}: {best_of.label} arm, candidate {k}/{best_of.n} (seed {seed}) ...", file=sys.stderr,
                       flush=True)
-            record = run_arm(pipe, cfg, Pair(pair.prompt, seed), "unguided", candidates, False, segment,
+            record = run_arm(pipe, cfg, Pair(pair.prompt, seed), "unguided", candidates, False, estimators,
                              stem=f"seed{seed}")
             write_json_atomic(candidate_paths(out, pair, seed)[2], record)
         records.append(record)
@@ -288,7 +307,7 @@ def add_best_of(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, result: dict[
     }
     write_side_by_side(folder, cfg.sampling.fps, run_arms(best_of), ["unguided", "guided", best_of.label])
     if maps:
-        add_maps(cfg, pair, out, result, pipe.geometry_estimator, pipe.flow_estimator, segment, (BEST_OF,))
+        add_maps(cfg, pair, out, result, estimators, (BEST_OF,))
     else:
         write_json_atomic(folder / "result.json", result)
     return result
@@ -339,22 +358,24 @@ def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag
     if not todo and not extend and not unmapped and not measure:
         on_loaded()
         return
+    # loaded once for every prompt's subjects
+    subjects = any(pair.prompt.subjects is not None for pair in [*todo, *extend, *unmapped])
+    if subjects:
+        print(f"loading segmenter: {cfg.estimators.segmenter} ...", file=sys.stderr, flush=True)
     if todo or extend or measure:
+        segment = load_segmenter(cfg.estimators, resolve_device(cfg.model.device)) if subjects else None
         pipe = generate_cli.build_pipeline(cfg)
         pipe.set_progress_bar_config(disable=not sys.stderr.isatty())
-        geometry, flow = pipe.geometry_estimator, pipe.flow_estimator
+        estimators = pipe.estimators.with_segmenter(segment)
     else:
         print(f"loading models: geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow} ...", file=sys.stderr,
               flush=True)
-        geometry, flow = load_estimators(cfg.estimators, resolve_device(cfg.model.device))
-    subjects = any(pair.prompt.subjects is not None for pair in [*todo, *extend, *unmapped])
-    segment = load_segmenters(cfg, resolve_device(cfg.model.device)) if subjects else None
+        estimators = load_estimators(cfg.estimators, resolve_device(cfg.model.device), segmenter=subjects)
     on_loaded()
     if unmapped:
         print(f"{tag}making the maps of {len(unmapped)} complete pair(s) that have none", flush=True)
     for pair in unmapped:
-        add_maps(cfg, pair, out, finished[pair.name], geometry, flow, segment,
-                 ARMS if pair in extend else run_arms(best_of))
+        add_maps(cfg, pair, out, finished[pair.name], estimators, ARMS if pair in extend else run_arms(best_of))
     if extend:
         print(f"{tag}adding the {best_of.label} arm to {len(extend)} complete pair(s) that lack it", flush=True)
     lines = not sys.stderr.isatty()
@@ -362,9 +383,9 @@ def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag
     for index, (pair, result) in enumerate(work, start=1):
         where = f"{tag}[{index}/{len(work)}] {pair.name}"
         if result is None:
-            result = run_pair(pipe, cfg, pair, out, maps, where if lines else None, segment)
+            result = run_pair(pipe, cfg, pair, out, maps, estimators, where if lines else None)
         if best_of is not None:
-            result = add_best_of(pipe, cfg, pair, out, result, best_of, maps, where if lines else None, segment, redo)
+            result = add_best_of(pipe, cfg, pair, out, result, best_of, maps, estimators, where if lines else None, redo)
         print(f"{where}: {_pair_line(result, best_of)}", flush=True)
     if measure:
         measure_decoder_agreement(pipe, cfg, pairs[0], out)
@@ -472,7 +493,7 @@ def build_parser(prog: str = PROG) -> argparse.ArgumentParser:
                         "local GPU when it is one of them)")
     p.add_argument("--overwrite", action="store_true",
                    help="redo every pair, replacing what --out holds (also another config's or prompt's results)")
-    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.eta=2.0")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.step_size=2.0")
     return p
 
 
@@ -523,6 +544,7 @@ def command(prog: str = PROG) -> Callable[[list[str] | None], int]:
                    "resume")
     def main(argv: list[str] | None = None) -> int:
         args = build_parser(prog).parse_args(argv)
+        _IMPLEMENTATION.load()
         log_to_stderr()  # the library's warnings (a pair or candidate redone) as lines of the command
         try:
             inputs = validate_inputs(args)

@@ -34,7 +34,7 @@ from .kit import (
 )
 
 if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
-    from ..estimators import estimator_id, load_estimators
+    from ..estimators import load_estimators
     from ..io.video import check_fps, read_frames
     from ..metric.detection import detection_maps, frame_scores, render_detection, write_detection
     from ..types import plural
@@ -43,7 +43,7 @@ __all__ = ["main", "remove_other_formats", "work_line"]
 
 #: What main runs on, imported once the arguments parsed: it loads torch.
 _IMPLEMENTATION = DeferredImports(__name__, {
-    "..estimators": ("estimator_id", "load_estimators"),
+    "..estimators": ("load_estimators",),
     "..io.video": ("check_fps", "read_frames"),
     "..metric.detection": ("detection_maps", "frame_scores", "render_detection", "write_detection"),
     "..types": ("plural",),
@@ -167,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         items = expand_inputs([_resolved(v) for v in videos])
         check_scorable(items)
         check_outputs(out, [out / item.name for item in items if item.error is None], args.formats, args.overwrite)
-        geometry, flow = load_estimators(cfg.estimators, cfg.evaluation.device)
+        estimators = load_estimators(cfg.estimators, cfg.evaluation.device)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"warning: {video}: --window {args.window} is longer than its {count} frames; "
                       f"each window holds all {count}", file=sys.stderr)
             print(f"  {work_line(count, clip.num_frames, min(args.window, count))}", file=sys.stderr, flush=True)
-            maps = detection_maps(clip.frames, geometry, flow, cfg.evaluation.loss, window=args.window,
+            maps = detection_maps(clip.frames, estimators.geometry, estimators.flow, cfg.evaluation.loss, window=args.window,
                                   anchor=args.anchor, two_way=not args.one_way,
                                   flow_batch_size=cfg.evaluation.flow_batch_size)
             scores = frame_scores(maps)
@@ -196,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
             write_json_atomic(output_paths(stem, [])[0], {
                 "source": video, "window": min(args.window, count), "anchor": args.anchor,
                 "two_way": not args.one_way, "frames": [{"index": k, **row} for k, row in enumerate(scores)],
-                "estimators": {"geometry": estimator_id(geometry), "flow": estimator_id(flow)},
+                "estimators": estimators.ids(),
                 "loss": asdict(cfg.evaluation.loss)})
         except (ValueError, OSError, RuntimeError) as err:  # one bad input must not stop the others
             failed += 1

@@ -50,7 +50,7 @@ from .kit import (
 
 if TYPE_CHECKING:  # GeCoConfig: annotations only; the rest bound at run time by _IMPLEMENTATION
     from ..config import GeCoConfig
-    from ..estimators import estimator_id, load_estimators
+    from ..estimators import Estimators, load_estimators
     from ..io.devices import check_device
     from ..metric.evaluate import PAPER_NAMES, evaluate_video, finite_or_none, mean_or_nan, write_maps_video
     from ..types import plural
@@ -59,7 +59,7 @@ __all__ = ["check_scorable", "expand_inputs", "main"]
 
 #: What main runs on, imported once the arguments parsed: it loads torch.
 _IMPLEMENTATION = DeferredImports(__name__, {
-    "..estimators": ("estimator_id", "load_estimators"),
+    "..estimators": ("load_estimators",),
     "..io.devices": ("check_device",),
     "..metric.evaluate": ("PAPER_NAMES", "evaluate_video", "finite_or_none", "mean_or_nan", "write_maps_video"),
     "..types": ("plural",),
@@ -67,7 +67,7 @@ _IMPLEMENTATION = DeferredImports(__name__, {
 __getattr__ = _IMPLEMENTATION.attribute
 
 
-def write_detection_video(video: str | os.PathLike, stem: Path, geometry: Any, flow: Any, cfg: GeCoConfig) -> Path:
+def write_detection_video(video: str | os.PathLike, stem: Path, estimators: Estimators, cfg: GeCoConfig) -> Path:
     """``<stem>.detection.mp4``: the per-frame detection maps of every frame of ``video``
     (:mod:`geco_guide.metric.detection`, its defaults: a 20-frame window centred on the frame), the first
     ``evaluation.max_frames`` of them when it is set."""
@@ -77,7 +77,8 @@ def write_detection_video(video: str | os.PathLike, stem: Path, geometry: Any, f
     limit = cfg.evaluation.max_frames
     first = None if limit is None else (lambda num_frames, fps: list(range(min(num_frames, limit))))
     clip = read_frames(video, default_fps=cfg.evaluation.default_fps, min_frames=2, select=first)
-    maps = detection_maps(clip.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
+    maps = detection_maps(clip.frames, estimators.geometry, estimators.flow, cfg.evaluation.loss,
+                          flow_batch_size=cfg.evaluation.flow_batch_size)
     (path,) = write_detection(render_detection(maps, frame_scores(maps)), stem, ["mp4"], clip.fps)
     return path
 
@@ -220,10 +221,11 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def dynamic_mask_option(spec: str | None, cfg: GeCoConfig, device: Any) -> Any:
+def dynamic_mask_option(spec: str | None, device: Any) -> Any:
     """``--dynamic-masks``: a mask path stays a path (each video reads the frames its protocol
-    picks), after checking that it exists; ``auto`` becomes one mask source for every input, and
-    text the segmenter of ``estimators.segmenter`` (loaded once) for its subjects."""
+    picks), after checking that it exists; ``auto`` becomes one mask source for every input; text
+    stays text, after checking that it names subjects: the segmenter of ``estimators.segmenter``,
+    loaded once with the estimators (:func:`wants_segmenter`), masks them."""
     from ..estimators.dynamic_masks import AUTO, looks_like_path, mask_source
 
     if spec is None:
@@ -234,10 +236,17 @@ def dynamic_mask_option(spec: str | None, cfg: GeCoConfig, device: Any) -> Any:
         return spec
     if spec.strip() == AUTO:
         return mask_source(AUTO, device=device)
-    from ..estimators.segmenters import segmenter_from_spec
+    from ..estimators.segmenters import subjects_of
 
-    _progress(f"loading segmenter: {cfg.estimators.segmenter} for {spec!r} ...")
-    return segmenter_from_spec(spec, cfg.estimators.segmenter, device=device, seed=cfg.estimators.init_seed)
+    subjects_of(spec)
+    return spec
+
+
+def wants_segmenter(dynamic: Any) -> bool:
+    """Whether the ``--dynamic-masks`` of :func:`dynamic_mask_option` is text for the segmenter."""
+    from ..estimators.dynamic_masks import looks_like_path
+
+    return isinstance(dynamic, str) and not looks_like_path(dynamic)
 
 
 def _progress(message: str) -> None:
@@ -267,9 +276,12 @@ def main(argv: list[str] | None = None) -> int:
         out = check_output_dir(args.out if args.out is not None else cfg.output.dir)
         items = expand_inputs(videos)
         check_inputs_and_outputs(items, out, args)
-        dynamic = dynamic_mask_option(args.dynamic_masks, cfg, device)
+        dynamic = dynamic_mask_option(args.dynamic_masks, device)
+        segmenter = wants_segmenter(dynamic)
+        if segmenter:
+            _progress(f"loading segmenter: {cfg.estimators.segmenter} for {dynamic!r} ...")
         _progress(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {device}")
-        geometry, flow = load_estimators(cfg.estimators, device)
+        estimators = load_estimators(cfg.estimators, device, segmenter=segmenter)
     except (ValueError, FileNotFoundError, WriteError) as err:  # WeightsNotFoundError is a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -280,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
         if item.error is None:
             _progress(f"[{k}/{len(items)}] scoring {item.path}")
             try:
-                result = evaluate_video(item.path, geometry_estimator=geometry, flow_estimator=flow, config=cfg, fps=args.fps,
+                result = evaluate_video(item.path, estimators=estimators, config=cfg, fps=args.fps,
                                         model=args.model, maps=args.maps, dynamic_masks=dynamic,
                                         progress=lambda line, k=k: _progress(f"[{k}/{len(items)}]   {line}"))
                 json_path = write_json_atomic(out / f"{item.name}.geco.json", result.to_dict())
@@ -288,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
                 if args.maps:
                     maps_note = f", maps {write_maps_video(result, out / f'{item.name}.maps.mp4')}"
                 if args.detection:
-                    maps_note += f", detection maps {write_detection_video(item.path, out / item.name, geometry, flow, cfg)}"
+                    maps_note += f", detection maps {write_detection_video(item.path, out / item.name, estimators, cfg)}"
             except Exception as err:  # one bad input must not stop the others
                 row["error"] = _one_line(err)
             else:
@@ -308,9 +320,8 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
 
     if len(items) > 1 or any(Path(v).is_dir() and not _holds_frames(Path(v)) for v in videos):
-        estimators = {"geometry": estimator_id(geometry), "flow": estimator_id(flow)}
         try:
-            csv_path, summary_path = _write_table(out, rows, estimators, asdict(cfg.evaluation))
+            csv_path, summary_path = _write_table(out, rows, estimators.ids(), asdict(cfg.evaluation))
         except WriteError as err:
             print(f"error: {err}", file=sys.stderr)
             return 1

@@ -2,7 +2,7 @@
 
     python -m geco_guide.generate --preset tiny --prompt "a marble bust"
     python -m geco_guide.generate --preset cogvideox-5b --prompt "..." --seed 3 \\
-        guidance.eta=2.0 guidance.loss.cue=motion
+        guidance.step_size=2.0 guidance.loss.cue=motion
 
 Writes ``<name>.mp4`` and a JSON sidecar ``<name>.json`` (resolved config, seed, scheduler,
 versions, timings, guidance log, GeCo scores of the anchor frames of the final video), each
@@ -26,7 +26,7 @@ import re
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -109,20 +109,24 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
 
     Left out: :data:`KEYLESS_SECTIONS`, ``model.device``, and the ``run`` section (how this machine
     runs guidance: memory plans and devices give the same frames) except its
-    :data:`~geco_guide.sampler.run_options.FRAME_ROUNDING_KEYS`, which can change the frames to
-    float rounding and so name another video. The device can change the bytes
+    :data:`~geco_guide.sampler.run_options.FRAME_ROUNDING_KEYS` where they differ from their
+    defaults: those can change the frames to float rounding and so name another video. The device can change the bytes
     (CPU and GPU kernels round differently), but a video moved to another device is the same
     experiment, so it does not rename it. Left out too while unused: the :data:`DYNAMIC_KEYS` of
     a null ``guidance.dynamic`` (or of a video made without guidance), and ``estimators.segmenter``
     unless ``guidance.dynamic`` names subjects. The JSON is canonical (sorted keys), so the key is the same in every process and on
     every machine.
     """
-    from ..sampler.run_options import FRAME_ROUNDING_KEYS
+    from ..sampler.run_options import FRAME_ROUNDING_KEYS, RunOptions
 
     kept = {section: value for section, value in config.items() if section not in KEYLESS_SECTIONS}
     kept["model"] = {key: value for key, value in kept.get("model", {}).items() if key != "device"}
-    if "run" in kept:
-        kept["run"] = {key: value for key, value in kept["run"].items() if key in FRAME_ROUNDING_KEYS}
+    if "run" in kept:  # the options that round frames, where set: a new one renames no video
+        defaults = asdict(RunOptions())
+        kept["run"] = {key: value for key, value in kept["run"].items()
+                       if key in FRAME_ROUNDING_KEYS and value != defaults[key]}
+        if not kept["run"]:
+            del kept["run"]
     guidance = kept.get("guidance", {})
     dynamic = guidance.get("dynamic") if guidance.get("enabled", True) else None
     if dynamic is None and "guidance" in kept:
@@ -370,7 +374,7 @@ def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidec
         check_frame_values(frames, "the sampled video")
     except NonFiniteFramesError as err:  # the VAE's clamp would write NaN as black and score it 0
         raise ValueError(
-            f"sampling diverged, nothing was written: {err} (lower sampling.guidance_scale or guidance.eta)"
+            f"sampling diverged, nothing was written: {err} (lower sampling.guidance_scale or guidance.step_size)"
         ) from None
 
     scores = None
@@ -443,8 +447,7 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
                 result = generate(seed_cfg, prompt, out=work / f"seed{seed_cfg.seed}.mp4", pipe=pipe,
                                   dynamic_masks=masks)
                 pipe, masks = result.pipe, result.dynamic_masks  # loaded once, for every candidate
-                scored = evaluate_video(result.video_path, geometry_estimator=pipe.geometry_estimator,
-                                        flow_estimator=pipe.flow_estimator, config=cfg)
+                scored = evaluate_video(result.video_path, estimators=pipe.estimators, config=cfg)
                 candidates.append((result, scored))
                 if on_candidate is not None:
                     on_candidate(k, seed_cfg.seed, scored)
@@ -519,7 +522,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--best-of", type=int, default=None, metavar="N",
                    help="selection: make N videos (seeds --seed .. --seed+N-1), score each with the GeCo protocol and "
                         "keep the one of least fused score; its sidecar lists every candidate's scores")
-    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.eta=2.0")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.step_size=2.0")
     return p
 
 

@@ -40,7 +40,7 @@ if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
     from ..bench.datasets import find_benchmarks, load_benchmark, oracle_clip
     from ..bench.dynamic import DynamicScenes, dynamic_validation, markdown_report
     from ..bench.validate import grid_frames, grid_image, markdown_table, summarise, validate_clip, write_png
-    from ..estimators import estimator_id, load_estimators
+    from ..estimators import load_estimators
     from ..estimators.oracle import OracleFlow, OracleGeometry
     from ..io.devices import check_device
     from ..metric.evaluate import score_frames
@@ -52,7 +52,7 @@ _IMPLEMENTATION = DeferredImports(__name__, {
     "..bench.datasets": ("find_benchmarks", "load_benchmark", "oracle_clip"),
     "..bench.dynamic": ("DynamicScenes", "dynamic_validation", "markdown_report"),
     "..bench.validate": ("grid_frames", "grid_image", "markdown_table", "summarise", "validate_clip", "write_png"),
-    "..estimators": ("estimator_id", "load_estimators"),
+    "..estimators": ("load_estimators",),
     "..estimators.oracle": ("OracleFlow", "OracleGeometry"),
     "..io.devices": ("check_device",),
     "..metric.evaluate": ("score_frames",),
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
                 clip = oracle_clip(bench)
                 geometry, flow = OracleGeometry(clip), OracleFlow(clip)
             else:
-                geometry, flow = estimators
+                geometry, flow = estimators.geometry, estimators.flow
             _, result = score_frames(bench.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
             record = validate_clip(bench, result)
             if not args.no_grids:
@@ -147,8 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         records.append(record)
         print(f"{folder}: {bench.kind} scored")
     summary = summarise(records)
-    estimator_ids = {"geometry": "oracle", "flow": "oracle"} if args.oracle else {
-        "geometry": estimator_id(estimators[0]), "flow": estimator_id(estimators[1])}
+    estimator_ids = {"geometry": "oracle", "flow": "oracle"} if args.oracle else estimators.ids()
     report = {"summary": summary, "clips": records, "errors": errors, "estimators": estimator_ids,
               "loss": asdict(cfg.evaluation.loss)}
     table = markdown_table(summary) if summary else "No clip could be scored.\n"

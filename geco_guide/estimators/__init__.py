@@ -2,7 +2,8 @@
 
 :func:`load_estimators` is shared by ``python -m geco_guide.generate`` and
 ``python -m geco_guide evaluate``: hub ids, local folders, or ``tiny-random`` for the tiny,
-randomly initialised offline models of :func:`tiny_estimators`. This module stays light (no
+randomly initialised offline models of :func:`tiny_estimators`, returned as one
+:class:`~.bundle.Estimators` (geometry, flow and, when asked for, the text segmenter). This module stays light (no
 model code is imported until an estimator is built), because every ``geco_guide.estimators.*``
 import runs it.
 """
@@ -15,10 +16,11 @@ from typing import Any, Optional
 import torch
 
 from ..io.devices import resolve_device
+from .bundle import Estimators, estimator_id
 from .loading import WeightsNotFoundError
 
-__all__ = ["TINY_RANDOM", "EstimatorsConfig", "estimator_id", "load_estimators", "tiny_estimators",
-           "tiny_random_decoder", "with_config_key"]
+__all__ = ["TINY_RANDOM", "Estimators", "EstimatorsConfig", "estimator_id", "estimator_ids", "load_estimators",
+           "load_segmenter", "tiny_estimators", "tiny_random_decoder", "with_config_key"]
 
 TINY_RANDOM = "tiny-random"
 
@@ -50,11 +52,6 @@ class EstimatorsConfig:
     segmenter: str = "facebook/sam3"
 
 
-def estimator_id(estimator: Any) -> str:
-    """What produced an estimator's numbers: the id it was loaded from, else its class name."""
-    return getattr(estimator, "geco_estimator_id", None) or type(estimator).__name__
-
-
 def tiny_estimators(seed: int = 0) -> tuple[Any, Any]:
     """Tiny random ``(VGGT, UFM)`` estimators (geometry, flow) of the real architectures, seeded:
     what the ``tiny-random`` ids load (offline, CPU, seconds)."""
@@ -84,18 +81,50 @@ def with_config_key(err: Exception, key: str, example: str) -> WeightsNotFoundEr
     return WeightsNotFoundError(f"{err} (config: {key}={example})")
 
 
-def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device = "auto") -> tuple[Any, Any]:
-    """``(geometry, flow)`` of ``estimators_cfg``: frozen, in eval mode, on ``device``.
+def estimator_ids(estimators_cfg: EstimatorsConfig, segmenter: bool = False) -> dict[str, str]:
+    """The ids :func:`load_estimators` gives the models of ``estimators_cfg`` (``segmenter``: also
+    the text segmenter's), without loading them: a report written without the models names them
+    as a loaded :class:`Estimators` does (:meth:`Estimators.ids`)."""
+    names = {"geometry": estimators_cfg.geometry, "flow": estimators_cfg.flow}
+    if segmenter:
+        names["segmenter"] = estimators_cfg.segmenter
+    # tiny random models are only reproducible with their seed
+    return {key: f"{name}(seed={estimators_cfg.init_seed})" if name.startswith(TINY_RANDOM) else name
+            for key, name in names.items()}
+
+
+def load_segmenter(estimators_cfg: EstimatorsConfig, device: str | torch.device = "auto") -> Any:
+    """The text segmenter of ``estimators.segmenter`` in ``estimators.dtype`` on ``device``, loaded
+    once for any subject text (:func:`~geco_guide.estimators.segmenters.segmenters_from_spec`),
+    with its ``geco_estimator_id``: what :meth:`Estimators.with_segmenter` takes.
+
+    Raises:
+        WeightsNotFoundError: one line naming the repo id, ``estimators.segmenter`` and how to
+            pass a local folder.
+    """
+    from .segmenters import segmenters_from_spec
+
+    segment = segmenters_from_spec(estimators_cfg.segmenter, device=resolve_device(device),
+                                   dtype=getattr(torch, estimators_cfg.dtype), seed=estimators_cfg.init_seed)
+    segment.geco_estimator_id = estimator_ids(estimators_cfg, segmenter=True)["segmenter"]
+    return segment
+
+
+def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device = "auto", *,
+                    segmenter: bool = False) -> Estimators:
+    """The :class:`Estimators` of ``estimators_cfg``: frozen, in eval mode, on ``device``.
 
     Args:
         estimators_cfg: :class:`~geco_guide.config.EstimatorsConfig` (``geometry`` / ``flow``: a
             hub id, a local folder or ``tiny-random``; ``dtype`` of their trunks, the heads and
             outputs stay float32; ``gradient_checkpointing`` of their trunks; ``init_seed`` of
-            tiny models).
+            tiny models; ``segmenter``: the text segmenter's weights).
         device: a torch device or ``"auto"``.
+        segmenter: also load the text segmenter of ``estimators.segmenter`` (:func:`load_segmenter`)
+            as the bundle's ``segmenter``; without it the bundle has none.
 
-    Each estimator gets a ``geco_estimator_id`` attribute (the id it came from) so results can
-    name their estimators (:func:`estimator_id`).
+    Each model gets a ``geco_estimator_id`` attribute (the id it came from, :func:`estimator_ids`)
+    so results can name their models (:meth:`Estimators.ids`).
 
     Raises:
         WeightsNotFoundError: one line naming the repo id and the config key to point at a local
@@ -103,6 +132,9 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
     """
     dtype = getattr(torch, estimators_cfg.dtype)
     device = resolve_device(device)
+    # the segmenter first: its missing weights end the run before the larger models load
+    segment = load_segmenter(estimators_cfg, device) if segmenter else None
+    ids = estimator_ids(estimators_cfg)
     tiny = None
     if TINY_RANDOM in (estimators_cfg.geometry, estimators_cfg.flow):
         tiny = tiny_estimators(estimators_cfg.init_seed)
@@ -124,9 +156,8 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
             flow = UFM.from_pretrained(estimators_cfg.flow, dtype=dtype, device=device)
         except WeightsNotFoundError as err:
             raise with_config_key(err, "estimators.flow", "/path/to/UFM-Base") from None
-    for model, name in ((geometry, estimators_cfg.geometry), (flow, estimators_cfg.flow)):
+    for model in (geometry, flow):
         model.eval().requires_grad_(False)
         model.gradient_checkpointing = estimators_cfg.gradient_checkpointing
-        suffix = f"(seed={estimators_cfg.init_seed})" if name == TINY_RANDOM else ""
-        model.geco_estimator_id = f"{name}{suffix}"
-    return geometry, flow
+    geometry.geco_estimator_id, flow.geco_estimator_id = ids["geometry"], ids["flow"]
+    return Estimators(geometry, flow, segment)

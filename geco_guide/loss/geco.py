@@ -34,6 +34,7 @@ from ..types import (
     check_frames,
     missing_estimators,
     non_finite_fields,
+    one_of_names,
 )
 from .cues import fuse_cues, lands_on_mask, masked_mean, motion_residual, structure_residual
 from .pair_modes import PAIR_MODES
@@ -417,8 +418,10 @@ class GeCoLoss(nn.Module):
     """The GeCo metric as a differentiable module.
 
     Args:
-        geometry: a :class:`GeometryEstimator` (e.g. VGGT) giving depth, K, extrinsics.
-        flow: a :class:`FlowEstimator` (e.g. UFM) giving flow and covisibility per pair.
+        geometry_estimator: a :class:`GeometryEstimator` (e.g. VGGT) giving depth, K, extrinsics
+            (a :class:`~geco_guide.types.SceneGeometry`); ``geometry=`` is its earlier name.
+        flow_estimator: a :class:`FlowEstimator` (e.g. UFM) giving flow and covisibility per pair;
+            ``flow=`` is its earlier name.
         config: :class:`GeCoLossConfig` (or a dict of its fields); defaults if ``None``: the
             fused map on ADJACENT pairs (k -> k+1), the guidance loss' pairs, cheap enough to
             differentiate at every update. ``evaluate_video`` defaults to all ordered pairs of a
@@ -438,17 +441,22 @@ class GeCoLoss(nn.Module):
 
     def __init__(
         self,
-        geometry: GeometryEstimator,
-        flow: FlowEstimator,
+        geometry_estimator: GeometryEstimator | None = None,
+        flow_estimator: FlowEstimator | None = None,
         config: GeCoLossConfig | dict | None = None,
         *,
         check_values: bool = True,
+        geometry: GeometryEstimator | None = None,
+        flow: FlowEstimator | None = None,
     ) -> None:
         super().__init__()
-        required = {"geometry": (geometry, "estimate_geometry(frames)"), "flow": (flow, "estimate_flow(source, target)")}
-        for name in missing_estimators(geometry, flow):
-            estimator, method = required[name]
-            raise ValueError(f"{name} must implement {method}, got {type(estimator).__name__}")
+        geometry_estimator = one_of_names(geometry_estimator, geometry, "geometry_estimator", "geometry")
+        flow_estimator = one_of_names(flow_estimator, flow, "flow_estimator", "flow")
+        required = {"geometry": (geometry_estimator, "geometry_estimator", "estimate_geometry(frames)"),
+                    "flow": (flow_estimator, "flow_estimator", "estimate_flow(source, target)")}
+        for name in missing_estimators(geometry_estimator, flow_estimator):
+            estimator, argument, method = required[name]
+            raise ValueError(f"{argument} must implement {method}, got {type(estimator).__name__}")
         if isinstance(config, dict):
             known = {f.name for f in fields(GeCoLossConfig)}
             unknown = sorted(set(config) - known)
@@ -458,8 +466,8 @@ class GeCoLoss(nn.Module):
         self.config = config or GeCoLossConfig()
         self.check_values = check_values
         # Registered as attributes (modules when they are modules) so .to() moves them.
-        self.geometry = geometry
-        self.flow = flow
+        self.geometry_estimator = geometry_estimator
+        self.flow_estimator = flow_estimator
 
     def extra_repr(self) -> str:
         return ", ".join(f"{k}={v!r}" for k, v in asdict(self.config).items())
@@ -475,7 +483,7 @@ class GeCoLoss(nn.Module):
         tgt = frames[:, [j for _, j in pairs]].flatten(0, 1)
         scale = self.config.flow_downscale
         small = (max(2, round(height * scale)), max(2, round(width * scale)))
-        result = self.flow.estimate_flow(_resize_images(src, small), _resize_images(tgt, small))
+        result = self.flow_estimator.estimate_flow(_resize_images(src, small), _resize_images(tgt, small))
         flow = resize_flow(result.flow, (height, width))
         covisibility = _resize_images(result.covisibility[:, None], (height, width))[:, 0]
         return Correspondences(flow=flow, covisibility=covisibility)
@@ -493,7 +501,7 @@ class GeCoLoss(nn.Module):
             given = _given_masks(dynamic_masks, frames.shape[0], frames.shape[1], tuple(frames.shape[-2:]))  # before any estimator
         frames = frames.float()
         with torch.set_grad_enabled(torch.is_grad_enabled() and self.config.geometry_grad):
-            geometry = self.geometry.estimate_geometry(frames)
+            geometry = self.geometry_estimator.estimate_geometry(frames)
         if not self.config.geometry_grad:
             # Depth and cameras are constants of the update (the paper's experiment): detached even
             # if the estimator enabled gradients inside, so the rigid flow of the motion cue depends

@@ -25,8 +25,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..estimators import EstimatorsConfig, estimator_id, load_estimators
-from ..estimators.dynamic_masks import GivenMasks, looks_like_path, mask_source
+from ..estimators import Estimators, EstimatorsConfig, load_estimators
+from ..estimators.dynamic_masks import AUTO, GivenMasks, looks_like_path, mask_source
 from ..io.masks import MaskReadError, fit_masks, read_masks
 from ..io.video import (
     VideoFrames,
@@ -241,6 +241,12 @@ def _mask_notes(rows: list[dict[str, Any]], result: GeCoResult) -> None:
                            "stay valid outside the dynamic mask")
 
 
+def _is_subject_text(spec: Any) -> bool:
+    """Whether ``dynamic_masks`` names subjects for a text segmenter (not a path, ``"auto"``, a
+    tensor or a source)."""
+    return isinstance(spec, str) and spec.strip() not in ("", AUTO) and not looks_like_path(spec)
+
+
 def _split_config(config: Any) -> tuple[EvaluationConfig, EstimatorsConfig]:
     if config is None:
         return EvaluationConfig(), EstimatorsConfig()
@@ -342,6 +348,7 @@ def evaluate_video(
     geometry: Any = None,
     flow: Any = None,
     dynamic_masks: Any = None,
+    estimators: Estimators | None = None,
 ) -> EvaluationResult:
     """GeCo scores of a video under the GeCo-Eval protocol (:class:`EvaluationConfig`).
 
@@ -360,6 +367,9 @@ def evaluate_video(
             built from the config's estimators when ``None`` (pass them to score many videos
             with one load). ``geometry=`` / ``flow=`` are the same arguments under their
             earlier names.
+        estimators: the same models as one :class:`~geco_guide.estimators.Estimators`, instead of
+            ``geometry_estimator`` / ``flow_estimator``; its segmenter, when it has one, masks the
+            subjects that text ``dynamic_masks`` name.
         config: an :class:`EvaluationConfig`, or a whole :class:`GeCoConfig` (its ``evaluation``
             and ``estimators``); ``None``: defaults (VGGT-1B + UFM-Base).
         fps: the source frame rate, overriding everything else.
@@ -383,6 +393,12 @@ def evaluate_video(
     """
     geometry = one_of_names(geometry_estimator, geometry, "geometry_estimator", "geometry")
     flow = one_of_names(flow_estimator, flow, "flow_estimator", "flow")
+    if estimators is not None:
+        if geometry is not None or flow is not None:
+            raise ValueError("pass estimators= or geometry_estimator= / flow_estimator=, not both")
+        geometry, flow = estimators.geometry, estimators.flow
+        if estimators.segmenter is not None and _is_subject_text(dynamic_masks):
+            dynamic_masks = estimators.masks_for(dynamic_masks)
     cfg, estimators_cfg = _split_config(config)
     rate, fps_source = protocol_fps(fps, model, cfg)
     clip, source = _load_frames(video, rate, cfg)
@@ -393,8 +409,8 @@ def evaluate_video(
     masks = clip_mask_source(dynamic_masks, clip)
     if geometry is None or flow is None:
         loaded = load_estimators(estimators_cfg, cfg.device)
-        geometry = geometry if geometry is not None else loaded[0]
-        flow = flow if flow is not None else loaded[1]
+        geometry = geometry if geometry is not None else loaded.geometry
+        flow = flow if flow is not None else loaded.flow
     device = estimator_device(geometry, flow)
     metric = GeCoLoss(geometry, flow, cfg.loss)
     position = {index: k for k, index in enumerate(clip.indices)}
@@ -474,7 +490,7 @@ def evaluate_video(
         fps=clip.fps,
         fps_source=fps_source,
         sampled_fps=sampled_rate(clip.fps, cfg.max_fps),
-        estimators={"geometry": estimator_id(geometry), "flow": estimator_id(flow)},
+        estimators=Estimators(geometry, flow).ids(),
         config=asdict(cfg),
         source=source,
         maps=evaluation_maps,

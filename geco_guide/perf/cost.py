@@ -259,19 +259,19 @@ def cost_run_options(settings: dict[str, Any]) -> RunOptions:
 
 def counting_context_class(tracker: CostTracker) -> type[GuidanceContext]:
     """A :class:`GuidanceContext` for fake tensors under ``tracker``: its ops inside the updates of
-    a step count as ``loss`` unless a wrapped stage claims them, and an update's record reads no
-    values (fake tensors have none): zeros, and every update finite."""
+    a step count as ``loss`` unless a wrapped stage claims them, and its log's ``read_scalars``
+    reads no values (fake tensors have none): zeros, and every update finite."""
 
     class CountingGuidanceContext(GuidanceContext):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs, read_scalars=lambda values, _: {**dict.fromkeys(values, 0.0), "finite": 1.0})
+
         def guide(self, *args: Any, **kwargs: Any) -> tuple[Tensor, Tensor]:
             tracker.in_update += 1
             try:
                 return super().guide(*args, **kwargs)
             finally:
                 tracker.in_update -= 1
-
-        def read_scalars(self, values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
-            return {**dict.fromkeys(values, 0.0), "finite": 1.0}
 
     return CountingGuidanceContext
 
@@ -451,7 +451,7 @@ def count_schedule_calls(mode: str, settings: dict[str, Any]) -> dict[str, int]:
             counts["denoiser_cfg"] += 1
             continue
         guided_step(torch.ones(1, 4), predict, VPLevels(0.5, 0.6), lambda x0: loss_terms((x0**2).sum()), repeats,
-                    eta=config.eta, time_travel=schedule.time_travel_at(i), denoiser_grad=config.denoiser_grad,
+                    step_size=config.step_size, time_travel=schedule.time_travel_at(i), denoiser_grad=config.denoiser_grad,
                     on_update=on_update)
     return counts
 
@@ -625,17 +625,21 @@ def cost_report(settings: dict[str, Any], mode: str, argv: Sequence[str] = ()) -
 INTERCONNECT_BYTES_PER_S = {"H200": 450e9, "H100": 450e9, "L40S": 32e9, "A6000": 32e9, "RTX4090": 32e9, "L4": 32e9}
 
 
-def several_gpus(report: dict[str, Any], num_gpus: int) -> dict[str, Any]:
+def several_gpus(report: dict[str, Any], num_gpus: int, split_cfg: bool = False) -> dict[str, Any]:
     """Predicted wall time of ``report``'s guided run with ``run.devices`` over ``num_gpus``
     GPUs of one card: the anchor chunks of an update decode on different GPUs at once (forward and
     backward), so the decode stage takes the time of the ``ceil(chunks / num_gpus)`` chunks one GPU
     decodes, plus the transfers of the chunks decoded elsewhere (their latents out and anchor
-    frames back, and both gradients in the backward, fp32) over the card's interconnect. The rest
-    (the denoiser, the estimators, the loss, the unguided steps) stays on one GPU.
+    frames back, and both gradients in the backward, fp32) over the card's interconnect. With
+    ``split_cfg`` (``run.split_cfg``, two GPUs or more) the denoiser's CFG halves run on two GPUs
+    at once: its calls, with gradients and without, take half their time, plus the transfers of the second half (its latents,
+    text embeddings and output, and their gradients in faithful mode's backward). The rest (the
+    estimators, the loss, the unguided steps) stays on one GPU.
 
     Returns per card: ``guided_s``, ``over_unguided_1gpu`` (guided on N GPUs over unguided on one)
     and ``over_unguided_ngpus`` (over unguided on N GPUs, which for one video is the one-GPU time:
-    its denoiser is not split), and ``decode_s`` / ``transfer_s`` per run.
+    an unguided call's denoiser is not split), and ``decode_s`` / ``transfer_s`` / ``denoiser_s``
+    per run.
     """
     if num_gpus < 1:
         raise ValueError(f"--num-gpus must be >= 1, got {num_gpus}")
@@ -646,6 +650,13 @@ def several_gpus(report: dict[str, Any], num_gpus: int) -> dict[str, Any]:
     latent_h, latent_w = settings["height"] // 8, settings["width"] // 8
     chunk_bytes = (settings.get("chunk_latents") or 3) * 16 * latent_h * latent_w * 4 + 3 * settings["height"] * settings["width"] * 4
     decode = report["per_stage"].get("anchor_decode")
+    denoiser_stages = [report["per_stage"][name] for name in ("denoiser_cfg", "denoiser") if name in report["per_stage"]]
+    split = split_cfg and num_gpus >= 2 and bool(denoiser_stages)
+    # the second CFG half's latents in and output back (bf16), its text embeddings in; a call with
+    # gradients moves both gradients back the other way
+    latent_frames = (settings["frames"] - 1) // COGVIDEOX_TEMPORAL_COMPRESSION + 1
+    half_bytes = 2 * (2 * latent_frames * 16 * latent_h * latent_w) + 2 * 226 * 4096
+    half_transfers = counts.get("denoiser_cfg", 0) + 2 * counts.get("denoiser_grad", 0)
     rows = {}
     for gpu in GPU_SPECS:
         wall = report["roofline"]["wall_time_s"][gpu]
@@ -654,15 +665,22 @@ def several_gpus(report: dict[str, Any], num_gpus: int) -> dict[str, Any]:
         decode_s = decode["time_s"][gpu] * per_gpu_chunks / chunks
         transfer_s = counts["updates"] * remote * 2 * chunk_bytes / INTERCONNECT_BYTES_PER_S[gpu]
         guided = wall["guided"] - decode["time_s"][gpu] + decode_s + transfer_s
+        denoiser_s = sum(stage["time_s"][gpu] for stage in denoiser_stages) if denoiser_stages else None
+        if split:
+            cfg_transfer_s = half_transfers * half_bytes / INTERCONNECT_BYTES_PER_S[gpu]
+            guided += denoiser_s / 2 + cfg_transfer_s - denoiser_s
+            denoiser_s, transfer_s = denoiser_s / 2, transfer_s + cfg_transfer_s
         rows[gpu] = {"guided_s": guided, "over_unguided_1gpu": guided / wall["unguided"],
-                     "over_unguided_ngpus": guided / wall["unguided"], "decode_s": decode_s, "transfer_s": transfer_s}
-    return {"num_gpus": num_gpus, "chunks": chunks, "chunks_per_gpu": per_gpu_chunks, "cards": rows}
+                     "over_unguided_ngpus": guided / wall["unguided"], "decode_s": decode_s, "transfer_s": transfer_s,
+                     "denoiser_s": denoiser_s}
+    return {"num_gpus": num_gpus, "chunks": chunks, "chunks_per_gpu": per_gpu_chunks, "split_cfg": split, "cards": rows}
 
 
 def several_gpus_table(rows: dict[str, Any]) -> str:
     """Markdown: :func:`several_gpus` per card."""
+    split = ", the CFG halves on two of them (run.split_cfg)" if rows.get("split_cfg") else ""
     lines = [f"run.devices over {rows['num_gpus']} GPUs ({rows['chunks']} anchor chunks, "
-             f"{rows['chunks_per_gpu']} per GPU at most), predicted:",
+             f"{rows['chunks_per_gpu']} per GPU at most{split}), predicted:",
              "| card | guided (s) | / unguided on 1 GPU | / unguided on N GPUs | decode (s) | transfers (s) |",
              "|---|---|---|---|---|---|"]
     lines += [f"| {gpu} | {r['guided_s']:.0f} | {r['over_unguided_1gpu']:.2f} | {r['over_unguided_ngpus']:.2f} | "

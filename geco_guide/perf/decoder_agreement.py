@@ -33,12 +33,16 @@ from torch import Tensor
 from ..config import GeCoConfig, config_to_dict
 from ..estimators import TINY_RANDOM
 from ..sampler import loading
-from ..sampler.context import GuidanceContext, anchor_decoder
-from ..sampler.slicing import decode_anchor_frames, decode_chunk
-from ..sampler.step import loss_terms
+from ..sampler.anchor_decode import anchor_decoder, plan_anchor_decode
+from ..sampler.context import GuidanceContext
+from ..sampler.memory_plan import MemoryPlan
+from ..sampler.objective import AnchorObjective
+from ..sampler.run_options import RunOptions
+from ..sampler.slicing import decode_chunk
+from ..sampler.step import loss_terms, read_scalars
 from .measure import environment_info
 
-__all__ = ["agreement_rows", "agreement_summary", "agreement_table", "check_agreement_config",
+__all__ = ["DecoderAgreement", "agreement_rows", "agreement_summary", "agreement_table", "check_agreement_config",
            "decoder_agreement", "gradient_cosine", "psnr_db"]
 
 #: The PSNR's MSE floor: identical frames read 10 * log10(1 / 1e-10) = 100 dB.
@@ -62,66 +66,90 @@ def psnr_db(frames: Tensor, reference: Tensor) -> float:
     return float(10 * torch.log10(1 / mse.clamp_min(MSE_FLOOR)))
 
 
-def agreement_context_class(pipe: Any, num_frames: int, rows: list[dict[str, Any]]) -> type[GuidanceContext]:
-    """A :class:`GuidanceContext` for ``pipe`` (which holds both its VAE and a ``guidance_decoder``)
-    that decodes the anchor frames of every update with the other decoder too and appends one
-    row per update to ``rows`` (see the module docstring); the update itself is unchanged."""
-    def vae_decode_with(vae: Any) -> Callable[[Tensor], Tensor]:
-        return partial(decode_chunk, vae, scaling_factor=pipe.vae_scaling_factor_image)
+class DecoderAgreement:
+    """Both decoders at every update of one guided call: the updates' objective (the guiding
+    decoder's, with the other decoder's loss and gradient beside it on a detached copy) and one
+    row per update in ``rows``, taken where the guidance log reads the update's numbers (after
+    its backward: the guiding gradient is there).
 
+    Args:
+        guided_by: the guiding decoder (``guidance.decoder``: ``"vae"`` or ``"tiny"``).
+        rows: the list the rows are appended to.
+    """
 
-    class AgreementContext(GuidanceContext):
-        def __init__(self, config: Any, *args: Any, **kwargs: Any) -> None:
-            super().__init__(config, *args, **kwargs)
-            self.observer = "vae" if config.decoder == "tiny" else "tiny"
-            observer_config = replace(config, decoder=self.observer)
-            # the observer decodes in the stock layout: channels-last is for the VAE that guides
-            observer_run = replace(self.run, decode_layout="default")
-            self.observer_decode = anchor_decoder(observer_config, observer_run, vae_decode_with, pipe.guidance_decoder,
-                                                  pipe.vae)
-            self.observer_chunks = observer_config.anchor_chunks(num_frames, pipe.vae_scale_factor_temporal)
-            self.pending: dict[str, Any] = {}
-            self.at: tuple[int, int] = (0, 0)
+    def __init__(self, guided_by: str, rows: list[dict[str, Any]]):
+        self.guided_by, self.rows = guided_by, rows
+        self.observer = "vae" if guided_by == "tiny" else "tiny"
+        self.pending: dict[str, Any] = {}
+        self.at: tuple[int, int] = (0, 0)  # (step, t) of the updates under way
 
-        def guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: Any, step: int,
-                  t: int) -> tuple[Tensor, Tensor]:
-            self.at = (step, int(t))
-            return super().guide(z, predict, levels, step, t)
+    def objective(self, guide: AnchorObjective,
+                  observer_decode: Callable[[Tensor], Tensor]) -> Callable[[Tensor], tuple[Tensor, dict[str, Tensor]]]:
+        """``x0 -> (loss, terms)``: ``guide``'s anchor decode and loss (without dynamic masks), the
+        update unchanged; ``observer_decode`` (the other decoder's anchor decode) measured beside."""
 
-        def decode(self, decode: Callable[[Tensor], Tensor], latents: Tensor, chunks: Sequence[Any]) -> Tensor:
-            return decode_anchor_frames(decode, latents, chunks,
-                                        checkpoint_chunks=self.memory_plan.plan.chunk_checkpointing,
-                                        batch_chunks=self.memory_plan.plan.batch_chunks)
-
-        def objective(self, x0: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
-            latents = self.latent_frames(x0)
+        def objective(x0: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+            latents = guide.latent_frames(x0)
             # the observer: its own graph on a detached copy, differentiated here
             observed_in = latents.detach().requires_grad_(True)
-            observed_frames = self.decode(self.observer_decode, observed_in, self.observer_chunks)
-            observed_loss, _ = loss_terms(self.loss_fn(observed_frames))
+            observed_frames = observer_decode(observed_in)
+            observed_loss, _ = loss_terms(guide.loss_fn(observed_frames))
             (observed_grad,) = torch.autograd.grad(observed_loss, observed_in, allow_unused=True)
             # the guide: the update's own graph; its gradient at the latents is caught on the way back
             pending = {"observed_grad": observed_grad, "observed_loss": observed_loss.detach()}
             if latents.requires_grad:
                 latents.register_hook(lambda grad: pending.__setitem__("guide_grad", grad.detach()))
-            frames = self.decode(self.decode_chunk, latents, self.chunks)
-            loss, terms = loss_terms(self.loss_fn(frames))
+            frames = guide.decode(latents)
+            loss, terms = loss_terms(guide.loss_fn(frames))
             tiny, vae = (frames, observed_frames) if self.observer == "vae" else (observed_frames, frames)
             pending.update(guide_loss=loss.detach(), tiny_frames=tiny.detach(), vae_frames=vae.detach())
             self.pending = pending
             return loss, terms
 
-        def read_scalars(self, values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
-            scalars = super().read_scalars(values, device)
-            p, guide = self.pending, self.config.decoder
-            step, t = self.at
-            rows.append({
-                "update": len(rows), "step": step, "t": t, "guided_by": guide,
-                f"loss_{guide}": float(p["guide_loss"]), f"loss_{self.observer}": float(p["observed_loss"]),
-                "cosine": gradient_cosine(p.get("guide_grad"), p["observed_grad"]),
-                "psnr_db": psnr_db(p["tiny_frames"], p["vae_frames"]),
-            })
-            return scalars
+        return objective
+
+    def read_scalars(self, values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
+        """The update's numbers (:func:`~geco_guide.sampler.step.read_scalars`), and its row."""
+        scalars = read_scalars(values, device)
+        p, guide = self.pending, self.guided_by
+        step, t = self.at
+        self.rows.append({
+            "update": len(self.rows), "step": step, "t": t, "guided_by": guide,
+            f"loss_{guide}": float(p["guide_loss"]), f"loss_{self.observer}": float(p["observed_loss"]),
+            "cosine": gradient_cosine(p.get("guide_grad"), p["observed_grad"]),
+            "psnr_db": psnr_db(p["tiny_frames"], p["vae_frames"]),
+        })
+        return scalars
+
+
+def agreement_context_class(pipe: Any, num_frames: int, rows: list[dict[str, Any]]) -> type[GuidanceContext]:
+    """A :class:`GuidanceContext` for ``pipe`` (which holds both its VAE and a ``guidance_decoder``)
+    whose updates are measured by a :class:`DecoderAgreement` appending to ``rows``, through the
+    context's ``objective_for`` and ``read_scalars``; the update itself is unchanged."""
+    def vae_decode_with(vae: Any) -> Callable[[Tensor], Tensor]:
+        return partial(decode_chunk, vae, scaling_factor=pipe.vae_scaling_factor_image)
+
+    class AgreementContext(GuidanceContext):
+        def __init__(self, config: Any, *args: Any, **kwargs: Any) -> None:
+            measure = DecoderAgreement(config.decoder, rows)
+            observer_config = replace(config, decoder=measure.observer)
+            # the observer decodes in the stock layout: channels-last is for the VAE that guides
+            observer_run = replace(kwargs.get("run") or RunOptions(), decode_layout="default")
+            observer_decode = anchor_decoder(observer_config, observer_run, vae_decode_with, pipe.guidance_decoder,
+                                             pipe.vae)
+            observer_chunks = observer_config.anchor_chunks(num_frames, pipe.vae_scale_factor_temporal)
+
+            def objective_for(guide: AnchorObjective, plan: MemoryPlan) -> Callable[[Tensor], Any]:
+                # the observer's chunks decoded as the plan decodes the guide's, on one device
+                return measure.objective(guide, plan_anchor_decode(plan, observer_decode, observer_chunks))
+
+            super().__init__(config, *args, read_scalars=measure.read_scalars, objective_for=objective_for, **kwargs)
+            self.measure = measure
+
+        def guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: Any, step: int,
+                  t: int) -> tuple[Tensor, Tensor]:
+            self.measure.at = (step, int(t))
+            return super().guide(z, predict, levels, step, t)
 
     return AgreementContext
 

@@ -41,7 +41,8 @@ def geco_eval_cost(*, frames: int, fps: float, height: int, width: int, pairs: S
     from ..metric.evaluate import evaluate_video
 
     video = torch.rand(frames, 3, height, width, generator=torch.Generator().manual_seed(seed))
-    geometry, flow = load_estimators(load_config(preset="tiny").estimators, "cpu")
+    estimators = load_estimators(load_config(preset="tiny").estimators, "cpu")
+    geometry, flow = estimators.geometry, estimators.flow
     counts = {"vggt_calls": 0, "vggt_frames": 0, "ufm_calls": 0, "ufm_pairs": 0}
     _counting(geometry, "estimate_geometry", counts, "vggt_calls", "vggt_frames", dim=1)
     _counting(flow, "estimate_flow", counts, "ufm_calls", "ufm_pairs", dim=0)

@@ -159,6 +159,9 @@ def check_options(args: argparse.Namespace) -> None:
                      f"--mode fast or faithful, without {', '.join(flags) or 'the checkpointing flags'}")
         if args.steps is not None and args.steps < 1:
             fail(f"--steps must be >= 1, got {args.steps}")
+        if args.split_cfg and (args.num_gpus < 2 or args.mode == "unguided"):
+            fail("--split-cfg puts the CFG halves of a guided run on two GPUs: use it with --num-gpus 2 or more and "
+                 "--mode fast or faithful")
         if args.frames is not None:
             check_frames(args.frames, guided=args.mode != "unguided")
         check_video_size(args.height, args.width, PIPELINE_SIDE_MULTIPLE)
@@ -282,6 +285,8 @@ def add_cost_parser(sub: Any) -> argparse.ArgumentParser:
     cost.add_argument("--num-gpus", type=positive_int, default=1,
                       help="also predict the guided run with run.devices over this many GPUs of the card "
                            "(the anchor chunks decoded on different GPUs at once)")
+    cost.add_argument("--split-cfg", action="store_true",
+                      help="with --num-gpus 2 or more: also the denoiser's CFG halves on two GPUs (run.split_cfg)")
     cost.add_argument("--dynamic-masks", action="store_true",
                       help="add the overhead of guidance.dynamic masks refreshed at each guided step: SAM 3 "
                            "(predicted, its vision encoder) and the automatic masks (measured on a CPU thread)")

@@ -9,6 +9,7 @@ method section's fused loss (the ``cogvideox-5b-fused`` preset). See docs/guidan
 from __future__ import annotations
 
 import numbers
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Optional
@@ -18,23 +19,25 @@ from ..loss.geco import GeCoLossConfig
 from ..loss.presets import fused_guidance_loss, guidance_loss
 from ..types import OptionError, merge_dataclass, non_finite_fields
 from .schedule import (
-    PAPER_ETA,
+    PAPER_STEP_SIZE,
     PAPER_REPEATS,
     PAPER_TIME_TRAVEL,
     GuidanceSchedule,
     scale_schedule,
 )
-from .run_options import RunOptions, check_run_for_guidance, resolve_run_options, split_legacy_run_keys
+from .run_options import MOVED_GUIDANCE_KEYS, RenamedOptionWarning, RunOptions, check_run_for_guidance, resolve_run_options
 from .slicing import AnchorChunk, anchor_latent_chunks
 
-__all__ = ["DECODERS", "MAX_ETA", "PAPER_ANCHORS", "GuidanceConfig", "fused_guidance_config",
-           "paper_guidance_config", "resolve_call_options", "resolve_guidance_config"]
+__all__ = ["DECODERS", "MAX_STEP_SIZE", "RENAMED_GUIDANCE_KEYS", "PAPER_ANCHORS", "GuidanceConfig", "fused_guidance_config",
+           "paper_guidance_config", "resolve_call_options", "resolve_guidance_config", "upgrade_guidance_keys"]
 
 PAPER_ANCHORS = (12, 24, 36, 48)
-# An update of eta moves the latents by eta in L2 norm; 1000 is about the norm of the whole latent
+# An update moves the latents by step_size in L2 norm; 1000 is about the norm of the whole latent
 # video at 480x720 (the paper: 3). Larger values only overflow the latents to NaN/inf after
 # minutes of sampling (a black video), so they are refused at once.
-MAX_ETA = 1000.0
+MAX_STEP_SIZE = 1000.0
+#: Guidance options under an earlier name -> their name now (``eta`` was also the scheduler's).
+RENAMED_GUIDANCE_KEYS = {"eta": "step_size"}
 DECODERS = ("vae", "tiny")
 
 
@@ -52,7 +55,8 @@ class GuidanceConfig:
         repeats: ``R_t`` per step, as runs ``"RxN,..."`` (see :mod:`.schedule`). Runs written for
             another step count are scaled to the sampler's, phases in proportion (with a
             warning); an explicit per-step list must match exactly.
-        eta: normalised step size of each update (>= 0).
+        step_size: normalised step size of each update (>= 0; the paper's eta, renamed apart from the
+            scheduler's ``eta``).
         time_travel: inclusive ``[first, last]`` step window of time travel; empty/None disables.
             Scaled with the runs of ``repeats``.
         denoiser_grad: ``True`` backpropagates through the denoiser at every update (paper);
@@ -87,7 +91,7 @@ class GuidanceConfig:
     anchors: list[int] = field(default_factory=lambda: list(PAPER_ANCHORS))
     chunk_latents: int = 3
     repeats: str = PAPER_REPEATS
-    eta: float = PAPER_ETA
+    step_size: float = PAPER_STEP_SIZE
     time_travel: Optional[list[int]] = field(default_factory=lambda: list(PAPER_TIME_TRAVEL))
     denoiser_grad: bool = True
     grad_eps: float = 1e-8
@@ -101,8 +105,8 @@ class GuidanceConfig:
         check_option_types(self)
         for key, value in non_finite_fields(self):  # the first one
             raise OptionError(key, f"must be a finite number, got {value}")
-        if not 0 <= self.eta <= MAX_ETA:
-            raise OptionError("eta", f"must be in [0, {MAX_ETA:g}], got {self.eta}")
+        if not 0 <= self.step_size <= MAX_STEP_SIZE:
+            raise OptionError("step_size", f"must be in [0, {MAX_STEP_SIZE:g}], got {self.step_size}")
         if not self.grad_eps > 0:
             raise OptionError("grad_eps", f"must be > 0, got {self.grad_eps}")
         if self.chunk_latents < 2:
@@ -115,7 +119,7 @@ class GuidanceConfig:
         """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see
         :func:`~geco_guide.sampler.schedule.scale_schedule`)."""
         repeats, time_travel = scale_schedule(self.repeats, self.time_travel, num_steps)
-        return GuidanceSchedule.build(repeats, num_steps, self.eta, time_travel)
+        return GuidanceSchedule.build(repeats, num_steps, self.step_size, time_travel)
 
     def check_loss(self) -> None:
         """ValueError (one line) for a loss that cannot give an update."""
@@ -182,7 +186,7 @@ def check_option_types(config: GuidanceConfig) -> None:
         value = getattr(config, key)
         if not isinstance(value, bool):
             raise OptionError(key, f"must be true or false, got {value!r}")
-    for key in ("eta", "grad_eps"):
+    for key in ("step_size", "grad_eps"):
         if not _is_number(getattr(config, key)):
             raise OptionError(key, f"must be a number, got {getattr(config, key)!r}")
     if not _is_integer(config.chunk_latents):
@@ -228,6 +232,27 @@ def resolve_guidance_config(
     raise ValueError(f"guidance must be a GuidanceConfig, a dict, True/False or None, got {type(override).__name__}")
 
 
+def upgrade_guidance_keys(guidance: Mapping[str, Any], source: str | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(guidance, run options)`` of a ``guidance`` mapping written with earlier names: the
+    options of :class:`~.run_options.RunOptions` it held move out, and the keys of
+    :data:`RENAMED_GUIDANCE_KEYS` take their new names; one
+    :class:`~.run_options.RenamedOptionWarning` per old key, naming the new one (and ``source``,
+    where the mapping came from, if given)."""
+    kept, moved = {}, {}
+    where = f" ({source})" if source else ""
+    for key, value in guidance.items():
+        if key in MOVED_GUIDANCE_KEYS:
+            moved[key], new = value, f"run.{key}"
+        elif key in RENAMED_GUIDANCE_KEYS:
+            kept[RENAMED_GUIDANCE_KEYS[key]], new = value, f"guidance.{RENAMED_GUIDANCE_KEYS[key]}"
+        else:
+            kept[key] = value
+            continue
+        warnings.warn(f"guidance.{key}{where} is now {new}: the old key works until the next release",
+                      RenamedOptionWarning, stacklevel=3)
+    return kept, moved
+
+
 def resolve_call_options(
     base: GuidanceConfig | None,
     override: GuidanceConfig | Mapping[str, Any] | bool | None,
@@ -245,7 +270,7 @@ def resolve_call_options(
     """
     moved: dict[str, Any] = {}
     if hasattr(override, "keys") and not isinstance(override, GuidanceConfig):
-        override, moved = split_legacy_run_keys(override)
+        override, moved = upgrade_guidance_keys(override)
     config = resolve_guidance_config(base, override)
     run = resolve_run_options(resolve_run_options(run_base, moved or None), run_override)
     try:

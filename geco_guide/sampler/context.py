@@ -1,13 +1,19 @@
 """The guidance of one call, shared by :class:`GeCoCogVideoXPipeline` and the pipeline hooks.
 
-A :class:`GuidanceContext` holds what every guided step of a call needs: the options, the
-schedule, the anchor decode, the GeCo loss and the guidance log. Its :meth:`~GuidanceContext.models`
-block freezes the models and switches on the checkpointing of the call's memory plan
-(:mod:`.memory_plan`), and :meth:`~GuidanceContext.guide` runs :func:`~.step.guided_step` at one
-step of the loop; an out-of-memory error at the call's first update falls back to the next plan
-and retries that update (same generator state, so the same video). Profilers
-subclass it: :meth:`~GuidanceContext.guide` brackets the updates of a step, and
-:meth:`~GuidanceContext.read_scalars` is the one host sync of an update.
+A :class:`GuidanceContext` composes three parts that each do one job:
+
+* the objective of an update (:class:`~.objective.AnchorObjective`: decode the anchor frames
+  with the memory plan's strategy of :mod:`.anchor_decode`, then score them with the GeCo loss);
+* the execution (:class:`GuidanceExecution`): the models frozen and the checkpointing of the
+  call's memory plan (:mod:`.memory_plan`) switched on in its :meth:`~GuidanceExecution.models`
+  block, and, after an out-of-memory error at the call's first update, the next plan and that
+  update again (same generator state, so the same video), decided once for every device;
+* the log (:class:`GuidanceLog`): one :class:`~.step.GuidanceRecord` per update.
+
+:meth:`GuidanceContext.guide` runs :func:`~.step.guided_step` at one step of the loop with them.
+Profilers use the context's public seams: ``read_scalars`` (the one host sync of an update),
+``objective_for`` (what the updates score) and :meth:`~GuidanceContext.guide` (the updates of
+a step, bracketed by a subclass).
 """
 
 from __future__ import annotations
@@ -17,28 +23,31 @@ import gc
 import logging
 import time
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 from torch import Tensor, nn
 
 from ..estimators.tiny_decoder import TinyDecoder
 from ..loss.geco import GeCoLoss
+from .anchor_decode import AnchorDecode, plan_anchor_decode
 from .config import GuidanceConfig
 from .dynamic import RefreshedMasks
-from .fast_decode import check_channels_last_vae, guidance_decode
+from .fast_decode import guidance_decode
 from .levels import NoiseLevels
-from .memory_plan import PlanChoice, explicit_plan
+from .memory_plan import MemoryPlan, PlanChoice, explicit_plan
+from .objective import AnchorObjective
 from .run_options import RunOptions
 from .schedule import GuidanceSchedule
-from .devices import decoder_replicas
-from .slicing import AnchorChunk, decode_anchor_frames, decode_anchor_frames_across
-from .step import GuidanceRecord, Update, guided_step, loss_terms, read_scalars
+from .slicing import AnchorChunk
+from .step import GuidanceRecord, Update, guided_step, read_scalars
 
-__all__ = ["AnchorDecode", "GuidanceContext", "anchor_decoder", "estimator_checkpointing", "frozen",
+__all__ = ["GuidanceContext", "GuidanceExecution", "GuidanceLog", "estimator_checkpointing", "frozen",
            "generator_states", "gradient_checkpointing", "partial_checkpointing"]
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 
 @contextlib.contextmanager
@@ -110,113 +119,76 @@ def generator_states(generator: torch.Generator | list[torch.Generator] | None) 
     return [(g, g.get_state()) for g in generators]
 
 
-class AnchorDecode:
-    """The chunk decode of the loss' anchor frames: ``latents [N, F, C, h, w] -> frames [N, T, 3,
-    H, W]`` in ``[0, 1]`` by ``module`` (the VAE, or the tiny decoder), and :meth:`on` a replica
-    of that module (another device's).
+class GuidanceLog:
+    """The guidance log of a call: one :class:`~.step.GuidanceRecord` per update, appended to
+    :attr:`records` as a dict and passed to :attr:`on_record`.
 
     Args:
-        module: the frozen decoder.
-        decode_with: ``module -> decode``: the decode by a given copy of ``module``.
+        records: the list the records are appended to (a new one by default).
+        on_record: called with each record as it is logged.
+        read_scalars: ``(values, device) -> floats``: the numbers of an update's record from its
+            0-dim tensors, the update's one device-to-host copy (:func:`~.step.read_scalars`).
+            The hook point of profilers: it runs once per update, after the update's backward; a
+            trace on fake tensors reads no values there, a measurement reads its own beside.
     """
 
-    def __init__(self, module: nn.Module, decode_with: Callable[[nn.Module], Callable[[Tensor], Tensor]]):
-        self.module, self.decode_with = module, decode_with
-        self._decode = decode_with(module)
+    def __init__(self, records: list[dict[str, Any]] | None = None,
+                 on_record: Callable[[GuidanceRecord], None] | None = None,
+                 read_scalars: Callable[[dict[str, Tensor], torch.device], dict[str, float]] = read_scalars):
+        self.records = records if records is not None else []
+        self.on_record, self.read_scalars = on_record, read_scalars
 
-    def __call__(self, latents: Tensor) -> Tensor:
-        return self._decode(latents)
+    def recorder(self, step: int, t: int, device: torch.device,
+                 mask_source: str | None = None) -> Callable[[Update], None]:
+        """The ``on_update`` of :func:`~.step.guided_step` at step ``step`` (timestep ``t``): each
+        update's numbers read to ``device``'s host and logged; ``mask_source``: the dynamic masks'
+        source, ``None`` without masks."""
 
-    def on(self, replica: nn.Module) -> Callable[[Tensor], Tensor]:
-        """The same decode by ``replica`` (a copy of :attr:`module`, e.g. on another device)."""
-        return self.decode_with(replica)
+        def on_update(update: Update) -> None:
+            scalars = self.read_scalars(update.terms, device)
+            record = GuidanceRecord(
+                step=step,
+                repeat=update.repeat,
+                t=int(t),
+                loss=scalars["loss"],
+                motion=scalars.get("motion"),
+                structure=scalars.get("structure"),
+                fused=scalars.get("fused"),
+                grad_norm=scalars["grad_norm"],
+                seconds=time.perf_counter() - update.started,
+                time_travel=update.time_travel,
+                skipped=not scalars["finite"],
+                masked_fraction=scalars.get("masked_fraction"),
+                mask_source=mask_source,
+            )
+            self.records.append(record.to_dict())
+            if self.on_record is not None:
+                self.on_record(record)
 
-
-def anchor_decoder(config: GuidanceConfig, run: RunOptions, vae_decode_with: Callable[[nn.Module], Callable[[Tensor], Tensor]],
-                   guidance_decoder: Any, vae: Any) -> AnchorDecode:
-    """The :class:`AnchorDecode` of the loss' anchor frames: ``vae_decode_with(vae)`` with
-    ``decoder="vae"`` (``vae_decode_with``: a VAE -> its chunk decode); with ``"tiny"`` the tiny
-    decoder on the pipeline's latents ``[N, F, C, h, w]``, in its family's convention taken from
-    ``vae``'s config (CogVideoX's divided by ``scaling_factor``, Wan's and HunyuanVideo's as they
-    are). Checked at the start of a call, before any denoiser runs: ValueError (one line) for a
-    missing or mismatched decoder, TypeError for ``run.decode_layout="channels_last"`` on a VAE it
-    is not written for."""
-    if run.decode_layout == "channels_last":
-        check_channels_last_vae(vae)
-    if config.decoder == "vae":
-        return AnchorDecode(vae, vae_decode_with)
-    if guidance_decoder is None:
-        raise ValueError(
-            "guidance.decoder='tiny' needs a tiny decoder: pass guidance_decoder=TinyDecoder.from_pretrained(PATH) "
-            "(weights such as taecvx.pth from github.com/madebyollin/taehv; from a config: "
-            "estimators.tiny_decoder=/path/to/taecvx.pth), or use guidance.decoder=vae"
-        )
-    vae_config = vae.config
-    channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)  # CogVideoX, Wan
-    if channels is not None and guidance_decoder.latent_channels != channels:
-        raise ValueError(
-            f"the tiny decoder ({guidance_decoder.variant.name}) takes {guidance_decoder.latent_channels} latent "
-            f"channels but this VAE makes {channels}: load the tiny decoder trained for this model"
-        )
-    return AnchorDecode(guidance_decoder, lambda decoder: lambda latents: decoder.decode(
-        decoder.pipeline_latents(latents, vae_config, layout="NTCHW")))
+        return on_update
 
 
-class GuidanceContext:
-    """Guidance state of one pipeline call.
+class GuidanceExecution:
+    """How the guidance of one call runs: the models frozen, the guidance decode's layout, the
+    checkpointing switches of the memory plan, and the fallback to the plan's next one after an
+    out-of-memory error at the call's first update. One decision for the call on every device:
+    the decoder replicas of other devices are copied with the switches on.
 
     Args:
-        config: the call's resolved :class:`GuidanceConfig`.
-        schedule: its :class:`GuidanceSchedule` for the call's step count.
-        chunks: the anchors' causal latent chunks.
-        decode_chunk: ``latents [N, F', C, h, w] -> frames [N, T, 3, H, W]`` in ``[0, 1]`` (a
-            VAE's, or the pipeline adapter's).
-        latent_frames: ``x0 -> [B, F, C, h, w]``: the video's latents, frames first, of the
-            model's clean estimate (drops padding frames, reorders channels).
-        geometry_estimator, flow_estimator: the GeCo loss' estimators.
-        generator: source of the time-travel noise (the call's).
-        on_record: called with each :class:`GuidanceRecord` as it is logged.
-        log: the list the records are appended to as dicts (a new one by default).
+        config: the call's :class:`GuidanceConfig` (which decoder; whether the denoiser is
+            differentiated).
         run: how the call runs (:class:`~.run_options.RunOptions`; default: the defaults): its
             decode layout and compilation, and the explicit flags ``memory_plan`` defaults to.
         memory_plan: the call's :class:`~.memory_plan.PlanChoice` (default: ``run``'s explicit
             flags, no fallback); :attr:`memory_plan` is the one in use (after a fallback, the new one).
-        dynamic_masks: what moves on its own, left out of the loss
-            (:func:`~.dynamic.guidance_mask_source`), or ``None`` (the paper: no masks).
-        devices: the devices the anchor chunks are dealt over
-            (:func:`~.devices.resolve_devices` of ``run.devices``), each with a replica of
-            ``decode_chunk``'s module (an :class:`AnchorDecode`), or ``None``: one device.
+        estimators: the loss' estimators: frozen, their checkpointing switched.
+        on_plan: called with the new :class:`~.memory_plan.MemoryPlan` after a fallback, with its
+            switches on (the anchor decode is picked again there).
     """
 
-    def __init__(
-        self,
-        config: GuidanceConfig,
-        schedule: GuidanceSchedule,
-        chunks: Sequence[AnchorChunk],
-        decode_chunk: Callable[[Tensor], Tensor],
-        latent_frames: Callable[[Tensor], Tensor],
-        geometry_estimator: Any,
-        flow_estimator: Any,
-        *,
-        generator: torch.Generator | list[torch.Generator] | None = None,
-        on_record: Callable[[GuidanceRecord], None] | None = None,
-        log: list[dict[str, Any]] | None = None,
-        run: RunOptions | None = None,
-        memory_plan: PlanChoice | None = None,
-        dynamic_masks: RefreshedMasks | None = None,
-        devices: Sequence[torch.device] | None = None,
-    ):
-        self.config, self.schedule, self.chunks = config, schedule, list(chunks)
-        self.devices = list(devices) if devices else None
-        self._placed: list[tuple[torch.device, Callable[[Tensor], Tensor]]] | None = None
-        self.dynamic_masks = dynamic_masks
-        self.decode_chunk, self.latent_frames = decode_chunk, latent_frames
-        self.estimators = (geometry_estimator, flow_estimator)
-        self.generator, self.on_record = generator, on_record
-        # No frame check: it would make each update wait for the device; a NaN decode gives NaN
-        # scalars and no update instead (see guided_step).
-        self.loss_fn = GeCoLoss(geometry_estimator, flow_estimator, config.loss, check_values=False)
-        self.log = log if log is not None else []
+    def __init__(self, config: GuidanceConfig, run: RunOptions | None = None, memory_plan: PlanChoice | None = None,
+                 estimators: Sequence[Any] = (), on_plan: Callable[[MemoryPlan], None] | None = None):
+        self.config, self.estimators, self.on_plan = config, tuple(estimators), on_plan
         self.run = run if run is not None else RunOptions()
         self.memory_plan = memory_plan or PlanChoice(explicit_plan(self.run), "the run options' explicit flags")
         self._plan_stack: contextlib.ExitStack | None = None
@@ -256,7 +228,8 @@ class GuidanceContext:
 
     def fall_back(self) -> None:
         """Switch to the next plan of :attr:`memory_plan`'s fallbacks after an out-of-memory
-        error: free what the failed update held, re-enter the checkpointing, say so in one line."""
+        error: free what the failed update held, re-enter the checkpointing, tell ``on_plan``,
+        say so in one line."""
         choice = self.memory_plan
         failed, new = choice.plan.name, choice.fallbacks[0]
         self.memory_plan = PlanChoice(new, f"{choice.reason}; fell back from {failed!r}: out of memory at the first "
@@ -267,78 +240,149 @@ class GuidanceContext:
         if self._plan_stack is not None:
             self._plan_stack.close()
             self._plan_stack = self._enter_plan()
-        self._placed = None  # the replicas are copied again, with the new plan's switches
+        if self.on_plan is not None:
+            self.on_plan(new)
         logger.warning("guidance: out of memory at the first update with memory plan %r; retrying it with %r",
                        failed, new.name)
 
-    def decode_anchors(self, latents: Tensor) -> Tensor:
-        """The anchor frames ``[B, S, 3, H, W]`` of ``latents [B, F, C, h, w]``: on one device as the
-        memory plan says, or dealt over :attr:`devices` (replicas made at the first update)."""
-        checkpointed = self.memory_plan.plan.chunk_checkpointing
-        if self.devices is None:
-            return decode_anchor_frames(self.decode_chunk, latents, self.chunks, checkpoint_chunks=checkpointed,
-                                        batch_chunks=self.memory_plan.plan.batch_chunks)
-        if self._placed is None:
-            replicas = decoder_replicas(self.decode_chunk.module, self.devices)
-            self._placed = [(device, self.decode_chunk.on(replica)) for device, replica in zip(self.devices, replicas)]
-        return decode_anchor_frames_across(self._placed, latents, self.chunks, checkpoint_chunks=checkpointed)
+    def retrying(self, attempt: Callable[[], T], generator: torch.Generator | list[torch.Generator] | None,
+                 started: Callable[[], bool]) -> T:
+        """``attempt()``; out of memory while not ``started()`` (no update of the call logged yet)
+        and while the plan has fallbacks: :meth:`fall_back` and ``attempt()`` again, from the same
+        state of ``generator`` (the call's)."""
+        while True:
+            states = generator_states(generator)
+            try:
+                return attempt()
+            except torch.cuda.OutOfMemoryError:
+                if started() or not self.memory_plan.fallbacks:
+                    raise
+            for g, state in states:
+                g.set_state(state)
+            self.fall_back()
+
+
+class GuidanceContext:
+    """The guidance of one pipeline call: its objective, execution and log, composed.
+
+    Args:
+        config: the call's resolved :class:`GuidanceConfig`.
+        schedule: its :class:`GuidanceSchedule` for the call's step count.
+        chunks: the anchors' causal latent chunks.
+        decode_chunk: the :class:`~.anchor_decode.AnchorDecode` of the chunks (the VAE's, or the
+            tiny decoder's; :func:`~.anchor_decode.anchor_decoder`).
+        latent_frames: ``x0 -> [B, F, C, h, w]``: the video's latents, frames first, of the
+            model's clean estimate (drops padding frames, reorders channels).
+        geometry_estimator, flow_estimator: the GeCo loss' estimators.
+        generator: source of the time-travel noise (the call's).
+        on_record: called with each :class:`GuidanceRecord` as it is logged.
+        log: the list the records are appended to as dicts (a new one by default).
+        run, memory_plan: of the :class:`GuidanceExecution`; :attr:`memory_plan` is the plan in
+            use (after a fallback, the new one).
+        dynamic_masks: what moves on its own, left out of the loss
+            (:func:`~.dynamic.guidance_mask_source`), or ``None`` (the paper: no masks).
+        devices: the devices the anchor chunks are dealt over
+            (:func:`~.devices.resolve_devices` of ``run.devices``), each with a replica of
+            ``decode_chunk``'s module, or ``None``: one device.
+        read_scalars: the log's reading of an update's numbers (:class:`GuidanceLog`).
+        objective_for: ``(anchor_objective, plan) -> objective``: what the updates score
+            (``x0 -> (loss, terms)``), made from the :class:`~.objective.AnchorObjective` of the
+            memory plan when the plan is chosen and again after a fallback; by default that
+            anchor objective itself. A profiler observes the updates through it.
+    """
+
+    def __init__(
+        self,
+        config: GuidanceConfig,
+        schedule: GuidanceSchedule,
+        chunks: Sequence[AnchorChunk],
+        decode_chunk: AnchorDecode,
+        latent_frames: Callable[[Tensor], Tensor],
+        geometry_estimator: Any,
+        flow_estimator: Any,
+        *,
+        generator: torch.Generator | list[torch.Generator] | None = None,
+        on_record: Callable[[GuidanceRecord], None] | None = None,
+        log: list[dict[str, Any]] | None = None,
+        run: RunOptions | None = None,
+        memory_plan: PlanChoice | None = None,
+        dynamic_masks: RefreshedMasks | None = None,
+        devices: Sequence[torch.device] | None = None,
+        read_scalars: Callable[[dict[str, Tensor], torch.device], dict[str, float]] = read_scalars,
+        objective_for: Callable[[AnchorObjective, MemoryPlan], Callable[[Tensor], tuple[Tensor, dict[str, Tensor]]]]
+        | None = None,
+    ):
+        self.config, self.schedule, self.generator, self.dynamic_masks = config, schedule, generator, dynamic_masks
+        self.guidance_log = GuidanceLog(log, on_record, read_scalars)
+        self.execution = GuidanceExecution(config, run, memory_plan, (geometry_estimator, flow_estimator),
+                                           on_plan=self._use_plan)
+        self._decode_chunk, self._chunks = decode_chunk, list(chunks)
+        self._devices = list(devices) if devices else None
+        self._objective_for = objective_for
+        # No frame check: it would make each update wait for the device; a NaN decode gives NaN
+        # scalars and no update instead (see guided_step).
+        loss_fn = GeCoLoss(geometry_estimator, flow_estimator, config.loss, check_values=False)
+        self.anchor_objective = AnchorObjective(self._anchor_decode(self.memory_plan.plan), latent_frames, loss_fn,
+                                                dynamic_masks)
+        self.update_objective = self._update_objective(self.memory_plan.plan)
+
+    @property
+    def log(self) -> list[dict[str, Any]]:
+        """The guidance log: one dict per update (:meth:`GuidanceRecord.to_dict`)."""
+        return self.guidance_log.records
+
+    @property
+    def on_record(self) -> Callable[[GuidanceRecord], None] | None:
+        """Called with each :class:`GuidanceRecord` as it is logged (settable)."""
+        return self.guidance_log.on_record
+
+    @on_record.setter
+    def on_record(self, on_record: Callable[[GuidanceRecord], None] | None) -> None:
+        self.guidance_log.on_record = on_record
+
+    @property
+    def memory_plan(self) -> PlanChoice:
+        """The memory plan in use (after a fallback, the new one)."""
+        return self.execution.memory_plan
+
+    def models(self, denoisers: Iterable[nn.Module], vae: Any,
+               others: Iterable[Any] = ()) -> contextlib.AbstractContextManager[None]:
+        """The execution's :meth:`GuidanceExecution.models` block: the models frozen, the memory
+        plan's checkpointing on; all restored on exit."""
+        return self.execution.models(denoisers, vae, others)
+
+    def _anchor_decode(self, plan: MemoryPlan) -> Callable[[Tensor], Tensor]:
+        return plan_anchor_decode(plan, self._decode_chunk, self._chunks, self._devices)
+
+    def _update_objective(self, plan: MemoryPlan) -> Callable[[Tensor], tuple[Tensor, dict[str, Tensor]]]:
+        return self.anchor_objective if self._objective_for is None else self._objective_for(self.anchor_objective, plan)
+
+    def _use_plan(self, plan: MemoryPlan) -> None:
+        """After a fallback: the new plan's anchor decode (the replicas copied again, with its switches)."""
+        self.anchor_objective = self.anchor_objective.with_decode(self._anchor_decode(plan))
+        self.update_objective = self._update_objective(plan)
 
     def objective(self, x0: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
-        """GeCo loss of the anchor frames decoded from ``x0`` (differentiable), and its terms."""
-        frames = self.decode_anchors(self.latent_frames(x0))
-        if self.dynamic_masks is None:
-            return loss_terms(self.loss_fn(frames))
-        self.dynamic_masks.start_update()
-        return loss_terms(self.loss_fn(frames, dynamic_masks=self.dynamic_masks))
-
-    def read_scalars(self, values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
-        """The numbers of one update's record: its one device-to-host copy."""
-        return read_scalars(values, device)
+        """What an update scores at ``x0`` (differentiable): :attr:`update_objective`, by default the
+        GeCo loss of the anchor frames decoded from ``x0``; the loss and its terms."""
+        return self.update_objective(x0)
 
     def guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: NoiseLevels, step: int,
               t: int) -> tuple[Tensor, Tensor]:
         """The ``R_t`` updates of step ``step`` (timestep ``t``): the guided ``z_t`` and the model
         output there (:func:`~.step.guided_step`), each update logged. Out of memory before the
-        call's first update is logged: :meth:`fall_back` and the step again, from the same
-        generator state, while the plan has fallbacks."""
-        while True:
-            states = generator_states(self.generator)
-            try:
-                return self._guide(z, predict, levels, step, t)
-            except torch.cuda.OutOfMemoryError:
-                if self.log or not self.memory_plan.fallbacks:
-                    raise
-            for generator, state in states:
-                generator.set_state(state)
-            self.fall_back()
+        call's first update is logged: the execution's fallback and the step again
+        (:meth:`GuidanceExecution.retrying`)."""
+        return self.execution.retrying(lambda: self._guide(z, predict, levels, step, t), self.generator,
+                                       started=lambda: bool(self.log))
 
     def _guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: NoiseLevels, step: int,
                t: int) -> tuple[Tensor, Tensor]:
         config, schedule = self.config, self.schedule
         if self.dynamic_masks is not None:
             self.dynamic_masks.start_step(step)
-
-        def on_update(update: Update) -> None:
-            scalars = self.read_scalars(update.terms, z.device)
-            record = GuidanceRecord(
-                step=step,
-                repeat=update.repeat,
-                t=int(t),
-                loss=scalars["loss"],
-                motion=scalars.get("motion"),
-                structure=scalars.get("structure"),
-                fused=scalars.get("fused"),
-                grad_norm=scalars["grad_norm"],
-                seconds=time.perf_counter() - update.started,
-                time_travel=update.time_travel,
-                skipped=not scalars["finite"],
-                masked_fraction=scalars.get("masked_fraction"),
-                mask_source=None if self.dynamic_masks is None else self.dynamic_masks.source_name,
-            )
-            self.log.append(record.to_dict())
-            if self.on_record is not None:
-                self.on_record(record)
-
-        return guided_step(z, predict, levels, self.objective, schedule.repeats_at(step), eta=schedule.eta,
+        on_update = self.guidance_log.recorder(
+            step, t, z.device, None if self.dynamic_masks is None else self.dynamic_masks.source_name)
+        return guided_step(z, predict, levels, self.objective, schedule.repeats_at(step), step_size=schedule.step_size,
                            time_travel=schedule.time_travel_at(step), denoiser_grad=config.denoiser_grad,
                            generator=self.generator, eps=config.grad_eps, on_update=on_update)

@@ -6,19 +6,25 @@ The chunks of one update are independent: they meet only in the loss. Chunk ``k`
 without waiting for the others (CUDA kernels are asynchronous and nothing here reads a value
 back), and autograd runs each device's part of the backward on its own thread, so the decodes
 overlap both ways. Only the anchor frames travel back, to the device of the latents.
+
+With ``run.split_cfg`` the denoiser's classifier-free-guidance batch (unconditional and
+conditional halves) runs as two calls (:class:`CfgHalves`): on the first two devices, each with
+its own replica of the denoiser, or one after the other on one device. Both halves of faithful
+mode's backward then run on their own devices too.
 """
 
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from torch import nn
 
 from ..io.devices import check_device
 
-__all__ = ["decoder_replicas", "resolve_devices"]
+__all__ = ["CfgHalves", "decoder_replicas", "resolve_devices"]
 
 #: ``run.devices: [auto]``: every GPU torch sees.
 AUTO = "auto"
@@ -57,3 +63,52 @@ def decoder_replicas(module: nn.Module, devices: Sequence[torch.device]) -> list
         else:
             replicas.append(copy.deepcopy(module).to(device))
     return replicas
+
+
+def _to(value: Any, device: torch.device) -> Any:
+    """``value`` (a tensor, or a tuple/list of them, e.g. rotary embeddings) on ``device``."""
+    if isinstance(value, torch.Tensor):
+        return value.to(device)
+    if isinstance(value, (tuple, list)):
+        return type(value)(_to(v, device) for v in value)
+    return value
+
+
+class CfgHalves:
+    """A denoiser called on a classifier-free-guidance batch ``[2B, ...]`` as two calls of ``B``,
+    the first half (unconditional) on ``devices[0]``, the second (conditional) on the last of
+    ``devices[:2]``, each device with its own replica of ``denoiser`` (:func:`decoder_replicas`):
+    the two calls run at once across devices, forward and backward. With one device (or none:
+    the denoiser's own) the halves run one after the other. Outputs meet on ``home``.
+
+    The halves are batch-``B`` calls where the stock call is one of ``2B``, so the output equals
+    the stock one to float rounding only (kernels of another batch size may sum in another
+    order); the same on one device or several, bitwise where the devices compute alike.
+
+    Args:
+        denoiser: ``(hidden_states=, encoder_hidden_states=, timestep=, ...) -> (output, ...)``,
+            e.g. a diffusers transformer.
+        devices: where the halves run (the first two are used), or ``None``.
+        home: the device of the inputs and outputs.
+    """
+
+    def __init__(self, denoiser: nn.Module, devices: Sequence[torch.device] | None, home: torch.device):
+        places = list(devices[:2]) if devices else [home]
+        self.home = home
+        self.replicas = decoder_replicas(denoiser, places)
+        self.places = places
+
+    def __call__(self, call: Callable[..., Any] | None = None, **inputs: Any) -> torch.Tensor:
+        """The denoiser's output ``[2B, ...]`` on ``home`` for ``inputs`` of batch ``2B`` (each
+        tensor is split in halves along dim 0; ``image_rotary_emb`` and other non-batch inputs
+        go whole to each device). ``call(replica, **inputs)`` runs one half (default: the
+        replica's forward, first output)."""
+        call = call or (lambda module, **kwargs: module(**kwargs)[0])
+        batched = {key: value.chunk(2) for key, value in inputs.items()
+                   if isinstance(value, torch.Tensor) and key != "image_rotary_emb"}
+        outputs = []
+        for k in range(2):
+            replica, device = self.replicas[k % len(self.replicas)], self.places[k % len(self.places)]
+            half = {key: (batched[key][k] if key in batched else value) for key, value in inputs.items()}
+            outputs.append(call(replica, **{key: _to(value, device) for key, value in half.items()}).to(self.home))
+        return torch.cat(outputs)

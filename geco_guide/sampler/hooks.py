@@ -52,6 +52,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from ..estimators.bundle import Estimators
 from ..types import DynamicMaskSource, FlowEstimator, GeometryEstimator, OptionError, missing_estimators, one_of_names
 from .adapters import (
     CallGeometry,
@@ -63,8 +64,9 @@ from .adapters import (
     keep_update,
     noise_levels,
 )
+from .anchor_decode import anchor_decoder
 from .config import GuidanceConfig, resolve_call_options
-from .context import GuidanceContext, anchor_decoder
+from .context import GuidanceContext
 from .devices import resolve_devices
 from .dynamic import RefreshedMasks, guidance_mask_source
 from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
@@ -467,6 +469,7 @@ def attach_geco_guidance(
     flow: FlowEstimator | None = None,
     decoder: Any = None,
     dynamic_masks: DynamicMaskSource | None = None,
+    estimators: Estimators | None = None,
 ) -> GeCoGuidanceHandle:
     """Guide every following call of a stock diffusers video pipeline with GeCo.
 
@@ -484,6 +487,9 @@ def attach_geco_guidance(
         geometry_estimator, flow_estimator: the GeCo loss' estimators (e.g. ``VGGT``, ``UFM``), as
             the components of ``GeCoCogVideoXPipeline`` are named; ``geometry=`` / ``flow=`` are
             the same arguments under their earlier names.
+        estimators: the same two as one :class:`~geco_guide.estimators.Estimators` (e.g. of
+            :func:`~geco_guide.estimators.load_estimators`), instead of ``geometry_estimator`` /
+            ``flow_estimator``.
         decoder: the tiny decoder of ``config.decoder="tiny"``
             (:class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` of the pipeline's family):
             it decodes the loss' anchor frames; the video is always the VAE's.
@@ -507,6 +513,10 @@ def attach_geco_guidance(
         )
     geometry_estimator = one_of_names(geometry_estimator, geometry, "geometry_estimator", "geometry")
     flow_estimator = one_of_names(flow_estimator, flow, "flow_estimator", "flow")
+    if estimators is not None:
+        if geometry_estimator is not None or flow_estimator is not None:
+            raise ValueError("pass estimators= or geometry_estimator= / flow_estimator=, not both")
+        geometry_estimator, flow_estimator = estimators.geometry, estimators.flow
     adapter = adapter_for(pipe)
     config, run_options = resolve_call_options(None, config, None, run_options)
     missing = missing_estimators(geometry_estimator, flow_estimator)

@@ -324,15 +324,17 @@ def build_pipeline(cfg: Any, components: dict[str, Any] | None = None, *, tiny_d
     ``tiny_decoder``: attach ``estimators.tiny_decoder`` as the pipeline's ``guidance_decoder``;
     default: when the guidance uses it (:func:`wants_tiny_decoder`). A checkpoint file loads
     before the video model; ``tiny-random`` is built after it, for its VAE's latent channels.
-    ``pipe.geco_decoder_note`` says what decodes the anchor frames (:func:`decoder_note`).
+    ``pipe.geco_decoder_note`` says what decodes the anchor frames (:func:`decoder_note`);
+    ``pipe.estimators`` is the loaded :class:`~geco_guide.estimators.Estimators`, whose models are
+    the pipeline's ``geometry_estimator`` / ``flow_estimator`` components.
     """
     tiny_decoder = wants_tiny_decoder(cfg) if tiny_decoder is None else tiny_decoder
     if tiny_decoder:
         check_tiny_decoder_source(cfg)
-    geometry, flow = load_estimators(cfg.estimators, resolve_device(cfg.model.device))
+    estimators = load_estimators(cfg.estimators, resolve_device(cfg.model.device))
     tiny_random = cfg.estimators.tiny_decoder == TINY_RANDOM
     decoder = load_tiny_decoder(cfg) if tiny_decoder and not tiny_random else None
-    pipe = load_video_pipeline(cfg, geometry, flow, components=components)
+    pipe = load_video_pipeline(cfg, estimators.geometry, estimators.flow, components=components)
     if tiny_decoder:
         if tiny_random:
             decoder = tiny_random_decoder("cogvideox", cfg.estimators.init_seed, pipe.vae.config.latent_channels)

@@ -36,11 +36,13 @@ from diffusers.pipelines.cogvideo.pipeline_output import CogVideoXPipelineOutput
 from diffusers.utils import logging
 from torch import Tensor, nn
 
+from ..estimators.bundle import Estimators
 from ..types import DynamicMaskSource, FlowEstimator, GeometryEstimator, missing_estimators
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
+from .anchor_decode import anchor_decoder
 from .config import GuidanceConfig, resolve_call_options
-from .context import GuidanceContext, anchor_decoder
-from .devices import resolve_devices
+from .context import GuidanceContext
+from .devices import CfgHalves, resolve_devices
 from .dynamic import guidance_mask_source
 from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
 from .run_options import RunOptions, resolve_run_options
@@ -150,6 +152,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         # What moves on its own, for guidance.dynamic (a loaded text segmenter); not a component,
         # so never saved with the pipeline.
         self.dynamic_mask_source: DynamicMaskSource | None = None
+        self._cfg_halves: CfgHalves | None = None  # a guided call's run.split_cfg
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name == "guidance_config":
@@ -169,6 +172,13 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
     def scheduler_note(self) -> str:
         """The scheduler's class name (the sidecar's ``scheduler``)."""
         return type(self.scheduler).__name__
+
+    @property
+    def estimators(self) -> Estimators:
+        """The components GeCo runs with as one :class:`~geco_guide.estimators.Estimators`: the
+        ``geometry_estimator``, the ``flow_estimator`` and the ``dynamic_mask_source`` as its
+        segmenter (read-only: set the components)."""
+        return Estimators(self.geometry_estimator, self.flow_estimator, self.dynamic_mask_source)
 
     @contextlib.contextmanager
     def _estimators_hidden(self):
@@ -305,15 +315,13 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         latent_model_input = torch.cat([latent_model_input] * 2) if do_classifier_free_guidance else latent_model_input
         latent_model_input = self.scheduler.scale_model_input(latent_model_input, t)
         timestep = t.expand(latent_model_input.shape[0])
+        inputs = dict(hidden_states=latent_model_input, encoder_hidden_states=prompt_embeds, timestep=timestep,
+                      image_rotary_emb=image_rotary_emb, attention_kwargs=attention_kwargs, return_dict=False)
         with self.transformer.cache_context("cond_uncond"):
-            noise_pred = self.transformer(
-                hidden_states=latent_model_input,
-                encoder_hidden_states=prompt_embeds,
-                timestep=timestep,
-                image_rotary_emb=image_rotary_emb,
-                attention_kwargs=attention_kwargs,
-                return_dict=False,
-            )[0]
+            if do_classifier_free_guidance and self._cfg_halves is not None:
+                noise_pred = self._cfg_halves(**inputs)
+            else:
+                noise_pred = self.transformer(**inputs)[0]
         noise_pred = noise_pred.float()
         if do_classifier_free_guidance:
             noise_pred_uncond, noise_pred_text = noise_pred.chunk(2)
@@ -362,7 +370,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
         Args:
             guidance: a :class:`GuidanceConfig`, a dict of fields overriding
-                ``self.guidance_config`` (e.g. ``{"eta": 2.0, "loss": {"cue": "motion"}}``),
+                ``self.guidance_config`` (e.g. ``{"step_size": 2.0, "loss": {"cue": "motion"}}``),
                 ``False`` to sample without guidance, or ``None`` for the default.
             run_options: how this call's guidance runs: a :class:`~geco_guide.sampler.run_options.RunOptions`
                 or a dict of fields overriding ``self.run_options`` (e.g. ``{"memory_plan": "chunked",
@@ -373,7 +381,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 :func:`~geco_guide.estimators.segmenters.text_segmenter` of the subjects; ``"auto"``
                 needs none. See docs/guidance.md, Moving subjects.
             eta: the scheduler's eta, passed to its ``step`` as in the stock pipeline (DDIM noise;
-                ``CogVideoXDDIMScheduler`` ignores it). The GeCo step size is ``guidance.eta``.
+                ``CogVideoXDDIMScheduler`` ignores it). The GeCo step size is ``guidance.step_size``.
 
         Returns:
             :class:`GeCoCogVideoXPipelineOutput` (``frames``, ``guidance_log``, ``guidance``) or
@@ -410,6 +418,11 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         self._attention_kwargs = attention_kwargs
         self._current_timestep = None
         self._interrupt = False
+        # replicas before any checkpointing switch or hook of the memory plan, which then covers them too
+        self._cfg_halves = (CfgHalves(self.transformer, devices, self._execution_device)
+                            if config.enabled and run.split_cfg and guidance_scale > 1.0 else None)
+        replicas = [m for m in self._cfg_halves.replicas if m is not self.transformer] if self._cfg_halves else []
+        denoisers = [self.transformer, *replicas]
 
         # 2. Default call parameters
         if prompt is not None and isinstance(prompt, str):
@@ -489,7 +502,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         step_values = [int(v) for v in timesteps.tolist()]  # host copies: the guided steps add no device sync
         watch = LatentsWatch(len(timesteps))  # read once, after the loop: NaN latents are refused, not decoded
         with (
-            geco.models([self.transformer], self.vae, [self.text_encoder, self.guidance_decoder]) if geco else contextlib.nullcontext(),
+            geco.models(denoisers, self.vae, [self.text_encoder, self.guidance_decoder]) if geco else contextlib.nullcontext(),
             self.progress_bar(total=num_inference_steps) as progress_bar,
         ):
             if geco:
@@ -557,6 +570,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                     xm.mark_step()
 
         self._current_timestep = None
+        self._cfg_halves = None
         self.geco_memory_plan = geco.memory_plan.to_dict() if geco else None
         self.geco_devices = [str(device) for device in devices] if geco and devices else None
         watch.check()

@@ -11,13 +11,13 @@ of the video key, except for the options that change frames to float rounding
 
 These options sat in ``guidance`` before; the old keys (``guidance.memory_plan=...`` in a config
 file, a ``key=value`` override or a dict) still work for one release, each with one
-:class:`RenamedOptionWarning` naming the new key (:func:`split_legacy_run_keys`).
+:class:`RenamedOptionWarning` naming the new key
+(:func:`~geco_guide.sampler.config.upgrade_guidance_keys`).
 """
 
 from __future__ import annotations
 
 import numbers
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Optional
@@ -28,12 +28,12 @@ from .memory_plan import PLAN_NAMES
 
 __all__ = [
     "FRAME_ROUNDING_KEYS",
+    "MOVED_GUIDANCE_KEYS",
     "RUN_KEYS",
     "RenamedOptionWarning",
     "RunOptions",
     "check_run_for_guidance",
     "resolve_run_options",
-    "split_legacy_run_keys",
 ]
 
 
@@ -73,6 +73,13 @@ class RunOptions:
             decoder, decoded forward and backward at once; the frames meet on the pipeline's
             device for the loss. The same frames as one device's chunked decode (bitwise on CPU;
             to float rounding across kinds of device). See docs/performance.md (Several GPUs).
+        split_cfg: run the denoiser's classifier-free-guidance batch of a guided call as two calls,
+            unconditional and conditional, on the first two ``devices`` (each with its own replica
+            of the denoiser: both halves of faithful mode's backward at once), or one after the
+            other on the pipeline's device without ``devices``. The halves are calls of half the
+            batch, so the frames equal the one-call frames to float rounding only (hence off by
+            default, and in :data:`FRAME_ROUNDING_KEYS`); the same on one device or two.
+            ``GeCoCogVideoXPipeline`` only (the hooks leave a pipeline's own denoiser calls as they are).
     """
 
     memory_plan: str = "auto"
@@ -83,9 +90,10 @@ class RunOptions:
     decode_layout: str = "default"
     compile: bool = False
     devices: Optional[list[str]] = None
+    split_cfg: bool = False
 
     def __post_init__(self) -> None:
-        for key in ("gradient_checkpointing", "vae_checkpointing", "compile"):
+        for key in ("gradient_checkpointing", "vae_checkpointing", "compile", "split_cfg"):
             if not isinstance(getattr(self, key), bool):
                 raise OptionError(key, f"must be true or false, got {getattr(self, key)!r}")
         if self.vae_block_checkpointing is not None and not isinstance(self.vae_block_checkpointing, bool):
@@ -109,31 +117,18 @@ class RunOptions:
                                          f"got {self.devices!r}")
 
 
-#: The options of :class:`RunOptions`, which ``guidance`` held before.
+#: The options of :class:`RunOptions`.
 RUN_KEYS = tuple(f.name for f in fields(RunOptions))
+#: Those that ``guidance`` held before :class:`RunOptions` existed (their old keys still work).
+MOVED_GUIDANCE_KEYS = ("memory_plan", "memory_budget_gb", "gradient_checkpointing", "vae_checkpointing",
+                       "vae_block_checkpointing", "decode_layout", "compile", "devices")
 #: The run options that can change the frames to float rounding, and so stay in the video key
 #: (the memory plans and devices give the same frames bit for bit on one kind of device).
-FRAME_ROUNDING_KEYS = ("decode_layout", "compile")
+FRAME_ROUNDING_KEYS = ("decode_layout", "compile", "split_cfg")
 
 
 class RenamedOptionWarning(FutureWarning):
     """A config key used under its old name, which works until the next release."""
-
-
-def split_legacy_run_keys(guidance: Mapping[str, Any], source: str | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """``(guidance without run options, the run options it held)`` of a ``guidance`` mapping
-    written before :class:`RunOptions` existed, with one :class:`RenamedOptionWarning` per old
-    key naming the new one (and ``source``, where the mapping came from, if given)."""
-    kept, moved = {}, {}
-    where = f" ({source})" if source else ""
-    for key, value in guidance.items():
-        if key in RUN_KEYS:
-            moved[key] = value
-            warnings.warn(f"guidance.{key}{where} is now run.{key}: the old key works until the next release",
-                          RenamedOptionWarning, stacklevel=3)
-        else:
-            kept[key] = value
-    return kept, moved
 
 
 def resolve_run_options(base: RunOptions | None, override: RunOptions | Mapping[str, Any] | None) -> RunOptions:

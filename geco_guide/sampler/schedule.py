@@ -1,4 +1,4 @@
-"""The guidance schedule: recursive repeats R_t, step size eta and the time-travel window.
+"""The guidance schedule: recursive repeats R_t, the step size and the time-travel window.
 
 Steps are 0-based indices into the sampler's timestep table (step 0 is the noisiest). The
 repeat schedule is written compactly as comma-separated ``RxN`` runs ("R repeats for N steps"),
@@ -22,7 +22,7 @@ import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-__all__ = ["PAPER_ETA", "PAPER_REPEATS", "PAPER_TIME_TRAVEL", "GuidanceSchedule", "ScheduleScaledWarning",
+__all__ = ["PAPER_STEP_SIZE", "PAPER_REPEATS", "PAPER_TIME_TRAVEL", "GuidanceSchedule", "ScheduleScaledWarning",
            "paper_schedule", "parse_repeats", "scale_schedule"]
 
 
@@ -34,7 +34,7 @@ class ScheduleScaledWarning(UserWarning):
 warnings.filterwarnings("once", category=ScheduleScaledWarning)
 
 PAPER_REPEATS = "0x3,3x17,2x30"
-PAPER_ETA = 3.0
+PAPER_STEP_SIZE = 3.0
 PAPER_TIME_TRAVEL = (15, 20)
 
 
@@ -128,12 +128,12 @@ class GuidanceSchedule:
 
     Attributes:
         repeats: ``R_t`` per step (number of guided updates at that step).
-        eta: normalised step size of every update.
+        step_size: normalised step size of every update (the paper's eta).
         time_travel: inclusive ``(first, last)`` step window of time travel, or ``None``.
     """
 
     repeats: tuple[int, ...]
-    eta: float = PAPER_ETA
+    step_size: float = PAPER_STEP_SIZE
     time_travel: tuple[int, int] | None = PAPER_TIME_TRAVEL
 
     @classmethod
@@ -141,13 +141,13 @@ class GuidanceSchedule:
         cls,
         repeats: str | Sequence[int],
         num_steps: int,
-        eta: float = PAPER_ETA,
+        step_size: float = PAPER_STEP_SIZE,
         time_travel: Sequence[int] | None = PAPER_TIME_TRAVEL,
     ) -> "GuidanceSchedule":
         """Parse and validate a schedule for ``num_steps`` denoising steps.
 
         Raises:
-            ValueError: a length that does not match ``num_steps``, negative ``eta``, or a
+            ValueError: a length that does not match ``num_steps``, negative ``step_size``, or a
                 time-travel window that is not ``[first, last]`` inside the steps.
         """
         if num_steps < 1:
@@ -158,9 +158,9 @@ class GuidanceSchedule:
                 f"guidance repeats schedule {repeats!r} covers {len(per_step)} steps but the sampler runs "
                 f"{num_steps} steps (num_inference_steps); give one R_t per step"
             )
-        eta = float(eta)
-        if not eta >= 0.0:  # also rejects NaN
-            raise ValueError(f"guidance eta must be >= 0, got {eta}")
+        step_size = float(step_size)
+        if not step_size >= 0.0:  # also rejects NaN
+            raise ValueError(f"guidance step_size must be >= 0, got {step_size}")
         window = None
         if time_travel is not None and len(time_travel) > 0:
             if len(time_travel) != 2:
@@ -171,7 +171,7 @@ class GuidanceSchedule:
                     f"time_travel window [{first}, {last}] must satisfy 0 <= first <= last < {num_steps} (the step count)"
                 )
             window = (first, last)
-        return cls(repeats=tuple(per_step), eta=eta, time_travel=window)
+        return cls(repeats=tuple(per_step), step_size=step_size, time_travel=window)
 
     @property
     def num_steps(self) -> int:
@@ -190,4 +190,4 @@ class GuidanceSchedule:
 
 def paper_schedule(num_steps: int = 50) -> GuidanceSchedule:
     """The GeCo paper's schedule for 50 DDIM steps."""
-    return GuidanceSchedule.build(PAPER_REPEATS, num_steps, PAPER_ETA, PAPER_TIME_TRAVEL)
+    return GuidanceSchedule.build(PAPER_REPEATS, num_steps, PAPER_STEP_SIZE, PAPER_TIME_TRAVEL)

@@ -5,8 +5,8 @@
         x0  = levels.to_x0(z_t, out)
         L   = objective(x0)                         # anchor frames decoded from x0, GeCo loss
         g   = dL/dz_t
-        z_t <- z_t - eta * g / (||g|| + eps)        # fp32, norm per video
-        (time travel: z_t <- renoise(DDIM(z_t, x0) - eta * g / (||g|| + eps)) back to t)
+        z_t <- z_t - step_size * g / (||g|| + eps)        # fp32, norm per video (the paper's eta)
+        (time travel: z_t <- renoise(DDIM(z_t, x0) - step_size * g / (||g|| + eps)) back to t)
     return z_t, predict(z_t)                        # the guided latents and the model output there
 
 The caller's scheduler then takes the step from the guided latents with that model output. The
@@ -32,11 +32,11 @@ __all__ = ["GuidanceRecord", "LatentsWatch", "NonFiniteLatentsError", "Update", 
 Objective = Callable[[Tensor], "tuple[Tensor, dict[str, Tensor]]"]
 
 
-def normalized_update(z: Tensor, grad: Tensor, eta: float, eps: float = 1e-8) -> tuple[Tensor, Tensor]:
-    """``z - eta * g / (||g|| + eps)`` in fp32, with the norm taken per video. Returns (z, ||g||)."""
+def normalized_update(z: Tensor, grad: Tensor, step_size: float, eps: float = 1e-8) -> tuple[Tensor, Tensor]:
+    """``z - step_size * g / (||g|| + eps)`` in fp32, with the norm taken per video. Returns (z, ||g||)."""
     grad = grad.float()
     norm = grad.flatten(1).norm(dim=1).view(-1, *([1] * (grad.ndim - 1)))
-    return z.float() - eta * grad / (norm + eps), norm.flatten()
+    return z.float() - step_size * grad / (norm + eps), norm.flatten()
 
 
 @dataclass
@@ -110,7 +110,7 @@ def guided_step(
     objective: Objective,
     repeats: int,
     *,
-    eta: float,
+    step_size: float,
     time_travel: bool = False,
     denoiser_grad: bool = True,
     generator: torch.Generator | list[torch.Generator] | None = None,
@@ -128,7 +128,7 @@ def guided_step(
         objective: ``x0 -> (loss, terms)``: a scalar to differentiate and the 0-dim tensors to
             record (:func:`loss_terms` of a loss result).
         repeats: ``R_t``; 0 returns ``z`` and the model output there.
-        eta: normalised step size.
+        step_size: normalised step size (the paper's eta).
         time_travel: take the DDIM step with the update, then re-noise back to ``t``.
         denoiser_grad: differentiate through the denoiser at every update (the paper), or hold its
             output constant through the step (fast: ``dx0/dz_t = sqrt(a_t)`` for v-prediction);
@@ -163,7 +163,7 @@ def guided_step(
         # objective); torch.where keeps the check on the device.
         finite = torch.isfinite(grad).all() & torch.isfinite(loss.detach()).all()
         grad = torch.where(finite, grad, torch.zeros_like(grad))
-        z_new, norm = normalized_update(z, grad, eta, eps)
+        z_new, norm = normalized_update(z, grad, step_size, eps)
         if time_travel:
             z = levels.renoise(levels.step(z, x0.detach()) + (z_new - z), randn_like(z, generator))
             held = None
@@ -222,6 +222,6 @@ class LatentsWatch:
         if step >= 0:
             raise NonFiniteLatentsError(
                 f"the latents hold NaN or inf from denoising step {step} on (0-based, of {self.num_steps}); the "
-                "video would be NaN frames, so the call stops (lower guidance.eta or the guidance scale, or check "
+                "video would be NaN frames, so the call stops (lower guidance.step_size or the guidance scale, or check "
                 "latents set by a callback)"
             )
