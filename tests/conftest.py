@@ -1,4 +1,8 @@
-"""Shared test fixtures: the VGGT / UFM parity fixtures (spec section 7), shipped in tests/fixtures/.
+"""Shared test fixtures: the VGGT / UFM parity fixtures (spec section 7), shipped in tests/fixtures/,
+and the tiny random estimators, built once for the session.
+
+The tests mirror the package's folders (tests/sampler/ tests geco_guide/sampler/, ...); the
+top-level modules' tests sit here.
 
 Tiny configurations, state dicts under upstream key names, inputs and reference outputs, kept in
 the repository so that every clone runs the parity tests; ``test_parity_fixtures_are_the_reference_files``
@@ -32,6 +36,15 @@ def vggt_fixture() -> dict:
 @pytest.fixture(scope="session")
 def ufm_fixture() -> dict:
     return load_parity_fixture("ufm_tiny")
+
+
+@pytest.fixture(scope="session")
+def estimators():
+    """``(geometry, flow)``: the tiny random VGGT and UFM (seed 0), built once for the session;
+    frozen, so the tests that share them cannot change them."""
+    from geco_guide.tiny import tiny_estimators
+
+    return tiny_estimators(0)
 
 
 @pytest.fixture(autouse=True)

@@ -1,7 +1,7 @@
 """Memory plans of a guided call: what is recomputed in the backward to make the update fit.
 
 A plan only chooses what the guidance backward keeps and what it recomputes, never what is
-computed: every plan gives the same video (tests/test_memory_plan.py). The named plans, from the
+computed: every plan gives the same video (tests/sampler/test_memory_plan.py). The named plans, from the
 least recomputation to the least memory (:data:`PLANS`):
 
 * ``fastest``: nothing checkpointed: the anchor chunks decoded (one call each) and kept, the

@@ -24,7 +24,7 @@ from geco_guide.estimators.tiny_decoder import (
     variant_from_filename,
 )
 
-FIXTURE = Path(__file__).resolve().parent / "fixtures" / "tiny_decoder.pt"
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "tiny_decoder.pt"
 TOL = {"atol": 1e-4, "rtol": 1e-4}
 
 

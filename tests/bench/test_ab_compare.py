@@ -34,7 +34,7 @@ from geco_guide.io.files import write_json_atomic
 from geco_guide.io.video import read_video, write_video
 from geco_guide.metric.render import panel_layout
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / "scripts" / "ab_compare.py"
 FAST = [  # the tiny preset, shortened: 9 frames, 2 steps with one guided update each, 5 scored frames
     "--preset", "tiny", "sampling.num_frames=9", "guidance.anchors=[4,8]", "sampling.num_inference_steps=2",

@@ -16,7 +16,7 @@ import pytest
 
 from script_modules import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 COMMANDS = ("generate", "evaluate", "geco_eval", "detection", "validate", "robustness", "benchmarks", "ab")
 SCRIPTS = ("benchmark.py", "ab_compare.py")
 

@@ -33,11 +33,6 @@ BUILDERS = {
 }
 
 
-@pytest.fixture(scope="module")
-def estimators():
-    return T.tiny_estimators(0)
-
-
 def run(pipe, seed=0, **changes):
     kwargs = T.tiny_call_kwargs(pipe, **{"num_frames": NUM_FRAMES, **changes})
     kwargs.setdefault("output_type", "pt")

@@ -21,7 +21,7 @@ import torch
 from geco_guide.perf import cost, models, profile, sampling
 from geco_guide.sampler.context import GuidanceContext
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmark.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "benchmark.py"
 FAST = ["--threads", "1", "--warmup", "0", "--repeats", "1"]
 COMMANDS = {
     "loss": ["loss", "--frames", "2", "--height", "24", "--width", "32", *FAST],

@@ -307,7 +307,7 @@ def test_the_shipped_estimates_know_the_models_and_are_package_data():
     full = data["models"]["cogvideox-5b"]["estimates"]["fast/vae"]
     assert full["fastest"]["peak_gb"] > full["chunked"]["peak_gb"] > full["checkpointed"]["peak_gb"]
     assert full["fastest"]["time_s"] < full["chunked"]["time_s"] < full["checkpointed"]["time_s"]
-    pyproject = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
+    pyproject = (Path(__file__).resolve().parents[2] / "pyproject.toml").read_text()
     assert '"geco_guide.sampler" = ["data/*.json"]' in pyproject and ESTIMATES_PATH.parent.name == "data"
 
 

@@ -41,11 +41,6 @@ PROMPT = "a marble bust on a table"
 SHORT = dict(repeats="0x2,1x2", time_travel=[])
 
 
-@pytest.fixture(scope="module")
-def estimators():
-    return tiny_estimators(0)
-
-
 def pair(estimators, scheduler=None, seed=0, **guidance):
     """A stock CogVideoXPipeline and a GeCoCogVideoXPipeline with the same weights and scheduler."""
     components = tiny_cogvideox_components(seed)

@@ -40,11 +40,6 @@ class LeftHalf:
         return masks
 
 
-@pytest.fixture(scope="module")
-def estimators():
-    return T.tiny_estimators(0)
-
-
 def test_masks_refresh_at_the_first_update_of_every_nth_step():
     source = LeftHalf()
     masks = RefreshedMasks(source, refresh=2, dilation=0)

@@ -21,7 +21,7 @@ from geco_guide.estimators.tiny_decoder import TinyDecoder
 from geco_guide.estimators.ufm import UFM, UFMConfig
 from geco_guide.estimators.vggt import VGGT, VGGTConfig
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _script(name: str, path: Path):

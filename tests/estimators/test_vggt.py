@@ -338,7 +338,7 @@ FIXTURE_SHA256 = {
 
 def test_parity_fixtures_are_the_reference_files():
     for name, digest in FIXTURE_SHA256.items():
-        assert hashlib.sha256((Path(__file__).parent / "fixtures" / name).read_bytes()).hexdigest() == digest, name
+        assert hashlib.sha256((Path(__file__).parents[1] / "fixtures" / name).read_bytes()).hexdigest() == digest, name
 
 
 def test_lifecycle_and_pose_decode_live_in_one_place() -> None:

@@ -27,7 +27,7 @@ from geco_guide.io.files import WriteError
 from geco_guide.io.video import read_video
 from geco_guide.sampler.loading import load_video_pipeline
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_cli_tiny_preset_writes_playable_mp4_and_sidecar(tmp_path: Path):

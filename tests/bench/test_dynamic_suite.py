@@ -16,7 +16,7 @@ from geco_guide.cli import ab
 from geco_guide.cli.geco_eval import main
 from geco_guide.estimators.segmenters import subjects_of
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 #: Grounding DINO + SAM 2 tiny random models: their masks cover part of a frame (SAM 3's tiny
 #: detector keeps every query and masks nearly all of it).
 SEGMENTER = "estimators.segmenter=tiny-random-grounding-sam2"

@@ -18,7 +18,7 @@ from geco_guide.perf.decoder_agreement import (
     psnr_db,
 )
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmark.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "benchmark.py"
 ROW_KEYS = {"update", "step", "t", "guided_by", "loss_vae", "loss_tiny", "cosine", "psnr_db"}
 
 

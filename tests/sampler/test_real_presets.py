@@ -32,7 +32,7 @@ from geco_guide.tiny import tiny_cogvideox_components, tiny_estimators
 
 from script_modules import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
 REAL_PRESETS = [name for name in SHIPPED if name != "tiny"]
 PROMPT = "a stone bridge over a river, slow orbit"

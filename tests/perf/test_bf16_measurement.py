@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "measure_bf16_update.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "measure_bf16_update.py"
 
 
 def test_bf16_rounding_keeps_the_update_on_average_and_adds_noise():
