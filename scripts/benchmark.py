@@ -60,7 +60,7 @@ from geco_guide.perf.cost import (
     several_gpus_table,
 )
 from geco_guide.perf.decoder_agreement import agreement_table, decoder_agreement
-from geco_guide.perf.geco_eval import geco_eval_cost, geco_eval_table
+from geco_guide.perf.scoring_cost import geco_eval_cost, geco_eval_table
 from geco_guide.perf.measure import (
     CASE_COLUMNS,
     environment_info,

@@ -308,7 +308,7 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     """
     from ..io.video import check_fps
     from ..sampler import loading
-    from ..sampler.devices import resolve_devices
+    from ..sampler.multi_device import resolve_devices
 
     check_prompt(prompt)
     video_path, sidecar_path = output_paths(cfg, prompt, out)

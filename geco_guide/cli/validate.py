@@ -8,7 +8,7 @@
 
 ``--dynamic`` needs no benchmark folder: it renders the synthetic scenes with objects that move on
 their own and reports, with the oracle estimators, the false positives, the artifact detection AP
-and the automatic mask's quality (:mod:`geco_guide.bench.dynamic`) in ``dynamic.json`` and
+and the automatic mask's quality (:mod:`geco_guide.bench.dynamic_suite`) in ``dynamic.json`` and
 ``dynamic.md``.
 
 A clip that cannot be read or scored (a damaged ``meta.json`` or ``truth.npz``, ground truth that
@@ -38,7 +38,7 @@ from .kit import (
 
 if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
     from ..bench.datasets import find_benchmarks, load_benchmark, oracle_clip
-    from ..bench.dynamic import DynamicScenes, dynamic_validation, markdown_report
+    from ..bench.dynamic_suite import DynamicScenes, dynamic_validation, markdown_report
     from ..bench.validate import grid_frames, grid_image, markdown_table, summarise, validate_clip, write_png
     from ..estimators import load_estimators
     from ..estimators.oracle import OracleFlow, OracleGeometry
@@ -50,7 +50,7 @@ __all__ = ["main"]
 #: What main runs on, imported once the arguments parsed: it loads torch.
 _IMPLEMENTATION = DeferredImports(__name__, {
     "..bench.datasets": ("find_benchmarks", "load_benchmark", "oracle_clip"),
-    "..bench.dynamic": ("DynamicScenes", "dynamic_validation", "markdown_report"),
+    "..bench.dynamic_suite": ("DynamicScenes", "dynamic_validation", "markdown_report"),
     "..bench.validate": ("grid_frames", "grid_image", "markdown_table", "summarise", "validate_clip", "write_png"),
     "..estimators": ("load_estimators",),
     "..estimators.oracle": ("OracleFlow", "OracleGeometry"),
@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def dynamic_main(args: argparse.Namespace) -> int:
-    """``--dynamic``: the report of :func:`geco_guide.bench.dynamic.dynamic_validation`."""
+    """``--dynamic``: the report of :func:`geco_guide.bench.dynamic_suite.dynamic_validation`."""
     try:
         if args.inputs:
             raise ValueError("--dynamic renders its own scenes: give no benchmark folder or override")

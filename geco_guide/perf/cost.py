@@ -36,7 +36,7 @@ from ..sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
 from ..sampler.slicing import default_anchors
 from ..sampler.step import Update, guided_step, loss_terms
 from .measure import GIB, environment_info
-from .models import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_cost_pipeline, model_bytes
+from .full_size import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_cost_pipeline, model_bytes
 from .profile import call_marking_backward
 
 __all__ = ["AUTO_MASK_REFRESH_S", "GPU_SPECS", "H200_UNGUIDED_STEP_S", "INTERCONNECT_BYTES_PER_S",
@@ -365,7 +365,7 @@ def sam3_refresh_cost(num_frames: int = 4, dtype: torch.dtype = torch.bfloat16) 
     from torch._subclasses.fake_tensor import FakeTensorMode
     from transformers import Sam3VideoConfig, Sam3VideoModel
 
-    from .models import to_fake
+    from .full_size import to_fake
 
     config = Sam3VideoConfig()
     with torch.device("meta"):

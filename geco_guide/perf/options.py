@@ -19,7 +19,7 @@ from ..config import COGVIDEOX_TEMPORAL_COMPRESSION, load_config
 from ..estimators.loading import WeightsNotFoundError
 from ..io.devices import check_device as check_config_device
 from ..sampler.config import DECODERS
-from ..sampler.devices import resolve_devices
+from ..sampler.multi_device import resolve_devices
 from ..sampler.memory_plan import PLAN_NAMES
 from ..sampler.slicing import check_num_frames, check_paired_latent_frames
 from .cost import GPU_SPECS, H200_UNGUIDED_STEP_S, load_measured

@@ -40,7 +40,7 @@ from .measure import (
     run_case_subprocess,
     synchronize,
 )
-from .models import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_full_size_components, cast_components
+from .full_size import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_full_size_components, cast_components
 from .profile import StageProfiler, breakdown_of, summarize_profile
 
 __all__ = ["NOMINAL_STEPS", "SAMPLING_MODES", "paper_schedule_for", "run_sampling_worker",

@@ -35,7 +35,7 @@ from .measure import (
     synchronize,
     time_callable,
 )
-from .models import full_size_vae
+from .full_size import full_size_vae
 
 __all__ = ["WORKLOADS", "Workload", "estimator_specs", "loss_specs", "make_step", "run_worker", "vae_specs"]
 

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from .config import GuidanceConfig
-from .devices import decoder_replicas
+from .multi_device import decoder_replicas
 from .fast_decode import check_channels_last_vae
 from .memory_plan import MemoryPlan
 from .run_options import RunOptions
@@ -132,7 +132,7 @@ class ChunkedDecode:
 
 class AcrossDevicesDecode:
     """:class:`ChunkedDecode` with chunk span ``k`` decoded on ``devices[k mod N]`` by that device's
-    replica of ``decode.module`` (:func:`~.devices.decoder_replicas`); only the anchor frames come
+    replica of ``decode.module`` (:func:`~.multi_device.decoder_replicas`); only the anchor frames come
     back. The replicas are copied at the first call: inside the call's models block, so that they
     carry the memory plan's switches and the decode layout's forwards.
 

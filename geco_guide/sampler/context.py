@@ -282,7 +282,7 @@ class GuidanceContext:
         dynamic_masks: what moves on its own, left out of the loss
             (:func:`~.dynamic.guidance_mask_source`), or ``None`` (the paper: no masks).
         devices: the devices the anchor chunks are dealt over
-            (:func:`~.devices.resolve_devices` of ``run.devices``), each with a replica of
+            (:func:`~.multi_device.resolve_devices` of ``run.devices``), each with a replica of
             ``decode_chunk``'s module, or ``None``: one device.
         read_scalars: the log's reading of an update's numbers (:class:`GuidanceLog`).
         objective_for: ``(anchor_objective, plan) -> objective``: what the updates score

@@ -67,7 +67,7 @@ from .adapters import (
 from .anchor_decode import anchor_decoder
 from .config import GuidanceConfig, resolve_call_options
 from .context import GuidanceContext
-from .devices import resolve_devices
+from .multi_device import resolve_devices
 from .dynamic import RefreshedMasks, guidance_mask_source
 from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
 from .run_options import RunOptions, check_run_for_guidance

@@ -307,7 +307,7 @@ def plan_before_loading(config: Any, run: Any, model_id: str, frames: int, heigh
         ValueError: (one line) where no plan fits the budget (:func:`choose_plan`), or ``device``
             is not one this machine has, or a size no video has (not a positive integer).
     """
-    from .devices import resolve_devices
+    from .multi_device import resolve_devices
 
     check_video_size(frames, height, width)
     if not config.enabled:

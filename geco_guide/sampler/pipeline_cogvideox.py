@@ -42,7 +42,7 @@ from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .anchor_decode import anchor_decoder
 from .config import GuidanceConfig, resolve_call_options
 from .context import GuidanceContext
-from .devices import CfgHalves, resolve_devices
+from .multi_device import CfgHalves, resolve_devices
 from .dynamic import guidance_mask_source
 from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
 from .run_options import RunOptions, resolve_run_options

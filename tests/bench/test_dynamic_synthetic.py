@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from geco_guide.bench.dynamic import DynamicScenes, dynamic_validation, edited_clips
+from geco_guide.bench.dynamic_suite import DynamicScenes, dynamic_validation, edited_clips
 from geco_guide.bench.synthetic import moving_clip, rigid_clip
 from geco_guide.cli.validate import main as validate_main
 from geco_guide.geometry import pixel_grid, sample_bilinear

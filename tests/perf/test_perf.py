@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from geco_guide.perf import cost, models, profile, sampling
+from geco_guide.perf import cost, full_size, profile, sampling
 from geco_guide.sampler.context import GuidanceContext
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "benchmark.py"
@@ -171,7 +171,7 @@ def test_full_size_pipeline_on_meta() -> None:
     from geco_guide.estimators.vggt import VGGT, VGGTConfig
     from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
-    components = models.build_full_size_components("meta", torch.bfloat16)
+    components = full_size.build_full_size_components("meta", torch.bfloat16)
     transformer, vae = components["transformer"], components["vae"]
     for model in (transformer, vae):
         assert all(p.device.type == "meta" and p.dtype == torch.bfloat16 for p in model.parameters())

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from geco_guide.sampler.config import GuidanceConfig
-from geco_guide.sampler.devices import decoder_replicas, resolve_devices
+from geco_guide.sampler.multi_device import decoder_replicas, resolve_devices
 from geco_guide.sampler.run_options import RunOptions
 from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across
 from geco_guide.tiny import TINY_CALL_KWARGS, tiny_call_kwargs, tiny_estimators, tiny_guidance_config, tiny_pipeline, \
@@ -160,7 +160,7 @@ def test_the_cfg_halves_on_two_devices_give_the_frames_of_one(denoiser_grad):
 def test_the_cfg_halves_give_the_one_call_output_to_float_rounding():
     """One denoiser output, split in two calls or not: equal to float rounding (a whole guided run
     then follows another path, since normalised updates of tiny random models amplify it)."""
-    from geco_guide.sampler.devices import CfgHalves
+    from geco_guide.sampler.multi_device import CfgHalves
 
     pipe = tiny_pipeline(seed=0)
     z = torch.randn(1, 5, 4, 4, 6, generator=torch.Generator().manual_seed(0))
@@ -176,7 +176,7 @@ def test_the_cfg_halves_give_the_one_call_output_to_float_rounding():
 
 
 def test_the_cfg_halves_split_every_batched_input_and_share_the_rest():
-    from geco_guide.sampler.devices import CfgHalves
+    from geco_guide.sampler.multi_device import CfgHalves
 
     seen = []
 

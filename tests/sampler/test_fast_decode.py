@@ -13,7 +13,7 @@ from diffusers.hooks import HookRegistry
 from torch import nn
 
 from geco_guide.sampler import fast_decode
-from geco_guide.sampler.devices import decoder_replicas
+from geco_guide.sampler.multi_device import decoder_replicas
 from geco_guide.sampler.fast_decode import (
     CompileFallbackWarning,
     causal_time_pad,
