@@ -19,6 +19,7 @@ frames.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, is_dataclass, replace
 from typing import Any, Protocol, TypeVar, runtime_checkable
@@ -28,7 +29,8 @@ from torch import Tensor
 
 __all__ = ["Correspondences", "DynamicMaskSource", "FlowEstimator", "GeometryEstimator",
            "NonFiniteFramesError", "OptionError", "SceneGeometry", "check_frame_values", "check_frames",
-           "merge_dataclass", "missing_estimators", "non_finite_fields", "one_of_names", "plural"]
+           "is_integer", "is_number", "merge_dataclass", "missing_estimators", "non_finite_fields", "one_of_names",
+           "plural"]
 
 
 @dataclass
@@ -230,6 +232,16 @@ def merge_dataclass(obj: T, changes: Mapping[str, Any], path: str = "") -> T:
         return replace(obj, **updates)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{path or 'config'}: {err}") from None
+
+
+def is_number(value: Any) -> bool:
+    """A real number of any numeric type (numpy's too), not a bool (an option's true/false is no number)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def is_integer(value: Any) -> bool:
+    """An integer of any numeric type (numpy's too), not a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def plural(count: int, noun: str) -> str:

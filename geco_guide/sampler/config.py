@@ -8,7 +8,6 @@ method section's fused loss (the ``cogvideox-5b-fused`` preset). See docs/guidan
 
 from __future__ import annotations
 
-import numbers
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
@@ -17,7 +16,7 @@ from typing import Any, Optional
 from ..estimators.tiny_decoder import CONTEXT_LATENTS
 from ..loss.geco import GeCoLossConfig
 from ..loss.presets import fused_guidance_loss, guidance_loss
-from ..types import OptionError, merge_dataclass, non_finite_fields
+from ..types import OptionError, is_integer, is_number, merge_dataclass, non_finite_fields
 from .schedule import (
     PAPER_STEP_SIZE,
     PAPER_REPEATS,
@@ -152,9 +151,9 @@ def check_dynamic_options(config: GuidanceConfig) -> None:
     if config.dynamic is not None and (not isinstance(config.dynamic, str) or not config.dynamic.strip(" ,")):
         raise OptionError("dynamic", f"must be null, 'auto' or the subjects that move, e.g. 'a dog, a person'; "
                                      f"got {config.dynamic!r}")
-    if not _is_integer(config.dynamic_dilation) or config.dynamic_dilation < 0:
+    if not is_integer(config.dynamic_dilation) or config.dynamic_dilation < 0:
         raise OptionError("dynamic_dilation", f"must be a whole number of pixels >= 0, got {config.dynamic_dilation!r}")
-    if not _is_integer(config.dynamic_refresh) or config.dynamic_refresh < 1:
+    if not is_integer(config.dynamic_refresh) or config.dynamic_refresh < 1:
         raise OptionError("dynamic_refresh", f"must be a whole number of steps >= 1, got {config.dynamic_refresh!r}")
 
 
@@ -162,19 +161,11 @@ def check_dynamic_options(config: GuidanceConfig) -> None:
 FLAGS = ("enabled", "denoiser_grad")
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
-def _is_integer(value: Any) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-
-
 def _frame_list_problem(value: Any, example: list[int]) -> str | None:
     """Why ``value`` is not a list of integer frame or step indices, or None."""
     if not isinstance(value, (list, tuple)):
         return f"must be a list of integers, e.g. {example}, got {value!r}"
-    bad = [v for v in value if not _is_integer(v)]
+    bad = [v for v in value if not is_integer(v)]
     return f"must hold integers only, e.g. {example}, got {bad[0]!r} in {list(value)!r}" if bad else None
 
 
@@ -187,9 +178,9 @@ def check_option_types(config: GuidanceConfig) -> None:
         if not isinstance(value, bool):
             raise OptionError(key, f"must be true or false, got {value!r}")
     for key in ("step_size", "grad_eps"):
-        if not _is_number(getattr(config, key)):
+        if not is_number(getattr(config, key)):
             raise OptionError(key, f"must be a number, got {getattr(config, key)!r}")
-    if not _is_integer(config.chunk_latents):
+    if not is_integer(config.chunk_latents):
         raise OptionError("chunk_latents", f"must be an integer, got {config.chunk_latents!r}")
     problem = _frame_list_problem(config.anchors, list(PAPER_ANCHORS))
     if problem is not None:

@@ -16,7 +16,7 @@ mode's backward then run on their own devices too.
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -98,17 +98,15 @@ class CfgHalves:
         self.replicas = decoder_replicas(denoiser, places)
         self.places = places
 
-    def __call__(self, call: Callable[..., Any] | None = None, **inputs: Any) -> torch.Tensor:
-        """The denoiser's output ``[2B, ...]`` on ``home`` for ``inputs`` of batch ``2B`` (each
-        tensor is split in halves along dim 0; ``image_rotary_emb`` and other non-batch inputs
-        go whole to each device). ``call(replica, **inputs)`` runs one half (default: the
-        replica's forward, first output)."""
-        call = call or (lambda module, **kwargs: module(**kwargs)[0])
+    def __call__(self, **inputs: Any) -> torch.Tensor:
+        """The denoiser's first output ``[2B, ...]`` on ``home`` for ``inputs`` of batch ``2B``
+        (each tensor is split in halves along dim 0; ``image_rotary_emb`` and other non-batch
+        inputs go whole to each device)."""
         batched = {key: value.chunk(2) for key, value in inputs.items()
                    if isinstance(value, torch.Tensor) and key != "image_rotary_emb"}
         outputs = []
         for k in range(2):
             replica, device = self.replicas[k % len(self.replicas)], self.places[k % len(self.places)]
             half = {key: (batched[key][k] if key in batched else value) for key, value in inputs.items()}
-            outputs.append(call(replica, **{key: _to(value, device) for key, value in half.items()}).to(self.home))
+            outputs.append(replica(**{key: _to(value, device) for key, value in half.items()})[0].to(self.home))
         return torch.cat(outputs)

@@ -17,12 +17,11 @@ file, a ``key=value`` override or a dict) still work for one release, each with 
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Optional
 
-from ..types import OptionError, merge_dataclass, non_finite_fields
+from ..types import OptionError, is_number, merge_dataclass, non_finite_fields
 from .fast_decode import DECODE_LAYOUTS
 from .memory_plan import PLAN_NAMES
 
@@ -98,8 +97,7 @@ class RunOptions:
                 raise OptionError(key, f"must be true or false, got {getattr(self, key)!r}")
         if self.vae_block_checkpointing is not None and not isinstance(self.vae_block_checkpointing, bool):
             raise OptionError("vae_block_checkpointing", f"must be true, false or null, got {self.vae_block_checkpointing!r}")
-        if self.memory_budget_gb is not None and (not isinstance(self.memory_budget_gb, numbers.Real)
-                                                  or isinstance(self.memory_budget_gb, bool)):
+        if self.memory_budget_gb is not None and not is_number(self.memory_budget_gb):
             raise OptionError("memory_budget_gb", f"must be a number of GiB (or null: the device's memory), "
                                                   f"got {self.memory_budget_gb!r}")
         for key, value in non_finite_fields(self):  # the first one
