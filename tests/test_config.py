@@ -167,43 +167,32 @@ def test_config_path_that_is_a_folder_is_called_a_folder(tmp_path: Path):
         load_config(tmp_path)
 
 
-@pytest.mark.parametrize("changes, message", [
-    ({"anchors": [4.7, 8.9, 12, 16]}, "anchors must hold integers only, e.g. [12, 24, 36, 48], got 4.7 in"),
-    ({"anchors": "4,8"}, "anchors must be a list of integers, e.g. [12, 24, 36, 48], got '4,8'"),
-    ({"anchors": [4, True]}, "anchors must hold integers only"),
-    ({"step_size": "3"}, "step_size must be a number, got '3'"),
-    ({"grad_eps": None}, "grad_eps must be a number, got None"),
-    ({"chunk_latents": 2.5}, "chunk_latents must be an integer, got 2.5"),
-    ({"time_travel": [15.5, 20]}, "time_travel must hold integers only, e.g. [15, 20], got 15.5"),
-    ({"enabled": "false"}, "enabled must be true or false, got 'false'"),
+@pytest.mark.parametrize("section, changes, message", [
+    ("guidance", {"anchors": [4.7, 8.9, 12, 16]}, "anchors must hold integers only, e.g. [12, 24, 36, 48], got 4.7 in"),
+    ("guidance", {"anchors": "4,8"}, "anchors must be a list of integers, e.g. [12, 24, 36, 48], got '4,8'"),
+    ("guidance", {"anchors": [4, True]}, "anchors must hold integers only"),
+    ("guidance", {"step_size": "3"}, "step_size must be a number, got '3'"),
+    ("guidance", {"grad_eps": None}, "grad_eps must be a number, got None"),
+    ("guidance", {"chunk_latents": 2.5}, "chunk_latents must be an integer, got 2.5"),
+    ("guidance", {"time_travel": [15.5, 20]}, "time_travel must hold integers only, e.g. [15, 20], got 15.5"),
+    ("guidance", {"enabled": "false"}, "enabled must be true or false, got 'false'"),
+    ("run", {"memory_budget_gb": "8"}, "memory_budget_gb must be a number of GiB (or null: the device's memory), got '8'"),
+    ("run", {"vae_block_checkpointing": 1}, "vae_block_checkpointing must be true, false or null, got 1"),
+    ("run", {"compile": "yes"}, "compile must be true or false, got 'yes'"),
+    ("run", {"memory_plan": "smallest"}, "memory_plan must be one of auto, explicit, fastest"),
 ])
-def test_guidance_options_of_the_wrong_type_are_one_line_naming_the_key(changes, message):
+def test_options_of_the_wrong_type_are_one_line_naming_the_key(section, changes, message):
     """A float anchor would be truncated to another frame; a string step size would fail deep in a call."""
     from geco_guide.sampler.hooks import attach_geco_guidance
     from geco_guide.tiny import tiny_estimators, tiny_wan_pipeline
 
+    options = {"guidance": GuidanceConfig, "run": RunOptions}[section]
     with pytest.raises(ValueError, match=re.escape(message)):
-        GuidanceConfig(**changes)
+        options(**changes)
     geometry, flow = tiny_estimators(0)
-    with pytest.raises(ValueError, match=f"^guidance: {re.escape(message)}"):  # the hook's dict, before any call
-        attach_geco_guidance(tiny_wan_pipeline(0), changes, geometry=geometry, flow=flow)
-
-
-@pytest.mark.parametrize("changes, message", [
-    ({"memory_budget_gb": "8"}, "memory_budget_gb must be a number of GiB (or null: the device's memory), got '8'"),
-    ({"vae_block_checkpointing": 1}, "vae_block_checkpointing must be true, false or null, got 1"),
-    ({"compile": "yes"}, "compile must be true or false, got 'yes'"),
-    ({"memory_plan": "smallest"}, "memory_plan must be one of auto, explicit, fastest"),
-])
-def test_run_options_of_the_wrong_type_are_one_line_naming_the_key(changes, message):
-    from geco_guide.sampler.hooks import attach_geco_guidance
-    from geco_guide.tiny import tiny_estimators, tiny_wan_pipeline
-
-    with pytest.raises(ValueError, match=re.escape(message)):
-        RunOptions(**changes)
-    geometry, flow = tiny_estimators(0)
-    with pytest.raises(ValueError, match=f"^run: {re.escape(message)}"):  # the hook's dict, before any call
-        attach_geco_guidance(tiny_wan_pipeline(0), run_options=changes, geometry=geometry, flow=flow)
+    argument = {"config": changes} if section == "guidance" else {"run_options": changes}
+    with pytest.raises(ValueError, match=f"^{section}: {re.escape(message)}"):  # the hook's dict, before any call
+        attach_geco_guidance(tiny_wan_pipeline(0), **argument, geometry=geometry, flow=flow)
 
 
 def test_numbers_of_other_numeric_types_are_taken_as_they_are():
