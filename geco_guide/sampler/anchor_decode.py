@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from .config import GuidanceConfig
-from .multi_device import decoder_replicas
+from .multi_device import module_replicas
 from .fast_decode import check_channels_last_vae
 from .memory_plan import MemoryPlan
 from .run_options import RunOptions
@@ -132,7 +132,7 @@ class ChunkedDecode:
 
 class AcrossDevicesDecode:
     """:class:`ChunkedDecode` with chunk span ``k`` decoded on ``devices[k mod N]`` by that device's
-    replica of ``decode.module`` (:func:`~.multi_device.decoder_replicas`); only the anchor frames come
+    replica of ``decode.module`` (:func:`~.multi_device.module_replicas`); only the anchor frames come
     back. The replicas are copied at the first call: inside the call's models block, so that they
     carry the memory plan's switches and the decode layout's forwards.
 
@@ -151,7 +151,7 @@ class AcrossDevicesDecode:
     def __call__(self, latents: Tensor) -> Tensor:
         """``latents [B, F, C, h, w] -> [B, S, 3, H, W]`` fp32 in ``[0, 1]`` on ``latents``' device."""
         if self._placed is None:
-            replicas = decoder_replicas(self.decode.module, self.devices)
+            replicas = module_replicas(self.decode.module, self.devices)
             self._placed = [(device, self.decode.on(replica)) for device, replica in zip(self.devices, replicas)]
         return decode_anchor_frames_across(self._placed, latents, self.chunks, checkpoint_chunks=self.checkpointed)
 

@@ -24,11 +24,18 @@ from .schedule import (
     GuidanceSchedule,
     scale_schedule,
 )
-from .run_options import MOVED_GUIDANCE_KEYS, RenamedOptionWarning, RunOptions, check_run_for_guidance, resolve_run_options
+from .run_options import (
+    MOVED_GUIDANCE_KEYS,
+    RenamedOptionWarning,
+    RunOptions,
+    check_run_for_guidance,
+    resolve_run_options,
+)
 from .slicing import AnchorChunk, anchor_latent_chunks
 
-__all__ = ["DECODERS", "MAX_STEP_SIZE", "RENAMED_GUIDANCE_KEYS", "PAPER_ANCHORS", "GuidanceConfig", "fused_guidance_config",
-           "paper_guidance_config", "resolve_call_options", "resolve_guidance_config", "upgrade_guidance_keys"]
+__all__ = ["DECODERS", "MAX_STEP_SIZE", "PAPER_ANCHORS", "RENAMED_GUIDANCE_KEYS", "GuidanceConfig",
+           "check_call_options", "fused_guidance_config", "paper_guidance_config", "resolve_call_options",
+           "resolve_guidance_config", "upgrade_guidance_keys"]
 
 PAPER_ANCHORS = (12, 24, 36, 48)
 # An update moves the latents by step_size in L2 norm; 1000 is about the norm of the whole latent
@@ -264,8 +271,14 @@ def resolve_call_options(
         override, moved = upgrade_guidance_keys(override)
     config = resolve_guidance_config(base, override)
     run = resolve_run_options(resolve_run_options(run_base, moved or None), run_override)
+    check_call_options(config, run)
+    return config, run
+
+
+def check_call_options(config: GuidanceConfig, run: RunOptions) -> None:
+    """ValueError (one line naming the ``run`` key) for run options ``config`` cannot use
+    (:func:`~.run_options.check_run_for_guidance`)."""
     try:
         check_run_for_guidance(run, config.decoder)
     except OptionError as err:
         raise ValueError(f"run.{err}") from None
-    return config, run

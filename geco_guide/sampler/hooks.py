@@ -53,7 +53,7 @@ import torch
 from torch import Tensor, nn
 
 from ..estimators.bundle import Estimators
-from ..types import DynamicMaskSource, FlowEstimator, GeometryEstimator, OptionError, missing_estimators, one_of_names
+from ..types import DynamicMaskSource, FlowEstimator, GeometryEstimator, missing_estimators, one_of_names
 from .adapters import (
     CallGeometry,
     PipelineAdapter,
@@ -65,12 +65,12 @@ from .adapters import (
     noise_levels,
 )
 from .anchor_decode import anchor_decoder
-from .config import GuidanceConfig, resolve_call_options
+from .config import GuidanceConfig, check_call_options, resolve_call_options
 from .context import GuidanceContext
 from .multi_device import resolve_devices
 from .dynamic import RefreshedMasks, guidance_mask_source
 from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
-from .run_options import RunOptions, check_run_for_guidance
+from .run_options import RunOptions
 from .pipeline_cogvideox import GeCoCogVideoXPipeline
 from .slicing import AnchorChunk, check_latents
 from .step import LatentsWatch
@@ -348,10 +348,7 @@ class GeCoGuidanceHandle:
                       f"this {type(self.pipe).__name__} call")
         self.adapter.check(self.pipe, geometry)
         config.check_loss()
-        try:
-            check_run_for_guidance(run, config.decoder)
-        except OptionError as err:
-            raise ValueError(f"run.{err}") from None
+        check_call_options(config, run)
         check_no_denoiser_cache(self.adapter.denoisers(self.pipe))
         chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
         check_scheduler(self.pipe.scheduler)

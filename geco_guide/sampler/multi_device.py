@@ -24,7 +24,7 @@ from torch import nn
 
 from ..io.devices import check_device
 
-__all__ = ["CfgHalves", "decoder_replicas", "resolve_devices"]
+__all__ = ["CfgHalves", "module_replicas", "resolve_devices"]
 
 #: ``run.devices: [auto]``: every GPU torch sees.
 AUTO = "auto"
@@ -49,7 +49,7 @@ def resolve_devices(names: Sequence[str] | None, key: str = "run.devices") -> li
             for name in names]
 
 
-def decoder_replicas(module: nn.Module, devices: Sequence[torch.device]) -> list[nn.Module]:
+def module_replicas(module: nn.Module, devices: Sequence[torch.device]) -> list[nn.Module]:
     """One copy of the frozen ``module`` per entry of ``devices``: the module itself for the first
     (where it already lives there), deep copies moved to the others (a second entry of the same
     device gets a copy of its own, so that the transfers and replicas of several GPUs also run on
@@ -77,7 +77,7 @@ def _to(value: Any, device: torch.device) -> Any:
 class CfgHalves:
     """A denoiser called on a classifier-free-guidance batch ``[2B, ...]`` as two calls of ``B``,
     the first half (unconditional) on ``devices[0]``, the second (conditional) on the last of
-    ``devices[:2]``, each device with its own replica of ``denoiser`` (:func:`decoder_replicas`):
+    ``devices[:2]``, each device with its own replica of ``denoiser`` (:func:`module_replicas`):
     the two calls run at once across devices, forward and backward. With one device (or none:
     the denoiser's own) the halves run one after the other. Outputs meet on ``home``.
 
@@ -95,7 +95,7 @@ class CfgHalves:
     def __init__(self, denoiser: nn.Module, devices: Sequence[torch.device] | None, home: torch.device):
         places = list(devices[:2]) if devices else [home]
         self.home = home
-        self.replicas = decoder_replicas(denoiser, places)
+        self.replicas = module_replicas(denoiser, places)
         self.places = places
 
     def __call__(self, **inputs: Any) -> torch.Tensor:

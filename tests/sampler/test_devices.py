@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from geco_guide.sampler.config import GuidanceConfig
-from geco_guide.sampler.multi_device import decoder_replicas, resolve_devices
+from geco_guide.sampler.multi_device import module_replicas, resolve_devices
 from geco_guide.sampler.run_options import RunOptions
 from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across
 from geco_guide.tiny import TINY_CALL_KWARGS, tiny_call_kwargs, tiny_estimators, tiny_guidance_config, tiny_pipeline, \
@@ -41,7 +41,7 @@ def test_chunks_are_dealt_round_robin_and_only_anchor_frames_come_back():
 
 def test_each_extra_device_gets_a_replica_of_its_own():
     module = torch.nn.Linear(2, 2)
-    replicas = decoder_replicas(module, [torch.device("cpu"), torch.device("cpu"), torch.device("cpu")])
+    replicas = module_replicas(module, [torch.device("cpu"), torch.device("cpu"), torch.device("cpu")])
     assert replicas[0] is module and replicas[1] is not module and replicas[2] is not replicas[1]
     assert all(torch.equal(r.weight, module.weight) for r in replicas)
 

@@ -13,7 +13,7 @@ from diffusers.hooks import HookRegistry
 from torch import nn
 
 from geco_guide.sampler import fast_decode
-from geco_guide.sampler.multi_device import decoder_replicas
+from geco_guide.sampler.multi_device import module_replicas
 from geco_guide.sampler.fast_decode import (
     CompileFallbackWarning,
     causal_time_pad,
@@ -231,7 +231,7 @@ def test_a_replica_of_the_laid_out_vae_decodes_with_its_own_weights(monkeypatch,
             p.mul_(0.5)
         expected = decode_chunk(halved, latents, 0.7)
         with guidance_decode(RunOptions(decode_layout="channels_last", compile=compile), "vae", vae):
-            _, replica = decoder_replicas(vae, [torch.device("cpu"), torch.device("cpu")])
+            _, replica = module_replicas(vae, [torch.device("cpu"), torch.device("cpu")])
             for p in replica.parameters():
                 p.mul_(0.5)
             frames = decode_chunk(replica, latents, 0.7)
