@@ -31,6 +31,9 @@ _EXPORTS = {
     "GuidanceConfig": "geco_guide.sampler.config",
     "RunOptions": "geco_guide.sampler.run_options",
     "evaluate_video": "geco_guide.metric.evaluate",
+    "GuidanceReport": "geco_guide.sampler.context",
+    "generate": "geco_guide.generation",
+    "MODELS": "geco_guide.families",
     "load_prompts": "geco_guide.bench.geco_eval",
 }
 
@@ -45,7 +48,10 @@ if TYPE_CHECKING:  # pragma: no cover
     from .loss.geco import GeCoLoss, GeCoLossConfig, GeCoResult, geco_from_geometry
     from .loss.motion_stats import motion_statistics
     from .metric.evaluate import evaluate_video
+    from .families import MODELS
+    from .generation import generate
     from .sampler.config import GuidanceConfig
+    from .sampler.context import GuidanceReport
     from .sampler.hooks import attach_geco_guidance
     from .sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
     from .sampler.run_options import RunOptions

@@ -1,14 +1,17 @@
 """One structured config (omegaconf) for a GeCo generation run.
 
-Sections: ``model`` (the CogVideoX checkpoint), ``estimators`` (geometry + flow backbones),
-``sampling`` (steps, CFG, size), ``guidance`` (:class:`GuidanceConfig`, what guidance computes:
-anchors, schedule, step size, time travel, and ``guidance.loss``, which *is*
+Sections, each the dataclass of the code that uses it: ``model`` (:class:`ModelConfig`: a model of
+the registry :mod:`geco_guide.families` and its weights), ``estimators`` (:class:`EstimatorsConfig`:
+geometry + flow backbones, segmenter, tiny decoder), ``sampling`` (:class:`SamplingConfig`: steps,
+CFG, size; null values are the model's defaults), ``guidance`` (:class:`GuidanceConfig`, what
+guidance computes: anchors, schedule, step size, time travel, and ``guidance.loss``, which *is*
 :class:`GeCoLossConfig`), ``run`` (:class:`RunOptions`, how this machine runs it: memory plan,
-decode layout, devices; the old ``guidance.<key>`` spellings still work, with a warning), ``output``,
-``evaluation`` (:class:`EvaluationConfig`: how ``python -m geco_guide evaluate`` samples a video,
-with the metric's own ``evaluation.loss``) and ``seed``. Defaults are the GeCo paper's CogVideoX-5b setting; the presets are
-the checkout's ``configs/<name>.yaml``, installed as the package data ``geco_guide/configs`` (so
-``--preset`` works after a plain ``pip install``).
+decode layout, devices), ``output``, ``evaluation`` (:class:`EvaluationConfig`: how ``python -m
+geco_guide evaluate`` samples a video, with the metric's own ``evaluation.loss``) and ``seed``.
+Defaults are the GeCo paper's CogVideoX-5b setting; the presets are the checkout's
+``configs/<name>.yaml``, installed as the package data ``geco_guide/configs`` (so ``--preset``
+works after a plain ``pip install``). Earlier spellings of keys (``guidance.eta``,
+``guidance.memory_plan``, ...) are refused in one line naming the new key.
 
 ``load_config(path, preset, overrides)`` merges schema <- YAML <- ``key=value`` overrides and
 validates: an unknown key or an invalid value raises a ValueError naming the key.
@@ -20,7 +23,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Optional
 
@@ -33,19 +36,19 @@ from omegaconf.errors import (
 )
 
 from .estimators import EstimatorsConfig
+from .families import MODELS, default_anchors, frames_problem, model_named, video_models
 from .metric.protocol import EvaluationConfig
-from .sampler.config import RENAMED_GUIDANCE_KEYS, GuidanceConfig, paper_guidance_config, upgrade_guidance_keys
-from .sampler.run_options import MOVED_GUIDANCE_KEYS, RunOptions, check_run_for_guidance
-from .sampler.slicing import check_paired_latent_frames
-from .types import OptionError, non_finite_fields
+from .sampler.config import GuidanceConfig, paper_guidance_config
+from .sampler.loading import ModelConfig
+from .sampler.run_options import RunOptions, check_run_for_guidance
+from .sampler.sampling import SamplingConfig, sampling_problem, with_model_defaults
+from .types import OptionError, non_finite_fields, renamed_option
 
-__all__ = ["COGVIDEOX_TEMPORAL_COMPRESSION", "CONFIG_DIR", "DTYPES", "SEED_RANGE", "GeCoConfig", "ModelConfig",
-           "OutputConfig", "SamplingConfig", "config_to_dict", "config_to_yaml", "load_config", "preset_path",
-           "to_config", "validate_config"]
+__all__ = ["CONFIG_DIR", "DTYPES", "SEED_RANGE", "GeCoConfig", "ModelConfig", "OutputConfig", "SamplingConfig",
+           "config_to_dict", "config_to_yaml", "load_config", "model_preset", "preset_path", "to_config",
+           "validate_config"]
 
 DTYPES = ("float32", "float16", "bfloat16")
-# Frames per latent of the CogVideoX VAE, whose pipeline the sampling section configures.
-COGVIDEOX_TEMPORAL_COMPRESSION = 4
 # CFG scales in use are 1-20 (CogVideoX: 6); absurd ones only overflow the latents to NaN/inf
 # after minutes of sampling (a black video), so they are refused at once (guidance.step_size likewise,
 # in GuidanceConfig).
@@ -56,35 +59,6 @@ SEED_RANGE = (-(2**63), 2**64 - 1)
 # top-level configs/ that the wheel copies it from.
 CONFIG_DIR = next((d for d in (Path(__file__).resolve().parent / "configs", Path(__file__).resolve().parents[1] / "configs")
                    if d.is_dir()), Path(__file__).resolve().parent / "configs")
-
-
-@dataclass
-class ModelConfig:
-    """The video model: a hub id or local folder loaded with ``from_pretrained``, or ``tiny-random``."""
-
-    id: str = "THUDM/CogVideoX-5b"
-    revision: Optional[str] = None
-    dtype: str = "bfloat16"
-    device: str = "auto"  # auto = cuda if available, else cpu
-    init_seed: int = 0  # weights seed of tiny-random models
-    vae_tiling: bool = False
-    vae_slicing: bool = False
-
-
-@dataclass
-class SamplingConfig:
-    """Stock CogVideoX sampling arguments (paper: 50 DDIM steps, CFG 6, 49 x 480 x 720)."""
-
-    num_inference_steps: int = 50
-    guidance_scale: float = 6.0
-    num_frames: int = 49
-    height: int = 480
-    width: int = 720
-    fps: int = 8
-    negative_prompt: Optional[str] = None
-    use_dynamic_cfg: bool = False
-    max_sequence_length: int = 226
-    scheduler: Optional[str] = "ddim"  # ddim | dpm (CogVideoX's DDIM / DPM from the checkpoint's config) | null: as shipped
 
 
 @dataclass
@@ -125,26 +99,19 @@ def _key_error(err: OmegaConfBaseException, source: str) -> ValueError:
     return ValueError(f"invalid value for config key {key!r} ({source}): {msg}")
 
 
-def _with_keys_upgraded(other: Any, source: str) -> Any:
-    """``other`` (a config mapping) with the guidance keys of earlier names upgraded: run options
-    written under ``guidance`` moved to ``run``, renamed keys renamed
-    (:func:`~geco_guide.sampler.config.upgrade_guidance_keys`: one warning each); a section
-    ``run`` of its own wins over the old spelling."""
+def _refuse_renamed_keys(other: Any, source: str) -> None:
+    """ValueError (one line naming the new key) for a key of ``other`` (a config mapping) that is
+    the earlier spelling of one (:attr:`GuidanceConfig.RENAMED`)."""
     if not isinstance(other, (DictConfig, Mapping)) or not isinstance(other.get("guidance"), (DictConfig, Mapping)):
-        return other
-    guidance = other["guidance"]
-    if not any(key in MOVED_GUIDANCE_KEYS or key in RENAMED_GUIDANCE_KEYS for key in guidance):
-        return other
-    plain = OmegaConf.to_container(other) if isinstance(other, DictConfig) else dict(other)
-    plain["guidance"], moved = upgrade_guidance_keys(plain["guidance"], source)
-    own = plain.get("run")
-    if moved:
-        plain["run"] = {**moved, **own} if isinstance(own, Mapping) else moved if own is None else own
-    return plain
+        return
+    for key in other["guidance"]:
+        problem = renamed_option(GuidanceConfig, key, "guidance")
+        if problem is not None:
+            raise ValueError(f"{problem} ({source})")
 
 
 def _merge(base: DictConfig, other: Any, source: str) -> DictConfig:
-    other = _with_keys_upgraded(other, source)
+    _refuse_renamed_keys(other, source)
     try:
         return OmegaConf.merge(base, other)
     except (OmegaConfBaseException, TypeError) as err:  # TypeError: a mapping merged into a list
@@ -180,12 +147,25 @@ def _container_mismatch(base: DictConfig, other: Any, prefix: str = "") -> tuple
     return None
 
 
+def model_preset(name: str) -> str | None:
+    """The preset of configs/ named for the model ``name`` (``--model NAME``), or ``None``; ValueError
+    (one line listing the models) for a name the registry does not know."""
+    if name not in video_models():
+        model_named(name)  # raises, listing the names
+        raise ValueError(f"{name} has no open weights: GeCo-Eval only scores its videos (--videos {name}=DIR)")
+    return name if (CONFIG_DIR / f"{name}.yaml").is_file() else None
+
+
 def load_config(
     path: str | Path | None = None,
     preset: str | None = None,
     overrides: Sequence[str] = (),
+    *,
+    changes: Mapping[str, Any] | None = None,
+    model_preset: str | None = None,
 ) -> GeCoConfig:
-    """Schema defaults <- preset <- YAML file <- ``key=value`` overrides, validated.
+    """Schema defaults <- the model's preset <- preset <- YAML file <- ``key=value`` overrides <-
+    ``changes`` (``{dotted key: Python value}``, what command flags set), validated.
 
     Raises:
         ValueError: unknown key, wrong type or invalid value, naming the key; ``path`` is a
@@ -193,6 +173,9 @@ def load_config(
         FileNotFoundError: ``path`` does not exist.
     """
     cfg = OmegaConf.structured(GeCoConfig)
+    if model_preset is not None:
+        p = preset_path(model_preset)
+        cfg = _merge(cfg, _load_yaml(p), str(p))
     if preset is not None:
         p = preset_path(preset)
         cfg = _merge(cfg, _load_yaml(p), str(p))
@@ -209,6 +192,8 @@ def load_config(
             raise ValueError(f"overrides must be key=value, got {bad}")
         for item in overrides:
             cfg = _merge(cfg, _parse_override(cfg, item), "command line")
+    for key, value in (changes or {}).items():
+        cfg = _merge(cfg, _nest(key.split("."), value), "command line")
     return to_config(cfg)
 
 
@@ -239,9 +224,9 @@ def _parse_override(cfg: DictConfig, item: str) -> DictConfig:
     key, _, raw = item.partition("=")
     key = key.strip()
     section, _, leaf = key.partition(".")
-    if section == "guidance" and (leaf in MOVED_GUIDANCE_KEYS or leaf in RENAMED_GUIDANCE_KEYS):
-        upgrade_guidance_keys({leaf: None}, "command line")  # the warning naming the new key
-        key = f"run.{leaf}" if leaf in MOVED_GUIDANCE_KEYS else f"guidance.{RENAMED_GUIDANCE_KEYS[leaf]}"
+    problem = renamed_option(GuidanceConfig, leaf, "guidance") if section == "guidance" else None
+    if problem is not None:
+        raise ValueError(f"{problem} (command line)")
     parent_key, _, leaf = key.rpartition(".")
     try:
         parent = OmegaConf.select(cfg, parent_key) if parent_key else cfg
@@ -272,6 +257,14 @@ def to_config(cfg: DictConfig | dict | GeCoConfig) -> GeCoConfig:
         raise _key_error(err, "config") from None
     except OptionError as err:  # a dataclass's own value check (__post_init__)
         raise ValueError(f"invalid value for config key '{_section_of(cfg)}.{err.key}': {err}") from None
+    if obj.model.name not in MODELS or not MODELS[obj.model.name].generates:
+        raise ValueError(f"invalid value for config key 'model.name': must be one of {', '.join(video_models())}, "
+                         f"got {obj.model.name!r}")
+    model = model_named(obj.model.name)
+    obj = replace(obj, sampling=with_model_defaults(obj.sampling, model))
+    if obj.guidance.anchors is None and frames_problem(obj.sampling.num_frames, model.temporal_compression) is None:
+        anchors = default_anchors(obj.sampling.num_frames, model.temporal_compression)
+        obj = replace(obj, guidance=replace(obj.guidance, anchors=anchors))
     validate_config(obj)
     return obj
 
@@ -297,7 +290,8 @@ def validate_config(cfg: GeCoConfig) -> None:
     for key, value in non_finite_fields(cfg):  # every float option of every section; first one
         raise ValueError(f"invalid value for config key {key!r}: must be a finite number, got {value}")
     _require(SEED_RANGE[0] <= cfg.seed <= SEED_RANGE[1], "seed", f"must be a 64-bit integer, got {cfg.seed}")
-    _require(bool(cfg.model.id), "model.id", "must be a hub id, a local folder or 'tiny-random'")
+    _require(cfg.model.id is None or bool(cfg.model.id.strip()), "model.id",
+             "must be a hub id, a local folder, 'tiny-random', or null (the registry's hub id of model.name)")
     _require(cfg.model.dtype in DTYPES, "model.dtype", f"must be one of {DTYPES}, got {cfg.model.dtype!r}")
     _require(cfg.estimators.dtype in DTYPES, "estimators.dtype", f"must be one of {DTYPES}, got {cfg.estimators.dtype!r}")
     _require(bool(cfg.estimators.geometry), "estimators.geometry", "must not be empty")
@@ -308,28 +302,26 @@ def validate_config(cfg: GeCoConfig) -> None:
         "model.device",
         f"must be auto, cpu, mps or cuda[:N], got {device!r}",
     )
-    s = cfg.sampling
+    s, model = cfg.sampling, model_named(cfg.model.name)
     _require(s.num_inference_steps >= 1, "sampling.num_inference_steps", f"must be >= 1, got {s.num_inference_steps}")
-    _require(
-        0 <= s.guidance_scale <= MAX_GUIDANCE_SCALE,
-        "sampling.guidance_scale",
-        f"must be in [0, {MAX_GUIDANCE_SCALE:g}], got {s.guidance_scale}",
-    )
-    _require(s.fps >= 1, "sampling.fps", f"must be >= 1, got {s.fps}")
-    _require(s.max_sequence_length >= 1, "sampling.max_sequence_length", f"must be >= 1, got {s.max_sequence_length}")
-    for key in ("height", "width"):
+    for key in ("guidance_scale", "guidance_scale_2"):
         value = getattr(s, key)
-        _require(value > 0 and value % 16 == 0, f"sampling.{key}", f"must be a positive multiple of 16, got {value}")
-    try:
-        check_paired_latent_frames(s.num_frames, COGVIDEOX_TEMPORAL_COMPRESSION)
-    except ValueError as err:
-        raise ValueError(f"invalid value for config key 'sampling.num_frames': {err}") from None
+        _require(value is None or 0 <= value <= MAX_GUIDANCE_SCALE, f"sampling.{key}",
+                 f"must be in [0, {MAX_GUIDANCE_SCALE:g}], got {value}")
+    _require(s.fps >= 1, "sampling.fps", f"must be >= 1, got {s.fps}")
+    _require(s.max_sequence_length is None or s.max_sequence_length >= 1, "sampling.max_sequence_length",
+             f"must be >= 1, got {s.max_sequence_length}")
+    problem = sampling_problem(s, model)
+    if problem is not None:
+        raise ValueError(f"invalid value for config key 'sampling.{problem[0]}': {problem[1]}")
     _require(s.scheduler in (None, "ddim", "dpm"), "sampling.scheduler", f"must be ddim, dpm or null, got {s.scheduler!r}")
+    _require(s.scheduler is None or model.guided_by == "pipeline", "sampling.scheduler",
+             f"ddim and dpm are CogVideoX's schedulers; {model.name} samples with its own (null), got {s.scheduler!r}")
     g = cfg.guidance
     # GuidanceConfig's own checks against this run, each error named by its key
     for check, key in ((g.check_loss, "guidance.loss.geometry_grad"),
                        (lambda: g.schedule(s.num_inference_steps), "guidance.repeats / guidance.time_travel"),
-                       (lambda: g.anchor_chunks(s.num_frames, COGVIDEOX_TEMPORAL_COMPRESSION), "guidance.anchors")):
+                       (lambda: g.anchor_chunks(s.num_frames, model.temporal_compression), "guidance.anchors")):
         try:
             check()
         except ValueError as err:

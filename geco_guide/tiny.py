@@ -5,8 +5,10 @@
 built here from a seed: a word-level T5-style tokenizer made with the ``tokenizers`` library, a
 tiny ``T5EncoderModel``, ``CogVideoXTransformer3DModel`` and ``AutoencoderKLCogVideoX`` (temporal
 compression 4, spatial 8, so the real frame <-> latent mapping is exercised), the DDIM scheduler
-with the CogVideoX-5b scheduler settings, and tiny random VGGT / UFM estimators. Nothing is
-downloaded. The outputs are noise-like videos; only the mechanics are real.
+with the CogVideoX-5b scheduler settings; :func:`tiny_estimators` the tiny random VGGT / UFM.
+Every family of the model registry (:mod:`geco_guide.families`) has its builder here, which the
+registry names (:func:`tiny_video_components`). Nothing is downloaded. The outputs are noise-like
+videos; only the mechanics are real.
 """
 
 from __future__ import annotations
@@ -17,13 +19,16 @@ from typing import Any
 import torch
 from transformers import PreTrainedTokenizerFast
 
-from .estimators import TINY_RANDOM, tiny_estimators, tiny_random_decoder
+from .estimators import Estimators, tiny_estimators, tiny_random_decoder
+from .families import VideoModel
 
 __all__ = ["TINY_ANCHORS", "TINY_CALL_KWARGS", "TINY_HEIGHT", "TINY_MAX_SEQUENCE_LENGTH", "TINY_NUM_FRAMES",
-           "TINY_WIDTH", "TinySizes", "TinyTokenizer", "tiny_call_kwargs", "tiny_cogvideox_components",
-           "tiny_cogvideox_i2v_pipeline", "tiny_cogvideox_pipeline", "tiny_cogvideox_transformer",
-           "tiny_estimators", "tiny_guidance_config", "tiny_guidance_decoder", "tiny_hunyuan_pipeline",
-           "tiny_ltx_pipeline", "tiny_pipeline", "tiny_run_options", "tiny_tokenizer", "tiny_wan_pipeline", "video_components"]
+           "TINY_WIDTH", "TinySizes", "TinyTokenizer", "tiny_bundle", "tiny_call_extras", "tiny_call_kwargs",
+           "tiny_cogvideox15_pipeline", "tiny_cogvideox_components", "tiny_cogvideox_i2v_pipeline",
+           "tiny_cogvideox_pipeline", "tiny_cogvideox_transformer", "tiny_estimators", "tiny_guidance_config",
+           "tiny_guidance_decoder", "tiny_hunyuan_pipeline", "tiny_ltx_pipeline", "tiny_pipeline", "tiny_run_options",
+           "tiny_sampling",
+           "tiny_tokenizer", "tiny_video_components", "tiny_wan22_pipeline", "tiny_wan_pipeline"]
 
 # Tiny sampling settings that fit the tiny models (17 frames = 5 latents, 32x48 pixels).
 TINY_NUM_FRAMES = 17
@@ -184,13 +189,27 @@ def tiny_cogvideox_components(seed: int = 0, sizes: TinySizes | None = None) -> 
     }
 
 
-def video_components(cfg: Any) -> dict[str, Any] | None:
-    """The tiny random CogVideoX models of a config with ``model.id=tiny-random`` (seeded with
-    ``model.init_seed``), else ``None`` (load the id): what ``build_pipeline(cfg, components=...)``
-    takes."""
-    if cfg.model.id != TINY_RANDOM:
-        return None
-    return tiny_cogvideox_components(cfg.model.init_seed)
+def tiny_video_components(model: VideoModel, seed: int = 0) -> dict[str, Any]:
+    """The components of ``model``'s tiny random stand-in (the builder its registry entry names),
+    seeded with ``seed``: what ``model.id=tiny-random`` loads."""
+    if model.tiny is None:
+        raise ValueError(f"{model.name} has no tiny random stand-in")
+    return globals()[model.tiny](seed).components
+
+
+def tiny_sampling(model: VideoModel) -> dict[str, int]:
+    """The ``sampling`` of a tiny stand-in of ``model``'s family: 17 frames of 32x48 pixels (the
+    width of 64 where the model wants sizes in multiples of 32)."""
+    width = TINY_WIDTH if TINY_WIDTH % model.size_multiple == 0 else -(-TINY_WIDTH // model.size_multiple) * model.size_multiple
+    height = TINY_HEIGHT if TINY_HEIGHT % model.size_multiple == 0 else -(-TINY_HEIGHT // model.size_multiple) * model.size_multiple
+    return {"num_frames": TINY_NUM_FRAMES, "height": height, "width": width}
+
+
+def tiny_bundle(seed: int = 0, **more: Any) -> Estimators:
+    """The tiny random VGGT and UFM (:func:`tiny_estimators`) as one
+    :class:`~geco_guide.estimators.Estimators`, with ``more`` of its fields (``segmenter``,
+    ``tiny_decoder``)."""
+    return Estimators(*tiny_estimators(seed), **more)
 
 
 def tiny_guidance_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int = TinySizes.latent_channels):
@@ -228,27 +247,20 @@ def tiny_run_options(**changes: Any):
                          **changes})
 
 
-def tiny_pipeline(seed: int = 0, *, geometry_estimator: Any = None, flow_estimator: Any = None, guidance_config: Any = None):
-    """A ready tiny :class:`GeCoCogVideoXPipeline` (CPU, fp32) with tiny estimators.
+def tiny_pipeline(seed: int = 0, *, guidance_config: Any = None):
+    """A ready tiny :class:`GeCoCogVideoXPipeline` (CPU, fp32); guide its calls with
+    :func:`tiny_bundle`'s estimators.
 
     Call it with ``num_frames=TINY_NUM_FRAMES, height=TINY_HEIGHT, width=TINY_WIDTH,
     num_inference_steps=4, max_sequence_length=TINY_MAX_SEQUENCE_LENGTH`` (the guidance default
-    is :func:`tiny_guidance_config`, a 4-step schedule).
+    is :func:`tiny_guidance_config`, a 4-step schedule) and ``run_options=tiny_run_options()``.
     """
     from .sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
-    components = tiny_cogvideox_components(seed)
-    if geometry_estimator is None or flow_estimator is None:
-        geometry, flow = tiny_estimators(seed)
-        geometry_estimator = geometry_estimator if geometry_estimator is not None else geometry
-        flow_estimator = flow_estimator if flow_estimator is not None else flow
     pipe = GeCoCogVideoXPipeline(
-        **components,
-        geometry_estimator=geometry_estimator,
-        flow_estimator=flow_estimator,
+        **tiny_cogvideox_components(seed),
         guidance_config=guidance_config if guidance_config is not None else tiny_guidance_config(),
     )
-    pipe.run_options = tiny_run_options()
     pipe.set_progress_bar_config(disable=True)
     return pipe
 
@@ -320,6 +332,11 @@ def tiny_cogvideox_pipeline(seed: int = 0, *, version: str = "1.0", scheduler: s
     elif scheduler != "ddim":
         raise ValueError(f"scheduler must be 'ddim' or 'dpm', got {scheduler!r}")
     return _finish(CogVideoXPipeline(**components))
+
+
+def tiny_cogvideox15_pipeline(seed: int = 0):
+    """A stock tiny ``CogVideoXPipeline`` of the CogVideoX 1.5 layout (:func:`tiny_cogvideox_pipeline`)."""
+    return tiny_cogvideox_pipeline(seed, version="1.5")
 
 
 def tiny_cogvideox_i2v_pipeline(seed: int = 0):
@@ -414,6 +431,23 @@ def tiny_wan_pipeline(seed: int = 0, *, scheduler: str = "unipc"):
     else:
         raise ValueError(f"scheduler must be 'unipc' or 'euler', got {scheduler!r}")
     pipe = WanPipeline(tokenizer=tokenizer, text_encoder=text_encoder, vae=vae, transformer=transformer, scheduler=sched)
+    return _finish(pipe)
+
+
+def tiny_wan22_pipeline(seed: int = 0):
+    """A stock tiny ``WanPipeline`` of the Wan 2.2 A14B layout: two experts, ``transformer`` for the
+    high-noise steps and ``transformer_2`` for the low-noise ones, split at ``boundary_ratio``
+    0.875 as the checkpoint's (the rest as :func:`tiny_wan_pipeline`)."""
+    from diffusers import WanPipeline
+
+    one = tiny_wan_pipeline(seed)
+    state = _seeded(seed + 1)
+    try:
+        second = type(one.transformer)(**one.transformer.config).eval()
+    finally:
+        torch.random.set_rng_state(state)
+    pipe = WanPipeline(tokenizer=one.tokenizer, text_encoder=one.text_encoder, vae=one.vae, scheduler=one.scheduler,
+                       transformer=one.transformer, transformer_2=second, boundary_ratio=0.875)
     return _finish(pipe)
 
 
@@ -558,6 +592,14 @@ def tiny_hunyuan_pipeline(seed: int = 0):
     return _finish(pipe)
 
 
+def tiny_call_extras(pipe: Any) -> dict[str, Any]:
+    """What the tiny stand-ins' calls need beyond the config's sampling: HunyuanVideo's prompt
+    template, bare (``"{}"``: the tiny tokenizer cannot crop the real template's system text)."""
+    if type(pipe).__name__.startswith("HunyuanVideo"):
+        return {"prompt_template": {"template": "{}", "crop_start": 0}}
+    return {}
+
+
 def tiny_call_kwargs(pipe, **changes: Any) -> dict[str, Any]:
     """Call arguments that fit the tiny pipelines: 17 frames of 32x48, 4 steps, short prompts
     (32x64 for LTX, which wants multiples of 32; plus the conditioning image for image-to-video, and
@@ -572,8 +614,7 @@ def tiny_call_kwargs(pipe, **changes: Any) -> dict[str, Any]:
     name = type(pipe).__name__
     if "ImageToVideo" in name:
         kwargs["image"] = tiny_image(0)
-    if name.startswith("HunyuanVideo"):
-        kwargs["prompt_template"] = {"template": "{}", "crop_start": 0}
+    kwargs.update(tiny_call_extras(pipe))
     if name.startswith("LTX"):
         kwargs["width"] = 64  # LTXPipeline wants multiples of 32
     kwargs.update(changes)

@@ -28,9 +28,10 @@ import torch
 from torch import Tensor
 
 __all__ = ["Correspondences", "DynamicMaskSource", "FlowEstimator", "GeometryEstimator",
-           "NonFiniteFramesError", "OptionError", "SceneGeometry", "check_frame_values", "check_frames",
-           "is_integer", "is_number", "merge_dataclass", "missing_estimators", "non_finite_fields", "one_of_names",
-           "plural"]
+           "ESTIMATOR_KEYWORDS", "NonFiniteFramesError", "OptionError", "SceneGeometry", "check_estimator_bundle",
+           "check_frame_values", "check_frames", "refuse_estimator_keywords",
+           "is_integer", "is_number", "merge_dataclass", "missing_estimators", "non_finite_fields", "plural",
+           "refuse_renamed_arguments", "renamed_option"]
 
 
 @dataclass
@@ -104,12 +105,40 @@ def missing_estimators(geometry: Any, flow: Any) -> list[str]:
     return [name for name, estimator, protocol in pairs if not isinstance(estimator, protocol)]
 
 
-def one_of_names(value: Any, old: Any, name: str, old_name: str) -> Any:
-    """The argument given as ``name=`` or under its earlier name ``old_name=`` (kept for the users
-    who pass it); ValueError (one line) when both are given."""
-    if value is not None and old is not None:
-        raise ValueError(f"pass {name}= or its earlier name {old_name}=, not both")
-    return value if value is not None else old
+#: The keyword arguments that once passed the two estimators one by one.
+ESTIMATOR_KEYWORDS = ("geometry_estimator", "flow_estimator", "geometry", "flow")
+
+
+def refuse_estimator_keywords(where: str, keywords: Mapping[str, Any]) -> None:
+    """TypeError (one line) for keyword arguments ``where`` (e.g. ``"GeCoLoss"``) does not take:
+    an earlier keyword of the estimator pair (``geometry=``, ``flow_estimator=``, ...) names the
+    new spelling, ``estimators=Estimators(geometry, flow)``; any other is refused as Python would."""
+    old = sorted(key for key in keywords if key in ESTIMATOR_KEYWORDS)
+    if old:
+        raise TypeError(f"{where}({old[0]}=...) is the earlier spelling: pass the models as one "
+                        "estimators=Estimators(geometry, flow) (geco_guide.Estimators)")
+    if keywords:
+        raise TypeError(f"{where}() got an unexpected keyword argument {sorted(keywords)[0]!r}")
+
+
+def check_estimator_bundle(estimators: Any, where: str) -> None:
+    """Refuse what is not an estimator bundle (``.geometry`` a :class:`GeometryEstimator`, ``.flow``
+    a :class:`FlowEstimator`: :class:`geco_guide.estimators.Estimators`), in one line naming
+    ``where`` (e.g. ``"GeCoLoss"``).
+
+    Raises:
+        TypeError: not a bundle (a tuple, a lone model, ``None``).
+        ValueError: a bundle whose geometry or flow estimator lacks its method.
+    """
+    if isinstance(estimators, tuple) or not (hasattr(estimators, "geometry") and hasattr(estimators, "flow")):
+        raise TypeError(f"{where} takes the estimators as one Estimators(geometry, flow) (geco_guide.Estimators), "
+                        f"got {type(estimators).__name__}")
+    missing = missing_estimators(estimators.geometry, estimators.flow)
+    if missing:
+        methods = {"geometry": "estimate_geometry(frames)", "flow": "estimate_flow(source, target)"}
+        name = missing[0]
+        raise ValueError(f"{where}: estimators.{name} must implement {methods[name]}, got "
+                         f"{type(getattr(estimators, name)).__name__}")
 
 
 def check_frames(frames: Tensor, name: str = "frames") -> None:
@@ -212,6 +241,10 @@ def merge_dataclass(obj: T, changes: Mapping[str, Any], path: str = "") -> T:
         raise ValueError(f"{path or 'config'} must be a mapping, got {type(changes).__name__}")
     known = {f.name for f in fields(obj)}
     unknown = sorted(set(changes) - known)
+    for key in unknown:
+        problem = renamed_option(type(obj), key, path)
+        if problem is not None:
+            raise ValueError(problem)
     if unknown:
         names = [f"{path}.{key}" if path else key for key in unknown]
         raise ValueError(f"{path or 'config'}: unknown key(s) {names}; known: {sorted(known)}")
@@ -232,6 +265,38 @@ def merge_dataclass(obj: T, changes: Mapping[str, Any], path: str = "") -> T:
         return replace(obj, **updates)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{path or 'config'}: {err}") from None
+
+
+def renamed_option(cls: type, key: str, path: str = "", python: bool = False) -> str | None:
+    """Why ``key`` is refused as an option of the dataclass ``cls`` (under ``path``, e.g.
+    ``"guidance"``) when it is the earlier name of one: one line naming the new spelling, from the
+    class's ``RENAMED`` table (old field -> ``(new config key, new Python spelling)``); with
+    ``python``, as a keyword argument. ``None`` for a key that was never renamed."""
+    new = getattr(cls, "RENAMED", {}).get(key)
+    if new is None:
+        return None
+    config_key, python_spelling = new
+    if python:
+        return f"{cls.__name__}({key}=...) is the earlier spelling of {python_spelling}: use that instead"
+    old = f"{path}.{key}" if path else key
+    return f"{old} is the earlier name of {config_key}: use {config_key} instead"
+
+
+def refuse_renamed_arguments(cls: type[T]) -> type[T]:
+    """Make the dataclass ``cls`` refuse its ``RENAMED`` keyword arguments in one line naming the
+    new spelling (a bare TypeError would name neither), e.g. ``GuidanceConfig(eta=3.0)``."""
+    init = cls.__init__
+
+    def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
+        for key in kwargs:
+            problem = renamed_option(cls, key, python=True)
+            if problem is not None:
+                raise TypeError(problem)
+        init(self, *args, **kwargs)
+
+    __init__.__doc__, __init__.__wrapped__ = init.__doc__, init  # type: ignore[attr-defined]
+    cls.__init__ = __init__  # type: ignore[method-assign]
+    return cls
 
 
 def is_number(value: Any) -> bool:

@@ -40,11 +40,11 @@ def ufm_fixture() -> dict:
 
 @pytest.fixture(scope="session")
 def estimators():
-    """``(geometry, flow)``: the tiny random VGGT and UFM (seed 0), built once for the session;
-    frozen, so the tests that share them cannot change them."""
-    from geco_guide.tiny import tiny_estimators
+    """The tiny random VGGT and UFM (seed 0) as one :class:`~geco_guide.estimators.Estimators`,
+    built once for the session; frozen, so the tests that share them cannot change them."""
+    from geco_guide.tiny import tiny_bundle
 
-    return tiny_estimators(0)
+    return tiny_bundle(0)
 
 
 @pytest.fixture(autouse=True)

@@ -25,6 +25,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..estimators.bundle import Estimators
 from ..estimators.motion_masks import MotionMasks
 from ..estimators.oracle import OracleFlow, OracleGeometry
 from ..loss.geco import GeCoResult
@@ -100,7 +101,7 @@ def score_clip(clip: SyntheticClip, masks: str) -> GeCoResult:
     ``none``, ``true`` (the moving boxes) or ``auto``."""
     dynamic = {"none": None, "true": clip.dynamic_mask, "auto": MotionMasks()}[masks]
     frames = clip.frames.float()
-    return score_frames(frames, OracleGeometry(clip), OracleFlow(clip), evaluation_loss(), dynamic_masks=dynamic)[1]
+    return score_frames(frames, Estimators(OracleGeometry(clip), OracleFlow(clip)), evaluation_loss(), dynamic_masks=dynamic)[1]
 
 
 def detection_ap(clip: SyntheticClip, result: GeCoResult) -> float:

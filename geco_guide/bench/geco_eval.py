@@ -4,11 +4,11 @@
 The suite is the paper's 80 prompts (supplement, "List of Text Prompt"; shipped as
 ``geco_guide/bench/data/geco_eval_prompts.jsonl``): four scenarios (object-centric, indoor, outdoor,
 appearance-complex) x slow / fast camera x 10. Each job is one (model, prompt, seed, guided?):
-the model generates the video at its documented default settings (:data:`geco_guide.bench.models.MODELS`), written at its
-native frame rate, and :func:`geco_guide.metric.evaluate.evaluate_video` scores it with the GeCo-Eval
-protocol (the config's ``evaluation`` section, the model's native rate from
-``evaluation.model_fps``). ``--videos NAME=DIR`` scores videos that exist already. The models are
-the registry of :mod:`geco_guide.bench.models`.
+the model generates the video at its documented default settings (the model registry,
+:data:`geco_guide.families.MODELS`) through the one generation path (:mod:`geco_guide.generation`),
+written at its native frame rate, and :func:`geco_guide.metric.evaluate.evaluate_video` scores it with
+the GeCo-Eval protocol (the config's ``evaluation`` section, the model's native rate from
+``evaluation.model_fps``). ``--videos NAME=DIR`` scores videos that exist already.
 
 ``DIR/videos/<model>[-guided]/<prompt_id>-s<seed>.mp4`` holds each video, ``.json`` beside it its
 scores and timings (written last: a complete one marks the job done, so a killed run resumes where
@@ -42,11 +42,10 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-import torch
-
-from ..config import GeCoConfig, config_to_yaml
-from ..estimators import TINY_RANDOM, Estimators, estimator_ids, load_estimators, tiny_random_decoder
-from ..estimators.loading import WeightsNotFoundError, check_weights_available
+from ..config import GeCoConfig, config_to_yaml, to_config
+from ..estimators import TINY_RANDOM, Estimators, estimator_ids, load_estimators
+from ..families import MODELS
+from ..generation import Models, load_models, sample
 from ..io.devices import resolve_device
 from ..io.files import (
     WriteError,
@@ -57,18 +56,10 @@ from ..io.plots import Panel, legend, legend_width, limits, text
 from ..io.video import VIDEO_SUFFIXES, write_video
 from ..loss.geco import CUES
 from ..metric.evaluate import PAPER_NAMES, evaluate_video
-from ..sampler.loading import (
-    PIPELINE_INDEX,
-    TINY_DECODER_VARIANTS,
-    check_guidance_before_loading,
-    load_tiny_decoder,
-    pipeline_from_pretrained,
-    quiet_hub_logs,
-)
-from ..sampler.slicing import default_anchors
+from ..sampler.loading import check_guidance_before_loading, quiet_hub_logs
+from ..sampler.sampling import SamplingConfig
 from ..types import plural
 from . import report
-from .models import MODELS, VideoModel
 from .report import fmt
 from .runs import (
     PeakMemory,
@@ -77,10 +68,9 @@ from .runs import (
 )
 from .suites import CAMERAS, DYNAMIC_SUITE, PROMPT_FILES, SCENARIOS, SUITE
 
-__all__ = ["CAMERAS", "DYNAMIC_SUITE", "PARETO_LEFT", "PROMPT_FILES", "SCENARIOS", "SUITE", "Generator",
-           "Job", "check_guided_models", "check_model_weights", "csv_text", "existing_video_jobs",
-           "load_model", "load_prompts", "plot_png", "prompts_without_video", "remove_run_outputs", "run_jobs",
-           "select_prompts", "write_report"]
+__all__ = ["CAMERAS", "DYNAMIC_SUITE", "PARETO_LEFT", "PROMPT_FILES", "SCENARIOS", "SUITE", "Job",
+           "check_guided_models", "check_model_weights", "csv_text", "existing_video_jobs", "job_config", "load_prompts",
+           "plot_png", "prompts_without_video", "remove_run_outputs", "run_jobs", "select_prompts", "write_report"]
 
 logger = logging.getLogger(__name__)
 
@@ -129,51 +119,21 @@ def select_prompts(spec: str) -> list[dict[str, str]]:
 # loading the models
 
 
-def _tiny_pipeline(family: str, seed: int) -> Any:
-    from .. import tiny
+def job_config(cfg: GeCoConfig, name: str, *, guided: bool = False, weights: str | None = None,
+               subjects: str | None = None) -> GeCoConfig:
+    """The config the videos of model ``name`` are made with: ``cfg`` for that model, its weights
+    (``weights``: a ``--weights`` folder; ``model.id=tiny-random`` keeps its tiny stand-in; else
+    the registry's hub id), its model card's call (with tiny random weights the config's short
+    call, at the model's size multiple), guidance on (``guided``, with anchors spread over its
+    video and the prompt's ``subjects`` masked) or off."""
+    from ..tiny import tiny_sampling
 
-    builders = {
-        "cogvideox": lambda: tiny.tiny_cogvideox_pipeline(seed),
-        "cogvideox1.5": lambda: tiny.tiny_cogvideox_pipeline(seed, version="1.5"),
-        "wan": lambda: tiny.tiny_wan_pipeline(seed),
-        "hunyuan": lambda: tiny.tiny_hunyuan_pipeline(seed),
-        "ltx": lambda: tiny.tiny_ltx_pipeline(seed),
-    }
-    return builders[family]()
-
-
-def call_settings(model: VideoModel, cfg: GeCoConfig, pipe: Any) -> dict[str, Any]:
-    """The model's call arguments; with tiny random weights (``model.id=tiny-random``) the tiny
-    family's (17 frames of 32x48, the config's step count)."""
-    if cfg.model.id != TINY_RANDOM:
-        return dict(model.call)
-    from ..tiny import tiny_call_kwargs
-
-    return tiny_call_kwargs(pipe, num_inference_steps=cfg.sampling.num_inference_steps,
-                            guidance_scale=cfg.sampling.guidance_scale)
-
-
-def load_model(model: VideoModel, cfg: GeCoConfig, weights: str | None = None) -> Any:
-    """The stock diffusers pipeline of ``model`` on the config's device and dtype.
-
-    Raises:
-        WeightsNotFoundError: one line naming the repo and how to pass a local folder.
-    """
-    if cfg.model.id == TINY_RANDOM:
-        pipe = _tiny_pipeline(model.tiny, cfg.model.init_seed)
-    else:
-        import diffusers
-
-        if weights is not None and not Path(weights).expanduser().is_dir():
-            raise WeightsNotFoundError(f"{model.name}: local folder {weights!r} does not exist")
-        pipe = pipeline_from_pretrained(
-            getattr(diffusers, model.pipeline), weights or model.hub_id, model.name,
-            f"--weights {model.name}=/path/to/{model.hub_id.split('/')[-1]}", dtype=getattr(torch, cfg.model.dtype),
-        )
-        if cfg.model.vae_tiling and hasattr(pipe.vae, "enable_tiling"):
-            pipe.vae.enable_tiling()
-    pipe.set_progress_bar_config(disable=True)
-    return pipe.to(resolve_device(cfg.model.device))
+    model = MODELS[name]
+    tiny = cfg.model.id == TINY_RANDOM
+    sampling = replace(cfg.sampling, **tiny_sampling(model)) if tiny else SamplingConfig()
+    guidance = replace(cfg.guidance, enabled=guided, anchors=None, dynamic=subjects if guided else None)
+    return to_config(replace(cfg, model=replace(cfg.model, name=name, id=TINY_RANDOM if tiny else weights),
+                             sampling=sampling, guidance=guidance))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -291,130 +251,62 @@ def remove_run_outputs(out: Path) -> None:
         raise WriteError(f"--overwrite cannot remove {err.filename!r} in {str(out)!r}: {err.strerror}") from None
 
 
-def guidance_for(model: VideoModel, cfg: GeCoConfig, num_frames: int) -> Any:
-    """The config's guidance with anchors at the quarter points of this model's video."""
-    return replace(cfg.guidance, enabled=True, anchors=default_anchors(num_frames, model.temporal_compression))
-
-
-def planned_call(model: VideoModel, cfg: GeCoConfig) -> tuple[int, int, int, int]:
-    """``(frames, height, width, steps)`` of the model's calls, known before it loads: its
-    documented settings, or with ``model.id=tiny-random`` the tiny family's video and the config's
-    step count (:func:`call_settings`)."""
-    if cfg.model.id != TINY_RANDOM:
-        call = model.call
-        return call["num_frames"], call["height"], call["width"], call["num_inference_steps"]
-    from ..tiny import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH
-
-    return TINY_NUM_FRAMES, TINY_HEIGHT, TINY_WIDTH, cfg.sampling.num_inference_steps
-
-
 def check_guided_models(cfg: GeCoConfig, names: Sequence[str]) -> None:
     """What a guided call of each model would refuse and ``generate`` checks before loading (the
-    loss, the schedule, the decode layout for its VAE, the tiny decoder for its latents, a memory
-    plan that fits), before any model loads or any file is written.
+    loss, the schedule, the anchors, the decode layout for its VAE, the tiny decoder for its
+    latents, a memory plan that fits), before any model loads or any file is written.
 
     Raises:
         ValueError: one line naming the model.
         WeightsNotFoundError: ``estimators.tiny_decoder`` names a file that does not exist.
     """
     for name in names:
-        model = MODELS[name]
-        frames, height, width, steps = planned_call(model, cfg)
-        guided = replace(cfg, guidance=guidance_for(model, cfg, frames))
-        model_id = cfg.model.id if cfg.model.id == TINY_RANDOM else model.hub_id
         try:
-            check_guidance_before_loading(guided, model_id=model_id, num_frames=frames, height=height, width=width,
-                                          num_steps=steps, family=model.tiny)
+            guided = job_config(cfg, name, guided=True)
+            s = guided.sampling
+            check_guidance_before_loading(guided.guidance, guided.run, guided.estimators, MODELS[name],
+                                          model_id=guided.model.source, num_frames=s.num_frames, height=s.height,
+                                          width=s.width, num_steps=s.num_inference_steps, device=guided.model.device)
         except ValueError as err:
             raise ValueError(f"{name} guided: {err}") from None
 
 
 def check_model_weights(cfg: GeCoConfig, names: Sequence[str], weights: dict[str, str]) -> None:
-    """The missing-weights line of each video model to generate, before any model loads (a cache
-    look-up or one metadata request per model), so that a run never stops at its second model
-    after hours of the first; nothing to check with ``model.id=tiny-random``.
+    """The missing-weights line of the video models to generate and of the estimators, before any
+    model loads (a cache look-up or one metadata request per model), every missing one named at
+    once, so that a run never stops at its second model after hours of the first.
 
     Raises:
-        WeightsNotFoundError: one line naming the model and how to pass a local folder.
+        WeightsNotFoundError: one line naming each missing model and how to pass a local folder.
     """
-    if cfg.model.id == TINY_RANDOM:
-        return
-    for name in names:
-        model = MODELS[name]
-        try:
-            check_weights_available(weights.get(name, model.hub_id), (PIPELINE_INDEX,), model_name=name)
-        except WeightsNotFoundError as err:
-            raise WeightsNotFoundError(f"{err} (--weights {name}=/path/to/{model.hub_id.split('/')[-1]})") from None
+    from ..estimators import check_estimator_weights
+    from ..sampler.loading import PIPELINE_INDEX
+
+    rows = [] if cfg.model.id == TINY_RANDOM else [
+        (f"--weights {name}", weights.get(name, MODELS[name].hub_id), name, (PIPELINE_INDEX,), None) for name in names]
+    check_estimator_weights(cfg.estimators, extra=rows)
 
 
-class Generator:
-    """Generates the videos of one model (and its guided twin), loading it once; with ``guided``
-    and ``guidance.decoder=tiny``, also the tiny decoder of its latents (``estimators.tiny_decoder``).
-    The ``estimators`` guide it, their segmenter masking the subjects a prompt names."""
-
-    def __init__(self, model: VideoModel, cfg: GeCoConfig, weights: str | None, estimators: Estimators,
-                 guided: bool = False):
-        self.model, self.cfg, self.estimators = model, cfg, estimators
-        self.pipe = load_model(model, cfg, weights)
-        self.call = call_settings(model, cfg, self.pipe)
-        self._guided_pipe: Any = None
-        self.decoder = self._tiny_decoder() if guided and cfg.guidance.decoder == "tiny" else None
-
-    def _tiny_decoder(self) -> Any:
-        """The tiny decoder of this model's latents, on the pipeline's device and dtype."""
-        cfg, vae_config = self.cfg, self.pipe.vae.config
-        if cfg.estimators.tiny_decoder == TINY_RANDOM:
-            channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)
-            decoder = tiny_random_decoder(TINY_DECODER_VARIANTS[self.model.tiny], cfg.estimators.init_seed, channels)
-        else:
-            decoder = load_tiny_decoder(cfg, self.model.tiny)
-        return decoder.to(device=self.pipe.device, dtype=self.pipe.vae.dtype)
-
-    def _guided(self, job: Job) -> tuple[Any, dict[str, Any], Any]:
-        """``(pipeline, extra call arguments, hook handle or None)`` of a guided call: CogVideoX 1.0
-        through :class:`GeCoCogVideoXPipeline` (float32 latents between steps: the stock
-        pipeline's bf16 latents round updates away), the others through the hook. A prompt with
-        ``subjects`` is guided with their masks."""
-        guidance = guidance_for(self.model, self.cfg, self.call["num_frames"])
-        masks = self.estimators.masks_for(job.prompt.get("subjects"))
-        if masks is not None:
-            guidance = replace(guidance, dynamic=job.prompt["subjects"])
-        if self.model.tiny == "cogvideox":
-            if self._guided_pipe is None:
-                from ..sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
-
-                self._guided_pipe = GeCoCogVideoXPipeline(**self.pipe.components,
-                                                          geometry_estimator=self.estimators.geometry,
-                                                          flow_estimator=self.estimators.flow,
-                                                          guidance_decoder=self.decoder)
-                self._guided_pipe.set_progress_bar_config(disable=True)
-            return self._guided_pipe, {"guidance": guidance, "run_options": self.cfg.run, "dynamic_masks": masks}, None
-        from ..sampler.hooks import attach_geco_guidance
-
-        return self.pipe, {}, attach_geco_guidance(self.pipe, guidance, run_options=self.cfg.run,
-                                                   estimators=self.estimators, decoder=self.decoder,
-                                                   dynamic_masks=masks)
-
-    def __call__(self, job: Job) -> tuple[torch.Tensor, float, float, int]:
-        """``(frames [F, 3, H, W] in [0, 1], sampling seconds, peak MiB, guidance updates)``."""
-        pipe, extra, handle = self._guided(job) if job.guided else (self.pipe, {}, None)
-        generator = torch.Generator(device="cpu").manual_seed(job.seed)
-        start = time.perf_counter()
-        try:
-            with PeakMemory(pipe.device) as memory, quiet_hub_logs():  # no prompt-truncation warnings
-                output = pipe(prompt=job.prompt["prompt"], generator=generator, output_type="pt", **self.call, **extra)
-        finally:
-            if handle is not None:
-                handle.detach()
-        seconds = time.perf_counter() - start
-        log = handle.log if handle is not None else getattr(output, "guidance_log", None) or []
-        frames = output.frames[0].float().cpu()
-        if not torch.isfinite(frames).all():
-            raise ValueError(f"{self.model.name} {job.name}: sampling produced non-finite frames; nothing was written")
-        return frames, seconds, memory.peak_mib, len(log)
+def _video_models(cfg: GeCoConfig, name: str, weights: str | None, estimators: Estimators, guided: bool) -> Models:
+    """Model ``name``'s pipeline, loaded once for its jobs, with the run's ``estimators`` (and, for
+    guided jobs with ``guidance.decoder=tiny``, the tiny decoder of its latents)."""
+    model_cfg = job_config(cfg, name, guided=guided, weights=weights)
+    loaded = load_models(model_cfg, estimators=estimators)
+    loaded.pipe.set_progress_bar_config(disable=True)
+    return loaded
 
 
-def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: Estimators, generator: Generator | None) -> dict[str, Any]:
+def _generate(job: Job, cfg: GeCoConfig, models: Models, weights: str | None) -> tuple[Any, float, float, int]:
+    """``(frames [F, 3, H, W] in [0, 1], sampling seconds, peak MiB, guidance updates)`` of ``job``."""
+    job_cfg = job_config(cfg, job.model, guided=job.guided, weights=weights,
+                         subjects=job.prompt.get("subjects"))
+    with PeakMemory(models.pipe.device) as memory, quiet_hub_logs():  # no prompt-truncation warnings
+        made = sample(models, job_cfg, job.prompt["prompt"], seed=job.seed, progress=False)
+    return made.frames[0], made.seconds, memory.peak_mib, len(made.report.log)
+
+
+def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: Estimators, models: Models | None,
+            weights: str | None = None) -> dict[str, Any]:
     """Generate (for a job without ``video``) and score one job; its result JSON is written last
     (and a failure record of an earlier try removed). A prompt with ``subjects`` is scored with
     their masks (made by the segmenter of ``estimators``).
@@ -428,12 +320,12 @@ def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: Estimators, genera
     fps = cfg.evaluation.fps_of_model(job.model)
     timing: dict[str, Any] = {"generation_s": None, "peak_memory_mib": None, "guidance_updates": 0}
     if job.video is None:
-        frames, seconds, peak, updates = generator(job)
+        frames, seconds, peak, updates = _generate(job, cfg, models, weights)
         write_video(video, frames, fps=fps)
         timing = {"generation_s": seconds, "peak_memory_mib": peak, "guidance_updates": updates}
     source = job.video or video
     start = time.perf_counter()
-    evaluation = evaluate_video(source, estimators=estimators, config=cfg.evaluation, model=job.model,
+    evaluation = evaluate_video(source, estimators, cfg.evaluation, model=job.model,
                                 dynamic_masks=estimators.masks_for(job.prompt.get("subjects")))
     result = {
         **job_identity(job), **{metric: evaluation.to_dict()[metric] for metric in METRICS},
@@ -490,25 +382,25 @@ def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str,
     estimators = load_estimators(cfg.estimators, resolve_device(cfg.evaluation.device), segmenter=subjects)
     done = 0
     for name in dict.fromkeys(job.model for job in todo):
-        generator = None
+        models = None
         if any(job.video is None for job in todo if job.model == name):
             logger.info("%sloading models: %s (%s)", tag, name, model_weights(cfg, [name], weights)[name])
-            generator = Generator(MODELS[name], cfg, weights.get(name), estimators,
-                                  guided=any(job.guided for job in todo if job.model == name))
+            models = _video_models(cfg, name, weights.get(name), estimators,
+                                   guided=any(job.guided for job in todo if job.model == name))
         if done == 0 and on_loaded is not None:
             on_loaded()
         for job in (j for j in todo if j.model == name):
             done += 1
             start = time.perf_counter()
             try:
-                result = run_job(job, out, cfg, estimators, generator)
+                result = run_job(job, out, cfg, estimators, models, weights.get(name))
                 outcome = f"fused {fmt(result['fused'])}, TM {fmt(result['total_motion'])} %"
             # this video only: unreadable, too short, non-finite, or an option its pipeline refuses (TypeError)
             except (ValueError, TypeError, FileNotFoundError) as err:
                 outcome = f"failed: {record_failure(out, job, err)}"
             logger.info("%s[%d/%d] %s %s seed %s: %.1f s, %s", tag, done, len(todo), job.arm, job.prompt["id"],
                         job.seed, time.perf_counter() - start, outcome)
-        del generator
+        del models
 
 
 # ----------------------------------------------------------------------------------------------
@@ -653,7 +545,7 @@ def model_weights(cfg: GeCoConfig, names: Sequence[str], weights: dict[str, str]
         if model is None:
             found[name] = "existing videos (--videos)"
         elif cfg.model.id == TINY_RANDOM:
-            found[name] = f"{TINY_RANDOM} ({model.tiny} family, init seed {cfg.model.init_seed})"
+            found[name] = f"{TINY_RANDOM} ({model.family} family, init seed {cfg.model.init_seed})"
         else:
             found[name] = weights.get(name, model.hub_id)
     return found

@@ -11,7 +11,7 @@ given) names its output folders, so ids must be unique and filesystem-safe. A JS
 ``"subjects": "a dog, a ball"`` (what moves on its own; ``--prompts dynamic``: our suite) are masked
 in every arm's scores and in the guided arm's guidance, by the segmenter of ``estimators.segmenter``.
 
-For every prompt x seed ("pair"), both arms run :func:`geco_guide.cli.generate.generate` with the same
+For every prompt x seed ("pair"), both arms run :func:`geco_guide.generation.generate` with the same
 config and seed, so both start from the same initial noise (``torch.Generator("cpu").manual_seed
 (seed)``); the unguided arm is exactly ``python -m geco_guide.generate --no-guidance --seed S``.
 Both videos are scored by :func:`geco_guide.metric.evaluate.evaluate_video` with the same estimators and
@@ -21,7 +21,7 @@ the config's ``evaluation`` protocol. ``<out>/pairs/<id>-s<seed>/`` then holds `
 
 ``--best-of N`` adds a third arm, selection: the unguided seeds ``seed .. seed + N - 1`` (the
 first is the unguided arm's video; the others in ``candidates/``), each scored with the same
-protocol, the one :func:`geco_guide.cli.generate.best_candidate` picks copied to ``best_of.mp4``
+protocol, the one :func:`geco_guide.generation.best_candidate` picks copied to ``best_of.mp4``
 (its sidecar lists every candidate), and ``result.json`` rewritten with the arm. ``--best-of
 matched`` takes N = round of the guided / unguided sampling time ratio the cost model predicts
 for the run's config on ``--gpu`` (default: the local GPU, when it is a card the model knows).
@@ -59,7 +59,6 @@ from typing import TYPE_CHECKING, Any
 
 from ..io.files import WriteError, remove_temp_files, write_bytes_atomic, write_json_atomic
 from ..io.logs import log_to_stderr
-from . import generate as generate_cli
 from .kit import DeferredImports, Parser, add_config_flags, config_from_args, interruptible
 
 if TYPE_CHECKING:  # the rest bound at run time by _IMPLEMENTATION
@@ -90,13 +89,13 @@ if TYPE_CHECKING:  # the rest bound at run time by _IMPLEMENTATION
     from ..bench.report import fmt, interval_text
     from ..bench.runs import PeakMemory, pin_config, process_config, process_state, read_finished, run_lock, shard
     from ..config import GeCoConfig, config_to_dict
-    from ..estimators import Estimators, load_estimators, load_segmenter
-    from ..io.devices import check_device, resolve_device
+    from ..estimators import Estimators, load_estimators
+    from ..io.devices import resolve_device
     from ..io.video import read_video, write_video
     from ..metric.evaluate import evaluate_video, finite_or_none, write_maps_video
     from ..metric.render import side_by_side
     from ..perf.decoder_agreement import agreement_rows, agreement_summary
-    from ..sampler.loading import check_guidance_before_loading, check_weights_before_loading
+    from .. import generation
     from ..types import plural
     from .prompt_files import read_prompts
 
@@ -111,14 +110,14 @@ _IMPLEMENTATION = DeferredImports(__name__, {
     "..bench.runs": ("PeakMemory", "pin_config", "process_config", "process_state", "read_finished", "run_lock",
                      "shard"),
     "..config": ("config_to_dict",),
-    "..estimators": ("Estimators", "load_estimators", "load_segmenter"),
-    "..io.devices": ("check_device", "resolve_device"),
+    "..estimators": ("Estimators", "load_estimators"),
+    "..io.devices": ("resolve_device",),
     "..io.video": ("read_video", "write_video"),
     "..metric.evaluate": ("evaluate_video", "finite_or_none", "write_maps_video"),
     "..metric.render": ("side_by_side",),
     "..perf.decoder_agreement": ("agreement_rows", "agreement_summary"),
-    "..sampler.loading": ("check_guidance_before_loading", "check_weights_before_loading"),
     "..types": ("plural",),
+    "..": ("generation",),
     ".prompt_files": ("read_prompts",),
 })
 __getattr__ = _IMPLEMENTATION.attribute
@@ -158,21 +157,21 @@ def check_output_folder(out: Path, cfg: GeCoConfig, pairs: Sequence[Pair], overw
 
 def foreign_video(sidecar_path: Path, cfg: GeCoConfig, pair: Pair, arm: str) -> bool:
     """Whether the sidecar (if readable) records a video of another prompt or config than ``arm``
-    of ``pair``: its :func:`~geco_guide.cli.generate.video_key`, the hash generate's default names
+    of ``pair``: its :func:`~geco_guide.generation.video_key`, the hash generate's default names
     carry, differs."""
     try:
         sidecar = json.loads(sidecar_path.read_text(encoding="utf-8"))
-        made = generate_cli.video_key(sidecar["config"], sidecar["prompt"])
+        made = generation.video_key(sidecar["config"], sidecar["prompt"])
     except (OSError, ValueError, KeyError, TypeError, AttributeError):  # none, or not a sidecar: redone anyway
         return False
-    return made != generate_cli.video_key(config_to_dict(arm_config(cfg, pair, arm)), pair.prompt.text)
+    return made != generation.video_key(config_to_dict(arm_config(cfg, pair, arm)), pair.prompt.text)
 
 
 # ----------------------------------------------------------------------------------------------
 # one pair
 
 
-def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps: bool, estimators: Estimators,
+def run_arm(models: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps: bool, estimators: Estimators,
             stem: str | None = None) -> dict[str, Any]:
     """Generate one arm of a pair into ``folder/<stem>.mp4`` (``stem``: the arm's name) + sidecar
     and score it with ``estimators``; what an unfinished run left there is replaced (other runs'
@@ -180,17 +179,11 @@ def run_arm(pipe: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps
     every arm's scores and in the guided arm's guidance."""
     stem = stem or arm
     masks = estimators.masks_for(pair.prompt.subjects)
-    with PeakMemory(pipe.device) as memory:
-        generated = generate_cli.generate(arm_config(cfg, pair, arm), pair.prompt.text, out=folder / f"{stem}.mp4",
-                                          pipe=pipe, overwrite=True, dynamic_masks=masks if arm == "guided" else None)
+    with PeakMemory(models.pipe.device) as memory:
+        generated = generation.generate(arm_config(cfg, pair, arm), pair.prompt.text, out=folder / f"{stem}.mp4",
+                                        models=models, overwrite=True)
     start = time.perf_counter()
-    evaluation = evaluate_video(
-        generated.video_path,
-        estimators=estimators,
-        config=cfg.evaluation,
-        maps=maps,
-        dynamic_masks=masks,
-    )
+    evaluation = evaluate_video(generated.video_path, estimators, cfg.evaluation, maps=maps, dynamic_masks=masks)
     evaluation_s = time.perf_counter() - start
     record = {
         "video": generated.video_path.name,
@@ -218,8 +211,8 @@ def add_maps(cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], est
         if (folder / f"{arm}_maps.mp4").is_file():
             result["arms"][arm]["maps_video"] = f"{arm}_maps.mp4"
             continue
-        evaluation = evaluate_video(folder / f"{arm}.mp4", estimators=estimators, config=cfg.evaluation,
-                                    maps=True, dynamic_masks=estimators.masks_for(pair.prompt.subjects))
+        evaluation = evaluate_video(folder / f"{arm}.mp4", estimators, cfg.evaluation, maps=True,
+                                    dynamic_masks=estimators.masks_for(pair.prompt.subjects))
         result["arms"][arm]["maps_video"] = write_maps_video(evaluation, folder / f"{arm}_maps.mp4").name
     write_json_atomic(folder / "result.json", result)
 
@@ -233,7 +226,7 @@ def write_side_by_side(folder: Path, fps: float, arms: Sequence[str] | None = No
     write_video(folder / "side_by_side.mp4", side_by_side(videos, list(arms if labels is None else labels)), fps=fps)
 
 
-def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, estimators: Estimators,
+def run_pair(models: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, estimators: Estimators,
              where: str | None = None) -> dict[str, Any]:
     """Both arms (with ``where``, a stderr line ``<where>: <arm> arm ...`` before each), the
     side-by-side video, then ``result.json`` (last: it marks the pair complete)."""
@@ -243,7 +236,7 @@ def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, esti
     for arm in ARMS:
         if where is not None:
             print(f"{where}: {arm} arm ...", file=sys.stderr, flush=True)
-        arms[arm] = run_arm(pipe, cfg, pair, arm, folder, maps, estimators)
+        arms[arm] = run_arm(models, cfg, pair, arm, folder, maps, estimators)
     write_side_by_side(folder, cfg.sampling.fps)
     result = {
         "pair": pair.name,
@@ -251,7 +244,7 @@ def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, esti
         "prompt": pair.prompt.text,
         **({} if pair.prompt.subjects is None else {"subjects": pair.prompt.subjects}),
         "seed": pair.seed,
-        "device": str(pipe.device),
+        "device": str(models.pipe.device),
         "side_by_side": "side_by_side.mp4",
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "arms": arms,
@@ -260,11 +253,11 @@ def run_pair(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, esti
     return result
 
 
-def add_best_of(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], best_of: BestOf,
+def add_best_of(models: Any, cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], best_of: BestOf,
                 maps: bool, estimators: Estimators, where: str | None = None, redo: bool = False) -> dict[str, Any]:
     """The best-of arm of a complete pair: the candidates not made whole yet (all of them with
     ``redo``; with ``where``, a stderr line before each), the one
-    :func:`~geco_guide.cli.generate.best_candidate` picks copied to ``best_of.mp4`` with a sidecar
+    :func:`~geco_guide.generation.best_candidate` picks copied to ``best_of.mp4`` with a sidecar
     listing every candidate, the three-arm side by side, then ``result.json`` with the arm."""
     folder = pair_dir(out, pair)
     candidates = folder / "candidates"
@@ -277,14 +270,14 @@ def add_best_of(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, result: dict[
             if where is not None:
                 print(f"{where}: {best_of.label} arm, candidate {k}/{best_of.n} (seed {seed}) ...", file=sys.stderr,
                       flush=True)
-            record = run_arm(pipe, cfg, Pair(pair.prompt, seed), "unguided", candidates, False, estimators,
+            record = run_arm(models, cfg, Pair(pair.prompt, seed), "unguided", candidates, False, estimators,
                              stem=f"seed{seed}")
             write_json_atomic(candidate_paths(out, pair, seed)[2], record)
         records.append(record)
-    kept = generate_cli.best_candidate([record[generate_cli.SELECTION_SCORE] for record in records])
+    kept = generation.best_candidate([record[generation.SELECTION_SCORE] for record in records])
     video, sidecar, _ = candidate_paths(out, pair, seeds[kept])
     chosen = {"n": best_of.n, "kept_seed": seeds[kept],
-              "score": f"{generate_cli.SELECTION_SCORE} (the GeCo protocol, evaluation.*)",
+              "score": f"{generation.SELECTION_SCORE} (the GeCo protocol, evaluation.*)",
               "candidates": [{"seed": seed, "video": str(candidate_paths(out, pair, seed)[0].relative_to(folder)),
                               **{key: finite_or_none(record[key]) for key in ("fused", "motion", "structure")}}
                              for seed, record in zip(seeds, records)]}
@@ -313,14 +306,14 @@ def add_best_of(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path, result: dict[
     return result
 
 
-def measure_decoder_agreement(pipe: Any, cfg: GeCoConfig, pair: Pair, out: Path) -> None:
+def measure_decoder_agreement(models: Any, cfg: GeCoConfig, pair: Pair, out: Path) -> None:
     """``out/decoder_agreement.json``: one more guided call of ``pair`` in which the VAE and the
     tiny decoder both decode the anchor frames at every update (gradient cosine, both losses,
     anchor PSNR: :func:`geco_guide.perf.decoder_agreement.agreement_rows`)."""
     print(f"measuring the tiny decoder against the VAE on {pair.name} (one more guided call) ...", file=sys.stderr,
           flush=True)
     unmasked = replace(pair, prompt=replace(pair.prompt, subjects=None))  # the decoders compared, without a segmenter
-    rows = agreement_rows(pipe, arm_config(cfg, unmasked, "guided"), pair.prompt.text)
+    rows = agreement_rows(models, arm_config(cfg, unmasked, "guided"), pair.prompt.text)
     write_json_atomic(out / AGREEMENT_FILE, {"pair": pair.name, "summary": agreement_summary(rows), "updates": rows})
 
 
@@ -362,15 +355,14 @@ def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag
     subjects = any(pair.prompt.subjects is not None for pair in [*todo, *extend, *unmapped])
     if subjects:
         print(f"loading segmenter: {cfg.estimators.segmenter} ...", file=sys.stderr, flush=True)
+    models = None
+    print(generation.loading_line(cfg) if todo or extend or measure else
+          f"loading models: geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow} ...", file=sys.stderr,
+          flush=True)
+    estimators = load_estimators(cfg.estimators, resolve_device(cfg.model.device), segmenter=subjects)
     if todo or extend or measure:
-        segment = load_segmenter(cfg.estimators, resolve_device(cfg.model.device)) if subjects else None
-        pipe = generate_cli.build_pipeline(cfg)
-        pipe.set_progress_bar_config(disable=not sys.stderr.isatty())
-        estimators = pipe.estimators.with_segmenter(segment)
-    else:
-        print(f"loading models: geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow} ...", file=sys.stderr,
-              flush=True)
-        estimators = load_estimators(cfg.estimators, resolve_device(cfg.model.device), segmenter=subjects)
+        models = generation.load_models(cfg, estimators=estimators)
+        estimators = models.estimators
     on_loaded()
     if unmapped:
         print(f"{tag}making the maps of {len(unmapped)} complete pair(s) that have none", flush=True)
@@ -383,12 +375,13 @@ def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag
     for index, (pair, result) in enumerate(work, start=1):
         where = f"{tag}[{index}/{len(work)}] {pair.name}"
         if result is None:
-            result = run_pair(pipe, cfg, pair, out, maps, estimators, where if lines else None)
+            result = run_pair(models, cfg, pair, out, maps, estimators, where if lines else None)
         if best_of is not None:
-            result = add_best_of(pipe, cfg, pair, out, result, best_of, maps, estimators, where if lines else None, redo)
+            result = add_best_of(models, cfg, pair, out, result, best_of, maps, estimators, where if lines else None,
+                                 redo)
         print(f"{where}: {_pair_line(result, best_of)}", flush=True)
     if measure:
-        measure_decoder_agreement(pipe, cfg, pairs[0], out)
+        measure_decoder_agreement(models, cfg, pairs[0], out)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -513,12 +506,8 @@ def validate_inputs(args: argparse.Namespace) -> Inputs:
     cfg = config_from_args(args, args.overrides)
     if not cfg.guidance.enabled:
         raise InputError("guidance.enabled=false leaves nothing to compare: the guided arm needs guidance")
-    check_device(cfg.model.device)
     # what generate checks before loading, here before run.json is pinned or any video written
-    s = cfg.sampling
-    check_weights_before_loading(cfg)
-    check_guidance_before_loading(cfg, model_id=cfg.model.id, num_frames=s.num_frames, height=s.height, width=s.width,
-                                  num_steps=s.num_inference_steps)
+    cfg = generation.check_generation(cfg, prompts[0].text)
     best_of = choose_best_of(args.best_of, args.gpu, cfg, seeds)
     pairs = plan_pairs(prompts, seeds)
     out = Path(args.out)
@@ -529,7 +518,7 @@ def validate_inputs(args: argparse.Namespace) -> Inputs:
 def versions() -> dict[str, str]:
     import accelerate
 
-    return {**generate_cli.versions(), "accelerate": accelerate.__version__}
+    return {**generation.versions(), "accelerate": accelerate.__version__}
 
 
 # ----------------------------------------------------------------------------------------------

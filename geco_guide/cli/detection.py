@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"warning: {video}: --window {args.window} is longer than its {count} frames; "
                       f"each window holds all {count}", file=sys.stderr)
             print(f"  {work_line(count, clip.num_frames, min(args.window, count))}", file=sys.stderr, flush=True)
-            maps = detection_maps(clip.frames, estimators.geometry, estimators.flow, cfg.evaluation.loss, window=args.window,
+            maps = detection_maps(clip.frames, estimators, cfg.evaluation.loss, window=args.window,
                                   anchor=args.anchor, two_way=not args.one_way,
                                   flow_batch_size=cfg.evaluation.flow_batch_size)
             scores = frame_scores(maps)

@@ -77,7 +77,7 @@ def write_detection_video(video: str | os.PathLike, stem: Path, estimators: Esti
     limit = cfg.evaluation.max_frames
     first = None if limit is None else (lambda num_frames, fps: list(range(min(num_frames, limit))))
     clip = read_frames(video, default_fps=cfg.evaluation.default_fps, min_frames=2, select=first)
-    maps = detection_maps(clip.frames, estimators.geometry, estimators.flow, cfg.evaluation.loss,
+    maps = detection_maps(clip.frames, estimators, cfg.evaluation.loss,
                           flow_batch_size=cfg.evaluation.flow_batch_size)
     (path,) = write_detection(render_detection(maps, frame_scores(maps)), stem, ["mp4"], clip.fps)
     return path
@@ -292,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
         if item.error is None:
             _progress(f"[{k}/{len(items)}] scoring {item.path}")
             try:
-                result = evaluate_video(item.path, estimators=estimators, config=cfg, fps=args.fps,
+                result = evaluate_video(item.path, estimators, cfg.evaluation, fps=args.fps,
                                         model=args.model, maps=args.maps, dynamic_masks=dynamic,
                                         progress=lambda line, k=k: _progress(f"[{k}/{len(items)}]   {line}"))
                 json_path = write_json_atomic(out / f"{item.name}.geco.json", result.to_dict())

@@ -23,67 +23,48 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .. import __version__
-from ..bench.models import MODELS
-from ..bench.suites import CAMERAS, DYNAMIC_SUITE, PROMPT_FILES, SCENARIOS, SUITE
 from ..io.files import WriteError
-from .kit import DeferredImports, Parser, add_config_flags, config_from_args, interruptible
+from .kit import Parser, add_config_flags, config_from_args, interruptible, print_error
 
-if TYPE_CHECKING:  # GeCoConfig: annotations only; the rest bound at run time by _IMPLEMENTATION
-    from ..bench.geco_eval import (
-        Job,
-        check_guided_models,
-        check_model_weights,
-        existing_video_jobs,
-        load_prompts,
-        prompts_without_video,
-        remove_run_outputs,
-        run_jobs,
-        write_report,
-    )
-    from ..bench.runs import check_output_folder, pin_config, process_config, process_state, run_lock, shard
-    from ..config import SEED_RANGE, GeCoConfig
-    from ..io.devices import check_device
-    from ..types import plural
+if TYPE_CHECKING:
+    from ..bench.geco_eval import Job
+    from ..config import GeCoConfig
 
-__all__ = ["main"]
+__all__ = ["main", "register_subcommand", "run"]
 
-#: What main runs on, imported once the arguments parsed: it loads torch.
-_IMPLEMENTATION = DeferredImports(__name__, {
-    "..bench.geco_eval": ("Job", "check_guided_models", "check_model_weights", "existing_video_jobs", "load_prompts",
-                          "prompts_without_video", "remove_run_outputs", "run_jobs", "write_report"),
-    "..bench.runs": ("check_output_folder", "pin_config", "process_config", "process_state", "run_lock", "shard"),
-    "..config": ("SEED_RANGE",),
-    "..io.devices": ("check_device",),
-    "..types": ("plural",),
-})
-__getattr__ = _IMPLEMENTATION.attribute
+DESCRIPTION = "GeCo-Eval: generate the paper's 80 prompts with video models and score them with GeCo."
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="python -m geco_guide geco-eval",
-                description="GeCo-Eval: generate the paper's 80 prompts with video models and score them with GeCo.")
-    p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
-    p.add_argument("--models", nargs="+", default=[], metavar="NAME", help=f"models to generate with: {', '.join(MODELS)}")
-    p.add_argument("--videos", nargs="+", default=[], metavar="NAME=DIR",
-                   help="score existing videos: DIR/<prompt_id>-s<seed>.mp4 or DIR/<prompt_id>/*.mp4, timed at "
-                        "NAME's native frame rate (evaluation.model_fps) unless --fps")
-    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3], help="sampling seeds (default: 0 1 2 3, the paper's 4)")
-    p.add_argument("--guided", action="store_true", help="also generate every video with GeCo guidance")
-    p.add_argument("--suite", choices=tuple(PROMPT_FILES), default=SUITE,
-                   help=f"the prompts: {SUITE} (the paper's 80, default) or {DYNAMIC_SUITE} (our 24 with moving "
-                        "subjects, scored and guided with the subjects' masks from estimators.segmenter)")
-    p.add_argument("--scenario", choices=SCENARIOS, default=None, help="only this scenario")
-    p.add_argument("--camera", choices=CAMERAS, default=None, help="only this camera speed")
-    p.add_argument("--limit", type=int, default=None, help="only the first N prompts of the selection")
-    p.add_argument("--weights", nargs="+", default=[], metavar="NAME=DIR", help="a local folder for a model's weights")
-    p.add_argument("--fps", type=float, default=None, help="frame rate of the --videos inputs (overrides the table)")
-    p.add_argument("--out", required=True, help="output folder (reuse it to resume)")
-    p.add_argument("--overwrite", action="store_true",
-                   help="start afresh in --out: delete the videos, results and report an earlier run wrote there "
-                        "(other files stay), even of another config")
-    add_config_flags(p, preset_help="a config preset (tiny: every model is a tiny random model, CPU, offline)")
-    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. evaluation.loss.pairs=center")
-    return p
+def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``geco geco-eval`` on ``parser``."""
+    from ..families import SCORED_ONLY, video_models
+
+    parser.add_argument("--version", action="version", version=f"geco_guide {__version__}")
+    parser.add_argument("--models", nargs="+", default=[], metavar="NAME",
+                        help=f"models to generate with: {', '.join(video_models())}")
+    parser.add_argument("--videos", nargs="+", default=[], metavar="NAME=DIR",
+                        help=f"score existing videos (e.g. of {' or '.join(SCORED_ONLY)}): DIR/<prompt_id>-s<seed>.mp4 or "
+                             "DIR/<prompt_id>/*.mp4, timed at NAME's native frame rate (evaluation.model_fps) unless --fps")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3],
+                        help="sampling seeds (default: 0 1 2 3, the paper's 4)")
+    parser.add_argument("--guided", action="store_true", help="also generate every video with GeCo guidance")
+    parser.add_argument("--suite", default="geco-eval",
+                        help="the prompts: geco-eval (the paper's 80, default) or dynamic (our 24 with moving "
+                             "subjects, scored and guided with the subjects' masks from estimators.segmenter)")
+    parser.add_argument("--scenario", default=None,
+                        help="only this scenario: object-centric, indoor, outdoor or appearance-complex")
+    parser.add_argument("--camera", default=None, help="only this camera speed: slow or fast")
+    parser.add_argument("--limit", type=int, default=None, help="only the first N prompts of the selection")
+    parser.add_argument("--weights", nargs="+", default=[], metavar="NAME=DIR", help="a local folder for a model's weights")
+    parser.add_argument("--fps", type=float, default=None, help="frame rate of the --videos inputs (overrides the table)")
+    parser.add_argument("--out", required=True, help="output folder (reuse it to resume)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="start afresh in --out: delete the videos, results and report an earlier run wrote there "
+                             "(other files stay), even of another config")
+    add_config_flags(parser, preset_help="a config preset (tiny: every model is a tiny random model, CPU, offline)")
+    parser.add_argument("overrides", nargs="*", metavar="key=value",
+                        help="config overrides, e.g. evaluation.loss.pairs=center")
+    return parser
 
 
 def _pairs(values: Sequence[str], option: str) -> dict[str, str]:
@@ -110,6 +91,8 @@ class Plan:
 def _check_seeds(seeds: Sequence[int]) -> None:
     """Seeds name the videos (``-s<seed>``) and seed a ``torch.Generator``: distinct, from 0 to
     the config's largest seed."""
+    from ..config import SEED_RANGE
+
     low, high = 0, SEED_RANGE[1]
     bad = next((s for s in seeds if not low <= s <= high), None)
     if bad is not None:
@@ -120,10 +103,13 @@ def _check_seeds(seeds: Sequence[int]) -> None:
 
 def plan(args: argparse.Namespace) -> Plan:
     """Every check that needs no model: config, selection, model names, folders."""
+    from ..bench.geco_eval import Job, existing_video_jobs, load_prompts, prompts_without_video
+    from ..families import video_models
+
     cfg = config_from_args(args, args.overrides)
-    unknown = [m for m in args.models if m not in MODELS]
+    unknown = [m for m in args.models if m not in video_models()]
     if unknown:
-        raise ValueError(f"unknown model {unknown[0]!r}; known: {list(MODELS)}")
+        raise ValueError(f"unknown model {unknown[0]!r}; one of {', '.join(video_models())}")
     videos = _pairs(args.videos, "--videos")
     weights = _pairs(args.weights, "--weights")
     if not args.models and not videos:
@@ -151,29 +137,40 @@ def plan(args: argparse.Namespace) -> Plan:
     return Plan(cfg, jobs, weights, no_video)
 
 
-@interruptible("finished videos and scores are kept; rerun the same command to resume")
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    _IMPLEMENTATION.load()
+def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
+    """The benchmark ``args`` ask for; 0, 1 (videos failed or missing), or 2 after one line on stderr."""
+    from ..bench.geco_eval import check_guided_models, check_model_weights
+    from ..bench.runs import check_output_folder, run_lock
+    from ..io.devices import check_device
+
     try:
-        run = plan(args)
-        cfg, out = run.cfg, Path(args.out)
+        planned = plan(args)
+        cfg, out = planned.cfg, Path(args.out)
         check_output_folder(out, cfg, overwrite=args.overwrite)
         check_device(cfg.model.device)
         check_device(cfg.evaluation.device, "evaluation.device")
-        check_model_weights(cfg, args.models, run.weights)  # what a fresh machine lacks first, as generate
+        check_model_weights(cfg, args.models, planned.weights)  # what a fresh machine lacks first, as generate
         if args.guided:
             check_guided_models(cfg, args.models)
         with run_lock(out, "GeCo-Eval"):
-            return execute(args, run, out, argv)
+            return execute(args, planned, out, argv)
     except (ValueError, FileNotFoundError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return print_error(err)
 
 
-def execute(args: argparse.Namespace, run: Plan, out: Path, argv: list[str] | None) -> int:
+@interruptible("finished videos and scores are kept; rerun the same command to resume")
+def main(argv: list[str] | None = None) -> int:
+    """``geco-eval``: the command on its own."""
+    return run(register_subcommand(Parser(prog="geco geco-eval", description=DESCRIPTION)).parse_args(argv), argv)
+
+
+def execute(args: argparse.Namespace, planned: Plan, out: Path, argv: list[str] | None) -> int:
     """Every process's share of the jobs, then on the main process the report; the exit code."""
-    cfg = run.cfg
+    from ..bench.geco_eval import remove_run_outputs, run_jobs, write_report
+    from ..bench.runs import pin_config, process_config, process_state, shard
+    from ..types import plural
+
+    cfg = planned.cfg
 
     try:
         state = process_state(cfg)
@@ -182,16 +179,15 @@ def execute(args: argparse.Namespace, run: Plan, out: Path, argv: list[str] | No
             remove_run_outputs(out)
         state.wait_for_everyone()  # no process reads results before they are removed
         # run.json once the models loaded: a run stopped by missing weights leaves none
-        run_jobs(shard(run.jobs, state.process_index, state.num_processes), out, process_config(cfg, state),
-                 run.weights, tag, on_loaded=partial(pin_config, out, cfg) if state.is_main_process else None)
+        run_jobs(shard(planned.jobs, state.process_index, state.num_processes), out, process_config(cfg, state),
+                 planned.weights, tag, on_loaded=partial(pin_config, out, cfg) if state.is_main_process else None)
         state.wait_for_everyone()
         if not state.is_main_process:
             return 0
         command = shlex.join(["python", "-m", "geco_guide", "geco-eval", *(sys.argv[1:] if argv is None else argv)])
-        summary = write_report(out, run.jobs, cfg, command, run.weights, run.no_video)
+        summary = write_report(out, planned.jobs, cfg, command, planned.weights, planned.no_video)
     except (FileNotFoundError, WriteError) as err:  # weights not available (WeightsNotFoundError), disk full
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return print_error(err)
     failed, missing = len(summary["failed"]), len(summary["missing"]) + len(summary["no_video"])
     print(f"{plural(summary['videos'], 'video')} scored ({failed} failed, {missing} missing); report: {out / 'report.md'}")
     return 0 if not failed and not missing else 1

@@ -1,9 +1,10 @@
 """What every command shares: one-line argparse errors, the config flags (``--preset``,
-``--config``, the estimators), telling ``key=value`` overrides from inputs, the config they
-make together, and importing the implementation only once the arguments parsed.
+``--config``, ``--model``, the estimators), telling ``key=value`` overrides from inputs, the config
+they make together, the one-line error every command ends with, Ctrl-C.
 
 Imports no torch (nor the config, which does), so that ``--help`` and argument errors answer at
-once: a command's parser takes its choices from modules that import nothing heavy."""
+once: each command module registers its options with ``register_subcommand(parser)`` and imports
+what does the work inside ``run(args)``."""
 
 from __future__ import annotations
 
@@ -20,8 +21,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from ..config import GeCoConfig
 
-__all__ = ["DeferredImports", "ESTIMATOR_KEYS", "Parser", "add_config_flags", "config_from_args",
-           "interruptible", "is_config_key", "one_line_warnings", "split_overrides"]
+__all__ = ["DeferredImports", "ESTIMATOR_KEYS", "Parser", "add_config_flags", "add_model_flag", "config_from_args", "interruptible",
+           "is_config_key", "one_line_warnings", "parse_count", "print_error", "split_overrides"]
 
 #: The config keys the estimator flags set (the config's section is ``estimators``).
 ESTIMATOR_KEYS = {"geometry_estimator": "estimators.geometry", "flow_estimator": "estimators.flow"}
@@ -35,17 +36,55 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, f"error: {message} (see --help)\n")
 
 
+class RenamedFlag(argparse.Action):
+    """A flag's earlier spelling: refused in one line naming the new one."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, new: str, **kwargs: Any) -> None:
+        self.new = new
+        super().__init__(option_strings, dest, nargs="?", help=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        parser.error(f"{option_string} is the earlier name of {self.new}: use {self.new} instead")
+
+
 def add_config_flags(parser: argparse.ArgumentParser, *, estimators: bool = True,
                      preset_help: str = "a preset of configs/ (tiny: tiny random models, CPU, offline)") -> None:
     """``--preset``, ``--config`` and, with ``estimators``, ``--geometry-estimator`` /
-    ``--flow-estimator`` (``--vggt`` / ``--ufm`` stay accepted: users pass them today)."""
+    ``--flow-estimator`` (their earlier names ``--vggt`` / ``--ufm`` are refused, naming them)."""
     parser.add_argument("--preset", default=None, help=preset_help)
     parser.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
     if estimators:
-        parser.add_argument("--geometry-estimator", "--vggt", dest="geometry_estimator", default=None,
+        parser.add_argument("--geometry-estimator", dest="geometry_estimator", default=None,
                             metavar="ID_OR_DIR", help="geometry estimator: hub id or local folder (estimators.geometry)")
-        parser.add_argument("--flow-estimator", "--ufm", dest="flow_estimator", default=None,
+        parser.add_argument("--flow-estimator", dest="flow_estimator", default=None,
                             metavar="ID_OR_DIR", help="flow estimator: hub id or local folder (estimators.flow)")
+        parser.add_argument("--vggt", action=RenamedFlag, new="--geometry-estimator")
+        parser.add_argument("--ufm", action=RenamedFlag, new="--flow-estimator")
+
+
+def add_model_flag(parser: argparse.ArgumentParser) -> None:
+    """``--model NAME``: a model of the registry (``model.name``), with its preset of configs/
+    where there is one (after ``--preset``)."""
+    from ..families import video_models
+
+    parser.add_argument("--model", default=None, metavar="NAME",
+                        help=f"the video model: {', '.join(video_models())} (model.name; its call defaults, and its "
+                             "preset of configs/ where there is one)")
+
+
+def parse_count(text: str) -> int:
+    """A whole number >= 1 written in digits (``--best-of``, ``--search``): ``1e20`` or ``2.5`` are
+    refused by argparse in one line."""
+    if not re.fullmatch(r"\s*\d+\s*", text) or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1 written in digits, got {text!r}")
+    return int(text)
+
+
+def print_error(err: BaseException) -> int:
+    """The one line a command ends with on an error it expected: ``error: ...`` on stderr; 2."""
+    print(f"error: {err}", file=sys.stderr)
+    return 2
 
 
 def split_overrides(arguments: Iterable[str]) -> tuple[list[str], list[str]]:
@@ -75,17 +114,20 @@ def is_config_key(key: str) -> bool:
 
 def config_from_args(args: argparse.Namespace, overrides: Sequence[str] = (),
                      options: dict[str, Any] | None = None) -> GeCoConfig:
-    """The validated config of ``--preset`` / ``--config``, the ``key=value`` ``overrides``,
-    the estimator flags and ``options`` (``{config key: value}``, ``None`` values skipped), the
-    flags last so that they win over a stray override of the same key."""
-    from ..config import load_config
+    """The validated config of ``--preset`` / ``--model`` / ``--config``, the ``key=value``
+    ``overrides``, the estimator flags and ``options`` (``{config key: value}`` as Python values,
+    ``None`` values skipped), the flags last so that they win over a stray override of the same
+    key. ``--model NAME`` sets ``model.name`` and applies the preset of that name where
+    configs/ has one."""
+    from ..config import load_config, model_preset
 
-    items = list(overrides)
     flags = {key: getattr(args, dest, None) for dest, key in ESTIMATOR_KEYS.items()}
-    for key, value in {**flags, **(options or {})}.items():
-        if value is not None:
-            items.append(f"{key}={value}")
-    return load_config(getattr(args, "config", None), getattr(args, "preset", None), items)
+    model = getattr(args, "model", None)
+    changes = {key: value for key, value in {**flags, **(options or {})}.items() if value is not None}
+    if model is not None:
+        changes["model.name"] = model
+    return load_config(getattr(args, "config", None), getattr(args, "preset", None), list(overrides),
+                       changes=changes, model_preset=model_preset(model) if model is not None else None)
 
 
 def one_line_warnings() -> Callable[..., None]:

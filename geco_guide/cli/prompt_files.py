@@ -18,7 +18,7 @@ from pathlib import Path
 
 from ..bench.geco_eval import PROMPT_FILES, select_prompts
 from ..estimators.segmenters import subjects_of
-from .generate import slugify
+from ..generation import slugify
 
 __all__ = ["Prompt", "read_prompts"]
 

@@ -40,7 +40,7 @@ if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
     from ..bench.datasets import find_benchmarks, load_benchmark, oracle_clip
     from ..bench.dynamic_suite import DynamicScenes, dynamic_validation, markdown_report
     from ..bench.validate import grid_frames, grid_image, markdown_table, summarise, validate_clip, write_png
-    from ..estimators import load_estimators
+    from ..estimators import Estimators, load_estimators
     from ..estimators.oracle import OracleFlow, OracleGeometry
     from ..io.devices import check_device
     from ..metric.evaluate import score_frames
@@ -52,7 +52,7 @@ _IMPLEMENTATION = DeferredImports(__name__, {
     "..bench.datasets": ("find_benchmarks", "load_benchmark", "oracle_clip"),
     "..bench.dynamic_suite": ("DynamicScenes", "dynamic_validation", "markdown_report"),
     "..bench.validate": ("grid_frames", "grid_image", "markdown_table", "summarise", "validate_clip", "write_png"),
-    "..estimators": ("load_estimators",),
+    "..estimators": ("Estimators", "load_estimators"),
     "..estimators.oracle": ("OracleFlow", "OracleGeometry"),
     "..io.devices": ("check_device",),
     "..metric.evaluate": ("score_frames",),
@@ -133,10 +133,10 @@ def main(argv: list[str] | None = None) -> int:
             bench = load_benchmark(folder)
             if args.oracle:
                 clip = oracle_clip(bench)
-                geometry, flow = OracleGeometry(clip), OracleFlow(clip)
+                models = Estimators(OracleGeometry(clip), OracleFlow(clip))
             else:
-                geometry, flow = estimators.geometry, estimators.flow
-            _, result = score_frames(bench.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
+                models = estimators
+            _, result = score_frames(bench.frames, models, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
             record = validate_clip(bench, result)
             if not args.no_grids:
                 record["grid"] = str(write_png(out / "grids" / f"{record['clip']}.png", grid_image(bench, result, grid_frames(bench, record))))

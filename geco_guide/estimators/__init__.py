@@ -10,7 +10,9 @@ import runs it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Optional
 
 import torch
@@ -19,8 +21,8 @@ from ..io.devices import resolve_device
 from .bundle import Estimators, estimator_id
 from .loading import WeightsNotFoundError
 
-__all__ = ["TINY_RANDOM", "Estimators", "EstimatorsConfig", "estimator_id", "estimator_ids", "load_estimators",
-           "load_segmenter", "tiny_estimators", "tiny_random_decoder", "with_config_key"]
+__all__ = ["TINY_RANDOM", "Estimators", "EstimatorsConfig", "check_estimator_weights", "estimator_id", "estimator_ids",
+           "load_estimators", "load_segmenter", "tiny_estimators", "tiny_random_decoder", "with_config_key"]
 
 TINY_RANDOM = "tiny-random"
 
@@ -79,6 +81,45 @@ def tiny_random_decoder(variant: str = "cogvideox", seed: int = 0, latent_channe
 def with_config_key(err: Exception, key: str, example: str) -> WeightsNotFoundError:
     """``err``'s one line, ending with the config key that points at local weights instead."""
     return WeightsNotFoundError(f"{err} (config: {key}={example})")
+
+
+def check_estimator_weights(estimators_cfg: EstimatorsConfig, *, segmenter: bool = False,
+                            extra: Sequence[tuple[str, str, str, Sequence[str], str | None]] = ()) -> None:
+    """Every model's weights a run needs, looked up before any model loads (a cache look-up or one
+    metadata request each): the geometry and flow estimators, with ``segmenter`` the text
+    segmenter, and the ``extra`` rows ``(config key, source, model name, files, revision)`` of other
+    models (the video model). All that are missing are named at once, in one line, each with its
+    config key and how to pass a local path; ``tiny-random`` needs nothing.
+
+    Raises:
+        WeightsNotFoundError: the one line.
+    """
+    from .loading import check_weights_available
+    from .ufm import UFM
+    from .vggt import VGGT
+
+    rows = [*extra,
+            ("estimators.geometry", estimators_cfg.geometry, VGGT.model_name, VGGT.checkpoint_files, None),
+            ("estimators.flow", estimators_cfg.flow, UFM.model_name, ("config.json",), None)]
+    spec = estimators_cfg.segmenter
+    if segmenter and not spec.startswith(TINY_RANDOM):
+        from .segmenters import segmenter_weights
+
+        rows.extend(("estimators.segmenter", source, name, files, None)
+                    for source, name, files in segmenter_weights(spec))
+    missing = []
+    for key, source, name, filenames, revision in rows:
+        if source is None or str(source).startswith(TINY_RANDOM):
+            continue
+        try:
+            check_weights_available(source, filenames, model_name=name, revision=revision)
+        except WeightsNotFoundError as err:
+            folder = Path(str(source)).name or str(source)
+            missing.append(f"{err} (config: {key}=/path/to/{folder})")
+    if len(missing) == 1:
+        raise WeightsNotFoundError(missing[0])
+    if missing:
+        raise WeightsNotFoundError(f"{len(missing)} models' weights are missing: " + "; ".join(missing))
 
 
 def estimator_ids(estimators_cfg: EstimatorsConfig, segmenter: bool = False) -> dict[str, str]:

@@ -1,15 +1,15 @@
 """The models GeCo runs with, as one object: :class:`Estimators`.
 
 The geometry and flow estimators always travel together (every loss, score and guided call needs
-both), and the text segmenter of moving subjects goes wherever they go when a run masks subjects.
-One object keeps them from being passed as a positional pair, whose order a caller can swap
-without an error, and gives reports one place to read the models' ids from.
+both), the text segmenter of moving subjects goes wherever they go when a run masks subjects, and
+the tiny decoder goes with them when guidance decodes its anchor frames with it. One object is
+the only way they enter the loss, the metric, the pipeline and the hooks: it keeps them from
+being passed as a positional pair, whose order a caller can swap without an error, and gives
+reports one place to read the models' ids from.
 """
 
 from __future__ import annotations
 
-import warnings
-from collections.abc import Iterator
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
@@ -37,13 +37,18 @@ class Estimators:
             :data:`~geco_guide.estimators.segmenters.SegmenterFactory` whose models, loaded once,
             make the mask source of any subject text (a suite whose prompts name their own
             subjects). :meth:`masks_for` gives the mask source of a text either way.
+        tiny_decoder: the :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` that decodes
+            the loss' anchor frames with ``guidance.decoder="tiny"`` (an approximation of the
+            VAE; the video is always the VAE's), or ``None``.
 
-    ``geometry, flow = estimators`` still unpacks the pair for one release, with a FutureWarning.
+    The bundle is not a pair: ``geometry, flow = estimators`` is refused (it was the return value
+    of ``load_estimators`` once).
     """
 
     geometry: Any
     flow: Any
     segmenter: Any = None
+    tiny_decoder: Any = None
 
     def ids(self) -> dict[str, str]:
         """The id of every model present (:func:`estimator_id`), by field name: what reports and
@@ -56,6 +61,14 @@ class Estimators:
     def with_segmenter(self, segmenter: Any) -> Estimators:
         """The same estimators with ``segmenter`` (``None``: without one)."""
         return replace(self, segmenter=segmenter)
+
+    def with_tiny_decoder(self, tiny_decoder: Any) -> Estimators:
+        """The same estimators with ``tiny_decoder`` (``None``: without one)."""
+        return replace(self, tiny_decoder=tiny_decoder)
+
+    def modules(self) -> list[Any]:
+        """Every model present, in field order: what a guided call freezes and moves."""
+        return [getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None]
 
     def masks_for(self, subjects: str | None) -> DynamicMaskSource | None:
         """The mask source of ``subjects`` (``"a dog, a person"``), made by the segmenter: ``None``
@@ -79,9 +92,5 @@ class Estimators:
                              f"not {subjects!r}: give the estimators a segmenter of those subjects")
         return self.segmenter
 
-    def __iter__(self) -> Iterator[Any]:
-        # the pair load_estimators returned before this class: existing unpacking keeps working
-        warnings.warn("unpacking the estimators as (geometry, flow) is deprecated and stops working in the next "
-                      "release: use estimators.geometry and estimators.flow", FutureWarning, stacklevel=2)
-        yield self.geometry
-        yield self.flow
+    def __iter__(self):
+        raise TypeError("Estimators is not a (geometry, flow) pair: use estimators.geometry and estimators.flow")

@@ -43,7 +43,7 @@ from .loading import pretrained_or_one_line
 
 __all__ = ["GROUNDING_DINO_WEIGHTS", "SAM3_WEIGHTS", "GroundedSam2Segmenter", "Sam3Segmenter",
            "SegmenterFactory", "detector_and_tracker", "model_pixels", "segmenter_from_spec",
-           "segmenters_from_spec", "subjects_of", "text_segmenter", "tiny_grounded_sam2", "tiny_sam3",
+           "segmenter_weights", "segmenters_from_spec", "subjects_of", "text_segmenter", "tiny_grounded_sam2", "tiny_sam3",
            "union_mask"]
 
 logger = logging.getLogger(__name__)
@@ -322,6 +322,18 @@ def segmenters_from_spec(spec: str, *, device: torch.device | str = "cpu", dtype
         return load_text_segmenters(model=model, source=TINY_RANDOM, device=device, dtype=dtype, seed=seed)
     return load_text_segmenters(model="grounding-sam2" if "," in spec else "sam3", source=spec, device=device,
                                 dtype=dtype)
+
+
+def segmenter_weights(spec: str) -> list[tuple[str, str, tuple[str, ...]]]:
+    """``(source, model name, files whose presence says the weights are there)`` of every model
+    :func:`segmenters_from_spec` would load for the weights ``spec`` (none for the tiny ones):
+    what a command looks up before anything loads."""
+    if spec.startswith(TINY_RANDOM):
+        return []
+    if spec == "grounding-sam2" or "," in spec:
+        detector, tracker = detector_and_tracker(None if spec == "grounding-sam2" else spec)
+        return [(detector, "Grounding DINO", ("config.json",)), (tracker, "SAM 2 video", ("config.json",))]
+    return [(spec, "SAM 3 video", ("config.json",))]
 
 
 def segmenter_from_spec(text: str, spec: str, *, device: torch.device | str = "cpu",

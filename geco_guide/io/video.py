@@ -15,6 +15,7 @@ import os
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ from torch import Tensor
 
 from .files import WriteError, atomic_path
 
-__all__ = ["FPS_RANGE", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "VideoFrames", "VideoReadError", "check_fps",
+__all__ = ["FPS_RANGE", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "VideoFrames", "VideoReadError", "check_fps", "read_image",
            "frame_files", "gif_rate", "input_stem", "read_frames", "read_video", "write_video"]
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".gif")
@@ -246,6 +247,23 @@ def frame_files(folder: str | os.PathLike) -> list[Path]:
         if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")
     ]
     return sorted(files, key=_natural_key)
+
+
+def read_image(path: str | os.PathLike) -> Any:
+    """The conditioning image of an image-to-video call (``--image``): a PNG or JPEG as an RGB
+    ``PIL.Image``; VideoReadError (one line) for a missing, unreadable or other kind of file."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if path.suffix.lower() not in IMAGE_SUFFIXES:
+        raise VideoReadError(f"--image {str(path)!r} must be a {'/'.join(IMAGE_SUFFIXES)} file")
+    if not path.is_file():
+        raise VideoReadError(f"--image {str(path)!r}: no such file")
+    try:
+        with Image.open(path) as image:
+            return image.convert("RGB")
+    except (OSError, UnidentifiedImageError) as err:
+        raise VideoReadError(f"cannot read --image {str(path)!r}: {_error_reason(err)}") from None
 
 
 def _to_float_chw(array: np.ndarray) -> Tensor:

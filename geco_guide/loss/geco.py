@@ -2,7 +2,8 @@
 
 The same computation is the evaluation metric and the guidance loss. :func:`geco_from_geometry`
 does the math from given geometry and correspondences (tests, evaluation with ground truth);
-:class:`GeCoLoss` obtains them from a :class:`GeometryEstimator` and a :class:`FlowEstimator`.
+:class:`GeCoLoss` obtains them from an estimator bundle (``.geometry``, a :class:`GeometryEstimator`;
+``.flow``, a :class:`FlowEstimator`: :class:`geco_guide.estimators.Estimators`).
 
 Aggregation: per pair, each cue is a map with a validity mask; a frame's map is the pixel-wise
 mean over the pairs whose source it is (where valid); a frame's score is the mean of its map over
@@ -26,15 +27,13 @@ from ..io.masks import MaskReadError, check_masks, fit_masks, read_masks
 from ..types import (
     Correspondences,
     DynamicMaskSource,
-    FlowEstimator,
-    GeometryEstimator,
     OptionError,
     SceneGeometry,
+    check_estimator_bundle,
+    refuse_estimator_keywords,
     check_frame_values,
     check_frames,
-    missing_estimators,
     non_finite_fields,
-    one_of_names,
 )
 from .cues import fuse_cues, lands_on_mask, masked_mean, motion_residual, structure_residual
 from .pair_modes import PAIR_MODES
@@ -418,10 +417,10 @@ class GeCoLoss(nn.Module):
     """The GeCo metric as a differentiable module.
 
     Args:
-        geometry_estimator: a :class:`GeometryEstimator` (e.g. VGGT) giving depth, K, extrinsics
-            (a :class:`~geco_guide.types.SceneGeometry`); ``geometry=`` is its earlier name.
-        flow_estimator: a :class:`FlowEstimator` (e.g. UFM) giving flow and covisibility per pair;
-            ``flow=`` is its earlier name.
+        estimators: the models as one bundle (:class:`geco_guide.estimators.Estimators`): its
+            ``geometry`` (a :class:`GeometryEstimator`, e.g. VGGT: depth, K, extrinsics as a
+            :class:`~geco_guide.types.SceneGeometry`) and its ``flow`` (a :class:`FlowEstimator`,
+            e.g. UFM: flow and covisibility per pair).
         config: :class:`GeCoLossConfig` (or a dict of its fields); defaults if ``None``: the
             fused map on ADJACENT pairs (k -> k+1), the guidance loss' pairs, cheap enough to
             differentiate at every update. ``evaluate_video`` defaults to all ordered pairs of a
@@ -441,22 +440,15 @@ class GeCoLoss(nn.Module):
 
     def __init__(
         self,
-        geometry_estimator: GeometryEstimator | None = None,
-        flow_estimator: FlowEstimator | None = None,
+        estimators: Any = None,
         config: GeCoLossConfig | dict | None = None,
         *,
         check_values: bool = True,
-        geometry: GeometryEstimator | None = None,
-        flow: FlowEstimator | None = None,
+        **earlier: Any,
     ) -> None:
         super().__init__()
-        geometry_estimator = one_of_names(geometry_estimator, geometry, "geometry_estimator", "geometry")
-        flow_estimator = one_of_names(flow_estimator, flow, "flow_estimator", "flow")
-        required = {"geometry": (geometry_estimator, "geometry_estimator", "estimate_geometry(frames)"),
-                    "flow": (flow_estimator, "flow_estimator", "estimate_flow(source, target)")}
-        for name in missing_estimators(geometry_estimator, flow_estimator):
-            estimator, argument, method = required[name]
-            raise ValueError(f"{argument} must implement {method}, got {type(estimator).__name__}")
+        refuse_estimator_keywords("GeCoLoss", earlier)
+        check_estimator_bundle(estimators, "GeCoLoss")
         if isinstance(config, dict):
             known = {f.name for f in fields(GeCoLossConfig)}
             unknown = sorted(set(config) - known)
@@ -466,8 +458,8 @@ class GeCoLoss(nn.Module):
         self.config = config or GeCoLossConfig()
         self.check_values = check_values
         # Registered as attributes (modules when they are modules) so .to() moves them.
-        self.geometry_estimator = geometry_estimator
-        self.flow_estimator = flow_estimator
+        self.geometry_estimator = estimators.geometry
+        self.flow_estimator = estimators.flow
 
     def extra_repr(self) -> str:
         return ", ".join(f"{k}={v!r}" for k, v in asdict(self.config).items())

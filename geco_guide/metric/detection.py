@@ -33,7 +33,7 @@ from ..io.masks import fit_masks
 from ..io.video import check_fps, write_video
 from ..loss.cues import fuse_cues, masked_mean, structure_residual
 from ..loss.geco import GeCoLossConfig, GeCoMaps
-from ..types import SceneGeometry, check_frame_values
+from ..types import SceneGeometry, check_estimator_bundle, check_frame_values
 from .detection_options import ANCHORS, FORMATS
 from .evaluate import EvaluationMaps, score_frames
 from .render import colorize, hatch, map_frames, text_scale
@@ -72,7 +72,7 @@ def seen_back(geometry: SceneGeometry, pairs: list[tuple[int, int]], config: GeC
     return (back[:, 0] > 0.5)[None]
 
 
-def frame_maps(frames: Tensor, window: list[int], geometry: Any, flow: Any, config: GeCoLossConfig,
+def frame_maps(frames: Tensor, window: list[int], estimators: Any, config: GeCoLossConfig,
                two_way: bool = True, flow_batch_size: int = 16, dynamic_masks: Any = None) -> GeCoMaps:
     """Maps ``[1, H, W]`` of frame ``window[0]`` of ``frames [S, 3, H, W]`` against the other
     frames of ``window``: the pixel-wise mean over the pairs ``window[0] -> window[k]``
@@ -80,7 +80,7 @@ def frame_maps(frames: Tensor, window: list[int], geometry: Any, flow: Any, conf
     pairs = [(0, k) for k in range(1, len(window))]
     if isinstance(dynamic_masks, Tensor):
         dynamic_masks = dynamic_masks[window]
-    scene, result = score_frames(frames[window], geometry, flow, config, pairs, flow_batch_size, dynamic_masks)
+    scene, result = score_frames(frames[window], estimators, config, pairs, flow_batch_size, dynamic_masks)
     maps = result.pair_maps
     if two_way:
         structure_valid = maps.structure_valid & seen_back(scene, pairs, config)
@@ -94,11 +94,12 @@ def frame_maps(frames: Tensor, window: list[int], geometry: Any, flow: Any, conf
 
 
 @torch.no_grad()
-def detection_maps(frames: Tensor, geometry: Any, flow: Any, config: GeCoLossConfig | None = None, *,
+def detection_maps(frames: Tensor, estimators: Any, config: GeCoLossConfig | None = None, *,
                    window: int = 20, anchor: str = "center", two_way: bool = True,
                    flow_batch_size: int = 16, dynamic_masks: Any = None) -> EvaluationMaps:
     """Every frame's own maps: ``frames [S, 3, H, W]`` in ``[0, 1]`` -> :class:`EvaluationMaps`
-    ``[S, H, W]`` (``window`` is capped at the clip's length). ``dynamic_masks``: given masks of
+    ``[S, H, W]`` with the ``estimators`` (:class:`~geco_guide.estimators.Estimators`; ``window``
+    is capped at the clip's length). ``dynamic_masks``: given masks of
     the clip, ``[S, H, W]`` (any size of the frames' aspect ratio) or a mask file; the maps then
     carry them, drawn striped by :func:`render_detection`. (Automatic and text masks differ per
     window here; score with ``evaluate_video`` for them.)"""
@@ -115,7 +116,8 @@ def detection_maps(frames: Tensor, geometry: Any, flow: Any, config: GeCoLossCon
         masks = fit_masks(source.masks, frames.shape[0], tuple(frames.shape[-2:]), f"dynamic masks ({source.source_name})")
     size = min(window, frames.shape[0])
     windows = [window_indices(frames.shape[0], t, size, anchor) for t in range(frames.shape[0])]
-    per_frame = [frame_maps(frames, w, geometry, flow, config, two_way, flow_batch_size, masks) for w in windows]
+    check_estimator_bundle(estimators, "detection_maps")
+    per_frame = [frame_maps(frames, w, estimators, config, two_way, flow_batch_size, masks) for w in windows]
     stacked = [torch.cat([getattr(m, f.name) for m in per_frame]) for f in fields(GeCoMaps)]
     return EvaluationMaps(*stacked, frames=frames.detach().float().cpu(), dynamic_masks=masks)
 

@@ -45,7 +45,8 @@ from ..loss.geco import (
     resolve_dynamic_masks,
 )
 from ..loss.motion_stats import motion_statistics
-from ..types import Correspondences, SceneGeometry, check_frame_values, one_of_names, plural
+from ..types import (Correspondences, SceneGeometry, check_estimator_bundle, check_frame_values, plural,
+                     refuse_estimator_keywords)
 from .protocol import (
     EvaluationConfig,
     Window,
@@ -197,18 +198,18 @@ def pair_correspondences(metric: GeCoLoss, frames: Tensor, pairs: list[tuple[int
 
 
 @torch.no_grad()
-def score_frames(frames: Tensor, geometry: Any, flow: Any, config: GeCoLossConfig,
+def score_frames(frames: Tensor, estimators: Estimators, config: GeCoLossConfig,
                  pairs: list[tuple[int, int]] | None = None, flow_batch_size: int = 16,
                  dynamic_masks: Any = None) -> tuple[SceneGeometry, GeCoResult]:
     """GeCo of one clip ``frames [S, 3, H, W]`` in ``[0, 1]`` (a batch of 1) over ``pairs``
-    (default: ``config.pairs``): one geometry call, the flow ``flow_batch_size`` pairs per call;
-    ``dynamic_masks`` (``[S, H, W]``, a mask file or a mask source: see
-    :func:`~geco_guide.loss.geco.resolve_dynamic_masks`) leave moving content out.
+    (default: ``config.pairs``) with ``estimators``: one geometry call, the flow
+    ``flow_batch_size`` pairs per call; ``dynamic_masks`` (``[S, H, W]``, a mask file or a mask
+    source: see :func:`~geco_guide.loss.geco.resolve_dynamic_masks`) leave moving content out.
     Returns the estimated geometry and the :class:`GeCoResult`."""
-    device = estimator_device(geometry, flow)
+    device = estimator_device(estimators.geometry, estimators.flow)
     pairs = pairs if pairs is not None else frame_pairs(frames.shape[0], config.pairs)
-    scene = geometry.estimate_geometry(frames[None].to(device))
-    correspondences = pair_correspondences(GeCoLoss(geometry, flow, config), frames, pairs, flow_batch_size, device)
+    scene = estimators.geometry.estimate_geometry(frames[None].to(device))
+    correspondences = pair_correspondences(GeCoLoss(estimators, config), frames, pairs, flow_batch_size, device)
     masks, source = resolve_dynamic_masks(dynamic_masks, frames[None].to(device), scene, correspondences, pairs)
     return scene, geco_from_geometry(scene, correspondences, pairs, config, masks, source)
 
@@ -245,17 +246,6 @@ def _is_subject_text(spec: Any) -> bool:
     """Whether ``dynamic_masks`` names subjects for a text segmenter (not a path, ``"auto"``, a
     tensor or a source)."""
     return isinstance(spec, str) and spec.strip() not in ("", AUTO) and not looks_like_path(spec)
-
-
-def _split_config(config: Any) -> tuple[EvaluationConfig, EstimatorsConfig]:
-    if config is None:
-        return EvaluationConfig(), EstimatorsConfig()
-    if isinstance(config, EvaluationConfig):
-        return config, EstimatorsConfig()
-    # a whole GeCoConfig, by its sections: the config module sits above the metric
-    if isinstance(getattr(config, "evaluation", None), EvaluationConfig) and hasattr(config, "estimators"):
-        return config.evaluation, config.estimators
-    raise ValueError(f"config must be an EvaluationConfig or a GeCoConfig, got {type(config).__name__}")
 
 
 def _protocol_frames(cfg: EvaluationConfig) -> Callable[[int, float], list[int]]:
@@ -337,18 +327,15 @@ def _clip_score(windows: list[dict[str, Any]], name: str) -> float:
 @torch.no_grad()
 def evaluate_video(
     video: str | os.PathLike | Tensor,
+    estimators: Estimators | EstimatorsConfig | None = None,
+    config: EvaluationConfig | None = None,
     *,
-    geometry_estimator: Any = None,
-    flow_estimator: Any = None,
-    config: Any = None,
     fps: float | None = None,
     model: str | None = None,
     maps: bool = False,
     progress: Callable[[str], None] | None = None,
-    geometry: Any = None,
-    flow: Any = None,
     dynamic_masks: Any = None,
-    estimators: Estimators | None = None,
+    **earlier: Any,
 ) -> EvaluationResult:
     """GeCo scores of a video under the GeCo-Eval protocol (:class:`EvaluationConfig`).
 
@@ -363,15 +350,11 @@ def evaluate_video(
     Args:
         video: a path (mp4 or another ffmpeg format, gif, folder of png/jpg frames) or frames
             ``[S, 3, H, W]`` in ``[0, 1]`` (then ``fps`` or ``model`` is required).
-        geometry_estimator, flow_estimator: a :class:`GeometryEstimator` / :class:`FlowEstimator`;
-            built from the config's estimators when ``None`` (pass them to score many videos
-            with one load). ``geometry=`` / ``flow=`` are the same arguments under their
-            earlier names.
-        estimators: the same models as one :class:`~geco_guide.estimators.Estimators`, instead of
-            ``geometry_estimator`` / ``flow_estimator``; its segmenter, when it has one, masks the
-            subjects that text ``dynamic_masks`` name.
-        config: an :class:`EvaluationConfig`, or a whole :class:`GeCoConfig` (its ``evaluation``
-            and ``estimators``); ``None``: defaults (VGGT-1B + UFM-Base).
+        estimators: the models as one :class:`~geco_guide.estimators.Estimators` (pass them to
+            score many videos with one load; its segmenter, when it has one, masks the subjects
+            that text ``dynamic_masks`` name), or an :class:`EstimatorsConfig` to load them from
+            (``None``: its defaults, VGGT-1B + UFM-Base), on ``config.device``.
+        config: the protocol, an :class:`EvaluationConfig` (``None``: the paper's).
         fps: the source frame rate, overriding everything else.
         model: a model name of ``config.model_fps`` (e.g. ``cogvideox-5b``): its native frame
             rate replaces the file's (the paper's protocol); ``fps`` still wins.
@@ -390,16 +373,18 @@ def evaluate_video(
         VideoReadError: unreadable input or fewer than 2 frames (a ValueError).
         ValueError: evaluated frames with NaN/inf values or outside ``[0, 1]``, naming them; an
             unknown ``model``.
+        TypeError: estimators that are not a bundle, or passed by an earlier keyword
+            (``geometry=``, ``flow_estimator=``, ...).
     """
-    geometry = one_of_names(geometry_estimator, geometry, "geometry_estimator", "geometry")
-    flow = one_of_names(flow_estimator, flow, "flow_estimator", "flow")
-    if estimators is not None:
-        if geometry is not None or flow is not None:
-            raise ValueError("pass estimators= or geometry_estimator= / flow_estimator=, not both")
-        geometry, flow = estimators.geometry, estimators.flow
-        if estimators.segmenter is not None and _is_subject_text(dynamic_masks):
-            dynamic_masks = estimators.masks_for(dynamic_masks)
-    cfg, estimators_cfg = _split_config(config)
+    refuse_estimator_keywords("evaluate_video", earlier)
+    if isinstance(estimators, Estimators) or not (estimators is None or isinstance(estimators, EstimatorsConfig)):
+        check_estimator_bundle(estimators, "evaluate_video")
+    if config is not None and not isinstance(config, EvaluationConfig):
+        raise TypeError(f"evaluate_video: config must be an EvaluationConfig (a config's evaluation section), "
+                        f"got {type(config).__name__}")
+    cfg = config if config is not None else EvaluationConfig()
+    if isinstance(estimators, Estimators) and estimators.segmenter is not None and _is_subject_text(dynamic_masks):
+        dynamic_masks = estimators.masks_for(dynamic_masks)
     rate, fps_source = protocol_fps(fps, model, cfg)
     clip, source = _load_frames(video, rate, cfg)
     if rate is None:
@@ -407,12 +392,10 @@ def evaluate_video(
     # NaN pixels would score NaN (or 0.0 once masked), 0-255 frames garbage: refuse them, by index.
     check_frame_values(clip.frames, "video" if source is None else source, indices=clip.indices)
     masks = clip_mask_source(dynamic_masks, clip)
-    if geometry is None or flow is None:
-        loaded = load_estimators(estimators_cfg, cfg.device)
-        geometry = geometry if geometry is not None else loaded.geometry
-        flow = flow if flow is not None else loaded.flow
-    device = estimator_device(geometry, flow)
-    metric = GeCoLoss(geometry, flow, cfg.loss)
+    if not isinstance(estimators, Estimators):
+        estimators = load_estimators(estimators or EstimatorsConfig(), cfg.device)
+    device = estimator_device(estimators.geometry, estimators.flow)
+    metric = GeCoLoss(estimators, cfg.loss)
     position = {index: k for k, index in enumerate(clip.indices)}
 
     def frames_of(indices: list[int]) -> Tensor:
@@ -438,7 +421,7 @@ def evaluate_video(
         window_masks = masks
         if isinstance(masks, GivenMasks):
             window_masks = GivenMasks(masks.masks[[position[i] for i in window.indices]], masks.source_name)
-        _, result = score_frames(window_frames, geometry, flow, cfg.loss, flow_batch_size=cfg.flow_batch_size,
+        _, result = score_frames(window_frames, estimators, cfg.loss, flow_batch_size=cfg.flow_batch_size,
                                  dynamic_masks=window_masks)
         rows = []
         for k, index in enumerate(window.indices):
@@ -490,7 +473,7 @@ def evaluate_video(
         fps=clip.fps,
         fps_source=fps_source,
         sampled_fps=sampled_rate(clip.fps, cfg.max_fps),
-        estimators=Estimators(geometry, flow).ids(),
+        estimators=Estimators(estimators.geometry, estimators.flow).ids(),
         config=asdict(cfg),
         source=source,
         maps=evaluation_maps,

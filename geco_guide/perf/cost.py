@@ -14,11 +14,12 @@ smaller video predicts less time). :func:`compare_with_measured` sets it against
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import time
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -26,14 +27,13 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..config import COGVIDEOX_TEMPORAL_COMPRESSION
 from ..sampler.config import GuidanceConfig, fused_guidance_config
-from ..sampler.context import GuidanceContext
+from ..sampler.context import GuidanceObserver
 from ..sampler.levels import VPLevels
 from ..sampler.memory_plan import model_signature
 from ..sampler.run_options import RunOptions
 from ..sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
-from ..sampler.slicing import default_anchors
+from ..families import default_anchors, model_named
 from ..sampler.step import Update, guided_step, loss_terms
 from .measure import GIB, environment_info
 from .full_size import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_cost_pipeline, model_bytes
@@ -42,7 +42,7 @@ from .profile import call_marking_backward
 __all__ = ["AUTO_MASK_REFRESH_S", "GPU_SPECS", "H200_UNGUIDED_STEP_S", "INTERCONNECT_BYTES_PER_S",
            "NOMINAL_STEPS", "CostTracker", "at_calibration_size", "calibration_call_roofline_s",
            "compare_with_measured", "cost_report", "cost_settings", "cost_table", "count_schedule_calls",
-           "counting_context_class", "dynamic_mask_costs", "dynamic_masks_table", "load_measured",
+           "CountingObserver", "dynamic_mask_costs", "dynamic_masks_table", "load_measured",
            "sam3_refresh_cost", "several_gpus", "several_gpus_table", "trace_cost"]
 
 NOMINAL_STEPS = 50
@@ -237,7 +237,7 @@ def cost_guidance(settings: dict[str, Any], mode: str, repeats: str, time_travel
     # the fused loss (gradients through VGGT too): the costlier of the two presets, what was measured
     base = tiny_guidance_config() if settings["preset"] == "tiny" else fused_guidance_config()
     chunk_latents = settings.get("chunk_latents")
-    anchors = default_anchors(settings["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
+    anchors = default_anchors(settings["frames"], model_named("cogvideox-5b").temporal_compression)
     return replace(base, anchors=anchors, repeats=repeats, time_travel=time_travel,
                    denoiser_grad=mode == "faithful", decoder=settings.get("decoder", "vae"),
                    chunk_latents=base.chunk_latents if chunk_latents is None else chunk_latents)
@@ -257,23 +257,20 @@ def cost_run_options(settings: dict[str, Any]) -> RunOptions:
                    gradient_checkpointing=changes.get("denoiser_checkpointing", base.gradient_checkpointing))
 
 
-def counting_context_class(tracker: CostTracker) -> type[GuidanceContext]:
-    """A :class:`GuidanceContext` for fake tensors under ``tracker``: its ops inside the updates of
-    a step count as ``loss`` unless a wrapped stage claims them, and its log's ``read_scalars``
-    reads no values (fake tensors have none): zeros, and every update finite."""
+class CountingObserver(GuidanceObserver):
+    """Watches the updates of a call traced on fake tensors: the ops inside the updates of a step
+    count as ``loss`` unless a wrapped stage claims them (:attr:`CostTracker.in_update`)."""
 
-    class CountingGuidanceContext(GuidanceContext):
-        def __init__(self, *args: Any, **kwargs: Any) -> None:
-            super().__init__(*args, **kwargs, read_scalars=lambda values, _: {**dict.fromkeys(values, 0.0), "finite": 1.0})
+    def __init__(self, tracker: CostTracker) -> None:
+        self.tracker = tracker
 
-        def guide(self, *args: Any, **kwargs: Any) -> tuple[Tensor, Tensor]:
-            tracker.in_update += 1
-            try:
-                return super().guide(*args, **kwargs)
-            finally:
-                tracker.in_update -= 1
-
-    return CountingGuidanceContext
+    @contextlib.contextmanager
+    def step(self, step: int, t: int) -> Iterator[None]:
+        self.tracker.in_update += 1
+        try:
+            yield
+        finally:
+            self.tracker.in_update -= 1
 
 
 def trace_cost(settings: dict[str, Any], mode: str) -> dict[str, Any]:
@@ -287,21 +284,21 @@ def trace_cost(settings: dict[str, Any], mode: str) -> dict[str, Any]:
 
     register_cpu_sdpa_flops()
     fake_mode = FakeTensorMode(allow_non_fake_inputs=True)
-    pipe, call = build_cost_pipeline(settings, fake_mode)
-    models = {name: getattr(pipe, name, None) for name in
-              ("transformer", "vae", "geometry_estimator", "flow_estimator", "text_encoder", "guidance_decoder")}
+    pipe, call, estimators = build_cost_pipeline(settings, fake_mode)
+    models = {"transformer": pipe.transformer, "vae": pipe.vae, "geometry_estimator": estimators.geometry,
+              "flow_estimator": estimators.flow, "text_encoder": pipe.text_encoder,
+              "guidance_decoder": estimators.tiny_decoder}
     weights = [t for m in models.values() if isinstance(m, torch.nn.Module) for t in [*m.parameters(), *m.buffers()]]
     tracker = CostTracker(static=weights)
 
     tracker.wrap(pipe.transformer, "forward", lambda: "denoiser" if torch.is_grad_enabled() else "denoiser_cfg")
     tracker.wrap(pipe.vae, "decode", lambda: "final_decode" if "final_decode" in tracker.stack else "anchor_decode")
     tracker.wrap(pipe, "decode_latents", "final_decode")
-    if pipe.guidance_decoder is not None:
-        tracker.wrap(pipe.guidance_decoder, "decode", "anchor_decode")
+    if estimators.tiny_decoder is not None:
+        tracker.wrap(estimators.tiny_decoder, "decode", "anchor_decode")
     if mode != "unguided":
-        tracker.wrap(pipe.geometry_estimator, "estimate_geometry", "vggt")
-        tracker.wrap(pipe.flow_estimator, "estimate_flow", "ufm")
-    pipe.guidance_context_class = counting_context_class(tracker)
+        tracker.wrap(estimators.geometry, "estimate_geometry", "vggt")
+        tracker.wrap(estimators.flow, "estimate_flow", "ufm")
 
     scheduler, table = pipe.scheduler, {"timesteps": [], "i": 0}
     set_timesteps, step = scheduler.set_timesteps, scheduler.step
@@ -326,7 +323,8 @@ def trace_cost(settings: dict[str, Any], mode: str) -> dict[str, Any]:
             call["prompt_embeds"], call["negative_prompt_embeds"] = (
                 torch.empty(TEXT_EMBED_SHAPE, dtype=dtype) for _ in range(2))
         out = pipe(**call, num_inference_steps=1, guidance=guidance, run_options=cost_run_options(settings),
-                   guidance_scale=6.0)
+                   guidance_scale=6.0, estimators=estimators if mode != "unguided" else None,
+                   observer=CountingObserver(tracker))
         frames_shape = list(out.frames.shape)
         del out
     summary = tracker.summary()
@@ -644,7 +642,7 @@ def several_gpus(report: dict[str, Any], num_gpus: int, split_cfg: bool = False)
     if num_gpus < 1:
         raise ValueError(f"--num-gpus must be >= 1, got {num_gpus}")
     settings, counts = report["settings"], report["counts"]
-    chunks = len(default_anchors(settings["frames"], COGVIDEOX_TEMPORAL_COMPRESSION))
+    chunks = len(default_anchors(settings["frames"], model_named("cogvideox-5b").temporal_compression))
     per_gpu_chunks = -(-chunks // num_gpus)
     remote = chunks - len(range(0, chunks, num_gpus))  # chunk k runs on GPU k mod N; GPU 0 is the pipeline's
     latent_h, latent_w = settings["height"] // 8, settings["width"] // 8
@@ -654,7 +652,7 @@ def several_gpus(report: dict[str, Any], num_gpus: int, split_cfg: bool = False)
     split = split_cfg and num_gpus >= 2 and bool(denoiser_stages)
     # the second CFG half's latents in and output back (bf16), its text embeddings in; a call with
     # gradients moves both gradients back the other way
-    latent_frames = (settings["frames"] - 1) // COGVIDEOX_TEMPORAL_COMPRESSION + 1
+    latent_frames = (settings["frames"] - 1) // model_named("cogvideox-5b").temporal_compression + 1
     half_bytes = 2 * (2 * latent_frames * 16 * latent_h * latent_w) + 2 * 226 * 4096
     half_transfers = counts.get("denoiser_cfg", 0) + 2 * counts.get("denoiser_grad", 0)
     rows = {}

@@ -30,16 +30,18 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+import contextlib
+from collections.abc import Iterator
+
 from ..config import GeCoConfig, config_to_dict
 from ..estimators import TINY_RANDOM
-from ..sampler import loading
+from ..generation import Models, check_generation, load_models, sample
+from ..sampler.adapters import adapter_for
 from ..sampler.anchor_decode import anchor_decoder, plan_anchor_decode
-from ..sampler.context import GuidanceContext
+from ..sampler.context import GuidanceObserver, decoder_note
 from ..sampler.memory_plan import MemoryPlan
 from ..sampler.objective import AnchorObjective
-from ..sampler.run_options import RunOptions
-from ..sampler.slicing import decode_chunk
-from ..sampler.step import loss_terms, read_scalars
+from ..sampler.step import GuidanceRecord, loss_terms
 from .measure import environment_info
 
 __all__ = ["DecoderAgreement", "agreement_rows", "agreement_summary", "agreement_table", "check_agreement_config",
@@ -66,27 +68,36 @@ def psnr_db(frames: Tensor, reference: Tensor) -> float:
     return float(10 * torch.log10(1 / mse.clamp_min(MSE_FLOOR)))
 
 
-class DecoderAgreement:
-    """Both decoders at every update of one guided call: the updates' objective (the guiding
-    decoder's, with the other decoder's loss and gradient beside it on a detached copy) and one
-    row per update in ``rows``, taken where the guidance log reads the update's numbers (after
-    its backward: the guiding gradient is there).
+class DecoderAgreement(GuidanceObserver):
+    """Both decoders at every update of one guided call, watched through the guidance's observer
+    seam: the updates' objective (the guiding decoder's, with the other decoder's loss and
+    gradient beside it on a detached copy) and one row per update in ``rows``, taken when the
+    update is recorded (after its backward: the guiding gradient is there).
 
     Args:
-        guided_by: the guiding decoder (``guidance.decoder``: ``"vae"`` or ``"tiny"``).
+        pipe: the guided pipeline (its VAE, its family's decode).
+        models: its estimators, the tiny decoder among them.
+        cfg: the call's config (which decoder guides; the anchors and their chunks).
         rows: the list the rows are appended to.
     """
 
-    def __init__(self, guided_by: str, rows: list[dict[str, Any]]):
-        self.guided_by, self.rows = guided_by, rows
-        self.observer = "vae" if guided_by == "tiny" else "tiny"
+    def __init__(self, pipe: Any, models: Models, cfg: GeCoConfig, rows: list[dict[str, Any]]):
+        self.guided_by, self.rows = cfg.guidance.decoder, rows
+        self.observer = "vae" if self.guided_by == "tiny" else "tiny"
         self.pending: dict[str, Any] = {}
         self.at: tuple[int, int] = (0, 0)  # (step, t) of the updates under way
+        observed = replace(cfg.guidance, decoder=self.observer)
+        # the observer decodes in the stock layout: channels-last is for the VAE that guides
+        run = replace(cfg.run, decode_layout="default")
+        decode = partial(adapter_for(pipe).decode, pipe)
+        self._decode = anchor_decoder(observed, run, lambda vae: decode, models.estimators.tiny_decoder, pipe.vae)
+        self._chunks = observed.anchor_chunks(cfg.sampling.num_frames, models.video.model.temporal_compression)
 
-    def objective(self, guide: AnchorObjective,
-                  observer_decode: Callable[[Tensor], Tensor]) -> Callable[[Tensor], tuple[Tensor, dict[str, Tensor]]]:
-        """``x0 -> (loss, terms)``: ``guide``'s anchor decode and loss (without dynamic masks), the
-        update unchanged; ``observer_decode`` (the other decoder's anchor decode) measured beside."""
+    def objective(self, anchor_objective: AnchorObjective, plan: MemoryPlan) -> Callable[[Tensor], Any]:
+        """``x0 -> (loss, terms)``: the guiding decoder's anchor decode and loss (without dynamic
+        masks), the update unchanged; the other decoder's chunks decoded as the plan decodes the
+        guide's, on one device, and measured beside."""
+        guide, observer_decode = anchor_objective, plan_anchor_decode(plan, self._decode, self._chunks)
 
         def objective(x0: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
             latents = guide.latent_frames(x0)
@@ -108,9 +119,13 @@ class DecoderAgreement:
 
         return objective
 
-    def read_scalars(self, values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
-        """The update's numbers (:func:`~geco_guide.sampler.step.read_scalars`), and its row."""
-        scalars = read_scalars(values, device)
+    @contextlib.contextmanager
+    def step(self, step: int, t: int) -> Iterator[None]:
+        self.at = (step, t)
+        yield
+
+    def on_update(self, record: GuidanceRecord) -> None:
+        """The update's row."""
         p, guide = self.pending, self.guided_by
         step, t = self.at
         self.rows.append({
@@ -119,39 +134,6 @@ class DecoderAgreement:
             "cosine": gradient_cosine(p.get("guide_grad"), p["observed_grad"]),
             "psnr_db": psnr_db(p["tiny_frames"], p["vae_frames"]),
         })
-        return scalars
-
-
-def agreement_context_class(pipe: Any, num_frames: int, rows: list[dict[str, Any]]) -> type[GuidanceContext]:
-    """A :class:`GuidanceContext` for ``pipe`` (which holds both its VAE and a ``guidance_decoder``)
-    whose updates are measured by a :class:`DecoderAgreement` appending to ``rows``, through the
-    context's ``objective_for`` and ``read_scalars``; the update itself is unchanged."""
-    def vae_decode_with(vae: Any) -> Callable[[Tensor], Tensor]:
-        return partial(decode_chunk, vae, scaling_factor=pipe.vae_scaling_factor_image)
-
-    class AgreementContext(GuidanceContext):
-        def __init__(self, config: Any, *args: Any, **kwargs: Any) -> None:
-            measure = DecoderAgreement(config.decoder, rows)
-            observer_config = replace(config, decoder=measure.observer)
-            # the observer decodes in the stock layout: channels-last is for the VAE that guides
-            observer_run = replace(kwargs.get("run") or RunOptions(), decode_layout="default")
-            observer_decode = anchor_decoder(observer_config, observer_run, vae_decode_with, pipe.guidance_decoder,
-                                             pipe.vae)
-            observer_chunks = observer_config.anchor_chunks(num_frames, pipe.vae_scale_factor_temporal)
-
-            def objective_for(guide: AnchorObjective, plan: MemoryPlan) -> Callable[[Tensor], Any]:
-                # the observer's chunks decoded as the plan decodes the guide's, on one device
-                return measure.objective(guide, plan_anchor_decode(plan, observer_decode, observer_chunks))
-
-            super().__init__(config, *args, read_scalars=measure.read_scalars, objective_for=objective_for, **kwargs)
-            self.measure = measure
-
-        def guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: Any, step: int,
-                  t: int) -> tuple[Tensor, Tensor]:
-            self.measure.at = (step, int(t))
-            return super().guide(z, predict, levels, step, t)
-
-    return AgreementContext
 
 
 def agreement_summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
@@ -167,34 +149,25 @@ def agreement_summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def check_agreement_config(cfg: GeCoConfig) -> None:
-    """ValueError (one line) for a config that cannot measure the agreement; before any model loads."""
+def check_agreement_config(cfg: GeCoConfig, prompt: str) -> GeCoConfig:
+    """ValueError (one line) for a config that cannot measure the agreement, and what
+    ``generate`` refuses (the tiny decoder's weights among them); before any model loads. Returns
+    the config with the tiny decoder loaded beside the guiding decoder."""
     if not cfg.guidance.enabled:
         raise ValueError("decoder-agreement compares the decoders inside guidance: guidance.enabled must be true")
-    loading.check_tiny_decoder_source(cfg)
-    loading.check_weights_before_loading(cfg)
+    if not cfg.estimators.tiny_decoder:
+        raise ValueError("decoder-agreement compares the VAE with the tiny decoder: set estimators.tiny_decoder "
+                         "(a file, a folder, a hub id, or tiny-random)")
+    return check_generation(replace(cfg, guidance=replace(cfg.guidance, decoder="tiny")), prompt)
 
 
-def agreement_rows(pipe: Any, cfg: GeCoConfig, prompt: str) -> list[dict[str, Any]]:
-    """The per-update rows of one guided call of ``pipe`` (a :class:`GeCoCogVideoXPipeline` with
-    its ``guidance_decoder`` attached, e.g. the pipeline of an A/B run that guides with it) with
-    ``cfg``'s sampling and guidance, seeded with ``cfg.seed``. The pipeline's own guidance
-    context class is restored afterwards."""
+def agreement_rows(models: Models, cfg: GeCoConfig, prompt: str) -> list[dict[str, Any]]:
+    """The per-update rows of one guided call of ``models`` (whose estimators hold the tiny
+    decoder, e.g. the models of an A/B run that guides with it) with ``cfg``'s sampling and
+    guidance, seeded with ``cfg.seed``: the generation path's own call, watched by a
+    :class:`DecoderAgreement`."""
     rows: list[dict[str, Any]] = []
-    own = pipe.__dict__.get("guidance_context_class")
-    pipe.guidance_context_class = agreement_context_class(pipe, cfg.sampling.num_frames, rows)
-    s = cfg.sampling
-    try:
-        pipe(prompt=prompt, negative_prompt=s.negative_prompt, height=s.height, width=s.width,
-             num_frames=s.num_frames, num_inference_steps=s.num_inference_steps, guidance_scale=s.guidance_scale,
-             use_dynamic_cfg=s.use_dynamic_cfg, generator=torch.Generator(device="cpu").manual_seed(cfg.seed),
-             output_type="latent", max_sequence_length=s.max_sequence_length, guidance=cfg.guidance,
-             run_options=cfg.run)
-    finally:
-        if own is None:
-            del pipe.guidance_context_class  # the class's again
-        else:
-            pipe.guidance_context_class = own
+    sample(models, cfg, prompt, observer=DecoderAgreement(models.pipe, models, cfg, rows), progress=False)
     return rows
 
 
@@ -207,19 +180,16 @@ def decoder_agreement(cfg: GeCoConfig, prompt: str, argv: Sequence[str] = ()) ->
         ValueError / WeightsNotFoundError: one line, before any model loads, for guidance that is
             off or a tiny decoder that is not there (:func:`check_agreement_config`).
     """
-    check_agreement_config(cfg)
-    from ..tiny import video_components  # the tiny models pull in transformers: only when a run starts
-
-    pipe = loading.build_pipeline(cfg, components=video_components(cfg), tiny_decoder=True)
-    pipe.set_progress_bar_config(disable=True)
-    rows = agreement_rows(pipe, cfg, prompt)
-    tiny_random = TINY_RANDOM in (cfg.model.id, cfg.estimators.tiny_decoder)
+    checked = check_agreement_config(cfg, prompt)
+    models = load_models(checked)  # with the tiny decoder
+    rows = agreement_rows(models, replace(checked, guidance=cfg.guidance), prompt)
+    tiny_random = TINY_RANDOM in (cfg.model.source, cfg.estimators.tiny_decoder)
     return {
         "subcommand": "decoder-agreement",
         "argv": list(argv),
         "prompt": prompt,
         "guided_by": cfg.guidance.decoder,
-        "tiny_decoder": loading.tiny_decoder_note(pipe.guidance_decoder, cfg.estimators.init_seed),
+        "tiny_decoder": decoder_note("tiny", models.estimators.tiny_decoder),
         "summary": agreement_summary(rows),
         "rows": rows,
         "note": ("tiny random models: these numbers exercise the measurement only and say nothing about the "

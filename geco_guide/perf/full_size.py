@@ -13,6 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..estimators.bundle import Estimators
 from ..estimators.tiny_decoder import TinyDecoder
 from ..estimators.ufm import UFM, UFMConfig
 from ..estimators.vggt import VGGT, VGGTConfig
@@ -183,22 +184,20 @@ def model_bytes(model: Any) -> int:
     return sum(seen.values())
 
 
-def build_cost_pipeline(settings: dict[str, Any], fake_mode: Any) -> tuple[Any, dict[str, Any]]:
-    """The pipeline of the cost model with fake weights, and its call kwargs (the text embeddings
-    are left to the caller for full size; the tiny preset runs its tiny T5 on fake tensors). Full
-    size: the CogVideoX-5B transformer and VAE, VGGT-1B and UFM-Base (trunks in ``dtype``, heads
-    float32), built on the meta device: nothing is allocated."""
+def build_cost_pipeline(settings: dict[str, Any], fake_mode: Any) -> tuple[Any, dict[str, Any], Estimators]:
+    """The pipeline of the cost model with fake weights, its call kwargs (the text embeddings are
+    left to the caller for full size; the tiny preset runs its tiny T5 on fake tensors) and its
+    estimators. Full size: the CogVideoX-5B transformer and VAE, VGGT-1B and UFM-Base (trunks in
+    ``dtype``, heads float32), built on the meta device: nothing is allocated."""
     from ..sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     dtype = getattr(torch, settings["dtype"])
     if settings["preset"] == "tiny":
-        from ..tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_pipeline
+        from ..tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_estimators, tiny_guidance_decoder, tiny_pipeline
 
         pipe = tiny_pipeline(settings["seed"])
-        if settings.get("decoder") == "tiny":
-            from ..tiny import tiny_guidance_decoder
-
-            pipe.register_modules(guidance_decoder=tiny_guidance_decoder("cogvideox", settings["seed"]))
+        geometry, flow = tiny_estimators(settings["seed"])
+        decoder = tiny_guidance_decoder("cogvideox", settings["seed"]) if settings.get("decoder") == "tiny" else None
         cast_components(pipe, dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
     else:
@@ -210,15 +209,14 @@ def build_cost_pipeline(settings: dict[str, Any], fake_mode: Any) -> tuple[Any, 
         flow.trunk_to(dtype).eval()
         with torch.device("meta"):
             decoder = TinyDecoder("cogvideox").to(dtype).requires_grad_(False) if settings.get("decoder") == "tiny" else None
-        pipe = GeCoCogVideoXPipeline(**build_full_size_components("meta", dtype, settings["seed"]),
-                                     geometry_estimator=geometry, flow_estimator=flow, guidance_decoder=decoder)
+        pipe = GeCoCogVideoXPipeline(**build_full_size_components("meta", dtype, settings["seed"]))
         call = {"max_sequence_length": TEXT_EMBED_SHAPE[1]}
-    for name in ("text_encoder", "transformer", "vae", "geometry_estimator", "flow_estimator", "guidance_decoder"):
-        model = getattr(pipe, name, None)
+    estimators = Estimators(geometry, flow, tiny_decoder=decoder)
+    for model in (pipe.text_encoder, pipe.transformer, pipe.vae, *estimators.modules()):
         if isinstance(model, torch.nn.Module):
             to_fake(model, fake_mode)
     if settings["vae_tiling"]:
         pipe.vae.enable_tiling()
     pipe.set_progress_bar_config(disable=True)
     call.update(num_frames=settings["frames"], height=settings["height"], width=settings["width"], output_type="pt")
-    return pipe, call
+    return pipe, call, estimators

@@ -15,7 +15,8 @@ from typing import Any, NoReturn
 
 import torch
 
-from ..config import COGVIDEOX_TEMPORAL_COMPRESSION, load_config
+from ..config import load_config
+from ..families import model_named
 from ..estimators.loading import WeightsNotFoundError
 from ..io.devices import check_device as check_config_device
 from ..sampler.config import DECODERS
@@ -88,7 +89,7 @@ def check_device(device: str) -> None:
 def check_frames(frames: int, guided: bool) -> None:
     """The CogVideoX VAE makes 4k+1 frames, and with guidance (anchors decoded in latent pairs) 8k+1."""
     try:
-        (check_paired_latent_frames if guided else check_num_frames)(frames, COGVIDEOX_TEMPORAL_COMPRESSION)
+        (check_paired_latent_frames if guided else check_num_frames)(frames, model_named("cogvideox-5b").temporal_compression)
     except ValueError as err:
         fail(f"--frames: {err}")
 

@@ -34,7 +34,8 @@ KNOWN_MODELS: dict[str, dict[str, Any]] = {
 }
 MODES = ("fast", "faithful")
 ANCHOR_DECODERS = ("vae", "tiny")
-#: Weights on the device through a whole call under model CPU offload (the pipeline excludes them).
+#: Weights on the device through a whole call under model CPU offload (the estimators are no
+#: components: offloading leaves them where they are).
 RESIDENT_UNDER_OFFLOAD = ("geometry_estimator", "flow_estimator", "guidance_decoder")
 #: The offloaded model at work in each cost stage (the anchor decode's is the VAE unless the tiny
 #: decoder decodes the anchors, and that one is resident).

@@ -19,8 +19,9 @@ from typing import Any
 
 import torch
 
-from ..config import COGVIDEOX_TEMPORAL_COMPRESSION
+from ..estimators.bundle import Estimators
 from ..estimators.ufm import UFM, UFMConfig
+from ..families import default_anchors, model_named
 from ..estimators.vggt import VGGT, VGGTConfig
 from ..sampler.config import GuidanceConfig, fused_guidance_config
 from ..sampler.run_options import RunOptions
@@ -30,7 +31,6 @@ from ..sampler.schedule import (
     parse_repeats,
     scale_schedule,
 )
-from ..sampler.slicing import default_anchors
 from .measure import (
     GIB,
     environment_info,
@@ -74,7 +74,7 @@ def sampling_guidance(spec: dict[str, Any]) -> GuidanceConfig | bool:
     # the fused loss (gradients through VGGT too): the costlier of the two presets, what was measured
     base = tiny_guidance_config() if spec["preset"] == "tiny" else fused_guidance_config()
     chunk_latents = base.chunk_latents if spec["chunk_latents"] is None else spec["chunk_latents"]
-    anchors = default_anchors(spec["frames"], COGVIDEOX_TEMPORAL_COMPRESSION)
+    anchors = default_anchors(spec["frames"], model_named("cogvideox-5b").temporal_compression)
     return replace(base, anchors=anchors, repeats=repeats, time_travel=time_travel,
                    denoiser_grad=spec["mode"] == "faithful", chunk_latents=chunk_latents)
 
@@ -89,23 +89,28 @@ def sampling_run_options(spec: dict[str, Any]) -> RunOptions:
                    gradient_checkpointing=base.gradient_checkpointing and not spec.get("no_denoiser_checkpointing"))
 
 
-def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: torch.dtype) -> tuple[Any, dict[str, Any]]:
-    """The pipeline of a sampling case and its call kwargs (random text embeddings for full size)."""
+def build_sampling_pipeline(spec: dict[str, Any], device: torch.device,
+                            dtype: torch.dtype) -> tuple[Any, dict[str, Any], Estimators]:
+    """The pipeline of a sampling case, its call kwargs (random text embeddings for full size) and
+    its estimators."""
     from ..sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     seed = spec["seed"]
     if spec["preset"] == "tiny":
-        from ..tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_pipeline
+        from ..tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_bundle, tiny_pipeline
 
         pipe = cast_components(tiny_pipeline(seed), dtype).to(device)
+        estimators = tiny_bundle(seed)
+        for model in estimators.modules():
+            model.to(device=device, dtype=dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
     else:
         # trunks in the sampling dtype, heads float32: what generate's from_pretrained(dtype=...) builds
         ckpt = spec.get("estimator_checkpointing", False)
         geometry = VGGT.random(VGGTConfig(), seed=seed, gradient_checkpointing=ckpt).trunk_to(dtype)
         flow = UFM.random(UFMConfig(), seed=seed, gradient_checkpointing=ckpt).trunk_to(dtype)
-        pipe = GeCoCogVideoXPipeline(**build_full_size_components(device, dtype, seed),
-                                     geometry_estimator=geometry.eval(), flow_estimator=flow.eval())
+        pipe = GeCoCogVideoXPipeline(**build_full_size_components(device, dtype, seed))
+        estimators = Estimators(geometry.eval().to(device), flow.eval().to(device))
         pipe.to(device)
         if spec["vae_tiling"]:  # generate's model.vae_tiling
             pipe.vae.enable_tiling()
@@ -115,7 +120,7 @@ def build_sampling_pipeline(spec: dict[str, Any], device: torch.device, dtype: t
         call = {"prompt_embeds": embeds[0], "negative_prompt_embeds": embeds[1],
                 "max_sequence_length": TEXT_EMBED_SHAPE[1]}
     call.update(num_frames=spec["frames"], height=spec["height"], width=spec["width"], output_type="pt")
-    return pipe, call
+    return pipe, call, estimators
 
 
 def run_sampling_worker(spec: dict[str, Any]) -> dict[str, Any]:
@@ -126,7 +131,7 @@ def run_sampling_worker(spec: dict[str, Any]) -> dict[str, Any]:
         torch.set_num_threads(spec["threads"])
     baseline = peak_memory_bytes(device)
     start = time.perf_counter()
-    pipe, call = build_sampling_pipeline(spec, device, dtype)
+    pipe, call, estimators = build_sampling_pipeline(spec, device, dtype)
     synchronize(device)
     setup_s = time.perf_counter() - start
     after_setup = peak_memory_bytes(device)
@@ -134,14 +139,15 @@ def run_sampling_worker(spec: dict[str, Any]) -> dict[str, Any]:
     profiler = StageProfiler(device)
     profiler.wrap(pipe.transformer, "forward", "denoiser")
     profiler.wrap(pipe.vae, "decode", "vae_decode")
-    profiler.wrap(pipe.geometry_estimator, "estimate_geometry", "vggt")
-    profiler.wrap(pipe.flow_estimator, "estimate_flow", "ufm")
+    profiler.wrap(estimators.geometry, "estimate_geometry", "vggt")
+    profiler.wrap(estimators.flow, "estimate_flow", "ufm")
     profiler.mark_loop_start(pipe)
     guidance, run = sampling_guidance(spec), sampling_run_options(spec)
 
     def sample(steps: int, guidance_arg: Any) -> Any:
         return pipe(**call, num_inference_steps=steps, guidance=guidance_arg, run_options=run, guidance_scale=6.0,
-                    generator=torch.Generator().manual_seed(spec["seed"]), callback_on_step_end=profiler.on_step_end)
+                    generator=torch.Generator().manual_seed(spec["seed"]), callback_on_step_end=profiler.on_step_end,
+                    estimators=estimators if guidance_arg is not False else None)
 
     for _ in range(spec["warmup"]):  # 2 steps: with guidance, step 1 has updates (scaled schedule)
         warm = sampling_guidance({**spec, "steps": 2}) if guidance is not False else False
@@ -155,7 +161,7 @@ def run_sampling_worker(spec: dict[str, Any]) -> dict[str, Any]:
     cpu_per_wall = (time.process_time() - cpu_start) / wall
     peak = peak_memory_bytes(device)
 
-    log = out.guidance_log or []
+    log = out.report.log
     profile = summarize_profile(profiler, log)
     loop_s = profiler.step_ends[-1] - profiler.loop_start
     step_times = [b - a for a, b in zip([profiler.loop_start, *profiler.step_ends[:-1]], profiler.step_ends)]

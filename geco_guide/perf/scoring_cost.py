@@ -55,10 +55,10 @@ def geco_eval_cost(*, frames: int, fps: float, height: int, width: int, pairs: S
     modes = {}
     for mode in pairs:
         cfg = load_config(preset="tiny", overrides=[f"evaluation.loss.pairs={mode}"])
-        evaluate_video(video, geometry_estimator=geometry, flow_estimator=flow, config=cfg, fps=fps)  # warm-up
+        evaluate_video(video, estimators, cfg.evaluation, fps=fps)  # warm-up
         counts.update(dict.fromkeys(counts, 0))
         start = time.perf_counter()
-        result = evaluate_video(video, geometry_estimator=geometry, flow_estimator=flow, config=cfg, fps=fps)
+        result = evaluate_video(video, estimators, cfg.evaluation, fps=fps)
         wall = time.perf_counter() - start
         estimate = counts["ufm_pairs"] * ufm_pair_s + counts["vggt_frames"] * vggt_frame_s
         modes[mode] = {**counts, "windows": len(result.windows), "tiny_cpu_wall_s": wall,

@@ -3,15 +3,9 @@ anchor slicing, noise-level arithmetic, the model-agnostic guided step and the g
 the CogVideoX pipeline and the hooks that guide other diffusers video pipelines (both imported
 lazily: they pull in diffusers)."""
 
-from .config import (
-    GuidanceConfig,
-    fused_guidance_config,
-    paper_guidance_config,
-    resolve_call_options,
-    resolve_guidance_config,
-)
-from .run_options import RunOptions
-from .context import GuidanceContext
+from .config import GuidanceConfig, fused_guidance_config, paper_guidance_config, resolve_guidance_config
+from .run_options import RunOptions, resolve_call_options
+from .context import GuidanceContext, GuidanceObserver, GuidanceReport
 from .levels import FlowLevels, NoiseLevels, VPLevels, ddim_step, renoise, v_to_x0
 from .schedule import GuidanceSchedule, paper_schedule, parse_repeats, scale_schedule
 from .slicing import (
@@ -44,7 +38,9 @@ __all__ = [
     "GeCoCogVideoXPipelineOutput",
     "GuidanceConfig",
     "GuidanceContext",
+    "GuidanceObserver",
     "GuidanceRecord",
+    "GuidanceReport",
     "GuidanceSchedule",
     "anchor_latent_chunks",
     "check_num_frames",

@@ -8,15 +8,16 @@ method section's fused loss (the ``cogvideox-5b-fused`` preset). See docs/guidan
 
 from __future__ import annotations
 
-import warnings
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any, Optional
+from typing import Any, ClassVar, Optional
 
 from ..estimators.tiny_decoder import CONTEXT_LATENTS
+from ..families import default_anchors
 from ..loss.geco import GeCoLossConfig
 from ..loss.presets import fused_guidance_loss, guidance_loss
-from ..types import OptionError, is_integer, is_number, merge_dataclass, non_finite_fields
+from ..types import OptionError, is_integer, is_number, merge_dataclass, non_finite_fields, refuse_renamed_arguments
 from .schedule import (
     PAPER_STEP_SIZE,
     PAPER_REPEATS,
@@ -24,29 +25,20 @@ from .schedule import (
     GuidanceSchedule,
     scale_schedule,
 )
-from .run_options import (
-    MOVED_GUIDANCE_KEYS,
-    RenamedOptionWarning,
-    RunOptions,
-    check_run_for_guidance,
-    resolve_run_options,
-)
 from .slicing import AnchorChunk, anchor_latent_chunks
 
-__all__ = ["DECODERS", "MAX_STEP_SIZE", "PAPER_ANCHORS", "RENAMED_GUIDANCE_KEYS", "GuidanceConfig",
-           "check_call_options", "fused_guidance_config", "paper_guidance_config", "resolve_call_options",
-           "resolve_guidance_config", "upgrade_guidance_keys"]
+__all__ = ["DECODERS", "MAX_STEP_SIZE", "PAPER_ANCHORS", "GuidanceConfig", "fused_guidance_config",
+           "paper_guidance_config", "resolve_guidance_config"]
 
 PAPER_ANCHORS = (12, 24, 36, 48)
 # An update moves the latents by step_size in L2 norm; 1000 is about the norm of the whole latent
 # video at 480x720 (the paper: 3). Larger values only overflow the latents to NaN/inf after
 # minutes of sampling (a black video), so they are refused at once.
 MAX_STEP_SIZE = 1000.0
-#: Guidance options under an earlier name -> their name now (``eta`` was also the scheduler's).
-RENAMED_GUIDANCE_KEYS = {"eta": "step_size"}
 DECODERS = ("vae", "tiny")
 
 
+@refuse_renamed_arguments
 @dataclass
 class GuidanceConfig:
     """GeCo guidance options: what guidance computes (defaults: the paper's guidance experiment,
@@ -56,7 +48,9 @@ class GuidanceConfig:
 
     Attributes:
         enabled: ``False`` samples without guidance (plain deterministic DDIM).
-        anchors: 0-based pixel frames decoded and scored during guidance.
+        anchors: 0-based pixel frames decoded and scored during guidance; ``None``: the paper's
+            four spread over the call's video (:func:`~geco_guide.families.default_anchors`:
+            (12, 24, 36, 48) of 49 frames, as the paper).
         chunk_latents: latents per causal chunk decoded for each anchor (ending at its latent).
         repeats: ``R_t`` per step, as runs ``"RxN,..."`` (see :mod:`.schedule`). Runs written for
             another step count are scaled to the sampler's, phases in proportion (with a
@@ -93,8 +87,17 @@ class GuidanceConfig:
             by its repeats).
     """
 
+    #: Earlier spellings, refused in one line naming the new one: ``eta`` was also the scheduler's
+    #: name, and how one machine runs guidance moved to :class:`~.run_options.RunOptions`.
+    RENAMED: ClassVar[dict[str, tuple[str, str]]] = {
+        "eta": ("guidance.step_size", "GuidanceConfig(step_size=...)"),
+        **{key: (f"run.{key}", f"RunOptions({key}=...)") for key in (
+            "memory_plan", "memory_budget_gb", "gradient_checkpointing", "vae_checkpointing",
+            "vae_block_checkpointing", "decode_layout", "compile", "devices")},
+    }
+
     enabled: bool = True
-    anchors: list[int] = field(default_factory=lambda: list(PAPER_ANCHORS))
+    anchors: Optional[list[int]] = None
     chunk_latents: int = 3
     repeats: str = PAPER_REPEATS
     step_size: float = PAPER_STEP_SIZE
@@ -142,7 +145,14 @@ class GuidanceConfig:
         the video cannot contain): ``chunk_latents`` long for the VAE, the tiny decoder's context
         for it."""
         length = self.chunk_latents if self.decoder == "vae" else CONTEXT_LATENTS
-        return anchor_latent_chunks(self.anchors, num_frames, temporal_compression, length)
+        return anchor_latent_chunks(self.anchors_for(num_frames, temporal_compression), num_frames,
+                                    temporal_compression, length)
+
+    def anchors_for(self, num_frames: int, temporal_compression: int) -> list[int]:
+        """The anchors of a ``num_frames`` video: :attr:`anchors`, or the paper's spread over it."""
+        if self.anchors is not None:
+            return list(self.anchors)
+        return default_anchors(num_frames, temporal_compression)
 
     def validate(self, num_steps: int, num_frames: int,
                  temporal_compression: int) -> tuple[GuidanceSchedule, list[AnchorChunk]]:
@@ -155,13 +165,36 @@ class GuidanceConfig:
 
 def check_dynamic_options(config: GuidanceConfig) -> None:
     """OptionError (one line naming the key) for moving-subject options that cannot work."""
-    if config.dynamic is not None and (not isinstance(config.dynamic, str) or not config.dynamic.strip(" ,")):
-        raise OptionError("dynamic", f"must be null, 'auto' or the subjects that move, e.g. 'a dog, a person'; "
-                                     f"got {config.dynamic!r}")
+    problem = dynamic_spec_problem(config.dynamic)
+    if problem is not None:
+        raise OptionError("dynamic", problem)
     if not is_integer(config.dynamic_dilation) or config.dynamic_dilation < 0:
         raise OptionError("dynamic_dilation", f"must be a whole number of pixels >= 0, got {config.dynamic_dilation!r}")
     if not is_integer(config.dynamic_refresh) or config.dynamic_refresh < 1:
         raise OptionError("dynamic_refresh", f"must be a whole number of steps >= 1, got {config.dynamic_refresh!r}")
+
+
+def dynamic_spec_problem(spec: Any) -> str | None:
+    """Why ``spec`` is not what ``guidance.dynamic`` (``--dynamic``) takes: null, ``auto`` or the
+    text of the subjects that move; ``None`` when it is. A mask file is given masks (``evaluate
+    --dynamic-masks``), which guidance cannot use: the anchors' frames change at every update."""
+    from ..estimators.dynamic_masks import AUTO, looks_like_path
+
+    expected = "must be null, 'auto' or the subjects that move, e.g. 'a dog, a person'"
+    if spec is None:
+        return None
+    if not isinstance(spec, str) or not spec.strip(" ,"):
+        return f"{expected}; got {spec!r}"
+    if spec.strip().lower() == AUTO and spec != AUTO:
+        return f"{expected}; got {spec!r} (write auto in lower case for the automatic masks)"
+    if spec == AUTO:
+        return None
+    if re.fullmatch(r"[\s,]*[-+]?[\d.eE]+[\s,]*", spec):
+        return f"{expected}; got the number {spec!r}"
+    if looks_like_path(spec):
+        return (f"{expected}; got {spec!r}, which names a file: guidance computes its masks on the anchor frames "
+                "of every update, so it takes no mask file")
+    return None
 
 
 #: The options of :class:`GuidanceConfig` that take true or false.
@@ -189,13 +222,23 @@ def check_option_types(config: GuidanceConfig) -> None:
             raise OptionError(key, f"must be a number, got {getattr(config, key)!r}")
     if not is_integer(config.chunk_latents):
         raise OptionError("chunk_latents", f"must be an integer, got {config.chunk_latents!r}")
-    problem = _frame_list_problem(config.anchors, list(PAPER_ANCHORS))
+    problem = None if config.anchors is None else _frame_list_problem(config.anchors, list(PAPER_ANCHORS))
     if problem is not None:
         raise OptionError("anchors", problem)
     if config.time_travel is not None:
         problem = _frame_list_problem(config.time_travel, list(PAPER_TIME_TRAVEL))
         if problem is not None:
             raise OptionError("time_travel", problem)
+    if not isinstance(config.repeats, str):
+        problem = _frame_list_problem(config.repeats, [0, 0, 3])
+        if problem is not None:
+            raise OptionError("repeats", f"must be runs 'RxN,...' (e.g. {PAPER_REPEATS!r}) or a list of integers per "
+                                         f"step; {problem.removeprefix('must be a list of integers, e.g. [0, 0, 3], ')}")
+    if not isinstance(config.decoder, str):
+        raise OptionError("decoder", f"must be one of {DECODERS}, got {config.decoder!r}")
+    if not isinstance(config.loss, GeCoLossConfig):
+        raise OptionError("loss", f"must be a GeCoLossConfig (or a mapping of its options in a config), got "
+                                  f"{type(config.loss).__name__}")
 
 
 def paper_guidance_config() -> GuidanceConfig:
@@ -228,57 +271,3 @@ def resolve_guidance_config(
     if hasattr(override, "keys"):  # dict or omegaconf DictConfig
         return merge_dataclass(base, override, "guidance")
     raise ValueError(f"guidance must be a GuidanceConfig, a dict, True/False or None, got {type(override).__name__}")
-
-
-def upgrade_guidance_keys(guidance: Mapping[str, Any], source: str | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """``(guidance, run options)`` of a ``guidance`` mapping written with earlier names: the
-    options of :class:`~.run_options.RunOptions` it held move out, and the keys of
-    :data:`RENAMED_GUIDANCE_KEYS` take their new names; one
-    :class:`~.run_options.RenamedOptionWarning` per old key, naming the new one (and ``source``,
-    where the mapping came from, if given)."""
-    kept, moved = {}, {}
-    where = f" ({source})" if source else ""
-    for key, value in guidance.items():
-        if key in MOVED_GUIDANCE_KEYS:
-            moved[key], new = value, f"run.{key}"
-        elif key in RENAMED_GUIDANCE_KEYS:
-            kept[RENAMED_GUIDANCE_KEYS[key]], new = value, f"guidance.{RENAMED_GUIDANCE_KEYS[key]}"
-        else:
-            kept[key] = value
-            continue
-        warnings.warn(f"guidance.{key}{where} is now {new}: the old key works until the next release",
-                      RenamedOptionWarning, stacklevel=3)
-    return kept, moved
-
-
-def resolve_call_options(
-    base: GuidanceConfig | None,
-    override: GuidanceConfig | Mapping[str, Any] | bool | None,
-    run_base: RunOptions | None = None,
-    run_override: RunOptions | Mapping[str, Any] | None = None,
-) -> tuple[GuidanceConfig, RunOptions]:
-    """What one call's guidance computes and how it runs: :func:`resolve_guidance_config` and
-    :func:`~.run_options.resolve_run_options`. A ``guidance`` dict may still hold run options
-    under their old keys (``{"memory_plan": "chunked"}``): they apply below ``run_override``, with
-    one :class:`~.run_options.RenamedOptionWarning` each.
-
-    Raises:
-        ValueError: (one line naming the key) an unknown key, or run options this guidance
-            cannot use (``run.decode_layout=channels_last`` with the tiny decoder).
-    """
-    moved: dict[str, Any] = {}
-    if hasattr(override, "keys") and not isinstance(override, GuidanceConfig):
-        override, moved = upgrade_guidance_keys(override)
-    config = resolve_guidance_config(base, override)
-    run = resolve_run_options(resolve_run_options(run_base, moved or None), run_override)
-    check_call_options(config, run)
-    return config, run
-
-
-def check_call_options(config: GuidanceConfig, run: RunOptions) -> None:
-    """ValueError (one line naming the ``run`` key) for run options ``config`` cannot use
-    (:func:`~.run_options.check_run_for_guidance`)."""
-    try:
-        check_run_for_guidance(run, config.decoder)
-    except OptionError as err:
-        raise ValueError(f"run.{err}") from None

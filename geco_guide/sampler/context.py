@@ -10,10 +10,12 @@ A :class:`GuidanceContext` composes three parts that each do one job:
   update again (same generator state, so the same video), decided once for every device;
 * the log (:class:`GuidanceLog`): one :class:`~.step.GuidanceRecord` per update.
 
-:meth:`GuidanceContext.guide` runs :func:`~.step.guided_step` at one step of the loop with them.
-Profilers use the context's public seams: ``read_scalars`` (the one host sync of an update),
-``objective_for`` (what the updates score) and :meth:`~GuidanceContext.guide` (the updates of
-a step, bracketed by a subclass).
+:meth:`GuidanceContext.guide` runs :func:`~.step.guided_step` at one step of the loop with them,
+and :meth:`GuidanceContext.report` says what the call decided (:class:`GuidanceReport`: the log,
+the memory plan, the devices, the decoder, the masks), which the pipeline returns in its output
+and the hooks' handle keeps as ``handle.last``. Profilers watch a call through one public seam, a
+:class:`GuidanceObserver` passed to the call: what the updates score, the updates of each step,
+each update's record.
 """
 
 from __future__ import annotations
@@ -21,8 +23,10 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
+import math
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import asdict, dataclass, field
 from typing import Any, TypeVar
 
 import torch
@@ -40,10 +44,11 @@ from .objective import AnchorObjective
 from .run_options import RunOptions
 from .schedule import GuidanceSchedule
 from .slicing import AnchorChunk
-from .step import GuidanceRecord, Update, guided_step, read_scalars
+from .step import GuidanceRecord, Objective, Update, guided_step, read_scalars
 
-__all__ = ["GuidanceContext", "GuidanceExecution", "GuidanceLog", "estimator_checkpointing", "frozen",
-           "generator_states", "gradient_checkpointing", "partial_checkpointing"]
+__all__ = ["GuidanceContext", "GuidanceExecution", "GuidanceLog", "GuidanceObserver", "GuidanceReport",
+           "decoder_note", "estimator_checkpointing", "frozen", "generator_states", "gradient_checkpointing",
+           "partial_checkpointing"]
 
 logger = logging.getLogger(__name__)
 
@@ -119,6 +124,70 @@ def generator_states(generator: torch.Generator | list[torch.Generator] | None) 
     return [(g, g.get_state()) for g in generators]
 
 
+class GuidanceObserver:
+    """Watches the updates of a guided call without changing them: the one seam of profilers and
+    measurements (pass one to the pipeline's call, ``observer=``, or set ``handle.observer`` of the
+    hooks). Each method does nothing by default; override the ones you need.
+    """
+
+    def objective(self, anchor_objective: AnchorObjective, plan: MemoryPlan) -> Objective:
+        """What the updates score: by default ``anchor_objective`` itself (decode the anchors of
+        ``x0``, then the GeCo loss). Called when the memory plan is chosen, and again with the new
+        plan after an out-of-memory fallback; a wrapper must return what it wraps returns."""
+        return anchor_objective
+
+    @contextlib.contextmanager
+    def step(self, step: int, t: int) -> Iterator[None]:
+        """Around the ``R_t`` updates of denoising step ``step`` (timestep ``t``), their backward
+        passes included."""
+        yield
+
+    def on_update(self, record: GuidanceRecord) -> None:
+        """After each update, with its record (read from the device once, see :func:`~.step.read_scalars`)."""
+
+
+def decoder_note(decoder: str, tiny_decoder: Any) -> str:
+    """What decoded the loss' anchor frames, for the record: the VAE, or the tiny decoder of its
+    variant and the file it came from (``tiny-random`` for the stand-in)."""
+    if decoder != "tiny" or tiny_decoder is None:
+        return "vae (the model's own)"
+    origin = getattr(tiny_decoder, "checkpoint_file", None) or getattr(tiny_decoder, "geco_estimator_id", None) or "random"
+    return f"TinyDecoder({tiny_decoder.variant.name}) from {origin}"
+
+
+@dataclass
+class GuidanceReport:
+    """What one guided call decided: the pipeline's output carries it (``output.report``), the
+    hooks' handle keeps the last (``handle.last``), and a sidecar is written from it.
+
+    Attributes:
+        guidance: the resolved :class:`GuidanceConfig` of the call (a dict), ``None`` without guidance.
+        log: one dict per guided update (``step, repeat, t, loss, motion, structure, fused,
+            grad_norm, seconds, time_travel, skipped``; with dynamic masks ``masked_fraction`` and
+            ``mask_source``).
+        memory_plan: the memory plan the call ran with (:meth:`PlanChoice.to_dict
+            <geco_guide.sampler.memory_plan.PlanChoice.to_dict>`, after any fallback).
+        devices: the devices its anchor decode was dealt over (``run.devices``), ``None`` for one.
+        scheduler: the class of the scheduler that stepped.
+        decoder: what decoded the loss' anchor frames (:func:`decoder_note`).
+        mask_source: where the dynamic masks came from, ``None`` without.
+        masked_fraction: the mean fraction of the anchor frames' pixels masked over the updates,
+            ``None`` without masks.
+    """
+
+    guidance: dict[str, Any] | None = None
+    log: list[dict[str, Any]] = field(default_factory=list)
+    memory_plan: dict[str, Any] | None = None
+    devices: list[str] | None = None
+    scheduler: str | None = None
+    decoder: str | None = None
+    mask_source: str | None = None
+    masked_fraction: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
 class GuidanceLog:
     """The guidance log of a call: one :class:`~.step.GuidanceRecord` per update, appended to
     :attr:`records` as a dict and passed to :attr:`on_record`.
@@ -126,17 +195,14 @@ class GuidanceLog:
     Args:
         records: the list the records are appended to (a new one by default).
         on_record: called with each record as it is logged.
-        read_scalars: ``(values, device) -> floats``: the numbers of an update's record from its
-            0-dim tensors, the update's one device-to-host copy (:func:`~.step.read_scalars`).
-            The hook point of profilers: it runs once per update, after the update's backward; a
-            trace on fake tensors reads no values there, a measurement reads its own beside.
+        observer: told of each record after ``on_record`` (:meth:`GuidanceObserver.on_update`).
     """
 
     def __init__(self, records: list[dict[str, Any]] | None = None,
                  on_record: Callable[[GuidanceRecord], None] | None = None,
-                 read_scalars: Callable[[dict[str, Tensor], torch.device], dict[str, float]] = read_scalars):
+                 observer: GuidanceObserver | None = None):
         self.records = records if records is not None else []
-        self.on_record, self.read_scalars = on_record, read_scalars
+        self.on_record, self.observer = on_record, observer or GuidanceObserver()
 
     def recorder(self, step: int, t: int, device: torch.device,
                  mask_source: str | None = None) -> Callable[[Update], None]:
@@ -145,7 +211,7 @@ class GuidanceLog:
         source, ``None`` without masks."""
 
         def on_update(update: Update) -> None:
-            scalars = self.read_scalars(update.terms, device)
+            scalars = read_scalars(update.terms, device)
             record = GuidanceRecord(
                 step=step,
                 repeat=update.repeat,
@@ -164,6 +230,7 @@ class GuidanceLog:
             self.records.append(record.to_dict())
             if self.on_record is not None:
                 self.on_record(record)
+            self.observer.on_update(record)
 
         return on_update
 
@@ -273,7 +340,7 @@ class GuidanceContext:
             tiny decoder's; :func:`~.anchor_decode.anchor_decoder`).
         latent_frames: ``x0 -> [B, F, C, h, w]``: the video's latents, frames first, of the
             model's clean estimate (drops padding frames, reorders channels).
-        geometry_estimator, flow_estimator: the GeCo loss' estimators.
+        estimators: the GeCo loss' models (:class:`~geco_guide.estimators.Estimators`).
         generator: source of the time-travel noise (the call's).
         on_record: called with each :class:`GuidanceRecord` as it is logged.
         log: the list the records are appended to as dicts (a new one by default).
@@ -284,11 +351,7 @@ class GuidanceContext:
         devices: the devices the anchor chunks are dealt over
             (:func:`~.multi_device.resolve_devices` of ``run.devices``), each with a replica of
             ``decode_chunk``'s module, or ``None``: one device.
-        read_scalars: the log's reading of an update's numbers (:class:`GuidanceLog`).
-        objective_for: ``(anchor_objective, plan) -> objective``: what the updates score
-            (``x0 -> (loss, terms)``), made from the :class:`~.objective.AnchorObjective` of the
-            memory plan when the plan is chosen and again after a fallback; by default that
-            anchor objective itself. A profiler observes the updates through it.
+        observer: watches the updates (:class:`GuidanceObserver`), or ``None``.
     """
 
     def __init__(
@@ -298,8 +361,7 @@ class GuidanceContext:
         chunks: Sequence[AnchorChunk],
         decode_chunk: AnchorDecode,
         latent_frames: Callable[[Tensor], Tensor],
-        geometry_estimator: Any,
-        flow_estimator: Any,
+        estimators: Any,
         *,
         generator: torch.Generator | list[torch.Generator] | None = None,
         on_record: Callable[[GuidanceRecord], None] | None = None,
@@ -308,23 +370,22 @@ class GuidanceContext:
         memory_plan: PlanChoice | None = None,
         dynamic_masks: RefreshedMasks | None = None,
         devices: Sequence[torch.device] | None = None,
-        read_scalars: Callable[[dict[str, Tensor], torch.device], dict[str, float]] = read_scalars,
-        objective_for: Callable[[AnchorObjective, MemoryPlan], Callable[[Tensor], tuple[Tensor, dict[str, Tensor]]]]
-        | None = None,
+        observer: GuidanceObserver | None = None,
     ):
         self.config, self.schedule, self.generator, self.dynamic_masks = config, schedule, generator, dynamic_masks
-        self.guidance_log = GuidanceLog(log, on_record, read_scalars)
-        self.execution = GuidanceExecution(config, run, memory_plan, (geometry_estimator, flow_estimator),
+        self.estimators = estimators
+        self.observer = observer or GuidanceObserver()
+        self.guidance_log = GuidanceLog(log, on_record, self.observer)
+        self.execution = GuidanceExecution(config, run, memory_plan, (estimators.geometry, estimators.flow),
                                            on_plan=self._use_plan)
         self._decode_chunk, self._chunks = decode_chunk, list(chunks)
         self._devices = list(devices) if devices else None
-        self._objective_for = objective_for
         # No frame check: it would make each update wait for the device; a NaN decode gives NaN
         # scalars and no update instead (see guided_step).
-        loss_fn = GeCoLoss(geometry_estimator, flow_estimator, config.loss, check_values=False)
+        loss_fn = GeCoLoss(estimators, config.loss, check_values=False)
         self.anchor_objective = AnchorObjective(self._anchor_decode(self.memory_plan.plan), latent_frames, loss_fn,
                                                 dynamic_masks)
-        self.update_objective = self._update_objective(self.memory_plan.plan)
+        self.update_objective = self.observer.objective(self.anchor_objective, self.memory_plan.plan)
 
     @property
     def log(self) -> list[dict[str, Any]]:
@@ -347,20 +408,19 @@ class GuidanceContext:
 
     def models(self, denoisers: Iterable[nn.Module], vae: Any,
                others: Iterable[Any] = ()) -> contextlib.AbstractContextManager[None]:
-        """The execution's :meth:`GuidanceExecution.models` block: the models frozen, the memory
-        plan's checkpointing on; all restored on exit."""
-        return self.execution.models(denoisers, vae, others)
+        """The execution's :meth:`GuidanceExecution.models` block: the models frozen (the
+        estimators' tiny decoder and segmenter among them), the memory plan's checkpointing on;
+        all restored on exit."""
+        extra = [m for m in (self.estimators.tiny_decoder, self.estimators.segmenter) if isinstance(m, nn.Module)]
+        return self.execution.models(denoisers, vae, [*others, *extra])
 
     def _anchor_decode(self, plan: MemoryPlan) -> Callable[[Tensor], Tensor]:
         return plan_anchor_decode(plan, self._decode_chunk, self._chunks, self._devices)
 
-    def _update_objective(self, plan: MemoryPlan) -> Callable[[Tensor], tuple[Tensor, dict[str, Tensor]]]:
-        return self.anchor_objective if self._objective_for is None else self._objective_for(self.anchor_objective, plan)
-
     def _use_plan(self, plan: MemoryPlan) -> None:
         """After a fallback: the new plan's anchor decode (the replicas copied again, with its switches)."""
         self.anchor_objective = self.anchor_objective.with_decode(self._anchor_decode(plan))
-        self.update_objective = self._update_objective(plan)
+        self.update_objective = self.observer.objective(self.anchor_objective, plan)
 
     def objective(self, x0: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """What an update scores at ``x0`` (differentiable): :attr:`update_objective`, by default the
@@ -373,8 +433,9 @@ class GuidanceContext:
         output there (:func:`~.step.guided_step`), each update logged. Out of memory before the
         call's first update is logged: the execution's fallback and the step again
         (:meth:`GuidanceExecution.retrying`)."""
-        return self.execution.retrying(lambda: self._guide(z, predict, levels, step, t), self.generator,
-                                       started=lambda: bool(self.log))
+        with self.observer.step(step, int(t)):
+            return self.execution.retrying(lambda: self._guide(z, predict, levels, step, t), self.generator,
+                                           started=lambda: bool(self.log))
 
     def _guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: NoiseLevels, step: int,
                t: int) -> tuple[Tensor, Tensor]:
@@ -386,3 +447,18 @@ class GuidanceContext:
         return guided_step(z, predict, levels, self.objective, schedule.repeats_at(step), step_size=schedule.step_size,
                            time_travel=schedule.time_travel_at(step), denoiser_grad=config.denoiser_grad,
                            generator=self.generator, eps=config.grad_eps, on_update=on_update)
+
+    def report(self, scheduler: Any) -> GuidanceReport:
+        """What the call decided (:class:`GuidanceReport`), once its loop is done."""
+        fractions = [r["masked_fraction"] for r in self.log
+                     if r.get("masked_fraction") is not None and math.isfinite(r["masked_fraction"])]
+        return GuidanceReport(
+            guidance=asdict(self.config),
+            log=self.log,
+            memory_plan=self.memory_plan.to_dict(),
+            devices=[str(device) for device in self._devices] if self._devices else None,
+            scheduler=type(scheduler).__name__,
+            decoder=decoder_note(self.config.decoder, self.estimators.tiny_decoder),
+            mask_source=None if self.dynamic_masks is None else self.dynamic_masks.source_name,
+            masked_fraction=sum(fractions) / len(fractions) if fractions else None,
+        )

@@ -1,8 +1,9 @@
 """Dynamic masks while guiding: what moves on its own, kept out of the GeCo loss.
 
-``guidance.dynamic`` names the source (``"auto"`` or subjects, ``"a dog, a person"``); the
-guided call gets it as a :class:`~geco_guide.types.DynamicMaskSource` (a text segmenter is loaded
-before denoising, see :func:`load_mask_source`) and wraps it in :class:`RefreshedMasks`, which the
+``guidance.dynamic`` names what moves (``"auto"`` or subjects, ``"a dog, a person"``); the
+guided call makes its :class:`~geco_guide.types.DynamicMaskSource` (the automatic detector, or the
+estimators' text segmenter of the subjects: :func:`guidance_mask_source`) and wraps it in
+:class:`RefreshedMasks`, which the
 GeCo loss asks for each clip's masks at every update. The refresh rule: the source runs at the
 first update of every ``dynamic_refresh``-th guided step, on that update's anchor frames (decoded
 from x0-hat, detached), and its masks, grown by ``dynamic_dilation`` pixels, are reused until the
@@ -12,6 +13,7 @@ next refresh. A step's repeats therefore share its masks, and no gradient reache
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -21,7 +23,7 @@ from ..estimators.motion_masks import dilate
 from ..types import Correspondences, DynamicMaskSource, SceneGeometry
 from .config import GuidanceConfig
 
-__all__ = ["RefreshedMasks", "guidance_mask_source", "load_mask_source"]
+__all__ = ["RefreshedMasks", "automatic_source", "guidance_mask_source"]
 
 
 class RefreshedMasks:
@@ -74,28 +76,29 @@ class RefreshedMasks:
         return self._masks[clip]
 
 
-def guidance_mask_source(config: GuidanceConfig, source: DynamicMaskSource | None,
+def guidance_mask_source(config: GuidanceConfig, estimators: Any,
                          device: torch.device | str = "cpu") -> RefreshedMasks | None:
-    """The masks of a guided call: ``None`` without ``config.dynamic``; else ``source`` (or, for
-    ``"auto"``, the automatic detector when no source is given) under the config's refresh rule.
+    """The masks of a guided call: ``None`` without ``config.dynamic``; for ``"auto"`` the
+    automatic detector, for subjects the mask source the estimators' segmenter makes of them
+    (:meth:`Estimators.masks_for <geco_guide.estimators.Estimators.masks_for>`, which checks that a
+    segmenter made for one text was made for these subjects); under the config's refresh rule.
 
     Raises:
-        ValueError: (one line) a source without ``config.dynamic``, or subjects without a
-            source (a text segmenter must be loaded first: :func:`load_mask_source`).
+        ValueError: (one line) subjects without a segmenter in ``estimators``, or a segmenter of
+            other subjects.
     """
     if config.dynamic is None:
-        if source is not None:
-            raise ValueError("dynamic_masks were given but guidance.dynamic is null: set guidance.dynamic to 'auto' or "
-                             "the subjects the masks are of, so that the config says what was masked")
         return None
-    if source is None:
-        if config.dynamic != AUTO:
-            raise ValueError(f"guidance.dynamic={config.dynamic!r} needs a text segmenter: pass dynamic_masks="
-                             "text_segmenter(...) (geco_guide.estimators.segmenters), or generate from a config, which "
-                             "loads estimators.segmenter")
+    if config.dynamic == AUTO:
         source = automatic_source(device)
+    else:
+        if getattr(estimators, "segmenter", None) is None:
+            raise ValueError(f"guidance.dynamic={config.dynamic!r} needs a text segmenter: give the estimators one "
+                             "(Estimators(..., segmenter=text_segmenter(...)) or load_estimators(..., segmenter=True)), "
+                             "or generate from a config, which loads estimators.segmenter")
+        source = estimators.masks_for(config.dynamic)
     if not isinstance(source, DynamicMaskSource):
-        raise ValueError(f"dynamic_masks must be a DynamicMaskSource (source_name and dynamic_masks(frames, ...)), "
+        raise ValueError(f"the segmenter must make a DynamicMaskSource (source_name and dynamic_masks(frames, ...)), "
                          f"got {type(source).__name__}")
     return RefreshedMasks(source, refresh=config.dynamic_refresh, dilation=config.dynamic_dilation)
 
@@ -104,22 +107,3 @@ def automatic_source(device: torch.device | str = "cpu") -> DynamicMaskSource:
     """The training-free detector of moving content on GeCo's own depth and flow
     (:class:`~geco_guide.estimators.motion_masks.MotionMasks`, its defaults)."""
     return mask_source(AUTO, device=device)
-
-
-def load_mask_source(config: GuidanceConfig, segmenter: str, *, device: torch.device | str = "cpu",
-                     dtype: torch.dtype = torch.float32, seed: int = 0) -> DynamicMaskSource | None:
-    """The mask source ``config.dynamic`` asks for, loaded: ``None`` (no masks), the automatic
-    detector (``"auto"``), or a text segmenter of the subjects with the weights ``segmenter``
-    (``estimators.segmenter``, see :func:`~geco_guide.estimators.segmenters.segmenter_from_spec`).
-
-    Raises:
-        WeightsNotFoundError: the segmenter's weights are missing (one line, see
-            :func:`~geco_guide.estimators.segmenters.text_segmenter`).
-    """
-    if config.dynamic is None:
-        return None
-    if config.dynamic == AUTO:
-        return automatic_source(device)
-    from ..estimators.segmenters import segmenter_from_spec
-
-    return segmenter_from_spec(config.dynamic, segmenter, device=device, dtype=dtype, seed=seed)

@@ -1,8 +1,8 @@
 """Attach GeCo guidance to stock diffusers video pipelines, without copying their code.
 
-``attach_geco_guidance(pipe, config, geometry_estimator=..., flow_estimator=...)`` installs three
-things on the pipeline *instance* and returns a handle whose ``detach()`` (or the end of its
-``with`` block) removes them again, leaving the pipeline exactly as it was:
+``attach_geco_guidance(pipe, config, estimators)`` installs three things on the pipeline
+*instance* and returns a handle whose ``detach()`` (or the end of its ``with`` block) removes them
+again, leaving the pipeline exactly as it was:
 
 1. ``pipe.prepare_latents`` is wrapped (an instance attribute over the class method): every call
    of the pipeline goes through it before its first denoising step. The hook reads the frame
@@ -11,10 +11,11 @@ things on the pipeline *instance* and returns a handle whose ``detach()`` (or th
    the caller passed (finite, and of the call's shape where the adapter knows it), and resets its
    per-call state. Anchors the video cannot contain and unusable latents raise ValueError here, up
    front.
-2. Forward hooks on the denoiser(s) (``register_forward_pre_hook``/``register_forward_hook``
-   with kwargs) capture each call's arguments and output: latent model input, timestep, text
-   states, CFG batch layout. They also validate the ``R_t`` schedule against the scheduler's
-   timestep table before the first denoiser call.
+2. A ``ModelHook`` in each denoiser's diffusers ``HookRegistry`` (:class:`DenoiserCapture`)
+   captures each call's arguments and output: latent model input, timestep, text states, CFG
+   batch layout. At the first denoiser call it validates the ``R_t`` schedule against the
+   scheduler's timestep table. Registered in the registry, it composes with diffusers' own hooks
+   (offloading, layerwise casting, context parallelism) as docs/architecture.md describes.
 3. ``pipe.scheduler.step`` is wrapped (an instance attribute). At a step with ``R_t > 0`` the
    wrapper runs the shared guidance (:class:`~geco_guide.sampler.context.GuidanceContext`) on the
    ``sample`` the pipeline is about to step: it predicts ``x0`` from the captured model output (fast mode) or by
@@ -50,10 +51,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
+from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
-from ..estimators.bundle import Estimators
-from ..types import DynamicMaskSource, FlowEstimator, GeometryEstimator, missing_estimators, one_of_names
+from ..types import check_estimator_bundle, refuse_estimator_keywords
 from .adapters import (
     CallGeometry,
     PipelineAdapter,
@@ -65,19 +66,22 @@ from .adapters import (
     noise_levels,
 )
 from .anchor_decode import anchor_decoder
-from .config import GuidanceConfig, check_call_options, resolve_call_options
-from .context import GuidanceContext
+from .config import GuidanceConfig
+from .context import GuidanceContext, GuidanceObserver, GuidanceReport
 from .multi_device import resolve_devices
 from .dynamic import RefreshedMasks, guidance_mask_source
 from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
-from .run_options import RunOptions
+from .module_hooks import register_hook
+from .run_options import RunOptions, check_call_options, resolve_call_options
 from .pipeline_cogvideox import GeCoCogVideoXPipeline
 from .slicing import AnchorChunk, check_latents
 from .step import LatentsWatch
 
-__all__ = ["GeCoGuidanceHandle", "attach_geco_guidance"]
+__all__ = ["CAPTURE_HOOK", "DenoiserCapture", "GeCoGuidanceHandle", "attach_geco_guidance"]
 
 _MISSING = object()
+#: The name of :class:`DenoiserCapture` in a denoiser's hook registry.
+CAPTURE_HOOK = "geco_denoiser_capture"
 
 
 @dataclass
@@ -207,6 +211,22 @@ class _Replay:
             return self.adapter.combine(self.pipe, parts, self.weights)
 
 
+class DenoiserCapture(ModelHook):
+    """The ``ModelHook`` that hands each call of a denoiser to the guidance ``handle``: told of the
+    call before it runs (the first call of a pipeline call fixes the schedule), then given its
+    arguments and output."""
+
+    def __init__(self, handle: GeCoGuidanceHandle):
+        super().__init__()
+        self.handle = handle
+
+    def new_forward(self, module: nn.Module, *args: Any, **kwargs: Any) -> Any:
+        self.handle._before_denoiser_call()
+        output = self.fn_ref.original_forward(*args, **kwargs)
+        self.handle._after_denoiser_call(module, args, kwargs, output)
+        return output
+
+
 class GeCoGuidanceHandle:
     """GeCo guidance attached to one pipeline; see :func:`attach_geco_guidance`.
 
@@ -216,32 +236,39 @@ class GeCoGuidanceHandle:
         config: the :class:`GuidanceConfig` used by the next call (may be replaced between calls).
         run_options: how the next call's guidance runs (a :class:`~.run_options.RunOptions`;
             may be replaced between calls).
-        geometry_estimator, flow_estimator: the GeCo loss' estimators.
-        dynamic_masks: the :class:`~geco_guide.types.DynamicMaskSource` of ``config.dynamic``
-            (``None``: the automatic detector for ``"auto"``, nothing without ``config.dynamic``).
-        log: one dict per guided update of the last call (``step, repeat, t, loss, motion,
-            structure, fused, grad_norm, seconds, time_travel, skipped``).
+        estimators: the GeCo loss' models (:class:`~geco_guide.estimators.Estimators`: the
+            geometry and flow estimators, and the segmenter of ``config.dynamic``'s subjects and
+            the tiny decoder of ``config.decoder="tiny"`` where they are used).
+        observer: a :class:`~geco_guide.sampler.context.GuidanceObserver` watching the next
+            calls' updates, or ``None``.
+        last: what the last call decided (:class:`~geco_guide.sampler.context.GuidanceReport`),
+            ``None`` before one; set when its denoising loop ends.
         geometry: the :class:`~geco_guide.sampler.adapters.CallGeometry` of the last call.
     """
 
-    def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, geometry_estimator, flow_estimator,
-                 decoder=None, dynamic_masks=None, run_options: RunOptions | None = None):
+    def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, estimators: Any,
+                 run_options: RunOptions | None = None):
         self.pipe = pipe
         self.run_options = run_options if run_options is not None else RunOptions()
-        self.dynamic_masks = dynamic_masks
-        self.decoder = decoder
         self.adapter = adapter
         self.config = config
-        self.geometry_estimator = geometry_estimator
-        self.flow_estimator = flow_estimator
-        self.log: list[dict[str, Any]] = []
+        self.estimators = estimators
+        self.observer: GuidanceObserver | None = None
+        self.last: GuidanceReport | None = None
         self.geometry: CallGeometry | None = None
+        self._log: list[dict[str, Any]] = []
         self._state: _CallState | None = None
-        self._replaying = False
+        self._removers: list[Any] = []
+        self._schedulers: list[tuple[Any, Any]] = []
+        self._saved_prepare: Any = _MISSING
         self._attached = False
-        self._hook_handles: list[Any] = []
-        self._saved_prepare = _MISSING
-        self._schedulers: list[tuple[Any, Any]] = []  # (scheduler, previous instance 'step' or _MISSING)
+        self._replaying = False
+
+    @property
+    def log(self) -> list[dict[str, Any]]:
+        """One dict per guided update of the current or last call (``step, repeat, t, loss, motion,
+        structure, fused, grad_norm, seconds, time_travel, skipped``); ``last.log`` once it ends."""
+        return self._log
 
     # ------------------------------------------------------------------------------------------
     # install / remove
@@ -267,8 +294,7 @@ class GeCoGuidanceHandle:
         prepare_latents._geco_handle = self  # type: ignore[attr-defined]
         pipe.prepare_latents = prepare_latents
         for module in self.adapter.denoisers(pipe):
-            self._hook_handles.append(module.register_forward_pre_hook(self._pre_hook, with_kwargs=True))
-            self._hook_handles.append(module.register_forward_hook(self._post_hook, with_kwargs=True))
+            self._removers.append(register_hook(module, DenoiserCapture(self), CAPTURE_HOOK))
         self._patch_scheduler(pipe.scheduler)
         self._attached = True
 
@@ -295,9 +321,9 @@ class GeCoGuidanceHandle:
         """Remove every hook and wrapper; the pipeline is exactly as before :func:`attach_geco_guidance`."""
         if not self._attached:
             return
-        for handle in self._hook_handles:
-            handle.remove()
-        self._hook_handles.clear()
+        for remove in reversed(self._removers):
+            remove()
+        self._removers.clear()
         if self._saved_prepare is _MISSING:
             del self.pipe.__dict__["prepare_latents"]
         else:
@@ -317,22 +343,6 @@ class GeCoGuidanceHandle:
     def __exit__(self, *exc) -> None:
         self.detach()
 
-    @property
-    def devices(self) -> list[str] | None:
-        """The devices the last guided call dealt its anchor chunks over (``run.devices``),
-        ``None`` for one device or before a call."""
-        state = self._state
-        return [str(device) for device in state.devices] if state is not None and state.devices else None
-
-    @property
-    def memory_plan(self) -> dict[str, Any] | None:
-        """The memory plan of the last guided call (:meth:`PlanChoice.to_dict
-        <geco_guide.sampler.memory_plan.PlanChoice.to_dict>`, after any fallback), ``None`` before one."""
-        state = self._state
-        if state is None:
-            return None
-        return (state.context.memory_plan if state.context is not None else state.memory_plan).to_dict()
-
     # ------------------------------------------------------------------------------------------
     # per call
 
@@ -340,9 +350,11 @@ class GeCoGuidanceHandle:
         config, run = self.config, self.run_options
         geometry = self.adapter.call_geometry(self.pipe, args, latents)
         self.geometry = geometry
-        self.log = []
+        self._log = []
         self._state = None
+        self.last = None
         if not config.enabled:
+            self.last = GuidanceReport(scheduler=type(self.pipe.scheduler).__name__)
             return
         check_latents(args.get("latents"), self.adapter.latents_shape(self.pipe, args),
                       f"this {type(self.pipe).__name__} call")
@@ -352,9 +364,9 @@ class GeCoGuidanceHandle:
         check_no_denoiser_cache(self.adapter.denoisers(self.pipe))
         chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
         check_scheduler(self.pipe.scheduler)
-        decode_chunk = anchor_decoder(config, run, self._vae_decode_with, self.decoder, self.pipe.vae)
+        decode_chunk = anchor_decoder(config, run, self._vae_decode_with, self.estimators.tiny_decoder, self.pipe.vae)
         devices = resolve_devices(run.devices)
-        masks = guidance_mask_source(config, self.dynamic_masks, self.pipe._execution_device)
+        masks = guidance_mask_source(config, self.estimators, self.pipe._execution_device)
         # the estimates know CogVideoX-5B, whose VAE is 8x spatially; other models get the safe plan
         scale = getattr(self.pipe, "vae_scale_factor_spatial", 8)
         memory_plan = choose_plan(
@@ -369,10 +381,10 @@ class GeCoGuidanceHandle:
         device (``run.devices``), seen as the pipeline's VAE."""
         return functools.partial(self.adapter.decode, self.pipe if vae is self.pipe.vae else _WithVae(self.pipe, vae))
 
-    def _pre_hook(self, module, args, kwargs):
+    def _before_denoiser_call(self) -> None:
         state = self._state
         if state is None or self._replaying:
-            return None
+            return
         if state.context is None:  # first denoiser call of this pipeline call
             pipe, adapter = self.pipe, self.adapter
             self._patch_scheduler(pipe.scheduler)
@@ -381,18 +393,16 @@ class GeCoGuidanceHandle:
                 state.config, state.config.schedule(len(pipe.scheduler.timesteps)), state.chunks,
                 decode_chunk=state.decode_chunk,
                 latent_frames=functools.partial(adapter.frames_first, pipe, geometry=state.geometry),
-                geometry_estimator=self.geometry_estimator, flow_estimator=self.flow_estimator,
-                generator=state.generator, log=self.log, run=state.run, memory_plan=state.memory_plan,
-                dynamic_masks=state.dynamic_masks, devices=state.devices,
+                estimators=self.estimators, generator=state.generator, log=self._log, run=state.run,
+                memory_plan=state.memory_plan, dynamic_masks=state.dynamic_masks, devices=state.devices,
+                observer=self.observer,
             )
-        return None
 
-    def _post_hook(self, module, args, kwargs, output):
+    def _after_denoiser_call(self, module: nn.Module, args: tuple, kwargs: dict, output: Any) -> None:
         state = self._state
         if state is None or self._replaying:
-            return None
+            return
         state.calls.append(_Call(module, tuple(args), dict(kwargs), _output_tensor(output).detach()))
-        return None
 
     def _step(self, scheduler, original, signature, args, kwargs):
         state = self._state
@@ -420,7 +430,10 @@ class GeCoGuidanceHandle:
         # NaN latents are refused at a guided step (its log already waited for the device) and at
         # the last step, before the pipeline decodes NaN frames
         latents = result[0] if isinstance(result, tuple) else getattr(result, "prev_sample", None)
-        self._watch_latents(state, latents, i, check=repeats > 0 or schedule is None or i >= schedule.num_steps - 1)
+        last_step = schedule is None or i >= schedule.num_steps - 1
+        self._watch_latents(state, latents, i, check=repeats > 0 or last_step)
+        if last_step and state.context is not None:
+            self.last = state.context.report(scheduler)
         return result
 
     @staticmethod
@@ -450,7 +463,7 @@ class GeCoGuidanceHandle:
                 self._replaying = False
 
         denoisers = {id(c.module): c.module for c in calls}.values()
-        with context.models(denoisers, pipe.vae, [*adapter.frozen_modules(pipe), self.decoder]):
+        with context.models(denoisers, pipe.vae, adapter.frozen_modules(pipe)):
             z, out = context.guide(sample, predict, noise_levels(scheduler, timestep, i), i, int(timestep))
         return z.to(sample.device), out.to(sample.device)
 
@@ -458,15 +471,9 @@ class GeCoGuidanceHandle:
 def attach_geco_guidance(
     pipe,
     config: GuidanceConfig | Mapping[str, Any] | None = None,
-    *,
+    estimators: Any = None,
     run_options: RunOptions | Mapping[str, Any] | None = None,
-    geometry_estimator: GeometryEstimator | None = None,
-    flow_estimator: FlowEstimator | None = None,
-    geometry: GeometryEstimator | None = None,
-    flow: FlowEstimator | None = None,
-    decoder: Any = None,
-    dynamic_masks: DynamicMaskSource | None = None,
-    estimators: Estimators | None = None,
+    **earlier: Any,
 ) -> GeCoGuidanceHandle:
     """Guide every following call of a stock diffusers video pipeline with GeCo.
 
@@ -478,54 +485,52 @@ def attach_geco_guidance(
         config: a :class:`GuidanceConfig` or a dict of fields over the default one. Its
             ``repeats`` schedule must cover the call's ``num_inference_steps``; its anchors are
             pixel frames of the output video.
+        estimators: the GeCo loss' models as one :class:`~geco_guide.estimators.Estimators`
+            (e.g. of :func:`~geco_guide.estimators.load_estimators`): the geometry and flow
+            estimators, the text segmenter of the subjects ``config.dynamic`` names (``"auto"``
+            needs none; docs/guidance.md, Moving subjects) and the tiny decoder of
+            ``config.decoder="tiny"`` (a :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder`
+            of the pipeline's family, which decodes the loss' anchor frames; the video is always
+            the VAE's).
         run_options: how the guidance runs on this machine (a
             :class:`~geco_guide.sampler.run_options.RunOptions` or a dict of its fields: memory
             plan, decode layout, devices).
-        geometry_estimator, flow_estimator: the GeCo loss' estimators (e.g. ``VGGT``, ``UFM``), as
-            the components of ``GeCoCogVideoXPipeline`` are named; ``geometry=`` / ``flow=`` are
-            the same arguments under their earlier names.
-        estimators: the same two as one :class:`~geco_guide.estimators.Estimators` (e.g. of
-            :func:`~geco_guide.estimators.load_estimators`), instead of ``geometry_estimator`` /
-            ``flow_estimator``.
-        decoder: the tiny decoder of ``config.decoder="tiny"``
-            (:class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` of the pipeline's family):
-            it decodes the loss' anchor frames; the video is always the VAE's.
-        dynamic_masks: what moves on its own, for ``config.dynamic``: a
-            :class:`~geco_guide.types.DynamicMaskSource`, e.g.
-            :func:`~geco_guide.estimators.segmenters.text_segmenter` of the subjects (``"auto"``
-            needs none); see docs/guidance.md, Moving subjects.
 
     Returns:
         A :class:`GeCoGuidanceHandle`; ``handle.detach()`` (or leaving ``with handle:``)
-        restores the pipeline exactly. ``handle.log`` holds the last call's guidance log.
+        restores the pipeline exactly. ``handle.log`` holds the current or last call's guidance
+        log, ``handle.last`` what the last call decided.
 
     Raises:
         ValueError: an unsupported pipeline (naming the supported ones and how to register an
-            adapter), missing estimators (or one given under both names), or a pipeline that
-            already has GeCo guidance attached.
+            adapter), estimators that lack a method, run options the hooks cannot act on, or a
+            pipeline that already has GeCo guidance attached.
+        TypeError: estimators that are no bundle, or passed by an earlier keyword (``geometry=``,
+            ``flow_estimator=``, ``decoder=``, ``dynamic_masks=``).
     """
+    if earlier:
+        key = sorted(earlier)[0]
+        where = {"decoder": "the tiny decoder is Estimators(..., tiny_decoder=...)",
+                 "dynamic_masks": "the segmenter is Estimators(..., segmenter=...); what moves is config.dynamic"}
+        if key in where:
+            raise TypeError(f"attach_geco_guidance({key}=...) is the earlier spelling: {where[key]}")
+        refuse_estimator_keywords("attach_geco_guidance", earlier)
     if isinstance(pipe, GeCoCogVideoXPipeline):
         raise ValueError(
             "GeCoCogVideoXPipeline guides itself: pass guidance=... to its call instead of attaching a hook"
         )
-    geometry_estimator = one_of_names(geometry_estimator, geometry, "geometry_estimator", "geometry")
-    flow_estimator = one_of_names(flow_estimator, flow, "flow_estimator", "flow")
-    if estimators is not None:
-        if geometry_estimator is not None or flow_estimator is not None:
-            raise ValueError("pass estimators= or geometry_estimator= / flow_estimator=, not both")
-        geometry_estimator, flow_estimator = estimators.geometry, estimators.flow
     adapter = adapter_for(pipe)
     config, run_options = resolve_call_options(None, config, None, run_options)
-    missing = missing_estimators(geometry_estimator, flow_estimator)
-    if missing:
-        raise ValueError(
-            f"GeCo guidance needs the {' and '.join(missing)} estimator(s): "
-            "attach_geco_guidance(pipe, geometry_estimator=..., flow_estimator=...)"
-        )
+    if run_options.split_cfg:
+        raise ValueError("run.split_cfg splits the denoiser calls of GeCoCogVideoXPipeline; the hooks leave a "
+                         "pipeline's own denoiser calls as they are: use run.split_cfg=false here")
+    if estimators is None:
+        raise ValueError("GeCo guidance needs its models: attach_geco_guidance(pipe, config, "
+                         "Estimators(geometry, flow)) (geco_guide.Estimators)")
+    check_estimator_bundle(estimators, "attach_geco_guidance")
     current = pipe.__dict__.get("prepare_latents")
     if getattr(current, "_geco_handle", None) is not None:
         raise ValueError("this pipeline already has GeCo guidance attached; detach() it first")
-    handle = GeCoGuidanceHandle(pipe, adapter, config, geometry_estimator, flow_estimator, decoder, dynamic_masks,
-                                run_options)
+    handle = GeCoGuidanceHandle(pipe, adapter, config, estimators, run_options)
     handle._attach()
     return handle

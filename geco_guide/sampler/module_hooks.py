@@ -10,7 +10,7 @@ as its ``fn_ref.original_forward``), one registered after ours wraps it.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch
@@ -18,17 +18,16 @@ from diffusers.hooks import HookRegistry, ModelHook
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
-__all__ = ["CHECKPOINT_HOOK", "CheckpointedForward", "hooked"]
+__all__ = ["CHECKPOINT_HOOK", "CheckpointedForward", "hooked", "register_hook"]
 
 #: The name of :class:`CheckpointedForward` in a module's registry.
 CHECKPOINT_HOOK = "geco_checkpointed_forward"
 
 
-@contextlib.contextmanager
-def hooked(module: nn.Module, hook: ModelHook, name: str) -> Iterator[ModelHook]:
-    """``hook`` registered on ``module`` as ``name`` for the duration; on exit removed, and the
-    module left as found: no registry where it had none, no instance ``forward`` where it had none
-    (removing a registry's last hook leaves the module's bound ``forward`` behind as one)."""
+def register_hook(module: nn.Module, hook: ModelHook, name: str) -> Callable[[], None]:
+    """Register ``hook`` on ``module`` as ``name``; returns the function that removes it again and
+    leaves the module as found: no registry where it had none, no instance ``forward`` where it had
+    none (removing a registry's last hook leaves the module's bound ``forward`` behind as one)."""
     had_registry = hasattr(module, "_diffusers_hook")  # the attribute check_if_exists_or_initialize keeps it in
     had_forward = "forward" in module.__dict__
     registry = HookRegistry.check_if_exists_or_initialize(module)
@@ -37,11 +36,23 @@ def hooked(module: nn.Module, hook: ModelHook, name: str) -> Iterator[ModelHook]
     except BaseException:
         _leave_as_found(module, registry, had_registry, had_forward)
         raise
+
+    def remove() -> None:
+        registry.remove_hook(name, recurse=False)  # recursing would remove a same-named hook of a submodule too
+        _leave_as_found(module, registry, had_registry, had_forward)
+
+    return remove
+
+
+@contextlib.contextmanager
+def hooked(module: nn.Module, hook: ModelHook, name: str) -> Iterator[ModelHook]:
+    """``hook`` registered on ``module`` as ``name`` for the duration (:func:`register_hook`);
+    removed on exit, even on error, and the module left as found."""
+    remove = register_hook(module, hook, name)
     try:
         yield hook
     finally:
-        registry.remove_hook(name, recurse=False)  # recursing would remove a same-named hook of a submodule too
-        _leave_as_found(module, registry, had_registry, had_forward)
+        remove()
 
 
 def _leave_as_found(module: nn.Module, registry: HookRegistry, had_registry: bool, had_forward: bool) -> None:

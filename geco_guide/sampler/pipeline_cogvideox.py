@@ -17,6 +17,11 @@ what guidance needs is checked up front (``4k+1`` frames, a v-prediction VP sche
 estimators, no denoiser cache), and the latents are kept in fp32 between steps whatever the model
 dtype (the stock pipeline rounds them to the model dtype, which adds rounding noise to an update:
 measured in docs/guidance.md, "Latent precision").
+
+The estimators enter at the call, as a guider would (``estimators=Estimators(...)``), and are no
+components: ``to``, offloading, ``save_pretrained`` and ``from_pretrained`` are diffusers' own,
+untouched (docs/architecture.md says why). What a call decided (the guidance log, the memory plan,
+the devices, the decoder, the masks) comes back in its output, ``output.report``.
 """
 
 from __future__ import annotations
@@ -34,18 +39,17 @@ from diffusers.callbacks import MultiPipelineCallbacks, PipelineCallback
 from diffusers.pipelines.cogvideo.pipeline_cogvideox import retrieve_timesteps
 from diffusers.pipelines.cogvideo.pipeline_output import CogVideoXPipelineOutput
 from diffusers.utils import logging
-from torch import Tensor, nn
+from torch import Tensor
 
-from ..estimators.bundle import Estimators
-from ..types import DynamicMaskSource, FlowEstimator, GeometryEstimator, missing_estimators
+from ..types import check_estimator_bundle
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .anchor_decode import anchor_decoder
-from .config import GuidanceConfig, resolve_call_options
-from .context import GuidanceContext
+from .config import GuidanceConfig, resolve_guidance_config
+from .context import GuidanceContext, GuidanceObserver, GuidanceReport
 from .multi_device import CfgHalves, resolve_devices
 from .dynamic import guidance_mask_source
 from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
-from .run_options import RunOptions, resolve_run_options
+from .run_options import RunOptions, resolve_call_options
 from .slicing import (
     check_latents,
     check_num_frames,
@@ -70,21 +74,17 @@ logger = logging.get_logger(__name__)
 
 @dataclass
 class GeCoCogVideoXPipelineOutput(CogVideoXPipelineOutput):
-    """Frames as the stock output, plus the guidance log.
+    """Frames as the stock output, plus what the call decided.
 
     Attributes:
         frames: as :class:`CogVideoXPipelineOutput`.
-        guidance_log: one dict per guided update (``step, repeat, t, loss, motion, structure,
-            fused, grad_norm, seconds, time_travel, skipped``); empty without guidance.
-        guidance: the resolved guidance config of the call (a dict), ``None`` when off.
-        memory_plan: the memory plan the call ran with (:meth:`PlanChoice.to_dict
-            <geco_guide.sampler.memory_plan.PlanChoice.to_dict>`: its flags, why, the predicted
-            peak), ``None`` without guidance; also ``pipe.geco_memory_plan`` after the call.
+        report: the call's :class:`~geco_guide.sampler.context.GuidanceReport`: the guidance log
+            (``report.log``, one dict per guided update), the resolved guidance config, the
+            memory plan, the devices, the scheduler, the decoder, the masks. Without guidance
+            only ``scheduler`` is set.
     """
 
-    guidance_log: list[dict[str, Any]] | None = None
-    guidance: dict[str, Any] | None = None
-    memory_plan: dict[str, Any] | None = None
+    report: GuidanceReport | None = None
 
 
 #: What ``output_type`` may be: the video processor's kinds, or the latents themselves.
@@ -95,13 +95,15 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
     r"""Text-to-video CogVideoX with training-free GeCo geometric-consistency guidance.
 
     Components: the stock ``tokenizer``, ``text_encoder``, ``vae``, ``transformer``, ``scheduler``
-    (any of them may be ``None``, as in the stock pipeline), plus the optional
-    ``geometry_estimator`` (e.g. VGGT) and ``flow_estimator`` (e.g. UFM), the optional
-    ``guidance_decoder`` (a :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder`, used for the
-    loss' anchor frames with ``guidance.decoder="tiny"``; the video is always the VAE's), and
-    ``guidance_config``: the default :class:`GuidanceConfig` (a dict of its fields works too), kept
-    in the pipeline's config so that ``save_pretrained`` / ``from_pretrained`` round-trip it. How
-    guidance runs on this machine (memory plan, decode layout, devices) is the attribute
+    (any of them may be ``None``, as in the stock pipeline), and ``guidance_config``: the default
+    :class:`GuidanceConfig` of its calls (a dict of its fields works too), kept in the pipeline's
+    config so that ``save_pretrained`` / ``from_pretrained`` round-trip it; read it as
+    ``pipe.guidance_config`` and change it per call (``guidance=``).
+
+    The models GeCo runs with are no components: each guided call takes them, as one
+    :class:`~geco_guide.estimators.Estimators` (``estimators=``: the geometry and flow estimators,
+    and the text segmenter and the tiny decoder where the guidance uses them), like a guider. How
+    guidance runs on this machine (memory plan, decode layout, devices) is the call's
     ``run_options`` (a :class:`~geco_guide.sampler.run_options.RunOptions`, or a dict of its
     fields), never saved with the pipeline: a folder saved on one card plans for the card that
     loads it.
@@ -113,20 +115,13 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
     Example::
 
-        pipe = GeCoCogVideoXPipeline.from_pretrained(
-            "THUDM/CogVideoX-5b", torch_dtype=torch.bfloat16,
-            geometry_estimator=VGGT.from_pretrained("facebook/VGGT-1B"),
-            flow_estimator=UFM.from_pretrained(...))
+        pipe = GeCoCogVideoXPipeline.from_pretrained("THUDM/CogVideoX-5b", torch_dtype=torch.bfloat16)
         pipe.scheduler = CogVideoXDDIMScheduler.from_config(pipe.scheduler.config)  # the paper's sampler
-        out = pipe("a marble bust on a turntable", generator=torch.Generator().manual_seed(0))
-        out.frames, out.guidance_log
+        estimators = Estimators(VGGT.from_pretrained("facebook/VGGT-1B"), UFM.from_pretrained(...))
+        out = pipe("a marble bust on a turntable", estimators=estimators,
+                   generator=torch.Generator().manual_seed(0))
+        out.frames, out.report.log
     """
-
-    _optional_components = ["geometry_estimator", "flow_estimator", "guidance_decoder"]
-    #: What one guided call's guidance is made of; profilers substitute a subclass.
-    guidance_context_class = GuidanceContext
-    _exclude_from_cpu_offload = ["geometry_estimator", "flow_estimator", "guidance_decoder"]
-    _guidance_modules = ("geometry_estimator", "flow_estimator", "guidance_decoder")
 
     def __init__(
         self,
@@ -135,102 +130,17 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         vae,
         transformer,
         scheduler,
-        geometry_estimator: GeometryEstimator | None = None,
-        flow_estimator: FlowEstimator | None = None,
         guidance_config: GuidanceConfig | Mapping[str, Any] | None = None,
-        guidance_decoder: nn.Module | None = None,
     ):
         super().__init__(tokenizer=tokenizer, text_encoder=text_encoder, vae=vae, transformer=transformer, scheduler=scheduler)
-        # Optional components: in ``components``, moved by ``to()`` (device only) and placed on the
-        # execution device by ``enable_model_cpu_offload`` / ``enable_sequential_cpu_offload``.
-        self.register_modules(geometry_estimator=geometry_estimator, flow_estimator=flow_estimator,
-                              guidance_decoder=guidance_decoder)
-        self.run_options = RunOptions()  # before guidance_config: an old saved config may move options here
-        self.guidance_config = guidance_config  # a GuidanceConfig, and its dict in the config (__setattr__)
-        self.geco_memory_plan: dict[str, Any] | None = None  # the last guided call's (output.memory_plan)
-        self.geco_devices: list[str] | None = None  # the devices of its anchor decode (run.devices)
-        # What moves on its own, for guidance.dynamic (a loaded text segmenter); not a component,
-        # so never saved with the pipeline.
-        self.dynamic_mask_source: DynamicMaskSource | None = None
+        # The pipeline's config keeps the plain dict, for model_index.json and repr().
+        self.register_to_config(guidance_config=asdict(resolve_guidance_config(None, guidance_config)))
         self._cfg_halves: CfgHalves | None = None  # a guided call's run.split_cfg
 
-    def __setattr__(self, name: str, value: Any) -> None:
-        if name == "guidance_config":
-            # The attribute is a GuidanceConfig (a dict or None is resolved over the defaults); the
-            # pipeline's config keeps its plain dict, for model_index.json and repr(). A dict saved
-            # before the run options left it may still hold them: they go to run_options.
-            value, run = resolve_call_options(None, value, self.run_options)
-            object.__setattr__(self, "run_options", run)
-            object.__setattr__(self, name, value)
-            self.register_to_config(guidance_config=asdict(value))
-            return
-        if name == "run_options":
-            value = resolve_run_options(None, value)
-        super().__setattr__(name, value)
-
     @property
-    def scheduler_note(self) -> str:
-        """The scheduler's class name (the sidecar's ``scheduler``)."""
-        return type(self.scheduler).__name__
-
-    @property
-    def estimators(self) -> Estimators:
-        """The components GeCo runs with as one :class:`~geco_guide.estimators.Estimators`: the
-        ``geometry_estimator``, the ``flow_estimator`` and the ``dynamic_mask_source`` as its
-        segmenter (read-only: set the components)."""
-        return Estimators(self.geometry_estimator, self.flow_estimator, self.dynamic_mask_source)
-
-    @contextlib.contextmanager
-    def _estimators_hidden(self):
-        """The estimators and the tiny decoder out of sight of DiffusionPipeline's ``to``/``save_pretrained`` for a moment."""
-        saved = {name: getattr(self, name, None) for name in self._guidance_modules}
-        self.register_modules(**{name: None for name in saved})
-        try:
-            yield saved
-        finally:
-            self.register_modules(**saved)
-
-    def _model_components(self) -> list[nn.Module]:
-        names = [n for n in self._get_signature_keys(self)[0] if n not in self._guidance_modules]
-        return [m for m in (getattr(self, n, None) for n in names) if isinstance(m, nn.Module)]
-
-    @property
-    def device(self) -> torch.device:
-        """As :attr:`DiffusionPipeline.device`, from the diffusers/transformers models only (the
-        estimators are plain ``nn.Module`` s and follow the pipeline's device)."""
-        modules = self._model_components()
-        for module in modules:
-            if module.device.type not in ("cpu", "meta"):
-                return module.device
-        return modules[0].device if modules else torch.device("cpu")
-
-    @property
-    def dtype(self) -> torch.dtype:
-        """As :attr:`DiffusionPipeline.dtype`, from the diffusers/transformers models only."""
-        modules = self._model_components()
-        return modules[0].dtype if modules else torch.float32
-
-    def to(self, *args, **kwargs):
-        """As :meth:`DiffusionPipeline.to`; the estimators follow the device but keep their dtype
-        (bf16 trunks with fp32 heads: a pipeline-wide dtype cast would round the heads)."""
-        with self._estimators_hidden() as estimators:
-            pipe = super().to(*args, **kwargs)
-        device = kwargs.get("device")
-        if device is None:
-            device = next((a for a in args if isinstance(a, (str, torch.device))), None)
-        if device is not None:
-            for estimator in estimators.values():
-                if isinstance(estimator, nn.Module):
-                    estimator.to(device)
-        return pipe
-
-    def save_pretrained(self, save_directory, *args, **kwargs):
-        """As :meth:`DiffusionPipeline.save_pretrained`, with the guidance config in
-        ``model_index.json``. The estimators' weights are not written (they load from their own
-        checkpoints): pass them to ``from_pretrained(..., geometry_estimator=..., flow_estimator=...)``."""
-        self.register_to_config(guidance_config=asdict(self.guidance_config))  # as it is now (edited in place?)
-        with self._estimators_hidden():
-            return super().save_pretrained(save_directory, *args, **kwargs)
+    def guidance_config(self) -> GuidanceConfig:
+        """The default :class:`GuidanceConfig` of the calls, as saved in the pipeline's config."""
+        return resolve_guidance_config(None, self.config.guidance_config)
 
     # ------------------------------------------------------------------------------------------
     # checks
@@ -243,8 +153,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         num_steps: int,
         guidance: GuidanceConfig,
         run: RunOptions,
-        geometry_estimator: Any,
-        flow_estimator: Any,
+        estimators: Any,
     ):
         """Validate what guidance needs, before any denoising step; ValueError naming the problem.
 
@@ -268,14 +177,12 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         check_scheduler(self.scheduler)
         check_no_denoiser_cache([self.transformer])
         schedule, chunks = guidance.validate(num_steps, num_frames, self.vae_scale_factor_temporal)
-        missing = [f"{name}_estimator" for name in missing_estimators(geometry_estimator, flow_estimator)]
-        if missing:
-            raise ValueError(
-                f"GeCo guidance needs {' and '.join(missing)}: pass them to from_pretrained(..., "
-                "geometry_estimator=..., flow_estimator=...) or to the call, or call with guidance=False"
-            )
+        if estimators is None:
+            raise ValueError("GeCo guidance needs its models: pass estimators=Estimators(geometry, flow) to the call "
+                             "(geco_guide.Estimators), or call with guidance=False")
+        check_estimator_bundle(estimators, "GeCo guidance")
         decode = anchor_decoder(guidance, run, lambda vae: partial(decode_chunk, vae, scaling_factor=self.vae_scaling_factor_image),
-                                self.guidance_decoder, self.vae)
+                                estimators.tiny_decoder, self.vae)
         return schedule, chunks, decode
 
     def choose_memory_plan(self, guidance: GuidanceConfig, run: RunOptions, num_frames: int, height: int,
@@ -362,9 +269,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         max_sequence_length: int = 226,
         guidance: GuidanceConfig | Mapping[str, Any] | bool | None = None,
         run_options: RunOptions | Mapping[str, Any] | None = None,
-        geometry_estimator: GeometryEstimator | None = None,
-        flow_estimator: FlowEstimator | None = None,
-        dynamic_masks: DynamicMaskSource | None = None,
+        estimators: Any = None,
+        observer: GuidanceObserver | None = None,
     ) -> GeCoCogVideoXPipelineOutput | tuple:
         """Generate a video; arguments as :meth:`CogVideoXPipeline.__call__`, plus:
 
@@ -373,19 +279,20 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 ``self.guidance_config`` (e.g. ``{"step_size": 2.0, "loss": {"cue": "motion"}}``),
                 ``False`` to sample without guidance, or ``None`` for the default.
             run_options: how this call's guidance runs: a :class:`~geco_guide.sampler.run_options.RunOptions`
-                or a dict of fields overriding ``self.run_options`` (e.g. ``{"memory_plan": "chunked",
+                or a dict of fields over the defaults (e.g. ``{"memory_plan": "chunked",
                 "devices": ["cuda:0", "cuda:1"]}``).
-            geometry_estimator, flow_estimator: override the pipeline's estimators for this call.
-            dynamic_masks: what moves on its own, for ``guidance.dynamic`` (default
-                ``self.dynamic_mask_source``): a :class:`~geco_guide.types.DynamicMaskSource` such as
-                :func:`~geco_guide.estimators.segmenters.text_segmenter` of the subjects; ``"auto"``
-                needs none. See docs/guidance.md, Moving subjects.
+            estimators: the models GeCo runs with, one :class:`~geco_guide.estimators.Estimators`
+                (required with guidance): the geometry and flow estimators, the text segmenter
+                of the subjects ``guidance.dynamic`` names (``"auto"`` needs none; see
+                docs/guidance.md, Moving subjects) and the tiny decoder of ``guidance.decoder="tiny"``.
+            observer: a :class:`~geco_guide.sampler.context.GuidanceObserver` that watches the
+                updates (profilers, measurements); ``None``: nothing watches.
             eta: the scheduler's eta, passed to its ``step`` as in the stock pipeline (DDIM noise;
                 ``CogVideoXDDIMScheduler`` ignores it). The GeCo step size is ``guidance.step_size``.
 
         Returns:
-            :class:`GeCoCogVideoXPipelineOutput` (``frames``, ``guidance_log``, ``guidance``) or
-            ``(frames,)`` when ``return_dict=False``.
+            :class:`GeCoCogVideoXPipelineOutput` (``frames``, ``report``) or ``(frames,)`` when
+            ``return_dict=False``.
         """
         if isinstance(callback_on_step_end, (PipelineCallback, MultiPipelineCallbacks)):
             callback_on_step_end_tensor_inputs = callback_on_step_end.tensor_inputs
@@ -401,19 +308,12 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         )
         if output_type not in OUTPUT_TYPES:  # the stock pipeline finds out after the whole denoising
             raise ValueError(f"output_type must be one of {list(OUTPUT_TYPES)}, got {output_type!r}")
-        config, run = resolve_call_options(self.guidance_config, guidance, self.run_options, run_options)
-        geometry_estimator = geometry_estimator if geometry_estimator is not None else self.geometry_estimator
-        flow_estimator = flow_estimator if flow_estimator is not None else self.flow_estimator
+        config, run = resolve_call_options(self.guidance_config, guidance, None, run_options)
         num_steps = len(timesteps) if timesteps is not None else num_inference_steps
-        schedule, chunks, decode = self.check_geco_inputs(
-            height, width, num_frames, num_steps, config, run, geometry_estimator, flow_estimator
-        )
+        schedule, chunks, decode = self.check_geco_inputs(height, width, num_frames, num_steps, config, run, estimators)
         devices = resolve_devices(run.devices) if config.enabled else None
         memory_plan = self.choose_memory_plan(config, run, num_frames, height, width, devices) if config.enabled else None
-        masks = None
-        if config.enabled:
-            source = dynamic_masks if dynamic_masks is not None or config.dynamic is None else self.dynamic_mask_source
-            masks = guidance_mask_source(config, source, self._execution_device)
+        masks = guidance_mask_source(config, estimators, self._execution_device) if config.enabled else None
         self._guidance_scale = guidance_scale
         self._attention_kwargs = attention_kwargs
         self._current_timestep = None
@@ -487,12 +387,12 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         # 8. Guidance: anchors decoded from short causal chunks, the GeCo loss, the log
         geco = None
         if config.enabled:
-            geco = self.guidance_context_class(
+            geco = GuidanceContext(
                 config, schedule, chunks,
                 decode_chunk=decode,
                 latent_frames=lambda x0: x0[:, additional_frames:],
-                geometry_estimator=geometry_estimator, flow_estimator=flow_estimator, generator=generator,
-                run=run, memory_plan=memory_plan, dynamic_masks=masks, devices=devices,
+                estimators=estimators, generator=generator,
+                run=run, memory_plan=memory_plan, dynamic_masks=masks, devices=devices, observer=observer,
             )
             if devices:
                 logger.info("guidance: anchor chunks dealt over %s", ", ".join(map(str, devices)))
@@ -502,7 +402,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         step_values = [int(v) for v in timesteps.tolist()]  # host copies: the guided steps add no device sync
         watch = LatentsWatch(len(timesteps))  # read once, after the loop: NaN latents are refused, not decoded
         with (
-            geco.models(denoisers, self.vae, [self.text_encoder, self.guidance_decoder]) if geco else contextlib.nullcontext(),
+            geco.models(denoisers, self.vae, [self.text_encoder]) if geco else contextlib.nullcontext(),
             self.progress_bar(total=num_inference_steps) as progress_bar,
         ):
             if geco:
@@ -571,8 +471,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
         self._current_timestep = None
         self._cfg_halves = None
-        self.geco_memory_plan = geco.memory_plan.to_dict() if geco else None
-        self.geco_devices = [str(device) for device in devices] if geco and devices else None
+        report = geco.report(self.scheduler) if geco else GuidanceReport(scheduler=type(self.scheduler).__name__)
         watch.check()
 
         if not output_type == "latent":
@@ -586,9 +485,4 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
         if not return_dict:
             return (video,)
-        return GeCoCogVideoXPipelineOutput(
-            frames=video,
-            guidance_log=geco.log if geco else [],
-            guidance=asdict(config) if config.enabled else None,
-            memory_plan=self.geco_memory_plan,
-        )
+        return GeCoCogVideoXPipelineOutput(frames=video, report=report)

@@ -9,10 +9,9 @@ saved on an 80 GB card would otherwise impose that card's budget on a 24 GB one)
 of the video key, except for the options that change frames to float rounding
 (:data:`FRAME_ROUNDING_KEYS`).
 
-These options sat in ``guidance`` before; the old keys (``guidance.memory_plan=...`` in a config
-file, a ``key=value`` override or a dict) still work for one release, each with one
-:class:`RenamedOptionWarning` naming the new key
-(:func:`~geco_guide.sampler.config.upgrade_guidance_keys`).
+These options sat in ``guidance`` before; their old keys (``guidance.memory_plan=...`` in a config
+file, a ``key=value`` override or a dict) are refused in one line naming the new key
+(:attr:`GuidanceConfig.RENAMED <geco_guide.sampler.config.GuidanceConfig.RENAMED>`).
 """
 
 from __future__ import annotations
@@ -22,18 +21,12 @@ from dataclasses import dataclass, fields
 from typing import Any, Optional
 
 from ..types import OptionError, is_number, merge_dataclass, non_finite_fields
+from .config import GuidanceConfig, resolve_guidance_config
 from .fast_decode import DECODE_LAYOUTS
 from .memory_plan import PLAN_NAMES
 
-__all__ = [
-    "FRAME_ROUNDING_KEYS",
-    "MOVED_GUIDANCE_KEYS",
-    "RUN_KEYS",
-    "RenamedOptionWarning",
-    "RunOptions",
-    "check_run_for_guidance",
-    "resolve_run_options",
-]
+__all__ = ["FRAME_ROUNDING_KEYS", "RUN_KEYS", "RunOptions", "check_call_options", "check_run_for_guidance",
+           "resolve_call_options", "resolve_run_options"]
 
 
 @dataclass
@@ -117,16 +110,9 @@ class RunOptions:
 
 #: The options of :class:`RunOptions`.
 RUN_KEYS = tuple(f.name for f in fields(RunOptions))
-#: Those that ``guidance`` held before :class:`RunOptions` existed (their old keys still work).
-MOVED_GUIDANCE_KEYS = ("memory_plan", "memory_budget_gb", "gradient_checkpointing", "vae_checkpointing",
-                       "vae_block_checkpointing", "decode_layout", "compile", "devices")
 #: The run options that can change the frames to float rounding, and so stay in the video key
 #: (the memory plans and devices give the same frames bit for bit on one kind of device).
 FRAME_ROUNDING_KEYS = ("decode_layout", "compile", "split_cfg")
-
-
-class RenamedOptionWarning(FutureWarning):
-    """A config key used under its old name, which works until the next release."""
 
 
 def resolve_run_options(base: RunOptions | None, override: RunOptions | Mapping[str, Any] | None) -> RunOptions:
@@ -148,3 +134,32 @@ def check_run_for_guidance(run: RunOptions, decoder: str) -> None:
     if run.decode_layout != "default" and decoder != "vae":
         raise OptionError("decode_layout", f"{run.decode_layout} lays out the VAE's decode, but guidance.decoder="
                                            f"{decoder!r}: use run.decode_layout=default with the tiny decoder")
+
+
+def check_call_options(config: GuidanceConfig, run: RunOptions) -> None:
+    """ValueError (one line naming the ``run`` key) for run options ``config`` cannot use
+    (:func:`check_run_for_guidance`)."""
+    try:
+        check_run_for_guidance(run, config.decoder)
+    except OptionError as err:
+        raise ValueError(f"run.{err}") from None
+
+
+def resolve_call_options(
+    base: GuidanceConfig | None,
+    override: GuidanceConfig | Mapping[str, Any] | bool | None,
+    run_base: RunOptions | None = None,
+    run_override: RunOptions | Mapping[str, Any] | None = None,
+) -> tuple[GuidanceConfig, RunOptions]:
+    """What one call's guidance computes and how it runs:
+    :func:`~.config.resolve_guidance_config` and :func:`resolve_run_options`.
+
+    Raises:
+        ValueError: (one line naming the key) an unknown key or an earlier spelling of one, or run
+            options this guidance cannot use (``run.decode_layout=channels_last`` with the tiny
+            decoder).
+    """
+    config = resolve_guidance_config(base, override)
+    run = resolve_run_options(run_base, run_override)
+    check_call_options(config, run)
+    return config, run

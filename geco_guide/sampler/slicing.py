@@ -23,9 +23,11 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+from ..families import default_anchors
+
 __all__ = ["AnchorChunk", "anchor_latent_chunks", "check_latents", "check_num_frames",
            "check_paired_latent_frames", "decode_anchor_frames", "decode_anchor_frames_across",
-           "decode_chunk", "default_anchors", "latent_to_pixels", "pixel_to_latent"]
+           "decode_chunk", "latent_to_pixels", "pixel_to_latent"]
 
 
 def check_num_frames(num_frames: int, temporal_compression: int) -> int:
@@ -306,9 +308,3 @@ def decode_anchor_frames_across(
     return torch.stack([picked[((chunk.start, chunk.stop), chunk.from_end)] for chunk in chunks], dim=1).float()
 
 
-def default_anchors(num_frames: int, temporal_compression: int) -> list[int]:
-    """Anchor frames at the quarter points of a video: the last pixel frame of latents
-    ``round(L * j / 4)``, ``j = 1..4`` (``L`` = latents - 1). The paper's (12, 24, 36, 48) at 49
-    frames with ``r = 4``; (20, 40, 60, 80) for Wan's 81; shorter videos get fewer (distinct)."""
-    last = check_num_frames(num_frames, temporal_compression) - 1
-    return sorted({temporal_compression * max(1, round(last * j / 4)) for j in range(1, 5)})

@@ -26,8 +26,8 @@ from torch import Tensor
 
 from .levels import NoiseLevels, randn_like
 
-__all__ = ["GuidanceRecord", "LatentsWatch", "NonFiniteLatentsError", "Update", "guided_step", "loss_terms",
-           "normalized_update", "read_scalars", "score_anchor_frames"]
+__all__ = ["GuidanceRecord", "LatentsWatch", "NonFiniteLatentsError", "Objective", "Update", "guided_step",
+           "loss_terms", "normalized_update", "read_scalars", "score_anchor_frames"]
 
 Objective = Callable[[Tensor], "tuple[Tensor, dict[str, Tensor]]"]
 
@@ -98,8 +98,13 @@ def loss_terms(result: Any) -> tuple[Tensor, dict[str, Tensor]]:
 
 
 def read_scalars(values: dict[str, Tensor], device: torch.device) -> dict[str, float]:
-    """Plain floats of ``values`` (0-dim tensors) with one device-to-host copy for all of them."""
+    """Plain floats of ``values`` (0-dim tensors) with one device-to-host copy for all of them.
+    Fake tensors (the cost model's trace of a call) have no values: zeros, and ``finite`` true."""
+    from torch._subclasses.fake_tensor import is_fake
+
     stacked = torch.stack([v.detach().to(device=device, dtype=torch.float32).reshape(()) for v in values.values()])
+    if is_fake(stacked):
+        return {**dict.fromkeys(values, 0.0), "finite": 1.0}
     return dict(zip(values, stacked.tolist()))
 
 

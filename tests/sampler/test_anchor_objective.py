@@ -164,7 +164,7 @@ def test_the_log_reads_each_update_through_the_read_scalars_given(pipe):
 
     out = run(pipe, Reading)
     plain = pipe("a marble bust", generator=torch.Generator().manual_seed(3), output_type="pt", **TINY_CALL_KWARGS)
-    assert len(read) == len(out.guidance_log) == 5 and all({"loss", "grad_norm", "finite"} <= set(r) for r in read)
+    assert len(read) == len(out.report.log) == 5 and all({"loss", "grad_norm", "finite"} <= set(r) for r in read)
     assert torch.equal(out.frames, plain.frames)
 
 
@@ -187,7 +187,7 @@ def test_the_objective_is_made_for_the_plan_and_again_after_a_fallback(pipe):
 
     out = run(pipe, Injected, memory_plan="auto", memory_budget_gb=1000.0)
     (first, first_decode), (second, second_decode) = made
-    assert out.memory_plan["name"] == second != first and len(out.guidance_log) == 5
+    assert out.memory_plan["name"] == second != first and len(out.report.log) == 5
     assert isinstance(first_decode, ChunkedDecode) and not first_decode.checkpointed
     assert second_decode == plan_anchor_decode(plan_named(second), first_decode.decode, first_decode.chunks)
     reference = run(pipe, GuidanceContext, memory_plan=second)
@@ -201,7 +201,7 @@ def test_the_context_keeps_its_public_face(pipe):
                               pipe.geometry_estimator, pipe.flow_estimator, on_record=seen.append)
     assert context.log == [] and context.memory_plan.plan == explicit_plan(RunOptions())
     context.on_record = None
-    assert context.on_record is None and context.guidance_log.on_record is None
+    assert context.on_record is None and context.report.log.on_record is None
     flags = [p.requires_grad for p in pipe.vae.parameters()]
     with context.models([pipe.transformer], pipe.vae):
         assert not any(p.requires_grad for p in pipe.vae.parameters())

@@ -50,7 +50,7 @@ def _pipe_frames(config, run):
     pipe = tiny_pipeline(seed=0)
     out = pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="pt", guidance=config,
                run_options=run, **TINY_CALL_KWARGS)
-    return out.frames, out.guidance_log, pipe
+    return out.frames, out.report.log, pipe
 
 
 @pytest.mark.parametrize("denoiser_grad", [False, True], ids=["fast", "faithful"])

@@ -64,14 +64,14 @@ def run_pipeline(pipe, seed: int = 1, **call):
 
 
 def test_pipeline_guidance_leaves_the_masked_pixels_out(estimators):
-    pipe = T.tiny_pipeline(0, geometry_estimator=estimators[0], flow_estimator=estimators[1])
+    pipe = T.tiny_pipeline(0, estimators=estimators)
     plain = run_pipeline(pipe)
     source = LeftHalf()
     masked = run_pipeline(pipe, guidance={"dynamic": "the dog"}, dynamic_masks=source)
-    log = masked.guidance_log
+    log = masked.report.log
     assert len(log) == UPDATES and source.calls == GUIDED_STEPS and not source.saw_grad
     assert all(r["mask_source"] == "left half" and r["masked_fraction"] == pytest.approx(0.5) for r in log)
-    assert log[0]["loss"] != pytest.approx(plain.guidance_log[0]["loss"])  # half the frame is out
+    assert log[0]["loss"] != pytest.approx(plain.report.log[0]["loss"])  # half the frame is out
     assert not torch.equal(masked.frames, plain.frames)
     every_other = LeftHalf()
     run_pipeline(pipe, guidance={"dynamic": "the dog", "dynamic_refresh": 2}, dynamic_masks=every_other)
@@ -84,25 +84,25 @@ def test_hooks_guide_with_masks_as_the_pipeline_does(estimators):
     from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     config = T.tiny_guidance_config(dynamic="the dog", denoiser_grad=False)
-    geco = GeCoCogVideoXPipeline(**T.tiny_cogvideox_components(0), geometry_estimator=estimators[0],
-                                 flow_estimator=estimators[1])
+    geco = GeCoCogVideoXPipeline(**T.tiny_cogvideox_components(0), estimators=estimators,
+                                 flow_estimator=estimators.flow)
     geco.set_progress_bar_config(disable=True)
     ours = run_pipeline(geco, guidance=config, dynamic_masks=LeftHalf())
     stock = CogVideoXPipeline(**T.tiny_cogvideox_components(0))
     stock.set_progress_bar_config(disable=True)
     source = LeftHalf()
-    with attach_geco_guidance(stock, config, geometry_estimator=estimators[0], flow_estimator=estimators[1],
+    with attach_geco_guidance(stock, config, estimators=estimators,
                               dynamic_masks=source) as handle:
         hooked = run_pipeline(stock).frames
     assert source.calls == GUIDED_STEPS and len(handle.log) == UPDATES
-    for a, b in zip(handle.log, ours.guidance_log):
+    for a, b in zip(handle.log, ours.report.log):
         assert a["mask_source"] == b["mask_source"] == "left half"
         assert a["masked_fraction"] == b["masked_fraction"] and a["loss"] == pytest.approx(b["loss"], rel=1e-4)
     torch.testing.assert_close(hooked, ours.frames, rtol=1e-4, atol=1e-4)
 
 
 def test_mask_options_that_cannot_work_fail_before_any_denoising(estimators):
-    pipe = T.tiny_pipeline(0, geometry_estimator=estimators[0], flow_estimator=estimators[1])
+    pipe = T.tiny_pipeline(0, estimators=estimators)
     steps = []
     pipe.transformer.register_forward_pre_hook(lambda *_: steps.append(1))
     with pytest.raises(ValueError, match="guidance.dynamic='a dog' needs a text segmenter"):
@@ -124,13 +124,13 @@ def test_without_dynamic_the_video_its_name_and_log_stay_as_before(estimators):
     # step_size: before, 61238450 and 3e3f47ff).
     assert default_name(load_config(preset="tiny"), "a marble bust") == "a-marble-bust-21df29c8-seed0"
     assert default_name(load_config(preset="cogvideox-5b"), "a marble bust") == "a-marble-bust-e56702e3-seed0"
-    pipe = T.tiny_pipeline(0, geometry_estimator=estimators[0], flow_estimator=estimators[1])
+    pipe = T.tiny_pipeline(0, estimators=estimators)
     before = run_pipeline(pipe)
     unused = LeftHalf()
     pipe.dynamic_mask_source = unused  # loaded, but guidance.dynamic is null: not asked
     after = run_pipeline(pipe)
     assert unused.calls == 0 and torch.equal(before.frames, after.frames)
-    assert all(set(record) == RECORD_KEYS for record in after.guidance_log)
+    assert all(set(record) == RECORD_KEYS for record in after.report.log)
 
 
 def test_the_video_key_counts_what_masks_the_frames():

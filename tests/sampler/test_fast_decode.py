@@ -249,7 +249,7 @@ def test_a_guided_run_decodes_its_final_video_with_the_stock_vae():
 
     out = pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="pt",
                run_options={"decode_layout": "channels_last"}, callback_on_step_end=keep_latents, **TINY_CALL_KWARGS)
-    assert len(out.guidance_log) > 0
+    assert len(out.report.log) > 0
     assert instance_forwards(pipe.vae) == [] and all(p.is_contiguous() for p in pipe.vae.parameters())
     with torch.no_grad():
         stock = pipe.video_processor.postprocess_video(video=pipe.decode_latents(final["latents"]), output_type="pt")
@@ -349,7 +349,7 @@ def test_a_guided_run_with_compile_calls_the_compiled_decoder(monkeypatch, fresh
     out = pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="latent",
                run_options={"compile": True}, **TINY_CALL_KWARGS)
     assert len(recording.wrapped) == 1
-    assert recording.calls >= 2 * len(out.guidance_log) > 0  # the tiny anchors: two chunk lengths per update
+    assert recording.calls >= 2 * len(out.report.log) > 0  # the tiny anchors: two chunk lengths per update
     assert instance_forwards(pipe.vae) == []
 
 

@@ -58,8 +58,8 @@ def test_pipeline_guides_with_the_tiny_decoder_and_decodes_the_video_with_the_va
     assert pipe.components["guidance_decoder"] is pipe.guidance_decoder
     tiny_calls, vae_calls = Counted(pipe.guidance_decoder, "decode"), Counted(pipe.vae, "decode")
     out = run(pipe, guidance={"decoder": "tiny"})
-    assert out.guidance_log and all(e["grad_norm"] > 0 and not e["skipped"] for e in out.guidance_log)
-    assert tiny_calls.calls >= len(out.guidance_log) and vae_calls.calls == 1  # the final video only
+    assert out.report.log and all(e["grad_norm"] > 0 and not e["skipped"] for e in out.report.log)
+    assert tiny_calls.calls >= len(out.report.log) and vae_calls.calls == 1  # the final video only
     assert out.guidance["decoder"] == "tiny"
     # the guided latents differ from the VAE-guided run (another gradient), the frames are finite
     exact = run(pipe)
@@ -93,12 +93,12 @@ def test_the_hook_takes_the_tiny_decoder_too():
                                     decoder="tiny")
     decoder = T.tiny_guidance_decoder("wan2.1")
     tiny_calls = Counted(decoder, "decode")
-    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1],
+    with attach_geco_guidance(pipe, config, estimators=estimators,
                               decoder=decoder) as handle:
         pipe(PROMPT, generator=torch.Generator().manual_seed(0), **T.tiny_call_kwargs(pipe, num_inference_steps=4),
              output_type="pt")
     assert len(handle.log) == 2 and tiny_calls.calls >= 2
-    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]):
+    with attach_geco_guidance(pipe, config, estimators=estimators):
         with pytest.raises(ValueError, match="needs a tiny decoder"):
             pipe(PROMPT, generator=torch.Generator().manual_seed(0), **T.tiny_call_kwargs(pipe, num_inference_steps=4),
                  output_type="pt")

@@ -7,7 +7,8 @@ import re
 
 import pytest
 import torch
-from counting import CountingForward
+from counting import CountingForward, CountingHook
+from diffusers.hooks import HookRegistry
 
 from geco_guide import tiny as T
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig
@@ -40,7 +41,14 @@ def run(pipe, seed=0, **changes):
 
 
 def score(frames, estimators, config):
-    return score_anchor_frames(frames, config.anchors, GeCoLoss(*estimators, config.loss))["loss"]
+    return score_anchor_frames(frames, config.anchors, GeCoLoss(estimators, config.loss))["loss"]
+
+
+def counting(module):
+    """A :class:`CountingHook` in ``module``'s hook registry: the forward calls that really ran."""
+    hook = CountingHook()
+    HookRegistry.check_if_exists_or_initialize(module).register_hook(hook, "count")
+    return hook
 
 
 def state_of(pipe):
@@ -49,7 +57,8 @@ def state_of(pipe):
     return (
         set(pipe.__dict__),
         set(pipe.scheduler.__dict__),
-        [(len(m._forward_pre_hooks), len(m._forward_hooks)) for mod in modules for m in mod.modules()],
+        [(len(m._forward_pre_hooks), len(m._forward_hooks), "forward" in m.__dict__, hasattr(m, "_diffusers_hook"))
+         for mod in modules for m in mod.modules()],
         [p.requires_grad for mod in modules for p in mod.parameters()],
     )
 
@@ -74,7 +83,7 @@ def test_guidance_lowers_geco_loss_and_detach_restores_bitwise(family, faithful,
     never_hooked = BUILDERS[family](0)
     reference = run(never_hooked)
     pipe = BUILDERS[family](0)
-    handle = attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1])
+    handle = attach_geco_guidance(pipe, config, estimators=estimators)
     guided = run(pipe)
     handle.detach()
     after = run(pipe)
@@ -102,16 +111,17 @@ def test_hook_on_stock_cogvideox_matches_geco_pipeline(faithful, estimators):
     config = T.tiny_guidance_config(
         anchors=ANCHORS, repeats="0x2,1x1,1x1", time_travel=[2, 2], step_size=1.0, denoiser_grad=faithful
     )
-    geco = GeCoCogVideoXPipeline(**T.tiny_cogvideox_components(0), geometry_estimator=estimators[0], flow_estimator=estimators[1])
+    geco = GeCoCogVideoXPipeline(**T.tiny_cogvideox_components(0))
     geco.set_progress_bar_config(disable=True)
     stock = CogVideoXPipeline(**T.tiny_cogvideox_components(0))
     stock.set_progress_bar_config(disable=True)
     kwargs = dict(T.TINY_CALL_KWARGS, num_frames=NUM_FRAMES, output_type="latent")
-    ours = geco(PROMPT, generator=torch.Generator().manual_seed(1), guidance=config, **kwargs)
-    with attach_geco_guidance(stock, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
+    ours = geco(PROMPT, generator=torch.Generator().manual_seed(1), guidance=config, estimators=estimators,
+                run_options=T.tiny_run_options(), **kwargs)
+    with attach_geco_guidance(stock, config, estimators=estimators) as handle:
         hooked = stock(PROMPT, generator=torch.Generator().manual_seed(1), **kwargs).frames
     assert [(e["step"], e["time_travel"]) for e in handle.log] == [(2, True), (3, False)]
-    for a, b in zip(handle.log, ours.guidance_log):
+    for a, b in zip(handle.log, ours.report.log):
         assert a["loss"] == pytest.approx(b["loss"], rel=1e-4) and a["t"] == b["t"]
     torch.testing.assert_close(hooked, ours.frames, rtol=1e-4, atol=1e-4)
 
@@ -119,7 +129,7 @@ def test_hook_on_stock_cogvideox_matches_geco_pipeline(faithful, estimators):
 def test_time_travel_is_reproducible_from_the_generator(estimators):
     pipe = T.tiny_hunyuan_pipeline(0)
     config = T.tiny_guidance_config(anchors=ANCHORS, repeats="0x2,1x2", time_travel=[2, 3], step_size=1.0, denoiser_grad=False)
-    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
+    with attach_geco_guidance(pipe, config, estimators=estimators) as handle:
         a, b, c = run(pipe, seed=7), run(pipe, seed=7), run(pipe, seed=8)
     assert len(handle.log) == 2 and all(e["time_travel"] for e in handle.log)
     assert torch.equal(a, b) and not torch.equal(a, c)
@@ -194,17 +204,19 @@ def test_unipc_corrector_keeps_the_guided_update():
 def test_bad_calls_are_rejected_before_any_denoising_step(family, changes, call, match, estimators):
     pipe = BUILDERS[family](0)
     config = T.tiny_guidance_config(**{**LAST_STEP, **changes})
-    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]):
-        counter = CountingForward(pipe.transformer)  # after the hook's own pre-hook
+    counter = counting(pipe.transformer)  # registered first: it runs inside the guidance's capture
+    with attach_geco_guidance(pipe, config, estimators=estimators):
         with pytest.raises(ValueError, match=match):
             run(pipe, **call)
-    counter.handle.remove()
     assert counter.n == 0
 
 
-def test_a_plain_dict_on_a_short_video_says_to_set_the_anchors_and_where(estimators):
-    pipe = T.tiny_wan_pipeline(0)  # 17 frames: the default anchors (12, 24, 36, 48) do not fit
-    with attach_geco_guidance(pipe, {"step_size": 2.0}, geometry_estimator=estimators[0], flow_estimator=estimators[1]):
+def test_default_anchors_spread_over_the_video_and_explicit_ones_must_fit(estimators):
+    pipe = T.tiny_wan_pipeline(0)  # 17 frames: the paper's four anchors spread over them
+    with attach_geco_guidance(pipe, {"step_size": 2.0, "repeats": "0x3,1x1", "time_travel": []}, estimators) as handle:
+        run(pipe, num_frames=17)
+    assert handle.last.guidance["anchors"] is None and len(handle.log) == 1
+    with attach_geco_guidance(pipe, {"anchors": [12, 24, 36, 48]}, estimators=estimators):
         with pytest.raises(ValueError) as err:
             run(pipe, num_frames=17)
     assert str(err.value) == ("anchors [24, 36, 48] are out of range for a 17-frame video: set anchors "
@@ -218,28 +230,30 @@ def test_unsupported_pipelines_get_a_clear_error(estimators):
         pass
 
     with pytest.raises(ValueError) as err:
-        attach_geco_guidance(MyVideoPipeline(), geometry_estimator=estimators[0], flow_estimator=estimators[1])
+        attach_geco_guidance(MyVideoPipeline(), estimators=estimators)
     message = str(err.value)
     for name in ("CogVideoXPipeline", "CogVideoXImageToVideoPipeline", "WanPipeline", "LTXPipeline", "HunyuanVideoPipeline"):
         assert name in message
     assert "register_adapter" in message and "MyVideoPipeline" in message
     with pytest.raises(ValueError, match="guides itself"):
-        attach_geco_guidance(T.tiny_pipeline(0), geometry_estimator=estimators[0], flow_estimator=estimators[1])
-    with pytest.raises(ValueError, match="flow"):
-        attach_geco_guidance(T.tiny_wan_pipeline(0), geometry_estimator=estimators[0], flow_estimator=None)
+        attach_geco_guidance(T.tiny_pipeline(0), estimators=estimators)
+    with pytest.raises(ValueError, match="estimators.flow must implement"):
+        attach_geco_guidance(T.tiny_wan_pipeline(0), None, estimators.__class__(estimators.geometry, None))
+    with pytest.raises(ValueError, match="needs its models"):
+        attach_geco_guidance(T.tiny_wan_pipeline(0))
 
 
 def test_attach_twice_is_refused_and_detach_is_idempotent(estimators):
     pipe = T.tiny_ltx_pipeline(0)
     before = state_of(pipe)
-    handle = attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry_estimator=estimators[0], flow_estimator=estimators[1])
+    handle = attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), estimators=estimators)
     assert handle.attached and state_of(pipe) != before
     with pytest.raises(ValueError, match="already"):
-        attach_geco_guidance(pipe, geometry_estimator=estimators[0], flow_estimator=estimators[1])
+        attach_geco_guidance(pipe, estimators=estimators)
     handle.detach()
     handle.detach()
     assert not handle.attached and state_of(pipe) == before
-    with attach_geco_guidance(pipe, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as again:
+    with attach_geco_guidance(pipe, estimators=estimators) as again:
         assert again.attached
     assert state_of(pipe) == before
 
@@ -248,7 +262,7 @@ def test_guidance_off_and_models_untouched(estimators):
     pipe = T.tiny_wan_pipeline(0, scheduler="euler")
     reference = run(pipe)
     weights = copy.deepcopy(pipe.transformer.state_dict())
-    with attach_geco_guidance(pipe, {**LAST_STEP, "enabled": False}, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as h:
+    with attach_geco_guidance(pipe, {**LAST_STEP, "enabled": False}, estimators=estimators) as h:
         assert torch.equal(run(pipe), reference) and h.log == []
         h.config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=True)
         guided = run(pipe)
@@ -263,7 +277,7 @@ def test_ltx_guidance_rescale_is_rebuilt_and_wrong_combinations_fail_loudly(esti
 
     pipe = T.tiny_ltx_pipeline(0)
     config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=False)
-    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
+    with attach_geco_guidance(pipe, config, estimators=estimators) as handle:
         run(pipe, guidance_rescale=0.7)
         assert len(handle.log) == 2
         # an adapter whose combination does not reproduce the pipeline's model output (here: the
@@ -283,7 +297,7 @@ def test_wrapped_step_keeps_the_signature_pipelines_inspect(estimators):
     before = inspect.signature(pipe.scheduler.step)
     assert {"eta", "generator"} <= set(before.parameters)
     g = torch.Generator().manual_seed(0)
-    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry_estimator=estimators[0], flow_estimator=estimators[1]):
+    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), estimators=estimators):
         assert inspect.signature(pipe.scheduler.step) == before
         # diffusers' prepare_extra_step_kwargs decides from the signature what to pass
         assert pipe.prepare_extra_step_kwargs(g, 0.5) == {"eta": 0.5, "generator": g}
@@ -294,7 +308,7 @@ def test_stochastic_scheduler_noise_comes_from_the_calls_generator(estimators):
     # hook attached, the call's generator must still be what determines the video, not the global RNG
     pipe = T.tiny_cogvideox_pipeline(0, scheduler="dpm")
     config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=False)
-    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
+    with attach_geco_guidance(pipe, config, estimators=estimators) as handle:
         torch.manual_seed(100)
         a = run(pipe, seed=3, output_type="latent")
         torch.manual_seed(200)
@@ -310,7 +324,7 @@ def test_eta_reaches_a_ddim_scheduler_through_the_hook(estimators):
     pipe = T.tiny_cogvideox_pipeline(0)
     pipe.scheduler = DDIMScheduler.from_config(pipe.scheduler.config)  # honours eta (CogVideoX's DDIM ignores it)
     config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=False)
-    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
+    with attach_geco_guidance(pipe, config, estimators=estimators) as handle:
         deterministic = run(pipe, seed=3, output_type="latent", eta=0.0)
         torch.manual_seed(100)
         a = run(pipe, seed=3, output_type="latent", eta=1.0)
@@ -331,7 +345,7 @@ def test_denoiser_cache_is_refused_before_any_denoising_step(estimators):
         unconditional_batch_skip_range=2, attention_weight_callback=lambda _: 0.5,
         current_timestep_callback=lambda: pipe.current_timestep, is_guidance_distilled=False,
     ))
-    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry_estimator=estimators[0], flow_estimator=estimators[1]):
+    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), estimators=estimators):
         counter = CountingForward(pipe.transformer)
         with pytest.raises(ValueError, match="FasterCache cache enabled") as err:
             run(pipe)
@@ -349,18 +363,48 @@ def test_model_cpu_offload_with_the_hook_gives_the_same_video(family, faithful, 
     offloaded.enable_model_cpu_offload(device="cpu")
     videos = []
     for pipe in (plain, offloaded):
-        with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
+        with attach_geco_guidance(pipe, config, estimators=estimators) as handle:
             videos.append(run(pipe))
         assert len(handle.log) == 2
     assert torch.equal(videos[0], videos[1])
 
 
-def test_the_estimators_earlier_argument_names_still_work(estimators):
+@pytest.mark.parametrize("keywords", [
+    {"geometry": 0, "flow": 0}, {"geometry_estimator": 0, "flow_estimator": 0}, {"decoder": 0}, {"dynamic_masks": 0},
+])
+def test_the_earlier_spellings_are_refused_naming_the_new_one(keywords, estimators):
     pipe = T.tiny_ltx_pipeline(0)
-    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), geometry=estimators[0], flow=estimators[1]) as handle:
-        assert (handle.geometry_estimator, handle.flow_estimator) == estimators
-    with pytest.raises(ValueError, match="not both"):
-        attach_geco_guidance(pipe, geometry=estimators[0], geometry_estimator=estimators[0], flow=estimators[1])
+    with pytest.raises(TypeError, match="is the earlier spelling") as err:
+        attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), **keywords)
+    assert "Estimators(" in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(TypeError, match="Estimators is not a"):
+        geometry, flow = estimators  # the bundle is no pair
+    with pytest.raises(TypeError, match="takes the estimators as one"):
+        attach_geco_guidance(pipe, None, (estimators.geometry, estimators.flow))
+
+
+def test_the_handle_reports_what_the_last_call_decided(estimators):
+    pipe = T.tiny_wan_pipeline(0)
+    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), estimators) as handle:
+        assert handle.last is None
+        run(pipe)
+        report = handle.last
+    assert report.log is handle.log and len(report.log) == 2
+    assert report.memory_plan["name"] and report.scheduler == type(pipe.scheduler).__name__
+    assert report.decoder.startswith("vae") and report.devices is None and report.mask_source is None
+    assert report.guidance["anchors"] == list(T.tiny_guidance_config(**LAST_STEP).anchors)
+
+
+def test_the_denoiser_capture_is_a_hook_of_diffusers_registry(estimators):
+    from diffusers.hooks import HookRegistry
+
+    from geco_guide.sampler.hooks import CAPTURE_HOOK, DenoiserCapture
+
+    pipe = T.tiny_wan_pipeline(0)
+    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), estimators):
+        registry = HookRegistry.check_if_exists_or_initialize(pipe.transformer)
+        assert isinstance(registry.get_hook(CAPTURE_HOOK), DenoiserCapture)
+    assert not hasattr(pipe.transformer, "_diffusers_hook") and "forward" not in pipe.transformer.__dict__
 
 
 @pytest.mark.parametrize("family", ["cogvideox", "cogvideox-1.5", "wan", "hunyuan", "ltx"])
@@ -375,7 +419,7 @@ def test_the_callers_latents_are_checked_before_any_denoising_step(family, estim
     run(pipe, callback_on_step_end=record, output_type="latent")
     shape = shapes[0]
     config = T.tiny_guidance_config(**LAST_STEP)
-    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
+    with attach_geco_guidance(pipe, config, estimators=estimators) as handle:
         counter = CountingForward(pipe.transformer)
         try:
             nan = torch.randn(shape)

@@ -60,14 +60,14 @@ def run(pipe, mode: str, seed: int = 3, **options):
 @pytest.mark.parametrize("mode", ["fast", "faithful"])
 def test_every_plan_gives_the_same_frames_as_the_explicit_default(pipe, mode):
     reference = run(pipe, mode, **EXPLICIT_DEFAULT)
-    assert reference.memory_plan["name"] == "explicit" and len(reference.guidance_log) == 2
+    assert reference.memory_plan["name"] == "explicit" and len(reference.report.log) == 2
     variants = [{"memory_plan": name} for name in PLAN_NAMES if name != "explicit"]
     variants.append({"memory_plan": "explicit", "vae_checkpointing": True, "vae_block_checkpointing": False,
                      "gradient_checkpointing": False})
     for guidance in variants:
         out = run(pipe, mode, **guidance)
         assert torch.equal(out.frames, reference.frames), guidance
-        assert [r["loss"] for r in out.guidance_log] == [r["loss"] for r in reference.guidance_log], guidance
+        assert [r["loss"] for r in out.report.log] == [r["loss"] for r in reference.report.log], guidance
     # every switch restored after the calls
     assert not pipe.transformer.is_gradient_checkpointing and not pipe.vae.is_gradient_checkpointing
     assert not pipe.geometry_estimator.gradient_checkpointing and not pipe.flow_estimator.gradient_checkpointing
@@ -282,7 +282,7 @@ def test_oom_at_the_first_update_falls_back_to_the_next_plan(pipe, monkeypatch, 
     assert out.memory_plan["name"] == expected and first in out.memory_plan["reason"]
     assert f"memory plan {first!r}; retrying it with {expected!r}" in caplog.text
     torch.testing.assert_close(out.frames, plain.frames, rtol=0, atol=1e-6)
-    assert len(out.guidance_log) == len(plain.guidance_log)
+    assert len(out.report.log) == len(plain.report.log)
 
 
 def test_oom_after_the_first_update_or_with_a_named_plan_is_raised(pipe, monkeypatch):

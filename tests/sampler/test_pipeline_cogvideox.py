@@ -16,12 +16,17 @@ from geco_guide.sampler.step import guided_step, loss_terms, score_anchor_frames
 from geco_guide.tiny import (
     TINY_ANCHORS,
     TINY_CALL_KWARGS,
+    tiny_bundle,
     tiny_cogvideox_components,
     tiny_guidance_decoder,
     tiny_pipeline,
+    tiny_run_options,
 )
 
 PROMPT = "a marble bust on a table"
+
+
+ESTIMATORS = tiny_bundle(0)
 
 
 @pytest.fixture(scope="module")
@@ -30,13 +35,14 @@ def pipe():
 
 
 def run(pipe, seed=0, **kwargs):
-    args = dict(TINY_CALL_KWARGS, output_type="pt")
+    """A call of the tiny pipeline: guided by the tiny estimators and run options unless told otherwise."""
+    args = dict(TINY_CALL_KWARGS, output_type="pt", estimators=ESTIMATORS, run_options=tiny_run_options())
     args.update(kwargs)
     return pipe(PROMPT, generator=torch.Generator().manual_seed(seed), **args)
 
 
 def scores(pipe, frames):
-    loss = GeCoLoss(pipe.geometry_estimator, pipe.flow_estimator, pipe.guidance_config.loss)
+    loss = GeCoLoss(ESTIMATORS, pipe.guidance_config.loss)
     return score_anchor_frames(frames, TINY_ANCHORS, loss)
 
 
@@ -144,7 +150,7 @@ def test_pipeline_exposes_components_and_geco_parts(pipe):
     for name in ("tokenizer", "text_encoder", "vae", "transformer", "scheduler"):
         assert getattr(pipe, name) is pipe.components[name]
     assert isinstance(pipe.scheduler, CogVideoXDDIMScheduler)
-    assert pipe.geometry_estimator is not None and pipe.flow_estimator is not None
+    assert set(pipe.components) == {"tokenizer", "text_encoder", "vae", "transformer", "scheduler"}
     assert isinstance(pipe.guidance_config, GuidanceConfig)
 
 
@@ -155,7 +161,8 @@ def test_guidance_off_matches_stock_pipeline_bitwise(pipe):
         ours = run(pipe, seed=3, guidance=False, output_type=output_type)
         ref = stock(PROMPT, generator=torch.Generator().manual_seed(3), output_type=output_type, **TINY_CALL_KWARGS)
         assert torch.equal(ours.frames, ref.frames), output_type
-        assert ours.guidance_log == [] and ours.guidance is None
+        assert ours.report.log == [] and ours.report.guidance is None
+        assert ours.report.scheduler == "CogVideoXDDIMScheduler"
 
 
 def test_guided_run_lowers_geco_loss_on_anchor_frames(pipe):
@@ -166,13 +173,13 @@ def test_guided_run_lowers_geco_loss_on_anchor_frames(pipe):
     assert scores(pipe, guided.frames)["loss"] < 0.9 * base
     assert scores(pipe, fast.frames)["loss"] < 0.9 * base
     # the log: one entry per update, with every cue, ||g|| and time
-    assert len(guided.guidance_log) == 5  # "0x1,2x2,1x1"
-    entry = guided.guidance_log[0]
+    assert len(guided.report.log) == 5  # "0x1,2x2,1x1"
+    entry = guided.report.log[0]
     assert {"step", "repeat", "t", "loss", "motion", "structure", "fused", "grad_norm", "seconds"} <= set(entry)
-    assert [e["step"] for e in guided.guidance_log] == [1, 1, 2, 2, 3]
-    assert [e["time_travel"] for e in guided.guidance_log] == [False, False, True, True, False]
-    assert all(e["grad_norm"] > 0 and e["loss"] == e["fused"] for e in guided.guidance_log)
-    assert guided.guidance_log[0]["t"] == int(pipe.scheduler.timesteps[1])
+    assert [e["step"] for e in guided.report.log] == [1, 1, 2, 2, 3]
+    assert [e["time_travel"] for e in guided.report.log] == [False, False, True, True, False]
+    assert all(e["grad_norm"] > 0 and e["loss"] == e["fused"] for e in guided.report.log)
+    assert guided.report.log[0]["t"] == int(pipe.scheduler.timesteps[1])
 
 
 def test_same_seed_same_frames_with_time_travel(pipe):
@@ -187,7 +194,7 @@ def test_same_seed_same_frames_with_time_travel(pipe):
 def test_only_anchor_chunks_are_decoded_and_models_stay_frozen(pipe):
     models = {
         "transformer": pipe.transformer, "vae": pipe.vae, "text_encoder": pipe.text_encoder,
-        "geometry": pipe.geometry_estimator, "flow": pipe.flow_estimator,
+        "geometry": ESTIMATORS.geometry, "flow": ESTIMATORS.flow,
     }
     before = {k: copy.deepcopy(m.state_dict()) for k, m in models.items()}
     flags = {k: [p.requires_grad for p in m.parameters()] for k, m in models.items()}
@@ -203,7 +210,7 @@ def test_only_anchor_chunks_are_decoded_and_models_stay_frozen(pipe):
         out = run(pipe, seed=1, output_type="latent")
     finally:
         del pipe.vae.decode
-    updates = len(out.guidance_log)
+    updates = len(out.report.log)
     assert updates == 5
     # 4 anchors -> 4 chunks of <= 3 latents per update, never all 5: chunk [0, 2) of anchor 4 alone,
     # the three 3-latent chunks batched in one decode
@@ -228,7 +235,7 @@ def test_denoiser_calls_per_mode_and_no_host_syncs_in_the_updates(pipe, denoiser
     finally:
         counter.handle.remove()
         text.handle.remove()
-    assert len(out.guidance_log) == 5 and calls_unguided == 4
+    assert len(out.report.log) == 5 and calls_unguided == 4
     assert text.n == 2  # prompt and negative prompt, encoded once for the whole call
     # faithful: one differentiated call per update + one final call per step; fast: one call per
     # step, plus one after each of the two time-travel re-noisings of step 2
@@ -239,8 +246,8 @@ def test_denoiser_calls_per_mode_and_no_host_syncs_in_the_updates(pipe, denoiser
 
 def test_cue_is_selectable(pipe):
     out = run(pipe, seed=0, guidance={"repeats": "0x1,1x1,0x2", "loss": {"cue": "motion"}})
-    assert len(out.guidance_log) == 1
-    assert out.guidance_log[0]["loss"] == out.guidance_log[0]["motion"] != out.guidance_log[0]["fused"]
+    assert len(out.report.log) == 1
+    assert out.report.log[0]["loss"] == out.report.log[0]["motion"] != out.report.log[0]["fused"]
 
 
 def test_callback_on_step_end_still_works(pipe):
@@ -283,15 +290,15 @@ def test_invalid_inputs_raise_before_any_denoising_step(pipe, kwargs, match):
     assert counter.n == 0
 
 
-def test_guidance_needs_estimators_but_unguided_does_not():
-    bare = tiny_pipeline(0)
-    bare.geometry_estimator = None
-    with pytest.raises(ValueError, match="geometry_estimator"):
-        run(bare)
-    assert run(bare, guidance=False, output_type="latent").frames.shape[1] == 5
+def test_guidance_needs_estimators_but_unguided_does_not(pipe):
+    with pytest.raises(ValueError, match=r"pass estimators=Estimators\(geometry, flow\)"):
+        run(pipe, estimators=None)
+    with pytest.raises(TypeError, match="Estimators"):
+        run(pipe, estimators=(ESTIMATORS.geometry, ESTIMATORS.flow))  # a pair is no bundle
+    assert run(pipe, guidance=False, estimators=None, output_type="latent").frames.shape[1] == 5
 
 
-def test_from_pretrained_takes_estimators_and_keeps_the_checkpoints_scheduler(tmp_path, pipe):
+def test_from_pretrained_keeps_the_checkpoints_scheduler(tmp_path, pipe):
     # the scheduler the checkpoint ships (CogVideoXDPMScheduler for CogVideoX-5B) is kept;
     # the paper's DDIM is chosen explicitly (the cogvideox-5b preset does, see test_presets.py)
     from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
@@ -300,23 +307,20 @@ def test_from_pretrained_takes_estimators_and_keeps_the_checkpoints_scheduler(tm
     components["scheduler"] = CogVideoXDPMScheduler.from_config(components["scheduler"].config)
     stock = CogVideoXPipeline(**components)
     stock.save_pretrained(tmp_path)
-    loaded = GeCoCogVideoXPipeline.from_pretrained(
-        tmp_path, geometry_estimator=pipe.geometry_estimator, flow_estimator=pipe.flow_estimator,
-        guidance_config=pipe.guidance_config,
-    )
-    assert isinstance(loaded.scheduler, CogVideoXDPMScheduler) and loaded.scheduler_note == "CogVideoXDPMScheduler"
+    loaded = GeCoCogVideoXPipeline.from_pretrained(tmp_path, guidance_config=pipe.guidance_config)
+    assert isinstance(loaded.scheduler, CogVideoXDPMScheduler)
     def settings(sched):
         return {k: v for k, v in sched.config.items() if not k.startswith("_")}
 
     assert settings(loaded.scheduler) == settings(stock.scheduler)
-    assert loaded.geometry_estimator is pipe.geometry_estimator
+    assert loaded.guidance_config == pipe.guidance_config
     loaded.set_progress_bar_config(disable=True)
     stock.set_progress_bar_config(disable=True)
     a = run(loaded, seed=2, guidance=False, output_type="latent").frames
     b = stock(PROMPT, generator=torch.Generator().manual_seed(2), output_type="latent", **TINY_CALL_KWARGS).frames
     assert torch.equal(a, b)
     guided = run(loaded, seed=2, output_type="latent")  # guidance works with the DPM scheduler too
-    assert len(guided.guidance_log) == 5
+    assert len(guided.report.log) == 5 and guided.report.scheduler == "CogVideoXDPMScheduler"
 
 
 def test_gradient_checkpointing_gives_the_same_update(pipe):
@@ -329,7 +333,7 @@ def test_gradient_checkpointing_gives_the_same_update(pipe):
     # restored after the call
     assert not pipe.transformer.is_gradient_checkpointing and not pipe.vae.is_gradient_checkpointing
     torch.testing.assert_close(ckpt.frames, plain.frames, rtol=1e-4, atol=1e-5)
-    assert ckpt.guidance_log[0]["grad_norm"] == pytest.approx(plain.guidance_log[0]["grad_norm"], rel=1e-4)
+    assert ckpt.report.log[0]["grad_norm"] == pytest.approx(plain.report.log[0]["grad_norm"], rel=1e-4)
 
 
 # ---- the caller's latents ----------------------------------------------------------------------
@@ -385,12 +389,13 @@ def test_latents_of_another_shape_are_refused_naming_the_expected_one(pipe, axis
 @pytest.mark.parametrize("time_travel", [[], None])
 def test_a_nan_decode_by_the_tiny_decoder_skips_the_update_and_leaves_the_latents_finite(time_travel):
     guided = tiny_pipeline(0)
-    guided.register_modules(guidance_decoder=tiny_guidance_decoder("cogvideox"))
-    decode = guided.guidance_decoder.decode
-    guided.guidance_decoder.decode = lambda latents: decode(latents) * float("nan")
+    decoder = tiny_guidance_decoder("cogvideox")
+    decode = decoder.decode
+    decoder.decode = lambda latents: decode(latents) * float("nan")
+    estimators = ESTIMATORS.with_tiny_decoder(decoder)
     config = {"decoder": "tiny", **({} if time_travel is None else {"time_travel": time_travel})}
-    out = run(guided, seed=5, output_type="latent", guidance=config)
-    log = out.guidance_log
+    out = run(guided, seed=5, output_type="latent", guidance=config, estimators=estimators)
+    log = out.report.log
     assert log and all(e["skipped"] and e["grad_norm"] == 0 and e["loss"] != e["loss"] for e in log)  # NaN loss
     assert torch.isfinite(out.frames).all()
     if time_travel is None:  # the tiny schedule's time travel: the re-noised DDIM step, still finite

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import warnings
 
+from dataclasses import replace
+
 import pytest
 import torch
 from counting import CountingForward
@@ -26,13 +28,15 @@ from diffusers import (
 from geco_guide.sampler.config import GuidanceConfig
 from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+from geco_guide.loss.presets import fused_guidance_loss
 from geco_guide.tiny import (
+    tiny_bundle,
     TINY_CALL_KWARGS,
     TinySizes,
     tiny_cogvideox_components,
     tiny_cogvideox_pipeline,
     tiny_cogvideox_transformer,
-    tiny_estimators,
+    tiny_run_options,
     tiny_guidance_config,
 )
 
@@ -47,17 +51,17 @@ def pair(estimators, scheduler=None, seed=0, **guidance):
     if scheduler is not None:
         components["scheduler"] = scheduler
     stock = CogVideoXPipeline(**components)
-    ours = GeCoCogVideoXPipeline(
-        **components, geometry_estimator=estimators[0], flow_estimator=estimators[1],
-        guidance_config=tiny_guidance_config(**{**SHORT, **guidance}),
-    )
+    ours = GeCoCogVideoXPipeline(**components, guidance_config=tiny_guidance_config(**{**SHORT, **guidance}))
     for pipe in (stock, ours):
         pipe.set_progress_bar_config(disable=True)
     return stock, ours
 
 
 def call(pipe, seed=0, **kwargs):
+    """A call of ``pipe``; ours with the tiny estimators and run options unless told otherwise."""
     args = dict(TINY_CALL_KWARGS, output_type="latent")
+    if isinstance(pipe, GeCoCogVideoXPipeline):
+        args.update(estimators=tiny_bundle(0), run_options=tiny_run_options())
     args.update(kwargs)
     return pipe(PROMPT, generator=torch.Generator().manual_seed(seed), **args)
 
@@ -86,10 +90,10 @@ def test_guided_pipeline_uses_the_schedulers_alpha_prev_like_the_hooks(spacing, 
     stock, ours = pair(estimators, scheduler)
     config = tiny_guidance_config(repeats="0x2,1x2", time_travel=[2, 3], step_size=1.0, denoiser_grad=False)
     ours_out = call(ours, 1, guidance=config)
-    with attach_geco_guidance(stock, config, geometry_estimator=estimators[0], flow_estimator=estimators[1]) as handle:
+    with attach_geco_guidance(stock, config, estimators=estimators) as handle:
         hooked = call(stock, 1).frames
-    assert [e["t"] for e in handle.log] == [e["t"] for e in ours_out.guidance_log]
-    for a, b in zip(handle.log, ours_out.guidance_log):
+    assert [e["t"] for e in handle.log] == [e["t"] for e in ours_out.report.log]
+    for a, b in zip(handle.log, ours_out.report.log):
         assert a["loss"] == pytest.approx(b["loss"], rel=1e-4)
     torch.testing.assert_close(hooked, ours_out.frames, rtol=1e-4, atol=1e-4)
 
@@ -147,7 +151,7 @@ def test_none_components_are_accepted(estimators):
     kwargs = dict(do_classifier_free_guidance=True, max_sequence_length=16, device=torch.device("cpu"))
     for a, b in zip(ours.encode_prompt(PROMPT, **kwargs), stock.encode_prompt(PROMPT, **kwargs)):
         assert torch.equal(a, b)
-    assert ours.geometry_estimator is None and ours.scheduler is None
+    assert ours.scheduler is None and ours.vae is None
 
 
 @pytest.mark.parametrize(
@@ -167,31 +171,28 @@ def test_the_users_scheduler_is_kept(make, estimators):
     assert ours.scheduler is scheduler and ours.components["scheduler"] is scheduler
     assert torch.equal(call(ours, 3, guidance=False).frames, call(stock, 3).frames)
     out = call(ours, 3)  # guidance runs with each of them, through the scheduler's own step
-    assert len(out.guidance_log) == 2 and type(ours.scheduler) is type(scheduler)
+    assert len(out.report.log) == 2 and type(ours.scheduler) is type(scheduler)
 
 
-def test_components_function_includes_the_estimators(estimators):
-    # mirrors test_components_function
-    _, ours = pair(estimators)
-    names = {"tokenizer", "text_encoder", "vae", "transformer", "scheduler", "geometry_estimator", "flow_estimator",
-             "guidance_decoder"}
-    assert set(ours.components) == names
-    assert ours.components["geometry_estimator"] is estimators[0]
-    assert ours.components["guidance_decoder"] is None  # optional: guidance.decoder=tiny only
+def test_components_are_the_stock_ones(estimators):
+    # mirrors test_components_function: the estimators enter at the call, like a guider
+    stock, ours = pair(estimators)
+    assert set(ours.components) == set(stock.components)
     again = GeCoCogVideoXPipeline(**ours.components)
-    assert again.flow_estimator is estimators[1]
+    assert again.transformer is ours.transformer and again.guidance_config == GuidanceConfig()
 
 
-def test_to_moves_the_estimators_but_keeps_their_dtype(estimators):
-    # mirrors test_to_dtype / test_to_device
-    geometry, flow = tiny_estimators(0)
-    ours = GeCoCogVideoXPipeline(**tiny_cogvideox_components(0), geometry_estimator=geometry, flow_estimator=flow)
+def test_to_device_dtype_and_save_are_diffusers_own(estimators):
+    # mirrors test_to_dtype / test_to_device: nothing of DiffusionPipeline is overridden
+    for name in ("__setattr__", "to", "device", "dtype", "save_pretrained"):
+        assert name not in vars(GeCoCogVideoXPipeline), name
+    _, ours = pair(estimators)
     ours.to(torch.float64)
     assert ours.transformer.dtype == torch.float64 and ours.dtype == torch.float64
-    assert {p.dtype for p in geometry.parameters()} == {torch.float32}
     ours.to("cpu")
     assert ours.device == torch.device("cpu")
-    assert {p.device.type for p in flow.parameters()} == {"cpu"}
+    with pytest.raises(AttributeError):
+        ours.guidance_config = GuidanceConfig()  # set once, at construction
 
 
 # ---- with guidance on: contracts hold, or the combination is refused clearly --------------------
@@ -202,7 +203,7 @@ def test_other_step_counts_scale_the_schedule_with_a_warning(estimators):
     _, ours = pair(estimators, repeats="0x2,2x2")  # written for 4 steps
     with pytest.warns(UserWarning, match="written for 4 steps, the sampler runs 2"):
         out = call(ours, 0, num_inference_steps=2)
-    assert [e["step"] for e in out.guidance_log] == [1, 1]  # "0x1,2x1"
+    assert [e["step"] for e in out.report.log] == [1, 1]  # "0x1,2x1"
     with pytest.raises(ValueError, match="covers 4 steps but the sampler runs 2"):
         call(ours, 0, num_inference_steps=2, guidance={"repeats": [0, 0, 2, 2]})  # per step: exact
     with warnings.catch_warnings():
@@ -215,8 +216,8 @@ def test_batched_guidance_normalises_per_video(estimators):
     # prompt, same generator seed) stay identical when guided
     _, ours = pair(estimators, time_travel=[3, 3])
     out = ours([PROMPT, PROMPT], generator=[torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)],
-               **dict(TINY_CALL_KWARGS, output_type="latent"))
-    assert out.frames.shape[0] == 2 and len(out.guidance_log) == 2
+               estimators=estimators, run_options=tiny_run_options(), **dict(TINY_CALL_KWARGS, output_type="latent"))
+    assert out.frames.shape[0] == 2 and len(out.report.log) == 2
     torch.testing.assert_close(out.frames[0], out.frames[1])
 
 
@@ -234,7 +235,7 @@ def test_callback_inputs_with_guidance_on(estimators):
 
     out = call(ours, 0, callback_on_step_end=callback, callback_on_step_end_tensor_inputs=names)
     assert [i for i, _ in seen] == [0, 1, 2, 3] and all(keys == sorted(names) for _, keys in seen)
-    assert len(out.guidance_log) == 2 and ours.guidance_scale == 1.0
+    assert len(out.report.log) == 2 and ours.guidance_scale == 1.0
 
 
 def test_fused_qkv_projections_with_guidance(estimators):
@@ -289,29 +290,20 @@ def test_denoiser_caches_are_refused_with_guidance_and_work_without(cache, estim
 
 def test_save_load_round_trips_the_guidance_config(tmp_path, estimators):
     # mirrors test_save_load_local and test_save_load_optional_components
-    _, ours = pair(estimators, step_size=1.5)
-    ours.guidance_config.loss.cue = "motion"  # changed after construction: saved as it is now
+    _, ours = pair(estimators, step_size=1.5, loss=replace(fused_guidance_loss(), cue="motion"))
     ours.save_pretrained(tmp_path)
-    loaded = GeCoCogVideoXPipeline.from_pretrained(tmp_path, geometry_estimator=estimators[0],
-                                                   flow_estimator=estimators[1])
+    assert not any((tmp_path / name).exists() for name in ("geometry_estimator", "flow_estimator"))
+    loaded = GeCoCogVideoXPipeline.from_pretrained(tmp_path)
     loaded.set_progress_bar_config(disable=True)
     assert loaded.guidance_config == ours.guidance_config
     assert loaded.guidance_config.step_size == 1.5 and loaded.guidance_config.loss.cue == "motion"
-    assert loaded.geometry_estimator is estimators[0] and loaded.flow_estimator is estimators[1]
     a, b = call(ours, 4), call(loaded, 4)
-    assert [e["loss"] for e in a.guidance_log] == [e["loss"] for e in b.guidance_log]
+    assert [e["loss"] for e in a.report.log] == [e["loss"] for e in b.report.log]
     torch.testing.assert_close(a.frames, b.frames, rtol=0, atol=0)
-    # without estimators: the optional components load as None, and a guided call says what is missing
-    bare = GeCoCogVideoXPipeline.from_pretrained(tmp_path)
-    assert bare.geometry_estimator is None and bare.guidance_config == ours.guidance_config
-    with pytest.raises(ValueError, match="geometry_estimator and flow_estimator"):
-        call(bare, 4)
-    # a config assigned later (object or dict of changes) is what is saved; repr() still works
-    ours.guidance_config = {"step_size": 0.5}
-    assert isinstance(ours.guidance_config, GuidanceConfig) and ours.guidance_config.step_size == 0.5
+    # a guided call without estimators says what is missing, in one line
+    with pytest.raises(ValueError, match=r"pass estimators=Estimators\(geometry, flow\) to the call"):
+        call(loaded, 4, estimators=None)
     assert "guidance_config" in repr(ours)
-    ours.save_pretrained(tmp_path / "again")
-    assert GeCoCogVideoXPipeline.from_pretrained(tmp_path / "again").guidance_config.step_size == 0.5
 
 
 def test_model_cpu_offload_with_guidance(estimators):
@@ -327,8 +319,8 @@ def test_model_cpu_offload_with_guidance(estimators):
         ref = call(plain, 0, guidance=guidance)
         once, twice = call(offloaded, 0, guidance=guidance), call(offloaded, 0, guidance=guidance)
         assert torch.equal(once.frames, ref.frames) and torch.equal(twice.frames, ref.frames)
-        assert len(once.guidance_log) == 2
-    assert {p.device.type for p in offloaded.geometry_estimator.parameters()} == {"cpu"}
+        assert len(once.report.log) == 2
+    assert {p.device.type for p in estimators.geometry.parameters()} == {"cpu"}  # no component: left as it was
 
 
 # ---- the caller's latents (``test_cogvideox.py`` passes none; the stock call takes them as given) --
@@ -338,8 +330,7 @@ def test_model_cpu_offload_with_guidance(estimators):
 def test_latents_of_the_shape_the_stock_pipeline_draws_give_its_output(version, estimators):
     stock = tiny_cogvideox_pipeline(0, version=version)
     stock.set_progress_bar_config(disable=True)
-    ours = GeCoCogVideoXPipeline(**stock.components, geometry_estimator=estimators[0], flow_estimator=estimators[1],
-                                 guidance_config=tiny_guidance_config(**SHORT))
+    ours = GeCoCogVideoXPipeline(**stock.components, guidance_config=tiny_guidance_config(**SHORT))
     ours.set_progress_bar_config(disable=True)
     drawn = []
     prepare = stock.prepare_latents
@@ -350,4 +341,4 @@ def test_latents_of_the_shape_the_stock_pipeline_draws_give_its_output(version, 
     assert shape == tuple(drawn[0].shape) and padding == (1 if version == "1.5" else 0)  # 5 latents padded to 6
     assert torch.equal(call(ours, seed=5, guidance=False, latents=drawn[0].clone()).frames, reference)
     guided = call(ours, seed=5, latents=drawn[0].clone())
-    assert torch.isfinite(guided.frames).all() and len(guided.guidance_log) == 2
+    assert torch.isfinite(guided.frames).all() and len(guided.report.log) == 2

@@ -1,0 +1,190 @@
+"""The video models GeCo guides and scores: ONE registry (:data:`MODELS`) of their facts.
+
+Each :class:`VideoModel` holds what every other part of the package needs to know about one
+checkpoint: its hub id and diffusers pipeline class, the call defaults of its model card (frames,
+size, steps, CFG, the second expert's CFG, the frame rate its videos are written at), its VAE's
+spatial and temporal compression and frame-count rule, the latent channels, the default anchors
+(the paper's four, spread over the model's frame count as the paper spreads them over 49), the
+tiny-decoder variant, the tiny random stand-in of its family, the native frame rate GeCo-Eval
+times it with, and how guidance reaches its pipeline. The sampler, the commands, the benchmarks
+and the cost model read this table and repeat none of it.
+
+This module imports nothing of the package and nothing heavy: the metric, the config and the
+commands' parsers read it without torch. The published full-size configs the cost model traces
+are :mod:`geco_guide.families.published`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = ["DEFAULT_MODEL", "FAMILIES", "MODELS", "PAPER_ANCHOR_COUNT", "SCORED_ONLY", "VideoModel",
+           "default_anchors", "frames_problem", "model_named", "paper_fps", "video_models"]
+
+#: The model the config's defaults are: the paper's guidance experiment.
+DEFAULT_MODEL = "cogvideox-5b"
+#: Anchors the paper spreads over its 49 frames (12, 24, 36, 48): a quarter of the latents apart.
+PAPER_ANCHOR_COUNT = 4
+#: How guidance reaches a family's pipeline: ``pipeline`` (the GeCoCogVideoXPipeline subclass, the
+#: paper's loop) or ``hooks`` (attach_geco_guidance on the stock pipeline).
+GUIDED_BY = ("pipeline", "hooks")
+#: The families: what decodes their latents and which tiny random stand-in they have.
+FAMILIES = ("cogvideox", "cogvideox1.5", "wan", "wan2.2", "wan2.2-ti2v", "hunyuan", "hunyuan1.5", "ltx", "ltx2")
+
+
+@dataclass(frozen=True)
+class VideoModel:
+    """One text-to-video (or image-to-video) checkpoint, as the package runs it.
+
+    Attributes:
+        name: the registry name (``--model NAME``, ``evaluation.model_fps.<name>``).
+        family: the family its pipeline, latents and tiny stand-in belong to (:data:`FAMILIES`).
+        hub_id: the diffusers checkpoint (``model.id`` replaces it with a folder); ``None`` for a
+            model GeCo-Eval only scores (no open weights).
+        pipeline: the diffusers pipeline class's name.
+        call: the model card's default call: ``num_frames``, ``height``, ``width``,
+            ``num_inference_steps``, ``guidance_scale`` and, for a two-expert model,
+            ``guidance_scale_2``.
+        fps: the frame rate its videos are written at (the model card's export).
+        eval_fps: the native frame rate GeCo-Eval times its windows with (the paper's table).
+        spatial_compression: pixels per latent, each way.
+        temporal_compression: ``r``: latent 0 is pixel frame 0, latent ``k >= 1`` pixels
+            ``r(k-1)+1 .. rk``.
+        frame_multiple: valid frame counts are ``frame_multiple * k + 1`` (``2r`` for VAEs that
+            decode latents in pairs, CogVideoX 1.0).
+        size_multiple: height and width must be multiples of it (the VAE's compression times the
+            transformer's patch).
+        latent_channels: channels of the latents the denoiser and the VAE share.
+        tiny_decoder: the tiny decoder variant that decodes its latents
+            (:mod:`geco_guide.estimators.tiny_decoder`), ``None`` where there is none.
+        tiny: the builder of its family's tiny random stand-in in :mod:`geco_guide.tiny` (the
+            real diffusers classes at a few pixels: tests, ``model.id=tiny-random``).
+        guided_by: ``pipeline`` or ``hooks`` (:data:`GUIDED_BY`).
+        scheduler: the ``sampling.scheduler`` it samples with by default (``ddim``: the paper's
+            DDIM for CogVideoX), ``None``: the checkpoint's own.
+        image_to_video: the pipeline conditions on an image (``--image``).
+        source: where the call defaults and compressions come from.
+    """
+
+    name: str
+    family: str
+    hub_id: str | None
+    pipeline: str | None
+    call: dict[str, Any] = field(hash=False, compare=False)
+    fps: int
+    eval_fps: float
+    spatial_compression: int = 8
+    temporal_compression: int = 4
+    frame_multiple: int = 4
+    size_multiple: int = 16
+    latent_channels: int = 16
+    tiny_decoder: str | None = None
+    tiny: str | None = None
+    guided_by: str = "hooks"
+    scheduler: str | None = None
+    image_to_video: bool = False
+    source: str = ""
+
+    @property
+    def generates(self) -> bool:
+        """Whether the package can load and run it (it has open weights and a pipeline)."""
+        return self.hub_id is not None and self.pipeline is not None
+
+    @property
+    def anchors(self) -> list[int]:
+        """The default anchors of its default video (:func:`default_anchors`)."""
+        return default_anchors(self.call["num_frames"], self.temporal_compression)
+
+
+def frames_problem(num_frames: Any, multiple: int) -> str | None:
+    """Why ``num_frames`` is no frame count a VAE of ``multiple * k + 1`` frames makes, or ``None``."""
+    if isinstance(num_frames, bool) or not isinstance(num_frames, int) or num_frames < 1:
+        return f"must be a whole number of frames >= 1, got {num_frames!r}"
+    if (num_frames - 1) % multiple:
+        below = num_frames - (num_frames - 1) % multiple
+        return (f"must be {multiple}k+1 frames for this model's VAE, got {num_frames} "
+                f"(e.g. {below} or {below + multiple})")
+    return None
+
+
+def default_anchors(num_frames: int, temporal_compression: int) -> list[int]:
+    """The paper's anchors spread over a ``num_frames`` video: the last pixel frame of latents
+    ``round(L * j / 4)``, ``j = 1..4`` (``L``: the last latent's index). (12, 24, 36, 48) at 49
+    frames with ``r = 4``; (20, 40, 60, 80) at 81; a short video gets fewer, distinct, anchors.
+
+    Raises:
+        ValueError: ``num_frames`` is no ``r k + 1`` frame count.
+    """
+    problem = frames_problem(num_frames, temporal_compression)
+    if problem is not None:
+        raise ValueError(f"num_frames {problem}")
+    last = (num_frames - 1) // temporal_compression
+    return sorted({temporal_compression * max(1, round(last * j / PAPER_ANCHOR_COUNT))
+                   for j in range(1, PAPER_ANCHOR_COUNT + 1)})
+
+
+def _call(frames: int, height: int, width: int, steps: int, cfg: float, **more: Any) -> dict[str, Any]:
+    return {"num_frames": frames, "height": height, "width": width, "num_inference_steps": steps,
+            "guidance_scale": cfg, **more}
+
+
+_COGVIDEOX = dict(family="cogvideox", pipeline="CogVideoXPipeline", frame_multiple=8, tiny_decoder="cogvideox",
+                  guided_by="pipeline", scheduler="ddim", fps=8, eval_fps=16.0, tiny="tiny_cogvideox_pipeline")
+_WAN21 = dict(family="wan", pipeline="WanPipeline", tiny_decoder="wan2.1", fps=16, eval_fps=16.0,
+              tiny="tiny_wan_pipeline")
+
+#: Every model, by name. Call defaults: each model card / diffusers' pipeline documentation (the
+#: ``source`` of each); native rates: the GeCo paper's supplement ("Frame rate of evaluated
+#: models"), the models it has no row for at their card's export rate.
+MODELS: dict[str, VideoModel] = {m.name: m for m in (
+    VideoModel("cogvideox-2b", hub_id="THUDM/CogVideoX-2b", call=_call(49, 480, 720, 50, 6.0),
+               source="CogVideoX-2b model card; diffusers CogVideoXPipeline docs", **_COGVIDEOX),
+    VideoModel("cogvideox-5b", hub_id="THUDM/CogVideoX-5b", call=_call(49, 480, 720, 50, 6.0),
+               source="CogVideoX-5b model card; the GeCo paper's guidance experiment", **_COGVIDEOX),
+    VideoModel("cogvideox1.5-5b", family="cogvideox1.5", hub_id="THUDM/CogVideoX1.5-5B", pipeline="CogVideoXPipeline",
+               call=_call(81, 768, 1360, 50, 6.0), fps=16, eval_fps=16.0, frame_multiple=8,
+               tiny_decoder="cogvideox", tiny="tiny_cogvideox15_pipeline", guided_by="pipeline", scheduler="ddim",
+               source="CogVideoX1.5-5B model card"),
+    VideoModel("wan2.1-t2v-1.3b", hub_id="Wan-AI/Wan2.1-T2V-1.3B-Diffusers", call=_call(81, 480, 832, 50, 5.0),
+               source="Wan2.1-T2V-1.3B-Diffusers model card", **_WAN21),
+    VideoModel("wan2.1-t2v-14b", hub_id="Wan-AI/Wan2.1-T2V-14B-Diffusers", call=_call(81, 720, 1280, 50, 5.0),
+               source="Wan2.1-T2V-14B-Diffusers model card", **_WAN21),
+    VideoModel("wan2.2-t2v-a14b", family="wan2.2", hub_id="Wan-AI/Wan2.2-T2V-A14B-Diffusers", pipeline="WanPipeline",
+               call=_call(81, 720, 1280, 40, 4.0, guidance_scale_2=3.0), fps=16, eval_fps=16.0,
+               tiny_decoder="wan2.1", tiny="tiny_wan22_pipeline",
+               source="Wan2.2-T2V-A14B-Diffusers model card (two experts)"),
+    VideoModel("hunyuanvideo", family="hunyuan", hub_id="hunyuanvideo-community/HunyuanVideo",
+               pipeline="HunyuanVideoPipeline", call=_call(129, 720, 1280, 50, 6.0), fps=15, eval_fps=24.0,
+               tiny_decoder="hunyuanvideo", tiny="tiny_hunyuan_pipeline", source="diffusers HunyuanVideoPipeline docs"),
+    VideoModel("ltx-video", family="ltx", hub_id="Lightricks/LTX-Video", pipeline="LTXPipeline",
+               call=_call(161, 480, 704, 50, 3.0), fps=24, eval_fps=30.0, spatial_compression=32,
+               temporal_compression=8, frame_multiple=8, size_multiple=32, latent_channels=128, tiny="tiny_ltx_pipeline",
+               source="diffusers LTXPipeline docs"),
+    VideoModel("sora-2", family="", hub_id=None, pipeline=None, call=_call(1, 0, 0, 0, 0.0), fps=30, eval_fps=30.0,
+               source="the GeCo paper (scored only: no open weights)"),
+    VideoModel("veo-3.1", family="", hub_id=None, pipeline=None, call=_call(1, 0, 0, 0, 0.0), fps=24, eval_fps=24.0,
+               source="the GeCo paper (scored only: no open weights)"),
+)}
+
+#: Models of the paper's table that GeCo-Eval only scores (``--videos NAME=DIR``): no open weights.
+SCORED_ONLY = tuple(name for name, model in MODELS.items() if not model.generates)
+
+
+def video_models() -> list[str]:
+    """The names of the models the package can generate with."""
+    return [name for name, model in MODELS.items() if model.generates]
+
+
+def model_named(name: str) -> VideoModel:
+    """The :class:`VideoModel` of ``name``; ValueError (one line) listing the names otherwise."""
+    try:
+        return MODELS[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown model {name!r}; one of {', '.join(video_models())} "
+                         f"(scored only: {', '.join(SCORED_ONLY)})") from None
+
+
+def paper_fps() -> dict[str, float]:
+    """Every model's native frame rate for GeCo-Eval, by name (``evaluation.model_fps``)."""
+    return {name: model.eval_fps for name, model in MODELS.items()}

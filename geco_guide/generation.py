@@ -1,0 +1,657 @@
+"""ONE generation path: check, load, sample (guided or not), score, write.
+
+``geco generate``, ``geco ab``, ``--best-of``, GeCo-Eval and the perf harness all make their videos
+here, for every model of the registry (:mod:`geco_guide.families`):
+
+1. :func:`check_generation` checks what the config and the files alone can show, in one pass and
+   before anything loads: the prompt, the outputs, the device, the size, every model's weights
+   (all missing ones named at once), the guidance against the model (anchors, schedule, tiny
+   decoder, memory plan), options that cannot act.
+2. :func:`load_models` loads what the run needs once: the video pipeline of the model (the
+   paper's ``GeCoCogVideoXPipeline`` for CogVideoX, the stock diffusers pipeline otherwise) and
+   the estimators (with the segmenter and the tiny decoder where the guidance uses them).
+3. :func:`sample` makes one video: the pipeline's own call, guided by its loop or through
+   :func:`~geco_guide.sampler.hooks.attach_geco_guidance`; it returns the frames and what the
+   call decided (:class:`~geco_guide.sampler.context.GuidanceReport`).
+4. :func:`generate` writes the video and its sidecar, atomically, under an output lock;
+   :func:`generate_best_of` makes N and keeps the least inconsistent.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import json
+import logging
+import math
+import os
+import platform
+import re
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, replace
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from .config import GeCoConfig, config_to_dict
+from .estimators import TINY_RANDOM
+from .io.files import output_lock, write_json_atomic
+
+if TYPE_CHECKING:
+    import torch
+
+    from .estimators import Estimators
+    from .sampler.context import GuidanceObserver, GuidanceReport
+    from .sampler.loading import LoadedPipeline
+
+__all__ = ["KEYLESS_SECTIONS", "SCORES_NOTE", "SELECTION_SCORE", "GenerationResult", "Models", "Sample",
+           "best_candidate", "check_generation", "check_prompt", "default_name", "generate", "generate_best_of",
+           "load_models", "loading_line", "output_paths", "sample", "slugify", "versions", "video_key"]
+
+logger = logging.getLogger(__name__)
+
+#: What ``--out`` may end with: a video file of these suffixes (the writer picks the format by
+#: it), or no suffix (a folder).
+OUT_SUFFIXES = (".mp4", ".gif")
+#: Config sections that cannot change the frames, left out of :func:`video_key`: where the files
+#: go, whether the anchors are scored afterwards, the evaluation protocol.
+KEYLESS_SECTIONS = ("output", "evaluation")
+#: The moving-subject options, which make no frame while ``guidance.dynamic`` is null: left out of
+#: :func:`video_key` then, so that every video made before they existed keeps its name.
+DYNAMIC_KEYS = ("dynamic", "dynamic_dilation", "dynamic_refresh")
+#: Longest name a temporary of an atomic write adds to ``<name>``: ``.<name>.<8 random>.tmp``
+#: before the suffix (see :func:`geco_guide.io.files.atomic_path`).
+TEMP_NAME_EXTRA = len("..12345678.tmp")
+SCORES_NOTE = ("These are the anchor frames' scores with the guidance loss' settings; "
+               "python -m geco_guide evaluate scores the whole video with the paper's protocol (a different number).")
+#: The score best-of-N selection keeps the lowest of: the fused map under the GeCo protocol.
+SELECTION_SCORE = "fused"
+#: The largest N of best-of-N: each candidate is a whole video.
+MAX_CANDIDATES = 1000
+SEED_RANGE = (-(2**63), 2**64 - 1)
+
+
+# --------------------------------------------------------------------------------------------
+# names
+
+
+def slugify(text: str, max_len: int = 48) -> str:
+    slug = re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")
+    return slug[:max_len].rstrip("-") or "video"
+
+
+def split_cfg_acts(cfg: GeCoConfig) -> bool:
+    """Whether ``run.split_cfg`` changes anything: a guided call with CFG on the paper's loop."""
+    return (cfg.run.split_cfg and cfg.guidance.enabled and cfg.sampling.guidance_scale > 1.0
+            and cfg.model.video_model.guided_by == "pipeline")
+
+
+def video_key(config: dict[str, Any], prompt: str) -> str:
+    """8 hex characters of SHA-256 over the prompt and the config that makes the frames
+    (``config``: :func:`geco_guide.config.config_to_dict`'s form, e.g. a sidecar's ``config``).
+
+    Left out: :data:`KEYLESS_SECTIONS`, ``model.device``, and the ``run`` section (how this machine
+    runs guidance: memory plans and devices give the same frames) except its
+    :data:`~geco_guide.sampler.run_options.FRAME_ROUNDING_KEYS` where they differ from their
+    defaults and act (``split_cfg`` only with guidance and CFG): those can change the frames to float
+    rounding and so name another video. The device can change the bytes (CPU and GPU kernels round
+    differently), but a video moved to another device is the same experiment, so it does not
+    rename it. Left out too while unused: the :data:`DYNAMIC_KEYS` of a null ``guidance.dynamic``
+    (or of a video made without guidance), and ``estimators.segmenter`` unless
+    ``guidance.dynamic`` names subjects. The JSON is canonical (sorted keys), so the key is the
+    same in every process and on every machine.
+    """
+    from .sampler.run_options import FRAME_ROUNDING_KEYS, RunOptions
+
+    kept = {section: value for section, value in config.items() if section not in KEYLESS_SECTIONS}
+    kept["model"] = {key: value for key, value in kept.get("model", {}).items() if key != "device"}
+    guidance = kept.get("guidance", {})
+    guided = guidance.get("enabled", True)
+    if "run" in kept:  # the options that round frames, where set and acting: a new one renames no video
+        defaults = asdict(RunOptions())
+        sampling = kept.get("sampling", {})
+        acting = {"split_cfg": guided and (sampling.get("guidance_scale") or 0) > 1.0}
+        kept["run"] = {key: value for key, value in kept["run"].items()
+                       if key in FRAME_ROUNDING_KEYS and value != defaults[key] and acting.get(key, True)}
+        if not kept["run"]:
+            del kept["run"]
+    dynamic = guidance.get("dynamic") if guided else None
+    if dynamic is None and "guidance" in kept:
+        kept["guidance"] = {key: value for key, value in kept["guidance"].items() if key not in DYNAMIC_KEYS}
+    if dynamic in (None, "auto") and "estimators" in kept:
+        kept["estimators"] = {key: value for key, value in kept["estimators"].items() if key != "segmenter"}
+    text = json.dumps({"prompt": prompt, "config": kept}, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:8]
+
+
+def default_name(cfg: GeCoConfig, prompt: str) -> str:
+    """``<slug>-<video key>-seed<N>``, with ``-unguided`` when guidance is off."""
+    suffix = "" if cfg.guidance.enabled else "-unguided"
+    return f"{slugify(prompt)}-{video_key(config_to_dict(cfg), prompt)}-seed{cfg.seed}{suffix}"
+
+
+def output_paths(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None) -> tuple[Path, Path]:
+    """``(video, sidecar.json)``: ``out`` (a .mp4 or .gif path, or a folder: no suffix) or
+    ``output.dir/name.mp4``; ValueError (one line) for an ``out`` of another suffix or an empty one."""
+    name = cfg.output.name or default_name(cfg, prompt)
+    if out is None:
+        video = Path(cfg.output.dir) / f"{name}.mp4"
+    else:
+        if not str(out).strip():
+            raise ValueError("--out must name a video file (.mp4 or .gif) or a folder, got an empty string")
+        out = Path(out)
+        suffix = out.suffix.lower()
+        if suffix and suffix not in OUT_SUFFIXES:
+            raise ValueError(f"--out {str(out)!r}: a video path must end with {' or '.join(OUT_SUFFIXES)}; a path "
+                             "without a suffix is a folder (the default name inside it)")
+        video = out if suffix else out / f"{name}.mp4"
+    return video, video.with_suffix(".json")
+
+
+# --------------------------------------------------------------------------------------------
+# checks before anything loads
+
+
+def check_prompt(prompt: str) -> None:
+    """ValueError (one line) for a prompt that is empty or not UTF-8 text (before any model loads:
+    the tokenizer would fail on it after loading them all)."""
+    if not isinstance(prompt, str) or not prompt.strip():
+        raise ValueError("prompt must not be empty")
+    try:
+        prompt.encode("utf-8")
+    except UnicodeEncodeError as err:  # bytes the terminal could not decode reach Python as surrogates
+        raise ValueError(f"the prompt is not valid UTF-8 text (an undecodable byte at character {err.start + 1}); "
+                         "check the encoding of the terminal or file it came from") from None
+
+
+def _nearest_existing(path: Path) -> Path:
+    """``path``'s nearest ancestor that exists (the folder an atomic write would create the rest in)."""
+    return next((parent for parent in path.parents if os.path.exists(parent)), Path.cwd())
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):  # no pathconf for this file system: the common limit
+        return 255
+
+
+def _name_problem(path: Path, existing: Path) -> str | None:
+    """Why a name of ``path`` below ``existing`` is too long for the file system (the file's with
+    the temporary name its atomic write uses), or None."""
+    limit = _name_max(existing)
+    too_long = next((part for part in path.parent.parts[len(existing.parts):] if len(part.encode()) > limit), None)
+    if too_long is not None:
+        return (f"the folder name {too_long[:24]!r}... is {len(too_long.encode())} bytes, over the {limit} this "
+                "file system allows")
+    if len(path.name.encode()) + TEMP_NAME_EXTRA > limit:
+        return (f"the name is {len(path.name.encode())} bytes, over the {limit - TEMP_NAME_EXTRA} this file system "
+                "allows (a shorter output.name or --out)")
+    return None
+
+
+def check_outputs(paths: tuple[Path, ...], overwrite: bool = False) -> None:
+    """ValueError (one line) for anything that would make writing ``paths`` fail after sampling:
+    a name too long for the file system, a file where a folder must be, a folder or (without
+    ``overwrite``) a file under an output's name, a folder that cannot be written."""
+    for path in paths:
+        existing = _nearest_existing(path)
+        problem = _name_problem(path, existing)
+        if problem is None and not existing.is_dir():
+            problem = f"{str(existing)!r} is a file, not a folder"
+        if problem is None and path.is_dir():
+            problem = "a folder of that name is in the way"
+        if problem is None and not os.access(existing, os.W_OK | os.X_OK):
+            problem = f"the folder {str(existing)!r} is not writable"
+        if problem is not None:
+            raise ValueError(f"cannot write {str(path)!r}: {problem}")
+        if path.exists() and not overwrite:
+            raise ValueError(f"{str(path)!r} already exists; pass --overwrite to replace it, or choose another "
+                             "--out or output.name")
+
+
+def with_resolved_device(cfg: GeCoConfig) -> GeCoConfig:
+    """``cfg`` with ``model.device`` resolved once (``auto``: cuda where there is one, else cpu), so
+    that the memory planner, the loaders and the sidecar all see the same real device.
+
+    Raises:
+        ValueError: (one line naming ``model.device``) a device this machine lacks.
+    """
+    from .io.devices import check_device
+
+    device = check_device(cfg.model.device)
+    return replace(cfg, model=replace(cfg.model, device=str(device)))
+
+
+def check_video_fits(cfg: GeCoConfig) -> None:
+    """ValueError (one line) for a video size that cannot fit the device, before any model loads:
+    the decoded video alone, in float32, is a lower bound of the run's peak (the models, latents
+    and activations come on top), so a refusal is certain."""
+    from .io.devices import check_memory_fits
+
+    s = cfg.sampling
+    nbytes = s.num_frames * 3 * s.height * s.width * 4
+    check_memory_fits(nbytes, cfg.model.device,
+                      f"a {s.num_frames}-frame {s.height}x{s.width} video (sampling.num_frames/height/width)")
+
+
+def warn_idle_options(cfg: GeCoConfig) -> None:
+    """One warning line for each option set that cannot act on this run (it changes neither the
+    frames nor the video's name)."""
+    if cfg.guidance.dynamic is not None and not cfg.guidance.enabled:
+        logger.warning("guidance.dynamic=%r does nothing without guidance (--no-guidance): nothing is masked",
+                       cfg.guidance.dynamic)
+    if cfg.run.split_cfg and not split_cfg_acts(cfg):
+        why = ("without guidance" if not cfg.guidance.enabled else "without CFG (sampling.guidance_scale <= 1)"
+               if cfg.sampling.guidance_scale <= 1.0 else f"on {cfg.model.name}, whose stock denoiser calls the hooks "
+               "leave as they are")
+        logger.warning("run.split_cfg does nothing %s: the frames are those of one call", why)
+
+
+def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (), *, overwrite: bool = False,
+                     loaded: bool = False) -> GeCoConfig:
+    """Every check a generation can make before anything loads, in one pass; returns ``cfg`` with
+    its device resolved (:func:`with_resolved_device`).
+
+    Checks the prompt, the output ``paths`` (refused if present without ``overwrite``), the frame
+    rate for their format, the device and the devices of ``run.devices``, the size against the
+    device's memory, every model's weights (all missing ones named at once; skipped when the
+    models are ``loaded``) and the guidance against the model (anchors, schedule, tiny decoder,
+    a memory plan that fits). Options that cannot act get a warning line.
+
+    Raises:
+        ValueError: one line naming the option, file or value.
+        WeightsNotFoundError: one line naming every missing model and how to pass a local path.
+    """
+    from .io.video import check_fps
+    from .sampler.loading import check_guidance_before_loading, missing_weights, uses_tiny_decoder
+    from .sampler.multi_device import resolve_devices
+
+    check_prompt(prompt)
+    check_outputs(paths, overwrite)
+    for path in paths[:1]:
+        check_fps(cfg.sampling.fps, path.suffix)
+    if not SEED_RANGE[0] <= cfg.seed <= SEED_RANGE[1]:
+        raise ValueError(f"seed must be a 64-bit integer, got {cfg.seed}")
+    cfg = with_resolved_device(cfg)
+    if cfg.guidance.enabled:
+        resolve_devices(cfg.run.devices)  # a device this machine lacks: one line before loading
+    check_video_fits(cfg)
+    warn_idle_options(cfg)
+    if not loaded:
+        missing_weights(cfg.model, cfg.estimators, tiny_decoder=uses_tiny_decoder(cfg.guidance),
+                        segmenter=needs_segmenter(cfg))
+        s = cfg.sampling
+        check_guidance_before_loading(cfg.guidance, cfg.run, cfg.estimators, cfg.model.video_model,
+                                      model_id=cfg.model.source, num_frames=s.num_frames, height=s.height,
+                                      width=s.width, num_steps=s.num_inference_steps, device=cfg.model.device)
+    return cfg
+
+
+def needs_segmenter(cfg: GeCoConfig) -> bool:
+    """Whether the run's guidance masks subjects named by text (the segmenter loads)."""
+    from .estimators.dynamic_masks import AUTO
+
+    return cfg.guidance.enabled and cfg.guidance.dynamic not in (None, AUTO)
+
+
+# --------------------------------------------------------------------------------------------
+# loading
+
+
+@dataclass
+class Models:
+    """What a run loads once and every video of it uses.
+
+    Attributes:
+        video: the video pipeline and what its loading decided
+            (:class:`~geco_guide.sampler.loading.LoadedPipeline`).
+        estimators: the GeCo models (with the segmenter and the tiny decoder where the guidance
+            uses them), ``None`` where the run neither guides nor scores.
+    """
+
+    video: LoadedPipeline
+    estimators: Estimators | None
+
+    @property
+    def pipe(self) -> Any:
+        return self.video.pipe
+
+
+def loading_line(cfg: GeCoConfig, estimators: bool = True) -> str:
+    """The line a command prints before loading (which takes minutes): what loads, from where."""
+    model = f"{cfg.model.name} {cfg.model.source}"
+    if not estimators:
+        return f"loading models: {model} ..."
+    return f"loading models: {model}, geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow} ..."
+
+
+def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True) -> Models:
+    """The video pipeline of ``cfg.model`` and the GeCo models: ``estimators`` when it is a bundle
+    loaded already (a run that shares it across models), loaded when it is ``True`` (with the
+    segmenter where ``guidance.dynamic`` names subjects), none when ``False``; plus the tiny decoder
+    of the model's latents where the guidance decodes with it. On ``model.device``; the cheapest
+    failure first (the segmenter and the estimators before the video model)."""
+    import torch
+
+    from .estimators import Estimators, load_estimators
+    from .sampler.loading import load_tiny_decoder, load_video_pipeline, uses_tiny_decoder
+    from .tiny import tiny_video_components
+
+    bundle = estimators if isinstance(estimators, Estimators) else None
+    if estimators is True:
+        bundle = load_estimators(cfg.estimators, cfg.model.device, segmenter=needs_segmenter(cfg))
+    components = None
+    if cfg.model.source == TINY_RANDOM:
+        components = tiny_video_components(cfg.model.video_model, cfg.model.init_seed)
+    video = load_video_pipeline(cfg.model, cfg.sampling.scheduler, components)
+    if bundle is not None and uses_tiny_decoder(cfg.guidance):
+        vae_config = video.pipe.vae.config
+        channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)
+        decoder = load_tiny_decoder(cfg.estimators, video.model, channels, getattr(torch, cfg.model.dtype))
+        bundle = bundle.with_tiny_decoder(decoder.to(device=video.pipe.device))
+    return Models(video, bundle)
+
+
+# --------------------------------------------------------------------------------------------
+# sampling
+
+
+@dataclass
+class Sample:
+    """One video as :func:`sample` made it.
+
+    Attributes:
+        frames: ``[1, F, 3, H, W]`` in ``[0, 1]``, float32, on the CPU.
+        report: what the call decided (:class:`~geco_guide.sampler.context.GuidanceReport`).
+        seconds: the call's wall time.
+    """
+
+    frames: torch.Tensor
+    report: GuidanceReport
+    seconds: float
+
+
+def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = None, image: Any = None,
+           observer: GuidanceObserver | None = None, progress: bool = True) -> Sample:
+    """One video of ``prompt`` with ``cfg``'s sampling and guidance, seeded with ``seed`` (default
+    ``cfg.seed``): the pipeline's own call, guided by the paper's loop (``GeCoCogVideoXPipeline``)
+    or by :func:`~geco_guide.sampler.hooks.attach_geco_guidance` on the stock pipeline;
+    ``image`` conditions an image-to-video pipeline.
+
+    Raises:
+        ValueError: the sampled frames hold NaN/inf (nothing is made of them), or an option the
+            pipeline has no argument for.
+    """
+    import torch
+
+    from .sampler.context import GuidanceReport
+    from .sampler.sampling import call_arguments
+    from .tiny import tiny_call_extras
+    from .types import NonFiniteFramesError, check_frame_values
+
+    pipe, entry = models.pipe, models.video.model
+    generator = torch.Generator(device="cpu").manual_seed(cfg.seed if seed is None else seed)
+    extra = tiny_call_extras(pipe) if cfg.model.source == TINY_RANDOM else {}
+    if image is not None:
+        extra["image"] = image
+    arguments = call_arguments(pipe, cfg.sampling, prompt=prompt, generator=generator, **extra)
+    pipe.set_progress_bar_config(disable=not progress)
+    guided = cfg.guidance.enabled
+    start = time.perf_counter()
+    if entry.guided_by == "pipeline":
+        output = pipe(**arguments, guidance=cfg.guidance, run_options=cfg.run,
+                      estimators=models.estimators if guided else None, observer=observer)
+        report = output.report
+    elif guided:
+        from .sampler.hooks import attach_geco_guidance
+
+        with attach_geco_guidance(pipe, cfg.guidance, models.estimators, cfg.run) as handle:
+            handle.observer = observer
+            output = pipe(**arguments)
+        report = handle.last
+    else:
+        output = pipe(**arguments)
+        report = GuidanceReport(scheduler=type(pipe.scheduler).__name__)
+    seconds = time.perf_counter() - start
+    frames = output.frames[:1].float().cpu()  # [1, F, 3, H, W] in [0, 1]
+    try:
+        check_frame_values(frames, "the sampled video")
+    except NonFiniteFramesError as err:  # the VAE's clamp would write NaN as black and score it 0
+        raise ValueError(
+            f"sampling diverged, nothing was written: {err} (lower sampling.guidance_scale or guidance.step_size)"
+        ) from None
+    return Sample(frames, report, seconds)
+
+
+# --------------------------------------------------------------------------------------------
+# one video, written
+
+
+@dataclass
+class GenerationResult:
+    video_path: Path
+    sidecar_path: Path
+    scores: dict[str, float] | None
+    sidecar: dict[str, Any]
+    #: the models that made the video (loaded, or the ones passed in), for a caller's next video
+    models: Models | None = None
+
+
+def versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    import diffusers
+    import numpy
+    import torch
+    import transformers
+
+    try:
+        geco_version = version("geco_guide")
+    except PackageNotFoundError:  # not installed (running from a checkout)
+        geco_version = "unknown"
+    return {
+        "geco_guide": geco_version,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "diffusers": diffusers.__version__,
+        "transformers": transformers.__version__,
+        "numpy": numpy.__version__,
+    }
+
+
+@contextlib.contextmanager
+def removed_on_failure(*paths: Path) -> Iterator[None]:
+    """Remove ``paths`` when the block fails or is interrupted. Around a sidecar's write it removes
+    the video just written (and an old sidecar under the name, whose video that replaced), so that
+    no video is left without its own sidecar."""
+    try:
+        yield
+    except BaseException:
+        for path in paths:
+            path.unlink(missing_ok=True)
+        raise
+
+
+def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None, *, overwrite: bool = False,
+             models: Models | None = None, image: Any = None, announce: Callable[[str], None] | None = None,
+             ) -> GenerationResult:
+    """Run one generation of ``cfg`` and write the video + JSON sidecar. ``models`` skips loading
+    (a run's earlier :class:`Models`); existing outputs are replaced only with ``overwrite``
+    (checked before anything loads); ``announce`` is told what loads before it does.
+
+    Once every check passed, the run holds its video's :func:`~geco_guide.io.files.output_lock`: a
+    second run of the same output name at the same time is refused (one line naming the first's
+    pid), and the existence check, made again under the lock, holds until the files are written.
+    """
+    video_path, sidecar_path = output_paths(cfg, prompt, out)
+    cfg = check_generation(cfg, prompt, (video_path, sidecar_path), overwrite=overwrite, loaded=models is not None)
+    with output_lock(video_path):  # every check passed: from here on the name is this run's
+        check_outputs((video_path, sidecar_path), overwrite)  # again: a run that ended meanwhile wrote it
+        return _load_sample_and_write(cfg, prompt, video_path, sidecar_path, models, image, announce)
+
+
+def _scores_needed(cfg: GeCoConfig) -> bool:
+    return cfg.output.score_anchors
+
+
+def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidecar_path: Path, models: Models | None,
+                           image: Any, announce: Callable[[str], None] | None) -> GenerationResult:
+    """The heavy part of :func:`generate`, once every check passed and the output name is held."""
+    from .io.video import write_video
+
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    if models is None:
+        needs_estimators = cfg.guidance.enabled or _scores_needed(cfg)
+        if announce is not None:
+            announce(loading_line(cfg, needs_estimators))
+        models = load_models(cfg, estimators=needs_estimators)
+    timings["load_s"] = time.perf_counter() - start
+    made = sample(models, cfg, prompt, image=image)
+    timings["sampling_s"] = made.seconds
+    scores = None
+    if _scores_needed(cfg):
+        start = time.perf_counter()
+        scores = score_anchors(made, cfg, models)
+        timings["scoring_s"] = time.perf_counter() - start
+    start = time.perf_counter()
+    write_video(video_path, made.frames[0], fps=cfg.sampling.fps)
+    timings["write_video_s"] = time.perf_counter() - start
+    with removed_on_failure(video_path, sidecar_path):
+        sidecar = sidecar_of(cfg, prompt, models, made, video_path.name, timings, scores)
+        write_json_atomic(sidecar_path, sidecar)
+    return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=scores, sidecar=sidecar,
+                            models=models)
+
+
+def score_anchors(made: Sample, cfg: GeCoConfig, models: Models) -> dict[str, float]:
+    """The GeCo scalars of the final video's anchor frames with the guidance loss' settings, the
+    dynamic masks as guidance used them (the sidecar's ``geco_scores``); a score over no valid
+    pixel is NaN, with ``nan_reason``."""
+    from .loss.geco import GeCoLoss
+    from .sampler.dynamic import RefreshedMasks, guidance_mask_source
+    from .sampler.step import score_anchor_frames
+
+    loss = GeCoLoss(models.estimators, cfg.guidance.loss)
+    masks = guidance_mask_source(cfg.guidance, models.estimators, cfg.model.device) if cfg.guidance.enabled else None
+    if masks is not None:  # the anchors scored as guidance scored them: without what moves
+        loss = functools.partial(loss, dynamic_masks=RefreshedMasks(masks.source, dilation=cfg.guidance.dynamic_dilation))
+    return score_anchor_frames(made.frames, anchors_of(cfg), loss)
+
+
+def anchors_of(cfg: GeCoConfig) -> list[int]:
+    """The anchors the run guides and scores: ``guidance.anchors``."""
+    return list(cfg.guidance.anchors)
+
+
+def sidecar_of(cfg: GeCoConfig, prompt: str, models: Models, made: Sample, video_name: str,
+               timings: dict[str, float], scores: dict[str, float] | None) -> dict[str, Any]:
+    """The sidecar of a video: what made it (the config, the models, what the call decided) and
+    how long it took."""
+    report, config = made.report, config_to_dict(cfg)
+    log = report.log
+    return {
+        "prompt": prompt,
+        "seed": cfg.seed,
+        "video": video_name,
+        "video_key": video_key(config, prompt),
+        "model": cfg.model.name,
+        "num_frames": int(made.frames.shape[1]),
+        "fps": cfg.sampling.fps,
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "config": config,
+        "scheduler": models.video.scheduler,
+        "guidance_decoder": report.decoder,
+        "memory_plan": report.memory_plan,
+        "guidance_devices": report.devices,
+        "dynamic_masks": report.mask_source,
+        "masked_fraction": report.masked_fraction,
+        "device": str(models.pipe.device),
+        "versions": versions(),
+        "timings": {**timings, "guidance_s": sum(r["seconds"] for r in log)},
+        "geco_scores": {"anchors": anchors_of(cfg), **scores} if scores is not None else None,
+        "guidance_log": log,
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# best of N
+
+
+def best_candidate(scores: list[float]) -> int:
+    """The index of the candidate best-of-N selection keeps among their :data:`SELECTION_SCORE`
+    ``scores``: the least (a NaN ranks last, ties go to the earlier seed)."""
+    return min(range(len(scores)), key=lambda k: (not math.isfinite(scores[k]), scores[k] if math.isfinite(scores[k]) else 0))
+
+
+def check_best_of(count: Any, seed: int) -> None:
+    """ValueError (one line) unless ``count`` is a whole number in ``[1, MAX_CANDIDATES]`` whose
+    seeds ``seed .. seed + count - 1`` all fit 64 bits."""
+    if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_CANDIDATES:
+        raise ValueError(f"--best-of must be a whole number in [1, {MAX_CANDIDATES}], got {count!r}")
+    if seed + count - 1 > SEED_RANGE[1]:
+        raise ValueError(f"--best-of {count} from --seed {seed} needs seeds up to {seed + count - 1}, over the 64-bit "
+                         f"limit {SEED_RANGE[1]}: choose a smaller --seed")
+
+
+def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.PathLike | None = None, *,
+                     overwrite: bool = False, image: Any = None, on_candidate: Any = None,
+                     announce: Callable[[str], None] | None = None) -> GenerationResult:
+    """Selection, the other way to spend compute on geometry: ``count`` videos of the seeds
+    ``cfg.seed`` .. ``cfg.seed + count - 1`` (guided or not, as ``cfg`` says), each scored with the
+    GeCo protocol (:func:`~geco_guide.metric.evaluate.evaluate_video`, the config's ``evaluation``
+    section); the one of least fused score is kept (a NaN score ranks last, ties go to the
+    earlier seed). The models load once for every candidate.
+
+    Writes the kept video and its sidecar, which adds ``best_of``: every candidate's seed and
+    protocol scores and the seed kept. The default name ends in ``-best-of-<count>``. The
+    candidates are made in a hidden folder beside the output and removed however the run ends.
+    ``on_candidate(k, seed, result)`` is called after each candidate is scored.
+
+    Raises:
+        ValueError: (one line, before anything loads) a ``count`` out of range, and what
+            :func:`generate` refuses.
+    """
+    from .metric.evaluate import evaluate_video, finite_or_none
+
+    check_best_of(count, cfg.seed)
+    check_prompt(prompt)
+    if not cfg.output.name:
+        cfg = replace(cfg, output=replace(cfg.output, name=f"{default_name(cfg, prompt)}-best-of-{count}"))
+    video_path, sidecar_path = output_paths(cfg, prompt, out)
+    cfg = check_generation(cfg, prompt, (video_path, sidecar_path), overwrite=overwrite)
+    work = video_path.with_name(f".{video_path.stem}.candidates")
+    models, candidates = None, []
+    with output_lock(video_path):
+        check_outputs((video_path, sidecar_path), overwrite)
+        shutil.rmtree(work, ignore_errors=True)  # the candidates of a killed run
+        try:
+            for k in range(count):
+                seed_cfg = replace(cfg, seed=cfg.seed + k, output=replace(cfg.output, name=None))
+                if models is None:
+                    if announce is not None:
+                        announce(loading_line(cfg))
+                    models = load_models(cfg)
+                result = generate(seed_cfg, prompt, out=work / f"seed{seed_cfg.seed}.mp4", models=models, image=image)
+                scored = evaluate_video(result.video_path, models.estimators, cfg.evaluation)
+                candidates.append((result, scored))
+                if on_candidate is not None:
+                    on_candidate(k, seed_cfg.seed, scored)
+            best = best_candidate([getattr(scored, SELECTION_SCORE) for _, scored in candidates])
+            kept, _ = candidates[best]
+            sidecar = {**kept.sidecar, "video": video_path.name, "best_of": {
+                "n": count, "kept_seed": kept.sidecar["seed"], "score": f"{SELECTION_SCORE} (the GeCo protocol, evaluation.*)",
+                "candidates": [{"seed": result.sidecar["seed"], **{key: finite_or_none(getattr(scored, key))
+                                                                   for key in ("fused", "motion", "structure")}}
+                               for result, scored in candidates]}}
+            os.replace(kept.video_path, video_path)
+            with removed_on_failure(video_path, sidecar_path):
+                write_json_atomic(sidecar_path, sidecar)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=kept.scores, sidecar=sidecar,
+                            models=models)
