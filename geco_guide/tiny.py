@@ -190,11 +190,17 @@ def tiny_cogvideox_components(seed: int = 0, sizes: TinySizes | None = None) -> 
 
 
 def tiny_video_components(model: VideoModel, seed: int = 0) -> dict[str, Any]:
-    """The components of ``model``'s tiny random stand-in (the builder its registry entry names),
-    seeded with ``seed``: what ``model.id=tiny-random`` loads."""
+    """What ``model``'s tiny random stand-in (the builder its registry entry names), seeded with
+    ``seed``, is built from: its components and the settings of its config that its class takes
+    (Wan 2.2's ``boundary_ratio``, ``expand_timesteps``): what ``model.id=tiny-random`` loads."""
+    import inspect
+
     if model.tiny is None:
         raise ValueError(f"{model.name} has no tiny random stand-in")
-    return globals()[model.tiny](seed).components
+    pipe = globals()[model.tiny](seed)
+    accepted = inspect.signature(type(pipe).__init__).parameters
+    settings = {key: value for key, value in pipe.config.items() if key in accepted and key not in pipe.components}
+    return {**pipe.components, **settings}
 
 
 def tiny_sampling(model: VideoModel) -> dict[str, int]:
