@@ -46,11 +46,10 @@ from ..io.files import write_texts_atomic
 from .adapters import PipelineAdapter, WanAdapter
 from .config import GuidanceConfig, resolve_call_options
 from .context import GuidanceContext
-from .multi_device import resolve_devices
 from .run_options import RunOptions
 from .slicing import check_latents
 from .step import LatentsWatch
-from .stock_call import check_estimators, guide_stock_step, stock_call_context
+from .stock_call import check_estimators, guide_stock_step, stock_call
 
 __all__ = ["GeCoWan22DenoiseStep", "GeCoWanDenoiseStep", "save_geco_block"]
 
@@ -130,18 +129,16 @@ class _GeCoLoop:
         latents = block_state.latents
         check_latents(latents, None, "this call")
         geometry = self.adapter.call_geometry(components, {}, latents)
+        call = stock_call(components, self.adapter, geometry, config, run, estimators)
         num_steps = len(block_state.timesteps)
-        context = stock_call_context(components, self.adapter, geometry, config, run, estimators,
-                                     num_steps=num_steps, generator=block_state.generator,
-                                     log=block_state.geco_log)
-        devices = resolve_devices(run.devices)
-        block_state.geco_devices = [str(device) for device in devices] if devices else None
+        context = call.context(num_steps, block_state.generator, block_state.geco_log)
+        block_state.geco_devices = [str(device) for device in call.devices] if call.devices else None
         block_state.geco_memory_plan = context.memory_plan.to_dict()
         return _GuidedCall(context, LatentsWatch(num_steps))
 
     def _guide(self, components: Any, block_state: BlockState, call: _GuidedCall, i: int, t: Tensor) -> None:
-        """Step ``i``'s updates: ``block_state.latents`` and ``noise_pred`` become the guided
-        latents and the model output there."""
+        """Step ``i``'s updates: ``block_state.latents`` and ``noise_pred`` (both ``[B, C, F, h, w]``)
+        become the guided latents and the model output there."""
         sample = block_state.latents
         # NaN latents are refused at a guided step, whose log waits for the device anyway
         call.watch.see(sample, i)
@@ -157,7 +154,8 @@ class _GeCoLoop:
 
     def _predictor(self, components: Any, block_state: BlockState, i: int, t: Tensor, start: Tensor,
                    model_output: Tensor):
-        """``(z, differentiate) -> model output at z``: the loop's sub-blocks before the scheduler
+        """``(z, differentiate) -> model output at z`` (both ``[B, C, F, h, w]``; ``start``: the
+        latents of ``model_output``, the loop's own prediction): the loop's sub-blocks before the scheduler
         step (the latent model input, the denoiser under the pipeline's guider) run again on a copy
         of the loop's state whose latents are ``z``. diffusers runs each block under
         ``torch.no_grad``; faithful mode needs the gradient through them, so the blocks' undecorated

@@ -4,10 +4,11 @@ Two front doors guide pipelines whose code is diffusers' own: the hooks of :mod:
 ``DiffusionPipeline`` such as ``WanPipeline``) and the loop of :mod:`.modular` (a Modular
 Diffusers ``WanModularPipeline``). Both set a call up and take a guided step the same way, here:
 
-* :func:`stock_call_context`: the checks of a call before its first denoising step (anchors,
-  loss, run options, denoiser caches, scheduler, decoder, devices, masks, memory plan) and the
-  :class:`~.context.GuidanceContext` that guides it. The one place where the
-  :class:`~geco_guide.estimators.bundle.Estimators` of a guided stock call are taken apart.
+* :func:`stock_call`: the checks of a call before its first denoising step (anchors, loss, run
+  options, denoiser caches, scheduler, decoder, devices, masks, memory plan), and
+  :meth:`StockCall.context`, the :class:`~.context.GuidanceContext` that guides it once the step
+  count is known. The one place where the :class:`~geco_guide.estimators.bundle.Estimators` of a
+  guided stock call are taken apart.
 * :func:`guide_stock_step`: the ``R_t`` updates of one step, and the sample and model output the
   pipeline's scheduler then steps with (a multistep scheduler told to keep the update).
 
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -36,15 +38,16 @@ from .adapters import (
     keep_update,
     noise_levels,
 )
-from .anchor_decode import anchor_decoder
+from .anchor_decode import AnchorDecode, anchor_decoder
 from .config import GuidanceConfig, check_call_options
 from .context import GuidanceContext
-from .dynamic import guidance_mask_source
-from .memory_plan import choose_plan, model_signature, planning_memory_gb
+from .dynamic import RefreshedMasks, guidance_mask_source
+from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
 from .multi_device import resolve_devices
 from .run_options import RunOptions
+from .slicing import AnchorChunk
 
-__all__ = ["check_estimators", "guide_stock_step", "stock_call_context"]
+__all__ = ["StockCall", "check_estimators", "guide_stock_step", "stock_call"]
 
 
 class _WithVae:
@@ -65,10 +68,13 @@ def _vae_decode_with(pipe: Any, adapter: PipelineAdapter, vae: nn.Module) -> Cal
 
 def check_estimators(estimators: Any, where: str) -> Estimators:
     """``estimators`` if it is an :class:`Estimators` whose geometry and flow estimators meet
-    their protocols; else ValueError (one line) naming ``where`` they were passed."""
+    their protocols. One line naming ``where`` they were passed otherwise: ValueError for none,
+    TypeError for another type."""
+    usage = f"{where}=Estimators(geometry=..., flow=...) (geco_guide.estimators.load_estimators)"
+    if estimators is None:
+        raise ValueError(f"GeCo guidance needs {usage}")
     if not isinstance(estimators, Estimators):
-        raise ValueError(f"GeCo guidance needs {where}=Estimators(geometry=..., flow=...) "
-                         f"(geco_guide.estimators.load_estimators), got {type(estimators).__name__}")
+        raise TypeError(f"GeCo guidance needs {usage}, got {type(estimators).__name__}")
     missing = missing_estimators(estimators.geometry, estimators.flow)
     if missing:
         raise ValueError(f"GeCo guidance needs the {' and '.join(missing)} estimator(s) in {where}: "
@@ -76,33 +82,61 @@ def check_estimators(estimators: Any, where: str) -> Estimators:
     return estimators
 
 
-def stock_call_context(
-    pipe: Any,
-    adapter: PipelineAdapter,
-    geometry: CallGeometry,
-    config: GuidanceConfig,
-    run: RunOptions,
-    estimators: Estimators,
-    *,
-    num_steps: int,
-    generator: torch.Generator | list[torch.Generator] | None = None,
-    decoder: Any = None,
-    log: list[dict[str, Any]] | None = None,
-) -> GuidanceContext:
-    """The guidance of one call of ``pipe``, checked before its first denoising step.
+@dataclass(frozen=True)
+class StockCall:
+    """What one guided call of a stock pipeline decided before its first denoising step
+    (:func:`stock_call`), and the :class:`~.context.GuidanceContext` that guides it
+    (:meth:`context`, once the call's step count is known).
+
+    Attributes:
+        pipe, adapter, geometry, config, run, estimators: as given to :func:`stock_call`.
+        chunks: the anchors' causal latent chunks.
+        decode_chunk: their decode (the adapter's by the VAE, or the tiny decoder's).
+        masks: the dynamic masks of ``config.dynamic``, or ``None``.
+        devices: ``run.devices`` resolved, or ``None`` for one device.
+        memory_plan: the plan chosen for the call (a fallback is the context's).
+    """
+
+    pipe: Any
+    adapter: PipelineAdapter
+    geometry: CallGeometry
+    config: GuidanceConfig
+    run: RunOptions
+    estimators: Estimators
+    chunks: list[AnchorChunk]
+    decode_chunk: AnchorDecode
+    masks: RefreshedMasks | None
+    devices: list[torch.device] | None
+    memory_plan: PlanChoice
+
+    def context(self, num_steps: int, generator: torch.Generator | list[torch.Generator] | None = None,
+                log: list[dict[str, Any]] | None = None) -> GuidanceContext:
+        """The guidance of the call's ``num_steps`` steps (its ``R_t`` schedule is made for them);
+        ``generator``: the call's, the source of the time-travel noise; ``log``: the list the
+        records are appended to."""
+        config, pipe = self.config, self.pipe
+        return GuidanceContext(
+            config, config.schedule(num_steps), self.chunks, decode_chunk=self.decode_chunk,
+            latent_frames=functools.partial(self.adapter.frames_first, pipe, geometry=self.geometry),
+            geometry_estimator=self.estimators.geometry, flow_estimator=self.estimators.flow,
+            generator=generator, log=log, run=self.run, memory_plan=self.memory_plan, dynamic_masks=self.masks,
+            devices=self.devices,
+        )
+
+
+def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, config: GuidanceConfig, run: RunOptions,
+               estimators: Estimators, decoder: Any = None) -> StockCall:
+    """One guided call of ``pipe``, checked before its first denoising step.
 
     Args:
-        pipe: the pipeline (or the Modular pipeline's components): its ``scheduler``, ``vae``,
+        pipe: the pipeline (or a Modular pipeline's components): its ``scheduler``, ``vae``,
             ``_execution_device`` and the denoisers ``adapter`` finds on it.
         adapter: its family's :class:`~.adapters.PipelineAdapter`.
         geometry: the call's frame geometry (:meth:`~.adapters.PipelineAdapter.call_geometry`).
-        config, run: what guidance computes and how it runs; ``config.enabled``.
+        config, run: what guidance computes and how it runs (``config.enabled``).
         estimators: the GeCo loss' models; for ``config.dynamic`` naming subjects, its
             segmenter makes their masks (:meth:`Estimators.masks_for`).
-        num_steps: the call's denoising steps (the ``R_t`` schedule is made for them).
-        generator: the call's generator, the source of the time-travel noise.
         decoder: the tiny decoder of ``config.decoder="tiny"``.
-        log: the list the guidance records are appended to.
 
     Raises:
         ValueError: (one line) anchors the video cannot contain, a loss without an update, run
@@ -127,12 +161,8 @@ def stock_call_context(
         config, run, signature=model_signature(denoisers[0].config), frames=geometry.num_frames,
         height=geometry.latent_height * scale, width=geometry.latent_width * scale,
         device_gb=planning_memory_gb(home, devices), offload=bool(getattr(pipe, "_all_hooks", None)))
-    return GuidanceContext(
-        config, config.schedule(num_steps), chunks, decode_chunk=decode_chunk,
-        latent_frames=functools.partial(adapter.frames_first, pipe, geometry=geometry),
-        geometry_estimator=estimators.geometry, flow_estimator=estimators.flow,
-        generator=generator, log=log, run=run, memory_plan=memory_plan, dynamic_masks=masks, devices=devices,
-    )
+    return StockCall(pipe, adapter, geometry, config, run, estimators, chunks, decode_chunk, masks, devices,
+                     memory_plan)
 
 
 def guide_stock_step(
@@ -151,8 +181,9 @@ def guide_stock_step(
     frozen and the memory plan's checkpointing on ``denoisers`` (those ``predict`` runs).
 
     Args:
-        sample: ``z_t``, the latents the pipeline's scheduler is about to step, in its layout.
-        model_output: the pipeline's own (CFG-combined) model output at ``sample``.
+        sample: ``z_t``, the latents the pipeline's scheduler is about to step, in its layout
+            (``[B, C, F, h, w]`` for Wan, ``[B, F, C, h, w]`` for CogVideoX, tokens ``[B, S, C]`` for LTX).
+        model_output: the pipeline's own (CFG-combined) model output at ``sample``, of its shape.
         predict: ``(z, differentiate) -> model output at z`` (:func:`~.step.guided_step`).
         decoder: the tiny decoder, frozen with the models.
 

@@ -166,6 +166,23 @@ def test_the_block_saves_and_loads_as_a_diffusers_custom_block(tmp_path, modules
     assert torch.equal(frames[1], frames[0])
 
 
+def test_a_loop_block_without_autograd_is_refused_in_faithful_mode(estimators):
+    from diffusers.modular_pipelines.wan.denoise import WanLoopDenoiser
+
+    class NoGradDenoiser(WanLoopDenoiser):
+        def __call__(self, components, block_state, i, t):
+            with torch.no_grad():
+                return super().__call__(components, block_state, i, t)
+
+    loop = GeCoWanDenoiseStep()
+    loop.sub_blocks["denoiser"] = NoGradDenoiser()
+    stock = T.tiny_wan_pipeline(0)
+    pipe = T.tiny_wan_modular_pipeline(0, denoise_loop=loop)
+    config = T.tiny_guidance_config(**SCHEDULE, time_travel=[], denoiser_grad=True)
+    with pytest.raises(RuntimeError, match="no gradient through the loop's sub-blocks .*NoGradDenoiser"):
+        modular_call(pipe, prompt_embeds(stock), geco_guidance=config, geco_estimators=Estimators(*estimators))
+
+
 def test_save_geco_block_refuses_other_blocks(tmp_path):
     from diffusers.modular_pipelines.wan.denoise import WanDenoiseStep
 
@@ -178,22 +195,23 @@ TINY = object()  # the tiny estimators, as one Estimators
 
 
 @pytest.mark.parametrize(
-    "given, changes, run_options, message",
+    "given, changes, run_options, error, message",
     [
-        (None, {}, None, "geco_estimators=Estimators"),
-        (("geometry", "flow"), {}, None, "got tuple"),
-        (TINY, dict(decoder="tiny"), None, "decoder='tiny': the modular Wan loop decodes"),
-        (TINY, dict(anchors=[5, 12]), None, "out of range for a 9-frame video"),
-        (TINY, {}, {"memory_plan": "nonsense"}, "memory_plan"),
+        (None, {}, None, ValueError, "needs geco_estimators=Estimators"),
+        (("geometry", "flow"), {}, None, TypeError, "geco_estimators=Estimators.*got tuple"),
+        (TINY, dict(decoder="tiny"), None, ValueError, "decoder='tiny': the modular Wan loop decodes"),
+        (TINY, dict(anchors=[5, 12]), None, ValueError, "out of range for a 9-frame video"),
+        (TINY, {}, {"memory_plan": "nonsense"}, ValueError, "memory_plan"),
     ],
 )
-def test_bad_guidance_inputs_fail_in_one_line_before_the_first_step(given, changes, run_options, message, estimators):
+def test_bad_guidance_inputs_fail_in_one_line_before_the_first_step(given, changes, run_options, error, message,
+                                                                    estimators):
     config = T.tiny_guidance_config(**{**SCHEDULE, **changes})
     stock = T.tiny_wan_pipeline(0)
     pipe = T.tiny_wan_modular_pipeline(0, denoise_loop=GeCoWanDenoiseStep())
     calls = []
     pipe.transformer.register_forward_pre_hook(lambda module, args: calls.append(1))
-    with pytest.raises(ValueError, match=message) as error:
+    with pytest.raises(error, match=message) as raised:
         modular_call(pipe, prompt_embeds(stock), geco_guidance=config, geco_run_options=run_options,
                      geco_estimators=Estimators(*estimators) if given is TINY else given)
-    assert "\n" not in str(error.value) and calls == []
+    assert "\n" not in str(raised.value) and calls == []
