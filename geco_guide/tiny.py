@@ -27,8 +27,8 @@ __all__ = ["TINY_ANCHORS", "TINY_CALL_KWARGS", "TINY_HEIGHT", "TINY_MAX_SEQUENCE
            "tiny_cogvideox15_pipeline", "tiny_cogvideox_components", "tiny_cogvideox_i2v_pipeline",
            "tiny_cogvideox_pipeline", "tiny_cogvideox_transformer", "tiny_estimators", "tiny_guidance_config",
            "tiny_guidance_decoder", "tiny_hunyuan_pipeline", "tiny_ltx_pipeline", "tiny_pipeline", "tiny_run_options",
-           "tiny_sampling",
-           "tiny_tokenizer", "tiny_video_components", "tiny_wan22_pipeline", "tiny_wan_pipeline"]
+           "tiny_sampling", "tiny_tokenizer", "tiny_video_components", "tiny_wan22_pipeline",
+           "tiny_wan_modular_pipeline", "tiny_wan_pipeline"]
 
 # Tiny sampling settings that fit the tiny models (17 frames = 5 latents, 32x48 pixels).
 TINY_NUM_FRAMES = 17
@@ -369,12 +369,14 @@ def tiny_image(seed: int = 0, height: int = TINY_HEIGHT, width: int = TINY_WIDTH
     return Image.fromarray(rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8))
 
 
-def tiny_wan_pipeline(seed: int = 0, *, scheduler: str = "unipc"):
+def tiny_wan_pipeline(seed: int = 0, *, scheduler: str = "unipc", version: str = "2.1"):
     """A stock tiny ``WanPipeline`` (Wan 2.1 layout): UMT5 text encoder, ``AutoencoderKLWan`` with
     per-channel ``latents_mean/std`` (r=4, 8x spatial), ``WanTransformer3DModel``.
 
     ``scheduler="unipc"`` (default, as the Wan 2.1 diffusers checkpoints: UniPC multistep with flow
     sigmas, a corrector that reads ``last_sample``) or ``"euler"`` (``FlowMatchEulerDiscreteScheduler``).
+    ``version="2.2"`` adds Wan 2.2's second expert, ``transformer_2``, for the steps below
+    ``boundary_ratio=0.875`` (of 4 UniPC steps: the last two); the other components stay those of 2.1.
     """
     from diffusers import (
         AutoencoderKLWan,
@@ -385,6 +387,8 @@ def tiny_wan_pipeline(seed: int = 0, *, scheduler: str = "unipc"):
     )
     from transformers import UMT5Config, UMT5EncoderModel
 
+    if version not in ("2.1", "2.2"):
+        raise ValueError(f"version must be '2.1' or '2.2', got {version!r}")
     tokenizer = tiny_tokenizer()
     z_dim = 4
     state = _seeded(seed)
@@ -426,6 +430,8 @@ def tiny_wan_pipeline(seed: int = 0, *, scheduler: str = "unipc"):
             qk_norm="rms_norm_across_heads",
             rope_max_seq_len=32,
         )
+        # drawn last, so that the components of 2.1 keep their weights
+        transformer_2 = WanTransformer3DModel.from_config(transformer.config) if version == "2.2" else None
     finally:
         torch.random.set_rng_state(state)
     if scheduler == "unipc":
@@ -436,25 +442,50 @@ def tiny_wan_pipeline(seed: int = 0, *, scheduler: str = "unipc"):
         sched = FlowMatchEulerDiscreteScheduler(shift=3.0)
     else:
         raise ValueError(f"scheduler must be 'unipc' or 'euler', got {scheduler!r}")
-    pipe = WanPipeline(tokenizer=tokenizer, text_encoder=text_encoder, vae=vae, transformer=transformer, scheduler=sched)
+    pipe = WanPipeline(tokenizer=tokenizer, text_encoder=text_encoder, vae=vae, transformer=transformer, scheduler=sched,
+                       transformer_2=transformer_2, boundary_ratio=0.875 if transformer_2 is not None else None)
     return _finish(pipe)
 
 
 def tiny_wan22_pipeline(seed: int = 0):
-    """A stock tiny ``WanPipeline`` of the Wan 2.2 A14B layout: two experts, ``transformer`` for the
-    high-noise steps and ``transformer_2`` for the low-noise ones, split at ``boundary_ratio``
-    0.875 as the checkpoint's (the rest as :func:`tiny_wan_pipeline`)."""
-    from diffusers import WanPipeline
+    """A stock tiny ``WanPipeline`` of the Wan 2.2 A14B layout: :func:`tiny_wan_pipeline` of
+    ``version="2.2"`` (two experts)."""
+    return tiny_wan_pipeline(seed, version="2.2")
 
-    one = tiny_wan_pipeline(seed)
-    state = _seeded(seed + 1)
-    try:
-        second = type(one.transformer)(**one.transformer.config).eval()
-    finally:
-        torch.random.set_rng_state(state)
-    pipe = WanPipeline(tokenizer=one.tokenizer, text_encoder=one.text_encoder, vae=one.vae, scheduler=one.scheduler,
-                       transformer=one.transformer, transformer_2=second, boundary_ratio=0.875)
-    return _finish(pipe)
+
+def tiny_wan_modular_pipeline(seed: int = 0, *, version: str = "2.1", denoise_loop: Any = None,
+                              guidance_scale: float = 5.0, guidance_scale_2: float | None = None):
+    """A tiny ``WanModularPipeline`` (``Wan22ModularPipeline`` for ``version="2.2"``) of diffusers'
+    Wan blocks, with the components of :func:`tiny_wan_pipeline` of the same ``seed`` and
+    ``version`` (the same weights) and CFG guiders of scale ``guidance_scale`` (the second expert's:
+    ``guidance_scale_2``, by default the same), as ``WanPipeline`` calls them.
+
+    Its blocks leave out diffusers' text encoder step (it needs the optional ``ftfy``): calls take
+    ``prompt_embeds`` / ``negative_prompt_embeds`` (e.g. ``tiny_wan_pipeline(seed).encode_prompt``).
+    ``denoise_loop``: a block in place of diffusers' denoise loop, e.g. the GeCo-guided
+    :class:`~geco_guide.sampler.modular.GeCoWanDenoiseStep` (``GeCoWan22DenoiseStep`` for 2.2).
+    """
+    from diffusers import ClassifierFreeGuidance
+    from diffusers.modular_pipelines import Wan22Blocks, WanBlocks
+
+    stock = tiny_wan_pipeline(seed, version=version)
+    wan22 = version == "2.2"
+    blocks = Wan22Blocks() if wan22 else WanBlocks()
+    blocks.sub_blocks.pop("text_encoder")
+    core = blocks.sub_blocks["denoise"]
+    if denoise_loop is not None:
+        core.sub_blocks["denoise"] = denoise_loop
+    # (the pipeline's set_progress_bar_config reaches its top-level blocks only, not this loop)
+    core.sub_blocks["denoise"].set_progress_bar_config(disable=True)
+    pipe = blocks.init_pipeline()
+    guiders = {"guider": ClassifierFreeGuidance(guidance_scale=guidance_scale)}
+    if wan22:
+        second = guidance_scale if guidance_scale_2 is None else guidance_scale_2
+        guiders["guider_2"] = ClassifierFreeGuidance(guidance_scale=second)
+        guiders["boundary_ratio"] = stock.config.boundary_ratio
+    components = {name: stock.components[name] for name in blocks.component_names if stock.components.get(name) is not None}
+    pipe.update_components(**components, **guiders)
+    return pipe
 
 
 def tiny_ltx_pipeline(seed: int = 0):

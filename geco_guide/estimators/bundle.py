@@ -75,14 +75,18 @@ class Estimators:
         for ``None`` (nothing named moves). A segmenter made for one text is that text's source.
 
         Raises:
-            ValueError: subjects are named and there is no segmenter, or a segmenter made for
-                other subjects.
+            ValueError: subjects are named and there is no segmenter, a segmenter that is neither
+                a mask source nor a factory of one, or a segmenter made for other subjects.
         """
         if subjects is None:
             return None
         if self.segmenter is None:
             raise ValueError(f"the subjects {subjects!r} need a segmenter, and none was loaded")
         if not isinstance(self.segmenter, DynamicMaskSource):
+            if not callable(self.segmenter):  # else Python's "object is not callable", naming nothing
+                raise ValueError("the segmenter must be a DynamicMaskSource (source_name and dynamic_masks(frames, "
+                                 "...)) or a factory making one of a subject text, got "
+                                 f"{type(self.segmenter).__name__}")
             return self.segmenter(subjects)
         from .segmenters import subjects_of
 

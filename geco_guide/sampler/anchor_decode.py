@@ -59,7 +59,7 @@ class AnchorDecode:
 
 
 def anchor_decoder(config: GuidanceConfig, run: RunOptions, vae_decode_with: Callable[[nn.Module], Callable[[Tensor], Tensor]],
-                   guidance_decoder: Any, vae: Any) -> AnchorDecode:
+                   tiny_decoder: Any, vae: Any) -> AnchorDecode:
     """The :class:`AnchorDecode` of the loss' anchor frames: ``vae_decode_with(vae)`` with
     ``decoder="vae"`` (``vae_decode_with``: a VAE -> its chunk decode); with ``"tiny"`` the tiny
     decoder on the pipeline's latents ``[N, F, C, h, w]``, in its family's convention taken from
@@ -71,20 +71,21 @@ def anchor_decoder(config: GuidanceConfig, run: RunOptions, vae_decode_with: Cal
         check_channels_last_vae(vae)
     if config.decoder == "vae":
         return AnchorDecode(vae, vae_decode_with)
-    if guidance_decoder is None:
+    if tiny_decoder is None:
         raise ValueError(
-            "guidance.decoder='tiny' needs a tiny decoder: pass guidance_decoder=TinyDecoder.from_pretrained(PATH) "
-            "(weights such as taecvx.pth from github.com/madebyollin/taehv; from a config: "
-            "estimators.tiny_decoder=/path/to/taecvx.pth), or use guidance.decoder=vae"
+            "guidance.decoder='tiny' needs a tiny decoder: give the estimators one, "
+            "Estimators(..., tiny_decoder=TinyDecoder.from_pretrained(PATH)) (weights such as taecvx.pth from "
+            "github.com/madebyollin/taehv; from a config: estimators.tiny_decoder=/path/to/taecvx.pth), or use "
+            "guidance.decoder=vae"
         )
     vae_config = vae.config
     channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)  # CogVideoX, Wan
-    if channels is not None and guidance_decoder.latent_channels != channels:
+    if channels is not None and tiny_decoder.latent_channels != channels:
         raise ValueError(
-            f"the tiny decoder ({guidance_decoder.variant.name}) takes {guidance_decoder.latent_channels} latent "
+            f"the tiny decoder ({tiny_decoder.variant.name}) takes {tiny_decoder.latent_channels} latent "
             f"channels but this VAE makes {channels}: load the tiny decoder trained for this model"
         )
-    return AnchorDecode(guidance_decoder, lambda decoder: lambda latents: decoder.decode(
+    return AnchorDecode(tiny_decoder, lambda decoder: lambda latents: decoder.decode(
         decoder.pipeline_latents(latents, vae_config, layout="NTCHW")))
 
 

@@ -54,28 +54,16 @@ import torch
 from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
-from ..types import check_estimator_bundle, refuse_estimator_keywords
-from .adapters import (
-    CallGeometry,
-    PipelineAdapter,
-    adapter_for,
-    check_no_denoiser_cache,
-    check_scheduler,
-    fit_combination,
-    keep_update,
-    noise_levels,
-)
-from .anchor_decode import anchor_decoder
+from ..types import refuse_estimator_keywords
+from .adapters import CallGeometry, PipelineAdapter, adapter_for, check_scheduler, fit_combination
 from .config import GuidanceConfig
 from .context import GuidanceContext, GuidanceObserver, GuidanceReport
-from .multi_device import resolve_devices
-from .dynamic import RefreshedMasks, guidance_mask_source
-from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
 from .module_hooks import register_hook
-from .run_options import RunOptions, check_call_options, resolve_call_options
+from .run_options import RunOptions, resolve_call_options
 from .pipeline_cogvideox import GeCoCogVideoXPipeline
-from .slicing import AnchorChunk, check_latents
+from .slicing import check_latents
 from .step import LatentsWatch
+from .stock_call import StockCall, check_estimators, guide_stock_step, stock_call
 
 __all__ = ["CAPTURE_HOOK", "DenoiserCapture", "GeCoGuidanceHandle", "attach_geco_guidance"]
 
@@ -94,29 +82,12 @@ class _Call:
 
 @dataclass
 class _CallState:
-    geometry: CallGeometry
-    chunks: list[AnchorChunk]
-    decode_chunk: Any  # the anchor chunks' decode (the VAE's or the tiny decoder's)
+    call: StockCall
     generator: Any
-    config: GuidanceConfig
-    run: RunOptions
-    memory_plan: PlanChoice
-    dynamic_masks: RefreshedMasks | None = None
-    devices: list[torch.device] | None = None  # run.devices, resolved
     context: GuidanceContext | None = None  # from the first denoiser call on (it fixes the schedule)
     counter: int = 0
     calls: list[_Call] = field(default_factory=list)
     watch: LatentsWatch | None = None  # from the first scheduler step on
-
-
-class _WithVae:
-    """A pipeline seen with another VAE (a replica on another device), for an adapter's decode."""
-
-    def __init__(self, pipe: Any, vae: nn.Module):
-        self._pipe, self.vae = pipe, vae
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._pipe, name)
 
 
 def _output_tensor(output: Any) -> Tensor:
@@ -358,45 +329,19 @@ class GeCoGuidanceHandle:
             return
         check_latents(args.get("latents"), self.adapter.latents_shape(self.pipe, args),
                       f"this {type(self.pipe).__name__} call")
-        self.adapter.check(self.pipe, geometry)
-        config.check_loss()
-        check_call_options(config, run)
-        check_no_denoiser_cache(self.adapter.denoisers(self.pipe))
-        chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
-        check_scheduler(self.pipe.scheduler)
-        decode_chunk = anchor_decoder(config, run, self._vae_decode_with, self.estimators.tiny_decoder, self.pipe.vae)
-        devices = resolve_devices(run.devices)
-        masks = guidance_mask_source(config, self.estimators, self.pipe._execution_device)
-        # the estimates know CogVideoX-5B, whose VAE is 8x spatially; other models get the safe plan
-        scale = getattr(self.pipe, "vae_scale_factor_spatial", 8)
-        memory_plan = choose_plan(
-            config, run, signature=model_signature(self.adapter.denoisers(self.pipe)[0].config), frames=geometry.num_frames,
-            height=geometry.latent_height * scale, width=geometry.latent_width * scale,
-            device_gb=planning_memory_gb(self.pipe._execution_device, devices), offload=bool(getattr(self.pipe, "_all_hooks", None)))
-        self._state = _CallState(geometry, chunks, decode_chunk, args.get("generator"), config, run, memory_plan,
-                                 masks, devices)
-
-    def _vae_decode_with(self, vae: nn.Module) -> Any:
-        """The adapter's chunk decode by ``vae``: the pipeline's own, or a replica of it on another
-        device (``run.devices``), seen as the pipeline's VAE."""
-        return functools.partial(self.adapter.decode, self.pipe if vae is self.pipe.vae else _WithVae(self.pipe, vae))
+        check_hook_run_options(run)
+        call = stock_call(self.pipe, self.adapter, geometry, config, run, self.estimators)
+        self._state = _CallState(call, args.get("generator"))
 
     def _before_denoiser_call(self) -> None:
         state = self._state
         if state is None or self._replaying:
             return
         if state.context is None:  # first denoiser call of this pipeline call
-            pipe, adapter = self.pipe, self.adapter
+            pipe = self.pipe
             self._patch_scheduler(pipe.scheduler)
             check_scheduler(pipe.scheduler)
-            state.context = GuidanceContext(
-                state.config, state.config.schedule(len(pipe.scheduler.timesteps)), state.chunks,
-                decode_chunk=state.decode_chunk,
-                latent_frames=functools.partial(adapter.frames_first, pipe, geometry=state.geometry),
-                estimators=self.estimators, generator=state.generator, log=self._log, run=state.run,
-                memory_plan=state.memory_plan, dynamic_masks=state.dynamic_masks, devices=state.devices,
-                observer=self.observer,
-            )
+            state.context = state.call.context(len(pipe.scheduler.timesteps), state.generator, self._log, self.observer)
 
     def _after_denoiser_call(self, module: nn.Module, args: tuple, kwargs: dict, output: Any) -> None:
         state = self._state
@@ -421,11 +366,8 @@ class GeCoGuidanceHandle:
             sample = bound.arguments["sample"]
             timestep = bound.arguments["timestep"]
             self._watch_latents(state, sample, i, check=True)  # a callback may have set them since the last step
-            new_sample, new_output = self._guide(scheduler, state.context, i, timestep, sample, model_output, calls)
-            keep_update(scheduler, sample, new_sample)
-            bound.arguments["model_output"] = new_output.to(model_output.dtype)
-            # fp32 (or the pipeline's fp64): a low-precision copy would round the update away
-            bound.arguments["sample"] = new_sample.double() if sample.dtype == torch.float64 else new_sample
+            bound.arguments["sample"], bound.arguments["model_output"] = self._guide(
+                state.context, i, timestep, sample, model_output, calls)
             result = original(*bound.args, **bound.kwargs)
         # NaN latents are refused at a guided step (its log already waited for the device) and at
         # the last step, before the pipeline decodes NaN frames
@@ -448,7 +390,7 @@ class GeCoGuidanceHandle:
         if check:
             state.watch.check()
 
-    def _guide(self, scheduler, context: GuidanceContext, i: int, timestep, sample, model_output, calls):
+    def _guide(self, context: GuidanceContext, i: int, timestep, sample, model_output, calls):
         pipe, adapter = self.pipe, self.adapter
         replay = _Replay(pipe, adapter, calls, sample, model_output)
         start = sample.detach().float()
@@ -463,9 +405,16 @@ class GeCoGuidanceHandle:
                 self._replaying = False
 
         denoisers = {id(c.module): c.module for c in calls}.values()
-        with context.models(denoisers, pipe.vae, adapter.frozen_modules(pipe)):
-            z, out = context.guide(sample, predict, noise_levels(scheduler, timestep, i), i, int(timestep))
-        return z.to(sample.device), out.to(sample.device)
+        return guide_stock_step(context, pipe, adapter, denoisers, i, timestep, sample, model_output, predict)
+
+
+def check_hook_run_options(run: RunOptions) -> None:
+    """ValueError (one line) for run options the hooks cannot act on: ``run.split_cfg`` splits the
+    denoiser calls of ``GeCoCogVideoXPipeline``, and the hooks leave a pipeline's own calls as they
+    are (the option would do nothing)."""
+    if run.split_cfg:
+        raise ValueError("run.split_cfg splits the denoiser calls of GeCoCogVideoXPipeline; the hooks leave a "
+                         "pipeline's own denoiser calls as they are: use run.split_cfg=false here")
 
 
 def attach_geco_guidance(
@@ -521,13 +470,8 @@ def attach_geco_guidance(
         )
     adapter = adapter_for(pipe)
     config, run_options = resolve_call_options(None, config, None, run_options)
-    if run_options.split_cfg:
-        raise ValueError("run.split_cfg splits the denoiser calls of GeCoCogVideoXPipeline; the hooks leave a "
-                         "pipeline's own denoiser calls as they are: use run.split_cfg=false here")
-    if estimators is None:
-        raise ValueError("GeCo guidance needs its models: attach_geco_guidance(pipe, config, "
-                         "Estimators(geometry, flow)) (geco_guide.Estimators)")
-    check_estimator_bundle(estimators, "attach_geco_guidance")
+    check_hook_run_options(run_options)
+    check_estimators(estimators, "attach_geco_guidance")
     current = pipe.__dict__.get("prepare_latents")
     if getattr(current, "_geco_handle", None) is not None:
         raise ValueError("this pipeline already has GeCo guidance attached; detach() it first")

@@ -1,0 +1,193 @@
+"""The guidance of one call of a stock diffusers pipeline, through its family's adapter.
+
+Two front doors guide pipelines whose code is diffusers' own: the hooks of :mod:`.hooks` (a
+``DiffusionPipeline`` such as ``WanPipeline``) and the loop of :mod:`.modular` (a Modular
+Diffusers ``WanModularPipeline``). Both set a call up and take a guided step the same way, here:
+
+* :func:`stock_call`: the checks of a call before its first denoising step (anchors, loss, run
+  options, denoiser caches, scheduler, decoder, devices, masks, memory plan), and
+  :meth:`StockCall.context`, the :class:`~.context.GuidanceContext` that guides it once the step
+  count is known. The one place where the :class:`~geco_guide.estimators.bundle.Estimators` of a
+  guided stock call are taken apart.
+* :func:`guide_stock_step`: the ``R_t`` updates of one step, and the sample and model output the
+  pipeline's scheduler then steps with (a multistep scheduler told to keep the update).
+
+How each door predicts the model output at new latents differs (the hooks replay the captured
+denoiser calls, the loop re-runs its own denoiser block), and so does where it keeps a call's
+state; what a prediction is used for does not.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from ..estimators.bundle import Estimators
+from ..types import check_estimator_bundle
+from .adapters import (
+    CallGeometry,
+    PipelineAdapter,
+    check_no_denoiser_cache,
+    check_scheduler,
+    keep_update,
+    noise_levels,
+)
+from .anchor_decode import AnchorDecode, anchor_decoder
+from .config import GuidanceConfig
+from .context import GuidanceContext, GuidanceObserver
+from .dynamic import RefreshedMasks, guidance_mask_source
+from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
+from .multi_device import resolve_devices
+from .run_options import RunOptions, check_call_options
+from .slicing import AnchorChunk
+
+__all__ = ["StockCall", "check_estimators", "guide_stock_step", "stock_call"]
+
+
+class _WithVae:
+    """A pipeline seen with another VAE (a replica on another device), for an adapter's decode."""
+
+    def __init__(self, pipe: Any, vae: nn.Module):
+        self._pipe, self.vae = pipe, vae
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._pipe, name)
+
+
+def _vae_decode_with(pipe: Any, adapter: PipelineAdapter, vae: nn.Module) -> Callable[[Tensor], Tensor]:
+    """The adapter's chunk decode by ``vae``: the pipeline's own, or a replica of it on another
+    device (``run.devices``), seen as the pipeline's VAE."""
+    return functools.partial(adapter.decode, pipe if vae is pipe.vae else _WithVae(pipe, vae))
+
+
+def check_estimators(estimators: Any, where: str, argument: str = "estimators") -> Estimators:
+    """``estimators`` if it is an estimator bundle whose geometry and flow estimators meet their
+    protocols (:func:`~geco_guide.types.check_estimator_bundle`). One line naming ``where`` they
+    were passed (``attach_geco_guidance``) and the ``argument``: ValueError for none or a
+    bundle lacking a method, TypeError for another type."""
+    if estimators is None:
+        raise ValueError(f"GeCo guidance needs its models: pass {argument}=Estimators(geometry, flow) to {where} "
+                         "(geco_guide.Estimators; e.g. geco_guide.estimators.load_estimators)")
+    check_estimator_bundle(estimators, where)
+    return estimators
+
+
+@dataclass(frozen=True)
+class StockCall:
+    """What one guided call of a stock pipeline decided before its first denoising step
+    (:func:`stock_call`), and the :class:`~.context.GuidanceContext` that guides it
+    (:meth:`context`, once the call's step count is known).
+
+    Attributes:
+        pipe, adapter, geometry, config, run, estimators: as given to :func:`stock_call`.
+        chunks: the anchors' causal latent chunks.
+        decode_chunk: their decode (the adapter's by the VAE, or the tiny decoder's).
+        masks: the dynamic masks of ``config.dynamic``, or ``None``.
+        devices: ``run.devices`` resolved, or ``None`` for one device.
+        memory_plan: the plan chosen for the call (a fallback is the context's).
+    """
+
+    pipe: Any
+    adapter: PipelineAdapter
+    geometry: CallGeometry
+    config: GuidanceConfig
+    run: RunOptions
+    estimators: Estimators
+    chunks: list[AnchorChunk]
+    decode_chunk: AnchorDecode
+    masks: RefreshedMasks | None
+    devices: list[torch.device] | None
+    memory_plan: PlanChoice
+
+    def context(self, num_steps: int, generator: torch.Generator | list[torch.Generator] | None = None,
+                log: list[dict[str, Any]] | None = None, observer: GuidanceObserver | None = None) -> GuidanceContext:
+        """The guidance of the call's ``num_steps`` steps (its ``R_t`` schedule is made for them);
+        ``generator``: the call's, the source of the time-travel noise; ``log``: the list the
+        records are appended to; ``observer``: watches the updates."""
+        config, pipe = self.config, self.pipe
+        return GuidanceContext(
+            config, config.schedule(num_steps), self.chunks, decode_chunk=self.decode_chunk,
+            latent_frames=functools.partial(self.adapter.frames_first, pipe, geometry=self.geometry),
+            estimators=self.estimators, generator=generator, log=log, run=self.run, memory_plan=self.memory_plan,
+            dynamic_masks=self.masks, devices=self.devices, observer=observer,
+        )
+
+
+def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, config: GuidanceConfig, run: RunOptions,
+               estimators: Estimators) -> StockCall:
+    """One guided call of ``pipe``, checked before its first denoising step.
+
+    Args:
+        pipe: the pipeline (or a Modular pipeline's components): its ``scheduler``, ``vae``,
+            ``_execution_device`` and the denoisers ``adapter`` finds on it.
+        adapter: its family's :class:`~.adapters.PipelineAdapter`.
+        geometry: the call's frame geometry (:meth:`~.adapters.PipelineAdapter.call_geometry`).
+        config, run: what guidance computes and how it runs (``config.enabled``).
+        estimators: the GeCo loss' models; for ``config.dynamic`` naming subjects, its
+            segmenter makes their masks (:meth:`Estimators.masks_for`); its tiny decoder decodes
+            the anchors with ``config.decoder="tiny"``.
+
+    Raises:
+        ValueError: (one line) anchors the video cannot contain, a loss without an update, run
+            options the config cannot use, a denoiser cache, an unknown scheduler, a missing or
+            mismatched tiny decoder, subjects without a segmenter, a memory plan that cannot fit.
+    """
+    adapter.check(pipe, geometry)
+    config.check_loss()
+    check_call_options(config, run)
+    denoisers = adapter.denoisers(pipe)
+    check_no_denoiser_cache(denoisers)
+    chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
+    check_scheduler(pipe.scheduler)
+    decode_chunk = anchor_decoder(config, run, functools.partial(_vae_decode_with, pipe, adapter),
+                                  estimators.tiny_decoder, pipe.vae)
+    devices = resolve_devices(run.devices)
+    home = pipe._execution_device
+    masks = guidance_mask_source(config, estimators, home)
+    # the estimates know CogVideoX-5B, whose VAE is 8x spatially; other models get the safe plan
+    scale = getattr(pipe, "vae_scale_factor_spatial", 8)
+    memory_plan = choose_plan(
+        config, run, signature=model_signature(denoisers[0].config), frames=geometry.num_frames,
+        height=geometry.latent_height * scale, width=geometry.latent_width * scale,
+        device_gb=planning_memory_gb(home, devices), offload=bool(getattr(pipe, "_all_hooks", None)))
+    return StockCall(pipe, adapter, geometry, config, run, estimators, chunks, decode_chunk, masks, devices,
+                     memory_plan)
+
+
+def guide_stock_step(
+    context: GuidanceContext,
+    pipe: Any,
+    adapter: PipelineAdapter,
+    denoisers: Iterable[nn.Module],
+    step: int,
+    timestep: Tensor | float,
+    sample: Tensor,
+    model_output: Tensor,
+    predict: Callable[[Tensor, bool], Tensor],
+) -> tuple[Tensor, Tensor]:
+    """The ``R_t`` updates of loop step ``step`` (:meth:`GuidanceContext.guide`), with the models
+    frozen and the memory plan's checkpointing on ``denoisers`` (those ``predict`` runs).
+
+    Args:
+        sample: ``z_t``, the latents the pipeline's scheduler is about to step, in its layout
+            (``[B, C, F, h, w]`` for Wan, ``[B, F, C, h, w]`` for CogVideoX, tokens ``[B, S, C]`` for LTX).
+        model_output: the pipeline's own (CFG-combined) model output at ``sample``, of its shape.
+        predict: ``(z, differentiate) -> model output at z`` (:func:`~.step.guided_step`).
+
+    Returns:
+        ``(sample, model_output)`` for ``pipe.scheduler.step``: the guided latents in fp32 (fp64
+        for an fp64 pipeline: a low-precision copy would round the update away) and the model
+        output there in ``model_output``'s dtype, both on ``sample``'s device. A multistep
+        scheduler's history has been told to keep the update (:func:`~.adapters.keep_update`).
+    """
+    scheduler = pipe.scheduler
+    with context.models(denoisers, pipe.vae, adapter.frozen_modules(pipe)):
+        z, out = context.guide(sample, predict, noise_levels(scheduler, timestep, step), step, int(timestep))
+    z = z.to(sample.device)
+    keep_update(scheduler, sample, z)
+    return (z.double() if sample.dtype == torch.float64 else z), out.to(device=sample.device, dtype=model_output.dtype)
