@@ -14,10 +14,11 @@ ENTRY_POINTS = ("generate", "evaluate", "geco_eval", "detection", "validate", "r
 # Floors from the bottom up; a module imports its own subpackage or lower floors. Rooms on one
 # floor do not import each other (the metric never imports the sampler, nor bench perf).
 FLOORS = [
-    ["geco_guide", "geco_guide.geometry", "geco_guide.types", "geco_guide.io"],
+    ["geco_guide", "geco_guide.geometry", "geco_guide.types", "geco_guide.io", "geco_guide.families"],
     ["geco_guide.loss", "geco_guide.estimators"],
     ["geco_guide.metric", "geco_guide.sampler"],
     ["geco_guide.config", "geco_guide.tiny"],
+    ["geco_guide.generation"],
     ["geco_guide.bench", "geco_guide.perf"],
     ["geco_guide.cli"],
     [f"geco_guide.{name}" for name in ENTRY_POINTS],
@@ -169,3 +170,29 @@ def test_the_top_of_the_package_is_small_and_no_source_file_is_long():
     scripts = PACKAGE.parent / "scripts"
     long = {p.name: n for p in scripts.glob("*.py") if (n := len(p.read_text().splitlines())) > 800}
     assert not long, long
+
+
+#: The floors below the config, whose functions take the config section they use.
+SECTION_FLOORS = ("geco_guide.loss", "geco_guide.estimators", "geco_guide.metric", "geco_guide.sampler")
+
+
+def test_the_floors_below_the_config_take_its_sections_not_the_whole_config():
+    """A loader or the metric takes ``model``, ``estimators``, ``evaluation``, ... (typed), never the
+    whole config: no parameter annotated ``GeCoConfig``, no ``cfg`` / ``config`` without a type or
+    typed ``Any`` (the estimators' model configs excepted: each model class has its own), and no
+    import of the config module (the import rule above)."""
+    wrong = []
+    for path in sources():
+        name = module_name(path)
+        if not name.startswith(SECTION_FLOORS):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for arg in [*node.args.posonlyargs, *node.args.args, *node.args.kwonlyargs]:
+                annotation = ast.unparse(arg.annotation) if arg.annotation is not None else ""
+                untyped = (arg.arg in ("cfg", "config") and annotation in ("", "Any")
+                           and not (arg.arg == "config" and name.startswith("geco_guide.estimators")))
+                if "GeCoConfig" in annotation or untyped:
+                    wrong.append(f"{name}.{node.name}({arg.arg}: {annotation or '?'})")
+    assert not wrong, "functions that take the whole config:\n" + "\n".join(sorted(wrong))

@@ -34,7 +34,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # the run options take the plans' names from here
+    from .config import GuidanceConfig
+    from .run_options import RunOptions
 
 __all__ = ["DEVICE_HEADROOM", "ESTIMATES_PATH", "PLANS", "PLAN_NAMES", "SAFE_PLAN", "MemoryPlan",
            "PlanChoice", "choose_plan", "device_memory_gb", "explicit_plan", "load_estimates", "planning_memory_gb",
@@ -233,7 +237,7 @@ def planning_memory_gb(home: Any, devices: Sequence[Any] | None = None) -> float
     return min(known) if known else None
 
 
-def choose_plan(config: Any, run: Any, *, signature: Mapping[str, Any] | None = None, model_id: str | None = None,
+def choose_plan(config: GuidanceConfig, run: RunOptions, *, signature: Mapping[str, Any] | None = None, model_id: str | None = None,
                 frames: int, height: int, width: int, device_gb: float | None, offload: bool = False,
                 estimates: Mapping[str, Any] | None = None) -> PlanChoice:
     """The memory plan of a guided call with ``config`` (a GuidanceConfig: its ``denoiser_grad``
@@ -295,7 +299,7 @@ def choose_plan(config: Any, run: Any, *, signature: Mapping[str, Any] | None = 
                       predicted_peak_gb=peaks[plan.name], budget_gb=budget, fallbacks=tuple(later))
 
 
-def plan_before_loading(config: Any, run: Any, model_id: str, frames: int, height: int, width: int,
+def plan_before_loading(config: GuidanceConfig, run: RunOptions, model_id: str, frames: int, height: int, width: int,
                         device: Any) -> PlanChoice | None:
     """The plan a guided call of the pipeline ``model_id`` (a hub id or a local folder, known by its
     denoiser's stored config or by its id) on ``device`` (``auto`` resolved as the loaders resolve
