@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any
 
 from .config import GeCoConfig, config_to_dict
 from .estimators import TINY_RANDOM
-from .io.files import output_lock, write_json_atomic
+from .io.files import check_output_paths, output_lock, write_json_atomic
 
 if TYPE_CHECKING:
     import torch
@@ -62,9 +62,6 @@ KEYLESS_SECTIONS = ("output", "evaluation")
 #: The moving-subject options, which make no frame while ``guidance.dynamic`` is null: left out of
 #: :func:`video_key` then, so that every video made before they existed keeps its name.
 DYNAMIC_KEYS = ("dynamic", "dynamic_dilation", "dynamic_refresh")
-#: Longest name a temporary of an atomic write adds to ``<name>``: ``.<name>.<8 random>.tmp``
-#: before the suffix (see :func:`geco_guide.io.files.atomic_path`).
-TEMP_NAME_EXTRA = len("..12345678.tmp")
 SCORES_NOTE = ("These are the anchor frames' scores with the guidance loss' settings; "
                "python -m geco_guide evaluate scores the whole video with the paper's protocol (a different number).")
 #: The score best-of-N selection keeps the lowest of: the fused map under the GeCo protocol.
@@ -81,12 +78,6 @@ SEED_RANGE = (-(2**63), 2**64 - 1)
 def slugify(text: str, max_len: int = 48) -> str:
     slug = re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")
     return slug[:max_len].rstrip("-") or "video"
-
-
-def split_cfg_acts(cfg: GeCoConfig) -> bool:
-    """Whether ``run.split_cfg`` changes anything: a guided call with CFG on the paper's loop."""
-    return (cfg.run.split_cfg and cfg.guidance.enabled and cfg.sampling.guidance_scale > 1.0
-            and cfg.model.video_model.guided_by == "pipeline")
 
 
 def video_key(config: dict[str, Any], prompt: str) -> str:
@@ -167,135 +158,31 @@ def check_prompt(prompt: str) -> None:
                          "check the encoding of the terminal or file it came from") from None
 
 
-def _nearest_existing(path: Path) -> Path:
-    """``path``'s nearest ancestor that exists (the folder an atomic write would create the rest in)."""
-    return next((parent for parent in path.parents if os.path.exists(parent)), Path.cwd())
-
-
-def _name_max(folder: Path) -> int:
-    try:
-        return os.pathconf(folder, "PC_NAME_MAX")
-    except (OSError, ValueError):  # no pathconf for this file system: the common limit
-        return 255
-
-
-def _name_problem(path: Path, existing: Path) -> str | None:
-    """Why a name of ``path`` below ``existing`` is too long for the file system (the file's with
-    the temporary name its atomic write uses), or None."""
-    limit = _name_max(existing)
-    too_long = next((part for part in path.parent.parts[len(existing.parts):] if len(part.encode()) > limit), None)
-    if too_long is not None:
-        return (f"the folder name {too_long[:24]!r}... is {len(too_long.encode())} bytes, over the {limit} this "
-                "file system allows")
-    if len(path.name.encode()) + TEMP_NAME_EXTRA > limit:
-        return (f"the name is {len(path.name.encode())} bytes, over the {limit - TEMP_NAME_EXTRA} this file system "
-                "allows (a shorter output.name or --out)")
-    return None
-
-
-def check_outputs(paths: tuple[Path, ...], overwrite: bool = False) -> None:
-    """ValueError (one line) for anything that would make writing ``paths`` fail after sampling:
-    a name too long for the file system, a file where a folder must be, a folder or (without
-    ``overwrite``) a file under an output's name, a folder that cannot be written."""
-    for path in paths:
-        existing = _nearest_existing(path)
-        problem = _name_problem(path, existing)
-        if problem is None and not existing.is_dir():
-            problem = f"{str(existing)!r} is a file, not a folder"
-        if problem is None and path.is_dir():
-            problem = "a folder of that name is in the way"
-        if problem is None and not os.access(existing, os.W_OK | os.X_OK):
-            problem = f"the folder {str(existing)!r} is not writable"
-        if problem is not None:
-            raise ValueError(f"cannot write {str(path)!r}: {problem}")
-        if path.exists() and not overwrite:
-            raise ValueError(f"{str(path)!r} already exists; pass --overwrite to replace it, or choose another "
-                             "--out or output.name")
-
-
-def with_resolved_device(cfg: GeCoConfig) -> GeCoConfig:
-    """``cfg`` with ``model.device`` resolved once (``auto``: cuda where there is one, else cpu), so
-    that the memory planner, the loaders and the sidecar all see the same real device.
-
-    Raises:
-        ValueError: (one line naming ``model.device``) a device this machine lacks.
-    """
-    from .io.devices import check_device
-
-    device = check_device(cfg.model.device)
-    return replace(cfg, model=replace(cfg.model, device=str(device)))
-
-
-def check_video_fits(cfg: GeCoConfig) -> None:
-    """ValueError (one line) for a video size that cannot fit the device, before any model loads:
-    the decoded video alone, in float32, is a lower bound of the run's peak (the models, latents
-    and activations come on top), so a refusal is certain."""
-    from .io.devices import check_memory_fits
-
-    s = cfg.sampling
-    nbytes = s.num_frames * 3 * s.height * s.width * 4
-    check_memory_fits(nbytes, cfg.model.device,
-                      f"a {s.num_frames}-frame {s.height}x{s.width} video (sampling.num_frames/height/width)")
-
-
-def warn_idle_options(cfg: GeCoConfig) -> None:
-    """One warning line for each option set that cannot act on this run (it changes neither the
-    frames nor the video's name)."""
-    if cfg.guidance.dynamic is not None and not cfg.guidance.enabled:
-        logger.warning("guidance.dynamic=%r does nothing without guidance (--no-guidance): nothing is masked",
-                       cfg.guidance.dynamic)
-    if cfg.run.split_cfg and not split_cfg_acts(cfg):
-        why = ("without guidance" if not cfg.guidance.enabled else "without CFG (sampling.guidance_scale <= 1)"
-               if cfg.sampling.guidance_scale <= 1.0 else f"on {cfg.model.name}, whose stock denoiser calls the hooks "
-               "leave as they are")
-        logger.warning("run.split_cfg does nothing %s: the frames are those of one call", why)
-
-
 def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (), *, overwrite: bool = False,
                      loaded: bool = False) -> GeCoConfig:
     """Every check a generation can make before anything loads, in one pass; returns ``cfg`` with
-    its device resolved (:func:`with_resolved_device`).
+    ``model.device`` resolved (``auto``: cuda where there is one, else cpu), so that the memory
+    planner, the loaders and the sidecar all see the same real device.
 
-    Checks the prompt, the output ``paths`` (refused if present without ``overwrite``), the frame
-    rate for their format, the device and the devices of ``run.devices``, the size against the
-    device's memory, every model's weights (all missing ones named at once; skipped when the
-    models are ``loaded``) and the guidance against the model (anchors, schedule, tiny decoder,
-    a memory plan that fits). Options that cannot act get a warning line.
+    Checks the prompt, the run's config (:func:`~geco_guide.sampler.loading.check_before_loading`:
+    the guidance against the model, every model's weights unless the models are ``loaded``, the
+    devices, the size against the device's memory; a warning for each option that cannot act),
+    the output ``paths`` (refused if present without ``overwrite``) and the frame rate for their
+    format.
 
     Raises:
         ValueError: one line naming the option, file or value.
         WeightsNotFoundError: one line naming every missing model and how to pass a local path.
     """
     from .io.video import check_fps
-    from .sampler.loading import check_guidance_before_loading, missing_weights, uses_tiny_decoder
-    from .sampler.multi_device import resolve_devices
+    from .sampler.loading import check_before_loading
 
     check_prompt(prompt)
-    check_outputs(paths, overwrite)
+    device = check_before_loading(cfg.model, cfg.sampling, cfg.guidance, cfg.run, cfg.estimators, weights=not loaded)
+    check_output_paths(paths, overwrite)
     for path in paths[:1]:
         check_fps(cfg.sampling.fps, path.suffix)
-    if not SEED_RANGE[0] <= cfg.seed <= SEED_RANGE[1]:
-        raise ValueError(f"seed must be a 64-bit integer, got {cfg.seed}")
-    cfg = with_resolved_device(cfg)
-    if cfg.guidance.enabled:
-        resolve_devices(cfg.run.devices)  # a device this machine lacks: one line before loading
-    check_video_fits(cfg)
-    warn_idle_options(cfg)
-    if not loaded:
-        missing_weights(cfg.model, cfg.estimators, tiny_decoder=uses_tiny_decoder(cfg.guidance),
-                        segmenter=needs_segmenter(cfg))
-        s = cfg.sampling
-        check_guidance_before_loading(cfg.guidance, cfg.run, cfg.estimators, cfg.model.video_model,
-                                      model_id=cfg.model.source, num_frames=s.num_frames, height=s.height,
-                                      width=s.width, num_steps=s.num_inference_steps, device=cfg.model.device)
-    return cfg
-
-
-def needs_segmenter(cfg: GeCoConfig) -> bool:
-    """Whether the run's guidance masks subjects named by text (the segmenter loads)."""
-    from .estimators.dynamic_masks import AUTO
-
-    return cfg.guidance.enabled and cfg.guidance.dynamic not in (None, AUTO)
+    return replace(cfg, model=replace(cfg.model, device=str(device)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -330,29 +217,34 @@ def loading_line(cfg: GeCoConfig, estimators: bool = True) -> str:
 
 
 def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True) -> Models:
-    """The video pipeline of ``cfg.model`` and the GeCo models: ``estimators`` when it is a bundle
-    loaded already (a run that shares it across models), loaded when it is ``True`` (with the
-    segmenter where ``guidance.dynamic`` names subjects), none when ``False``; plus the tiny decoder
-    of the model's latents where the guidance decodes with it. On ``model.device``; the cheapest
-    failure first (the segmenter and the estimators before the video model)."""
+    """The video pipeline of ``cfg.model`` (its tiny random stand-in with ``model.id=tiny-random``)
+    and the GeCo models: ``estimators`` when it is a bundle loaded already (a run that shares it
+    across models), loaded when it is ``True`` (with the segmenter where ``guidance.dynamic``
+    names subjects), none when ``False``; plus the tiny decoder of the model's latents where the
+    guidance decodes with it. On ``model.device``. Every model's weights were looked up before
+    (:func:`check_generation`), so the order is the one that needs each model's facts first."""
     import torch
 
     from .estimators import Estimators, load_estimators
     from .sampler.loading import load_tiny_decoder, load_video_pipeline, uses_tiny_decoder
     from .tiny import tiny_video_components
 
-    bundle = estimators if isinstance(estimators, Estimators) else None
-    if estimators is True:
-        bundle = load_estimators(cfg.estimators, cfg.model.device, segmenter=needs_segmenter(cfg))
     components = None
     if cfg.model.source == TINY_RANDOM:
         components = tiny_video_components(cfg.model.video_model, cfg.model.init_seed)
     video = load_video_pipeline(cfg.model, cfg.sampling.scheduler, components)
-    if bundle is not None and uses_tiny_decoder(cfg.guidance):
+    decoder = None
+    if estimators is not False and uses_tiny_decoder(cfg.guidance):
         vae_config = video.pipe.vae.config
         channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)
         decoder = load_tiny_decoder(cfg.estimators, video.model, channels, getattr(torch, cfg.model.dtype))
-        bundle = bundle.with_tiny_decoder(decoder.to(device=video.pipe.device))
+        decoder = decoder.to(device=video.pipe.device)
+    bundle = estimators if isinstance(estimators, Estimators) else None
+    if estimators is True:
+        segmenter = cfg.guidance.enabled and cfg.guidance.subjects is not None
+        bundle = load_estimators(cfg.estimators, cfg.model.device, segmenter=segmenter)
+    if bundle is not None and decoder is not None:
+        bundle = bundle.with_tiny_decoder(decoder)
     return Models(video, bundle)
 
 
@@ -490,7 +382,7 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     video_path, sidecar_path = output_paths(cfg, prompt, out)
     cfg = check_generation(cfg, prompt, (video_path, sidecar_path), overwrite=overwrite, loaded=models is not None)
     with output_lock(video_path):  # every check passed: from here on the name is this run's
-        check_outputs((video_path, sidecar_path), overwrite)  # again: a run that ended meanwhile wrote it
+        check_output_paths((video_path, sidecar_path), overwrite)  # again: a run that ended meanwhile wrote it
         return _load_sample_and_write(cfg, prompt, video_path, sidecar_path, models, image, announce)
 
 
@@ -627,7 +519,7 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
     work = video_path.with_name(f".{video_path.stem}.candidates")
     models, candidates = None, []
     with output_lock(video_path):
-        check_outputs((video_path, sidecar_path), overwrite)
+        check_output_paths((video_path, sidecar_path), overwrite)
         shutil.rmtree(work, ignore_errors=True)  # the candidates of a killed run
         try:
             for k in range(count):

@@ -22,7 +22,7 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["WriteError", "atomic_path", "check_output_dir", "json_ready", "json_text", "output_lock",
+__all__ = ["TEMP_NAME_EXTRA", "WriteError", "atomic_path", "check_output_dir", "check_output_paths", "json_ready", "json_text", "output_lock",
            "probe_writable", "remove_temp_files", "take_pid_lock", "unique_names", "write_bytes_atomic",
            "write_json_atomic", "write_text_atomic", "write_texts_atomic"]
 
@@ -246,3 +246,54 @@ def output_lock(path: str | os.PathLike) -> Iterator[None]:
         yield
     finally:
         lock.unlink(missing_ok=True)
+
+
+#: Longest name a temporary of an atomic write adds to ``<name>``: ``.<name>.<8 random>.tmp``
+#: before the suffix (see :func:`atomic_path`).
+TEMP_NAME_EXTRA = len("..12345678.tmp")
+
+
+def _nearest_existing(path: Path) -> Path:
+    """``path``'s nearest ancestor that exists (the folder an atomic write would create the rest in)."""
+    return next((parent for parent in path.parents if os.path.exists(parent)), Path.cwd())
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):  # no pathconf for this file system: the common limit
+        return 255
+
+
+def _name_problem(path: Path, existing: Path) -> str | None:
+    """Why a name of ``path`` below ``existing`` is too long for the file system (the file's with
+    the temporary name its atomic write uses), or None."""
+    limit = _name_max(existing)
+    too_long = next((part for part in path.parent.parts[len(existing.parts):] if len(part.encode()) > limit), None)
+    if too_long is not None:
+        return (f"the folder name {too_long[:24]!r}... is {len(too_long.encode())} bytes, over the {limit} this "
+                "file system allows")
+    if len(path.name.encode()) + TEMP_NAME_EXTRA > limit:
+        return (f"the name is {len(path.name.encode())} bytes, over the {limit - TEMP_NAME_EXTRA} this file system "
+                "allows (a shorter output.name or --out)")
+    return None
+
+
+def check_output_paths(paths: Sequence[Path], overwrite: bool = False) -> None:
+    """ValueError (one line) for anything that would make writing ``paths`` fail after sampling:
+    a name too long for the file system, a file where a folder must be, a folder or (without
+    ``overwrite``) a file under an output's name, a folder that cannot be written."""
+    for path in paths:
+        existing = _nearest_existing(path)
+        problem = _name_problem(path, existing)
+        if problem is None and not existing.is_dir():
+            problem = f"{str(existing)!r} is a file, not a folder"
+        if problem is None and path.is_dir():
+            problem = "a folder of that name is in the way"
+        if problem is None and not os.access(existing, os.W_OK | os.X_OK):
+            problem = f"the folder {str(existing)!r} is not writable"
+        if problem is not None:
+            raise ValueError(f"cannot write {str(path)!r}: {problem}")
+        if path.exists() and not overwrite:
+            raise ValueError(f"{str(path)!r} already exists; pass --overwrite to replace it, or choose another "
+                             "--out or output.name")

@@ -124,6 +124,11 @@ class GuidanceConfig:
             raise OptionError("decoder", f"must be one of {DECODERS}, got {self.decoder!r}")
         check_dynamic_options(self)
 
+    @property
+    def subjects(self) -> str | None:
+        """The subjects :attr:`dynamic` names for a text segmenter (``None`` for ``"auto"`` or no masks)."""
+        return None if self.dynamic in (None, "auto") else self.dynamic
+
     def schedule(self, num_steps: int) -> GuidanceSchedule:
         """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see
         :func:`~geco_guide.sampler.schedule.scale_schedule`)."""

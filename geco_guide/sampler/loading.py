@@ -12,6 +12,7 @@ light.
 from __future__ import annotations
 
 import contextlib
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
@@ -36,10 +37,12 @@ from .config import GuidanceConfig
 from .memory_plan import PlanChoice, plan_before_loading
 from .run_options import RunOptions
 
-__all__ = ["PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model",
+__all__ = ["PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
            "check_guidance_before_loading", "check_tiny_decoder", "choose_scheduler", "load_tiny_decoder",
-           "load_video_pipeline", "missing_weights", "pipeline_from_pretrained", "quiet_hub_logs",
-           "uses_tiny_decoder"]
+           "load_video_pipeline", "missing_weights", "pipeline_from_pretrained", "quiet_hub_logs", "split_cfg_acts",
+           "uses_tiny_decoder", "warn_idle_options"]
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -339,3 +342,56 @@ def check_guidance_before_loading(guidance: GuidanceConfig, run: RunOptions, est
         if guidance.decoder == "tiny":
             check_tiny_decoder(estimators, model)
     return plan_before_loading(guidance, run, model_id, num_frames, height, width, device)
+
+
+def warn_idle_options(model: VideoModel, sampling: Any, guidance: GuidanceConfig, run: RunOptions) -> None:
+    """One warning line for each option set that cannot act on the run (it changes neither the
+    frames nor the video's name): ``guidance.dynamic`` without guidance, ``run.split_cfg``
+    without guidance, without CFG, or on a model the hooks guide."""
+    if guidance.dynamic is not None and not guidance.enabled:
+        logger.warning("guidance.dynamic=%r does nothing without guidance (--no-guidance): nothing is masked",
+                       guidance.dynamic)
+    if run.split_cfg and not split_cfg_acts(model, sampling, guidance, run):
+        why = ("without guidance" if not guidance.enabled else "without CFG (sampling.guidance_scale <= 1)"
+               if sampling.guidance_scale <= 1.0 else f"on {model.name}, whose stock denoiser calls the hooks "
+               "leave as they are")
+        logger.warning("run.split_cfg does nothing %s: the frames are those of one call", why)
+
+
+def split_cfg_acts(model: VideoModel, sampling: Any, guidance: GuidanceConfig, run: RunOptions) -> bool:
+    """Whether ``run.split_cfg`` changes anything: a guided call with CFG on the paper's loop."""
+    return run.split_cfg and guidance.enabled and sampling.guidance_scale > 1.0 and model.guided_by == "pipeline"
+
+
+def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceConfig, run: RunOptions,
+                         estimators: EstimatorsConfig, *, weights: bool = True) -> torch.device:
+    """Every check of a run that its config alone can fail, in one pass before anything loads, the
+    cheapest first: the guidance against the model (loss, schedule, anchors, decode layout, tiny
+    decoder, a memory plan that fits), options that cannot act (a warning each), with ``weights``
+    every model's weights (all missing ones named at once), the device, the devices of
+    ``run.devices``, and the video's size against the device's memory. Returns the device
+    ``model.device`` stands for (``auto`` resolved), what the loaders and the sidecar then use.
+
+    Raises:
+        ValueError: one line naming the option.
+        WeightsNotFoundError: one line naming every missing model and how to pass a local path.
+    """
+    from ..io.devices import check_device, check_memory_fits
+    from .multi_device import resolve_devices
+
+    entry = model.video_model
+    device = check_device(model.device)
+    check_guidance_before_loading(guidance, run, estimators, entry, model_id=model.source,
+                                  num_frames=sampling.num_frames, height=sampling.height, width=sampling.width,
+                                  num_steps=sampling.num_inference_steps, device=str(device))
+    warn_idle_options(entry, sampling, guidance, run)
+    if guidance.enabled:
+        resolve_devices(run.devices)  # a device this machine lacks: one line before loading
+    if weights:
+        missing_weights(model, estimators, tiny_decoder=uses_tiny_decoder(guidance),
+                        segmenter=guidance.enabled and guidance.subjects is not None)
+    # the decoded video alone, in float32, is a lower bound of the run's peak: a refusal is certain
+    check_memory_fits(sampling.num_frames * 3 * sampling.height * sampling.width * 4, device,
+                      f"a {sampling.num_frames}-frame {sampling.height}x{sampling.width} video "
+                      "(sampling.num_frames/height/width)")
+    return device
