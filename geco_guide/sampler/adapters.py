@@ -10,7 +10,8 @@ A :class:`PipelineAdapter` knows, for one family of pipelines:
 - how to de-normalise and decode such a chunk into frames ``[B, T, 3, H, W]`` in ``[0, 1]``,
 - how the denoiser outputs of one step combine into the model output the scheduler gets
   (default: a linear combination fitted to the captured outputs, which covers CFG in one
-  batched call, CFG in two calls, dynamic CFG and no CFG; LTX adds ``guidance_rescale``).
+  batched call, CFG in two calls, dynamic CFG and no CFG; LTX adds ``guidance_rescale``,
+  HunyuanVideo 1.5 combines through its guider, LTX-2 on clean estimates).
 
 The noise parametrisation is a property of the scheduler, not the family: see
 :func:`noise_levels` (v-prediction DDIM/DPM tables for CogVideoX, flow-matching ``sigmas`` for
@@ -323,8 +324,8 @@ def _ltx2_flags(pipe) -> tuple[bool, bool, bool]:
 class LTX2Adapter(LTXAdapter):
     """``LTX2Pipeline``: the video stream only. Video latents are packed tokens ``[B, S, C]`` (128
     channels), flow matching, per-channel ``latents_mean/std``; ``AutoencoderKLLTX2Video`` has
-    ``r = 8`` (32x spatial) and a non-causal decoder, so an anchor's chunk decode sees no later
-    latents, which the whole video's decode does (see :func:`LTXAdapter`). The pipeline's one
+    ``r = 8`` (32x spatial) and a non-causal decoder: an anchor's chunk decode lacks the later
+    latents the whole video's decode sees (as :class:`LTXAdapter`'s). The pipeline's one
     transformer denoises the video and the audio jointly; the hook guides the video latents
     (``pipe.scheduler``) and leaves the audio latents, their scheduler (a copy of the video one,
     which steps itself) and the audio decode alone. Re-running the denoiser keeps the audio
@@ -339,17 +340,14 @@ class LTX2Adapter(LTXAdapter):
     name = "LTX-2"
 
     def call_geometry(self, pipe, args, latents):
-        given = args.get("latents")
-        if isinstance(given, Tensor) and given.ndim == 5:  # the pipeline takes the latent size from them
-            r = self.temporal_compression(pipe)
-            num_latents, height, width = given.shape[2:]
-            return CallGeometry(1 + r * (num_latents - 1), num_latents, 0, height, width, r)
         return replace(super().call_geometry(pipe, args, latents), requested_frames=int(args["num_frames"]))
 
     def check(self, pipe, geometry):
         check_requested_frames(geometry, self.name)
 
     def latents_shape(self, pipe, args):
+        # the caller's latents are [B, C, F, h, w] (the pipeline packs them); it would take the video's
+        # size from them, so guidance asks that they be the size the call's arguments say
         r, s = self.temporal_compression(pipe), pipe.vae_spatial_compression_ratio
         return (int(args["batch_size"]), int(args["num_channels_latents"]), (int(args["num_frames"]) - 1) // r + 1,
                 int(args["height"]) // s, int(args["width"]) // s)

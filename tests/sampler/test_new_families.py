@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import copy
 import functools
+import re
+from dataclasses import replace
 
 import pytest
 import torch
@@ -14,7 +16,7 @@ from counting import CountingForward
 
 from geco_guide import tiny as T
 from geco_guide.loss.geco import GeCoLoss
-from geco_guide.sampler.adapters import LTX2Adapter, PipelineAdapter, adapter_for, supported_pipelines
+from geco_guide.sampler.adapters import LTX2Adapter, PipelineAdapter, adapter_for, fit_combination, supported_pipelines
 from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.slicing import decode_anchor_frames
 from geco_guide.sampler.step import score_anchor_frames
@@ -111,7 +113,7 @@ def test_guidance_off_gives_the_stock_output_bit_for_bit(family, estimators):
 @pytest.mark.parametrize("family", FAMILIES)
 def test_the_frame_scored_at_anchor_f_is_frame_f_of_the_output(family, estimators):
     """Every frame 1..16 of a guided 17-frame video as an anchor, each decoded from its chunk as
-    guidance decodes it (the adapter's layout, de-normalisation and decode of the final latents).
+    guidance decodes it (the adapter's layout, de-normalisation and decode, on the final latents).
 
     Causal VAEs (Wan 2.2, HunyuanVideo 1.5): a chunk that starts at latent 0 decodes exactly the
     frames the whole video's decode makes there, so with ``chunk_latents`` = all latents every
@@ -128,14 +130,14 @@ def test_the_frame_scored_at_anchor_f_is_frame_f_of_the_output(family, estimator
     """
     pipe = BUILDERS[family](0)
     frames = 17
-    config = T.tiny_guidance_config(anchors=list(range(1, frames)), chunk_latents=5, repeats="0x3,1x1",
-                                    time_travel=[], step_size=1.0, denoiser_grad=False)
+    config = T.tiny_guidance_config(**{**LAST_STEP, "repeats": "0x3,1x1"}, denoiser_grad=False)
     with attach(pipe, estimators, config) as handle:
         video = call(pipe, num_frames=frames).frames
         latents = final_latents(pipe, num_frames=frames)
     assert len(handle.log) == 1  # the latents are a guided call's
     geometry, adapter = handle.geometry, adapter_for(pipe)
-    chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
+    every_frame = replace(config, anchors=list(range(1, frames)), chunk_latents=5)
+    chunks = every_frame.anchor_chunks(geometry.num_frames, geometry.temporal_compression)
     with torch.no_grad():
         scored = decode_anchor_frames(functools.partial(adapter.decode, pipe),
                                       adapter.frames_first(pipe, latents, geometry), chunks)
@@ -182,6 +184,49 @@ def test_frame_counts_the_vae_cannot_make_are_refused_before_any_denoising_step(
         assert call(pipe, num_frames=num_frames).frames.shape[1] < num_frames
 
 
+@pytest.mark.parametrize("family, variant, channels", [
+    ("wan2.2-ti2v-5b", "wan2.2-5b", T.WAN22_LATENT_CHANNELS),  # taew2_2
+    ("hunyuanvideo1.5", "hunyuanvideo1.5", T.HUNYUAN15_LATENT_CHANNELS),  # taehv1_5
+])
+def test_the_tiny_decoder_of_the_family_decodes_the_anchors(family, variant, channels, estimators):
+    """The published tiny decoders of these families take their real latent channels (48, 32) and
+    the pipelines' latents as they are, at the VAEs' 16x spatial scale (pixel patches of 2)."""
+    pipe = BUILDERS[family](0)
+    config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=False, decoder="tiny")
+    decoder = T.tiny_guidance_decoder(variant, latent_channels=channels)
+    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1],
+                              decoder=decoder) as handle:
+        call(pipe)
+    assert [e["step"] for e in handle.log] == [3, 3] and all(e["grad_norm"] > 0 for e in handle.log)
+    wrong = T.tiny_guidance_decoder(variant, latent_channels=16)
+    with attach_geco_guidance(pipe, config, geometry_estimator=estimators[0], flow_estimator=estimators[1],
+                              decoder=wrong):
+        with pytest.raises(ValueError, match=f"takes 16 latent channels but this VAE makes {channels}"):
+            call(pipe)
+
+
+@pytest.mark.parametrize("family", ["wan2.2-ti2v-5b", "hunyuanvideo1.5", "ltx-2"])
+def test_the_callers_latents_are_checked_before_any_denoising_step(family, estimators):
+    """The latents a caller passes: ``[B, C, F, h, w]`` for all three (LTX-2 packs them itself), of
+    the call's size, finite."""
+    pipe = BUILDERS[family](0)
+    shape = list(call(pipe, output_type="latent").frames.shape)
+    with attach(pipe, estimators, T.tiny_guidance_config(**LAST_STEP)) as handle:
+        counter = CountingForward(pipe.transformer)
+        try:
+            nan = torch.randn(shape)
+            nan.view(-1)[7] = float("nan")
+            with pytest.raises(ValueError, match=r"^latents hold 1 NaN or infinite value\(s\)"):
+                call(pipe, latents=nan)
+            with pytest.raises(ValueError, match=re.escape(f"latents must have shape {shape} (those of this ")):
+                call(pipe, latents=torch.randn([*shape[:2], shape[2] + 1, *shape[3:]]))
+            assert counter.n == 0
+            call(pipe, latents=torch.randn(shape, generator=torch.Generator().manual_seed(1)))
+        finally:
+            counter.handle.remove()
+    assert len(handle.log) == 2
+
+
 # ---- Wan 2.2: both experts -----------------------------------------------------------------------
 
 
@@ -216,8 +261,6 @@ def test_hunyuan15_guider_rescale_is_followed_at_every_sample(estimators):
     faithful update re-runs the denoiser at it does not. The adapter combines with the guider
     itself: the pipeline's output at the captured sample (the hook checks it, which also fixes the
     guider's order: conditional first) and the guider's rescale at any other."""
-    from geco_guide.sampler.adapters import fit_combination
-
     pipe = T.tiny_hunyuan15_pipeline(0, guidance_rescale=0.7)
     config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=True)
     with attach(pipe, estimators, config) as handle:
