@@ -315,7 +315,7 @@ def validate_config(cfg: GeCoConfig) -> None:
     if problem is not None:
         raise ValueError(f"invalid value for config key 'sampling.{problem[0]}': {problem[1]}")
     _require(s.scheduler in (None, "ddim", "dpm"), "sampling.scheduler", f"must be ddim, dpm or null, got {s.scheduler!r}")
-    _require(s.scheduler is None or model.guided_by == "pipeline", "sampling.scheduler",
+    _require(s.scheduler is None or model.cogvideox_vae, "sampling.scheduler",
              f"ddim and dpm are CogVideoX's schedulers; {model.name} samples with its own (null), got {s.scheduler!r}")
     g = cfg.guidance
     # GuidanceConfig's own checks against this run, each error named by its key

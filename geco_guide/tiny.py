@@ -22,13 +22,15 @@ from transformers import PreTrainedTokenizerFast
 from .estimators import Estimators, tiny_estimators, tiny_random_decoder
 from .families import VideoModel
 
-__all__ = ["TINY_ANCHORS", "TINY_CALL_KWARGS", "TINY_HEIGHT", "TINY_MAX_SEQUENCE_LENGTH", "TINY_NUM_FRAMES",
-           "TINY_WIDTH", "TinySizes", "TinyTokenizer", "tiny_bundle", "tiny_call_extras", "tiny_call_kwargs",
-           "tiny_cogvideox15_pipeline", "tiny_cogvideox_components", "tiny_cogvideox_i2v_pipeline",
-           "tiny_cogvideox_pipeline", "tiny_cogvideox_transformer", "tiny_estimators", "tiny_guidance_config",
-           "tiny_guidance_decoder", "tiny_hunyuan_pipeline", "tiny_ltx_pipeline", "tiny_pipeline", "tiny_run_options",
-           "tiny_sampling", "tiny_tokenizer", "tiny_video_components", "tiny_wan22_pipeline",
-           "tiny_wan_modular_pipeline", "tiny_wan_pipeline"]
+__all__ = ["HUNYUAN15_LATENT_CHANNELS", "TINY_ANCHORS", "TINY_CALL_KWARGS", "TINY_HEIGHT",
+           "TINY_MAX_SEQUENCE_LENGTH", "TINY_NUM_FRAMES", "TINY_WIDTH", "TinySizes", "TinyTokenizer",
+           "WAN22_LATENT_CHANNELS", "tiny_bundle", "tiny_call_extras", "tiny_call_kwargs", "tiny_cogvideox15_pipeline",
+           "tiny_cogvideox_components", "tiny_cogvideox_i2v_pipeline", "tiny_cogvideox_pipeline",
+           "tiny_cogvideox_transformer", "tiny_estimators", "tiny_guidance_config", "tiny_guidance_decoder",
+           "tiny_hunyuan15_i2v_pipeline", "tiny_hunyuan15_pipeline", "tiny_hunyuan_pipeline", "tiny_ltx2_pipeline",
+           "tiny_ltx_pipeline", "tiny_pipeline", "tiny_run_options", "tiny_sampling", "tiny_tokenizer",
+           "tiny_video_components", "tiny_wan22_a14b_pipeline", "tiny_wan22_ti2v_pipeline", "tiny_wan_modular_pipeline",
+           "tiny_wan_pipeline"]
 
 # Tiny sampling settings that fit the tiny models (17 frames = 5 latents, 32x48 pixels).
 TINY_NUM_FRAMES = 17
@@ -447,12 +449,6 @@ def tiny_wan_pipeline(seed: int = 0, *, scheduler: str = "unipc", version: str =
     return _finish(pipe)
 
 
-def tiny_wan22_pipeline(seed: int = 0):
-    """A stock tiny ``WanPipeline`` of the Wan 2.2 A14B layout: :func:`tiny_wan_pipeline` of
-    ``version="2.2"`` (two experts)."""
-    return tiny_wan_pipeline(seed, version="2.2")
-
-
 def tiny_wan_modular_pipeline(seed: int = 0, *, version: str = "2.1", denoise_loop: Any = None,
                               guidance_scale: float = 5.0, guidance_scale_2: float | None = None):
     """A tiny ``WanModularPipeline`` (``Wan22ModularPipeline`` for ``version="2.2"``) of diffusers'
@@ -632,15 +628,200 @@ def tiny_hunyuan_pipeline(seed: int = 0):
 def tiny_call_extras(pipe: Any) -> dict[str, Any]:
     """What the tiny stand-ins' calls need beyond the config's sampling: HunyuanVideo's prompt
     template, bare (``"{}"``: the tiny tokenizer cannot crop the real template's system text)."""
-    if type(pipe).__name__.startswith("HunyuanVideo"):
+    name = type(pipe).__name__
+    if name.startswith("HunyuanVideo") and not name.startswith("HunyuanVideo15"):
         return {"prompt_template": {"template": "{}", "crop_start": 0}}
     return {}
 
 
+#: Latent channels of the Wan 2.2 VAE (TI2V-5B) and of the HunyuanVideo 1.5 VAE: the tiny
+#: builders keep the real counts, which the tiny decoders ``wan2.2-5b`` / ``hunyuanvideo1.5`` take.
+WAN22_LATENT_CHANNELS = 48
+HUNYUAN15_LATENT_CHANNELS = 32
+
+
+def tiny_wan22_ti2v_pipeline(seed: int = 0):
+    """A stock tiny ``WanPipeline`` in the Wan 2.2 TI2V-5B layout: :func:`tiny_wan_pipeline`'s text
+    encoder, ``AutoencoderKLWan`` as the Wan 2.2 VAE (48 latent channels, residual blocks, 2x2 pixel
+    patches: 16x spatial, 4x temporal; its own ``latents_mean/std``), ``expand_timesteps=True`` (a
+    timestep per latent token) and the flow UniPC scheduler (shift 5). Latents ``[B, 48, F, h, w]``;
+    :func:`tiny_call_kwargs` makes 32x64 frames (16x VAE and 2x2 transformer patches)."""
+    from diffusers import AutoencoderKLWan, UniPCMultistepScheduler, WanPipeline, WanTransformer3DModel
+
+    wan, channels = tiny_wan_pipeline(seed), WAN22_LATENT_CHANNELS
+    state = _seeded(seed + 1)
+    try:
+        vae = AutoencoderKLWan(
+            base_dim=8, z_dim=channels, dim_mult=[1, 1, 1, 1], num_res_blocks=1, temperal_downsample=[False, True, True],
+            is_residual=True, in_channels=12, out_channels=12, patch_size=2,  # 12 = 3 colours x the 2x2 patch
+            scale_factor_spatial=16, scale_factor_temporal=4,
+            latents_mean=torch.linspace(-0.3, 0.3, channels).tolist(), latents_std=torch.linspace(0.6, 1.8, channels).tolist(),
+        )
+        transformer = WanTransformer3DModel.from_config(wan.transformer.config, in_channels=channels, out_channels=channels)
+    finally:
+        torch.random.set_rng_state(state)
+    scheduler = UniPCMultistepScheduler(prediction_type="flow_prediction", use_flow_sigmas=True, flow_shift=5.0)
+    return _finish(WanPipeline(tokenizer=wan.tokenizer, text_encoder=wan.text_encoder, vae=vae, transformer=transformer,
+                               scheduler=scheduler, expand_timesteps=True))
+
+
+def tiny_wan22_a14b_pipeline(seed: int = 0):
+    """A stock tiny ``WanPipeline`` of the Wan 2.2 T2V-A14B layout: :func:`tiny_wan_pipeline` of
+    ``version="2.2"`` (two experts, each with its own CFG scale: ``guidance_scale``,
+    ``guidance_scale_2``)."""
+    return tiny_wan_pipeline(seed, version="2.2")
+
+
+_HUNYUAN15_TEXT_TOKENS, _HUNYUAN15_IMAGE_DIM = 16, 12
+
+
+def _tiny_hunyuan15_components(seed: int, task: str, guidance_scale: float, guidance_rescale: float) -> dict[str, Any]:
+    """The parts of the tiny HunyuanVideo 1.5 pipelines (``task``: the transformer's, ``"t2v"`` or
+    ``"i2v"``), randomly initialised from ``seed``."""
+    from diffusers import AutoencoderKLHunyuanVideo15, FlowMatchEulerDiscreteScheduler, HunyuanVideo15Transformer3DModel
+    from diffusers.guiders import ClassifierFreeGuidance
+    from transformers import ByT5Tokenizer, Qwen2_5_VLTextConfig, Qwen2_5_VLTextModel, T5Config, T5EncoderModel
+
+    channels = HUNYUAN15_LATENT_CHANNELS
+    # prompts are chats (the role contents in turn), padded to tokenizer_max_length + 108 tokens; the
+    # pipeline drops the first 108 (the system message's)
+    tokenizer = tiny_tokenizer(max_length=_HUNYUAN15_TEXT_TOKENS + 108)
+    tokenizer.chat_template = "{% for message in messages %}{{ message['content'] }} {% endfor %}"
+    tokenizer_2 = ByT5Tokenizer()
+    state = _seeded(seed)
+    try:
+        text_encoder = Qwen2_5_VLTextModel(Qwen2_5_VLTextConfig(
+            vocab_size=len(tokenizer), hidden_size=16, intermediate_size=32, num_hidden_layers=3, num_attention_heads=2,
+            num_key_value_heads=2, rope_scaling={"mrope_section": [1, 1, 2], "rope_type": "default", "type": "default"},
+            pad_token_id=tokenizer.pad_token_id, bos_token_id=tokenizer.eos_token_id, eos_token_id=tokenizer.eos_token_id,
+        ))
+        text_encoder_2 = T5EncoderModel(T5Config(
+            vocab_size=len(tokenizer_2), d_model=8, d_kv=4, d_ff=16, num_layers=1, num_heads=2,
+            relative_attention_num_buckets=8, dropout_rate=0.0, pad_token_id=tokenizer_2.pad_token_id,
+            eos_token_id=tokenizer_2.eos_token_id,
+        ))
+        vae = AutoencoderKLHunyuanVideo15(  # the encoder's last width: a multiple of 2 x the latent channels
+            latent_channels=channels, block_out_channels=(4, 8, 16, 32, 64), layers_per_block=1,
+            spatial_compression_ratio=16, temporal_compression_ratio=4, scaling_factor=1.03682,
+        )
+        transformer = HunyuanVideo15Transformer3DModel(
+            in_channels=2 * channels + 1, out_channels=channels, num_attention_heads=2, attention_head_dim=8,
+            num_layers=1, num_refiner_layers=1, mlp_ratio=2.0, text_embed_dim=16, text_embed_2_dim=8,
+            image_embed_dim=_HUNYUAN15_IMAGE_DIM, rope_axes_dim=(2, 2, 4), target_size=32, task_type=task,
+        )
+    finally:
+        torch.random.set_rng_state(state)
+    return dict(text_encoder=text_encoder, tokenizer=tokenizer, transformer=transformer, vae=vae,
+                scheduler=FlowMatchEulerDiscreteScheduler(shift=5.0), text_encoder_2=text_encoder_2,
+                tokenizer_2=tokenizer_2,
+                guider=ClassifierFreeGuidance(guidance_scale=guidance_scale, guidance_rescale=guidance_rescale))
+
+
+def _shorter_hunyuan15_sequences(pipe):
+    """Shorter text and image-token sequences than the real 1000 + 256 + 729: instance attributes
+    the pipeline sets in ``__init__``, so a saved and reloaded tiny pipeline gets the real lengths
+    back (and runs as well, only slower)."""
+    pipe.tokenizer_max_length = pipe.tokenizer_2_max_length = _HUNYUAN15_TEXT_TOKENS
+    pipe.vision_num_semantic_tokens = 4
+    return _finish(pipe)
+
+
+def tiny_hunyuan15_pipeline(seed: int = 0, *, guidance_scale: float = 6.0, guidance_rescale: float = 0.0):
+    """A stock tiny ``HunyuanVideo15Pipeline``: a tiny Qwen2.5-VL text model (chat prompts) + ByT5
+    glyph encoder, ``AutoencoderKLHunyuanVideo15`` (32 latent channels as the real one, 16x spatial
+    and 4x temporal compression, causal), ``HunyuanVideo15Transformer3DModel`` (its input: the
+    latents, the image-condition latents and a mask, along channels), CFG by diffusers'
+    ``ClassifierFreeGuidance`` guider (``guidance_scale``, ``guidance_rescale``), the flow-matching
+    Euler scheduler (shift 5)."""
+    from diffusers import HunyuanVideo15Pipeline
+
+    components = _tiny_hunyuan15_components(seed, "t2v", guidance_scale, guidance_rescale)
+    return _shorter_hunyuan15_sequences(HunyuanVideo15Pipeline(**components))
+
+
+def tiny_hunyuan15_i2v_pipeline(seed: int = 0, *, guidance_scale: float = 6.0):
+    """A stock tiny ``HunyuanVideo15ImageToVideoPipeline``: :func:`tiny_hunyuan15_pipeline`'s parts
+    with an image-to-video transformer, a tiny SigLIP vision encoder and its image processor. The
+    pipeline takes the video size from the image (the transformer's ``target_size`` bucket), puts
+    the image's latent first in the condition channels, and generates every latent."""
+    from diffusers import HunyuanVideo15ImageToVideoPipeline
+    from transformers import SiglipImageProcessor, SiglipVisionConfig, SiglipVisionModel
+
+    components = _tiny_hunyuan15_components(seed, "i2v", guidance_scale, 0.0)
+    state = _seeded(seed + 1)
+    try:
+        image_encoder = SiglipVisionModel(SiglipVisionConfig(
+            hidden_size=_HUNYUAN15_IMAGE_DIM, intermediate_size=16, num_hidden_layers=1, num_attention_heads=2,
+            image_size=16, patch_size=8))
+    finally:
+        torch.random.set_rng_state(state)
+    return _shorter_hunyuan15_sequences(HunyuanVideo15ImageToVideoPipeline(
+        **components, image_encoder=image_encoder, feature_extractor=SiglipImageProcessor(size={"height": 16, "width": 16})))
+
+
+def tiny_ltx2_pipeline(seed: int = 0):
+    """A stock tiny ``LTX2Pipeline`` (video and audio from one joint transformer): a tiny Gemma 3
+    text encoder, ``LTX2TextConnectors``, ``LTX2VideoTransformer3DModel`` (video and audio streams
+    with cross-attention between them), ``AutoencoderKLLTX2Video`` (8x temporal compression and a
+    non-causal decoder as LTX-2's; 8x spatial instead of 32x, so that 32-pixel frames keep a few
+    latents; per-channel latent mean/std), ``AutoencoderKLLTX2Audio``, ``LTX2Vocoder`` and the
+    flow-matching Euler scheduler with dynamic shifting. Video latents: packed tokens ``[B, S, C]``."""
+    from diffusers import (AutoencoderKLLTX2Audio, AutoencoderKLLTX2Video, FlowMatchEulerDiscreteScheduler,
+                           LTX2Pipeline, LTX2VideoTransformer3DModel)
+    from diffusers.pipelines.ltx2 import LTX2TextConnectors
+    from diffusers.pipelines.ltx2.vocoder import LTX2Vocoder
+    from transformers import Gemma3Config, Gemma3ForConditionalGeneration, Gemma3TextConfig, SiglipVisionConfig
+
+    tokenizer, channels, text_dim, text_layers = tiny_tokenizer(), 8, 16, 2
+    state = _seeded(seed)
+    try:
+        text_encoder = Gemma3ForConditionalGeneration(Gemma3Config(
+            text_config=Gemma3TextConfig(
+                vocab_size=len(tokenizer), hidden_size=text_dim, intermediate_size=32, num_hidden_layers=text_layers,
+                num_attention_heads=2, num_key_value_heads=1, head_dim=8, sliding_window=16,
+                pad_token_id=tokenizer.pad_token_id, eos_token_id=tokenizer.eos_token_id,
+                bos_token_id=tokenizer.eos_token_id).to_dict(),
+            vision_config=SiglipVisionConfig(hidden_size=8, intermediate_size=16, num_hidden_layers=1,
+                                             num_attention_heads=2, image_size=16, patch_size=8).to_dict(),
+            mm_tokens_per_image=4))
+        connector = dict(num_attention_heads=2, attention_head_dim=8, num_layers=1, num_learnable_registers=None)
+        connectors = LTX2TextConnectors(  # projects the stacked hidden states of every text layer
+            caption_channels=text_dim, text_proj_in_factor=text_layers + 1, connector_rope_base_seq_len=32,
+            rope_double_precision=False, rope_type="split",
+            **{f"{stream}_connector_{key}": value for stream in ("video", "audio") for key, value in connector.items()})
+        transformer = LTX2VideoTransformer3DModel(
+            in_channels=channels, out_channels=channels, num_attention_heads=2, attention_head_dim=8,
+            cross_attention_dim=16, vae_scale_factors=(8, 8, 8), audio_in_channels=4, audio_out_channels=4,
+            audio_num_attention_heads=2, audio_attention_head_dim=4, audio_cross_attention_dim=8, num_layers=2,
+            caption_channels=text_dim, rope_double_precision=False, rope_type="split")
+        vae = AutoencoderKLLTX2Video(
+            latent_channels=channels, block_out_channels=(8, 8, 8, 8), decoder_block_out_channels=(8, 16, 32),
+            layers_per_block=(1, 1, 1, 1, 1), decoder_layers_per_block=(1, 1, 1, 1),
+            downsample_type=("spatial", "temporal", "spatiotemporal", "spatiotemporal"), patch_size=1,
+            decoder_causal=False, spatial_compression_ratio=8, temporal_compression_ratio=8)
+        # non-trivial latent statistics, so that the de-normalisation before decoding matters
+        vae.latents_mean.copy_(torch.linspace(-0.2, 0.2, channels))
+        vae.latents_std.copy_(torch.linspace(0.8, 1.5, channels))
+        audio_vae = AutoencoderKLLTX2Audio(base_channels=4, ch_mult=(1,), num_res_blocks=1, resolution=32,
+                                           latent_channels=2, mel_bins=8)
+        vocoder = LTX2Vocoder(in_channels=audio_vae.config.output_channels * audio_vae.config.mel_bins, hidden_channels=8,
+                              upsample_kernel_sizes=[4, 4], upsample_factors=[2, 2], resnet_kernel_sizes=[3],
+                              resnet_dilations=[[1, 3, 5]], output_sampling_rate=16000)
+    finally:
+        torch.random.set_rng_state(state)
+    scheduler = FlowMatchEulerDiscreteScheduler(base_image_seq_len=1024, base_shift=0.95, max_image_seq_len=4096,
+                                                max_shift=2.05, shift_terminal=0.1, use_dynamic_shifting=True)
+    return _finish(LTX2Pipeline(scheduler=scheduler, vae=vae, audio_vae=audio_vae, text_encoder=text_encoder,
+                                tokenizer=tokenizer, connectors=connectors, transformer=transformer, vocoder=vocoder))
+
+
 def tiny_call_kwargs(pipe, **changes: Any) -> dict[str, Any]:
     """Call arguments that fit the tiny pipelines: 17 frames of 32x48, 4 steps, short prompts
-    (32x64 for LTX, which wants multiples of 32; plus the conditioning image for image-to-video, and
-    the bare ``"{}"`` prompt template for Hunyuan)."""
+    (32x64 for LTX and LTX-2, which want multiples of 32, and for a Wan with the Wan 2.2 16x VAE;
+    plus the conditioning image for image-to-video, the bare ``"{}"`` prompt template for Hunyuan,
+    HunyuanVideo 1.5's calls without ``max_sequence_length`` (and without a size for its
+    image-to-video pipeline, which takes it from the image), and spatio-temporal guidance on the
+    tiny LTX-2 transformer's last block, which its default block list does not name)."""
     kwargs: dict[str, Any] = dict(
         num_frames=TINY_NUM_FRAMES,
         height=TINY_HEIGHT,
@@ -651,8 +832,16 @@ def tiny_call_kwargs(pipe, **changes: Any) -> dict[str, Any]:
     name = type(pipe).__name__
     if "ImageToVideo" in name:
         kwargs["image"] = tiny_image(0)
+    if name.startswith("HunyuanVideo15"):
+        del kwargs["max_sequence_length"]  # it pads its prompts to its own lengths
+        if "ImageToVideo" in name:  # the size comes from the image
+            del kwargs["height"], kwargs["width"]
     kwargs.update(tiny_call_extras(pipe))
     if name.startswith("LTX"):
         kwargs["width"] = 64  # LTXPipeline wants multiples of 32
+    if name.startswith("LTX2"):
+        kwargs["spatio_temporal_guidance_blocks"] = [pipe.transformer.config.num_layers - 1]
+    if name.startswith("Wan") and pipe.vae_scale_factor_spatial == 16:
+        kwargs["width"] = 64  # 16x VAE and 2x2 patches: multiples of 32
     kwargs.update(changes)
     return kwargs

@@ -30,7 +30,7 @@ PAPER_ANCHOR_COUNT = 4
 #: paper's loop) or ``hooks`` (attach_geco_guidance on the stock pipeline).
 GUIDED_BY = ("pipeline", "hooks")
 #: The families: what decodes their latents and which tiny random stand-in they have.
-FAMILIES = ("cogvideox", "cogvideox1.5", "wan", "wan2.2", "wan2.2-ti2v", "hunyuan", "hunyuan1.5", "ltx", "ltx2")
+FAMILIES = ("cogvideox", "cogvideox1.5", "wan", "wan2.2", "wan2.2-ti2v", "hunyuan", "hunyuan1.5", "ltx", "ltx2", "")
 
 
 @dataclass(frozen=True)
@@ -90,6 +90,13 @@ class VideoModel:
     def generates(self) -> bool:
         """Whether the package can load and run it (it has open weights and a pipeline)."""
         return self.hub_id is not None and self.pipeline is not None
+
+    @property
+    def cogvideox_vae(self) -> bool:
+        """Whether it decodes with the CogVideoX VAE: CogVideoX's DDIM / DPM schedulers
+        (``sampling.scheduler``) and the channels-last guidance decode (``run.decode_layout``) are
+        written for its family."""
+        return self.family.startswith("cogvideox")
 
     @property
     def anchors(self) -> list[int]:
@@ -152,15 +159,39 @@ MODELS: dict[str, VideoModel] = {m.name: m for m in (
                source="Wan2.1-T2V-14B-Diffusers model card", **_WAN21),
     VideoModel("wan2.2-t2v-a14b", family="wan2.2", hub_id="Wan-AI/Wan2.2-T2V-A14B-Diffusers", pipeline="WanPipeline",
                call=_call(81, 720, 1280, 40, 4.0, guidance_scale_2=3.0), fps=16, eval_fps=16.0,
-               tiny_decoder="wan2.1", tiny="tiny_wan22_pipeline",
+               tiny_decoder="wan2.1", tiny="tiny_wan22_a14b_pipeline",
                source="Wan2.2-T2V-A14B-Diffusers model card (two experts)"),
+    VideoModel("cogvideox-5b-i2v", family="cogvideox", hub_id="THUDM/CogVideoX-5b-I2V",
+               pipeline="CogVideoXImageToVideoPipeline", call=_call(49, 480, 720, 50, 6.0), fps=8, eval_fps=16.0,
+               frame_multiple=8, tiny_decoder="cogvideox", tiny="tiny_cogvideox_i2v_pipeline", scheduler="ddim",
+               image_to_video=True, source="CogVideoX-5b-I2V model card (guided by the hooks: the paper's loop is "
+               "text-to-video)"),
+    VideoModel("wan2.2-ti2v-5b", family="wan2.2-ti2v", hub_id="Wan-AI/Wan2.2-TI2V-5B-Diffusers", pipeline="WanPipeline",
+               call=_call(121, 704, 1280, 50, 5.0), fps=24, eval_fps=24.0, spatial_compression=16,
+               size_multiple=32, latent_channels=48, tiny_decoder="wan2.2-5b", tiny="tiny_wan22_ti2v_pipeline",
+               source="Wan2.2 TI2V-5B configs of the official repository (wan_ti2v_5B.py); text-to-video here: "
+               "its image-to-video mode runs through WanImageToVideoPipeline, which the hooks cannot guide yet"),
     VideoModel("hunyuanvideo", family="hunyuan", hub_id="hunyuanvideo-community/HunyuanVideo",
                pipeline="HunyuanVideoPipeline", call=_call(129, 720, 1280, 50, 6.0), fps=15, eval_fps=24.0,
                tiny_decoder="hunyuanvideo", tiny="tiny_hunyuan_pipeline", source="diffusers HunyuanVideoPipeline docs"),
+    VideoModel("hunyuanvideo-1.5", family="hunyuan1.5", hub_id="hunyuanvideo-community/HunyuanVideo-1.5-480p_t2v",
+               pipeline="HunyuanVideo15Pipeline", call=_call(121, 480, 848, 50, 6.0), fps=24, eval_fps=24.0,
+               spatial_compression=16, latent_channels=32, tiny_decoder="hunyuanvideo1.5",
+               tiny="tiny_hunyuan15_pipeline", source="diffusers HunyuanVideo15Pipeline docs and conversion script "
+               "(480p)"),
+    VideoModel("hunyuanvideo-1.5-i2v", family="hunyuan1.5", hub_id="hunyuanvideo-community/HunyuanVideo-1.5-480p_i2v",
+               pipeline="HunyuanVideo15ImageToVideoPipeline", call=_call(121, 480, 848, 50, 6.0), fps=24,
+               eval_fps=24.0, spatial_compression=16, latent_channels=32, tiny_decoder="hunyuanvideo1.5",
+               tiny="tiny_hunyuan15_i2v_pipeline", image_to_video=True,
+               source="diffusers HunyuanVideo15ImageToVideoPipeline docs and conversion script (480p)"),
     VideoModel("ltx-video", family="ltx", hub_id="Lightricks/LTX-Video", pipeline="LTXPipeline",
                call=_call(161, 480, 704, 50, 3.0), fps=24, eval_fps=30.0, spatial_compression=32,
                temporal_compression=8, frame_multiple=8, size_multiple=32, latent_channels=128, tiny="tiny_ltx_pipeline",
                source="diffusers LTXPipeline docs"),
+    VideoModel("ltx-2", family="ltx2", hub_id="Lightricks/LTX-2", pipeline="LTX2Pipeline",
+               call=_call(121, 512, 768, 30, 3.0), fps=24, eval_fps=24.0, spatial_compression=32,
+               temporal_compression=8, frame_multiple=8, size_multiple=32, latent_channels=128, tiny="tiny_ltx2_pipeline",
+               source="diffusers LTX2Pipeline docs and call defaults (video only: the audio stream passes through)"),
     VideoModel("sora-2", family="", hub_id=None, pipeline=None, call=_call(1, 0, 0, 0, 0.0), fps=30, eval_fps=30.0,
                source="the GeCo paper (scored only: no open weights)"),
     VideoModel("veo-3.1", family="", hub_id=None, pipeline=None, call=_call(1, 0, 0, 0, 0.0), fps=24, eval_fps=24.0,

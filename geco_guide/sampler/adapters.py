@@ -10,7 +10,8 @@ A :class:`PipelineAdapter` knows, for one family of pipelines:
 - how to de-normalise and decode such a chunk into frames ``[B, T, 3, H, W]`` in ``[0, 1]``,
 - how the denoiser outputs of one step combine into the model output the scheduler gets
   (default: a linear combination fitted to the captured outputs, which covers CFG in one
-  batched call, CFG in two calls, dynamic CFG and no CFG; LTX adds ``guidance_rescale``).
+  batched call, CFG in two calls, dynamic CFG and no CFG; LTX adds ``guidance_rescale``,
+  HunyuanVideo 1.5 combines through its guider, LTX-2 on clean estimates).
 
 The noise parametrisation is a property of the scheduler, not the family: see
 :func:`noise_levels` (v-prediction DDIM/DPM tables for CogVideoX, flow-matching ``sigmas`` for
@@ -22,7 +23,7 @@ New families: subclass :class:`PipelineAdapter` and ``register_adapter(PipelineC
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -31,9 +32,10 @@ from torch import Tensor, nn
 from .levels import FlowLevels, NoiseLevels, VPLevels
 from .slicing import decode_chunk
 
-__all__ = ["CallGeometry", "CogVideoXAdapter", "HunyuanVideoAdapter", "LTXAdapter", "PipelineAdapter",
-           "WanAdapter", "adapter_for", "check_no_denoiser_cache", "check_scheduler", "fit_combination",
-           "keep_update", "noise_levels", "register_adapter"]
+__all__ = ["CallGeometry", "CogVideoXAdapter", "HunyuanVideo15Adapter", "HunyuanVideoAdapter", "LTX2Adapter",
+           "LTXAdapter", "PipelineAdapter", "WanAdapter", "adapter_for", "check_no_denoiser_cache",
+           "check_requested_frames", "check_scheduler", "fit_combination", "keep_update", "noise_levels",
+           "register_adapter"]
 
 
 @dataclass(frozen=True)
@@ -46,6 +48,10 @@ class CallGeometry:
         pad: latent frames the pipeline adds in front (CogVideoX 1.5) and drops before decoding.
         latent_height, latent_width: spatial size of the latents (before any transformer patching).
         temporal_compression: the VAE's ``r``.
+        requested_frames: the ``num_frames`` the call asked for, where the pipeline hands it to
+            ``prepare_latents`` as asked (HunyuanVideo 1.5, LTX-2: they make ``num_frames`` frames
+            only when it is ``r k + 1``, and fewer otherwise, silently); ``None`` where it is not
+            known or the pipeline rounded it already (Wan, with a warning).
     """
 
     num_frames: int
@@ -54,6 +60,7 @@ class CallGeometry:
     latent_height: int
     latent_width: int
     temporal_compression: int
+    requested_frames: int | None = None
 
 
 def _to_unit(video: Tensor) -> Tensor:
@@ -110,9 +117,11 @@ class PipelineAdapter:
         """Model latents ``[B, C, F, h, w]`` -> what ``vae.decode`` takes."""
         return z / pipe.vae.config.scaling_factor
 
-    def combine(self, pipe, parts: list[Tensor], weights: Tensor) -> Tensor:
+    def combine(self, pipe, parts: list[Tensor], weights: Tensor, *, sample: Tensor, step: int) -> Tensor:
         """The model output from the outputs of one step's denoiser calls (fp32), given the weights
-        fitted on the captured outputs (:func:`fit_combination`)."""
+        fitted on the captured outputs (:func:`fit_combination`), the ``sample`` the calls saw (the
+        scheduler's layout) and the step's index in the call (``step``; what LTX-2's combination,
+        made on clean estimates, needs)."""
         out = weights[0].item() * parts[0].float()
         for w, p in zip(weights[1:], parts[1:]):
             out = out + w.item() * p.float()
@@ -247,7 +256,7 @@ class LTXAdapter(PipelineAdapter):
             temb = torch.zeros(z.shape[0], device=z.device, dtype=z.dtype)
         return _to_unit(pipe.vae.decode(z, temb).sample)
 
-    def combine(self, pipe, parts, weights):
+    def combine(self, pipe, parts, weights, *, sample, step):
         rescale = float(getattr(pipe, "_guidance_rescale", 0.0) or 0.0)
         if rescale > 0 and len(parts) == 2:  # not linear: CFG as the pipeline does, then the rescale
             from diffusers.pipelines.ltx.pipeline_ltx import rescale_noise_cfg
@@ -255,7 +264,116 @@ class LTXAdapter(PipelineAdapter):
             uncond, text = parts[0].float(), parts[1].float()
             out = uncond + pipe.guidance_scale * (text - uncond)
             return rescale_noise_cfg(out, text, guidance_rescale=rescale)
-        return super().combine(pipe, parts, weights)
+        return super().combine(pipe, parts, weights, sample=sample, step=step)
+
+
+def check_requested_frames(geometry: CallGeometry, vae: str) -> None:
+    """One-line ValueError when the call asked for a frame count the ``vae`` cannot make
+    (``geometry.requested_frames`` not ``r k + 1``): the pipeline would silently make fewer frames
+    than asked, and the anchors would index a shorter video than the one the caller counted."""
+    asked, r = geometry.requested_frames, geometry.temporal_compression
+    if asked is None or asked == geometry.num_frames:
+        return
+    raise ValueError(
+        f"num_frames={asked} cannot be made by the {vae} VAE: it makes {r}k+1 frames (temporal compression {r}), so "
+        f"this call would make {geometry.num_frames}. Ask for num_frames={geometry.num_frames} or "
+        f"{geometry.num_frames + r}"
+    )
+
+
+class HunyuanVideo15Adapter(PipelineAdapter):
+    """``HunyuanVideo15Pipeline`` and ``HunyuanVideo15ImageToVideoPipeline``: latents ``[B, C, F,
+    h, w]`` (32 channels), flow matching; the denoiser sees the latents with the image-condition
+    latents and their mask concatenated along channels (zeros for text-to-video; the hook replaces
+    only the latent channels); decode input ``z / scaling_factor`` through the causal
+    ``AutoencoderKLHunyuanVideo15`` (``r = 4``, 16x spatial). CFG comes from the pipeline's
+    guider: with diffusers' ``ClassifierFreeGuidance`` the step's output is rebuilt by the guider
+    itself (so its ``guidance_rescale`` and CFG window hold); other guiders get the fitted
+    linear combination, checked against the pipeline's output."""
+
+    name = "HunyuanVideo 1.5"
+
+    def call_geometry(self, pipe, args, latents):
+        return replace(super().call_geometry(pipe, args, latents), requested_frames=int(args["num_frames"]))
+
+    def check(self, pipe, geometry):
+        check_requested_frames(geometry, self.name)
+
+    def latents_shape(self, pipe, args):
+        return _channels_first_shape(pipe, args, self.temporal_compression(pipe))
+
+    def combine(self, pipe, parts, weights, *, sample, step):
+        from diffusers.guiders import ClassifierFreeGuidance
+
+        guider = getattr(pipe, "guider", None)
+        if type(guider) is not ClassifierFreeGuidance or len(parts) > 2:
+            return super().combine(pipe, parts, weights, sample=sample, step=step)
+        # the guider runs its conditional batch first, then the unconditional one (when CFG is on
+        # at this step: its state is the step's, set by the pipeline before the denoiser calls)
+        return guider.forward(*[part.float() for part in parts]).pred
+
+
+def _ltx2_flags(pipe) -> tuple[bool, bool, bool]:
+    """Which extra denoiser calls an ``LTX2Pipeline`` step makes: CFG (the call is batched
+    ``[uncond, cond]``), spatio-temporal guidance, modality isolation; as the pipeline decides
+    them (audio's scales count: the video and audio streams share every call)."""
+    return (bool(pipe.do_classifier_free_guidance), bool(pipe.do_spatio_temporal_guidance),
+            bool(pipe.do_modality_isolation_guidance))
+
+
+class LTX2Adapter(LTXAdapter):
+    """``LTX2Pipeline``: the video stream only. Video latents are packed tokens ``[B, S, C]`` (128
+    channels), flow matching, per-channel ``latents_mean/std``; ``AutoencoderKLLTX2Video`` has
+    ``r = 8`` (32x spatial) and a non-causal decoder: an anchor's chunk decode lacks the later
+    latents the whole video's decode sees (as :class:`LTXAdapter`'s). The pipeline's one
+    transformer denoises the video and the audio jointly; the hook guides the video latents
+    (``pipe.scheduler``) and leaves the audio latents, their scheduler (a copy of the video one,
+    which steps itself) and the audio decode alone. Re-running the denoiser keeps the audio
+    inputs of the step.
+
+    A step's video model output is made on clean estimates ``x0 = z - sigma v``: CFG, spatio-
+    temporal guidance (another call, with perturbed blocks) and modality isolation (another call)
+    as deltas, then ``guidance_rescale`` (not linear), then back to a velocity: :meth:`combine`
+    does the same, from the outputs of the step's 1 to 3 denoiser calls.
+    """
+
+    name = "LTX-2"
+
+    def call_geometry(self, pipe, args, latents):
+        return replace(super().call_geometry(pipe, args, latents), requested_frames=int(args["num_frames"]))
+
+    def check(self, pipe, geometry):
+        check_requested_frames(geometry, self.name)
+
+    def latents_shape(self, pipe, args):
+        # the caller's latents are [B, C, F, h, w] (the pipeline packs them); it would take the video's
+        # size from them, so guidance asks that they be the size the call's arguments say
+        r, s = self.temporal_compression(pipe), pipe.vae_spatial_compression_ratio
+        return (int(args["batch_size"]), int(args["num_channels_latents"]), (int(args["num_frames"]) - 1) // r + 1,
+                int(args["height"]) // s, int(args["width"]) // s)
+
+    def combine(self, pipe, parts, weights, *, sample, step):
+        from diffusers.pipelines.ltx2.pipeline_ltx2 import rescale_noise_cfg
+
+        cfg, stg, modality = _ltx2_flags(pipe)
+        if len(parts) != 1 + cfg + stg + modality:
+            raise ValueError(
+                f"LTX-2 step with {len(parts)} denoiser outputs, expected {1 + cfg + stg + modality} (CFG {cfg}, "
+                f"spatio-temporal guidance {stg}, modality isolation {modality}): the pipeline makes its model output "
+                "in a way this adapter does not know"
+            )
+        sigma = pipe.scheduler.sigmas[step]
+        z = sample.float()
+        x0 = [z - part.float() * sigma for part in parts]  # as LTX2Pipeline.convert_velocity_to_x0
+        cond = x0[1] if cfg else x0[0]
+        rest = iter(x0[2:] if cfg else x0[1:])
+        cfg_delta = (pipe.guidance_scale - 1) * (cond - x0[0]) if cfg else 0
+        stg_delta = pipe.stg_scale * (cond - next(rest)) if stg else 0
+        modality_delta = (pipe.modality_scale - 1) * (cond - next(rest)) if modality else 0
+        guided = cond + cfg_delta + stg_delta + modality_delta
+        if pipe.guidance_rescale > 0:
+            guided = rescale_noise_cfg(guided, cond, guidance_rescale=pipe.guidance_rescale)
+        return (z - guided) / sigma  # as LTX2Pipeline.convert_x0_to_velocity
 
 
 def fit_combination(parts: list[Tensor], target: Tensor) -> tuple[Tensor, float]:
@@ -390,6 +508,9 @@ def _register_defaults() -> None:
         ("WanPipeline", WanAdapter()),
         ("LTXPipeline", LTXAdapter()),
         ("HunyuanVideoPipeline", HunyuanVideoAdapter()),
+        ("HunyuanVideo15Pipeline", HunyuanVideo15Adapter()),
+        ("HunyuanVideo15ImageToVideoPipeline", HunyuanVideo15Adapter()),
+        ("LTX2Pipeline", LTX2Adapter()),
     ):
         cls = getattr(diffusers, cls_name, None)
         if cls is not None and cls not in _REGISTRY:

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import types
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -109,13 +110,14 @@ def _hidden_states(args: tuple, kwargs: dict) -> tuple[Tensor, str | int]:
 class _Replay:
     """Re-run one step's captured denoiser calls at new latents and combine them as the pipeline did."""
 
-    def __init__(self, pipe, adapter: PipelineAdapter, calls: list[_Call], sample: Tensor, model_output: Tensor):
+    def __init__(self, pipe, adapter: PipelineAdapter, calls: list[_Call], sample: Tensor, model_output: Tensor,
+                 step: int):
         if not calls:
             raise ValueError(
                 "GeCo guidance saw no denoiser call before scheduler.step; the pipeline computes its model output "
                 "in a way this hook does not know"
             )
-        self.pipe, self.adapter, self.batch = pipe, adapter, sample.shape[0]
+        self.pipe, self.adapter, self.batch, self.step = pipe, adapter, sample.shape[0], step
         self.items = []
         parts: list[Tensor] = []
         for call in calls:
@@ -130,7 +132,7 @@ class _Replay:
                 )
             parts.extend(out.split(self.batch))
         self.weights, _ = fit_combination(parts, model_output)
-        combined = adapter.combine(pipe, parts, self.weights)
+        combined = adapter.combine(pipe, parts, self.weights, sample=sample, step=step)
         residual = float((combined - model_output.float()).norm() / model_output.float().norm().clamp_min(1e-30))
         low_precision = any(p.dtype not in (torch.float32, torch.float64) for p in parts) or model_output.dtype not in (
             torch.float32,
@@ -179,7 +181,7 @@ class _Replay:
                     args[key] = z_in
                 out = _output_tensor(call.module(*args, **kwargs))
                 parts.extend(out.split(self.batch))
-            return self.adapter.combine(self.pipe, parts, self.weights)
+            return self.adapter.combine(self.pipe, parts, self.weights, sample=z, step=self.step)
 
 
 class DenoiserCapture(ModelHook):
@@ -277,15 +279,20 @@ class GeCoGuidanceHandle:
         signature = inspect.signature(original)
 
         @functools.wraps(original)
-        def step(*args, **kwargs):
+        def step(stepped, *args, **kwargs):
+            if stepped is not scheduler:  # a deep copy (LTX-2's audio scheduler): it steps itself, unguided
+                return type(stepped).step(stepped, *args, **kwargs)
             return self._step(scheduler, original, signature, args, kwargs)
 
         # functools.wraps keeps the name and docstring; the explicit signature keeps what pipelines
         # inspect to decide which extra arguments to pass (``prepare_extra_step_kwargs``: ``eta``,
         # ``generator``): a bare (*args, **kwargs) would make them silently drop both.
-        step.__signature__ = signature  # type: ignore[attr-defined]
+        step.__signature__ = signature.replace(  # type: ignore[attr-defined]
+            parameters=[inspect.Parameter("stepped", inspect.Parameter.POSITIONAL_ONLY), *signature.parameters.values()])
         step._geco_handle = self  # type: ignore[attr-defined]
-        scheduler.step = step
+        # bound to the scheduler, so that a deep copy of it (copy.deepcopy rebinds methods to the
+        # copy) calls the wrapper with the copy instead of stepping this scheduler twice
+        scheduler.step = types.MethodType(step, scheduler)
         self._schedulers.append((scheduler, previous))
 
     def detach(self) -> None:
@@ -392,7 +399,7 @@ class GeCoGuidanceHandle:
 
     def _guide(self, context: GuidanceContext, i: int, timestep, sample, model_output, calls):
         pipe, adapter = self.pipe, self.adapter
-        replay = _Replay(pipe, adapter, calls, sample, model_output)
+        replay = _Replay(pipe, adapter, calls, sample, model_output, i)
         start = sample.detach().float()
 
         def predict(z: Tensor, differentiate: bool) -> Tensor:

@@ -229,7 +229,7 @@ def choose_scheduler(pipe: Any, name: str | None, model: VideoModel) -> str:
         return f"{shipped} (the checkpoint's)"
     if name not in SCHEDULERS:
         raise ValueError(f"sampling.scheduler must be one of {sorted(SCHEDULERS)} or null, got {name!r}")
-    if model.guided_by != "pipeline":
+    if not model.cogvideox_vae:
         raise ValueError(f"sampling.scheduler={name} is CogVideoX's; {model.name} samples with its own scheduler: "
                          "use sampling.scheduler=null")
     import diffusers
@@ -336,7 +336,7 @@ def check_guidance_before_loading(guidance: GuidanceConfig, run: RunOptions, est
         guidance.check_loss()
         guidance.schedule(num_steps)
         guidance.anchor_chunks(num_frames, model.temporal_compression)
-        if run.decode_layout != "default" and model.guided_by != "pipeline":
+        if run.decode_layout != "default" and not model.cogvideox_vae:
             raise ValueError(f"run.decode_layout={run.decode_layout} is written for the CogVideoX VAE, not "
                              f"{model.name}'s: use run.decode_layout=default")
         if guidance.decoder == "tiny":

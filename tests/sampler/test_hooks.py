@@ -282,7 +282,7 @@ def test_ltx_guidance_rescale_is_rebuilt_and_wrong_combinations_fail_loudly(esti
         assert len(handle.log) == 2
         # an adapter whose combination does not reproduce the pipeline's model output (here: the
         # text branch alone, no CFG) is refused instead of guiding with a wrong prediction
-        monkeypatch.setattr(LTXAdapter, "combine", lambda self, pipe, parts, weights: parts[1].float())
+        monkeypatch.setattr(LTXAdapter, "combine", lambda self, pipe, parts, weights, **step: parts[1].float())
         with pytest.raises(ValueError, match="cannot rebuild the model output"):
             run(pipe, guidance_rescale=0.7)
 
