@@ -302,6 +302,11 @@ class HunyuanVideo15Adapter(PipelineAdapter):
     def latents_shape(self, pipe, args):
         return _channels_first_shape(pipe, args, self.temporal_compression(pipe))
 
+    def decode(self, pipe, latents):
+        # the VAE's mid-block attention masks a batch of one only (diffusers 0.42: a batch of
+        # several chunks fails to broadcast), so each chunk of a batched anchor decode is its own call
+        return torch.cat([super(HunyuanVideo15Adapter, self).decode(pipe, chunk) for chunk in latents.split(1)])
+
     def combine(self, pipe, parts, weights, *, sample, step):
         from diffusers.guiders import ClassifierFreeGuidance
 

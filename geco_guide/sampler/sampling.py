@@ -84,14 +84,24 @@ def call_arguments(pipe: Any, sampling: SamplingConfig, *, prompt: str, generato
     """The keyword arguments of ``pipe``'s call for ``sampling`` (filled): the core ones, and each
     other option that is set, where the pipeline takes it; ``extra`` (e.g. ``image``) likewise.
 
+    Two families take what the others take as arguments elsewhere: a pipeline whose CFG is a
+    ``guider`` component (HunyuanVideo 1.5) gets ``sampling.guidance_scale`` as its guider's scale
+    (the component is replaced by a copy of that scale); an image-to-video pipeline that sizes its
+    video after the image (HunyuanVideo 1.5's) takes no height and width.
+
     Raises:
         ValueError: (one line) an option set for a pipeline that has no such argument.
     """
     accepted = inspect.signature(pipe.__call__).parameters
-    arguments: dict[str, Any] = dict(prompt=prompt, height=sampling.height, width=sampling.width,
-                                     num_frames=sampling.num_frames, num_inference_steps=sampling.num_inference_steps,
-                                     guidance_scale=sampling.guidance_scale, generator=generator,
+    arguments: dict[str, Any] = dict(prompt=prompt, num_frames=sampling.num_frames,
+                                     num_inference_steps=sampling.num_inference_steps, generator=generator,
                                      output_type=output_type)
+    if "height" in accepted:
+        arguments.update(height=sampling.height, width=sampling.width)
+    if "guidance_scale" in accepted:
+        arguments["guidance_scale"] = sampling.guidance_scale
+    elif getattr(pipe, "guider", None) is not None and pipe.guider.guidance_scale != sampling.guidance_scale:
+        pipe.guider = pipe.guider.new(guidance_scale=sampling.guidance_scale)
     optional = {f"sampling.{f.name}": (f.name, getattr(sampling, f.name)) for f in fields(sampling)
                 if f.name in ("negative_prompt", "guidance_scale_2", "max_sequence_length", "use_dynamic_cfg")}
     optional.update({name: (name, value) for name, value in extra.items()})
