@@ -7,7 +7,7 @@ import os
 
 import torch
 
-__all__ = ["check_device", "check_memory_fits", "memory_limit", "resolve_device"]
+__all__ = ["COMPUTE_DEVICES", "check_device", "check_memory_fits", "memory_limit", "resolve_device"]
 
 
 def resolve_device(name: str | torch.device) -> torch.device:
@@ -15,6 +15,10 @@ def resolve_device(name: str | torch.device) -> torch.device:
     if isinstance(name, str) and name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(name)
+
+
+#: The kinds of device the models run on.
+COMPUTE_DEVICES = ("cpu", "cuda", "mps")
 
 
 def check_device(name: str | torch.device, key: str = "model.device", fix: str | None = None) -> torch.device:
@@ -38,6 +42,8 @@ def check_device(name: str | torch.device, key: str = "model.device", fix: str |
             raise ValueError(f"device {name!r} is not available ({found}); {fix}")
     elif device.type == "mps" and not torch.backends.mps.is_available():
         raise ValueError(f"device {name!r} is not available on this machine; {fix}")
+    elif device.type not in COMPUTE_DEVICES:  # e.g. meta: shapes without values, nothing to compute with
+        raise ValueError(f"device {name!r} cannot run the models (they run on {', '.join(COMPUTE_DEVICES)}); {fix}")
     return device
 
 

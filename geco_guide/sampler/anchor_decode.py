@@ -132,21 +132,26 @@ class ChunkedDecode:
 
 
 class AcrossDevicesDecode:
-    """:class:`ChunkedDecode` with chunk span ``k`` decoded on ``devices[k mod N]`` by that device's
-    replica of ``decode.module`` (:func:`~.multi_device.module_replicas`); only the anchor frames come
-    back. The replicas are copied at the first call: inside the call's models block, so that they
-    carry the memory plan's switches and the decode layout's forwards.
+    """The plan's decode (:class:`BatchedDecode` or :class:`ChunkedDecode`) with chunk span ``k``
+    decoded on ``devices[k mod N]`` by that device's replica of ``decode.module``
+    (:func:`~.multi_device.module_replicas`): a device's spans of one length batched where the plan
+    batches, one call each otherwise; only the anchor frames come back. The frames equal one
+    device's under the same plan (each video of a batch is decoded on its own). The replicas are
+    copied at the first call: inside the call's models block, so that they carry the memory plan's
+    switches and the decode layout's forwards.
 
     Args:
         decode: the :class:`AnchorDecode` whose module is replicated.
         devices: where the spans go, in turn.
         chunks: the anchors' causal latent chunks.
         checkpointed: one checkpointed region per span.
+        batched: a device's spans of one length in one call (the plan batches).
     """
 
     def __init__(self, decode: AnchorDecode, devices: Sequence[torch.device], chunks: Sequence[AnchorChunk],
-                 checkpointed: bool):
-        self.decode, self.devices, self.chunks, self.checkpointed = decode, list(devices), chunks, checkpointed
+                 checkpointed: bool, batched: bool = False):
+        self.decode, self.devices, self.chunks = decode, list(devices), chunks
+        self.checkpointed, self.batched = checkpointed, batched
         self._placed: list[tuple[torch.device, Callable[[Tensor], Tensor]]] | None = None
 
     def __call__(self, latents: Tensor) -> Tensor:
@@ -154,7 +159,8 @@ class AcrossDevicesDecode:
         if self._placed is None:
             replicas = module_replicas(self.decode.module, self.devices)
             self._placed = [(device, self.decode.on(replica)) for device, replica in zip(self.devices, replicas)]
-        return decode_anchor_frames_across(self._placed, latents, self.chunks, checkpoint_chunks=self.checkpointed)
+        return decode_anchor_frames_across(self._placed, latents, self.chunks, checkpoint_chunks=self.checkpointed,
+                                           batch_chunks=self.batched)
 
 
 def plan_anchor_decode(plan: MemoryPlan, decode: AnchorDecode, chunks: Sequence[AnchorChunk],
@@ -164,7 +170,8 @@ def plan_anchor_decode(plan: MemoryPlan, decode: AnchorDecode, chunks: Sequence[
     empty: one device), else batched where the plan batches and checkpoints no chunk, else one
     call per chunk, checkpointed as the plan says."""
     if devices:
-        return AcrossDevicesDecode(decode, devices, chunks, checkpointed=plan.chunk_checkpointing)
+        return AcrossDevicesDecode(decode, devices, chunks, checkpointed=plan.chunk_checkpointing,
+                                   batched=plan.batch_chunks and not plan.chunk_checkpointing)
     if plan.batch_chunks and not plan.chunk_checkpointing:
         return BatchedDecode(decode, chunks)
     return ChunkedDecode(decode, chunks, checkpointed=plan.chunk_checkpointing)

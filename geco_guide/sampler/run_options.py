@@ -61,10 +61,13 @@ class RunOptions:
             warning and an eager decode. See docs/guidance.md (Faster anchor decode).
         devices: where the anchor decode runs: ``None`` (default) on the pipeline's device; a
             list of devices (``["cuda:0", "cuda:1"]``, ``["auto"]`` for every visible GPU) deals
-            the anchor chunks round-robin over them, each with its own replica of the guidance
-            decoder, decoded forward and backward at once; the frames meet on the pipeline's
-            device for the loss. The same frames as one device's chunked decode (bitwise on CPU;
-            to float rounding across kinds of device). See docs/performance.md (Several GPUs).
+            the anchor decode's calls round-robin over them (a chunk per call under the chunked
+            plans; under a plan that batches the chunks, a batch of chunks of one length per
+            call), each with its own replica of the guidance decoder, decoded forward and
+            backward at once; the frames meet on the pipeline's device for the loss. Every call
+            is one device's call under the same plan, so the frames are one device's bit for bit
+            on devices of one kind (to float rounding across kinds of device). See
+            docs/performance.md (Several GPUs).
         split_cfg: run the denoiser's classifier-free-guidance batch of a guided call as two calls,
             unconditional and conditional, on the first two ``devices`` (each with its own replica
             of the denoiser: both halves of faithful mode's backward at once), or one after the

@@ -266,14 +266,18 @@ def decode_anchor_frames_across(
     latents: Tensor,
     chunks: Sequence[AnchorChunk],
     checkpoint_chunks: bool = False,
+    batch_chunks: bool = False,
 ) -> Tensor:
     """:func:`decode_anchor_frames` with the chunks dealt round-robin over several devices.
 
     Chunk span ``k`` (in order) is decoded by ``placed[k mod N]``: its latents go to that device,
     its decode (that device's replica of the decoder) runs there, and only its anchor frames come
     back to ``latents``' device. Each span is one decode call (checkpointed with
-    ``checkpoint_chunks`` when gradients are enabled), as :func:`decode_anchor_frames` makes them
-    without batching: the same numbers on devices of one kind.
+    ``checkpoint_chunks`` when gradients are enabled); with ``batch_chunks`` the calls are those of
+    :func:`decode_anchor_frames` on one device, the spans of one length batched, and the devices
+    take whole batches in turn. Either way every call is the one device's call, so the frames are
+    one device's to the last bit on devices of one kind (a batch of another size can round
+    differently).
 
     Args:
         placed: ``(device, decode)`` pairs, ``decode`` as in :func:`decode_anchor_frames`, with a
@@ -281,30 +285,43 @@ def decode_anchor_frames_across(
         latents: ``[B, F, C, h, w]`` clean-latent estimate (differentiable).
         chunks: from :func:`anchor_latent_chunks`.
         checkpoint_chunks: one checkpointed region per span.
+        batch_chunks: the spans of one length in one call (without ``checkpoint_chunks``), a batch per
+            device in turn.
 
     Returns:
         ``[B, S, 3, H, W]`` fp32 frames in ``[0, 1]`` on ``latents``' device, one per chunk, in order.
     """
     if len(placed) == 0:
         raise ValueError("placed must hold at least one (device, decode) pair")
-    spans, home = chunk_spans(latents, chunks), latents.device
-    picked: dict[tuple[int, int], Tensor] = {}
-    for k, span in enumerate(spans):
-        device, decode = placed[k % len(placed)]
-        from_ends = sorted({chunk.from_end for chunk in chunks if (chunk.start, chunk.stop) == span})
+    spans, home, batch = chunk_spans(latents, chunks), latents.device, latents.shape[0]
+    ends = {span: sorted({chunk.from_end for chunk in chunks if (chunk.start, chunk.stop) == span}) for span in spans}
+    # the calls: (device index, the spans it decodes together)
+    if batch_chunks and not checkpoint_chunks:
+        lengths = sorted({stop - start for start, stop in spans})
+        calls = [(k % len(placed), [span for span in spans if span[1] - span[0] == length])
+                 for k, length in enumerate(lengths)]
+    else:
+        calls = [(k % len(placed), [span]) for k, span in enumerate(spans)]
+    picked: dict[tuple[tuple[int, int], int], Tensor] = {}
+    for d, group in calls:
+        device, decode = placed[d]
 
-        def anchors_of_span(part: Tensor, decode=decode, device=device, from_ends=from_ends) -> Tensor:
-            video = decode(part.to(device, non_blocking=True))
-            if max(from_ends) >= video.shape[1]:
-                raise ValueError(f"decoding a chunk gave {video.shape[1]} frames, expected at least {max(from_ends) + 1}: "
+        def anchors_of(part: Tensor, decode=decode, device=device, group=group) -> Tensor:
+            video = decode(part.to(device, non_blocking=True))  # [len(group) * B, T, 3, H, W]
+            needed = max(end for span in group for end in ends[span])
+            if needed >= video.shape[1]:
+                raise ValueError(f"decoding a chunk gave {video.shape[1]} frames, expected at least {needed + 1}: "
                                  "is the VAE causal with the configured temporal compression?")
-            frames = torch.stack([video[:, video.shape[1] - 1 - end] for end in from_ends], dim=1)
-            return frames.to(home, non_blocking=True)  # only the anchor frames travel
+            last = video.shape[1] - 1
+            frames = torch.cat([video[g * batch:(g + 1) * batch, [last - end for end in ends[span]]]
+                                for g, span in enumerate(group)], dim=1)
+            return frames.to(home, non_blocking=True)  # only the anchor frames travel: [B, anchors, 3, H, W]
 
-        part = latents[:, span[0]:span[1]]
-        frames = (checkpoint(anchors_of_span, part, use_reentrant=False) if checkpoint_chunks and torch.is_grad_enabled()
-                  else anchors_of_span(part))
-        picked.update({(span, end): frames[:, i] for i, end in enumerate(from_ends)})
+        part = torch.cat([latents[:, start:stop] for start, stop in group])
+        frames = (checkpoint(anchors_of, part, use_reentrant=False) if checkpoint_chunks and torch.is_grad_enabled()
+                  else anchors_of(part))
+        columns = iter(range(frames.shape[1]))
+        picked.update({(span, end): frames[:, next(columns)] for span in group for end in ends[span]})
     return torch.stack([picked[((chunk.start, chunk.stop), chunk.from_end)] for chunk in chunks], dim=1).float()
 
 
