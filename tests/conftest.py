@@ -47,6 +47,11 @@ def estimators():
     return tiny_bundle(0)
 
 
+def pytest_collection_modifyitems(config, items):
+    """The slow end-to-end tests run last: a failure of the quick ones shows first."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is not None)
+
+
 @pytest.fixture(autouse=True)
 def command_logs():
     """The package's log lines on stderr, as every command shows them (:func:`log_to_stderr`),

@@ -115,10 +115,10 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
     Example::
 
-        pipe = GeCoCogVideoXPipeline.from_pretrained("THUDM/CogVideoX-5b", torch_dtype=torch.bfloat16)
+        pipe = GeCoCogVideoXPipeline.from_pretrained(MODELS["cogvideox-5b"].hub_id, torch_dtype=torch.bfloat16)
         pipe.scheduler = CogVideoXDDIMScheduler.from_config(pipe.scheduler.config)  # the paper's sampler
         estimators = Estimators(VGGT.from_pretrained("facebook/VGGT-1B"), UFM.from_pretrained(...))
-        out = pipe("a marble bust on a turntable", estimators=estimators,
+        out = pipe("a marble bust on a turntable", estimators=estimators,  # MODELS: geco_guide.families
                    generator=torch.Generator().manual_seed(0))
         out.frames, out.report.log
     """

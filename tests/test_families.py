@@ -1,0 +1,128 @@
+"""The model registry: one table of family facts, and every registry model generated through the one
+generation path from a folder as a user downloads it.
+
+Each model runs ``geco generate --model NAME`` with its preset as shipped (``model.device: auto``,
+``run.memory_plan: auto``, bfloat16, the schedule of its preset) except that ``model.id`` names a
+``save_pretrained`` folder of its family's tiny random stand-in (the real diffusers classes), the
+estimators are the tiny random ones, and the video is the tiny one (17 frames, a few pixels, two
+steps: a full-size video of these models takes minutes per step on a CPU).
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import pytest
+
+from geco_guide import tiny
+from geco_guide.cli import generate
+from geco_guide.config import load_config, model_preset
+from geco_guide.families import MODELS, SCORED_ONLY, default_anchors, frames_problem, model_named, video_models
+
+PACKAGE = Path(__file__).resolve().parents[1] / "geco_guide"
+GENERATING = video_models()
+PROMPT = "a stone bridge over a river, slow orbit"
+
+
+def test_the_registry_is_the_one_table_of_family_facts():
+    # a hub id written anywhere else in the package would be a second table
+    registry = PACKAGE / "families" / "__init__.py"
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path == registry:
+            continue
+        text = path.read_text()
+        found = [model.hub_id for model in MODELS.values() if model.hub_id and model.hub_id in text]
+        assert not found, f"{path.relative_to(PACKAGE)} names {found}: read the registry instead"
+    assert set(SCORED_ONLY) == {"sora-2", "veo-3.1"} and not set(SCORED_ONLY) & set(GENERATING)
+
+
+@pytest.mark.parametrize("name", GENERATING)
+def test_every_model_has_a_preset_its_facts_and_a_tiny_stand_in(name):
+    model = model_named(name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the preset's schedule is written for the model's step count
+        cfg = load_config(model_preset=model_preset(name), changes={"model.name": name})
+    call = model.call
+    assert cfg.model.name == name and cfg.model.source == model.hub_id
+    assert (cfg.sampling.num_frames, cfg.sampling.height, cfg.sampling.width, cfg.sampling.num_inference_steps,
+            cfg.sampling.guidance_scale, cfg.sampling.fps) == (
+        call["num_frames"], call["height"], call["width"], call["num_inference_steps"], call["guidance_scale"],
+        model.fps)
+    assert cfg.sampling.guidance_scale_2 == call.get("guidance_scale_2")
+    assert frames_problem(call["num_frames"], model.frame_multiple) is None
+    assert call["height"] % model.size_multiple == 0 and call["width"] % model.size_multiple == 0
+    # the paper's four anchors, spread over the model's video as over CogVideoX's 49 frames
+    assert cfg.guidance.anchors == model.anchors == default_anchors(call["num_frames"], model.temporal_compression)
+    assert len(model.anchors) == 4 and model.anchors[-1] == call["num_frames"] - 1
+    stand_in = getattr(tiny, model.tiny)(0)
+    assert type(stand_in).__name__ == model.pipeline
+    temporal = getattr(stand_in, "vae_scale_factor_temporal", None) or stand_in.vae_temporal_compression_ratio
+    assert temporal == model.temporal_compression
+
+
+def test_the_paper_anchors_are_the_quarter_points():
+    assert default_anchors(49, 4) == [12, 24, 36, 48]
+    assert default_anchors(81, 4) == [20, 40, 60, 80] and default_anchors(161, 8) == [40, 80, 120, 160]
+    with pytest.raises(ValueError, match="4k\\+1 frames"):
+        default_anchors(50, 4)
+
+
+def test_an_unknown_or_scored_only_model_is_one_line(capsys):
+    for name, expected in (("wan-9", "unknown model 'wan-9'; one of cogvideox-2b"), ("sora-2", "has no open weights")):
+        assert generate.main(["--model", name, "--prompt", PROMPT]) == 2
+        err = capsys.readouterr().err.strip()
+        assert expected in err and "\n" not in err
+
+
+@pytest.fixture(scope="module")
+def folders(tmp_path_factory) -> dict[str, Path]:
+    """Every registry model's tiny stand-in, written with ``save_pretrained`` as a user's download."""
+    root = tmp_path_factory.mktemp("weights")
+    written = {}
+    for name in GENERATING:
+        model = model_named(name)
+        written[name] = root / name
+        getattr(tiny, model.tiny)(0).save_pretrained(written[name])
+    tiny.tiny_image(0, 64, 64).save(root / "image.png")
+    written["image"] = root / "image.png"
+    return written
+
+
+def small_video(name: str) -> list[str]:
+    """The tiny video of a model's stand-in (the paper presets' 49 frames: their anchors are fixed)."""
+    model = model_named(name)
+    sizes = tiny.tiny_sampling(model)
+    if name == "cogvideox-5b":
+        sizes["num_frames"] = 49
+    return [*(f"sampling.{key}={value}" for key, value in sizes.items()), "sampling.num_inference_steps=2",
+            "estimators.geometry=tiny-random", "estimators.flow=tiny-random"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("guided", [True, False], ids=["guided", "unguided"])
+@pytest.mark.parametrize("name", GENERATING)
+def test_geco_generate_model_runs_every_model_from_a_folder_as_shipped(name, guided, folders, tmp_path, capsys):
+    model = model_named(name)
+    out = tmp_path / "video.mp4"
+    argv = ["--model", name, "--prompt", PROMPT, "--out", str(out), f"model.id={folders[name]}", *small_video(name)]
+    if model.image_to_video:
+        argv += ["--image", str(folders["image"])]
+    if not guided:
+        argv.append("--no-guidance")
+    rc = generate.main(argv)
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    config = sidecar["config"]
+    assert sidecar["model"] == name and config["model"]["dtype"] == "bfloat16"
+    assert config["model"]["device"] == sidecar["device"] and config["run"]["memory_plan"] == "auto"
+    assert sidecar["num_frames"] == config["sampling"]["num_frames"] and "loading models" in captured.err
+    if guided:
+        shipped = load_config(model_preset=model_preset(name), changes={"model.name": name})
+        assert config["guidance"]["repeats"] == shipped.guidance.repeats  # the preset's, scaled to 2 steps
+        assert sidecar["guidance_log"] and sidecar["memory_plan"]["reason"].startswith("auto")
+        assert sidecar["geco_scores"]["anchors"] == config["guidance"]["anchors"]
+    else:
+        assert sidecar["guidance_log"] == [] and sidecar["memory_plan"] is None
