@@ -1,0 +1,56 @@
+"""``movers="drop"`` (the default) leaves every number of GeCoLoss and evaluate_video as it was
+before movers could be scored: the numbers of ``tests/fixtures/drop_reference.pt`` were computed
+by the code before ``movers`` existed, on the same inputs (a moving scene with a deformation;
+no, true and automatic masks; the oracle and the tiny estimators, the gradient included).
+
+A CPU of another vector width sums in another order, so the comparison allows a few units in the
+last place of each tensor's largest value, far below any change of the metric; on the machine
+that wrote the fixture the numbers are equal bit for bit.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from drop_reference import FIXTURE, evaluation_numbers, loss_numbers
+
+#: Units in the last place allowed, relative to a tensor's largest magnitude.
+ULPS = 8
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return torch.load(FIXTURE, weights_only=False)
+
+
+def _assert_same(actual, expected, where: str) -> None:
+    if isinstance(expected, dict):
+        assert set(actual) == set(expected), where
+        for key in expected:
+            _assert_same(actual[key], expected[key], f"{where}.{key}")
+    elif isinstance(expected, (list, tuple)):
+        assert len(actual) == len(expected), where
+        for k, (a, e) in enumerate(zip(actual, expected)):
+            _assert_same(a, e, f"{where}[{k}]")
+    elif isinstance(expected, torch.Tensor):
+        assert actual.shape == expected.shape and actual.dtype == expected.dtype, where
+        if not expected.is_floating_point():
+            assert torch.equal(actual, expected), where
+            return
+        assert torch.equal(torch.isnan(actual), torch.isnan(expected)), where
+        scale = expected.nan_to_num(0.0).abs().max().clamp_min(torch.finfo(expected.dtype).tiny)
+        error = (actual - expected).nan_to_num(0.0).abs().max()
+        assert error <= ULPS * torch.finfo(expected.dtype).eps * scale, f"{where}: off by {float(error):.3g}"
+    elif isinstance(expected, float):
+        # the report's floats come from float32 tensors
+        assert actual == pytest.approx(expected, rel=ULPS * torch.finfo(torch.float32).eps, nan_ok=True), where
+    else:
+        assert actual == expected, where
+
+
+def test_geco_loss_keeps_every_number_and_gradient(reference, estimators):
+    _assert_same(loss_numbers(estimators), reference["loss"], "loss")
+
+
+def test_evaluate_video_keeps_every_number_and_map(reference):
+    _assert_same(evaluation_numbers(), reference["evaluation"], "evaluation")
