@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["MIN_DEPTH", "SCORED_MATCHES", "check_tensor", "crop_intrinsics", "inside_image", "invert_rigid",
+__all__ = ["MIN_DEPTH", "MIN_INLIERS", "RANSAC_ITERATIONS", "RIGID_TOLERANCE", "SCORED_MATCHES", "check_tensor", "crop_intrinsics", "inside_image", "invert_rigid",
            "kabsch", "kabsch_from_moments", "local_depth_ratio", "pixel_grid", "pose_encoding_to_cameras", "project",
            "quaternion_to_matrix", "ransac_rigid", "relative_pose", "resize_flow", "resize_intrinsics", "rigid_flow",
            "sample_at_projection", "sample_bilinear", "transform_points", "unproject"]
@@ -361,6 +361,13 @@ def kabsch(source: Tensor, target: Tensor, weights: Tensor | None = None) -> tup
 
 #: Matches a RANSAC hypothesis is ranked on, at most.
 SCORED_MATCHES = 4096
+
+#: The rigid-fit thresholds the automatic masks and the movers' scoring share by default: a match
+#: fits a motion when its 3-D error is at most RIGID_TOLERANCE of its own 3-D displacement, and a
+#: motion holds when it fits MIN_INLIERS of the matches; RANSAC_ITERATIONS hypotheses.
+RIGID_TOLERANCE = 0.25
+MIN_INLIERS = 0.8
+RANSAC_ITERATIONS = 64
 
 
 def ransac_rigid(source: Tensor, target: Tensor, limit: Tensor, iterations: int,

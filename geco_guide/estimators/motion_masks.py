@@ -34,6 +34,9 @@ from torch import Tensor
 
 from ..geometry import (
     MIN_DEPTH,
+    MIN_INLIERS,
+    RANSAC_ITERATIONS,
+    RIGID_TOLERANCE,
     inside_image,
     invert_rigid,
     pixel_grid,
@@ -100,9 +103,9 @@ class MotionMasks:
 
     source_name = "auto"
 
-    def __init__(self, *, min_residual_px: float = 1.0, min_region_px: int = 16, rigid_tolerance: float = 0.25,
-                 min_inliers: float = 0.8, dilation: int = 0, covisibility_threshold: float = 0.5,
-                 iterations: int = 64, seed: int = 0) -> None:
+    def __init__(self, *, min_residual_px: float = 1.0, min_region_px: int = 16, rigid_tolerance: float = RIGID_TOLERANCE,
+                 min_inliers: float = MIN_INLIERS, dilation: int = 0, covisibility_threshold: float = 0.5,
+                 iterations: int = RANSAC_ITERATIONS, seed: int = 0) -> None:
         checks = {
             "min_residual_px": (min_residual_px, min_residual_px > 0, "> 0"),
             "min_region_px": (min_region_px, min_region_px >= 3, ">= 3"),
