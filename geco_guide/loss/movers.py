@@ -118,6 +118,9 @@ class MoverFit:
         return tuple(self.labels.shape) == tuple(masks.shape) and list(pairs) == self.pairs
 
     def to(self, device: torch.device | str) -> MoverFit:
+        """This fit with its maps on ``device`` (itself when they are there)."""
+        if self.labels.device == torch.device(device):
+            return self
         return MoverFit(self.labels.to(device), self.assignment.to(device), self.weights.to(device), self.rigid,
                         self.inlier_fraction, self.pairs, self.entries)
 
