@@ -21,7 +21,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..geometry import check_tensor, homogeneous_pose, invert_rigid, relative_pose, resize_flow, rigid_flow
+from ..geometry import (
+    check_tensor,
+    crop_intrinsics,
+    homogeneous_pose,
+    invert_rigid,
+    relative_pose,
+    resize_flow,
+    rigid_flow,
+)
 from ..io.masks import MaskReadError, check_masks, fit_masks, read_masks
 from ..types import (
     Correspondences,
@@ -37,7 +45,7 @@ from ..types import (
     one_of_names,
 )
 from .cues import fuse_cues, lands_on_mask, masked_mean, motion_residual, structure_residual
-from .movers import MOVER_MODES, MoverFit, MoverScores, RefreshedMovers, fit_movers, mover_scores, solve_motions
+from .movers import MOVER_MODES, MoverFit, MoverScores, RefreshedMovers, mover_scores, solve_motions
 from .pair_modes import PAIR_MODES
 
 __all__ = ["CUES", "MIN_UNMASKED_FRACTION", "MOVER_MODES", "PAIR_MODES", "GeCoLoss", "GeCoLossConfig", "GeCoMaps",
@@ -350,11 +358,11 @@ def geco_from_geometry(
         motion_valid = motion_valid & ~masked_source & ~lands_on_mask(masked_target, _without_non_finite(flow))
         structure_valid = structure_valid & ~masked_source & ~lands_on_mask(masked_target, rigid)
     if fit is not None and fit.entries:
-        mover_valid = covisible & flow_finite & pair_usable
+        motion_ok, structure_ok = covisible & flow_finite & pair_usable, pair_usable.expand_as(covisible)
         if geometry.confidence is not None and config.confidence_percentile is not None:
-            mover_valid = mover_valid & trusted
+            motion_ok, structure_ok = motion_ok & trusted, structure_ok & trusted
         motion, motion_valid, structure, structure_valid = _with_mover_cues(
-            fit, (motion, motion_valid, structure, structure_valid), mover_valid, config,
+            fit, (motion, motion_valid, structure, structure_valid), (motion_ok, structure_ok), config,
             depth_src, depth_tgt, K_src, K_tgt, gather(extrinsics, src), gather(extrinsics, tgt),
             _without_non_finite(flow), covisible, gather(fit.labels, tgt))
     fused, fused_valid = fuse_cues(motion, motion_valid, structure, structure_valid)
@@ -409,45 +417,46 @@ def check_movers(config: GeCoLossConfig, has_masks: bool, movers: Any = None) ->
         raise ValueError(f"movers must be a MoverFit or a RefreshedMovers, got {type(movers).__name__}")
 
 
-def _with_mover_cues(fit: MoverFit, cues: tuple[Tensor, Tensor, Tensor, Tensor], mover_valid: Tensor,
+def _with_mover_cues(fit: MoverFit, cues: tuple[Tensor, Tensor, Tensor, Tensor], usable: tuple[Tensor, Tensor],
                      config: GeCoLossConfig, depth_src: Tensor, depth_tgt: Tensor, K_src: Tensor, K_tgt: Tensor,
                      extr_src: Tensor, extr_tgt: Tensor, flow: Tensor, covisible: Tensor,
                      target_labels: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The pair maps ``(motion, motion_valid, structure, structure_valid)`` ``[B*P, H, W]`` with
-    each rigid mover's pixels scored against its own motion (:mod:`geco_guide.loss.movers`).
+    each rigid mover's pixels scored against its own motion (:mod:`geco_guide.loss.movers`),
+    computed in the mover's box of each pair alone.
 
-    ``mover_valid``: where any cue may count (co-visible, finite flow, usable pair, trusted
-    depth); ``target_labels`` ``[B*P, H, W]``: the target frame's mover labels.
+    ``usable``: ``[B*P, H, W]`` where the motion cue may count (co-visible, finite flow, usable
+    pair, trusted depth) and where the structure cue may (usable pair, trusted depth), as for the
+    static part; ``target_labels`` ``[B*P, H, W]``: the target frame's mover labels.
     """
-    motion, motion_valid, structure, structure_valid = cues
+    motion_ok, structure_ok = usable
+    motion, motion_valid, structure, structure_valid = (x.clone() for x in cues)
     world = solve_motions(fit, depth_src, depth_tgt, K_src, K_tgt, extr_src, extr_tgt, flow).to(depth_src.dtype)
-    index = torch.tensor([b * len(fit.pairs) + p for b, p, _ in fit.entries], device=depth_src.device)
-    mover = torch.tensor([k for _, _, k in fit.entries], device=depth_src.device)[:, None, None]
-    # source camera -> world -> moved with the mover -> target camera; the cameras keep their gradient
-    pose = homogeneous_pose(extr_tgt[index]) @ world @ invert_rigid(extr_src[index])
-    rigid, rigid_valid = rigid_flow(depth_src[index], K_src[index], K_tgt[index], pose)
-    own_motion = motion_residual(flow[index], rigid, K_src[index])
-    own_structure, own_structure_valid = structure_residual(
-        depth_src[index], depth_tgt[index], K_src[index], K_tgt[index], pose, tau=config.occlusion_tau,
-        edge_tau=config.depth_edge_tau, keep_occluded=covisible[index] if config.structure_occlusion == "covisibility" else None,
-    )
-    scored = fit.assignment.flatten(0, 1)[index] == mover
-    own_motion_valid = scored & rigid_valid & mover_valid[index]
-    # the reprojection must land wholly on the same mover: a blend with what lies around it is no depth of it
-    off_mover = target_labels[index] != mover
-    own_structure_valid = scored & own_structure_valid & mover_valid[index] & ~lands_on_mask(off_mover, rigid)
-
-    def placed(values: Tensor) -> Tensor:
-        """``values [E, H, W]`` where their mover scores, summed into ``[B*P, H, W]`` (one entry per pixel)."""
-        if values.dtype == torch.bool:
-            counts = torch.zeros(motion.shape, dtype=torch.int32, device=motion.device)
-            return counts.index_add(0, index, (values & scored).int()) > 0
-        return torch.zeros_like(motion).index_add(0, index, torch.where(scored, values, torch.zeros_like(values)))
-
-    on_mover = placed(scored)
-    return (torch.where(on_mover, placed(own_motion.to(motion.dtype)), motion), motion_valid | placed(own_motion_valid),
-            torch.where(on_mover, placed(own_structure.to(structure.dtype)), structure),
-            structure_valid | placed(own_structure_valid))
+    num_pairs = len(fit.pairs)
+    height, width = depth_src.shape[-2:]
+    assignment = fit.assignment.flatten(0, 1)
+    for e, ((b, p, k), (top, bottom, left, right)) in enumerate(zip(fit.entries, fit.boxes)):
+        n = b * num_pairs + p
+        box = (n, slice(top, bottom), slice(left, right))
+        K_box = crop_intrinsics(K_src[n:n + 1], top, left)
+        # source camera -> world -> moved with the mover -> target camera; the cameras keep their gradient
+        pose = homogeneous_pose(extr_tgt[n:n + 1]) @ world[e:e + 1] @ invert_rigid(extr_src[n:n + 1])
+        depth_box = depth_src[box][None]
+        landing, rigid_valid = rigid_flow(depth_box, K_box, K_tgt[n:n + 1], pose, tgt_hw=(height, width))
+        offset = landing.new_tensor([float(left), float(top)])[None, :, None, None]
+        own_motion = motion_residual(flow[n, :, top:bottom, left:right][None], landing - offset, K_box)
+        own_structure, own_structure_valid = structure_residual(
+            depth_box, depth_tgt[n:n + 1], K_box, K_tgt[n:n + 1], pose, tau=config.occlusion_tau,
+            edge_tau=config.depth_edge_tau, keep_occluded=covisible[box][None] if config.structure_occlusion == "covisibility" else None,
+        )
+        scored = assignment[box] == k
+        # the reprojection must land wholly on the same mover: a blend with what lies around it is no depth of it
+        off_mover = (target_labels[n] != k)[None]
+        motion[box] = torch.where(scored, own_motion[0].to(motion.dtype), motion[box])
+        structure[box] = torch.where(scored, own_structure[0].to(structure.dtype), structure[box])
+        motion_valid[box] |= scored & rigid_valid[0] & motion_ok[box]
+        structure_valid[box] |= scored & own_structure_valid[0] & structure_ok[box] & ~lands_on_mask(off_mover, landing)[0]
+    return motion, motion_valid, structure, structure_valid
 
 
 def _given_masks(masks: Any, batch: int, num_frames: int, size: tuple[int, int]) -> tuple[Tensor, str]:

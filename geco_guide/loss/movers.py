@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -54,18 +54,13 @@ from ..geometry import (
     pixel_grid,
     project,
     ransac_rigid,
-    relative_pose,
-    rigid_flow,
-    sample_bilinear,
-    transform_points,
-    unproject,
 )
 from ..io.masks import connected_regions
 from ..types import Correspondences, SceneGeometry
-from .cues import lands_on_mask
+from .cues import MASK_TOUCH_WEIGHT
 
 __all__ = ["FLOOR_PX", "MIN_MATCHES", "MOVER_MODES", "MoverFit", "MoverScores", "RefreshedMovers", "fit_movers",
-           "link_movers", "mover_scores", "pair_matches", "solve_motions"]
+           "link_movers", "mover_scores", "point_matches", "solve_motions"]
 
 MOVER_MODES = ("drop", "rigid")
 
@@ -92,22 +87,27 @@ class MoverFit:
         assignment: ``[B, P, H, W]`` int64, per pair the motion that scores each source pixel: 0 the
             camera's (unmasked pixels, and masked ones the camera explains better), ``k`` mover
             ``k``'s, -1 none (left out: a non-rigid mover, or a pair its fit failed in).
-        weights: ``[B, P, H, W]`` int64, per pair the mover whose motion each match helps solve (its
-            fit's best inliers), 0 none.
         rigid: ``[B, K]`` bool, the verdict.
         inlier_fraction: ``[B, K]`` float64, the share of the mover's matches its fits explain over
             all its pairs (NaN: no pair held enough matches for a fit).
         pairs: the ``(source, target)`` pairs.
         entries: the ``(clip, pair, mover)`` triples a rigid motion scores.
+        boxes: per entry, ``(top, bottom, left, right)`` of the source pixels it scores (the cues
+            of a mover are computed in its box alone).
+        solve_pixels: ``[M]`` int64, flat indices into ``[B*P, H, W]``: the matches the entries'
+            motions are solved on (each fit's best inliers).
+        solve_entry: ``[M]`` int64, the entry each of them belongs to.
     """
 
     labels: Tensor
     assignment: Tensor
-    weights: Tensor
     rigid: Tensor
     inlier_fraction: Tensor
     pairs: list[tuple[int, int]]
     entries: list[tuple[int, int, int]]
+    boxes: list[tuple[int, int, int, int]]
+    solve_pixels: Tensor
+    solve_entry: Tensor
 
     @property
     def num_movers(self) -> int:
@@ -121,8 +121,8 @@ class MoverFit:
         """This fit with its maps on ``device`` (itself when they are there)."""
         if self.labels.device == torch.device(device):
             return self
-        return MoverFit(self.labels.to(device), self.assignment.to(device), self.weights.to(device), self.rigid,
-                        self.inlier_fraction, self.pairs, self.entries)
+        return replace(self, labels=self.labels.to(device), assignment=self.assignment.to(device),
+                       solve_pixels=self.solve_pixels.to(device), solve_entry=self.solve_entry.to(device))
 
 
 def link_movers(masks: Tensor, flow: Tensor, pairs: Sequence[tuple[int, int]]) -> Tensor:
@@ -138,9 +138,13 @@ def link_movers(masks: Tensor, flow: Tensor, pairs: Sequence[tuple[int, int]]) -
     regions = torch.zeros(num_frames, height, width, dtype=torch.int64)
     count = 0
     for s in range(num_frames):
-        raw = connected_regions(masks[s])
-        ids, compact = raw[masks[s]].unique(return_inverse=True)
-        regions[s][masks[s]] = compact + 1 + count
+        if not bool(masks[s].any()):
+            continue
+        rows, cols = masks[s].any(1).nonzero()[:, 0], masks[s].any(0).nonzero()[:, 0]
+        box = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))  # the labelling's cost follows it
+        raw = connected_regions(masks[s][box])
+        ids, compact = raw[masks[s][box]].unique(return_inverse=True)
+        regions[s][box][masks[s][box]] = compact + 1 + count
         count += len(ids)
     parent = list(range(count + 1))
 
@@ -176,35 +180,71 @@ def link_movers(masks: Tensor, flow: Tensor, pairs: Sequence[tuple[int, int]]) -
     return lookup[regions]
 
 
-def pair_matches(depth_src: Tensor, depth_tgt: Tensor, K_src: Tensor, K_tgt: Tensor, extr_src: Tensor, extr_tgt: Tensor,
-                 flow: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """3-D matches of pairs in world coordinates: ``(X_src, X_tgt [N, H, W, 3], valid [N, H, W])``.
+def point_matches(depth_src: Tensor, depth_tgt: Tensor, K_src: Tensor, K_tgt: Tensor, extr_src: Tensor, extr_tgt: Tensor,
+                  flow: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """3-D matches of some source pixels of pairs, in world coordinates.
 
     Args:
         depth_src, depth_tgt: ``[N, H, W]``; K_src, K_tgt: ``[N, 3, 3]``; extr_src, extr_tgt:
-            ``[N, 3, 4]`` camera-from-world; flow: ``[N, 2, H, W]``.
+            ``[N, 3, 4]`` camera-from-world; flow: ``[N, 2, H, W]``: ``N`` pairs.
+        pixels: ``[M]`` flat indices into ``[N, H, W]``: the source pixels.
 
-    ``X_src`` is each source pixel's point; ``X_tgt`` the target point at the pixel its flow lands
-    on, the target's inverse depth sampled bilinearly there (exact on a plane). Valid: both depths
-    positive and the landing inside the image.
+    Returns:
+        ``(X_src [M, 3], X_tgt [M, 3], valid [M])``: each pixel's world point, and the world point
+        at the target pixel its flow lands on, the target's inverse depth sampled bilinearly there
+        (exact on a plane); valid where both depths are positive and the landing is in the image.
     """
     height, width = depth_src.shape[-2:]
-    landing = pixel_grid(height, width, device=depth_src.device, dtype=depth_src.dtype) + flow.permute(0, 2, 3, 1)
+    pair, rest = pixels // (height * width), pixels % (height * width)
+    row, col = (rest // width).to(depth_src.dtype), (rest % width).to(depth_src.dtype)
+    depth = depth_src.flatten()[pixels]
+    u = col + flow[:, 0].flatten()[pixels]
+    v = row + flow[:, 1].flatten()[pixels]
     inverse = torch.where(depth_tgt > MIN_DEPTH, 1.0 / depth_tgt.clamp_min(MIN_DEPTH), torch.zeros_like(depth_tgt))
-    inverse_at = sample_bilinear(inverse[:, None], landing)[:, 0]
-    valid = (depth_src > MIN_DEPTH) & (inverse_at > 0) & inside_image(landing, height, width)
+    inverse_at = _bilinear_at(inverse, pair, u, v)
+    valid = (depth > MIN_DEPTH) & (inverse_at > 0) & inside_image(torch.stack((u, v), -1), height, width)
     depth_at = torch.where(valid, 1.0 / inverse_at.clamp_min(1e-30), torch.ones_like(inverse_at))
-    rays = torch.cat((landing, torch.ones_like(landing[..., :1])), dim=-1)
-    camera_tgt = torch.einsum("nij,nhwj->nhwi", torch.linalg.inv(K_tgt), rays) * depth_at[..., None]
-    x_src = transform_points(unproject(depth_src, K_src), invert_rigid(extr_src))
-    x_tgt = transform_points(camera_tgt, invert_rigid(extr_tgt))
+    x_src = _to_world(torch.stack((col, row), -1), depth, torch.linalg.inv(K_src)[pair], invert_rigid(extr_src)[pair])
+    x_tgt = _to_world(torch.stack((u, v), -1), depth_at, torch.linalg.inv(K_tgt)[pair], invert_rigid(extr_tgt)[pair])
     return x_src, x_tgt, valid
 
 
+def _bilinear_at(maps: Tensor, index: Tensor, u: Tensor, v: Tensor) -> Tensor:
+    """``maps [N, H, W]`` sampled bilinearly at ``(u, v) [M]`` of map ``index [M]`` (clamped to the
+    image; callers test the image bounds themselves)."""
+    height, width = maps.shape[-2:]
+    u = u.nan_to_num(0.0).clamp(0, width - 1)
+    v = v.nan_to_num(0.0).clamp(0, height - 1)
+    u0, v0 = u.floor().long().clamp(max=width - 2 if width > 1 else 0), v.floor().long().clamp(max=height - 2 if height > 1 else 0)
+    fu, fv = u - u0, v - v0
+    flat = maps.flatten()
+    base = index * height * width
+
+    def tap(dv: int, du: int) -> Tensor:
+        return flat[base + (v0 + dv).clamp(max=height - 1) * width + (u0 + du).clamp(max=width - 1)]
+
+    return (tap(0, 0) * (1 - fu) * (1 - fv) + tap(0, 1) * fu * (1 - fv) + tap(1, 0) * (1 - fu) * fv + tap(1, 1) * fu * fv)
+
+
+def _to_world(uv: Tensor, depth: Tensor, K_inverse: Tensor, to_world: Tensor) -> Tensor:
+    """World points ``[M, 3]`` of pixel positions ``uv [M, 2]`` at z-depth ``depth [M]`` seen by
+    cameras of inverse intrinsics ``K_inverse [M, 3, 3]`` and world-from-camera ``to_world [M, 4, 4]``."""
+    rays = torch.cat((uv, torch.ones_like(uv[:, :1])), dim=-1)
+    camera = (K_inverse @ rays[:, :, None])[:, :, 0] * depth[:, None]
+    return (to_world[:, :3, :3] @ camera[:, :, None])[:, :, 0] + to_world[:, :3, 3]
+
+
+def _to_pixels(points: Tensor, K: Tensor, extrinsics: Tensor) -> Tensor:
+    """Pixel positions ``[M, 2]`` of world ``points [M, 3]`` in cameras ``K [M, 3, 3]``,
+    ``extrinsics [M, 3, 4]``."""
+    camera = (extrinsics[:, :3, :3] @ points[:, :, None])[:, :, 0] + extrinsics[:, :3, 3]
+    uv, _ = project(camera[:, None], K)
+    return uv[:, 0]
+
+
 def _floor(depth: Tensor, K: Tensor) -> Tensor:
-    """``[N, H, W]`` the 3-D length of :data:`FLOOR_PX` pixels at each pixel's depth."""
-    focal = 0.5 * (K[:, 0, 0] + K[:, 1, 1])
-    return FLOOR_PX * depth / focal[:, None, None]
+    """``[M]`` the 3-D length of :data:`FLOOR_PX` pixels at depths ``depth [M]`` for ``K [M, 3, 3]``."""
+    return FLOOR_PX * depth / (0.5 * (K[:, 0, 0] + K[:, 1, 1]))
 
 
 def fit_movers(masks: Tensor, geometry: SceneGeometry, correspondences: Correspondences, pairs: Sequence[tuple[int, int]],
@@ -225,76 +265,92 @@ def fit_movers(masks: Tensor, geometry: SceneGeometry, correspondences: Correspo
         :class:`MoverFit` (on the masks' device), computed without gradient.
     """
     pairs = list(pairs)
-    batch, num_frames, height, width = masks.shape
+    batch, _, height, width = masks.shape
     num_pairs = len(pairs)
     generator = torch.Generator().manual_seed(seed)
-    grid = pixel_grid(height, width, dtype=torch.float64)
     src = [i for i, _ in pairs]
     tgt = [j for _, j in pairs]
-    labels, assignments, weights, verdicts, fractions, entries = [], [], [], [], [], []
+    labels, assignments, verdicts, fractions = [], [], [], []
+    entries: list[tuple[int, int, int]] = []
+    boxes: list[tuple[int, int, int, int]] = []
+    solve_pixels, solve_entry = [], []
     with torch.no_grad():
         for b in range(batch):
             part = slice(b * num_pairs, (b + 1) * num_pairs)
             flow = correspondences.flow[part].detach().double().cpu()
             flow = torch.where(torch.isfinite(flow), flow, torch.zeros_like(flow))
             covisible = correspondences.covisibility[part].detach().cpu() > covisibility_threshold
-            clip_labels = link_movers(masks[b], flow, pairs)
+            clip_masks = masks[b].cpu()
+            clip_labels = link_movers(clip_masks, flow, pairs)
+            num_movers = int(clip_labels.max())
             depth = geometry.depth[b].detach().double().cpu()
             K = geometry.intrinsics[b].detach().double().cpu()
             extr = geometry.extrinsics[b].detach().double().cpu()
-            x_src, x_tgt, valid = pair_matches(depth[src], depth[tgt], K[src], K[tgt], extr[src], extr[tgt], flow)
-            on_mask = ~lands_on_mask(~masks[b].cpu()[tgt], flow)
-            valid = valid & covisible & on_mask
-            displacement = (x_tgt - x_src).norm(dim=-1)
-            camera_flow = rigid_flow(depth[src], K[src], K[tgt], relative_pose(extr[src], extr[tgt]))[0].permute(0, 2, 3, 1)
-            flow_px = flow.permute(0, 2, 3, 1)
-            limit = torch.maximum(rigid_tolerance * displacement, _floor(depth[src], K[src]))
-            num_movers = int(clip_labels.max())
             source_labels = clip_labels[src]  # [P, H, W]
-            assignment = torch.where(masks[b].cpu()[src], -1, 0).long()
-            weight = torch.zeros(num_pairs, height, width, dtype=torch.int64)
+            pixels = (source_labels > 0).flatten().nonzero()[:, 0]  # the masked source pixels of every pair
+            assignment = torch.where(clip_masks[src], -1, 0).long()
+            if len(pixels) == 0:  # no mover is any pair's source
+                labels.append(clip_labels)
+                assignments.append(assignment)
+                verdicts.append(torch.zeros(num_movers, dtype=torch.bool))
+                fractions.append(torch.full((num_movers,), math.nan, dtype=torch.float64))
+                continue
+            pair = pixels // (height * width)
+            x_src, x_tgt, valid = point_matches(depth[src], depth[tgt], K[src], K[tgt], extr[src], extr[tgt], flow, pixels)
+            flow_px = torch.stack((flow[:, 0].flatten()[pixels], flow[:, 1].flatten()[pixels]), -1)
+            rest = pixels % (height * width)
+            grid = torch.stack((rest % width, rest // width), -1).double()
+            landing = grid + flow_px
+            # landing wholly on a mask (no tap off it, as lands_on_mask tests): no blend with the background
+            on_mask = _bilinear_at(clip_masks[tgt].double(), pair, landing[:, 0], landing[:, 1]) >= 1.0 - MASK_TOUCH_WEIGHT
+            valid &= covisible.flatten()[pixels] & on_mask
+            displacement = (x_tgt - x_src).norm(dim=-1)
+            limit = torch.maximum(rigid_tolerance * displacement, _floor(depth[src].flatten()[pixels], K[src][pair]))
+            camera_flow = _to_pixels(x_src, K[tgt][pair], extr[tgt][pair]) - grid
+            mover_of = source_labels.flatten()[pixels]
             explained = torch.zeros(num_movers + 1, dtype=torch.float64)
             matched = torch.zeros(num_movers + 1, dtype=torch.float64)
             passed = []
             for p in range(num_pairs):
                 for k in range(1, num_movers + 1):
-                    mine = source_labels[p] == k
-                    usable = valid[p] & mine
+                    mine = (pair == p) & (mover_of == k)
+                    usable = valid & mine
                     count = int(usable.sum())
                     if count < MIN_MATCHES:
                         continue
                     rotation, translation, inliers, sampled = ransac_rigid(
-                        x_src[p][usable], x_tgt[p][usable], limit[p][usable], iterations, generator)
+                        x_src[usable], x_tgt[usable], limit[usable], iterations, generator)
                     explained[k] += float(inliers.sum())
                     matched[k] += count
                     if sampled < min_inliers or float(inliers.float().mean()) < min_inliers:
                         continue
-                    moved = x_src[p] @ rotation.T + translation
-                    error = (moved - x_tgt[p])[usable].norm(dim=-1)
-                    tight = inliers & (error <= TIGHT_MEDIANS * error[inliers].median())
-                    scattered = torch.zeros_like(usable)
-                    scattered[usable] = tight
-                    weight[p][scattered] = k
+                    moved = x_src[mine] @ rotation.T + translation
+                    error = (moved - x_tgt[mine]).norm(dim=-1)[usable[mine]]
+                    best = torch.zeros_like(usable)
+                    best[usable] = inliers & (error <= TIGHT_MEDIANS * error[inliers].median())
                     # a masked pixel whose flow the camera explains better is background caught by the mask
-                    uv, _ = project(transform_points(moved[None], extr[tgt[p]][None]), K[tgt[p]][None])
-                    own_flow = uv[0] - grid
-                    camera = covisible[p] & ((flow_px[p] - camera_flow[p]).norm(dim=-1) < (flow_px[p] - own_flow).norm(dim=-1))
-                    passed.append((p, k, mine & ~camera, mine & camera))
+                    own_flow = _to_pixels(moved, K[tgt[p]].expand(len(moved), 3, 3), extr[tgt[p]].expand(len(moved), 3, 4)) - grid[mine]
+                    camera = covisible.flatten()[pixels[mine]] & (
+                        (flow_px[mine] - camera_flow[mine]).norm(dim=-1) < (flow_px[mine] - own_flow).norm(dim=-1))
+                    passed.append((p, k, pixels[mine], camera, pixels[best]))
             fraction = torch.where(matched > 0, explained / matched.clamp_min(1), torch.full_like(matched, math.nan))[1:]
             rigid = (matched[1:] > 0) & (fraction >= min_inliers)
-            for p, k, own, camera in passed:
-                if bool(rigid[k - 1]):
-                    assignment[p][own] = k
-                    assignment[p][camera] = 0
-            for p, k, _, _ in passed:
-                # scored where any pixel is its own (else the camera scores them all), solved on its best matches
-                if bool(rigid[k - 1]) and bool((assignment[p] == k).any()):
-                    entries.append((b, p, k))
-                else:
-                    weight[p][weight[p] == k] = 0
+            flat_assignment = assignment.flatten()
+            for p, k, mine, camera, solved_on in passed:
+                if not bool(rigid[k - 1]):
+                    continue
+                own = mine[~camera]
+                flat_assignment[own] = k
+                flat_assignment[mine[camera]] = 0
+                if len(own) == 0 or len(solved_on) < 3:
+                    continue  # the camera scores all its pixels
+                rows, cols = (own % (height * width)) // width, own % width
+                boxes.append((int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1))
+                solve_pixels.append(solved_on + b * num_pairs * height * width)
+                solve_entry.append(torch.full((len(solved_on),), len(entries)))
+                entries.append((b, p, k))
             labels.append(clip_labels)
             assignments.append(assignment)
-            weights.append(weight)
             verdicts.append(rigid)
             fractions.append(fraction)
     width_k = max((len(v) for v in verdicts), default=0)
@@ -302,40 +358,36 @@ def fit_movers(masks: Tensor, geometry: SceneGeometry, correspondences: Correspo
     def padded(rows: list[Tensor], fill: Any) -> Tensor:
         return torch.stack([torch.cat((r, torch.full((width_k - len(r),), fill, dtype=r.dtype))) for r in rows])
 
+    def joined(parts: list[Tensor]) -> Tensor:
+        return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.int64)
+
     device = masks.device
     return MoverFit(labels=torch.stack(labels).to(device), assignment=torch.stack(assignments).to(device),
-                    weights=torch.stack(weights).to(device), rigid=padded(verdicts, False),
-                    inlier_fraction=padded(fractions, math.nan), pairs=pairs, entries=entries)
+                    rigid=padded(verdicts, False), inlier_fraction=padded(fractions, math.nan), pairs=pairs,
+                    entries=entries, boxes=boxes, solve_pixels=joined(solve_pixels).to(device),
+                    solve_entry=joined(solve_entry).to(device))
 
 
 def solve_motions(fit: MoverFit, depth_src: Tensor, depth_tgt: Tensor, K_src: Tensor, K_tgt: Tensor, extr_src: Tensor,
                   extr_tgt: Tensor, flow: Tensor) -> Tensor:
     """The world motions ``[E, 4, 4]`` of ``fit.entries``, solved detached by a weighted Kabsch on
-    the fit's matches of this call's pairs (all ``[B*P, ...]``, as :func:`pair_matches` takes them).
-
-    No host synchronisation: the moments of every (pair, mover) are summed with one scatter.
-    """
+    the fit's best matches of each, from this call's pairs (all ``[B*P, ...]``, as
+    :func:`point_matches` takes them). No host synchronisation: the matches are fixed by the fit
+    and their moments summed with one ``index_add``."""
     with torch.no_grad():
-        args = (t.detach().double() for t in (depth_src, depth_tgt, K_src, K_tgt, extr_src, extr_tgt, flow))
-        x_src, x_tgt, valid = pair_matches(*args)
-        bins = fit.num_movers + 1
-        index = fit.weights.flatten(0, 1).flatten(1)  # [BP, HW]
-        weight = ((index > 0) & valid.flatten(1)).double()
-        s, t = x_src.flatten(1, 2), x_tgt.flatten(1, 2)  # [BP, HW, 3]
-        values = torch.cat((weight[..., None], weight[..., None] * s, weight[..., None] * t,
-                            (weight[..., None, None] * s[..., :, None] * t[..., None, :]).flatten(-2)), dim=-1)
-        moments = torch.zeros(index.shape[0], bins, values.shape[-1], dtype=values.dtype, device=values.device)
-        moments.scatter_add_(1, index[..., None].expand(-1, -1, values.shape[-1]), values)
-        flat = [b * len(fit.pairs) + p for b, p, _ in fit.entries]
-        movers = [k for _, _, k in fit.entries]
-        chosen = moments[flat, movers]  # [E, 16]
-        total = chosen[:, :1].clamp_min(1e-12)
-        mean_s, mean_t = chosen[:, 1:4] / total, chosen[:, 4:7] / total
-        covariance = chosen[:, 7:].reshape(-1, 3, 3) / total[..., None] - mean_s[:, :, None] * mean_t[:, None, :]
+        args = [t.detach().double() for t in (depth_src, depth_tgt, K_src, K_tgt, extr_src, extr_tgt, flow)]
+        s, t, valid = point_matches(*args, fit.solve_pixels)
+        w = valid.double()[:, None]
+        values = torch.cat((w, w * s, w * t, (w[:, :, None] * s[:, :, None] * t[:, None, :]).flatten(1)), dim=1)
+        moments = torch.zeros(len(fit.entries), values.shape[1], dtype=values.dtype, device=values.device)
+        moments.index_add_(0, fit.solve_entry, values)
+        total = moments[:, :1].clamp_min(1e-12)
+        mean_s, mean_t = moments[:, 1:4] / total, moments[:, 4:7] / total
+        covariance = moments[:, 7:].reshape(-1, 3, 3) / total[..., None] - mean_s[:, :, None] * mean_t[:, None, :]
         rotation, translation = kabsch_from_moments(mean_s, mean_t, covariance)
         motion = homogeneous_pose(torch.cat((rotation, translation[..., None]), dim=-1))
         # no match left (this call's geometry invalidated them all): the world motion of the camera's, none
-        lost = chosen[:, 0] < 3
+        lost = moments[:, 0] < 3
         return torch.where(lost[:, None, None], torch.eye(4, dtype=motion.dtype, device=motion.device), motion)
 
 

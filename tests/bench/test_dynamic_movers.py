@@ -5,7 +5,6 @@ any seed; docs/validation.md gives several)."""
 from __future__ import annotations
 
 import pytest
-import torch
 
 from geco_guide.bench.dynamic_suite import TARGETS, DynamicScenes, mover_clips, movers_validation
 from geco_guide.geometry import pixel_grid, sample_bilinear

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from geco_guide.bench.geco_eval import CAMERAS, SCENARIOS, csv_text, load_prompts, select_prompts
+from geco_guide.bench.geco_eval import CAMERAS, SCENARIOS, csv_text, load_prompts, movers_cell, select_prompts
 from geco_guide.cli import ab
 from geco_guide.cli.geco_eval import main
 from geco_guide.estimators.segmenters import subjects_of
@@ -42,6 +42,16 @@ def test_results_csv_has_a_subjects_column_for_the_dynamic_suite_only():
     row = {"model": "m", "guided": False, "prompt_id": "a1", "scenario": "indoor", "camera": "slow", "seed": 0}
     assert "subjects" not in csv_text([row]).splitlines()[0]
     assert csv_text([{**row, "subjects": "a dog"}]).splitlines()[0].endswith(",subjects")
+
+
+def test_results_csv_has_a_movers_column_when_movers_are_scored():
+    row = {"model": "m", "guided": False, "prompt_id": "m1", "scenario": "indoor", "camera": "slow", "seed": 0,
+           "subjects": "a car"}
+    assert "movers" not in csv_text([row]).splitlines()[0]
+    cell = movers_cell({"mode": "rigid", "rigid": 2, "non_rigid": 1, "share": 0.3104, "movers": []})
+    assert cell == "2 rigid, 1 non-rigid, 31.0 % of fused"
+    header, line = csv_text([{**row, "movers": cell}]).splitlines()
+    assert header.endswith(",subjects,movers") and line.endswith(',a car,"2 rigid, 1 non-rigid, 31.0 % of fused"')
 
 
 def test_geco_eval_dynamic_scores_and_guides_with_the_subjects_masks(tmp_path: Path, capsys):

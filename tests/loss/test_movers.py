@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from geco_guide.bench.synthetic import MovingBox, moving_boxes, moving_clip
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig, frame_pairs, geco_from_geometry
-from geco_guide.loss.movers import MoverFit, RefreshedMovers, fit_movers, link_movers
+from geco_guide.loss.movers import MoverFit, RefreshedMovers, link_movers
 from geco_guide.loss.presets import evaluation_loss, guidance_loss
 from geco_guide.metric.protocol import EvaluationConfig
 from geco_guide.types import Correspondences, OptionError
