@@ -435,7 +435,7 @@ def _with_mover_cues(fit: MoverFit, cues: tuple[Tensor, Tensor, Tensor, Tensor],
     num_pairs = len(fit.pairs)
     height, width = depth_src.shape[-2:]
     assignment = fit.assignment.flatten(0, 1)
-    for e, ((b, p, k), (top, bottom, left, right)) in enumerate(zip(fit.entries, fit.boxes)):
+    for e, ((b, p, k), (top, bottom, left, right), target_box) in enumerate(zip(fit.entries, fit.boxes, fit.target_boxes)):
         n = b * num_pairs + p
         box = (n, slice(top, bottom), slice(left, right))
         K_box = crop_intrinsics(K_src[n:n + 1], top, left)
@@ -445,16 +445,21 @@ def _with_mover_cues(fit: MoverFit, cues: tuple[Tensor, Tensor, Tensor, Tensor],
         landing, rigid_valid = rigid_flow(depth_box, K_box, K_tgt[n:n + 1], pose, tgt_hw=(height, width))
         offset = landing.new_tensor([float(left), float(top)])[None, :, None, None]
         own_motion = motion_residual(flow[n, :, top:bottom, left:right][None], landing - offset, K_box)
-        own_structure, own_structure_valid = structure_residual(
-            depth_box, depth_tgt[n:n + 1], K_box, K_tgt[n:n + 1], pose, tau=config.occlusion_tau,
-            edge_tau=config.depth_edge_tau, keep_occluded=covisible[box][None] if config.structure_occlusion == "covisibility" else None,
-        )
         scored = assignment[box] == k
-        # the reprojection must land wholly on the same mover: a blend with what lies around it is no depth of it
-        off_mover = (target_labels[n] != k)[None]
         motion[box] = torch.where(scored, own_motion[0].to(motion.dtype), motion[box])
-        structure[box] = torch.where(scored, own_structure[0].to(structure.dtype), structure[box])
         motion_valid[box] |= scored & rigid_valid[0] & motion_ok[box]
+        if target_box is None:
+            continue  # the target does not show the mover: no depth of it to compare with
+        # the reprojection must land wholly on the same mover (a blend with what lies around it is
+        # no depth of it), so the target is read in the mover's box alone
+        t_top, t_bottom, t_left, t_right = target_box
+        own_structure, own_structure_valid = structure_residual(
+            depth_box, depth_tgt[n:n + 1, t_top:t_bottom, t_left:t_right], K_box,
+            crop_intrinsics(K_tgt[n:n + 1], t_top, t_left), pose, tau=config.occlusion_tau, edge_tau=config.depth_edge_tau,
+            keep_occluded=covisible[box][None] if config.structure_occlusion == "covisibility" else None,
+        )
+        off_mover = (target_labels[n] != k)[None]
+        structure[box] = torch.where(scored, own_structure[0].to(structure.dtype), structure[box])
         structure_valid[box] |= scored & own_structure_valid[0] & structure_ok[box] & ~lands_on_mask(off_mover, landing)[0]
     return motion, motion_valid, structure, structure_valid
 

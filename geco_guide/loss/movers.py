@@ -59,7 +59,7 @@ from ..io.masks import connected_regions
 from ..types import Correspondences, SceneGeometry
 from .cues import MASK_TOUCH_WEIGHT
 
-__all__ = ["FLOOR_PX", "MIN_MATCHES", "MOVER_MODES", "MoverFit", "MoverScores", "RefreshedMovers", "fit_movers",
+__all__ = ["FLOOR_PX", "MIN_MATCHES", "MOVER_MODES", "TARGET_MARGIN", "MoverFit", "MoverScores", "RefreshedMovers", "fit_movers",
            "link_movers", "mover_scores", "point_matches", "solve_motions"]
 
 MOVER_MODES = ("drop", "rigid")
@@ -94,6 +94,9 @@ class MoverFit:
         entries: the ``(clip, pair, mover)`` triples a rigid motion scores.
         boxes: per entry, ``(top, bottom, left, right)`` of the source pixels it scores (the cues
             of a mover are computed in its box alone).
+        target_boxes: per entry, the box of the mover in the target frame grown by
+            :data:`TARGET_MARGIN` pixels (its structure cue samples the target there alone), or
+            ``None`` where the target does not show it.
         solve_pixels: ``[M]`` int64, flat indices into ``[B*P, H, W]``: the matches the entries'
             motions are solved on (each fit's best inliers).
         solve_entry: ``[M]`` int64, the entry each of them belongs to.
@@ -106,6 +109,7 @@ class MoverFit:
     pairs: list[tuple[int, int]]
     entries: list[tuple[int, int, int]]
     boxes: list[tuple[int, int, int, int]]
+    target_boxes: list[tuple[int, int, int, int] | None]
     solve_pixels: Tensor
     solve_entry: Tensor
 
@@ -140,8 +144,8 @@ def link_movers(masks: Tensor, flow: Tensor, pairs: Sequence[tuple[int, int]]) -
     for s in range(num_frames):
         if not bool(masks[s].any()):
             continue
-        rows, cols = masks[s].any(1).nonzero()[:, 0], masks[s].any(0).nonzero()[:, 0]
-        box = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))  # the labelling's cost follows it
+        top, bottom, left, right = _box(masks[s], 0)
+        box = (slice(top, bottom), slice(left, right))  # the labelling's cost follows the box
         raw = connected_regions(masks[s][box])
         ids, compact = raw[masks[s][box]].unique(return_inverse=True)
         regions[s][box][masks[s][box]] = compact + 1 + count
@@ -242,6 +246,21 @@ def _to_pixels(points: Tensor, K: Tensor, extrinsics: Tensor) -> Tensor:
     return uv[:, 0]
 
 
+#: Pixels by which a mover's box in the target frame grows: a bilinear sample's taps and the 3x3
+#: depth-edge test around a landing point stay inside it.
+TARGET_MARGIN = 2
+
+
+def _box(mask: Tensor, margin: int) -> tuple[int, int, int, int] | None:
+    """``(top, bottom, left, right)`` of ``mask [H, W]`` grown by ``margin`` (clipped), ``None`` if empty."""
+    if not bool(mask.any()):
+        return None
+    rows, cols = mask.any(1).nonzero()[:, 0], mask.any(0).nonzero()[:, 0]
+    height, width = mask.shape
+    return (max(0, int(rows[0]) - margin), min(height, int(rows[-1]) + 1 + margin),
+            max(0, int(cols[0]) - margin), min(width, int(cols[-1]) + 1 + margin))
+
+
 def _floor(depth: Tensor, K: Tensor) -> Tensor:
     """``[M]`` the 3-D length of :data:`FLOOR_PX` pixels at depths ``depth [M]`` for ``K [M, 3, 3]``."""
     return FLOOR_PX * depth / (0.5 * (K[:, 0, 0] + K[:, 1, 1]))
@@ -273,6 +292,7 @@ def fit_movers(masks: Tensor, geometry: SceneGeometry, correspondences: Correspo
     labels, assignments, verdicts, fractions = [], [], [], []
     entries: list[tuple[int, int, int]] = []
     boxes: list[tuple[int, int, int, int]] = []
+    target_boxes: list[tuple[int, int, int, int] | None] = []
     solve_pixels, solve_entry = [], []
     with torch.no_grad():
         for b in range(batch):
@@ -346,6 +366,7 @@ def fit_movers(masks: Tensor, geometry: SceneGeometry, correspondences: Correspo
                     continue  # the camera scores all its pixels
                 rows, cols = (own % (height * width)) // width, own % width
                 boxes.append((int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1))
+                target_boxes.append(_box(clip_labels[tgt[p]] == k, TARGET_MARGIN))
                 solve_pixels.append(solved_on + b * num_pairs * height * width)
                 solve_entry.append(torch.full((len(solved_on),), len(entries)))
                 entries.append((b, p, k))
@@ -364,7 +385,7 @@ def fit_movers(masks: Tensor, geometry: SceneGeometry, correspondences: Correspo
     device = masks.device
     return MoverFit(labels=torch.stack(labels).to(device), assignment=torch.stack(assignments).to(device),
                     rigid=padded(verdicts, False), inlier_fraction=padded(fractions, math.nan), pairs=pairs,
-                    entries=entries, boxes=boxes, solve_pixels=joined(solve_pixels).to(device),
+                    entries=entries, boxes=boxes, target_boxes=target_boxes, solve_pixels=joined(solve_pixels).to(device),
                     solve_entry=joined(solve_entry).to(device))
 
 
