@@ -76,6 +76,19 @@ def test_geco_eval_dynamic_scores_and_guides_with_the_subjects_masks(tmp_path: P
     assert [r["subjects"] for r in rows] == ["a dog", "a dog"]
 
 
+def test_geco_eval_dynamic_scores_the_subjects_as_movers(tmp_path: Path):
+    out = tmp_path / "run"
+    argv = ["--preset", "tiny", "--suite", "dynamic", "--models", "cogvideox-5b", "--limit", "1", "--seeds", "0",
+            "--out", str(out), SEGMENTER, "evaluation.movers=rigid"]
+    assert main(argv) == 0
+    result = json.loads((out / "videos" / "cogvideox-5b" / "m1-s0.json").read_text())
+    movers = result["evaluation"]["movers"]
+    assert movers["mode"] == "rigid" and movers["rigid"] + movers["non_rigid"] == len(movers["movers"])
+    assert all(row["verdict"] in ("rigid", "non-rigid") for row in movers["movers"])
+    row = next(csv.DictReader((out / "results.csv").open()))
+    assert row["movers"] == result["movers"] == movers_cell(movers)
+
+
 def test_ab_prompts_take_a_subject_column(tmp_path: Path):
     path = tmp_path / "prompts.jsonl"
     path.write_text('{"id": "dog", "prompt": "a dog runs on a lawn", "subjects": "a dog, a ball"}\na stone bridge\n')
