@@ -59,3 +59,16 @@ def test_evaluate_video_keeps_every_number_and_map(reference):
         assert report["config"].pop("movers") == "drop" and report["config"]["loss"].pop("movers") == "drop", kind
         assert "movers" not in report, kind
     _assert_same(actual, reference["evaluation"], "evaluation")
+
+
+def test_the_default_renames_no_video():
+    from geco_guide.cli.generate import video_key
+    from geco_guide.config import config_to_dict, load_config
+
+    config = config_to_dict(load_config(preset="tiny"))
+    assert config["guidance"]["loss"]["movers"] == "drop"
+    before = {**config, "guidance": {**config["guidance"], "loss": {k: v for k, v in config["guidance"]["loss"].items()
+                                                                    if k != "movers"}}}
+    assert video_key(config, "a bust") == video_key(before, "a bust")  # as before the option existed
+    rigid = {**config, "guidance": {**config["guidance"], "loss": {**config["guidance"]["loss"], "movers": "rigid"}}}
+    assert video_key(rigid, "a bust") != video_key(config, "a bust")  # scoring movers makes other frames
