@@ -91,8 +91,8 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
     rounding and so name another video. The device can change the bytes (CPU and GPU kernels round
     differently), but a video moved to another device is the same experiment, so it does not
     rename it. Left out too while unused: the :data:`DYNAMIC_KEYS` of a null ``guidance.dynamic``
-    (or of a video made without guidance), and ``estimators.segmenter`` unless
-    ``guidance.dynamic`` names subjects. The JSON is canonical (sorted keys), so the key is the
+    (or of a video made without guidance), ``guidance.loss.movers`` at its default ``drop``, and
+    ``estimators.segmenter`` unless ``guidance.dynamic`` names subjects. The JSON is canonical (sorted keys), so the key is the
     same in every process and on every machine.
     """
     from .sampler.run_options import FRAME_ROUNDING_KEYS, RunOptions
@@ -112,6 +112,9 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
     dynamic = guidance.get("dynamic") if guided else None
     if dynamic is None and "guidance" in kept:
         kept["guidance"] = {key: value for key, value in kept["guidance"].items() if key not in DYNAMIC_KEYS}
+    loss = kept.get("guidance", {}).get("loss")
+    if isinstance(loss, dict) and loss.get("movers") == "drop":  # the default (no mover scored) renames no video
+        kept["guidance"] = {**kept["guidance"], "loss": {key: value for key, value in loss.items() if key != "movers"}}
     if dynamic in (None, "auto") and "estimators" in kept:
         kept["estimators"] = {key: value for key, value in kept["estimators"].items() if key != "segmenter"}
     text = json.dumps({"prompt": prompt, "config": kept}, sort_keys=True, separators=(",", ":"))

@@ -21,10 +21,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["MIN_DEPTH", "check_tensor", "crop_intrinsics", "inside_image", "invert_rigid",
-           "local_depth_ratio", "pixel_grid", "pose_encoding_to_cameras", "project", "quaternion_to_matrix",
-           "relative_pose", "resize_flow", "resize_intrinsics", "rigid_flow", "sample_at_projection",
-           "sample_bilinear", "transform_points", "unproject"]
+__all__ = ["MIN_DEPTH", "MIN_INLIERS", "RANSAC_ITERATIONS", "RIGID_TOLERANCE", "SCORED_MATCHES", "check_tensor", "crop_intrinsics", "inside_image", "invert_rigid",
+           "kabsch", "kabsch_from_moments", "local_depth_ratio", "pixel_grid", "pose_encoding_to_cameras", "project",
+           "quaternion_to_matrix", "ransac_rigid", "relative_pose", "resize_flow", "resize_intrinsics", "rigid_flow",
+           "sample_at_projection", "sample_bilinear", "transform_points", "unproject"]
 
 # Depths below this are treated as "not in front of the camera"; it also keeps divisions finite.
 MIN_DEPTH = 1e-6
@@ -330,3 +330,68 @@ def pose_encoding_to_cameras(pose_enc: Tensor, image_hw: tuple[int, int]) -> tup
         [fx, zero, zero + width / 2.0, zero, fy, zero + height / 2.0, zero, zero, one], dim=-1
     ).unflatten(-1, (3, 3))
     return extrinsics, intrinsics
+
+
+# --- rigid motions of 3-D matches (the automatic masks and the movers' scoring share them) -------
+
+
+def kabsch_from_moments(mean_source: Tensor, mean_target: Tensor, covariance: Tensor) -> tuple[Tensor, Tensor]:
+    """The rigid motion ``(R [..., 3, 3], t [..., 3])`` of matches given by their (weighted)
+    means ``[..., 3]`` and cross-covariance ``sum w (s - mean_s)(t - mean_t)^T`` ``[..., 3, 3]``:
+    the least-squares fit with ``det R = +1``."""
+    u, _, vh = torch.linalg.svd(covariance)
+    # Reflections flip the last singular direction so R is a rotation.
+    sign = torch.sign(torch.linalg.det(vh.transpose(-1, -2) @ u.transpose(-1, -2)))
+    fix = torch.diag_embed(torch.stack((torch.ones_like(sign), torch.ones_like(sign), torch.where(sign == 0, torch.ones_like(sign), sign)), -1))
+    rotation = vh.transpose(-1, -2) @ fix @ u.transpose(-1, -2)
+    translation = mean_target - (rotation @ mean_source[..., None])[..., 0]
+    return rotation, translation
+
+
+def kabsch(source: Tensor, target: Tensor, weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """The rigid motion ``(R [..., 3, 3], t [..., 3])`` that best maps ``source [..., N, 3]`` onto
+    ``target [..., N, 3]`` in the (weighted, ``weights [..., N]``) least-squares sense, ``det R = +1``."""
+    w = torch.ones(source.shape[:-1], dtype=source.dtype, device=source.device) if weights is None else weights
+    w = w / w.sum(-1, keepdim=True).clamp_min(1e-12)
+    mean_s = (w[..., None] * source).sum(-2, keepdim=True)
+    mean_t = (w[..., None] * target).sum(-2, keepdim=True)
+    cov = ((source - mean_s) * w[..., None]).transpose(-1, -2) @ (target - mean_t)
+    return kabsch_from_moments(mean_s[..., 0, :], mean_t[..., 0, :], cov)
+
+
+#: Matches a RANSAC hypothesis is ranked on, at most.
+SCORED_MATCHES = 4096
+
+#: The rigid-fit thresholds the automatic masks and the movers' scoring share by default: a match
+#: fits a motion when its 3-D error is at most RIGID_TOLERANCE of its own 3-D displacement, and a
+#: motion holds when it fits MIN_INLIERS of the matches; RANSAC_ITERATIONS hypotheses.
+RIGID_TOLERANCE = 0.25
+MIN_INLIERS = 0.8
+RANSAC_ITERATIONS = 64
+
+
+def ransac_rigid(source: Tensor, target: Tensor, limit: Tensor, iterations: int,
+                 generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor, float]:
+    """RANSAC + Kabsch on matches ``source, target [N, 3]`` (``N >= 3``).
+
+    Each of ``iterations`` hypotheses is the Kabsch fit of 3 random matches; a match is its inlier
+    when the hypothesis maps it to within ``limit [N]`` of its target. Hypotheses are ranked on at
+    most :data:`SCORED_MATCHES` matches (a large set's share is estimated as well from a sample);
+    the winner is refitted on all the matches it explains.
+
+    Returns:
+        ``(R [3, 3], t [3], inliers [N] bool, sampled_fraction)``: the refitted motion, the
+        matches it explains within ``limit``, and the winner's inlier fraction on the ranked matches.
+    """
+    count = source.shape[0]
+    draws = torch.randint(count, (iterations, 3), generator=generator)
+    rotation, translation = kabsch(source[draws], target[draws])  # [I, 3, 3], [I, 3]
+    scored = torch.randperm(count, generator=generator)[:SCORED_MATCHES] if count > SCORED_MATCHES else slice(None)
+    moved = torch.einsum("iab,nb->ina", rotation, source[scored]) + translation[:, None]
+    inliers = (moved - target[scored]).norm(dim=-1) <= limit[scored]  # [I, N]
+    best = int(inliers.sum(-1).argmax())
+    sampled_fraction = float(inliers[best].float().mean())
+    explained = (source @ rotation[best].T + translation[best] - target).norm(dim=-1) <= limit
+    rotation, translation = kabsch(source, target, explained.to(source.dtype))
+    refit = (source @ rotation.T + translation - target).norm(dim=-1) <= limit
+    return rotation, translation, refit, sampled_fraction

@@ -14,12 +14,23 @@ with no mask, the true mask of the moving boxes, and the automatic mask
   an OccluBench swap placed on the static background, against the still clip with the same edit;
 * **the automatic mask**: its IoU with the true mask of the moving boxes, and the fraction of the
   deformation's pixels it hides.
+
+And with ``movers="rigid"`` (:func:`movers_validation`), on one box (the first of
+:func:`~geco_guide.bench.synthetic.moving_boxes`) in the same gallery:
+
+* **a rigid mover**: with automatic masks, how much of what the moving box adds to the score with
+  nothing masked ``rigid`` removes; with the true mask, its score over the still box's;
+* **a mover that changes shape** (:func:`~geco_guide.bench.synthetic.deform_mover`, a thin-plate
+  spline on the box alone): the deformation's localisation AP with ``rigid`` and automatic masks,
+  over the same warp's on the still box (no mask), and with ``drop`` (near chance);
+* **a non-rigid mover** (the box stretching, its parts moving apart) under its true mask: judged
+  non-rigid and left out, so its score is ``drop``'s.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -30,14 +41,14 @@ from ..estimators.motion_masks import MotionMasks
 from ..estimators.oracle import OracleFlow, OracleGeometry
 from ..loss.geco import GeCoResult
 from ..loss.presets import evaluation_loss
-from ..metric.evaluate import score_frames
+from ..metric.evaluate import mean_or_nan, score_frames
 from .datasets import scene_track
 from .occlusion import OcclusionParams, composite_occlusion
-from .synthetic import SyntheticClip, moving_clip, with_overlay, with_warp
+from .synthetic import MovingBox, SyntheticClip, deform_mover, moving_boxes, moving_clip, with_overlay, with_warp
 from .validate import cue_map, localisation
 from .warp import WarpParams, warp_clip
 
-__all__ = ["DynamicScenes", "dynamic_validation", "edited_clips", "markdown_report"]
+__all__ = ["DynamicScenes", "dynamic_validation", "edited_clips", "markdown_report", "mover_clips", "movers_validation"]
 
 MASKS = ("none", "true", "auto")
 
@@ -47,7 +58,16 @@ TARGETS = {
     "hidden_deformation": 0.1,  # fraction of deformation pixels the automatic mask hides, below
     "score_ratio": 2.0,  # masked fused score of the moving clip over the still clip's, at most
     "ap_ratio": 0.9,  # detection AP with automatic masks over the still clip's AP, at least
+    "movers_removed": 0.8,  # share of the moving box's added score that rigid + auto removes, at least
+    "movers_score_ratio": 2.0,  # rigid + true mask score over the still box's, at most
+    "movers_ap_ratio": 0.9,  # AP of a deformation on the moving box (rigid + auto) over the still box's, at least
 }
+
+#: How the box of :func:`mover_clips` stretches (per frame, along x) when it is the non-rigid mover.
+STRETCH = (0.1, 0.0, 0.0)
+
+#: Size (pixels, standard deviation) of the control displacements of the warp on the box.
+MOVER_WARP_AMPLITUDE = 1.5
 
 
 @dataclass(frozen=True)
@@ -96,20 +116,21 @@ def edited_clips(scenes: DynamicScenes) -> dict[str, dict[str, SyntheticClip]]:
     return clips
 
 
-def score_clip(clip: SyntheticClip, masks: str) -> GeCoResult:
+def score_clip(clip: SyntheticClip, masks: str, movers: str = "drop") -> GeCoResult:
     """GeCo of ``clip`` with the oracle estimators and the evaluation loss, with ``masks``:
-    ``none``, ``true`` (the moving boxes) or ``auto``."""
+    ``none``, ``true`` (the moving boxes) or ``auto``, and ``movers`` (``drop`` or ``rigid``)."""
     dynamic = {"none": None, "true": clip.dynamic_mask, "auto": MotionMasks()}[masks]
     frames = clip.frames.float()
-    return score_frames(frames, Estimators(OracleGeometry(clip), OracleFlow(clip)), evaluation_loss(), dynamic_masks=dynamic)[1]
+    loss = replace(evaluation_loss(), movers=movers)
+    return score_frames(frames, Estimators(OracleGeometry(clip), OracleFlow(clip)), loss, dynamic_masks=dynamic)[1]
 
 
 def detection_ap(clip: SyntheticClip, result: GeCoResult) -> float:
     """The paper's localisation AP of the fused map against the artifact's pixels, macro-averaged
-    over the frames that hold some (masked pixels score 0, as invalid ones)."""
+    over the frames that hold some (masked pixels score 0, as invalid ones); NaN without any."""
     values, valid = cue_map(result, "fused")
     frames = [t for t in range(clip.num_frames) if bool(clip.mask[t].any())]
-    return sum(localisation(values[t], valid[t], clip.mask[t])["ap"] for t in frames) / len(frames)
+    return mean_or_nan([localisation(values[t], valid[t], clip.mask[t])["ap"] for t in frames])
 
 
 def iou(predicted: Tensor, truth: Tensor) -> float:
@@ -124,7 +145,8 @@ def _scores(result: GeCoResult) -> dict[str, float]:
 
 def dynamic_validation(scenes: DynamicScenes = DynamicScenes()) -> dict[str, Any]:
     """Every number of the report (JSON-ready): ``false_positives``, ``detection``,
-    ``auto_mask`` and ``targets`` (each target's value and whether it is met)."""
+    ``auto_mask``, ``movers`` (:func:`movers_validation`) and ``targets`` (each target's value and
+    whether it is met)."""
     clips = edited_clips(scenes)
     results = {kind: {"still": score_clip(pair["still"], "none"), **{f"moving/{m}": score_clip(pair["moving"], m) for m in MASKS}}
                for kind, pair in clips.items()}
@@ -150,6 +172,7 @@ def dynamic_validation(scenes: DynamicScenes = DynamicScenes()) -> dict[str, Any
         **{f"ap_ratio_{kind}": {"value": value, "target": f">= {TARGETS['ap_ratio']}", "met": value >= TARGETS["ap_ratio"]}
            for kind, value in ap_ratio.items()},
     }
+    movers = movers_validation(scenes)
     return {
         "scenes": {"num_frames": scenes.num_frames, "height": scenes.height, "width": scenes.width, "seed": scenes.seed,
                    "true_masked_fraction": float(moving.dynamic_mask.float().mean()),
@@ -158,6 +181,74 @@ def dynamic_validation(scenes: DynamicScenes = DynamicScenes()) -> dict[str, Any
         "detection": detection,
         "auto_mask": {"iou": auto_iou, "hidden_deformation": hidden,
                       "masked_fraction": float(results["clean"]["moving/auto"].dynamic_masks.float().mean())},
+        "movers": {key: value for key, value in movers.items() if key != "targets"},
+        "targets": {**targets, **movers["targets"]},
+    }
+
+
+def mover_clips(scenes: DynamicScenes) -> dict[str, SyntheticClip]:
+    """The movers' scenes: one box in the gallery, ``still`` / ``moving`` (sliding sideways),
+    ``deformed_still`` / ``deformed_moving`` (the same warp on it, :func:`deform_mover` with the
+    scenes' seed) and ``stretching`` (standing, its size growing along x: non-rigid)."""
+    size = (scenes.num_frames, scenes.height, scenes.width)
+    box = moving_boxes()[0]
+    still, moving = moving_clip(*size, movers=[box], still=True), moving_clip(*size, movers=[box])
+    amplitude = MOVER_WARP_AMPLITUDE * scenes.width / 128
+
+    def deformed(clip: SyntheticClip) -> SyntheticClip:
+        return deform_mover(clip, amplitude=amplitude, seed=scenes.seed)
+
+    return {"still": still, "moving": moving, "deformed_still": deformed(still), "deformed_moving": deformed(moving),
+            "stretching": moving_clip(*size, movers=[MovingBox(box.box, (0.0, 0.0, 0.0), stretch=STRETCH)])}
+
+
+def _mover_rows(result: GeCoResult) -> list[dict[str, Any]]:
+    return [] if result.movers is None else result.movers.records()
+
+
+def movers_validation(scenes: DynamicScenes = DynamicScenes()) -> dict[str, Any]:
+    """The movers' checks (JSON-ready): ``rigid`` (scores), ``deformed`` (APs and the chance
+    level), ``non_rigid`` (scores and the verdict), each mover's record, and ``targets``."""
+    clips = mover_clips(scenes)
+    runs = {"still/none/drop": ("still", "none", "drop"), "moving/none/drop": ("moving", "none", "drop"),
+            "moving/auto/drop": ("moving", "auto", "drop"), "moving/auto/rigid": ("moving", "auto", "rigid"),
+            "moving/true/rigid": ("moving", "true", "rigid")}
+    rigid = {key: score_clip(clips[c], m, mv) for key, (c, m, mv) in runs.items()}
+    deformed_runs = {"still/none/drop": ("deformed_still", "none", "drop"),
+                     "moving/auto/drop": ("deformed_moving", "auto", "drop"),
+                     "moving/auto/rigid": ("deformed_moving", "auto", "rigid"),
+                     "moving/true/rigid": ("deformed_moving", "true", "rigid")}
+    deformed = {key: (clips[c], score_clip(clips[c], m, mv)) for key, (c, m, mv) in deformed_runs.items()}
+    stretching = clips["stretching"]
+    non_rigid = {f"{m}/{mv}": score_clip(stretching, m, mv)
+                 for m, mv in (("none", "drop"), ("true", "drop"), ("true", "rigid"), ("auto", "drop"), ("auto", "rigid"))}
+    fused = {key: float(result.fused) for key, result in rigid.items()}
+    added = fused["moving/none/drop"] - fused["still/none/drop"]
+    removed = (fused["moving/none/drop"] - fused["moving/auto/rigid"]) / added
+    score_ratio = fused["moving/true/rigid"] / fused["still/none/drop"]
+    aps = {key: detection_ap(clip, result) for key, (clip, result) in deformed.items()}
+    ap_ratio = aps["moving/auto/rigid"] / aps["still/none/drop"]
+    verdicts = [row["verdict"] for row in _mover_rows(non_rigid["true/rigid"])]
+    left_out = verdicts == ["non-rigid"] and float(non_rigid["true/rigid"].fused) == float(non_rigid["true/drop"].fused)
+    targets = {
+        "movers_removed": {"value": removed, "target": f">= {TARGETS['movers_removed']}", "met": removed >= TARGETS["movers_removed"]},
+        "movers_score_ratio": {"value": score_ratio, "target": f"<= {TARGETS['movers_score_ratio']}",
+                               "met": score_ratio <= TARGETS["movers_score_ratio"]},
+        "movers_ap_ratio": {"value": ap_ratio, "target": f">= {TARGETS['movers_ap_ratio']}", "met": ap_ratio >= TARGETS["movers_ap_ratio"]},
+        "movers_non_rigid_left_out": {"value": float(left_out), "target": "non-rigid, scored as drop", "met": left_out},
+    }
+    return {
+        "box_fraction": float(clips["moving"].dynamic_mask.float().mean()),
+        "rigid": {**fused, "removed": removed, "score_ratio": score_ratio},
+        "deformed": {**aps, "chance": float(clips["deformed_moving"].mask.float().mean()), "ap_ratio": ap_ratio,
+                     "deformed_fraction_of_box": float(clips["deformed_moving"].mask.sum() / clips["deformed_moving"].dynamic_mask.sum())},
+        "non_rigid": {**{key: float(result.fused) for key, result in non_rigid.items()},
+                      "auto_masked_fraction": float(non_rigid["auto/drop"].masked_fraction.mean())},
+        "movers": {"moving/auto/rigid": _mover_rows(rigid["moving/auto/rigid"]),
+                   "moving/true/rigid": _mover_rows(rigid["moving/true/rigid"]),
+                   "deformed/auto/rigid": _mover_rows(deformed["moving/auto/rigid"][1]),
+                   "stretching/true/rigid": _mover_rows(non_rigid["true/rigid"]),
+                   "stretching/auto/rigid": _mover_rows(non_rigid["auto/rigid"])},
         "targets": targets,
     }
 
@@ -185,7 +276,32 @@ def markdown_report(report: dict[str, Any]) -> str:
     lines += ["", "Automatic mask: IoU with the true mask of the moving boxes "
               + ", ".join(f"{kind} {value:.3f}" for kind, value in auto["iou"].items())
               + f"; hides {100 * auto['hidden_deformation']:.2f} % of the deformation's pixels.", "",
+              *_movers_markdown(report["movers"]), "",
               "| Target | Value | Wanted | Met |", "|---|---|---|---|"]
     for name, t in report["targets"].items():
-        lines.append(f"| {name} | {t['value']:.3f} | {t['target']} | {'yes' if t['met'] else 'no'} |")
+        lines.append(f"| {name} | {_number(t['value'])} | {t['target']} | {'yes' if t['met'] else 'no'} |")
     return "\n".join(lines) + "\n"
+
+
+def _movers_markdown(movers: dict[str, Any]) -> list[str]:
+    """The movers' three tables (one box, ``movers="rigid"``)."""
+    rigid, deformed, non_rigid = movers["rigid"], movers["deformed"], movers["non_rigid"]
+    lines = [f"Movers scored against their own motion (one box, {100 * movers['box_fraction']:.1f} % of a frame):", "",
+             "| Rigid box | still, none | moving, none | moving, auto, drop | moving, auto, rigid | moving, true, rigid |",
+             "|---|---|---|---|---|---|",
+             "| M_geo | " + " | ".join(_number(rigid[k]) for k in ("still/none/drop", "moving/none/drop", "moving/auto/drop",
+                                                                     "moving/auto/rigid", "moving/true/rigid")) + " |",
+             "", f"rigid + auto removes {100 * rigid['removed']:.1f} % of what the moving box adds; rigid + true "
+                 f"mask scores {_number(rigid['score_ratio'])}x the still box.", "",
+             "| Deformed box (AP of M_geo) | still, none | moving, auto, drop | moving, auto, rigid | moving, true, rigid | chance |",
+             "|---|---|---|---|---|---|",
+             "| deformation | " + " | ".join(_number(deformed[k]) for k in ("still/none/drop", "moving/auto/drop", "moving/auto/rigid",
+                                                                         "moving/true/rigid", "chance")) + " |",
+             "", "| Non-rigid box (stretching), M_geo | none | true, drop | true, rigid | auto, drop | auto, rigid |",
+             "|---|---|---|---|---|---|",
+             "| M_geo | " + " | ".join(_number(non_rigid[k]) for k in ("none/drop", "true/drop", "true/rigid", "auto/drop",
+                                                                     "auto/rigid")) + " |",
+             "", "Verdicts: " + "; ".join(f"{key}: " + (", ".join(f"{row['verdict']} (inliers {_number(row['inlier_fraction'] or math.nan)})"
+                                                             for row in rows) or "no mover")
+                                        for key, rows in movers["movers"].items()) + "."]
+    return lines

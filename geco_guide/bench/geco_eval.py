@@ -70,7 +70,8 @@ from .suites import CAMERAS, DYNAMIC_SUITE, PROMPT_FILES, SCENARIOS, SUITE
 
 __all__ = ["CAMERAS", "DYNAMIC_SUITE", "PARETO_LEFT", "PROMPT_FILES", "SCENARIOS", "SUITE", "Job",
            "check_guided_models", "check_model_weights", "csv_text", "existing_video_jobs", "job_config", "load_prompts",
-           "plot_png", "prompts_without_video", "remove_run_outputs", "run_jobs", "select_prompts", "write_report"]
+           "movers_cell", "plot_png", "prompts_without_video", "remove_run_outputs", "run_jobs", "select_prompts",
+           "write_report"]
 
 logger = logging.getLogger(__name__)
 
@@ -329,6 +330,7 @@ def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: Estimators, models
                                 dynamic_masks=estimators.masks_for(job.prompt.get("subjects")))
     result = {
         **job_identity(job), **{metric: evaluation.to_dict()[metric] for metric in METRICS},
+        **({} if evaluation.movers is None else {"movers": movers_cell(evaluation.movers)}),
         **timing, "evaluation_s": time.perf_counter() - start,
         "video": job_video(out, job),
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -439,9 +441,17 @@ CSV_COLUMNS = ("model", "guided", "prompt_id", "scenario", "camera", "seed", *ME
 
 
 def csv_text(results: Sequence[dict[str, Any]]) -> str:
-    """``results.csv``; the dynamic suite's rows add their ``subjects``."""
-    subjects = ("subjects",) if any("subjects" in r for r in results) else ()
-    return report.csv_text(results, (*CSV_COLUMNS, *subjects))
+    """``results.csv``; the dynamic suite's rows add their ``subjects``, and with
+    ``evaluation.movers=rigid`` their ``movers`` (:func:`movers_cell`)."""
+    extra = tuple(column for column in ("subjects", "movers") if any(column in r for r in results))
+    return report.csv_text(results, (*CSV_COLUMNS, *extra))
+
+
+def movers_cell(movers: dict[str, Any]) -> str:
+    """One video's movers in a word (its evaluation's ``movers``): ``"2 rigid, 1 non-rigid, 31.0 % of
+    fused"``, the movers counted over the windows, with their share of the fused score."""
+    return (f"{movers['rigid']} rigid, {movers['non_rigid']} non-rigid, "
+            f"{100 * movers['share']:.1f} % of fused")
 
 
 def _cell(stats: dict[str, Any]) -> str:

@@ -12,6 +12,8 @@ Artifacts with known ground truth turn a rigid clip into an inconsistent one:
   the GeCo paper's WarpBench, with the maths of :mod:`geco_guide.bench.warp`;
 * :func:`occlusion_swap_clip` — an object that is visible, then hidden behind an occluder, then
   re-revealed as a different object, as in the paper's OccluBench, in 3D (a pillar's parallax);
+* :func:`deform_mover` — the same warp applied to a moving object alone, following it through
+  the clip (a mover that changes shape while it moves);
 * :func:`with_warp` / :func:`with_overlay` — the benchmark builders' edits
   (:mod:`geco_guide.bench.warp`, :mod:`geco_guide.bench.occlusion`) applied to a synthetic clip with their
   exact ground truth, so oracle estimators can score them.
@@ -52,7 +54,8 @@ from .warp import (
     warp_fields,
 )
 
-__all__ = ["SyntheticClip", "default_intrinsics", "inject_deformation", "look_at", "moving_clip",
+__all__ = ["MovingBox", "SyntheticClip", "default_intrinsics", "deform_mover", "inject_deformation", "look_at",
+           "moving_boxes", "moving_clip",
            "occlusion_swap_clip", "orbit_cameras", "rigid_clip", "thin_plate_spline", "with_overlay",
            "with_warp"]
 
@@ -64,7 +67,9 @@ class Box:
     """Axis-aligned box ``[lo, hi]`` in world coordinates.
 
     ``inside=True`` renders its inner faces (a room around the camera). ``texture_shift`` moves
-    the texture with a box that has been translated by it (a moving object keeps its pattern).
+    the texture with a box that has been translated by it (a moving object keeps its pattern),
+    ``texture_scale`` stretches it with a box scaled by it per axis (about the world origin, before
+    the shift): a point ``p`` shows the pattern at ``(p - texture_shift) / texture_scale``.
     """
 
     lo: tuple[float, float, float]
@@ -73,6 +78,7 @@ class Box:
     inside: bool = False
     frequency: float = 3.0
     texture_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    texture_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
 
 @dataclass
@@ -141,6 +147,8 @@ def _texture(points: Tensor, primitive: Box | Plane) -> Tensor:
     f = primitive.frequency
     if isinstance(primitive, Box) and any(primitive.texture_shift):
         points = points - points.new_tensor(primitive.texture_shift)
+    if isinstance(primitive, Box) and any(scale != 1.0 for scale in primitive.texture_scale):
+        points = points / points.new_tensor(primitive.texture_scale)
     x, y, z = points.unbind(-1)
     pattern = (
         torch.sin(f * (1.3 * x + 0.7 * y) + 0.5)
@@ -215,6 +223,8 @@ class SyntheticClip:
         objects: ``[S, H, W]`` int64, the moving object each pixel shows (-1: the static
             scene), or ``None`` for a static scene (:func:`moving_clip`).
         object_paths: ``[K, S, 3]`` world translation of each moving object in each frame, or ``None``.
+        object_scales: ``[K, S, 3]`` per-axis scale of each object in each frame (a point ``m`` of
+            the object's frame-0 shape is at ``scale * m + path``), or ``None``: rigid objects.
     """
 
     frames: Tensor
@@ -227,6 +237,7 @@ class SyntheticClip:
     overlay: Overlay | None = None
     objects: Tensor | None = None
     object_paths: Tensor | None = None
+    object_scales: Tensor | None = None
 
     @property
     def num_frames(self) -> int:
@@ -290,8 +301,15 @@ class SyntheticClip:
             return self.rigid_correspondences(source, target)
         height, width = self.depth.shape[-2:]
         ids = self.objects[source].reshape(-1)
-        shift = self.object_paths[ids.clamp_min(0), target] - self.object_paths[ids.clamp_min(0), source]
-        points = _world_points(self, source) + torch.where((ids >= 0)[:, None], shift, torch.zeros_like(shift))
+        kept = ids.clamp_min(0)
+        if self.object_scales is None:
+            shift = self.object_paths[kept, target] - self.object_paths[kept, source]
+            points = _world_points(self, source) + torch.where((ids >= 0)[:, None], shift, torch.zeros_like(shift))
+        else:
+            world = _world_points(self, source)
+            shape = (world - self.object_paths[kept, source]) / self.object_scales[kept, source]
+            moved = shape * self.object_scales[kept, target] + self.object_paths[kept, target]
+            points = torch.where((ids >= 0)[:, None], moved, world)
         camera = transform_points(points[None], self.extrinsics[target][None])
         uv, z = project(camera, self.intrinsics[target][None])
         uv = uv[0].reshape(height, width, 2)
@@ -448,10 +466,13 @@ def rigid_clip(num_frames: int = 5, height: int = 48, width: int = 64, scene: Sc
 @dataclass
 class MovingBox:
     """A box that moves on its own: ``box`` where it stands in frame 0, translated by ``velocity``
-    (world units per frame) in later frames, its texture moving with it."""
+    (world units per frame) in later frames, its texture moving with it. ``stretch`` makes it
+    non-rigid: its size along each axis grows by that fraction of its frame-0 size per frame,
+    about its centre (its parts move apart), the texture stretching with it."""
 
     box: Box
     velocity: tuple[float, float, float]
+    stretch: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 def moving_boxes() -> list[MovingBox]:
@@ -484,20 +505,32 @@ def moving_clip(num_frames: int = 5, height: int = 48, width: int = 64, *, still
     steps = torch.zeros(num_frames) if still else torch.arange(num_frames, dtype=torch.float64)
     velocities = torch.tensor([m.velocity for m in movers], dtype=torch.float64).reshape(-1, 3)
     paths = velocities[:, None] * steps.double()[None, :, None]  # [K, S, 3]
+    scales = None
+    if any(any(m.stretch) for m in movers):
+        stretch = torch.tensor([m.stretch for m in movers], dtype=torch.float64).reshape(-1, 3)
+        scales = 1.0 + stretch[:, None] * steps.double()[None, :, None]  # [K, S, 3]
+        centres = torch.tensor([[(a + b) / 2 for a, b in zip(m.box.lo, m.box.hi)] for m in movers], dtype=torch.float64)
+        paths = paths + centres[:, None] * (1.0 - scales)  # scaled about the centre: scale * m + path
     scenes = []
     for k in range(num_frames):
         boxes = []
-        for mover, path in zip(movers, paths):
-            shift = tuple(float(x) for x in path[k])
-            boxes.append(replace(mover.box, lo=tuple(a + d for a, d in zip(mover.box.lo, shift)),
-                                 hi=tuple(a + d for a, d in zip(mover.box.hi, shift)), texture_shift=shift))
+        for n, mover in enumerate(movers):
+            shift = tuple(float(x) for x in paths[n, k])
+            if scales is None:
+                boxes.append(replace(mover.box, lo=tuple(a + d for a, d in zip(mover.box.lo, shift)),
+                                     hi=tuple(a + d for a, d in zip(mover.box.hi, shift)), texture_shift=shift))
+                continue
+            scale = tuple(float(x) for x in scales[n, k])
+            boxes.append(replace(mover.box, lo=tuple(f * a + d for a, f, d in zip(mover.box.lo, scale, shift)),
+                                 hi=tuple(f * a + d for a, f, d in zip(mover.box.hi, scale, shift)),
+                                 texture_shift=shift, texture_scale=scale))
         scenes.append(Scene(boxes=boxes + base.boxes, planes=base.planes))
     extrinsics, K = orbit_cameras(num_frames), default_intrinsics(height, width)
     clip = render_clip(scenes, extrinsics, K, height, width)
     # Movers are the first primitives of every frame's scene: a hit index below len(movers) is one.
     hits = torch.stack([render_view(scenes[k], K, extrinsics[k], height, width)[2] for k in range(num_frames)])
     objects = torch.where((hits >= 0) & (hits < len(movers)), hits, torch.full_like(hits, -1))
-    return replace(clip, objects=objects, object_paths=paths)
+    return replace(clip, objects=objects, object_paths=paths, object_scales=scales)
 
 
 # --- deformation (WarpBench-style) -------------------------------------------------------------
@@ -537,6 +570,52 @@ def inject_deformation(
     feather = raised_cosine(radius - dist, radius)  # 1 at the centre, smoothly 0 at the rim
     displacements = control_displacements(controls.shape[0], clip.num_frames, amplitude, generator)
     warp = warp_fields(controls, displacements, feather, height, width, smoothing).to(clip.depth.dtype)
+    return replace(clip, frames=backward_warp(clip.frames, warp), warp=warp, mask=warp.norm(dim=-1) > 0.1)
+
+
+def deform_mover(clip: SyntheticClip, mover: int = 0, *, amplitude: float = 1.5, radius: float = 0.5,
+                 smoothing: float = 0.5, seed: int = 0) -> SyntheticClip:
+    """Warp a moving object alone with a temporally smooth thin-plate spline that moves with it.
+
+    In each frame a 3x3 grid of controls sits around the centre of the object's pixels, spaced by
+    half the disc's radius; their displacements (``N(0, amplitude^2)`` pixels per frame, smoothed
+    over time by an exponential moving average of factor ``smoothing``) are interpolated by the
+    thin-plate spline and feathered over a disc of ``radius`` times the radius of a disc of the
+    object's area (raised cosine: full in the centre, 0 at the rim, and 0 off the object). So the
+    object changes shape in its middle while it moves, and the same call on the still clip
+    (``moving_clip(still=True)``) gives the same warp on a still object.
+
+    Args:
+        clip: a :func:`moving_clip`.
+        mover: the object's index.
+        amplitude, smoothing, seed: the displacements' size (pixels), smoothing and seed.
+        radius: the disc's radius as a fraction of the object's equal-area radius.
+
+    Returns:
+        The clip with warped frames, ``warp`` set and ``mask`` = warp length > 0.1 px; its
+        correspondences follow the warp (:meth:`SyntheticClip.correspondences`).
+    """
+    if clip.objects is None:
+        raise ValueError("deform_mover needs a clip with moving objects (moving_clip)")
+    num_frames, _, height, width = clip.frames.shape
+    generator = torch.Generator().manual_seed(seed)
+    displacements = control_displacements(9, num_frames, amplitude, generator)  # [S, 9, 2]
+    grid = pixel_grid(height, width, dtype=torch.float64)
+    offsets = torch.tensor([(du, dv) for du in (-0.5, 0.0, 0.5) for dv in (-0.5, 0.0, 0.5)], dtype=torch.float64)
+    state = torch.zeros(9, 2, dtype=torch.float64)
+    fields = []
+    for t in range(num_frames):
+        state = smoothing * state + (1 - smoothing) * displacements[t]
+        on_object = clip.objects[t] == mover
+        if not bool(on_object.any()):
+            fields.append(torch.zeros(height, width, 2, dtype=torch.float64))
+            continue
+        centre = grid[on_object].mean(0)
+        disc = radius * math.sqrt(int(on_object.sum()) / math.pi)
+        feather = raised_cosine(disc - (grid - centre).norm(dim=-1), disc) * on_object
+        field = thin_plate_spline(centre + disc * offsets, state, grid.reshape(-1, 2)).reshape(height, width, 2)
+        fields.append(field * feather[..., None])
+    warp = torch.stack(fields).to(clip.depth.dtype)
     return replace(clip, frames=backward_warp(clip.frames, warp), warp=warp, mask=warp.norm(dim=-1) > 0.1)
 
 

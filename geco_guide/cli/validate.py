@@ -7,9 +7,10 @@
     python -m geco_guide validate --dynamic --out validation-dynamic                       # dynamic masks vs ground truth
 
 ``--dynamic`` needs no benchmark folder: it renders the synthetic scenes with objects that move on
-their own and reports, with the oracle estimators, the false positives, the artifact detection AP
-and the automatic mask's quality (:mod:`geco_guide.bench.dynamic_suite`) in ``dynamic.json`` and
-``dynamic.md``.
+their own and reports, with the oracle estimators, the false positives, the artifact detection AP,
+the automatic mask's quality and the movers scored against their own motion
+(:mod:`geco_guide.bench.dynamic_suite`) in ``dynamic.json`` and ``dynamic.md``; ``--dynamic-seed``
+draws other edits.
 
 A clip that cannot be read or scored (a damaged ``meta.json`` or ``truth.npz``, ground truth that
 contradicts the clip) is one error line and a row of ``errors`` in the report; the others are
@@ -72,6 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="validate dynamic masks on synthetic scenes with moving objects (oracle estimators; no inputs)")
     p.add_argument("--dynamic-size", type=int, nargs=3, default=None, metavar=("FRAMES", "HEIGHT", "WIDTH"),
                    help="size of the --dynamic clips (default 9 96 128)")
+    p.add_argument("--dynamic-seed", type=int, default=None, metavar="N",
+                   help="seed of the --dynamic scenes' edits (the warps, the swap; default 0)")
     return p
 
 
@@ -80,7 +83,7 @@ def dynamic_main(args: argparse.Namespace) -> int:
     try:
         if args.inputs:
             raise ValueError("--dynamic renders its own scenes: give no benchmark folder or override")
-        scenes = DynamicScenes(*args.dynamic_size) if args.dynamic_size else DynamicScenes()
+        scenes = DynamicScenes(*(args.dynamic_size or ()), **({} if args.dynamic_seed is None else {"seed": args.dynamic_seed}))
         out = check_output_dir(Path(args.out) if args.out else Path("validation-dynamic"))
     except (ValueError, WriteError) as err:
         print(f"error: {err}", file=sys.stderr)
@@ -109,8 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     _IMPLEMENTATION.load()
     if args.dynamic:
         return dynamic_main(args)
-    if args.dynamic_size:
-        print("error: --dynamic-size needs --dynamic", file=sys.stderr)
+    if args.dynamic_size or args.dynamic_seed is not None:
+        print(f"error: {'--dynamic-size' if args.dynamic_size else '--dynamic-seed'} needs --dynamic", file=sys.stderr)
         return 2
     overrides, roots = split_overrides(args.inputs)
     try:

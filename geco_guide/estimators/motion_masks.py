@@ -34,62 +34,23 @@ from torch import Tensor
 
 from ..geometry import (
     MIN_DEPTH,
+    MIN_INLIERS,
+    RANSAC_ITERATIONS,
+    RIGID_TOLERANCE,
     inside_image,
     invert_rigid,
     pixel_grid,
+    ransac_rigid,
     relative_pose,
     rigid_flow,
     sample_bilinear,
     transform_points,
     unproject,
 )
+from ..io.masks import connected_regions
 from ..types import Correspondences, OptionError, SceneGeometry
 
-__all__ = ["MotionMasks", "connected_regions", "dilate", "kabsch", "splat"]
-
-
-def connected_regions(mask: Tensor) -> Tensor:
-    """8-connected regions of ``mask [H, W]`` bool -> labels ``[H, W]`` int64 (0 outside, each
-    region the largest flat index + 1 of its pixels)."""
-    height, width = mask.shape
-    labels = torch.arange(1, height * width + 1, device=mask.device).reshape(height, width)
-    labels = torch.where(mask, labels, torch.zeros_like(labels))
-    while True:
-        # Each pass spreads the largest label along whole rows and columns of the region, then one
-        # pixel in every direction (the diagonal steps); a box-like region settles in a few passes.
-        grown = _run_max(_run_max(labels, mask).T, mask.T).T
-        pooled = F.max_pool2d(grown[None, None].double(), 3, stride=1, padding=1)[0, 0].long()
-        grown = torch.where(mask, pooled, grown)
-        if torch.equal(grown, labels):
-            return labels
-        labels = grown
-
-
-def _run_max(labels: Tensor, mask: Tensor) -> Tensor:
-    """``labels [H, W]`` with every horizontal run of ``mask`` set to the run's largest label."""
-    starts = mask.clone()
-    starts[:, 1:] &= ~mask[:, :-1]
-    run = torch.cumsum(starts.flatten(), 0).reshape(mask.shape)  # a run's id on each of its pixels
-    largest = torch.zeros(int(run.max()) + 1, dtype=labels.dtype, device=labels.device)
-    largest = largest.scatter_reduce(0, run[mask], labels[mask], reduce="amax")
-    return torch.where(mask, largest[run], labels)
-
-
-def kabsch(source: Tensor, target: Tensor, weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """The rigid motion ``(R [..., 3, 3], t [..., 3])`` that best maps ``source [..., N, 3]`` onto
-    ``target [..., N, 3]`` in the (weighted) least-squares sense, ``det R = +1``."""
-    w = torch.ones(source.shape[:-1], dtype=source.dtype, device=source.device) if weights is None else weights
-    w = w / w.sum(-1, keepdim=True).clamp_min(1e-12)
-    mean_s = (w[..., None] * source).sum(-2, keepdim=True)
-    mean_t = (w[..., None] * target).sum(-2, keepdim=True)
-    cov = ((source - mean_s) * w[..., None]).transpose(-1, -2) @ (target - mean_t)
-    u, _, vh = torch.linalg.svd(cov)
-    # Reflections flip the last singular direction so R is a rotation.
-    sign = torch.sign(torch.linalg.det(vh.transpose(-1, -2) @ u.transpose(-1, -2)))
-    fix = torch.diag_embed(torch.stack((torch.ones_like(sign), torch.ones_like(sign), torch.where(sign == 0, torch.ones_like(sign), sign)), -1))
-    rotation = vh.transpose(-1, -2) @ fix @ u.transpose(-1, -2)
-    translation = mean_t[..., 0, :] - (rotation @ mean_s[..., 0, :, None])[..., 0]
-    return rotation, translation
+__all__ = ["MotionMasks", "dilate", "splat"]
 
 
 def world_matches(geometry: SceneGeometry, flow: Tensor, source: int, target: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -113,10 +74,6 @@ def unproject_at(depth: Tensor, uv: Tensor, K: Tensor) -> Tensor:
     x = (uv[..., 0] - K[0, 2]) / K[0, 0]
     y = (uv[..., 1] - K[1, 2]) / K[1, 1]
     return torch.stack((x * depth, y * depth, depth), dim=-1)
-
-
-#: Matches a RANSAC hypothesis is ranked on, at most.
-SCORED_MATCHES = 4096
 
 
 def dilate(mask: Tensor, pixels: int) -> Tensor:
@@ -146,9 +103,9 @@ class MotionMasks:
 
     source_name = "auto"
 
-    def __init__(self, *, min_residual_px: float = 1.0, min_region_px: int = 16, rigid_tolerance: float = 0.25,
-                 min_inliers: float = 0.8, dilation: int = 0, covisibility_threshold: float = 0.5,
-                 iterations: int = 64, seed: int = 0) -> None:
+    def __init__(self, *, min_residual_px: float = 1.0, min_region_px: int = 16, rigid_tolerance: float = RIGID_TOLERANCE,
+                 min_inliers: float = MIN_INLIERS, dilation: int = 0, covisibility_threshold: float = 0.5,
+                 iterations: int = RANSAC_ITERATIONS, seed: int = 0) -> None:
         checks = {
             "min_residual_px": (min_residual_px, min_residual_px > 0, "> 0"),
             "min_region_px": (min_region_px, min_region_px >= 3, ">= 3"),
@@ -225,24 +182,13 @@ class MotionMasks:
         return movers
 
     def fit_rigid(self, source: Tensor, target: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor] | None:
-        """RANSAC + Kabsch on matches ``[N, 3]``: the rigid motion explaining at least
-        ``min_inliers`` of them (error <= ``rigid_tolerance`` of each match's displacement),
-        refitted on its inliers; ``None`` when no hypothesis does."""
-        count = source.shape[0]
-        draws = torch.randint(count, (self.iterations, 3), generator=generator)
-        rotation, translation = kabsch(source[draws], target[draws])  # [I, 3, 3], [I, 3]
+        """RANSAC + Kabsch on matches ``[N, 3]`` (:func:`~geco_guide.geometry.ransac_rigid`): the
+        rigid motion explaining at least ``min_inliers`` of them (error <= ``rigid_tolerance`` of
+        each match's displacement), refitted on its inliers; ``None`` when no hypothesis does."""
         limit = self.rigid_tolerance * (target - source).norm(dim=-1)
-        # Hypotheses are ranked on at most SCORED_MATCHES matches (a large region's share is
-        # estimated as well from a sample); the winner is refitted and judged on all of them.
-        scored = torch.randperm(count, generator=generator)[:SCORED_MATCHES] if count > SCORED_MATCHES else slice(None)
-        moved = torch.einsum("iab,nb->ina", rotation, source[scored]) + translation[:, None]
-        inliers = (moved - target[scored]).norm(dim=-1) <= limit[scored]  # [I, N]
-        best = int(inliers.sum(-1).argmax())
-        if float(inliers[best].float().mean()) < self.min_inliers:
+        rotation, translation, refit, sampled = ransac_rigid(source, target, limit, self.iterations, generator)
+        if sampled < self.min_inliers:
             return None
-        explained = (source @ rotation[best].T + translation[best] - target).norm(dim=-1) <= limit
-        rotation, translation = kabsch(source, target, explained.to(source.dtype))
-        refit = (source @ rotation.T + translation - target).norm(dim=-1) <= limit
         return (rotation, translation) if float(refit.float().mean()) >= self.min_inliers else None
 
 

@@ -8,7 +8,8 @@ videos, JPEG frames) blur a mask's edges, so such masks are thresholded at one h
 :data:`LOSSY_GREY_FRACTION` of their pixels are grey (an RGB video passed by mistake). Every problem
 is one :class:`MaskReadError` line naming the input, raised before any model loads.
 
-:func:`fit_masks` checks the frame count against the video and resizes (nearest) to the frames.
+:func:`fit_masks` checks the frame count against the video and resizes (nearest) to the frames;
+:func:`connected_regions` splits a mask into its 8-connected regions.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from torch import Tensor
 
 from .video import VideoReadError, frame_files, read_frames
 
-__all__ = ["MASK_SUFFIXES", "MaskReadError", "check_masks", "fit_masks", "read_masks"]
+__all__ = ["MASK_SUFFIXES", "MaskReadError", "check_masks", "connected_regions", "fit_masks", "read_masks"]
 
 #: Largest fraction of a lossy mask video's pixels allowed between 1/4 and 3/4 (codec blur at
 #: edges); more means the file is not a mask.
@@ -169,3 +170,30 @@ def fit_masks(masks: Tensor, num_frames: int, size: tuple[int, int], name: str =
     flat = masks.reshape(-1, 1, height, width).float()
     resized = F.interpolate(flat, size=tuple(size), mode="nearest")
     return resized.reshape(*masks.shape[:-2], *size) > 0.5
+
+
+def connected_regions(mask: Tensor) -> Tensor:
+    """8-connected regions of ``mask [H, W]`` bool -> labels ``[H, W]`` int64 (0 outside, each
+    region the largest flat index + 1 of its pixels)."""
+    height, width = mask.shape
+    labels = torch.arange(1, height * width + 1, device=mask.device).reshape(height, width)
+    labels = torch.where(mask, labels, torch.zeros_like(labels))
+    while True:
+        # Each pass spreads the largest label along whole rows and columns of the region, then one
+        # pixel in every direction (the diagonal steps); a box-like region settles in a few passes.
+        grown = _run_max(_run_max(labels, mask).T, mask.T).T
+        pooled = F.max_pool2d(grown[None, None].double(), 3, stride=1, padding=1)[0, 0].long()
+        grown = torch.where(mask, pooled, grown)
+        if torch.equal(grown, labels):
+            return labels
+        labels = grown
+
+
+def _run_max(labels: Tensor, mask: Tensor) -> Tensor:
+    """``labels [H, W]`` with every horizontal run of ``mask`` set to the run's largest label."""
+    starts = mask.clone()
+    starts[:, 1:] &= ~mask[:, :-1]
+    run = torch.cumsum(starts.flatten(), 0).reshape(mask.shape)  # a run's id on each of its pixels
+    largest = torch.zeros(int(run.max()) + 1, dtype=labels.dtype, device=labels.device)
+    largest = largest.scatter_reduce(0, run[mask], labels[mask], reduce="amax")
+    return torch.where(mask, largest[run], labels)

@@ -22,7 +22,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..geometry import check_tensor, relative_pose, resize_flow, rigid_flow
+from ..geometry import (
+    check_tensor,
+    crop_intrinsics,
+    homogeneous_pose,
+    invert_rigid,
+    relative_pose,
+    resize_flow,
+    rigid_flow,
+)
 from ..io.masks import MaskReadError, check_masks, fit_masks, read_masks
 from ..types import (
     Correspondences,
@@ -36,10 +44,11 @@ from ..types import (
     non_finite_fields,
 )
 from .cues import fuse_cues, lands_on_mask, masked_mean, motion_residual, structure_residual
+from .movers import MOVER_MODES, MoverFit, MoverScores, RefreshedMovers, mover_scores, solve_motions
 from .pair_modes import PAIR_MODES
 
-__all__ = ["CUES", "MIN_UNMASKED_FRACTION", "PAIR_MODES", "GeCoLoss", "GeCoLossConfig", "GeCoMaps",
-           "GeCoResult", "frame_pairs", "geco_from_geometry", "resolve_dynamic_masks"]
+__all__ = ["CUES", "MIN_UNMASKED_FRACTION", "MOVER_MODES", "PAIR_MODES", "GeCoLoss", "GeCoLossConfig", "GeCoMaps",
+           "GeCoResult", "check_movers", "frame_pairs", "geco_from_geometry", "resolve_dynamic_masks"]
 
 CUES = ("fused", "motion", "structure")
 STRUCTURE_OCCLUSION = ("depth", "covisibility")
@@ -73,6 +82,9 @@ class GeCoLossConfig:
             paper: where the reprojected point lies behind the target surface by more than
             ``occlusion_tau``) or ``covisibility`` (the GeCo-Eval script: the depth test only for
             pixels the flow estimator does not call co-visible; co-visible pixels always count).
+        movers: what dynamic masks do to what they cover: ``drop`` (the default: left out) or
+            ``rigid`` (each mover scored against its own fitted rigid motion, a non-rigid one left
+            out: :mod:`geco_guide.loss.movers`). Only with dynamic masks.
     """
 
     pairs: str = "adjacent"
@@ -84,6 +96,7 @@ class GeCoLossConfig:
     depth_edge_tau: float | None = 0.1
     geometry_grad: bool = True
     structure_occlusion: str = "depth"
+    movers: str = "drop"
 
     def __post_init__(self) -> None:
         for key, value in non_finite_fields(self):  # the first one
@@ -104,6 +117,8 @@ class GeCoLossConfig:
             raise OptionError("structure_occlusion", f"must be one of {STRUCTURE_OCCLUSION}, got {self.structure_occlusion!r}")
         if self.depth_edge_tau is not None and self.depth_edge_tau <= 0.0:
             raise OptionError("depth_edge_tau", f"must be > 0 or None, got {self.depth_edge_tau}")
+        if self.movers not in MOVER_MODES:
+            raise OptionError("movers", f"must be one of {MOVER_MODES}, got {self.movers!r}")
 
 
 def frame_pairs(num_frames: int, mode: str) -> list[tuple[int, int]]:
@@ -158,6 +173,8 @@ class GeCoResult:
             ``None`` (no masks: the paper's metric).
         masked_fraction: ``[B, S]`` fraction of each frame's pixels masked, or ``None``.
         mask_source: where the masks came from (``"given: masks.npz"``, ``"auto"``, ...), or ``None``.
+        movers: with ``movers="rigid"``, each mover's numbers and the fit
+            (:class:`~geco_guide.loss.movers.MoverScores`); ``None`` otherwise.
     """
 
     loss: Tensor
@@ -172,6 +189,7 @@ class GeCoResult:
     dynamic_masks: Tensor | None = None
     masked_fraction: Tensor | None = None
     mask_source: str | None = None
+    movers: MoverScores | None = None
 
     def scalars(self) -> dict[str, float]:
         """Plain floats: ``motion``, ``structure``, ``fused`` and ``loss``."""
@@ -249,6 +267,7 @@ def geco_from_geometry(
     config: GeCoLossConfig | None = None,
     dynamic_masks: Tensor | str | os.PathLike | None = None,
     mask_source: str | None = None,
+    movers: MoverFit | RefreshedMovers | None = None,
 ) -> GeCoResult:
     """GeCo maps and scores from known geometry and correspondences (no estimator).
 
@@ -267,11 +286,16 @@ def geco_from_geometry(
             counts only where :data:`MIN_UNMASKED_FRACTION` of it stays valid. ``None``: the
             paper's metric, unchanged.
         mask_source: what to record as the masks' source (default: ``"given"`` or the path).
+        movers: with ``config.movers == "rigid"``, the movers' fit to score with: a
+            :class:`~geco_guide.loss.movers.MoverFit` (reused as it is, e.g. an earlier result's
+            ``movers.fit``), a :class:`~geco_guide.loss.movers.RefreshedMovers` (the caller's
+            refresh rule), or ``None`` (fitted now). See :mod:`geco_guide.loss.movers`.
 
     Returns:
         :class:`GeCoResult`.
     """
     config = config or GeCoLossConfig()
+    check_movers(config, dynamic_masks is not None, movers)
     batch, num_frames, height, width = _check_geometry(geometry)
     num_pairs = len(pairs)
     if num_pairs == 0:
@@ -317,10 +341,29 @@ def geco_from_geometry(
         trusted = gather(confidence_mask(confidence, config.confidence_percentile), src)
         motion_valid = motion_valid & trusted
         structure_valid = structure_valid & trusted
+    fit = None
+    if masks is not None and config.movers == "rigid":
+        clean = SceneGeometry(depth=depth, intrinsics=intrinsics, extrinsics=extrinsics)
+        clean_flow = Correspondences(_without_non_finite(flow), _without_non_finite(correspondences.covisibility))
+        fit = movers if isinstance(movers, MoverFit) else (movers or RefreshedMovers()).fit(
+            masks, clean, clean_flow, pairs, config.covisibility_threshold)
+        fit = fit.to(device)
+        # a pixel scored by a mover's motion is left to it; the camera scores the others
+        scored_by_camera = fit.assignment.flatten(0, 1) == 0
     if masks is not None:
         masked_source, masked_target = gather(masks, src), gather(masks, tgt)
+        if fit is not None:
+            masked_source = ~scored_by_camera
         motion_valid = motion_valid & ~masked_source & ~lands_on_mask(masked_target, _without_non_finite(flow))
         structure_valid = structure_valid & ~masked_source & ~lands_on_mask(masked_target, rigid)
+    if fit is not None and fit.entries:
+        motion_ok, structure_ok = covisible & flow_finite & pair_usable, pair_usable.expand_as(covisible)
+        if geometry.confidence is not None and config.confidence_percentile is not None:
+            motion_ok, structure_ok = motion_ok & trusted, structure_ok & trusted
+        motion, motion_valid, structure, structure_valid = _with_mover_cues(
+            fit, (motion, motion_valid, structure, structure_valid), (motion_ok, structure_ok), config,
+            depth_src, depth_tgt, K_src, K_tgt, gather(extrinsics, src), gather(extrinsics, tgt),
+            _without_non_finite(flow), covisible, gather(fit.labels, tgt))
     fused, fused_valid = fuse_cues(motion, motion_valid, structure, structure_valid)
 
     def per_pair(x: Tensor) -> Tensor:
@@ -341,6 +384,9 @@ def geco_from_geometry(
         else:
             frame_has_valid[name] = valid.flatten(2).float().mean(-1) >= MIN_UNMASKED_FRACTION
         scalars[name] = masked_mean(frame_scores[name], frame_has_valid[name], dims=(0, 1))
+    scores = None
+    if fit is not None:
+        scores = mover_scores(fit, *frame_maps.cue("fused"), frame_has_valid["fused"], scalars["fused"])
     return GeCoResult(
         loss=scalars[config.cue],
         motion=scalars["motion"],
@@ -354,7 +400,67 @@ def geco_from_geometry(
         dynamic_masks=masks,
         masked_fraction=None if masks is None else masks.flatten(2).float().mean(-1),
         mask_source=mask_source,
+        movers=scores,
     )
+
+
+def check_movers(config: GeCoLossConfig, has_masks: bool, movers: Any = None) -> None:
+    """One-line ValueError for movers options that would do nothing: ``movers="rigid"`` without
+    dynamic masks, or a fit given with ``movers="drop"``."""
+    if config.movers == "rigid" and not has_masks:
+        raise ValueError("movers='rigid' scores the movers of dynamic masks: give dynamic masks (a file, 'auto' or "
+                         "subjects), or leave movers at 'drop'")
+    if movers is not None and config.movers != "rigid":
+        raise ValueError(f"a movers fit was given but movers={config.movers!r}: set movers='rigid' to score with it")
+    if movers is not None and not isinstance(movers, (MoverFit, RefreshedMovers)):
+        raise ValueError(f"movers must be a MoverFit or a RefreshedMovers, got {type(movers).__name__}")
+
+
+def _with_mover_cues(fit: MoverFit, cues: tuple[Tensor, Tensor, Tensor, Tensor], usable: tuple[Tensor, Tensor],
+                     config: GeCoLossConfig, depth_src: Tensor, depth_tgt: Tensor, K_src: Tensor, K_tgt: Tensor,
+                     extr_src: Tensor, extr_tgt: Tensor, flow: Tensor, covisible: Tensor,
+                     target_labels: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The pair maps ``(motion, motion_valid, structure, structure_valid)`` ``[B*P, H, W]`` with
+    each rigid mover's pixels scored against its own motion (:mod:`geco_guide.loss.movers`),
+    computed in the mover's box of each pair alone.
+
+    ``usable``: ``[B*P, H, W]`` where the motion cue may count (co-visible, finite flow, usable
+    pair, trusted depth) and where the structure cue may (usable pair, trusted depth), as for the
+    static part; ``target_labels`` ``[B*P, H, W]``: the target frame's mover labels.
+    """
+    motion_ok, structure_ok = usable
+    motion, motion_valid, structure, structure_valid = (x.clone() for x in cues)
+    world = solve_motions(fit, depth_src, depth_tgt, K_src, K_tgt, extr_src, extr_tgt, flow).to(depth_src.dtype)
+    num_pairs = len(fit.pairs)
+    height, width = depth_src.shape[-2:]
+    assignment = fit.assignment.flatten(0, 1)
+    for e, ((b, p, k), (top, bottom, left, right), target_box) in enumerate(zip(fit.entries, fit.boxes, fit.target_boxes)):
+        n = b * num_pairs + p
+        box = (n, slice(top, bottom), slice(left, right))
+        K_box = crop_intrinsics(K_src[n:n + 1], top, left)
+        # source camera -> world -> moved with the mover -> target camera; the cameras keep their gradient
+        pose = homogeneous_pose(extr_tgt[n:n + 1]) @ world[e:e + 1] @ invert_rigid(extr_src[n:n + 1])
+        depth_box = depth_src[box][None]
+        landing, rigid_valid = rigid_flow(depth_box, K_box, K_tgt[n:n + 1], pose, tgt_hw=(height, width))
+        offset = landing.new_tensor([float(left), float(top)])[None, :, None, None]
+        own_motion = motion_residual(flow[n, :, top:bottom, left:right][None], landing - offset, K_box)
+        scored = assignment[box] == k
+        motion[box] = torch.where(scored, own_motion[0].to(motion.dtype), motion[box])
+        motion_valid[box] |= scored & rigid_valid[0] & motion_ok[box]
+        if target_box is None:
+            continue  # the target does not show the mover: no depth of it to compare with
+        # the reprojection must land wholly on the same mover (a blend with what lies around it is
+        # no depth of it), so the target is read in the mover's box alone
+        t_top, t_bottom, t_left, t_right = target_box
+        own_structure, own_structure_valid = structure_residual(
+            depth_box, depth_tgt[n:n + 1, t_top:t_bottom, t_left:t_right], K_box,
+            crop_intrinsics(K_tgt[n:n + 1], t_top, t_left), pose, tau=config.occlusion_tau, edge_tau=config.depth_edge_tau,
+            keep_occluded=covisible[box][None] if config.structure_occlusion == "covisibility" else None,
+        )
+        off_mover = (target_labels[n] != k)[None]
+        structure[box] = torch.where(scored, own_structure[0].to(structure.dtype), structure[box])
+        structure_valid[box] |= scored & own_structure_valid[0] & structure_ok[box] & ~lands_on_mask(off_mover, landing)[0]
+    return motion, motion_valid, structure, structure_valid
 
 
 def _given_masks(masks: Any, batch: int, num_frames: int, size: tuple[int, int]) -> tuple[Tensor, str]:
@@ -432,10 +538,12 @@ class GeCoLoss(nn.Module):
             non-finite decode then makes the scalars NaN (never a score of 0.0); its gradient is
             zero or non-finite, and ``guided_step`` moves nothing with either.
 
-    ``forward(frames [B, S, 3, H, W] in [0, 1], dynamic_masks=None) -> GeCoResult``; dynamic
-    masks (a tensor, a mask file or a :class:`~geco_guide.types.DynamicMaskSource`, see
-    :func:`resolve_dynamic_masks`) leave moving content out. In the loss an all-masked clip is
-    ``0`` with a zero gradient, as any clip without valid pixels.
+    ``forward(frames [B, S, 3, H, W] in [0, 1], dynamic_masks=None, movers=None) -> GeCoResult``;
+    dynamic masks (a tensor, a mask file or a :class:`~geco_guide.types.DynamicMaskSource`, see
+    :func:`resolve_dynamic_masks`) leave moving content out, or, with ``config.movers="rigid"``,
+    score each rigid mover against its own motion (fitted detached; ``movers`` reuses a fit or
+    holds the caller's refresh rule: :mod:`geco_guide.loss.movers`). In the loss an all-masked
+    clip is ``0`` with a zero gradient, as any clip without valid pixels.
     """
 
     def __init__(
@@ -480,10 +588,13 @@ class GeCoLoss(nn.Module):
         covisibility = _resize_images(result.covisibility[:, None], (height, width))[:, 0]
         return Correspondences(flow=flow, covisibility=covisibility)
 
-    def forward(self, frames: Tensor, dynamic_masks: Any = None) -> GeCoResult:
+    def forward(self, frames: Tensor, dynamic_masks: Any = None, movers: MoverFit | RefreshedMovers | None = None) -> GeCoResult:
         """Raises ValueError for frames that are not finite or not in [0, 1] (see ``check_values``)
-        and MaskReadError (a ValueError) for dynamic masks of the wrong shape or not binary."""
+        and MaskReadError (a ValueError) for dynamic masks of the wrong shape or not binary.
+        ``movers``: with ``config.movers == "rigid"``, the movers' fit to reuse or its refresh rule
+        (see :func:`geco_from_geometry`); ``None`` fits the movers now."""
         check_frames(frames)
+        check_movers(self.config, dynamic_masks is not None, movers)
         if frames.shape[1] < 2:
             raise ValueError(f"frames must hold at least 2 frames, got {frames.shape[1]}")
         if self.check_values:
@@ -503,7 +614,7 @@ class GeCoLoss(nn.Module):
         pairs = frame_pairs(frames.shape[1], self.config.pairs)
         correspondences = self.estimate_correspondences(frames, pairs)
         masks, source = given or resolve_dynamic_masks(dynamic_masks, frames, geometry, correspondences, pairs)
-        result = geco_from_geometry(geometry, correspondences, pairs, self.config, masks, source)
+        result = geco_from_geometry(geometry, correspondences, pairs, self.config, masks, source, movers)
         if not self.check_values:
             _nan_unless_finite(result, frames)
         return result

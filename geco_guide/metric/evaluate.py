@@ -40,6 +40,7 @@ from ..loss.geco import (
     GeCoLossConfig,
     GeCoMaps,
     GeCoResult,
+    check_movers,
     frame_pairs,
     geco_from_geometry,
     resolve_dynamic_masks,
@@ -55,7 +56,7 @@ from .protocol import (
     sampled_rate,
     scoring_plan,
 )
-from .render import colorize, hatch, map_frames, text_scale
+from .render import colorize, hatch, map_frames, outline, text_scale
 
 __all__ = ["MAP_PANELS", "PAPER_NAMES", "EvaluationMaps", "EvaluationResult", "evaluate_video",
            "finite_or_none", "mean_or_nan", "render_maps", "score_frames", "write_maps_video"]
@@ -79,12 +80,15 @@ class EvaluationMaps(GeCoMaps):
             with their ``*_valid`` masks, as in :class:`~geco_guide.loss.geco.GeCoMaps`.
         frames: ``[N, 3, H, W]`` the evaluated frames.
         dynamic_masks: ``[N, H, W]`` bool, the pixels left out as moving on their own, or ``None``.
+        movers: with ``movers="rigid"``, ``[N, H, W]`` int64, the mover each pixel belongs to (ids
+            distinct over the windows; 0 none), for the outlines; ``None`` otherwise.
 
     ``maps[k]`` is a dict of frame ``k``'s ``frame [3, H, W]`` and maps ``[H, W]``.
     """
 
     frames: Tensor
     dynamic_masks: Tensor | None = None
+    movers: Tensor | None = None
 
     def __len__(self) -> int:
         return self.frames.shape[0]
@@ -122,6 +126,11 @@ class EvaluationResult:
             (the mean masked fraction of the evaluated frames; each frame row then has its own
             ``masked_fraction`` and, where a score is ``None`` because of the mask, a ``note``),
             plus ``nan_reason`` when no frame kept enough unmasked pixels; ``None`` without.
+        movers: with ``evaluation.movers="rigid"``, ``{mode, rigid, non_rigid, share, movers}``:
+            per mover (of each window) its ``window``, ``id``, ``frames`` (source indices),
+            ``pixels``, ``inlier_fraction``, ``residual``, ``verdict`` (rigid / non-rigid) and
+            ``share`` of the clip's fused score; ``rigid`` / ``non_rigid`` count them and ``share``
+            adds the shares up; ``None`` with ``drop``.
     """
 
     motion: float
@@ -140,6 +149,7 @@ class EvaluationResult:
     source: str | None = None
     maps: EvaluationMaps | None = field(default=None, repr=False)
     dynamic_masks: dict[str, Any] | None = None
+    movers: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (no tensors; NaN scores become ``None``)."""
@@ -159,6 +169,7 @@ class EvaluationResult:
             "estimators": self.estimators,
             "config": self.config,
             **({} if self.dynamic_masks is None else {"dynamic_masks": self.dynamic_masks}),
+            **({} if self.movers is None else {"movers": self.movers}),
         }
 
 
@@ -391,11 +402,13 @@ def evaluate_video(
         fps_source = clip.fps_source  # the file's rate, or default_fps for inputs without one
     # NaN pixels would score NaN (or 0.0 once masked), 0-255 frames garbage: refuse them, by index.
     check_frame_values(clip.frames, "video" if source is None else source, indices=clip.indices)
+    loss_config = cfg.scoring_loss()
+    check_movers(loss_config, dynamic_masks is not None)
     masks = clip_mask_source(dynamic_masks, clip)
     if not isinstance(estimators, Estimators):
         estimators = load_estimators(estimators or EstimatorsConfig(), cfg.device)
     device = estimator_device(estimators.geometry, estimators.flow)
-    metric = GeCoLoss(estimators, cfg.loss)
+    metric = GeCoLoss(estimators, loss_config)
     position = {index: k for k, index in enumerate(clip.indices)}
 
     def frames_of(indices: list[int]) -> Tensor:
@@ -406,6 +419,8 @@ def evaluate_video(
     kept_maps: list[list[Tensor]] = []
     kept_frames: list[Tensor] = []
     kept_masks: list[Tensor] = []
+    kept_movers: list[Tensor] = []
+    movers: list[dict[str, Any]] = []
     planned = evaluation_windows(clip.num_frames, clip.fps, cfg.window_seconds, cfg.max_windows, cfg.max_fps)
     plan = scoring_plan(clip.num_frames, clip.fps, cfg)
     if progress is not None:  # before the work: a long clip's motion statistics alone take long
@@ -421,7 +436,7 @@ def evaluate_video(
         window_masks = masks
         if isinstance(masks, GivenMasks):
             window_masks = GivenMasks(masks.masks[[position[i] for i in window.indices]], masks.source_name)
-        _, result = score_frames(window_frames, estimators, cfg.loss, flow_batch_size=cfg.flow_batch_size,
+        _, result = score_frames(window_frames, estimators, loss_config, flow_batch_size=cfg.flow_batch_size,
                                  dynamic_masks=window_masks)
         rows = []
         for k, index in enumerate(window.indices):
@@ -434,10 +449,18 @@ def evaluate_video(
             _mask_notes(rows, result)
         frame_scores.extend(rows)
         windows.append(_window_record(window, rows))
+        if result.movers is not None:
+            movers.extend({"window": w, **record, "contribution": float(result.movers.contribution[0, record["id"] - 1])}
+                          for record in result.movers.records(0, window.indices))
         if maps:
             kept_maps.append([getattr(result.frame_maps, name)[0].cpu() for name in _MAP_FIELDS])
             kept_frames.append(window_frames)
-            if masks is not None:
+            if result.movers is not None:
+                kept_masks.append(result.movers.dropped[0].cpu())
+                offset = max((int(m.max()) for m in kept_movers), default=0)
+                labels = result.movers.fit.labels[0].cpu()
+                kept_movers.append(torch.where(labels > 0, labels + offset, labels))
+            elif masks is not None:
                 kept_masks.append(result.dynamic_masks[0].cpu())
 
     if progress is not None:
@@ -453,7 +476,8 @@ def evaluate_video(
     if maps:
         stacked = [torch.cat(parts) if parts[0].dtype == torch.bool else torch.cat(parts).float() for parts in zip(*kept_maps)]
         evaluation_maps = EvaluationMaps(*stacked, frames=torch.cat(kept_frames),
-                                         dynamic_masks=torch.cat(kept_masks) if kept_masks else None)
+                                         dynamic_masks=torch.cat(kept_masks) if kept_masks else None,
+                                         movers=torch.cat(kept_movers) if kept_movers else None)
     scores = {name: _clip_score(windows, name) for name in CUES}
     mask_record = None
     if masks is not None:
@@ -478,7 +502,23 @@ def evaluate_video(
         source=source,
         maps=evaluation_maps,
         dynamic_masks=mask_record,
+        movers=None if loss_config.movers == "drop" else _movers_record(movers, windows, scores["fused"]),
     )
+
+
+def _movers_record(movers: list[dict[str, Any]], windows: list[dict[str, Any]], fused: float) -> dict[str, Any]:
+    """The report's ``movers``: each window's movers with their share of the clip's fused score
+    (a window's part weighted by its frames, as :func:`_clip_score` weighs the windows), counted."""
+    scored = sum(len(w["frames"]) for w in windows if w["fused"] is not None)
+    rows = []
+    for mover in movers:
+        row = dict(mover)
+        part = row.pop("contribution") * len(windows[row["window"]]["frames"]) / scored if scored else math.nan
+        row["share"] = finite_or_none(part / fused) if math.isfinite(fused) and fused > 0 else None
+        rows.append(row)
+    return {"mode": "rigid", "rigid": sum(r["verdict"] == "rigid" for r in rows),
+            "non_rigid": sum(r["verdict"] == "non-rigid" for r in rows),
+            "share": sum(r["share"] or 0.0 for r in rows), "movers": rows}
 
 
 # --------------------------------------------------------------------------------------------
@@ -495,7 +535,7 @@ def render_maps(result: EvaluationResult) -> Tensor:
     Rows: labelled panels source | motion | structure | fused (:func:`map_frames`: enlarged to a
     readable size, viridis on
     the fixed :data:`~geco_guide.metric.render.MAP_RANGE`, grey = no valid pixel, grey-and-white stripes
-    = left out by the dynamic mask), the legend
+    = left out by the dynamic mask, a white outline = a mover scored against its own motion), the legend
     (:func:`colorbar`), and a line with the frame's time and scores.
     """
     if result.maps is None:
@@ -505,6 +545,8 @@ def render_maps(result: EvaluationResult) -> Tensor:
     heat = [colorize(getattr(m, name), getattr(m, f"{name}_valid")) for name in MAP_PANELS[1:]]
     if m.dynamic_masks is not None:  # left out as moving on its own: striped, not "consistent"
         heat = [hatch(panel, m.dynamic_masks, scale) for panel in heat]
+    if m.movers is not None:  # scored against their own motion, on the static part's colour scale
+        heat = [outline(panel, m.movers) for panel in heat]
     captions = [f"T={row['time_s']:.2f}S FUSED {_score_text(row['fused'])} MOTION {_score_text(row['motion'])} "
                 f"STRUCTURE {_score_text(row['structure'])}" for row in result.frame_scores]
     return map_frames(m.frames, heat, [name.upper() for name in MAP_PANELS], captions)

@@ -7,10 +7,10 @@ clip (:func:`evaluation_windows`, at most ``max_windows``), each sampled on a ti
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
-from ..loss.geco import GeCoLossConfig, frame_pairs
+from ..loss.geco import MOVER_MODES, GeCoLossConfig, frame_pairs
 from ..loss.presets import evaluation_loss
 from ..types import OptionError
 from .model_fps import PAPER_MODEL_FPS
@@ -121,6 +121,10 @@ class EvaluationConfig:
         max_frames: score only the first ``max_frames`` frames of a clip (``None``: all, the
             protocol). Total / Mean Motion cover the whole clip, so a long clip costs time in
             proportion to its length (:func:`scoring_plan`); this bounds it.
+        movers: what dynamic masks do to what they cover: ``drop`` (left out, the default) or
+            ``rigid`` (each mover scored against its own rigid motion, a non-rigid one left out;
+            :mod:`geco_guide.loss.movers`). It sets the metric's ``loss.movers``
+            (:meth:`scoring_loss`); needs dynamic masks.
     """
 
     window_seconds: float = 3.0
@@ -132,8 +136,13 @@ class EvaluationConfig:
     device: str = "auto"
     loss: GeCoLossConfig = field(default_factory=evaluation_loss)
     max_frames: Optional[int] = None
+    movers: str = "drop"
 
     def __post_init__(self) -> None:
+        if self.movers not in MOVER_MODES:
+            raise OptionError("movers", f"must be one of {MOVER_MODES}, got {self.movers!r}")
+        if self.loss.movers != "drop":
+            raise OptionError("loss.movers", f"is set by evaluation.movers; set that instead of loss.movers={self.loss.movers!r}")
         if self.max_frames is not None and self.max_frames < 2:
             raise OptionError("max_frames", f"must be >= 2 (GeCo compares frames), got {self.max_frames}")
         if not self.window_seconds > 0:
@@ -151,6 +160,10 @@ class EvaluationConfig:
             raise OptionError("flow_batch_size", f"must be >= 1, got {self.flow_batch_size}")
         if not (self.device in ("auto", "cpu", "mps") or self.device.startswith("cuda")):
             raise OptionError("device", f"must be auto, cpu, mps or cuda[:N], got {self.device!r}")
+
+    def scoring_loss(self) -> GeCoLossConfig:
+        """The metric's loss options with :attr:`movers`: what every window is scored with."""
+        return self.loss if self.movers == "drop" else replace(self.loss, movers=self.movers)
 
     def fps_of_model(self, name: str) -> float:
         """The native frame rate of model ``name``; ValueError listing the known names."""

@@ -16,9 +16,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["FONT_SIZE", "INVALID_COLOR", "MAP_RANGE", "MIN_FONT_SIZE", "READABLE_HEIGHT", "VIRIDIS",
+__all__ = ["FONT_SIZE", "INVALID_COLOR", "MAP_RANGE", "MIN_FONT_SIZE", "OUTLINE_COLOR", "READABLE_HEIGHT", "VIRIDIS",
            "colorbar", "colorbar_ticks", "colorize", "draw_text", "enlarge", "fitting_size", "hatch",
-           "label_height", "map_frames", "panel_layout", "side_by_side", "text_mask", "text_scale",
+           "label_height", "map_frames", "outline", "panel_layout", "side_by_side", "text_mask", "text_scale",
            "text_strip"]
 
 # Viridis (matplotlib's perceptually uniform, colour-blind-safe map): 9 evenly spaced samples,
@@ -341,3 +341,23 @@ def hatch(images: Tensor, mask: Tensor, scale: int = 1) -> Tensor:
     stripe = ((rows + cols) % period) < period // 2  # [H, W]
     pattern = torch.where(stripe, images.new_tensor(0.85), images.new_tensor(INVALID_COLOR[0]))
     return torch.where(mask.to(images.device).bool()[..., None, :, :], pattern, images)
+
+
+#: The outline of a mover scored against its own motion: white, a colour viridis never takes.
+OUTLINE_COLOR = (1.0, 1.0, 1.0)
+
+
+def outline(images: Tensor, labels: Tensor, color: tuple[float, float, float] = OUTLINE_COLOR) -> Tensor:
+    """``images [..., 3, H, W]`` with the edge of each region of ``labels [..., H, W]`` (int, 0:
+    none) drawn in ``color``: its pixels with a 4-neighbour of another label, so two movers that
+    touch keep their own outlines."""
+    labels = labels.to(images.device)
+    edge = torch.zeros_like(labels, dtype=torch.bool)
+    across = labels[..., :, 1:] != labels[..., :, :-1]
+    down = labels[..., 1:, :] != labels[..., :-1, :]
+    edge[..., :, 1:] |= across
+    edge[..., :, :-1] |= across
+    edge[..., 1:, :] |= down
+    edge[..., :-1, :] |= down
+    edge &= labels > 0
+    return torch.where(edge[..., None, :, :], images.new_tensor(color)[:, None, None], images)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from geco_guide.bench.geco_eval import CAMERAS, SCENARIOS, csv_text, load_prompts, select_prompts
+from geco_guide.bench.geco_eval import CAMERAS, SCENARIOS, csv_text, load_prompts, movers_cell, select_prompts
 from geco_guide.cli import ab
 from geco_guide.cli.geco_eval import main
 from geco_guide.estimators.segmenters import subjects_of
@@ -44,6 +44,16 @@ def test_results_csv_has_a_subjects_column_for_the_dynamic_suite_only():
     assert csv_text([{**row, "subjects": "a dog"}]).splitlines()[0].endswith(",subjects")
 
 
+def test_results_csv_has_a_movers_column_when_movers_are_scored():
+    row = {"model": "m", "guided": False, "prompt_id": "m1", "scenario": "indoor", "camera": "slow", "seed": 0,
+           "subjects": "a car"}
+    assert "movers" not in csv_text([row]).splitlines()[0]
+    cell = movers_cell({"mode": "rigid", "rigid": 2, "non_rigid": 1, "share": 0.3104, "movers": []})
+    assert cell == "2 rigid, 1 non-rigid, 31.0 % of fused"
+    header, line = csv_text([{**row, "movers": cell}]).splitlines()
+    assert header.endswith(",subjects,movers") and line.endswith(',a car,"2 rigid, 1 non-rigid, 31.0 % of fused"')
+
+
 def test_geco_eval_dynamic_scores_and_guides_with_the_subjects_masks(tmp_path: Path, capsys):
     out = tmp_path / "run"
     argv = ["--preset", "tiny", "--suite", "dynamic", "--models", "cogvideox-5b", "--guided", "--limit", "1",
@@ -64,6 +74,19 @@ def test_geco_eval_dynamic_scores_and_guides_with_the_subjects_masks(tmp_path: P
     assert "24 prompts of our own with moving subjects, not the paper's" in (out / "report.md").read_text()
     rows = list(csv.DictReader((out / "results.csv").open()))
     assert [r["subjects"] for r in rows] == ["a dog", "a dog"]
+
+
+def test_geco_eval_dynamic_scores_the_subjects_as_movers(tmp_path: Path):
+    out = tmp_path / "run"
+    argv = ["--preset", "tiny", "--suite", "dynamic", "--models", "cogvideox-5b", "--limit", "1", "--seeds", "0",
+            "--out", str(out), SEGMENTER, "evaluation.movers=rigid"]
+    assert main(argv) == 0
+    result = json.loads((out / "videos" / "cogvideox-5b" / "m1-s0.json").read_text())
+    movers = result["evaluation"]["movers"]
+    assert movers["mode"] == "rigid" and movers["rigid"] + movers["non_rigid"] == len(movers["movers"])
+    assert all(row["verdict"] in ("rigid", "non-rigid") for row in movers["movers"])
+    row = next(csv.DictReader((out / "results.csv").open()))
+    assert row["movers"] == result["movers"] == movers_cell(movers)
 
 
 def test_ab_prompts_take_a_subject_column(tmp_path: Path):
@@ -99,7 +122,7 @@ def test_ab_run_masks_both_scores_and_the_guided_arm(tmp_path: Path):
     unguided = json.loads((out / "pairs" / "dog-s0" / "unguided.json").read_text())
     assert guided["config"]["guidance"]["dynamic"] == "a dog" and guided["dynamic_masks"] == "grounding-sam2: a dog"
     assert all(r["mask_source"] == "grounding-sam2: a dog" for r in guided["guidance_log"])
-    assert unguided["config"]["guidance"]["dynamic"] is None and "dynamic_masks" not in unguided
+    assert unguided["config"]["guidance"]["dynamic"] is None and unguided["dynamic_masks"] is None
     assert list(csv.DictReader((out / "results.csv").open()))[0]["subjects"] == "a dog"
     models = json.loads((out / "summary.json").read_text())["models"]
     assert models["segmenter"] == "tiny-random-grounding-sam2(seed=0)" and models["geometry"] == "tiny-random(seed=0)"

@@ -65,7 +65,9 @@ def test_dynamic_validation_command_end_to_end(tmp_path: Path, capsys):
     assert fp["moving/none"]["fused"] > 20 * fp["still"]["fused"]
     assert fp["moving/true"]["fused"] < 2 * fp["still"]["fused"]
     assert set(report["detection"]) == {"deformation", "occlusion"}
-    assert set(report["targets"]) == {"auto_iou", "hidden_deformation", "score_ratio", "ap_ratio_deformation", "ap_ratio_occlusion"}
+    assert set(report["targets"]) == {"auto_iou", "hidden_deformation", "score_ratio", "ap_ratio_deformation", "ap_ratio_occlusion",
+                                      "movers_removed", "movers_score_ratio", "movers_ap_ratio", "movers_non_rigid_left_out"}
+    assert set(report["movers"]) == {"box_fraction", "rigid", "deformed", "non_rigid", "movers"}
     assert report == json.loads(json.dumps(dynamic_validation(DynamicScenes(4, 24, 32))))  # deterministic
     assert validate_main(["--dynamic", "somewhere"]) == 2
     assert validate_main(["--dynamic-size", "4", "24", "32", str(tmp_path)]) == 2

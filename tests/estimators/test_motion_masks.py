@@ -8,7 +8,9 @@ import pytest
 import torch
 
 from geco_guide.bench.synthetic import inject_deformation, moving_clip, rigid_clip
-from geco_guide.estimators.motion_masks import MotionMasks, connected_regions, dilate, kabsch, splat
+from geco_guide.estimators.motion_masks import MotionMasks, dilate, splat
+from geco_guide.geometry import kabsch
+from geco_guide.io.masks import connected_regions
 from geco_guide.loss.geco import frame_pairs
 from geco_guide.types import DynamicMaskSource, OptionError
 

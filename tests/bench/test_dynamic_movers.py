@@ -1,0 +1,69 @@
+"""Movers with exact ground truth (a box that changes shape while it moves, a box that stretches)
+and the three checks of ``movers="rigid"`` on a fixed seed (``validate --dynamic`` prints them on
+any seed; docs/validation.md gives several)."""
+
+from __future__ import annotations
+
+import pytest
+
+from geco_guide.bench.dynamic_suite import TARGETS, DynamicScenes, mover_clips, movers_validation
+from geco_guide.geometry import pixel_grid, sample_bilinear
+
+
+def _photometric_error(clip, i, j, where):
+    """Mean |frame_j(p + flow) - frame_i(p)| over covisible pixels of ``where`` and their count."""
+    flow, covisible = clip.correspondences(i, j)
+    height, width = flow.shape[-2:]
+    target = pixel_grid(height, width, dtype=flow.dtype) + flow.permute(1, 2, 0)
+    warped = sample_bilinear(clip.frames[j][None].to(flow.dtype), target[None])[0]
+    error = (warped - clip.frames[i].to(flow.dtype)).abs().mean(0)
+    keep = (covisible > 0.5) & where
+    return error[keep].mean().item(), int(keep.sum())
+
+
+@pytest.fixture(scope="module")
+def clips():
+    return mover_clips(DynamicScenes(6, 48, 64, seed=0))
+
+
+def test_the_deformed_and_the_stretching_box_have_exact_flow(clips):
+    for name in ("deformed_moving", "stretching"):
+        clip = clips[name]
+        on_box = clip.dynamic_mask[0]
+        error, count = _photometric_error(clip, 0, 3, on_box)
+        assert count > 50 and error < 0.02, name
+        # their own motion is more than the camera's: the tests below have teeth
+        assert clip.residual_displacement(0, 3)[on_box].max() > 2.0, name
+    deformed = clips["deformed_moving"]
+    assert deformed.mask.any() and not (deformed.mask & ~deformed.dynamic_mask).any()  # on the box alone
+    still = clips["deformed_still"]
+    assert still.mask.any() and not (still.mask & ~still.dynamic_mask).any()  # the same warp, on the still box
+    assert (clips["stretching"].dynamic_mask[-1].sum() > 1.3 * clips["stretching"].dynamic_mask[0].sum())  # parts move apart
+
+
+@pytest.fixture(scope="module")
+def report():
+    return movers_validation(DynamicScenes(6, 48, 64, seed=0))
+
+
+def test_rigid_removes_what_a_rigid_mover_adds(report):
+    rigid = report["rigid"]
+    added = rigid["moving/none/drop"] - rigid["still/none/drop"]
+    assert added > 100 * rigid["still/none/drop"]  # without a mask the box dominates
+    assert rigid["removed"] >= TARGETS["movers_removed"]
+    assert rigid["score_ratio"] <= TARGETS["movers_score_ratio"]
+    assert [row["verdict"] for row in report["movers"]["moving/auto/rigid"]] == ["rigid"]
+
+
+def test_a_mover_that_changes_shape_is_found_by_rigid_and_lost_by_drop(report):
+    deformed = report["deformed"]
+    assert deformed["ap_ratio"] >= TARGETS["movers_ap_ratio"]
+    assert deformed["moving/auto/drop"] <= 2 * deformed["chance"]  # drop: the deformation is masked away
+    assert deformed["moving/true/rigid"] >= TARGETS["movers_ap_ratio"] * deformed["still/none/drop"]
+
+
+def test_a_non_rigid_mover_is_masked_not_scored(report):
+    non_rigid = report["non_rigid"]
+    assert [row["verdict"] for row in report["movers"]["stretching/true/rigid"]] == ["non-rigid"]
+    assert non_rigid["true/rigid"] == non_rigid["true/drop"] < 0.01 * non_rigid["none/drop"]
+    assert all(t["met"] for t in report["targets"].values()), report["targets"]
