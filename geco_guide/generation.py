@@ -61,7 +61,7 @@ OUT_SUFFIXES = (".mp4", ".gif")
 KEYLESS_SECTIONS = ("output", "evaluation")
 #: The moving-subject options, which make no frame while ``guidance.dynamic`` is null: left out of
 #: :func:`video_key` then, so that every video made before they existed keeps its name.
-DYNAMIC_KEYS = ("dynamic", "dynamic_dilation", "dynamic_refresh")
+DYNAMIC_KEYS = ("dynamic", "dynamic_dilation", "dynamic_refresh", "movers")
 SCORES_NOTE = ("These are the anchor frames' scores with the guidance loss' settings; "
                "python -m geco_guide evaluate scores the whole video with the paper's protocol (a different number).")
 #: The score best-of-N selection keeps the lowest of: the fused map under the GeCo protocol.
@@ -112,8 +112,10 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
     dynamic = guidance.get("dynamic") if guided else None
     if dynamic is None and "guidance" in kept:
         kept["guidance"] = {key: value for key, value in kept["guidance"].items() if key not in DYNAMIC_KEYS}
+    if kept.get("guidance", {}).get("movers") == "drop":  # the default (no mover scored) renames no video
+        kept["guidance"] = {key: value for key, value in kept["guidance"].items() if key != "movers"}
     loss = kept.get("guidance", {}).get("loss")
-    if isinstance(loss, dict) and loss.get("movers") == "drop":  # the default (no mover scored) renames no video
+    if isinstance(loss, dict) and loss.get("movers") == "drop":
         kept["guidance"] = {**kept["guidance"], "loss": {key: value for key, value in loss.items() if key != "movers"}}
     if dynamic in (None, "auto") and "estimators" in kept:
         kept["estimators"] = {key: value for key, value in kept["estimators"].items() if key != "segmenter"}
@@ -431,10 +433,11 @@ def score_anchors(made: Sample, cfg: GeCoConfig, models: Models) -> dict[str, fl
     from .sampler.dynamic import RefreshedMasks, guidance_mask_source
     from .sampler.step import score_anchor_frames
 
-    loss = GeCoLoss(models.estimators, cfg.guidance.loss)
+    loss = GeCoLoss(models.estimators, cfg.guidance.scoring_loss() if cfg.guidance.enabled else cfg.guidance.loss)
     masks = guidance_mask_source(cfg.guidance, models.estimators, cfg.model.device) if cfg.guidance.enabled else None
-    if masks is not None:  # the anchors scored as guidance scored them: without what moves
-        loss = functools.partial(loss, dynamic_masks=RefreshedMasks(masks.source, dilation=cfg.guidance.dynamic_dilation))
+    if masks is not None:  # the anchors scored as guidance scored them: without what moves, or its movers rigid
+        masks = RefreshedMasks(masks.source, dilation=cfg.guidance.dynamic_dilation, movers=masks.movers)
+        loss = functools.partial(loss, dynamic_masks=masks, **({} if masks.movers is None else {"movers": masks.movers}))
     return score_anchor_frames(made.frames, anchors_of(cfg), loss)
 
 

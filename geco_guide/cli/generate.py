@@ -41,6 +41,10 @@ def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
                         help="leave what moves on its own out of the guidance loss: 'auto' (detected from depth and "
                              "flow) or the moving subjects, e.g. 'a dog, a person' (segmented by estimators.segmenter, "
                              "SAM 3); sets guidance.dynamic")
+    parser.add_argument("--movers", default=None, choices=("drop", "rigid"),
+                        help="with --dynamic: leave the movers out of the guidance loss (drop, the default) or score "
+                             "each mover that one rigid motion explains against that motion (rigid: guidance keeps "
+                             "its shape); sets guidance.movers")
     parser.add_argument("--out", default=None,
                         help="output path ending in .mp4 or .gif (the sidecar: the same path with .json), or a folder "
                              "(no suffix) for the default name <prompt slug>-<8 hex of prompt and config>-seed<N>"
@@ -75,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     from ..io.video import read_image
 
     options = {"seed": args.seed, "guidance.enabled": False if args.no_guidance else None,
-               "guidance.dynamic": args.dynamic, "run.devices": args.devices}
+               "guidance.dynamic": args.dynamic, "guidance.movers": args.movers, "run.devices": args.devices}
     try:
         cfg = config_from_args(args, args.overrides, options)
         image = read_image(args.image) if args.image is not None else None

@@ -20,6 +20,7 @@ from torch import Tensor
 
 from ..estimators.dynamic_masks import AUTO, mask_source
 from ..estimators.motion_masks import dilate
+from ..loss.movers import RefreshedMovers
 from ..types import Correspondences, DynamicMaskSource, SceneGeometry
 from .config import GuidanceConfig
 
@@ -38,10 +39,14 @@ class RefreshedMasks:
         source: the masks' source.
         refresh: recompute at every ``refresh``-th guided step (1: every step).
         dilation: pixels by which the masks grow.
+        movers: the movers' fit of ``guidance.movers="rigid"``
+            (:class:`~geco_guide.loss.movers.RefreshedMovers`), refitted whenever the masks are
+            recomputed; ``None``: the masks only leave their content out.
     """
 
-    def __init__(self, source: DynamicMaskSource, refresh: int = 1, dilation: int = 0):
-        self.source, self.refresh, self.dilation = source, refresh, dilation
+    def __init__(self, source: DynamicMaskSource, refresh: int = 1, dilation: int = 0,
+                 movers: RefreshedMovers | None = None):
+        self.source, self.refresh, self.dilation, self.movers = source, refresh, dilation, movers
         self.source_name = source.source_name
         self._masks: list[Tensor] = []  # per clip, the last computed
         self._guided_steps = 0
@@ -73,6 +78,8 @@ class RefreshedMasks:
             with torch.no_grad():
                 masks = dilate(self.source.dynamic_masks(frames.detach(), geometry, flow, pairs), self.dilation)
             self._masks[clip:clip + 1] = [masks]
+            if self.movers is not None:
+                self.movers.refresh()
         return self._masks[clip]
 
 
@@ -100,7 +107,8 @@ def guidance_mask_source(config: GuidanceConfig, estimators: Any,
     if not isinstance(source, DynamicMaskSource):
         raise ValueError(f"the segmenter must make a DynamicMaskSource (source_name and dynamic_masks(frames, ...)), "
                          f"got {type(source).__name__}")
-    return RefreshedMasks(source, refresh=config.dynamic_refresh, dilation=config.dynamic_dilation)
+    movers = RefreshedMovers() if config.movers == "rigid" else None
+    return RefreshedMasks(source, refresh=config.dynamic_refresh, dilation=config.dynamic_dilation, movers=movers)
 
 
 def automatic_source(device: torch.device | str = "cpu") -> DynamicMaskSource:

@@ -50,7 +50,9 @@ class AnchorObjective:
         if self.dynamic_masks is None:
             return loss_terms(self.loss_fn(frames))
         self.dynamic_masks.start_update()
-        return loss_terms(self.loss_fn(frames, dynamic_masks=self.dynamic_masks))
+        if self.dynamic_masks.movers is None:
+            return loss_terms(self.loss_fn(frames, dynamic_masks=self.dynamic_masks))
+        return loss_terms(self.loss_fn(frames, dynamic_masks=self.dynamic_masks, movers=self.dynamic_masks.movers))
 
     def with_decode(self, decode: Callable[[Tensor], Tensor]) -> AnchorObjective:
         """The same objective with another anchor decode (another plan's)."""
