@@ -114,7 +114,7 @@ def agreement_config(args: argparse.Namespace) -> Any:
     try:
         cfg = load_config(args.config, args.preset, args.overrides)
         check_config_device(cfg.model.device)
-        check_agreement_config(cfg)
+        check_agreement_config(cfg, args.prompt)
     except (ValueError, FileNotFoundError, WeightsNotFoundError) as err:
         fail(str(err))
     return cfg

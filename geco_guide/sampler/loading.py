@@ -365,12 +365,13 @@ def split_cfg_acts(model: VideoModel, sampling: Any, guidance: GuidanceConfig, r
 
 def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceConfig, run: RunOptions,
                          estimators: EstimatorsConfig, *, weights: bool = True) -> torch.device:
-    """Every check of a run that its config alone can fail, in one pass before anything loads, the
-    cheapest first: the guidance against the model (loss, schedule, anchors, decode layout, tiny
-    decoder, a memory plan that fits), options that cannot act (a warning each), with ``weights``
-    every model's weights (all missing ones named at once), the device, the devices of
-    ``run.devices``, and the video's size against the device's memory. Returns the device
-    ``model.device`` stands for (``auto`` resolved), what the loaders and the sidecar then use.
+    """Every check of a run that its config alone can fail, in one pass before anything loads: the
+    device, then with ``weights`` every model's weights (all missing ones named at once: the
+    problem a fresh machine has, named before what its memory could not hold), the guidance against
+    the model (loss, schedule, anchors, decode layout, tiny decoder, a memory plan that fits),
+    options that cannot act (a warning each), the devices of ``run.devices``, and the video's size
+    against the device's memory. Returns the device ``model.device`` stands for (``auto``
+    resolved), what the loaders and the sidecar then use.
 
     Raises:
         ValueError: one line naming the option.
@@ -381,15 +382,15 @@ def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceCo
 
     entry = model.video_model
     device = check_device(model.device)
+    if weights:
+        missing_weights(model, estimators, tiny_decoder=uses_tiny_decoder(guidance),
+                        segmenter=guidance.enabled and guidance.subjects is not None)
     check_guidance_before_loading(guidance, run, estimators, entry, model_id=model.source,
                                   num_frames=sampling.num_frames, height=sampling.height, width=sampling.width,
                                   num_steps=sampling.num_inference_steps, device=str(device))
     warn_idle_options(entry, sampling, guidance, run)
     if guidance.enabled:
         resolve_devices(run.devices)  # a device this machine lacks: one line before loading
-    if weights:
-        missing_weights(model, estimators, tiny_decoder=uses_tiny_decoder(guidance),
-                        segmenter=guidance.enabled and guidance.subjects is not None)
     # the decoded video alone, in float32, is a lower bound of the run's peak: a refusal is certain
     check_memory_fits(sampling.num_frames * 3 * sampling.height * sampling.width * 4, device,
                       f"a {sampling.num_frames}-frame {sampling.height}x{sampling.width} video "
