@@ -36,7 +36,9 @@ capture (:class:`ParticleSplit`) runs the pipeline's own denoiser calls of the `
 sub-batches (dealt over ``run.devices``), the wrapped ``step`` guides the particles sub-batch by
 sub-batch (the replay cut to their rows) and, at a resampling step, scores and resamples them and
 carries the scheduler's per-particle state and the step's other per-particle arguments
-(CogVideoX-DPM's ``old_pred_original_sample``). Call the pipeline with one prompt,
+(CogVideoX-DPM's ``old_pred_original_sample``); the VAE decodes one video at a time during the
+call (its ``use_slicing``, as it was before on the next call and on detach), so that each
+particle's frames are its own decode. Call the pipeline with one prompt,
 ``num_videos_per_prompt=K`` and a generator per particle.
 
 Compared with ``GeCoCogVideoXPipeline``: the same guided step, schedule, time travel, fast and
@@ -297,6 +299,7 @@ class GeCoGuidanceHandle:
         self._hooked: dict[int, tuple[nn.Module, list[Any], ParticleSplit]] = {}
         self._schedulers: list[tuple[Any, Any]] = []
         self._saved_prepare: Any = _MISSING
+        self._slicing: tuple[Any, bool] | None = None  # a search call's VAE and its use_slicing before
         self._attached = False
         self._replaying = False
 
@@ -333,6 +336,11 @@ class GeCoGuidanceHandle:
             self._register_hooks(module)
         self._patch_scheduler(pipe.scheduler)
         self._attached = True
+
+    def _restore_slicing(self) -> None:
+        if self._slicing is not None:
+            vae, previous = self._slicing
+            vae.use_slicing, self._slicing = previous, None
 
     def _register_hooks(self, module: nn.Module) -> None:
         """The particle split (inner) and the capture (outer) in ``module``'s hook registry."""
@@ -394,6 +402,7 @@ class GeCoGuidanceHandle:
             else:
                 scheduler.__dict__["step"] = previous
         self._schedulers.clear()
+        self._restore_slicing()
         self._state = None
         self._attached = False
 
@@ -415,6 +424,7 @@ class GeCoGuidanceHandle:
         self.last = None
         for _, _, split in self._hooked.values():
             split.places = None
+        self._restore_slicing()
         search = resolve_search_config(self.search)
         if not config.enabled and search is None:
             self.last = GuidanceReport(scheduler=type(self.pipe.scheduler).__name__)
@@ -433,6 +443,10 @@ class GeCoGuidanceHandle:
         state = _CallState(call, generator, search_config=search)
         if search is not None:
             state.particle_batch = call.particle_batch(search.particles)
+            vae = getattr(self.pipe, "vae", None)
+            if hasattr(vae, "use_slicing"):  # the final videos one at a time: each particle's frames its own
+                self._slicing = (vae, vae.use_slicing)
+                vae.use_slicing = True
             for module, _, _ in list(self._hooked.values()):
                 places: list[tuple[Any, Any]] = [(None, None)]  # the call's own device and forward
                 if call.devices:

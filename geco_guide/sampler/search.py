@@ -184,10 +184,7 @@ def resolve_search_config(search: SearchConfig | Mapping[str, Any] | None) -> Se
     if not isinstance(search, SearchConfig):
         if not hasattr(search, "keys"):
             raise ValueError(f"search must be a SearchConfig or a dict, got {type(search).__name__}")
-        try:
-            search = merge_dataclass(SearchConfig(), search, "search")
-        except OptionError as err:
-            raise ValueError(f"search.{err}") from None
+        search = merge_dataclass(SearchConfig(), search, "search")
     return search if search.enabled else None
 
 
