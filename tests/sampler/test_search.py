@@ -451,3 +451,39 @@ def test_hooks_search_errors_are_one_line_before_any_denoising_step(estimators):
         with pytest.raises(ValueError, match=r"search.resample_steps \[9\] are outside the 4 denoising steps"):
             pipe(prompt=PROMPT, generator=gens(0, 1), num_videos_per_prompt=2, **kwargs)
     assert forwards.n == 0  # refused at prepare_latents; the steps at the first denoiser call, before it runs
+
+
+class LeftHalf:
+    """A mask source that masks the left half of every frame, and counts the clips it was asked for."""
+
+    source_name = "left half"
+
+    def __init__(self):
+        self.clips = 0
+
+    def dynamic_masks(self, frames, geometry=None, flow=None, pairs=None):
+        self.clips += 1
+        masks = torch.zeros(frames.shape[0], *frames.shape[-2:], dtype=torch.bool)
+        masks[..., : frames.shape[-1] // 2] = True
+        return masks
+
+
+def test_search_with_dynamic_masks_scores_without_what_moves_and_guides_each_particle(estimators, monkeypatch):
+    pipe = cogvideox()
+    search = SearchConfig(particles=2, resample_steps=[2], scheme=fixed_scheme(monkeypatch, "copy", [1, 1]))
+    plain = run_pipeline(pipe, estimators, seeds=(0, 1), search=search)
+    source = LeftHalf()
+    with_masks = estimators.with_segmenter(source)
+    masked = run_pipeline(pipe, with_masks, seeds=(0, 1), search=search,
+                          guidance=T.tiny_guidance_config(anchors=ANCHORS, enabled=False, dynamic="the dog"))
+    assert source.clips == 2  # each particle's anchors, at the one resampling
+    assert masked.report.search["resamplings"][0]["scores"] != plain.report.search["resamplings"][0]["scores"]
+    guided = T.tiny_guidance_config(anchors=ANCHORS, repeats="0x1,1x3", time_travel=[], step_size=1.0,
+                                    denoiser_grad=False, dynamic="the dog", dynamic_refresh=2)
+    source.clips = 0
+    report = run_pipeline(pipe, with_masks, seeds=(0, 1), search=search, guidance=guided,
+                          run=T.tiny_run_options(particle_batch=1)).report
+    # guided steps 1 and 3 refresh each particle's masks (2 x 2), step 2 reuses them, the scoring asks afresh (2)
+    assert source.clips == 6 and report.mask_source == "left half"
+    assert [tuple(r["particles"]) for r in report.log] == [(0, 0), (1, 1)] * 3
+    assert all(r["masked_fraction"] == pytest.approx(0.5) for r in report.log)
