@@ -243,7 +243,7 @@ class ParticleSplit(ModelHook):
         super().__init__()
         self.handle = handle
         #: the devices and their replicas of this call's search, ``None`` outside one
-        self.places: list[tuple[torch.device, Any]] | None = None
+        self.places: list[tuple[torch.device | None, Any]] | None = None
 
     def new_forward(self, module: nn.Module, *args: Any, **kwargs: Any) -> Any:
         state, forward = self.handle._state, self.fn_ref.original_forward

@@ -245,7 +245,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         with self.transformer.cache_context("cond_uncond"):
             if do_classifier_free_guidance and self._cfg_halves is not None:
                 noise_pred = self._cfg_halves(**inputs)
-            elif self._particle_batches is not None and z.shape[0] == self._particle_batches.particles:
+            elif self._particle_batches is not None and z.shape[0] == self._particle_batches.particles > 1:
                 noise_pred = output_tensor(self._particle_batches(**inputs))
             else:
                 noise_pred = self.transformer(**inputs)[0]

@@ -424,12 +424,12 @@ class ParticleSearch:
         return slots
 
     def report(self, particles: int) -> dict[str, Any]:
-        """What the search of a call of ``particles`` particles did: its options, the particle
-        batch, each resampling's record (``step, t, scores, ancestors, resampled,
+        """What the search of a call of ``particles`` particles did: its options (the resampling
+        steps resolved), each resampling's record (``step, t, scores, ancestors, resampled,
         effective_sample_size, renoised, seconds``), the scheduler state carried, and each final
         particle's lineage."""
         return {
-            **asdict(self.config), "resample_steps": self.steps, "particle_batch": self.batch,
+            **asdict(self.config), "resample_steps": self.steps,
             "resamplings": self.records, "carried_state": self.carried,
             "lineages": [self.lineage(k) for k in range(particles)],
         }
