@@ -28,8 +28,8 @@ from torch import Tensor, nn
 
 from .multi_device import module_replicas, to_device
 
-__all__ = ["UNBATCHED_KEYS", "ParticleBatches", "call_rows", "hidden_states_of", "output_tensor",
-           "denoiser_places", "particle_batches", "particle_rows", "reorder_scheduler_state", "with_output_tensor"]
+__all__ = ["UNBATCHED_KEYS", "ParticleBatches", "call_rows", "denoiser_places", "hidden_states_of", "output_tensor",
+           "particle_batches", "particle_rows", "reorder_scheduler_state", "with_output_tensor"]
 
 #: Keyword arguments of a denoiser that never carry the batch, even where their first dimension
 #: happens to equal it (CogVideoX's rotary embeddings: one per token).

@@ -46,7 +46,14 @@ from .adapters import keep_update
 from .config import GuidanceConfig
 from .dynamic import RefreshedMasks
 from .levels import NoiseLevels, randn_like
-from .memory_plan import DEVICE_HEADROOM, GIB, PlanChoice, known_model, load_estimates, predicted_parts
+from .memory_plan import (
+    DEVICE_HEADROOM,
+    GIB,
+    PlanChoice,
+    known_model,
+    load_estimates,
+    predicted_parts,
+)
 from .particles import particle_batches, reorder_scheduler_state
 from .run_options import RunOptions
 

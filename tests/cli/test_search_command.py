@@ -31,10 +31,11 @@ def test_bad_search_options_are_one_line_before_loading(tmp_path, capsys, monkey
     cases = [
         (["--search", "0"], "error: argument --search: must be a whole number >= 1 written in digits, got '0'"),
         (["--search", "2", "search.resample_steps=[4]"],
-         "error: invalid value for config key 'search.resample_steps': search.resample_steps [4] are outside the 4 "
-         "denoising steps (0 to 3)"),
+         ("error: invalid value for config key 'search.resample_steps': search.resample_steps [4] are outside the 4 "
+          "denoising steps (0 to 3)")),
         (["--search", "2", "search.temperature=0"],
-         "error: invalid value for config key 'search.temperature': temperature must be a finite number > 0, got 0"),
+         ("error: invalid value for config key 'search.temperature': temperature must be a finite number > 0, "
+          "got 0")),
         (["--search", "2", "--best-of", "2"], "error: --best-of and a search (search.particles) are two ways"),
         (["--search", "2", "search.potential=max"], "error: invalid value for config key 'search.potential'"),
     ]

@@ -429,7 +429,7 @@ def test_hooks_sub_batches_and_devices_give_the_same_frames(estimators):
     search = SearchConfig(particles=3, resample_steps=[1, 2], temperature=0.001)
     one_batch, a = run_hooked(pipe, estimators, (0, 1, 2), search, GUIDED, T.tiny_run_options(particle_batch=3))
     singles, b = run_hooked(pipe, estimators, (0, 1, 2), search, GUIDED, T.tiny_run_options(particle_batch=1))
-    dealt, c = run_hooked(pipe, estimators, (0, 1, 2), search, GUIDED,
+    dealt, _ = run_hooked(pipe, estimators, (0, 1, 2), search, GUIDED,
                           T.tiny_run_options(particle_batch=1, devices=["cpu", "cpu"]))
     assert torch.equal(dealt, singles)
     assert [r["ancestors"] for r in a.search["resamplings"]] == [r["ancestors"] for r in b.search["resamplings"]]
