@@ -356,8 +356,9 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
     draws from a generator of :func:`~geco_guide.sampler.search.search_seed` of ``seed``). Each
     final particle is then scored with the GeCo protocol
     (:func:`~geco_guide.metric.evaluate.evaluate_video`, the config's ``evaluation`` section, at
-    ``sampling.fps``) and the one of least fused score kept, as best-of-N keeps its candidates (a
-    NaN ranks last, ties go to the earlier particle). ``on_particle(k, scores)`` is called after
+    ``sampling.fps``; its frames as decoded, where best-of-N scores its written files) and the one
+    of least fused score kept, as best-of-N keeps its candidates (a NaN ranks last, ties go to the
+    earlier particle). ``on_particle(k, scores)`` is called after
     each is scored.
 
     Returns:
