@@ -30,6 +30,7 @@ _EXPORTS = {
     "GeCoCogVideoXPipeline": "geco_guide.sampler.pipeline_cogvideox",
     "GuidanceConfig": "geco_guide.sampler.config",
     "RunOptions": "geco_guide.sampler.run_options",
+    "SearchConfig": "geco_guide.sampler.search",
     "evaluate_video": "geco_guide.metric.evaluate",
     "GuidanceReport": "geco_guide.sampler.context",
     "generate": "geco_guide.generation",
@@ -55,6 +56,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .sampler.hooks import attach_geco_guidance
     from .sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
     from .sampler.run_options import RunOptions
+    from .sampler.search import SearchConfig
     from .types import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry
 
 

@@ -5,7 +5,8 @@ the registry :mod:`geco_guide.families` and its weights), ``estimators`` (:class
 geometry + flow backbones, segmenter, tiny decoder), ``sampling`` (:class:`SamplingConfig`: steps,
 CFG, size; null values are the model's defaults), ``guidance`` (:class:`GuidanceConfig`, what
 guidance computes: anchors, schedule, step size, time travel, and ``guidance.loss``, which *is*
-:class:`GeCoLossConfig`), ``run`` (:class:`RunOptions`, how this machine runs it: memory plan,
+:class:`GeCoLossConfig`), ``search`` (:class:`SearchConfig`: particle search with GeCo as the
+verifier, off by default), ``run`` (:class:`RunOptions`, how this machine runs it: memory plan,
 decode layout, devices), ``output``, ``evaluation`` (:class:`EvaluationConfig`: how ``python -m
 geco_guide evaluate`` samples a video, with the metric's own ``evaluation.loss``) and ``seed``.
 Defaults are the GeCo paper's CogVideoX-5b setting; the presets are the checkout's
@@ -42,9 +43,11 @@ from .sampler.config import GuidanceConfig, paper_guidance_config
 from .sampler.loading import ModelConfig
 from .sampler.run_options import RunOptions, check_run_for_guidance
 from .sampler.sampling import SamplingConfig, sampling_problem, with_model_defaults
+from .sampler.search import SearchConfig
 from .types import OptionError, non_finite_fields, renamed_option
 
 __all__ = ["CONFIG_DIR", "DTYPES", "SEED_RANGE", "GeCoConfig", "ModelConfig", "OutputConfig", "SamplingConfig",
+           "SearchConfig",
            "config_to_dict", "config_to_yaml", "load_config", "model_preset", "preset_path", "to_config",
            "validate_config"]
 
@@ -76,6 +79,7 @@ class GeCoConfig:
     estimators: EstimatorsConfig = field(default_factory=EstimatorsConfig)
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     guidance: GuidanceConfig = field(default_factory=paper_guidance_config)  # the paper's experiment (motion cue)
+    search: SearchConfig = field(default_factory=SearchConfig)  # off: particles null
     run: RunOptions = field(default_factory=RunOptions)
     output: OutputConfig = field(default_factory=OutputConfig)
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
@@ -272,7 +276,7 @@ def to_config(cfg: DictConfig | dict | GeCoConfig) -> GeCoConfig:
 def _section_of(cfg: DictConfig) -> str:
     """Which checked section of ``cfg`` fails its dataclass's checks: built one by one, innermost
     first, since the same dataclass (GeCoLossConfig) sits in two places."""
-    for section in ("guidance.loss", "guidance", "run", "evaluation.loss", "evaluation"):
+    for section in ("guidance.loss", "guidance", "search", "run", "evaluation.loss", "evaluation"):
         try:
             OmegaConf.to_object(OmegaConf.select(cfg, section))
         except OptionError:
@@ -330,6 +334,13 @@ def validate_config(cfg: GeCoConfig) -> None:
         check_run_for_guidance(cfg.run, g.decoder)
     except OptionError as err:
         raise ValueError(f"invalid value for config key 'run.{err.key}': {err}") from None
+    if cfg.search.enabled:
+        try:
+            cfg.search.steps(s.num_inference_steps)
+        except ValueError as err:
+            raise ValueError(f"invalid value for config key 'search.resample_steps': {err}") from None
+        _require(not cfg.run.split_cfg, "run.split_cfg", "splits one video's CFG batch over two devices; a search "
+                                                         "deals its particles over run.devices instead: use false")
     _require(bool(cfg.output.dir), "output.dir", "must not be empty")
     name = cfg.output.name
     _require(

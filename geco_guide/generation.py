@@ -12,7 +12,9 @@ here, for every model of the registry (:mod:`geco_guide.families`):
    the estimators (with the segmenter and the tiny decoder where the guidance uses them).
 3. :func:`sample` makes one video: the pipeline's own call, guided by its loop or through
    :func:`~geco_guide.sampler.hooks.attach_geco_guidance`; it returns the frames and what the
-   call decided (:class:`~geco_guide.sampler.context.GuidanceReport`).
+   call decided (:class:`~geco_guide.sampler.context.GuidanceReport`). With ``search.particles``
+   set it is :func:`sample_search`: ``K`` particles in one call, resampled by their GeCo scores,
+   and the final one of least score under the evaluation protocol kept.
 4. :func:`generate` writes the video and its sidecar, atomically, under an output lock;
    :func:`generate_best_of` makes N and keeps the least inconsistent.
 """
@@ -49,7 +51,8 @@ if TYPE_CHECKING:
 
 __all__ = ["KEYLESS_SECTIONS", "SCORES_NOTE", "SELECTION_SCORE", "GenerationResult", "Models", "Sample",
            "best_candidate", "check_generation", "check_prompt", "default_name", "generate", "generate_best_of",
-           "load_models", "loading_line", "output_paths", "sample", "slugify", "versions", "video_key"]
+           "load_models", "loading_line", "output_paths", "sample", "sample_search", "slugify", "versions",
+           "video_key"]
 
 logger = logging.getLogger(__name__)
 
@@ -90,8 +93,9 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
     defaults and act (``split_cfg`` only with guidance and CFG): those can change the frames to float
     rounding and so name another video. The device can change the bytes (CPU and GPU kernels round
     differently), but a video moved to another device is the same experiment, so it does not
-    rename it. Left out too while unused: the :data:`DYNAMIC_KEYS` of a null ``guidance.dynamic``
-    (or of a video made without guidance), ``guidance.loss.movers`` at its default ``drop``, and
+    rename it. Left out too while unused: the ``search`` section without a search
+    (``search.particles`` null), the :data:`DYNAMIC_KEYS` of a null ``guidance.dynamic`` (or of a
+    video made without guidance or search), ``guidance.loss.movers`` at its default ``drop``, and
     ``estimators.segmenter`` unless ``guidance.dynamic`` names subjects. The JSON is canonical (sorted keys), so the key is the
     same in every process and on every machine.
     """
@@ -101,15 +105,18 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
     kept["model"] = {key: value for key, value in kept.get("model", {}).items() if key != "device"}
     guidance = kept.get("guidance", {})
     guided = guidance.get("enabled", True)
+    searched = (kept.get("search") or {}).get("particles") is not None
+    if not searched:  # a new section renames no video
+        kept.pop("search", None)
     if "run" in kept:  # the options that round frames, where set and acting: a new one renames no video
         defaults = asdict(RunOptions())
         sampling = kept.get("sampling", {})
-        acting = {"split_cfg": guided and (sampling.get("guidance_scale") or 0) > 1.0}
+        acting = {"split_cfg": guided and (sampling.get("guidance_scale") or 0) > 1.0, "particle_batch": searched}
         kept["run"] = {key: value for key, value in kept["run"].items()
                        if key in FRAME_ROUNDING_KEYS and value != defaults[key] and acting.get(key, True)}
         if not kept["run"]:
             del kept["run"]
-    dynamic = guidance.get("dynamic") if guided else None
+    dynamic = guidance.get("dynamic") if guided or searched else None
     if dynamic is None and "guidance" in kept:
         kept["guidance"] = {key: value for key, value in kept["guidance"].items() if key not in DYNAMIC_KEYS}
     if kept.get("guidance", {}).get("movers") == "drop":  # the default (no mover scored) renames no video
@@ -124,8 +131,10 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
 
 
 def default_name(cfg: GeCoConfig, prompt: str) -> str:
-    """``<slug>-<video key>-seed<N>``, with ``-unguided`` when guidance is off."""
-    suffix = "" if cfg.guidance.enabled else "-unguided"
+    """``<slug>-<video key>-seed<N>``, with ``-unguided`` when guidance is off and ``-search-<K>``
+    for a search of ``K`` particles."""
+    suffix = ("" if cfg.guidance.enabled else "-unguided") + (
+        f"-search-{cfg.search.particles}" if cfg.search.enabled else "")
     return f"{slugify(prompt)}-{video_key(config_to_dict(cfg), prompt)}-seed{cfg.seed}{suffix}"
 
 
@@ -183,7 +192,12 @@ def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (),
     from .sampler.loading import check_before_loading
 
     check_prompt(prompt)
-    device = check_before_loading(cfg.model, cfg.sampling, cfg.guidance, cfg.run, cfg.estimators, weights=not loaded)
+    if cfg.search.enabled and cfg.seed + cfg.search.particles - 1 > SEED_RANGE[1]:
+        raise ValueError(f"search.particles={cfg.search.particles} from seed {cfg.seed} needs seeds up to "
+                         f"{cfg.seed + cfg.search.particles - 1}, over the 64-bit limit {SEED_RANGE[1]}: choose a "
+                         "smaller seed")
+    device = check_before_loading(cfg.model, cfg.sampling, cfg.guidance, cfg.run, cfg.estimators, weights=not loaded,
+                                  search=cfg.search)
     check_output_paths(paths, overwrite)
     for path in paths[:1]:
         check_fps(cfg.sampling.fps, path.suffix)
@@ -239,14 +253,14 @@ def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True) -> Mod
         components = tiny_video_components(cfg.model.video_model, cfg.model.init_seed)
     video = load_video_pipeline(cfg.model, cfg.sampling.scheduler, components)
     decoder = None
-    if estimators is not False and uses_tiny_decoder(cfg.guidance):
+    if estimators is not False and uses_tiny_decoder(cfg.guidance, cfg.search.enabled):
         vae_config = video.pipe.vae.config
         channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)
         decoder = load_tiny_decoder(cfg.estimators, video.model, channels, getattr(torch, cfg.model.dtype))
         decoder = decoder.to(device=video.pipe.device)
     bundle = estimators if isinstance(estimators, Estimators) else None
     if estimators is True:
-        segmenter = cfg.guidance.enabled and cfg.guidance.subjects is not None
+        segmenter = (cfg.guidance.enabled or cfg.search.enabled) and cfg.guidance.subjects is not None
         bundle = load_estimators(cfg.estimators, cfg.model.device, segmenter=segmenter)
     if bundle is not None and decoder is not None:
         bundle = bundle.with_tiny_decoder(decoder)
@@ -264,12 +278,14 @@ class Sample:
     Attributes:
         frames: ``[1, F, 3, H, W]`` in ``[0, 1]``, float32, on the CPU.
         report: what the call decided (:class:`~geco_guide.sampler.context.GuidanceReport`).
-        seconds: the call's wall time.
+        seconds: the call's wall time (a search's: with the selection's scoring).
+        search: what a search did and chose (:func:`sample_search`), ``None`` without one.
     """
 
     frames: torch.Tensor
     report: GuidanceReport
     seconds: float
+    search: dict[str, Any] | None = None
 
 
 def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = None, image: Any = None,
@@ -279,16 +295,19 @@ def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = N
     or by :func:`~geco_guide.sampler.hooks.attach_geco_guidance` on the stock pipeline;
     ``image`` conditions an image-to-video pipeline.
 
+    With ``search.particles`` set, the video is a search's (:func:`sample_search`).
+
     Raises:
         ValueError: the sampled frames hold NaN/inf (nothing is made of them), or an option the
             pipeline has no argument for.
     """
+    if cfg.search.enabled:
+        return sample_search(models, cfg, prompt, seed=seed, image=image, observer=observer, progress=progress)
     import torch
 
     from .sampler.context import GuidanceReport
     from .sampler.sampling import call_arguments
     from .tiny import tiny_call_extras
-    from .types import NonFiniteFramesError, check_frame_values
 
     pipe, entry = models.pipe, models.video.model
     generator = torch.Generator(device="cpu").manual_seed(cfg.seed if seed is None else seed)
@@ -315,13 +334,101 @@ def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = N
         report = GuidanceReport(scheduler=type(pipe.scheduler).__name__)
     seconds = time.perf_counter() - start
     frames = output.frames[:1].float().cpu()  # [1, F, 3, H, W] in [0, 1]
+    _check_sampled(frames)
+    return Sample(frames, report, seconds)
+
+
+def _check_sampled(frames: torch.Tensor) -> None:
+    """ValueError (one line) for sampled frames that hold NaN/inf: the VAE's clamp would write NaN
+    as black and score it 0."""
+    from .types import NonFiniteFramesError, check_frame_values
+
     try:
         check_frame_values(frames, "the sampled video")
-    except NonFiniteFramesError as err:  # the VAE's clamp would write NaN as black and score it 0
+    except NonFiniteFramesError as err:
         raise ValueError(
             f"sampling diverged, nothing was written: {err} (lower sampling.guidance_scale or guidance.step_size)"
         ) from None
-    return Sample(frames, report, seconds)
+
+
+def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = None, image: Any = None,
+                  observer: GuidanceObserver | None = None, progress: bool = True,
+                  on_particle: Callable[[int, Any], None] | None = None) -> Sample:
+    """A particle search (``cfg.search``, :mod:`geco_guide.sampler.search`): ``K =
+    search.particles`` videos of ``prompt`` as one call, particle ``k`` seeded with ``seed + k``
+    (default ``cfg.seed``; so without a resampling each particle starts as that seed's video),
+    guided as ``cfg.guidance`` says, scored by GeCo and resampled at the search's steps (the
+    draws from a generator of :func:`~geco_guide.sampler.search.search_seed` of ``seed``). Each
+    final particle is then scored with the GeCo protocol
+    (:func:`~geco_guide.metric.evaluate.evaluate_video`, the config's ``evaluation`` section, at
+    ``sampling.fps``; its frames as decoded, where best-of-N scores its written files) and the one
+    of least fused score kept, as best-of-N keeps its candidates (a NaN ranks last, ties go to the
+    earlier particle). ``on_particle(k, scores)`` is called after
+    each is scored.
+
+    Returns:
+        The kept video; its ``search``: the search's record (:meth:`ParticleSearch.report
+        <geco_guide.sampler.search.ParticleSearch.report>`) with ``final_particles`` (each final
+        particle's lineage, the seed it started from and its protocol scores) in place of the
+        lineages, ``kept``, ``kept_lineage``, ``score`` (what selects) and ``selection_s``.
+
+    Raises:
+        ValueError: (one line) a conditioning ``image`` (a search of an image-to-video model is
+            not supported), or the kept video holds NaN/inf.
+    """
+    import torch
+
+    from .metric.evaluate import evaluate_video, finite_or_none
+    from .sampler.sampling import call_arguments
+    from .sampler.search import search_seed
+    from .tiny import tiny_call_extras
+
+    if image is not None:
+        raise ValueError("a search of an image-to-video model is not supported: leave search.particles unset with --image")
+    seed = cfg.seed if seed is None else seed
+    particles = cfg.search.particles
+    pipe, entry = models.pipe, models.video.model
+    generators = [torch.Generator(device="cpu").manual_seed(seed + k) for k in range(particles)]
+    search_generator = torch.Generator(device="cpu").manual_seed(search_seed(seed))
+    extra = tiny_call_extras(pipe) if cfg.model.source == TINY_RANDOM else {}
+    if entry.guided_by != "pipeline":  # a stock pipeline's batch: its videos per prompt
+        extra["num_videos_per_prompt"] = particles
+    arguments = call_arguments(pipe, cfg.sampling, prompt=prompt, generator=generators, **extra)
+    pipe.set_progress_bar_config(disable=not progress)
+    start = time.perf_counter()
+    if entry.guided_by == "pipeline":
+        output = pipe(**arguments, guidance=cfg.guidance, run_options=cfg.run, estimators=models.estimators,
+                      observer=observer, search=cfg.search, search_generator=search_generator)
+        report = output.report
+    else:
+        from .sampler.hooks import attach_geco_guidance
+
+        with attach_geco_guidance(pipe, cfg.guidance, models.estimators, cfg.run, search=cfg.search) as handle:
+            handle.observer, handle.search_generator = observer, search_generator
+            output = pipe(**arguments)
+        report = handle.last
+    frames = output.frames.float().cpu()  # [K, F, 3, H, W] in [0, 1]
+    selection_start = time.perf_counter()
+    scores = []
+    for k in range(particles):
+        try:
+            scored = evaluate_video(frames[k], models.estimators, cfg.evaluation, fps=cfg.sampling.fps)
+            values = {key: finite_or_none(getattr(scored, key)) for key in ("fused", "motion", "structure")}
+        except ValueError:  # NaN frames: the particle ranks last
+            values = dict.fromkeys(("fused", "motion", "structure"))
+        scores.append(values)
+        if on_particle is not None:
+            on_particle(k, values)
+    kept = best_candidate([math.nan if s[SELECTION_SCORE] is None else s[SELECTION_SCORE] for s in scores])
+    video = frames[kept:kept + 1]
+    _check_sampled(video)
+    record = report.search
+    search = {**record, "score": f"{SELECTION_SCORE} (the GeCo protocol, evaluation.*)", "kept": kept,
+              "kept_lineage": record["lineages"][kept], "selection_s": time.perf_counter() - selection_start,
+              "final_particles": [{"particle": k, "seed": seed + record["lineages"][k][0],
+                                   "lineage": record["lineages"][k], **scores[k]} for k in range(particles)]}
+    del search["lineages"]
+    return Sample(video, replace(report, search=search), time.perf_counter() - start, search=search)
 
 
 # --------------------------------------------------------------------------------------------
@@ -403,7 +510,7 @@ def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidec
     timings: dict[str, float] = {}
     start = time.perf_counter()
     if models is None:
-        needs_estimators = cfg.guidance.enabled or _scores_needed(cfg)
+        needs_estimators = cfg.guidance.enabled or cfg.search.enabled or _scores_needed(cfg)
         if announce is not None:
             announce(loading_line(cfg, needs_estimators))
         models = load_models(cfg, estimators=needs_estimators)
@@ -433,8 +540,9 @@ def score_anchors(made: Sample, cfg: GeCoConfig, models: Models) -> dict[str, fl
     from .sampler.dynamic import RefreshedMasks, guidance_mask_source
     from .sampler.step import score_anchor_frames
 
-    loss = GeCoLoss(models.estimators, cfg.guidance.scoring_loss() if cfg.guidance.enabled else cfg.guidance.loss)
-    masks = guidance_mask_source(cfg.guidance, models.estimators, cfg.model.device) if cfg.guidance.enabled else None
+    loss = GeCoLoss(models.estimators, cfg.guidance.scoring_loss())
+    masked = cfg.guidance.enabled or cfg.search.enabled
+    masks = guidance_mask_source(cfg.guidance, models.estimators, cfg.model.device) if masked else None
     if masks is not None:  # the anchors scored as guidance scored them: without what moves, or its movers rigid
         masks = RefreshedMasks(masks.source, dilation=cfg.guidance.dynamic_dilation, movers=masks.movers)
         loss = functools.partial(loss, dynamic_masks=masks, **({} if masks.movers is None else {"movers": masks.movers}))
@@ -473,6 +581,7 @@ def sidecar_of(cfg: GeCoConfig, prompt: str, models: Models, made: Sample, video
         "timings": {**timings, "guidance_s": sum(r["seconds"] for r in log)},
         "geco_scores": {"anchors": anchors_of(cfg), **scores} if scores is not None else None,
         "guidance_log": log,
+        **({"search": made.search} if made.search is not None else {}),
     }
 
 
@@ -517,6 +626,9 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
     from .metric.evaluate import evaluate_video, finite_or_none
 
     check_best_of(count, cfg.seed)
+    if cfg.search.enabled:
+        raise ValueError("--best-of and a search (search.particles) are two ways to spend compute on geometry: choose "
+                         "one")
     check_prompt(prompt)
     if not cfg.output.name:
         cfg = replace(cfg, output=replace(cfg.output, name=f"{default_name(cfg, prompt)}-best-of-{count}"))

@@ -2,6 +2,7 @@
 
     geco generate --preset tiny --prompt "a marble bust"
     geco generate --model wan2.2-t2v-a14b --prompt "..." --seed 3 guidance.step_size=2.0
+    geco generate --preset tiny --prompt "a marble bust" --search 4 --no-guidance
 
 Writes ``<name>.mp4`` and a JSON sidecar ``<name>.json`` (resolved config, seed, scheduler,
 versions, timings, guidance log, GeCo scores of the anchor frames of the final video), each
@@ -56,6 +57,10 @@ def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
     parser.add_argument("--best-of", type=parse_count, default=None, metavar="N",
                         help="selection: make N videos (seeds --seed .. --seed+N-1), score each with the GeCo protocol "
                              "and keep the one of least fused score; its sidecar lists every candidate's scores")
+    parser.add_argument("--search", type=parse_count, default=None, metavar="K",
+                        help="particle search: K videos (seeds --seed .. --seed+K-1) in one batch, scored by GeCo on their "
+                             "clean estimates and resampled at search.resample_steps, then the one of least fused score "
+                             "under the GeCo protocol kept (guided too unless --no-guidance); sets search.particles")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.step_size=2.0")
     return parser
 
@@ -79,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
     from ..io.video import read_image
 
     options = {"seed": args.seed, "guidance.enabled": False if args.no_guidance else None,
-               "guidance.dynamic": args.dynamic, "guidance.movers": args.movers, "run.devices": args.devices}
+               "guidance.dynamic": args.dynamic, "guidance.movers": args.movers, "run.devices": args.devices,
+               "search.particles": args.search}
     try:
         cfg = config_from_args(args, args.overrides, options)
         image = read_image(args.image) if args.image is not None else None
@@ -97,6 +103,8 @@ def run(args: argparse.Namespace) -> int:
         chosen = sidecar["best_of"]
         print(f"best of {chosen['n']}: kept seed {chosen['kept_seed']} (least fused score under the GeCo protocol; "
               "every candidate's scores are in the sidecar)")
+    if "search" in sidecar:
+        _print_search(sidecar["search"])
     if sidecar["dynamic_masks"] is not None:
         fraction = sidecar["masked_fraction"]
         shown = f"{fraction:.1%} of the anchor frames' pixels on average" if fraction is not None else "nothing"
@@ -111,6 +119,19 @@ def run(args: argparse.Namespace) -> int:
         print(SCORES_NOTE)
     _print_guidance(sidecar)
     return 0
+
+
+def _print_search(search: dict[str, Any]) -> None:
+    from ..types import plural
+
+    for final in search["final_particles"]:
+        fused = "nan" if final["fused"] is None else f"{final['fused']:.4f}"
+        print(f"particle {final['particle']} (from seed {final['seed']}, lineage {final['lineage']}): protocol "
+              f"fused={fused}")
+    resampled = sum(record["resampled"] for record in search["resamplings"])
+    print(f"search of {plural(search['particles'], 'particle')}: resampled at {plural(resampled, 'step')} "
+          f"{search['resample_steps']}, {search['particle_batch']['size']} per call; kept particle {search['kept']} "
+          f"(least fused score under the GeCo protocol)")
 
 
 def _print_guidance(sidecar: dict[str, Any]) -> None:

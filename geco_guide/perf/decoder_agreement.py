@@ -151,13 +151,11 @@ def agreement_summary(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 def check_agreement_config(cfg: GeCoConfig, prompt: str) -> GeCoConfig:
     """ValueError (one line) for a config that cannot measure the agreement, and what
-    ``generate`` refuses (the tiny decoder's weights among them); before any model loads. Returns
-    the config with the tiny decoder loaded beside the guiding decoder."""
+    ``generate`` refuses (the tiny decoder's weights among them: where to download them and the
+    key to set); before any model loads. Returns the config with the tiny decoder loaded beside
+    the guiding decoder."""
     if not cfg.guidance.enabled:
         raise ValueError("decoder-agreement compares the decoders inside guidance: guidance.enabled must be true")
-    if not cfg.estimators.tiny_decoder:
-        raise ValueError("decoder-agreement compares the VAE with the tiny decoder: set estimators.tiny_decoder "
-                         "(a file, a folder, a hub id, or tiny-random)")
     return check_generation(replace(cfg, guidance=replace(cfg.guidance, decoder="tiny")), prompt)
 
 

@@ -1,7 +1,7 @@
 """Everything that knows about diffusion: guidance options and presets, the guidance schedule,
 anchor slicing, noise-level arithmetic, the model-agnostic guided step and the guidance context,
-the CogVideoX pipeline and the hooks that guide other diffusers video pipelines (both imported
-lazily: they pull in diffusers)."""
+particle search with GeCo as the verifier, the CogVideoX pipeline and the hooks that guide other
+diffusers video pipelines (both imported lazily: they pull in diffusers)."""
 
 from .config import GuidanceConfig, fused_guidance_config, paper_guidance_config, resolve_guidance_config
 from .run_options import RunOptions, resolve_call_options
@@ -15,6 +15,7 @@ from .slicing import (
     decode_anchor_frames,
 )
 from .step import GuidanceRecord, guided_step, normalized_update, score_anchor_frames
+from .search import SearchConfig
 
 _LAZY = {
     "GeCoCogVideoXPipeline": "pipeline_cogvideox",
@@ -57,6 +58,7 @@ __all__ = [
     "resolve_guidance_config",
     "RunOptions",
     "scale_schedule",
+    "SearchConfig",
     "score_anchor_frames",
     "v_to_x0",
 ]

@@ -173,6 +173,8 @@ class GuidanceReport:
         mask_source: where the dynamic masks came from, ``None`` without.
         masked_fraction: the mean fraction of the anchor frames' pixels masked over the updates,
             ``None`` without masks.
+        search: what a particle search did (:meth:`ParticleSearch.report
+            <geco_guide.sampler.search.ParticleSearch.report>`), ``None`` without one.
     """
 
     guidance: dict[str, Any] | None = None
@@ -183,6 +185,7 @@ class GuidanceReport:
     decoder: str | None = None
     mask_source: str | None = None
     masked_fraction: float | None = None
+    search: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -204,11 +207,12 @@ class GuidanceLog:
         self.records = records if records is not None else []
         self.on_record, self.observer = on_record, observer or GuidanceObserver()
 
-    def recorder(self, step: int, t: int, device: torch.device,
-                 mask_source: str | None = None) -> Callable[[Update], None]:
+    def recorder(self, step: int, t: int, device: torch.device, mask_source: str | None = None,
+                 particles: Sequence[int] | None = None) -> Callable[[Update], None]:
         """The ``on_update`` of :func:`~.step.guided_step` at step ``step`` (timestep ``t``): each
         update's numbers read to ``device``'s host and logged; ``mask_source``: the dynamic masks'
-        source, ``None`` without masks."""
+        source, ``None`` without masks; ``particles``: the search's particles it guides, ``None``
+        outside a search."""
 
         def on_update(update: Update) -> None:
             scalars = read_scalars(update.terms, device)
@@ -226,6 +230,7 @@ class GuidanceLog:
                 skipped=not scalars["finite"],
                 masked_fraction=scalars.get("masked_fraction"),
                 mask_source=mask_source,
+                particles=None if particles is None else [particles[0], particles[-1]],
             )
             self.records.append(record.to_dict())
             if self.on_record is not None:
@@ -428,25 +433,51 @@ class GuidanceContext:
         return self.update_objective(x0)
 
     def guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: NoiseLevels, step: int,
-              t: int) -> tuple[Tensor, Tensor]:
+              t: int, *, batches: Sequence[Sequence[int]] | None = None,
+              predict_rows: Callable[[Tensor, Sequence[int], bool], Tensor] | None = None) -> tuple[Tensor, Tensor]:
         """The ``R_t`` updates of step ``step`` (timestep ``t``): the guided ``z_t`` and the model
         output there (:func:`~.step.guided_step`), each update logged. Out of memory before the
         call's first update is logged: the execution's fallback and the step again
-        (:meth:`GuidanceExecution.retrying`)."""
-        with self.observer.step(step, int(t)):
-            return self.execution.retrying(lambda: self._guide(z, predict, levels, step, t), self.generator,
-                                           started=lambda: bool(self.log))
+        (:meth:`GuidanceExecution.retrying`).
 
-    def _guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: NoiseLevels, step: int,
-               t: int) -> tuple[Tensor, Tensor]:
+        A search's particles are guided in sub-batches: ``batches`` (lists of particles covering
+        ``z``'s batch in order, :func:`~.particles.particle_batches`), each guided on its own as
+        a call of those particles alone, its model outputs from ``predict_rows(z_rows, rows,
+        differentiate)``, its time-travel noise from their generators (the call's ``k``-th for
+        particle ``k``), its updates logged with their particles. The norm of an update is each
+        video's, so a particle's update is its own whatever the sub-batch.
+        """
+        with self.observer.step(step, int(t)):
+            if batches is None:
+                return self.execution.retrying(lambda: self._guide(z, predict, levels, step, t, self.generator),
+                                               self.generator, started=lambda: bool(self.log))
+            guided, outputs = [], []
+            for rows in batches:
+                index = torch.as_tensor(rows, device=z.device)
+                generator = [self.generator[k] for k in rows] if isinstance(self.generator, list) else self.generator
+                z_rows = z[index]
+
+                def predict_these(z_in: Tensor, differentiate: bool, rows: Sequence[int] = rows) -> Tensor:
+                    return predict_rows(z_in, rows, differentiate)
+
+                z_new, output = self.execution.retrying(
+                    lambda: self._guide(z_rows, predict_these, levels, step, t, generator, rows), generator,
+                    started=lambda: bool(self.log))
+                guided.append(z_new)
+                outputs.append(output)
+            return torch.cat(guided), torch.cat(outputs)
+
+    def _guide(self, z: Tensor, predict: Callable[[Tensor, bool], Tensor], levels: NoiseLevels, step: int, t: int,
+               generator: torch.Generator | list[torch.Generator] | None,
+               particles: Sequence[int] | None = None) -> tuple[Tensor, Tensor]:
         config, schedule = self.config, self.schedule
         if self.dynamic_masks is not None:
-            self.dynamic_masks.start_step(step)
+            self.dynamic_masks.start_step(step, particles[0] if particles else 0)
         on_update = self.guidance_log.recorder(
-            step, t, z.device, None if self.dynamic_masks is None else self.dynamic_masks.source_name)
+            step, t, z.device, None if self.dynamic_masks is None else self.dynamic_masks.source_name, particles)
         return guided_step(z, predict, levels, self.objective, schedule.repeats_at(step), step_size=schedule.step_size,
                            time_travel=schedule.time_travel_at(step), denoiser_grad=config.denoiser_grad,
-                           generator=self.generator, eps=config.grad_eps, on_update=on_update)
+                           generator=generator, eps=config.grad_eps, on_update=on_update)
 
     def report(self, scheduler: Any) -> GuidanceReport:
         """What the call decided (:class:`GuidanceReport`), once its loop is done."""

@@ -33,7 +33,9 @@ class RefreshedMasks:
 
     The guidance marks the start of each step with :meth:`start_step` and of each update with
     :meth:`start_update`; within an update the loss asks once per clip, in order, so the ``k``-th
-    question of an update gets the ``k``-th clip's masks.
+    question of an update gets the ``k``-th clip's masks (of a search's sub-batch of particles
+    from ``first_clip`` on, the ``first_clip + k``-th). A search's resampling carries each
+    particle's masks to its slots (:meth:`reorder`).
 
     Args:
         source: the masks' source.
@@ -48,21 +50,24 @@ class RefreshedMasks:
                  movers: RefreshedMovers | None = None):
         self.source, self.refresh, self.dilation, self.movers = source, refresh, dilation, movers
         self.source_name = source.source_name
-        self._masks: list[Tensor] = []  # per clip, the last computed
+        self._masks: list[Tensor | None] = []  # per clip, the last computed
         self._guided_steps = 0
         self._step: int | None = None
         self._step_refreshes = True
         self._due = True  # the step's first update recomputes
         self._fresh = True  # this update recomputes
         self._asked = 0
+        self._first = 0
 
-    def start_step(self, step: int) -> None:
-        """Guided step ``step`` begins: its first update recomputes the masks when a refresh is
-        due. The same step again (the retry after an out-of-memory fallback) starts over."""
+    def start_step(self, step: int, first_clip: int = 0) -> None:
+        """Guided step ``step`` begins for the clips from ``first_clip`` on (a search's sub-batch of
+        particles; 0: the whole batch): its first update recomputes the masks when a refresh is
+        due. The same step again (the retry after an out-of-memory fallback, or the step's next
+        sub-batch) starts over."""
         if step != self._step:
             self._step, self._step_refreshes = step, self._guided_steps % self.refresh == 0
             self._guided_steps += 1
-        self._due = self._step_refreshes
+        self._due, self._first = self._step_refreshes, first_clip
 
     def start_update(self) -> None:
         """An update begins: the clips are asked for again from the first."""
@@ -72,15 +77,21 @@ class RefreshedMasks:
                       pairs: Sequence[tuple[int, int]] | None = None) -> Tensor:
         """``frames [S, 3, H, W]`` -> ``[S, H, W]`` bool: the source's masks of ``frames``
         (dilated) at a refresh, else the ones last computed for this clip."""
-        clip = self._asked
+        clip = self._first + self._asked
         self._asked += 1
-        if self._fresh or clip >= len(self._masks):
+        if self._fresh or clip >= len(self._masks) or self._masks[clip] is None:
             with torch.no_grad():
                 masks = dilate(self.source.dynamic_masks(frames.detach(), geometry, flow, pairs), self.dilation)
-            self._masks[clip:clip + 1] = [masks]
+            self._masks.extend([None] * (clip + 1 - len(self._masks)))
+            self._masks[clip] = masks
             if self.movers is not None:
                 self.movers.refresh()
         return self._masks[clip]
+
+    def reorder(self, ancestors: Sequence[int]) -> None:
+        """A search's resampling: slot ``k`` keeps the masks last computed for particle
+        ``ancestors[k]`` (none where that particle has none yet)."""
+        self._masks = [self._masks[a] if a < len(self._masks) else None for a in ancestors]
 
 
 def guidance_mask_source(config: GuidanceConfig, estimators: Any,

@@ -31,6 +31,16 @@ may override the combination, as LTX does for ``guidance_rescale``) and checked 
 output the pipeline passed: an output the calls cannot reproduce fails loudly instead of guiding
 with a wrong prediction.
 
+With a particle search (``search=``, :mod:`.search`), a fourth piece: a ``ModelHook`` under the
+capture (:class:`ParticleSplit`) runs the pipeline's own denoiser calls of the ``K`` particles in
+sub-batches (dealt over ``run.devices``), the wrapped ``step`` guides the particles sub-batch by
+sub-batch (the replay cut to their rows) and, at a resampling step, scores and resamples them and
+carries the scheduler's per-particle state and the step's other per-particle arguments
+(CogVideoX-DPM's ``old_pred_original_sample``); the VAE decodes one video at a time during the
+call (its ``use_slicing``, as it was before on the next call and on detach), so that each
+particle's frames are its own decode. Call the pipeline with one prompt,
+``num_videos_per_prompt=K`` and a generator per particle.
+
 Compared with ``GeCoCogVideoXPipeline``: the same guided step, schedule, time travel, fast and
 faithful modes, anchors and loss, and in both the pipeline's own scheduler takes the step from
 the guided sample. The difference: the latents between steps are whatever the pipeline keeps
@@ -44,6 +54,7 @@ so pipelines still pass ``eta`` and ``generator`` to it.
 
 from __future__ import annotations
 
+import copy
 import functools
 import inspect
 import types
@@ -56,21 +67,34 @@ from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
 from ..types import refuse_estimator_keywords
-from .adapters import CallGeometry, PipelineAdapter, adapter_for, check_scheduler, fit_combination
+from .adapters import CallGeometry, PipelineAdapter, adapter_for, check_scheduler, fit_combination, noise_levels
 from .config import GuidanceConfig
 from .context import GuidanceContext, GuidanceObserver, GuidanceReport
 from .module_hooks import register_hook
+from .multi_device import module_replicas
+from .particles import (
+    ParticleBatches,
+    call_rows,
+    hidden_states_of,
+    output_tensor,
+    particle_batches,
+    particle_rows,
+)
 from .run_options import RunOptions, resolve_call_options
 from .pipeline_cogvideox import GeCoCogVideoXPipeline
+from .search import ParticleBatch, ParticleSearch, SearchConfig, check_search_call, resolve_search_config
 from .slicing import check_latents
 from .step import LatentsWatch
 from .stock_call import StockCall, check_estimators, guide_stock_step, stock_call
 
-__all__ = ["CAPTURE_HOOK", "DenoiserCapture", "GeCoGuidanceHandle", "attach_geco_guidance"]
+__all__ = ["CAPTURE_HOOK", "PARTICLE_HOOK", "DenoiserCapture", "GeCoGuidanceHandle", "ParticleSplit",
+           "attach_geco_guidance"]
 
 _MISSING = object()
 #: The name of :class:`DenoiserCapture` in a denoiser's hook registry.
 CAPTURE_HOOK = "geco_denoiser_capture"
+#: The name of :class:`ParticleSplit` in a denoiser's hook registry (under the capture).
+PARTICLE_HOOK = "geco_particle_split"
 
 
 @dataclass
@@ -89,22 +113,21 @@ class _CallState:
     counter: int = 0
     calls: list[_Call] = field(default_factory=list)
     watch: LatentsWatch | None = None  # from the first scheduler step on
+    search_config: SearchConfig | None = None
+    particle_batch: ParticleBatch | None = None
+    search: ParticleSearch | None = None  # from the first denoiser call on (it knows the step count)
+    num_steps: int | None = None  # from the first denoiser call on
 
-
-def _output_tensor(output: Any) -> Tensor:
-    if isinstance(output, Tensor):
-        return output
-    if isinstance(output, (tuple, list)):
-        return output[0]
-    return output.sample
+    @property
+    def batches(self) -> list[list[int]] | None:
+        """A search's sub-batches of particles (guided one after the other), ``None`` without."""
+        if self.search_config is None:
+            return None
+        return particle_batches(self.search_config.particles, self.particle_batch.size)
 
 
 def _hidden_states(args: tuple, kwargs: dict) -> tuple[Tensor, str | int]:
-    if "hidden_states" in kwargs:
-        return kwargs["hidden_states"], "hidden_states"
-    if args and isinstance(args[0], Tensor):
-        return args[0], 0
-    raise ValueError("could not find the denoiser's hidden_states argument")
+    return hidden_states_of(args, kwargs), "hidden_states" if "hidden_states" in kwargs else 0
 
 
 class _Replay:
@@ -124,7 +147,7 @@ class _Replay:
             hidden, key = _hidden_states(call.args, call.kwargs)
             rep, dim = self._locate(hidden, sample)
             self.items.append((call, key, hidden, rep, dim, sample.shape[dim] if dim is not None else None))
-            out = _output_tensor(call.output)
+            out = output_tensor(call.output)
             if out.shape[0] != hidden.shape[0] or out.shape[1:] != sample.shape[1:]:
                 raise ValueError(
                     f"denoiser output {list(out.shape)} does not match the latents {list(sample.shape)} "
@@ -166,6 +189,17 @@ class _Replay:
             )
         return rep, dim
 
+    def rows(self, chosen: list[int]) -> _Replay:
+        """The same replay for particles ``chosen`` of the step's batch alone: each call cut to
+        their rows (:func:`~.particles.particle_rows`), ``z`` of ``len(chosen)`` videos."""
+        sub = copy.copy(self)
+        sub.batch, sub.items = len(chosen), []
+        for call, key, hidden, rep, dim, channels in self.items:
+            rows = particle_rows(self.batch, hidden.shape[0], chosen)
+            args, kwargs = call_rows(call.args, call.kwargs, rows, hidden.shape[0])
+            sub.items.append((_Call(call.module, args, kwargs, call.output), key, hidden[rows], rep, dim, channels))
+        return sub
+
     def __call__(self, z: Tensor, differentiate: bool) -> Tensor:
         parts: list[Tensor] = []
         with torch.set_grad_enabled(differentiate and torch.is_grad_enabled()):
@@ -179,7 +213,7 @@ class _Replay:
                     kwargs["hidden_states"] = z_in
                 else:
                     args[key] = z_in
-                out = _output_tensor(call.module(*args, **kwargs))
+                out = output_tensor(call.module(*args, **kwargs))
                 parts.extend(out.split(self.batch))
             return self.adapter.combine(self.pipe, parts, self.weights, sample=z, step=self.step)
 
@@ -200,6 +234,30 @@ class DenoiserCapture(ModelHook):
         return output
 
 
+class ParticleSplit(ModelHook):
+    """The ``ModelHook`` under :class:`DenoiserCapture` that runs a search's denoiser calls in
+    sub-batches of particles (:class:`~.particles.ParticleBatches`, dealt over ``run.devices``):
+    the capture sees, and replays, the pipeline's call as one. Calls run as they are outside a
+    search, during a replay (the guidance's and the search's calls, of a sub-batch already) and
+    where the call's batch holds no whole blocks of the particles."""
+
+    def __init__(self, handle: GeCoGuidanceHandle):
+        super().__init__()
+        self.handle = handle
+        #: the devices and their replicas of this call's search, ``None`` outside one
+        self.places: list[tuple[torch.device | None, Any]] | None = None
+
+    def new_forward(self, module: nn.Module, *args: Any, **kwargs: Any) -> Any:
+        state, forward = self.handle._state, self.fn_ref.original_forward
+        if self.places is None or state is None or state.search_config is None or self.handle._replaying:
+            return forward(*args, **kwargs)
+        particles = state.search_config.particles
+        if hidden_states_of(args, kwargs).shape[0] % particles:
+            return forward(*args, **kwargs)
+        places = [(device, forward if runner is None else runner) for device, runner in self.places]
+        return ParticleBatches(particles, state.particle_batch.size, places)(*args, **kwargs)
+
+
 class GeCoGuidanceHandle:
     """GeCo guidance attached to one pipeline; see :func:`attach_geco_guidance`.
 
@@ -214,14 +272,22 @@ class GeCoGuidanceHandle:
             the tiny decoder of ``config.decoder="tiny"`` where they are used).
         observer: a :class:`~geco_guide.sampler.context.GuidanceObserver` watching the next
             calls' updates, or ``None``.
+        search: the particle search of the next calls (a
+            :class:`~geco_guide.sampler.search.SearchConfig`; ``None``: none; may be replaced
+            between calls): call the pipeline with ``num_videos_per_prompt=search.particles``, one
+            prompt and a generator per particle.
+        search_generator: the generator of the search's resampling draws (a ``torch.Generator``,
+            required with ``search``).
         last: what the last call decided (:class:`~geco_guide.sampler.context.GuidanceReport`),
             ``None`` before one; set when its denoising loop ends.
         geometry: the :class:`~geco_guide.sampler.adapters.CallGeometry` of the last call.
     """
 
     def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, estimators: Any,
-                 run_options: RunOptions | None = None):
+                 run_options: RunOptions | None = None, search: SearchConfig | None = None):
         self.pipe = pipe
+        self.search = search
+        self.search_generator: torch.Generator | None = None
         self.run_options = run_options if run_options is not None else RunOptions()
         self.adapter = adapter
         self.config = config
@@ -231,9 +297,11 @@ class GeCoGuidanceHandle:
         self.geometry: CallGeometry | None = None
         self._log: list[dict[str, Any]] = []
         self._state: _CallState | None = None
-        self._removers: list[Any] = []
+        # per denoiser (by id): the module, its hooks' removers and its particle split
+        self._hooked: dict[int, tuple[nn.Module, list[Any], ParticleSplit]] = {}
         self._schedulers: list[tuple[Any, Any]] = []
         self._saved_prepare: Any = _MISSING
+        self._slicing: tuple[Any, bool] | None = None  # a search call's VAE and its use_slicing before
         self._attached = False
         self._replaying = False
 
@@ -267,9 +335,39 @@ class GeCoGuidanceHandle:
         prepare_latents._geco_handle = self  # type: ignore[attr-defined]
         pipe.prepare_latents = prepare_latents
         for module in self.adapter.denoisers(pipe):
-            self._removers.append(register_hook(module, DenoiserCapture(self), CAPTURE_HOOK))
+            self._register_hooks(module)
         self._patch_scheduler(pipe.scheduler)
         self._attached = True
+
+    def _restore_slicing(self) -> None:
+        if self._slicing is not None:
+            vae, previous = self._slicing
+            vae.use_slicing, self._slicing = previous, None
+
+    def _register_hooks(self, module: nn.Module) -> None:
+        """The particle split (inner) and the capture (outer) in ``module``'s hook registry."""
+        split = ParticleSplit(self)
+        removers = [register_hook(module, split, PARTICLE_HOOK)]
+        removers.append(register_hook(module, DenoiserCapture(self), CAPTURE_HOOK))
+        self._hooked[id(module)] = (module, removers, split)
+
+    def _remove_hooks(self, module: nn.Module) -> None:
+        _, removers, _ = self._hooked.pop(id(module))
+        for remove in reversed(removers):
+            remove()
+
+    def _replicas(self, module: nn.Module, devices: list[torch.device]) -> list[nn.Module]:
+        """Copies of ``module`` on ``devices`` (the module itself where it lives), made without our
+        hooks (a copied registry would still call the original's forward)."""
+        self._remove_hooks(module)
+        try:
+            if "forward" in module.__dict__ or getattr(module, "_diffusers_hook", None) is not None:
+                raise ValueError(f"run.devices deals a search's particles over copies of the {type(module).__name__}, "
+                                 "which cannot carry the hooks it has (offloading, caches, ...): remove them, or leave "
+                                 "run.devices unset")
+            return module_replicas(module, devices)
+        finally:
+            self._register_hooks(module)
 
     def _patch_scheduler(self, scheduler) -> None:
         if any(s is scheduler for s, _ in self._schedulers):
@@ -299,9 +397,8 @@ class GeCoGuidanceHandle:
         """Remove every hook and wrapper; the pipeline is exactly as before :func:`attach_geco_guidance`."""
         if not self._attached:
             return
-        for remove in reversed(self._removers):
-            remove()
-        self._removers.clear()
+        for module, _, _ in list(self._hooked.values()):
+            self._remove_hooks(module)
         if self._saved_prepare is _MISSING:
             del self.pipe.__dict__["prepare_latents"]
         else:
@@ -312,6 +409,7 @@ class GeCoGuidanceHandle:
             else:
                 scheduler.__dict__["step"] = previous
         self._schedulers.clear()
+        self._restore_slicing()
         self._state = None
         self._attached = False
 
@@ -331,30 +429,60 @@ class GeCoGuidanceHandle:
         self._log = []
         self._state = None
         self.last = None
-        if not config.enabled:
+        for _, _, split in self._hooked.values():
+            split.places = None
+        self._restore_slicing()
+        search = resolve_search_config(self.search)
+        if not config.enabled and search is None:
             self.last = GuidanceReport(scheduler=type(self.pipe.scheduler).__name__)
             return
         check_latents(args.get("latents"), self.adapter.latents_shape(self.pipe, args),
                       f"this {type(self.pipe).__name__} call")
         check_hook_run_options(run)
+        generator = args.get("generator")
+        if search is not None:
+            check_search_call(search, run, generator, self.search_generator)
+            if latents.shape[0] != search.particles:
+                raise ValueError(f"search.particles={search.particles}: call the {type(self.pipe).__name__} with one "
+                                 f"prompt and num_videos_per_prompt={search.particles} (its batch is the particles), "
+                                 f"got a batch of {latents.shape[0]}")
         call = stock_call(self.pipe, self.adapter, geometry, config, run, self.estimators)
-        self._state = _CallState(call, args.get("generator"))
+        state = _CallState(call, generator, search_config=search)
+        if search is not None:
+            state.particle_batch = call.particle_batch(search.particles)
+            vae = getattr(self.pipe, "vae", None)
+            if hasattr(vae, "use_slicing"):  # the final videos one at a time: each particle's frames its own
+                self._slicing = (vae, vae.use_slicing)
+                vae.use_slicing = True
+            for module, _, _ in list(self._hooked.values()):
+                places: list[tuple[Any, Any]] = [(None, None)]  # the call's own device and forward
+                if call.devices:
+                    replicas = self._replicas(module, call.devices)
+                    places = [(device, None if replica is module else replica)
+                              for device, replica in zip(call.devices, replicas)]
+                self._hooked[id(module)][2].places = places
+        self._state = state
 
     def _before_denoiser_call(self) -> None:
         state = self._state
         if state is None or self._replaying:
             return
-        if state.context is None:  # first denoiser call of this pipeline call
+        if state.context is None and state.search is None:  # first denoiser call of this pipeline call
             pipe = self.pipe
             self._patch_scheduler(pipe.scheduler)
             check_scheduler(pipe.scheduler)
-            state.context = state.call.context(len(pipe.scheduler.timesteps), state.generator, self._log, self.observer)
+            num_steps = state.num_steps = len(pipe.scheduler.timesteps)
+            if state.call.config.enabled:
+                state.context = state.call.context(num_steps, state.generator, self._log, self.observer)
+            if state.search_config is not None:
+                state.search = state.call.searcher(state.search_config, num_steps, state.context,
+                                                   state.particle_batch.size, state.generator, self.search_generator)
 
     def _after_denoiser_call(self, module: nn.Module, args: tuple, kwargs: dict, output: Any) -> None:
         state = self._state
         if state is None or self._replaying:
             return
-        state.calls.append(_Call(module, tuple(args), dict(kwargs), _output_tensor(output).detach()))
+        state.calls.append(_Call(module, tuple(args), dict(kwargs), output_tensor(output).detach()))
 
     def _step(self, scheduler, original, signature, args, kwargs):
         state = self._state
@@ -366,23 +494,39 @@ class GeCoGuidanceHandle:
         calls, state.calls = state.calls, []
         schedule = state.context.schedule if state.context is not None else None
         repeats = schedule.repeats_at(i) if schedule is not None and i < schedule.num_steps else 0
-        if repeats == 0:
+        searching = state.search is not None and state.search.resamples_at(i)
+        if repeats == 0 and not searching:
             result = original(*args, **kwargs)
         else:
             model_output = bound.arguments["model_output"]
             sample = bound.arguments["sample"]
             timestep = bound.arguments["timestep"]
             self._watch_latents(state, sample, i, check=True)  # a callback may have set them since the last step
-            bound.arguments["sample"], bound.arguments["model_output"] = self._guide(
-                state.context, i, timestep, sample, model_output, calls)
+            replay = _Replay(self.pipe, self.adapter, calls, sample, model_output, i)
+            predict_rows = self._predict_rows(replay, sample, model_output)
+            if repeats:
+                sample, model_output = self._guide(state, i, timestep, sample, model_output, replay, predict_rows)
+            if searching:  # the step's other per-particle arguments (CogVideoX-DPM's old_pred_original_sample)
+                others = [name for name, value in bound.arguments.items() if name not in ("model_output", "sample")
+                          and isinstance(value, Tensor) and value.shape == sample.shape]
+                sample, model_output, carried = state.search.step(
+                    i, timestep, sample, model_output, noise_levels(scheduler, timestep, i), predict_rows, scheduler,
+                    [bound.arguments[name] for name in others])
+                bound.arguments.update(zip(others, carried))
+            bound.arguments["sample"], bound.arguments["model_output"] = sample, model_output
             result = original(*bound.args, **bound.kwargs)
-        # NaN latents are refused at a guided step (its log already waited for the device) and at
-        # the last step, before the pipeline decodes NaN frames
+        # NaN latents are refused at a guided or searched step (its log already waited for the
+        # device) and at the last step, before the pipeline decodes NaN frames
         latents = result[0] if isinstance(result, tuple) else getattr(result, "prev_sample", None)
-        last_step = schedule is None or i >= schedule.num_steps - 1
-        self._watch_latents(state, latents, i, check=repeats > 0 or last_step)
-        if last_step and state.context is not None:
-            self.last = state.context.report(scheduler)
+        last_step = state.num_steps is None or i >= state.num_steps - 1
+        self._watch_latents(state, latents, i, check=repeats > 0 or searching or last_step)
+        if last_step and (state.context is not None or state.search is not None):
+            report = (state.context.report(scheduler) if state.context is not None
+                      else GuidanceReport(scheduler=type(scheduler).__name__))
+            if state.search is not None:
+                report.search = {**state.search.report(state.search_config.particles),
+                                 "particle_batch": state.particle_batch.to_dict()}
+            self.last = report
         return result
 
     @staticmethod
@@ -392,14 +536,31 @@ class GeCoGuidanceHandle:
         if not isinstance(latents, Tensor):
             return
         if state.watch is None:
-            state.watch = LatentsWatch(state.context.schedule.num_steps if state.context is not None else i + 1)
+            state.watch = LatentsWatch(state.num_steps if state.num_steps is not None else i + 1)
         state.watch.see(latents, i)
         if check:
             state.watch.check()
 
-    def _guide(self, context: GuidanceContext, i: int, timestep, sample, model_output, calls):
+    def _predict_rows(self, replay: _Replay, sample: Tensor, model_output: Tensor):
+        """``(z, rows, differentiate) -> model output`` of particles ``rows`` at ``z``: the step's
+        denoiser calls replayed for them alone (the pipeline's own output where ``z`` is the
+        sample it stepped from and no gradient is asked for)."""
+        start = sample.detach().float()
+
+        def predict_rows(z: Tensor, rows: list[int], differentiate: bool) -> Tensor:
+            index = torch.as_tensor(rows, device=start.device)
+            if not differentiate and torch.equal(z.to(start.device), start[index]):
+                return model_output[index.to(model_output.device)].float()
+            self._replaying = True
+            try:
+                return replay.rows(rows)(z, differentiate)
+            finally:
+                self._replaying = False
+
+        return predict_rows
+
+    def _guide(self, state: _CallState, i: int, timestep, sample, model_output, replay: _Replay, predict_rows):
         pipe, adapter = self.pipe, self.adapter
-        replay = _Replay(pipe, adapter, calls, sample, model_output, i)
         start = sample.detach().float()
 
         def predict(z: Tensor, differentiate: bool) -> Tensor:
@@ -411,8 +572,9 @@ class GeCoGuidanceHandle:
             finally:
                 self._replaying = False
 
-        denoisers = {id(c.module): c.module for c in calls}.values()
-        return guide_stock_step(context, pipe, adapter, denoisers, i, timestep, sample, model_output, predict)
+        denoisers = {id(item[0].module): item[0].module for item in replay.items}.values()
+        return guide_stock_step(state.context, pipe, adapter, denoisers, i, timestep, sample, model_output, predict,
+                                batches=state.batches, predict_rows=predict_rows)
 
 
 def check_hook_run_options(run: RunOptions) -> None:
@@ -429,6 +591,7 @@ def attach_geco_guidance(
     config: GuidanceConfig | Mapping[str, Any] | None = None,
     estimators: Any = None,
     run_options: RunOptions | Mapping[str, Any] | None = None,
+    search: SearchConfig | Mapping[str, Any] | None = None,
     **earlier: Any,
 ) -> GeCoGuidanceHandle:
     """Guide every following call of a stock diffusers video pipeline with GeCo.
@@ -451,6 +614,12 @@ def attach_geco_guidance(
         run_options: how the guidance runs on this machine (a
             :class:`~geco_guide.sampler.run_options.RunOptions` or a dict of its fields: memory
             plan, decode layout, devices).
+        search: a particle search of every following call (a
+            :class:`~geco_guide.sampler.search.SearchConfig` or a dict of its fields; ``None``:
+            none), with or without guidance (``config.enabled``): call the pipeline with one
+            prompt, ``num_videos_per_prompt=search.particles`` and a generator per particle, and
+            set ``handle.search_generator`` (the resamplings' draws); ``handle.last.search`` says
+            what it did.
 
     Returns:
         A :class:`GeCoGuidanceHandle`; ``handle.detach()`` (or leaving ``with handle:``)
@@ -482,6 +651,6 @@ def attach_geco_guidance(
     current = pipe.__dict__.get("prepare_latents")
     if getattr(current, "_geco_handle", None) is not None:
         raise ValueError("this pipeline already has GeCo guidance attached; detach() it first")
-    handle = GeCoGuidanceHandle(pipe, adapter, config, estimators, run_options)
+    handle = GeCoGuidanceHandle(pipe, adapter, config, estimators, run_options, resolve_search_config(search))
     handle._attach()
     return handle

@@ -36,6 +36,7 @@ from ..io.devices import resolve_device
 from .config import GuidanceConfig
 from .memory_plan import PlanChoice, plan_before_loading
 from .run_options import RunOptions
+from .search import SearchConfig, check_search_before_loading
 
 __all__ = ["PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
            "check_guidance_before_loading", "check_tiny_decoder", "choose_scheduler", "load_tiny_decoder",
@@ -241,9 +242,10 @@ def choose_scheduler(pipe: Any, name: str | None, model: VideoModel) -> str:
     return f"{cls.__name__} (sampling.scheduler={name}, built from the checkpoint's {shipped} config)"
 
 
-def uses_tiny_decoder(guidance: GuidanceConfig) -> bool:
-    """Whether the guidance decodes its anchor frames with the tiny decoder."""
-    return bool(guidance.enabled and guidance.decoder == "tiny")
+def uses_tiny_decoder(guidance: GuidanceConfig, searching: bool = False) -> bool:
+    """Whether the guidance (or a search, ``searching``: it decodes the same anchors) decodes its
+    anchor frames with the tiny decoder."""
+    return bool((guidance.enabled or searching) and guidance.decoder == "tiny")
 
 
 def check_tiny_decoder_source(estimators: EstimatorsConfig) -> None:
@@ -344,13 +346,19 @@ def check_guidance_before_loading(guidance: GuidanceConfig, run: RunOptions, est
     return plan_before_loading(guidance, run, model_id, num_frames, height, width, device)
 
 
-def warn_idle_options(model: VideoModel, sampling: Any, guidance: GuidanceConfig, run: RunOptions) -> None:
+def warn_idle_options(model: VideoModel, sampling: Any, guidance: GuidanceConfig, run: RunOptions,
+                      search: SearchConfig | None = None) -> None:
     """One warning line for each option set that cannot act on the run (it changes neither the
-    frames nor the video's name): ``guidance.dynamic`` without guidance, ``run.split_cfg``
-    without guidance, without CFG, or on a model the hooks guide."""
-    if guidance.dynamic is not None and not guidance.enabled:
+    frames nor the video's name): ``guidance.dynamic`` without guidance or search, ``run.split_cfg``
+    without guidance, without CFG, or on a model the hooks guide, ``run.particle_batch`` without
+    a search."""
+    searching = search is not None and search.enabled
+    if guidance.dynamic is not None and not guidance.enabled and not searching:
         logger.warning("guidance.dynamic=%r does nothing without guidance (--no-guidance): nothing is masked",
                        guidance.dynamic)
+    if run.particle_batch is not None and not searching:
+        logger.warning("run.particle_batch=%d does nothing without a search (search.particles): one video is one "
+                       "batch", run.particle_batch)
     if run.split_cfg and not split_cfg_acts(model, sampling, guidance, run):
         why = ("without guidance" if not guidance.enabled else "without CFG (sampling.guidance_scale <= 1)"
                if sampling.guidance_scale <= 1.0 else f"on {model.name}, whose stock denoiser calls the hooks "
@@ -364,14 +372,16 @@ def split_cfg_acts(model: VideoModel, sampling: Any, guidance: GuidanceConfig, r
 
 
 def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceConfig, run: RunOptions,
-                         estimators: EstimatorsConfig, *, weights: bool = True) -> torch.device:
+                         estimators: EstimatorsConfig, *, weights: bool = True,
+                         search: SearchConfig | None = None) -> torch.device:
     """Every check of a run that its config alone can fail, in one pass before anything loads: the
     device, then with ``weights`` every model's weights (all missing ones named at once: the
     problem a fresh machine has, named before what its memory could not hold), the guidance against
     the model (loss, schedule, anchors, decode layout, tiny decoder, a memory plan that fits),
     options that cannot act (a warning each), the devices of ``run.devices``, and the video's size
-    against the device's memory. Returns the device ``model.device`` stands for (``auto``
-    resolved), what the loaders and the sidecar then use.
+    against the device's memory; with a ``search`` its particles against the memory
+    (:func:`~.search.check_search_before_loading`). Returns the device ``model.device`` stands for
+    (``auto`` resolved), what the loaders and the sidecar then use.
 
     Raises:
         ValueError: one line naming the option.
@@ -382,17 +392,25 @@ def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceCo
 
     entry = model.video_model
     device = check_device(model.device)
+    searching = search is not None and search.enabled
     if weights:
-        missing_weights(model, estimators, tiny_decoder=uses_tiny_decoder(guidance),
-                        segmenter=guidance.enabled and guidance.subjects is not None)
+        missing_weights(model, estimators, tiny_decoder=uses_tiny_decoder(guidance, searching),
+                        segmenter=(guidance.enabled or searching) and guidance.subjects is not None)
     check_guidance_before_loading(guidance, run, estimators, entry, model_id=model.source,
                                   num_frames=sampling.num_frames, height=sampling.height, width=sampling.width,
                                   num_steps=sampling.num_inference_steps, device=str(device))
-    warn_idle_options(entry, sampling, guidance, run)
-    if guidance.enabled:
+    warn_idle_options(entry, sampling, guidance, run, search)
+    if guidance.enabled or searching:
         resolve_devices(run.devices)  # a device this machine lacks: one line before loading
     # the decoded video alone, in float32, is a lower bound of the run's peak: a refusal is certain
     check_memory_fits(sampling.num_frames * 3 * sampling.height * sampling.width * 4, device,
                       f"a {sampling.num_frames}-frame {sampling.height}x{sampling.width} video "
                       "(sampling.num_frames/height/width)")
+    if searching:
+        if not guidance.enabled:  # the search decodes and scores guidance's anchors
+            guidance.anchor_chunks(sampling.num_frames, entry.temporal_compression)
+            if guidance.decoder == "tiny":
+                check_tiny_decoder(estimators, entry)
+        check_search_before_loading(search, guidance, run, model_id=model.source, frames=sampling.num_frames,
+                                    height=sampling.height, width=sampling.width, device=str(device))
     return device

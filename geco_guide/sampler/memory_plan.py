@@ -40,9 +40,10 @@ if TYPE_CHECKING:  # the run options take the plans' names from here
     from .config import GuidanceConfig
     from .run_options import RunOptions
 
-__all__ = ["DEVICE_HEADROOM", "ESTIMATES_PATH", "PLANS", "PLAN_NAMES", "SAFE_PLAN", "MemoryPlan",
-           "PlanChoice", "choose_plan", "device_memory_gb", "explicit_plan", "load_estimates", "planning_memory_gb",
-           "model_signature", "plan_before_loading", "plan_named"]
+__all__ = ["DEVICE_HEADROOM", "ESTIMATES_PATH", "GIB", "PLANS", "PLAN_NAMES", "SAFE_PLAN", "MemoryPlan",
+           "PlanChoice", "choose_plan", "device_memory_gb", "explicit_plan", "known_model", "load_estimates",
+           "planning_memory_gb", "model_signature", "plan_before_loading", "plan_named", "predicted_parts",
+           "stored_signature"]
 
 GIB = 2**30
 AUTO, EXPLICIT = "auto", "explicit"
@@ -204,13 +205,21 @@ def predicted_peaks(entry: Mapping[str, Any], mode: str, decoder: str, frames: i
     pixels and frames; the anchors and chunk length are the traced ones). ``offload``: under
     ``enable_model_cpu_offload``, the estimators and the model at work on the device. ``None``
     where the entry has no estimates for this mode and decoder."""
+    parts = predicted_parts(entry, mode, decoder, frames, height, width, offload)
+    return None if parts is None else {name: weights + activations for name, (weights, activations) in parts.items()}
+
+
+def predicted_parts(entry: Mapping[str, Any], mode: str, decoder: str, frames: int, height: int, width: int,
+                    offload: bool) -> dict[str, tuple[float, float]] | None:
+    """``(weights, activations)`` (GiB) of each plan of :func:`predicted_peaks`, apart: the
+    activations are what one more video in the batch adds (a search's particles)."""
     table = entry["estimates"].get(f"{mode}/{decoder}")
     if table is None:
         return None
     video = entry["video"]
     scale = (frames * height * width) / (video["frames"] * video["height"] * video["width"])
     prefix = "offload_" if offload else ""
-    return {name: e[prefix + "weights_gb"] + scale * e[prefix + "activations_gb"] for name, e in table.items()}
+    return {name: (e[prefix + "weights_gb"], scale * e[prefix + "activations_gb"]) for name, e in table.items()}
 
 
 def device_memory_gb(device: Any) -> float | None:

@@ -24,7 +24,7 @@ from torch import nn
 
 from ..io.devices import check_device
 
-__all__ = ["CfgHalves", "module_replicas", "resolve_devices"]
+__all__ = ["CfgHalves", "module_replicas", "resolve_devices", "to_device"]
 
 #: ``run.devices: [auto]``: every GPU torch sees.
 AUTO = "auto"
@@ -65,12 +65,12 @@ def module_replicas(module: nn.Module, devices: Sequence[torch.device]) -> list[
     return replicas
 
 
-def _to(value: Any, device: torch.device) -> Any:
+def to_device(value: Any, device: torch.device) -> Any:
     """``value`` (a tensor, or a tuple/list of them, e.g. rotary embeddings) on ``device``."""
     if isinstance(value, torch.Tensor):
         return value.to(device)
     if isinstance(value, (tuple, list)):
-        return type(value)(_to(v, device) for v in value)
+        return type(value)(to_device(v, device) for v in value)
     return value
 
 
@@ -108,5 +108,5 @@ class CfgHalves:
         for k in range(2):
             replica, device = self.replicas[k % len(self.replicas)], self.places[k % len(self.places)]
             half = {key: (batched[key][k] if key in batched else value) for key, value in inputs.items()}
-            outputs.append(replica(**{key: _to(value, device) for key, value in half.items()})[0].to(self.home))
+            outputs.append(replica(**{key: to_device(value, device) for key, value in half.items()})[0].to(self.home))
         return torch.cat(outputs)

@@ -41,6 +41,7 @@ from diffusers.pipelines.cogvideo.pipeline_output import CogVideoXPipelineOutput
 from diffusers.utils import logging
 from torch import Tensor
 
+from ..loss.geco import GeCoLoss
 from ..types import check_estimator_bundle
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .anchor_decode import anchor_decoder
@@ -48,8 +49,18 @@ from .config import GuidanceConfig, resolve_guidance_config
 from .context import GuidanceContext, GuidanceObserver, GuidanceReport
 from .multi_device import CfgHalves, resolve_devices
 from .dynamic import guidance_mask_source
-from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
+from .anchor_decode import plan_anchor_decode
+from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature, planning_memory_gb
+from .particles import ParticleBatches, denoiser_places, output_tensor, particle_batches, particle_rows
 from .run_options import RunOptions, resolve_call_options
+from .search import (
+    ParticleScorer,
+    ParticleSearch,
+    SearchConfig,
+    check_search_call,
+    choose_particle_batch,
+    resolve_search_config,
+)
 from .slicing import (
     check_latents,
     check_num_frames,
@@ -136,6 +147,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         # The pipeline's config keeps the plain dict, for model_index.json and repr().
         self.register_to_config(guidance_config=asdict(resolve_guidance_config(None, guidance_config)))
         self._cfg_halves: CfgHalves | None = None  # a guided call's run.split_cfg
+        self._particle_batches: ParticleBatches | None = None  # a search's denoiser calls
 
     @property
     def guidance_config(self) -> GuidanceConfig:
@@ -154,14 +166,16 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         guidance: GuidanceConfig,
         run: RunOptions,
         estimators: Any,
+        searching: bool = False,
     ):
-        """Validate what guidance needs, before any denoising step; ValueError naming the problem.
+        """Validate what guidance (or a search, ``searching``: it decodes and scores the same
+        anchors) needs, before any denoising step; ValueError naming the problem.
 
-        Nothing is checked without guidance (the stock pipeline's own checks apply). Returns the
-        guidance schedule, the anchor chunks and their decode (``(None, None, None)`` without
-        guidance).
+        Nothing is checked without either (the stock pipeline's own checks apply). Returns the
+        guidance schedule (``None`` without guidance), the anchor chunks and their decode
+        (``(None, None, None)`` without either).
         """
-        if not guidance.enabled:
+        if not guidance.enabled and not searching:
             return None, None, None
         guidance.check_loss()
         multiple = self.vae_scale_factor_spatial * self.transformer.config.patch_size
@@ -176,7 +190,11 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             check_num_frames(num_frames, self.vae_scale_factor_temporal)
         check_scheduler(self.scheduler)
         check_no_denoiser_cache([self.transformer])
-        schedule, chunks = guidance.validate(num_steps, num_frames, self.vae_scale_factor_temporal)
+        chunks = guidance.anchor_chunks(num_frames, self.vae_scale_factor_temporal)
+        schedule = guidance.validate(num_steps, num_frames, self.vae_scale_factor_temporal)[0] if guidance.enabled else None
+        if estimators is None and not guidance.enabled:
+            raise ValueError("a search scores its particles with GeCo: pass estimators=Estimators(geometry, flow) to "
+                             "the call (geco_guide.Estimators), or call without search")
         if estimators is None:
             raise ValueError("GeCo guidance needs its models: pass estimators=Estimators(geometry, flow) to the call "
                              "(geco_guide.Estimators), or call with guidance=False")
@@ -227,6 +245,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         with self.transformer.cache_context("cond_uncond"):
             if do_classifier_free_guidance and self._cfg_halves is not None:
                 noise_pred = self._cfg_halves(**inputs)
+            elif self._particle_batches is not None and z.shape[0] == self._particle_batches.particles > 1:
+                noise_pred = output_tensor(self._particle_batches(**inputs))
             else:
                 noise_pred = self.transformer(**inputs)[0]
         noise_pred = noise_pred.float()
@@ -240,6 +260,14 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         ``differentiate`` (faithful mode), else without gradients."""
         with torch.set_grad_enabled(differentiate and torch.is_grad_enabled()):
             return self.model_output(z, **model_kwargs)
+
+    def predict_particles(self, z: Tensor, rows: list[int], differentiate: bool, *, particles: int,
+                          **model_kwargs) -> Tensor:
+        """:meth:`predict` for particles ``rows`` of a search of ``particles``: ``z [len(rows), ...]``
+        with their rows of the text states, a call of those particles alone."""
+        embeds = model_kwargs["prompt_embeds"]
+        embeds = embeds[particle_rows(particles, embeds.shape[0], rows)]
+        return self.predict(z, differentiate, **{**model_kwargs, "prompt_embeds": embeds})
 
     # ------------------------------------------------------------------------------------------
 
@@ -271,6 +299,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         run_options: RunOptions | Mapping[str, Any] | None = None,
         estimators: Any = None,
         observer: GuidanceObserver | None = None,
+        search: SearchConfig | Mapping[str, Any] | None = None,
+        search_generator: torch.Generator | None = None,
     ) -> GeCoCogVideoXPipelineOutput | tuple:
         """Generate a video; arguments as :meth:`CogVideoXPipeline.__call__`, plus:
 
@@ -289,6 +319,14 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 updates (profilers, measurements); ``None``: nothing watches.
             eta: the scheduler's eta, passed to its ``step`` as in the stock pipeline (DDIM noise;
                 ``CogVideoXDDIMScheduler`` ignores it). The GeCo step size is ``guidance.step_size``.
+            search: a particle search (:class:`~geco_guide.sampler.search.SearchConfig`, or a dict
+                of its fields; ``None`` or ``particles=None``: none): ``K = search.particles``
+                videos of the one prompt as one batch, scored by GeCo and resampled at its
+                resampling steps (needs ``estimators``). ``generator``: a list of ``K``
+                generators, one per particle (particle ``k``'s noise); the output holds the ``K``
+                final videos, ``report.search`` what the search did (scores, ancestors, lineages).
+            search_generator: the generator of the search's resampling draws (required with
+                ``search``), apart from the particles' own.
 
         Returns:
             :class:`GeCoCogVideoXPipelineOutput` (``frames``, ``report``) or ``(frames,)`` when
@@ -309,11 +347,23 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         if output_type not in OUTPUT_TYPES:  # the stock pipeline finds out after the whole denoising
             raise ValueError(f"output_type must be one of {list(OUTPUT_TYPES)}, got {output_type!r}")
         config, run = resolve_call_options(self.guidance_config, guidance, None, run_options)
+        search = resolve_search_config(search)
         num_steps = len(timesteps) if timesteps is not None else num_inference_steps
-        schedule, chunks, decode = self.check_geco_inputs(height, width, num_frames, num_steps, config, run, estimators)
-        devices = resolve_devices(run.devices) if config.enabled else None
+        if search is not None:
+            prompts = len(prompt) if isinstance(prompt, list) else 1 if prompt is not None else prompt_embeds.shape[0]
+            check_search_call(search, run, generator, search_generator, num_steps=num_steps, videos=prompts)
+        schedule, chunks, decode = self.check_geco_inputs(height, width, num_frames, num_steps, config, run, estimators,
+                                                          searching=search is not None)
+        working = config.enabled or search is not None
+        devices = resolve_devices(run.devices) if working else None
         memory_plan = self.choose_memory_plan(config, run, num_frames, height, width, devices) if config.enabled else None
-        masks = guidance_mask_source(config, estimators, self._execution_device) if config.enabled else None
+        masks = guidance_mask_source(config, estimators, self._execution_device) if working else None
+        particles = search.particles if search is not None else None
+        particle_batch = choose_particle_batch(
+            config, run, particles, memory_plan, signature=model_signature(self.transformer.config), frames=num_frames,
+            height=height, width=width, device_gb=planning_memory_gb(self._execution_device, devices),
+            offload=bool(getattr(self, "_all_hooks", None)), devices=len(devices) if devices else 1,
+        ) if search is not None else None
         self._guidance_scale = guidance_scale
         self._attention_kwargs = attention_kwargs
         self._current_timestep = None
@@ -323,6 +373,10 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                             if config.enabled and run.split_cfg and guidance_scale > 1.0 else None)
         replicas = [m for m in self._cfg_halves.replicas if m is not self.transformer] if self._cfg_halves else []
         denoisers = [self.transformer, *replicas]
+        # a search: the sampling's denoiser calls in sub-batches of particles, dealt over the devices
+        self._particle_batches = (ParticleBatches(particles, particle_batch.size,
+                                                  denoiser_places(self.transformer, devices, self.transformer))
+                                  if search is not None else None)
 
         # 2. Default call parameters
         if prompt is not None and isinstance(prompt, str):
@@ -331,7 +385,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             batch_size = len(prompt)
         else:
             batch_size = prompt_embeds.shape[0]
-        latents_shape, additional_frames = self.latents_shape(batch_size, num_frames, height, width)
+        videos = particles or batch_size  # a search: K videos of the one prompt
+        latents_shape, additional_frames = self.latents_shape(videos, num_frames, height, width)
         check_latents(latents, latents_shape, f"a call with num_frames={num_frames}, height={height}, width={width}, "
                                                "as [batch, frames, channels, height, width]")
         device = self._execution_device
@@ -348,6 +403,9 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             max_sequence_length=max_sequence_length,
             device=device,
         )
+        if particles is not None:  # one prompt's states for every particle, row for row the same
+            prompt_embeds = prompt_embeds.repeat(particles, 1, 1)
+            negative_prompt_embeds = negative_prompt_embeds.repeat(particles, 1, 1) if do_classifier_free_guidance else None
         if do_classifier_free_guidance:
             prompt_embeds = torch.cat([negative_prompt_embeds, prompt_embeds], dim=0)
 
@@ -358,7 +416,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
         # 5. Latents (CogVideoX 1.5 pads latent frames to a multiple of patch_size_t)
         latents = self.prepare_latents(
-            batch_size * num_videos_per_prompt,
+            videos * num_videos_per_prompt,
             self.transformer.config.in_channels,
             num_frames + additional_frames * self.vae_scale_factor_temporal,
             height,
@@ -396,6 +454,15 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             )
             if devices:
                 logger.info("guidance: anchor chunks dealt over %s", ", ".join(map(str, devices)))
+        searcher = batches = None
+        if search is not None:
+            scorer = ParticleScorer(
+                geco.anchor_objective.decode if geco else plan_anchor_decode(SAFE_PLAN, decode, chunks, devices),
+                lambda x0: x0[:, additional_frames:], GeCoLoss(estimators, config.loss, check_values=False), masks,
+                particle_batch.size)
+            searcher = ParticleSearch(search, len(timesteps), scorer, generator=search_generator, noise=generator,
+                                      batch=particle_batch.size, masks=masks if geco else None)
+            batches = particle_batches(particles, particle_batch.size)
 
         # 9. Denoising loop
         num_warmup_steps = max(len(timesteps) - num_inference_steps * self.scheduler.order, 0)
@@ -424,6 +491,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                     attention_kwargs=attention_kwargs,
                     do_classifier_free_guidance=do_classifier_free_guidance,
                 )
+                predict_rows = partial(self.predict_particles, particles=particles, **model_kwargs) if particles else None
                 if geco is None or schedule.repeats_at(i) == 0:
                     noise_pred = self.model_output(latents, **model_kwargs)
                     sample = latents
@@ -431,7 +499,13 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                     # R_t GeCo updates of z_t; the scheduler then steps from the guided z_t with the
                     # model output there (the hooks' path: one guidance for both)
                     levels = noise_levels(self.scheduler, step_values[i], i)
-                    sample, noise_pred = geco.guide(latents, partial(self.predict, **model_kwargs), levels, i, step_values[i])
+                    sample, noise_pred = geco.guide(latents, partial(self.predict, **model_kwargs), levels, i,
+                                                    step_values[i], batches=batches, predict_rows=predict_rows)
+                if searcher is not None and searcher.resamples_at(i):
+                    # the particles scored and resampled, their scheduler state and loop state carried
+                    sample, noise_pred, (old_pred_original_sample,) = searcher.step(
+                        i, step_values[i], sample, noise_pred, noise_levels(self.scheduler, step_values[i], i),
+                        predict_rows, self.scheduler, (old_pred_original_sample,))
 
                 # compute the previous noisy sample x_t -> x_t-1, with the pipeline's own scheduler
                 if not isinstance(self.scheduler, CogVideoXDPMScheduler):
@@ -470,13 +544,18 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                     xm.mark_step()
 
         self._current_timestep = None
-        self._cfg_halves = None
+        self._cfg_halves = self._particle_batches = None
         report = geco.report(self.scheduler) if geco else GuidanceReport(scheduler=type(self.scheduler).__name__)
+        if searcher is not None:
+            report.search = {**searcher.report(particles), "particle_batch": particle_batch.to_dict()}
         watch.check()
 
         if not output_type == "latent":
             latents = latents[:, additional_frames:]
-            video = self.decode_latents(latents.to(self.vae.dtype) if keep_fp32 else latents)
+            latents = latents.to(self.vae.dtype) if keep_fp32 else latents
+            # a search's videos one at a time: each particle's frames as its own decode makes them
+            video = (torch.cat([self.decode_latents(latents[k:k + 1]) for k in range(particles)]) if particles
+                     else self.decode_latents(latents))
             video = self.video_processor.postprocess_video(video=video, output_type=output_type)
         else:
             video = latents.to(prompt_embeds.dtype) if keep_fp32 else latents

@@ -20,7 +20,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Optional
 
-from ..types import OptionError, is_number, merge_dataclass, non_finite_fields
+from ..types import OptionError, is_integer, is_number, merge_dataclass, non_finite_fields
 from .config import GuidanceConfig, resolve_guidance_config
 from .fast_decode import DECODE_LAYOUTS
 from .memory_plan import PLAN_NAMES
@@ -75,6 +75,14 @@ class RunOptions:
             batch, so the frames equal the one-call frames to float rounding only (hence off by
             default, and in :data:`FRAME_ROUNDING_KEYS`); the same on one device or two.
             ``GeCoCogVideoXPipeline`` only (the hooks leave a pipeline's own denoiser calls as they are).
+        particle_batch: the most particles of a search (``search.particles``) one denoiser call,
+            guided update, anchor scoring or final decode holds; ``None`` (default): the memory
+            plan's choice (:func:`~.search.choose_particle_batch`: all of them where they fit, one
+            for a model the estimates do not know). Sub-batches of one size give the frames of one
+            batch to float rounding (kernels of another batch size may sum in another order; hence
+            in :data:`FRAME_ROUNDING_KEYS`), of one particle each particle's frames as its own
+            call, bit for bit. With ``devices`` the sub-batches of the sampling's denoiser calls are
+            dealt over them, each device with a replica of the denoiser.
     """
 
     memory_plan: str = "auto"
@@ -86,6 +94,7 @@ class RunOptions:
     compile: bool = False
     devices: Optional[list[str]] = None
     split_cfg: bool = False
+    particle_batch: Optional[int] = None
 
     def __post_init__(self) -> None:
         for key in ("gradient_checkpointing", "vae_checkpointing", "compile", "split_cfg"):
@@ -103,6 +112,9 @@ class RunOptions:
                                                   f"got {self.memory_budget_gb}")
         if self.memory_plan not in PLAN_NAMES:
             raise OptionError("memory_plan", f"must be one of {', '.join(PLAN_NAMES)}, got {self.memory_plan!r}")
+        if self.particle_batch is not None and (not is_integer(self.particle_batch) or self.particle_batch < 1):
+            raise OptionError("particle_batch", f"must be a whole number of particles >= 1 (or null: the memory plan's "
+                                                f"choice), got {self.particle_batch!r}")
         if self.decode_layout not in DECODE_LAYOUTS:
             raise OptionError("decode_layout", f"must be one of {', '.join(DECODE_LAYOUTS)}, got {self.decode_layout!r}")
         if self.devices is not None and (not isinstance(self.devices, (list, tuple)) or not self.devices
@@ -115,7 +127,7 @@ class RunOptions:
 RUN_KEYS = tuple(f.name for f in fields(RunOptions))
 #: The run options that can change the frames to float rounding, and so stay in the video key
 #: (the memory plans and devices give the same frames bit for bit on one kind of device).
-FRAME_ROUNDING_KEYS = ("decode_layout", "compile", "split_cfg")
+FRAME_ROUNDING_KEYS = ("decode_layout", "compile", "split_cfg", "particle_batch")
 
 
 def resolve_run_options(base: RunOptions | None, override: RunOptions | Mapping[str, Any] | None) -> RunOptions:

@@ -62,7 +62,9 @@ class Update:
 class GuidanceRecord:
     """One guided update of the guidance log: step index, timestep, loss and cues before the
     update, ``||g||``, seconds; with dynamic masks also the mean fraction of the anchor frames'
-    pixels masked and the masks' source (absent from :meth:`to_dict` without masks)."""
+    pixels masked and the masks' source (absent from :meth:`to_dict` without masks); in a search
+    whose particles are guided in sub-batches, the first and last particle of the update's
+    sub-batch (absent without a search)."""
 
     step: int
     repeat: int
@@ -77,11 +79,14 @@ class GuidanceRecord:
     skipped: bool = False
     masked_fraction: float | None = None
     mask_source: str | None = None
+    particles: list[int] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         record = asdict(self)
         if self.mask_source is None:
             del record["masked_fraction"], record["mask_source"]
+        if self.particles is None:
+            del record["particles"]
         return record
 
 

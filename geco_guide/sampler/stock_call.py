@@ -11,6 +11,8 @@ Diffusers ``WanModularPipeline``). Both set a call up and take a guided step the
   guided stock call are taken apart.
 * :func:`guide_stock_step`: the ``R_t`` updates of one step, and the sample and model output the
   pipeline's scheduler then steps with (a multistep scheduler told to keep the update).
+* :meth:`StockCall.particle_batch` and :meth:`StockCall.searcher`: a particle search of the call
+  (:mod:`.search`), which decodes and scores the same anchors as guidance.
 
 How each door predicts the model output at new latents differs (the hooks replay the captured
 denoiser calls, the loop re-runs its own denoiser block), and so does where it keeps a call's
@@ -20,7 +22,7 @@ state; what a prediction is used for does not.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,6 +30,7 @@ import torch
 from torch import Tensor, nn
 
 from ..estimators.bundle import Estimators
+from ..loss.geco import GeCoLoss
 from ..types import check_estimator_bundle
 from .adapters import (
     CallGeometry,
@@ -37,13 +40,14 @@ from .adapters import (
     keep_update,
     noise_levels,
 )
-from .anchor_decode import AnchorDecode, anchor_decoder
+from .anchor_decode import AnchorDecode, anchor_decoder, plan_anchor_decode
 from .config import GuidanceConfig
 from .context import GuidanceContext, GuidanceObserver
 from .dynamic import RefreshedMasks, guidance_mask_source
-from .memory_plan import PlanChoice, choose_plan, model_signature, planning_memory_gb
+from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature, planning_memory_gb
 from .multi_device import resolve_devices
 from .run_options import RunOptions, check_call_options
+from .search import ParticleBatch, ParticleScorer, ParticleSearch, SearchConfig, choose_particle_batch
 from .slicing import AnchorChunk
 
 __all__ = ["StockCall", "check_estimators", "guide_stock_step", "stock_call"]
@@ -89,7 +93,8 @@ class StockCall:
         decode_chunk: their decode (the adapter's by the VAE, or the tiny decoder's).
         masks: the dynamic masks of ``config.dynamic``, or ``None``.
         devices: ``run.devices`` resolved, or ``None`` for one device.
-        memory_plan: the plan chosen for the call (a fallback is the context's).
+        memory_plan: the plan chosen for the call (a fallback is the context's); ``None`` for a
+            call that only searches (no guidance).
     """
 
     pipe: Any
@@ -102,7 +107,7 @@ class StockCall:
     decode_chunk: AnchorDecode
     masks: RefreshedMasks | None
     devices: list[torch.device] | None
-    memory_plan: PlanChoice
+    memory_plan: PlanChoice | None
 
     def context(self, num_steps: int, generator: torch.Generator | list[torch.Generator] | None = None,
                 log: list[dict[str, Any]] | None = None, observer: GuidanceObserver | None = None) -> GuidanceContext:
@@ -116,6 +121,33 @@ class StockCall:
             estimators=self.estimators, generator=generator, log=log, run=self.run, memory_plan=self.memory_plan,
             dynamic_masks=self.masks, devices=self.devices, observer=observer,
         )
+
+    def particle_batch(self, particles: int) -> ParticleBatch:
+        """The particle batch of a search of ``particles`` particles in this call
+        (:func:`~.search.choose_particle_batch`)."""
+        pipe, geometry = self.pipe, self.geometry
+        scale = getattr(pipe, "vae_scale_factor_spatial", 8)
+        return choose_particle_batch(
+            self.config, self.run, particles, self.memory_plan,
+            signature=model_signature(self.adapter.denoisers(pipe)[0].config), frames=geometry.num_frames,
+            height=geometry.latent_height * scale, width=geometry.latent_width * scale,
+            device_gb=planning_memory_gb(pipe._execution_device, self.devices),
+            offload=bool(getattr(pipe, "_all_hooks", None)), devices=len(self.devices) if self.devices else 1)
+
+    def searcher(self, search: SearchConfig, num_steps: int, context: GuidanceContext | None, batch: int,
+                 generator: torch.Generator | list[torch.Generator] | None,
+                 search_generator: torch.Generator) -> ParticleSearch:
+        """The :class:`~.search.ParticleSearch` of the call's ``num_steps`` steps: its particles
+        scored on the anchors guidance decodes (``context``'s decode, or the plan-free one of a
+        call without guidance), ``batch`` at a time; ``generator``: the particles' own;
+        ``search_generator``: the resamplings'."""
+        decode = context.anchor_objective.decode if context is not None else plan_anchor_decode(
+            SAFE_PLAN, self.decode_chunk, self.chunks, self.devices)
+        latent_frames = functools.partial(self.adapter.frames_first, self.pipe, geometry=self.geometry)
+        scorer = ParticleScorer(decode, latent_frames, GeCoLoss(self.estimators, self.config.loss, check_values=False),
+                                self.masks, batch)
+        return ParticleSearch(search, num_steps, scorer, generator=search_generator, noise=generator, batch=batch,
+                              masks=self.masks if context is not None else None)
 
 
 def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, config: GuidanceConfig, run: RunOptions,
@@ -154,7 +186,8 @@ def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, conf
     memory_plan = choose_plan(
         config, run, signature=model_signature(denoisers[0].config), frames=geometry.num_frames,
         height=geometry.latent_height * scale, width=geometry.latent_width * scale,
-        device_gb=planning_memory_gb(home, devices), offload=bool(getattr(pipe, "_all_hooks", None)))
+        device_gb=planning_memory_gb(home, devices), offload=bool(getattr(pipe, "_all_hooks", None))
+    ) if config.enabled else None
     return StockCall(pipe, adapter, geometry, config, run, estimators, chunks, decode_chunk, masks, devices,
                      memory_plan)
 
@@ -169,6 +202,9 @@ def guide_stock_step(
     sample: Tensor,
     model_output: Tensor,
     predict: Callable[[Tensor, bool], Tensor],
+    *,
+    batches: Sequence[Sequence[int]] | None = None,
+    predict_rows: Callable[[Tensor, Sequence[int], bool], Tensor] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """The ``R_t`` updates of loop step ``step`` (:meth:`GuidanceContext.guide`), with the models
     frozen and the memory plan's checkpointing on ``denoisers`` (those ``predict`` runs).
@@ -178,6 +214,8 @@ def guide_stock_step(
             (``[B, C, F, h, w]`` for Wan, ``[B, F, C, h, w]`` for CogVideoX, tokens ``[B, S, C]`` for LTX).
         model_output: the pipeline's own (CFG-combined) model output at ``sample``, of its shape.
         predict: ``(z, differentiate) -> model output at z`` (:func:`~.step.guided_step`).
+        batches, predict_rows: a search's particle sub-batches, each guided on its own
+            (:meth:`GuidanceContext.guide <.context.GuidanceContext.guide>`).
 
     Returns:
         ``(sample, model_output)`` for ``pipe.scheduler.step``: the guided latents in fp32 (fp64
@@ -187,7 +225,8 @@ def guide_stock_step(
     """
     scheduler = pipe.scheduler
     with context.models(denoisers, pipe.vae, adapter.frozen_modules(pipe)):
-        z, out = context.guide(sample, predict, noise_levels(scheduler, timestep, step), step, int(timestep))
+        z, out = context.guide(sample, predict, noise_levels(scheduler, timestep, step), step, int(timestep),
+                               batches=batches, predict_rows=predict_rows)
     z = z.to(sample.device)
     keep_update(scheduler, sample, z)
     return (z.double() if sample.dtype == torch.float64 else z), out.to(device=sample.device, dtype=model_output.dtype)

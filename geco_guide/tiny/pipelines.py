@@ -1,285 +1,32 @@
-"""Tiny, randomly initialised, offline stand-ins for the real models: the ``tiny`` preset and the
-``tiny-random`` ids, GeCo-Eval's ``--preset tiny``, the tests and the runnable examples.
-
-:func:`tiny_pipeline` returns a ready :class:`GeCoCogVideoXPipeline` whose every component is
-built here from a seed: a word-level T5-style tokenizer made with the ``tokenizers`` library, a
-tiny ``T5EncoderModel``, ``CogVideoXTransformer3DModel`` and ``AutoencoderKLCogVideoX`` (temporal
-compression 4, spatial 8, so the real frame <-> latent mapping is exercised), the DDIM scheduler
-with the CogVideoX-5b scheduler settings; :func:`tiny_estimators` the tiny random VGGT / UFM.
-Every family of the model registry (:mod:`geco_guide.families`) has its builder here, which the
-registry names (:func:`tiny_video_components`). Nothing is downloaded. The outputs are noise-like
-videos; only the mechanics are real.
-"""
+"""Tiny stock diffusers pipelines of every family of the model registry (for the pipeline hooks,
+the Modular Diffusers block, ``model.id=tiny-random`` and the tests): each built from ``seed`` with
+the real diffusers and transformers classes at a few pixels, eval mode, progress bar off."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Any
 
 import torch
-from transformers import PreTrainedTokenizerFast
 
-from .estimators import Estimators, tiny_estimators, tiny_random_decoder
-from .families import VideoModel
-
-__all__ = ["HUNYUAN15_LATENT_CHANNELS", "TINY_ANCHORS", "TINY_CALL_KWARGS", "TINY_HEIGHT",
-           "TINY_MAX_SEQUENCE_LENGTH", "TINY_NUM_FRAMES", "TINY_WIDTH", "TinySizes", "TinyTokenizer",
-           "WAN22_LATENT_CHANNELS", "tiny_bundle", "tiny_call_extras", "tiny_call_kwargs", "tiny_cogvideox15_pipeline",
-           "tiny_cogvideox_components", "tiny_cogvideox_i2v_pipeline", "tiny_cogvideox_pipeline",
-           "tiny_cogvideox_transformer", "tiny_estimators", "tiny_guidance_config", "tiny_guidance_decoder",
-           "tiny_hunyuan15_i2v_pipeline", "tiny_hunyuan15_pipeline", "tiny_hunyuan_pipeline", "tiny_ltx2_pipeline",
-           "tiny_ltx_pipeline", "tiny_pipeline", "tiny_run_options", "tiny_sampling", "tiny_tokenizer",
-           "tiny_video_components", "tiny_wan22_a14b_pipeline", "tiny_wan22_ti2v_pipeline", "tiny_wan_modular_pipeline",
-           "tiny_wan_pipeline"]
-
-# Tiny sampling settings that fit the tiny models (17 frames = 5 latents, 32x48 pixels).
-TINY_NUM_FRAMES = 17
-TINY_HEIGHT = 32
-TINY_WIDTH = 48
-TINY_ANCHORS = (4, 8, 12, 16)
-TINY_MAX_SEQUENCE_LENGTH = 16
-
-_SPECIAL = ["<pad>", "</s>", "<unk>"]
-_WORDS = (
-    "a an the of on in at with and to from by for is are over under near its this that "
-    "marble bust statue head face man woman person child dog cat horse bird car train boat ship "
-    "house building city street road bridge tower castle church room table chair kitchen garden "
-    "tree forest mountain hill river lake sea ocean beach sky cloud sun moon star snow rain "
-    "red green blue white black golden silver old new small big tall wooden stone glass "
-    "walking running flying turning rotating moving standing sitting camera orbit pan zoom slow "
-    "fast view shot close wide aerial scene video light night day sunset morning . ,"
-).split()
-
-
-class TinyTokenizer(PreTrainedTokenizerFast):
-    """Truncates at ``model_max_length`` unless a call says otherwise. The pipelines tokenize
-    each prompt twice, truncated at ``max_sequence_length`` and once more untruncated to warn
-    about what was cut; at the tiny preset's 16 tokens nearly every prompt is cut, and that
-    second pass printed transformers' "longer than the specified maximum" line and a line of
-    the cut words (mostly ``<unk>``: the vocabulary is small) on every call. A module-level
-    class, so that a saved tiny pipeline loads again (``model_index.json`` names it)."""
-
-    def __call__(self, *args: Any, truncation: Any = True, **kwargs: Any) -> Any:
-        return super().__call__(*args, truncation=truncation, **kwargs)
-
-
-def tiny_tokenizer(max_length: int = TINY_MAX_SEQUENCE_LENGTH):
-    """A T5-compatible fast tokenizer over a small fixed word list (lower-cased, ``</s>`` appended)
-    that truncates at ``max_length`` by default (so long prompts are cut quietly, as the
-    pipelines cut them at ``max_sequence_length``)."""
-    from tokenizers import Tokenizer, normalizers, pre_tokenizers, processors
-    from tokenizers.models import WordLevel
-
-    vocab = {tok: i for i, tok in enumerate(_SPECIAL + list(dict.fromkeys(_WORDS)))}
-    tok = Tokenizer(WordLevel(vocab=vocab, unk_token="<unk>"))
-    tok.normalizer = normalizers.Sequence([normalizers.NFKC(), normalizers.Lowercase()])
-    tok.pre_tokenizer = pre_tokenizers.Whitespace()
-    tok.post_processor = processors.TemplateProcessing(
-        single="$A </s>", pair="$A </s> $B </s>", special_tokens=[("</s>", vocab["</s>"])]
-    )
-    return TinyTokenizer(
-        tokenizer_object=tok,
-        pad_token="<pad>",
-        eos_token="</s>",
-        unk_token="<unk>",
-        model_max_length=max_length,
-        padding_side="right",
-    )
-
-
-def _seeded(seed: int):
-    gen_state = torch.random.get_rng_state()
-    torch.manual_seed(seed)
-    return gen_state
-
-
-@dataclass
-class TinySizes:
-    """Sizes of the tiny CogVideoX parts."""
-
-    text_dim: int = 16
-    heads: int = 2
-    head_dim: int = 16  # rotary 3-D embeddings need head_dim divisible by 8 (t/h/w split)
-    layers: int = 1
-    latent_channels: int = 4
-    vae_channels: tuple[int, ...] = field(default_factory=lambda: (8, 8, 8, 8))
-
-
-def tiny_cogvideox_transformer(sizes: TinySizes, **changes: Any):
-    """A tiny ``CogVideoXTransformer3DModel`` (1.0 layout unless ``changes`` say otherwise),
-    initialised from the global RNG: callers seed it."""
-    from diffusers import CogVideoXTransformer3DModel
-
-    kwargs = dict(
-        num_attention_heads=sizes.heads,
-        attention_head_dim=sizes.head_dim,
-        in_channels=sizes.latent_channels,
-        out_channels=sizes.latent_channels,
-        time_embed_dim=8,
-        text_embed_dim=sizes.text_dim,
-        num_layers=sizes.layers,
-        sample_width=TINY_WIDTH // 8,
-        sample_height=TINY_HEIGHT // 8,
-        sample_frames=TINY_NUM_FRAMES,
-        patch_size=2,
-        temporal_compression_ratio=4,
-        max_text_seq_length=TINY_MAX_SEQUENCE_LENGTH,
-        use_rotary_positional_embeddings=True,
-        use_learned_positional_embeddings=False,
-    )
-    return CogVideoXTransformer3DModel(**{**kwargs, **changes})
-
-
-def tiny_cogvideox_components(seed: int = 0, sizes: TinySizes | None = None) -> dict[str, Any]:
-    """Tokenizer, text encoder, VAE, transformer and DDIM scheduler, randomly initialised from ``seed``."""
-    from diffusers import AutoencoderKLCogVideoX, CogVideoXDDIMScheduler
-    from transformers import T5Config, T5EncoderModel
-
-    sizes = sizes or TinySizes()
-    tokenizer = tiny_tokenizer()
-    state = _seeded(seed)
-    try:
-        text_encoder = T5EncoderModel(
-            T5Config(
-                vocab_size=len(tokenizer),
-                d_model=sizes.text_dim,
-                d_kv=8,
-                d_ff=32,
-                num_layers=1,
-                num_heads=2,
-                relative_attention_num_buckets=8,
-                dropout_rate=0.0,
-                pad_token_id=tokenizer.pad_token_id,
-                eos_token_id=tokenizer.eos_token_id,
-            )
-        )
-        vae = AutoencoderKLCogVideoX(
-            in_channels=3,
-            out_channels=3,
-            down_block_types=("CogVideoXDownBlock3D",) * len(sizes.vae_channels),
-            up_block_types=("CogVideoXUpBlock3D",) * len(sizes.vae_channels),
-            block_out_channels=sizes.vae_channels,
-            latent_channels=sizes.latent_channels,
-            layers_per_block=1,
-            norm_num_groups=2,
-            temporal_compression_ratio=4,
-        )
-        transformer = tiny_cogvideox_transformer(sizes)
-    finally:
-        torch.random.set_rng_state(state)
-    # The CogVideoX-5b scheduler settings (v-prediction, zero terminal SNR, trailing spacing).
-    scheduler = CogVideoXDDIMScheduler(
-        beta_start=0.00085,
-        beta_end=0.012,
-        beta_schedule="scaled_linear",
-        clip_sample=False,
-        prediction_type="v_prediction",
-        rescale_betas_zero_snr=True,
-        set_alpha_to_one=True,
-        snr_shift_scale=1.0,
-        steps_offset=0,
-        timestep_spacing="trailing",
-    )
-    for model in (text_encoder, vae, transformer):
-        model.eval()
-    return {
-        "tokenizer": tokenizer,
-        "text_encoder": text_encoder,
-        "vae": vae,
-        "transformer": transformer,
-        "scheduler": scheduler,
-    }
-
-
-def tiny_video_components(model: VideoModel, seed: int = 0) -> dict[str, Any]:
-    """What ``model``'s tiny random stand-in (the builder its registry entry names), seeded with
-    ``seed``, is built from: its components and the settings of its config that its class takes
-    (Wan 2.2's ``boundary_ratio``, ``expand_timesteps``): what ``model.id=tiny-random`` loads."""
-    import inspect
-
-    if model.tiny is None:
-        raise ValueError(f"{model.name} has no tiny random stand-in")
-    pipe = globals()[model.tiny](seed)
-    accepted = inspect.signature(type(pipe).__init__).parameters
-    settings = {key: value for key, value in pipe.config.items() if key in accepted and key not in pipe.components}
-    return {**pipe.components, **settings}
-
-
-def tiny_sampling(model: VideoModel) -> dict[str, int]:
-    """The ``sampling`` of a tiny stand-in of ``model``'s family: 17 frames of 32x48 pixels (the
-    width of 64 where the model wants sizes in multiples of 32)."""
-    width = TINY_WIDTH if TINY_WIDTH % model.size_multiple == 0 else -(-TINY_WIDTH // model.size_multiple) * model.size_multiple
-    height = TINY_HEIGHT if TINY_HEIGHT % model.size_multiple == 0 else -(-TINY_HEIGHT // model.size_multiple) * model.size_multiple
-    return {"num_frames": TINY_NUM_FRAMES, "height": height, "width": width}
-
-
-def tiny_bundle(seed: int = 0, **more: Any) -> Estimators:
-    """The tiny random VGGT and UFM (:func:`tiny_estimators`) as one
-    :class:`~geco_guide.estimators.Estimators`, with ``more`` of its fields (``segmenter``,
-    ``tiny_decoder``)."""
-    return Estimators(*tiny_estimators(seed), **more)
-
-
-def tiny_guidance_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int = TinySizes.latent_channels):
-    """A tiny random :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` of ``variant`` for the
-    tiny models' latents (their channel count; the published variants take 16 or more)."""
-    return tiny_random_decoder(variant, seed, latent_channels)
-
-
-def tiny_guidance_config(**changes: Any):
-    """A short guidance schedule for the tiny models and a few steps (default: 4 steps), with the
-    fused loss (the cues all get gradients, so the tests see every path)."""
-    from dataclasses import replace
-
-    from .loss.presets import fused_guidance_loss
-    from .sampler.config import GuidanceConfig
-
-    base = GuidanceConfig(
-        anchors=list(TINY_ANCHORS),
-        chunk_latents=3,
-        repeats="0x1,2x2,1x1",
-        step_size=3.0,
-        time_travel=[2, 2],
-        denoiser_grad=True,
-        loss=fused_guidance_loss(),
-    )
-    return replace(base, **changes)
-
-
-def tiny_run_options(**changes: Any):
-    """How guidance runs on the tiny models: no checkpointing (``explicit`` plan, flags off: the
-    batched chunk decode; they need no memory plan), as ``configs/tiny.yaml``'s ``run``."""
-    from .sampler.run_options import RunOptions
-
-    return RunOptions(**{"memory_plan": "explicit", "gradient_checkpointing": False, "vae_checkpointing": False,
-                         **changes})
-
-
-def tiny_pipeline(seed: int = 0, *, guidance_config: Any = None):
-    """A ready tiny :class:`GeCoCogVideoXPipeline` (CPU, fp32); guide its calls with
-    :func:`tiny_bundle`'s estimators.
-
-    Call it with ``num_frames=TINY_NUM_FRAMES, height=TINY_HEIGHT, width=TINY_WIDTH,
-    num_inference_steps=4, max_sequence_length=TINY_MAX_SEQUENCE_LENGTH`` (the guidance default
-    is :func:`tiny_guidance_config`, a 4-step schedule) and ``run_options=tiny_run_options()``.
-    """
-    from .sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
-
-    pipe = GeCoCogVideoXPipeline(
-        **tiny_cogvideox_components(seed),
-        guidance_config=guidance_config if guidance_config is not None else tiny_guidance_config(),
-    )
-    pipe.set_progress_bar_config(disable=True)
-    return pipe
-
-
-TINY_CALL_KWARGS = dict(
-    num_frames=TINY_NUM_FRAMES,
-    height=TINY_HEIGHT,
-    width=TINY_WIDTH,
-    num_inference_steps=4,
-    max_sequence_length=TINY_MAX_SEQUENCE_LENGTH,
+from .components import (
+    TINY_HEIGHT,
+    TINY_WIDTH,
+    TinySizes,
+    seeded,
+    tiny_cogvideox_components,
+    tiny_cogvideox_transformer,
+    tiny_tokenizer,
 )
+
+__all__ = ["HUNYUAN15_LATENT_CHANNELS", "WAN22_LATENT_CHANNELS", "tiny_cogvideox15_pipeline",
+           "tiny_cogvideox_i2v_pipeline", "tiny_cogvideox_pipeline", "tiny_hunyuan15_i2v_pipeline",
+           "tiny_hunyuan15_pipeline", "tiny_hunyuan_pipeline", "tiny_image", "tiny_ltx2_pipeline", "tiny_ltx_pipeline",
+           "tiny_wan22_a14b_pipeline", "tiny_wan22_ti2v_pipeline", "tiny_wan_modular_pipeline", "tiny_wan_pipeline"]
+
+#: Latent channels of the Wan 2.2 VAE (TI2V-5B) and of the HunyuanVideo 1.5 VAE: the tiny
+#: builders keep the real counts, which the tiny decoders ``wan2.2-5b`` / ``hunyuanvideo1.5`` take.
+WAN22_LATENT_CHANNELS = 48
+HUNYUAN15_LATENT_CHANNELS = 32
 
 
 # ---- tiny pipelines of the other families (for the pipeline hooks) -----------------------------
@@ -328,7 +75,7 @@ def tiny_cogvideox_pipeline(seed: int = 0, *, version: str = "1.0", scheduler: s
     components = tiny_cogvideox_components(seed)
     if version == "1.5":
         sizes = TinySizes()
-        state = _seeded(seed + 1)
+        state = seeded(seed + 1)
         try:
             components["transformer"] = tiny_cogvideox_transformer(sizes, patch_size_t=2, patch_bias=False).eval()
         finally:
@@ -353,7 +100,7 @@ def tiny_cogvideox_i2v_pipeline(seed: int = 0):
 
     components = tiny_cogvideox_components(seed)
     sizes = TinySizes()
-    state = _seeded(seed + 2)
+    state = seeded(seed + 2)
     try:
         # The image-to-video transformer sees the noisy latents and the image latents.
         components["transformer"] = tiny_cogvideox_transformer(sizes, in_channels=2 * sizes.latent_channels).eval()
@@ -393,7 +140,7 @@ def tiny_wan_pipeline(seed: int = 0, *, scheduler: str = "unipc", version: str =
         raise ValueError(f"version must be '2.1' or '2.2', got {version!r}")
     tokenizer = tiny_tokenizer()
     z_dim = 4
-    state = _seeded(seed)
+    state = seeded(seed)
     try:
         text_encoder = UMT5EncoderModel(
             UMT5Config(
@@ -497,7 +244,7 @@ def tiny_ltx_pipeline(seed: int = 0):
 
     tokenizer = tiny_tokenizer()
     channels = 8
-    state = _seeded(seed)
+    state = seeded(seed)
     try:
         text_encoder = _tiny_t5(tokenizer)
         vae = AutoencoderKLLTXVideo(
@@ -557,7 +304,7 @@ def tiny_hunyuan_pipeline(seed: int = 0):
 
     tokenizer = tiny_tokenizer(max_length=128)
     tokenizer_2 = tiny_tokenizer(max_length=77)
-    state = _seeded(seed)
+    state = seeded(seed)
     try:
         text_encoder = LlamaModel(
             LlamaConfig(
@@ -625,21 +372,6 @@ def tiny_hunyuan_pipeline(seed: int = 0):
     return _finish(pipe)
 
 
-def tiny_call_extras(pipe: Any) -> dict[str, Any]:
-    """What the tiny stand-ins' calls need beyond the config's sampling: HunyuanVideo's prompt
-    template, bare (``"{}"``: the tiny tokenizer cannot crop the real template's system text)."""
-    name = type(pipe).__name__
-    if name.startswith("HunyuanVideo") and not name.startswith("HunyuanVideo15"):
-        return {"prompt_template": {"template": "{}", "crop_start": 0}}
-    return {}
-
-
-#: Latent channels of the Wan 2.2 VAE (TI2V-5B) and of the HunyuanVideo 1.5 VAE: the tiny
-#: builders keep the real counts, which the tiny decoders ``wan2.2-5b`` / ``hunyuanvideo1.5`` take.
-WAN22_LATENT_CHANNELS = 48
-HUNYUAN15_LATENT_CHANNELS = 32
-
-
 def tiny_wan22_ti2v_pipeline(seed: int = 0):
     """A stock tiny ``WanPipeline`` in the Wan 2.2 TI2V-5B layout: :func:`tiny_wan_pipeline`'s text
     encoder, ``AutoencoderKLWan`` as the Wan 2.2 VAE (48 latent channels, residual blocks, 2x2 pixel
@@ -649,7 +381,7 @@ def tiny_wan22_ti2v_pipeline(seed: int = 0):
     from diffusers import AutoencoderKLWan, UniPCMultistepScheduler, WanPipeline, WanTransformer3DModel
 
     wan, channels = tiny_wan_pipeline(seed), WAN22_LATENT_CHANNELS
-    state = _seeded(seed + 1)
+    state = seeded(seed + 1)
     try:
         vae = AutoencoderKLWan(
             base_dim=8, z_dim=channels, dim_mult=[1, 1, 1, 1], num_res_blocks=1, temperal_downsample=[False, True, True],
@@ -688,7 +420,7 @@ def _tiny_hunyuan15_components(seed: int, task: str, guidance_scale: float, guid
     tokenizer = tiny_tokenizer(max_length=_HUNYUAN15_TEXT_TOKENS + 108)
     tokenizer.chat_template = "{% for message in messages %}{{ message['content'] }} {% endfor %}"
     tokenizer_2 = ByT5Tokenizer()
-    state = _seeded(seed)
+    state = seeded(seed)
     try:
         text_encoder = Qwen2_5_VLTextModel(Qwen2_5_VLTextConfig(
             vocab_size=len(tokenizer), hidden_size=16, intermediate_size=32, num_hidden_layers=3, num_attention_heads=2,
@@ -748,7 +480,7 @@ def tiny_hunyuan15_i2v_pipeline(seed: int = 0, *, guidance_scale: float = 6.0):
     from transformers import SiglipImageProcessor, SiglipVisionConfig, SiglipVisionModel
 
     components = _tiny_hunyuan15_components(seed, "i2v", guidance_scale, 0.0)
-    state = _seeded(seed + 1)
+    state = seeded(seed + 1)
     try:
         image_encoder = SiglipVisionModel(SiglipVisionConfig(
             hidden_size=_HUNYUAN15_IMAGE_DIM, intermediate_size=16, num_hidden_layers=1, num_attention_heads=2,
@@ -773,7 +505,7 @@ def tiny_ltx2_pipeline(seed: int = 0):
     from transformers import Gemma3Config, Gemma3ForConditionalGeneration, Gemma3TextConfig, SiglipVisionConfig
 
     tokenizer, channels, text_dim, text_layers = tiny_tokenizer(), 8, 16, 2
-    state = _seeded(seed)
+    state = seeded(seed)
     try:
         text_encoder = Gemma3ForConditionalGeneration(Gemma3Config(
             text_config=Gemma3TextConfig(
@@ -813,35 +545,3 @@ def tiny_ltx2_pipeline(seed: int = 0):
                                                 max_shift=2.05, shift_terminal=0.1, use_dynamic_shifting=True)
     return _finish(LTX2Pipeline(scheduler=scheduler, vae=vae, audio_vae=audio_vae, text_encoder=text_encoder,
                                 tokenizer=tokenizer, connectors=connectors, transformer=transformer, vocoder=vocoder))
-
-
-def tiny_call_kwargs(pipe, **changes: Any) -> dict[str, Any]:
-    """Call arguments that fit the tiny pipelines: 17 frames of 32x48, 4 steps, short prompts
-    (32x64 for LTX and LTX-2, which want multiples of 32, and for a Wan with the Wan 2.2 16x VAE;
-    plus the conditioning image for image-to-video, the bare ``"{}"`` prompt template for Hunyuan,
-    HunyuanVideo 1.5's calls without ``max_sequence_length`` (and without a size for its
-    image-to-video pipeline, which takes it from the image), and spatio-temporal guidance on the
-    tiny LTX-2 transformer's last block, which its default block list does not name)."""
-    kwargs: dict[str, Any] = dict(
-        num_frames=TINY_NUM_FRAMES,
-        height=TINY_HEIGHT,
-        width=TINY_WIDTH,
-        num_inference_steps=4,
-        max_sequence_length=TINY_MAX_SEQUENCE_LENGTH,
-    )
-    name = type(pipe).__name__
-    if "ImageToVideo" in name:
-        kwargs["image"] = tiny_image(0)
-    if name.startswith("HunyuanVideo15"):
-        del kwargs["max_sequence_length"]  # it pads its prompts to its own lengths
-        if "ImageToVideo" in name:  # the size comes from the image
-            del kwargs["height"], kwargs["width"]
-    kwargs.update(tiny_call_extras(pipe))
-    if name.startswith("LTX"):
-        kwargs["width"] = 64  # LTXPipeline wants multiples of 32
-    if name.startswith("LTX2"):
-        kwargs["spatio_temporal_guidance_blocks"] = [pipe.transformer.config.num_layers - 1]
-    if name.startswith("Wan") and pipe.vae_scale_factor_spatial == 16:
-        kwargs["width"] = 64  # 16x VAE and 2x2 patches: multiples of 32
-    kwargs.update(changes)
-    return kwargs

@@ -1,0 +1,191 @@
+"""Tiny, randomly initialised, offline stand-ins for the real models: the ``tiny`` preset and the
+``tiny-random`` ids, GeCo-Eval's ``--preset tiny``, the tests and the runnable examples.
+
+:func:`tiny_pipeline` returns a ready :class:`GeCoCogVideoXPipeline` whose every component is
+built here from a seed: a word-level T5-style tokenizer made with the ``tokenizers`` library, a
+tiny ``T5EncoderModel``, ``CogVideoXTransformer3DModel`` and ``AutoencoderKLCogVideoX`` (temporal
+compression 4, spatial 8, so the real frame <-> latent mapping is exercised), the DDIM scheduler
+with the CogVideoX-5b scheduler settings; :func:`tiny_estimators` the tiny random VGGT / UFM.
+Every family of the model registry (:mod:`geco_guide.families`) has its builder here, which the
+registry names (:func:`tiny_video_components`). Nothing is downloaded. The outputs are noise-like
+videos; only the mechanics are real.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..estimators import Estimators, tiny_estimators, tiny_random_decoder
+from ..families import VideoModel
+from .components import (
+    TINY_ANCHORS,
+    TINY_HEIGHT,
+    TINY_MAX_SEQUENCE_LENGTH,
+    TINY_NUM_FRAMES,
+    TINY_WIDTH,
+    TinySizes,
+    TinyTokenizer,
+    tiny_cogvideox_components,
+    tiny_cogvideox_transformer,
+    tiny_tokenizer,
+)
+from .pipelines import (
+    HUNYUAN15_LATENT_CHANNELS,
+    WAN22_LATENT_CHANNELS,
+    tiny_cogvideox15_pipeline,
+    tiny_cogvideox_i2v_pipeline,
+    tiny_cogvideox_pipeline,
+    tiny_hunyuan15_i2v_pipeline,
+    tiny_hunyuan15_pipeline,
+    tiny_hunyuan_pipeline,
+    tiny_image,
+    tiny_ltx2_pipeline,
+    tiny_ltx_pipeline,
+    tiny_wan22_a14b_pipeline,
+    tiny_wan22_ti2v_pipeline,
+    tiny_wan_modular_pipeline,
+    tiny_wan_pipeline,
+)
+
+__all__ = ["HUNYUAN15_LATENT_CHANNELS", "TINY_ANCHORS", "TINY_CALL_KWARGS", "TINY_HEIGHT",
+           "TINY_MAX_SEQUENCE_LENGTH", "TINY_NUM_FRAMES", "TINY_WIDTH", "TinySizes", "TinyTokenizer",
+           "WAN22_LATENT_CHANNELS", "tiny_bundle", "tiny_call_extras", "tiny_call_kwargs", "tiny_cogvideox15_pipeline",
+           "tiny_cogvideox_components", "tiny_cogvideox_i2v_pipeline", "tiny_cogvideox_pipeline",
+           "tiny_cogvideox_transformer", "tiny_estimators", "tiny_guidance_config", "tiny_guidance_decoder",
+           "tiny_hunyuan15_i2v_pipeline", "tiny_hunyuan15_pipeline", "tiny_hunyuan_pipeline", "tiny_image", "tiny_ltx2_pipeline",
+           "tiny_ltx_pipeline", "tiny_pipeline", "tiny_run_options", "tiny_sampling", "tiny_tokenizer",
+           "tiny_video_components", "tiny_wan22_a14b_pipeline", "tiny_wan22_ti2v_pipeline", "tiny_wan_modular_pipeline",
+           "tiny_wan_pipeline"]
+
+# Tiny sampling settings that fit the tiny models (17 frames = 5 latents, 32x48 pixels).
+
+def tiny_video_components(model: VideoModel, seed: int = 0) -> dict[str, Any]:
+    """What ``model``'s tiny random stand-in (the builder its registry entry names), seeded with
+    ``seed``, is built from: its components and the settings of its config that its class takes
+    (Wan 2.2's ``boundary_ratio``, ``expand_timesteps``): what ``model.id=tiny-random`` loads."""
+    import inspect
+
+    if model.tiny is None:
+        raise ValueError(f"{model.name} has no tiny random stand-in")
+    pipe = globals()[model.tiny](seed)
+    accepted = inspect.signature(type(pipe).__init__).parameters
+    settings = {key: value for key, value in pipe.config.items() if key in accepted and key not in pipe.components}
+    return {**pipe.components, **settings}
+
+
+def tiny_sampling(model: VideoModel) -> dict[str, int]:
+    """The ``sampling`` of a tiny stand-in of ``model``'s family: 17 frames of 32x48 pixels (the
+    width of 64 where the model wants sizes in multiples of 32)."""
+    width = TINY_WIDTH if TINY_WIDTH % model.size_multiple == 0 else -(-TINY_WIDTH // model.size_multiple) * model.size_multiple
+    height = TINY_HEIGHT if TINY_HEIGHT % model.size_multiple == 0 else -(-TINY_HEIGHT // model.size_multiple) * model.size_multiple
+    return {"num_frames": TINY_NUM_FRAMES, "height": height, "width": width}
+
+
+def tiny_bundle(seed: int = 0, **more: Any) -> Estimators:
+    """The tiny random VGGT and UFM (:func:`tiny_estimators`) as one
+    :class:`~geco_guide.estimators.Estimators`, with ``more`` of its fields (``segmenter``,
+    ``tiny_decoder``)."""
+    return Estimators(*tiny_estimators(seed), **more)
+
+
+def tiny_guidance_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int = TinySizes.latent_channels):
+    """A tiny random :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` of ``variant`` for the
+    tiny models' latents (their channel count; the published variants take 16 or more)."""
+    return tiny_random_decoder(variant, seed, latent_channels)
+
+
+def tiny_guidance_config(**changes: Any):
+    """A short guidance schedule for the tiny models and a few steps (default: 4 steps), with the
+    fused loss (the cues all get gradients, so the tests see every path)."""
+    from dataclasses import replace
+
+    from .loss.presets import fused_guidance_loss
+    from .sampler.config import GuidanceConfig
+
+    base = GuidanceConfig(
+        anchors=list(TINY_ANCHORS),
+        chunk_latents=3,
+        repeats="0x1,2x2,1x1",
+        step_size=3.0,
+        time_travel=[2, 2],
+        denoiser_grad=True,
+        loss=fused_guidance_loss(),
+    )
+    return replace(base, **changes)
+
+
+def tiny_run_options(**changes: Any):
+    """How guidance runs on the tiny models: no checkpointing (``explicit`` plan, flags off: the
+    batched chunk decode; they need no memory plan), as ``configs/tiny.yaml``'s ``run``."""
+    from .sampler.run_options import RunOptions
+
+    return RunOptions(**{"memory_plan": "explicit", "gradient_checkpointing": False, "vae_checkpointing": False,
+                         **changes})
+
+
+def tiny_pipeline(seed: int = 0, *, guidance_config: Any = None):
+    """A ready tiny :class:`GeCoCogVideoXPipeline` (CPU, fp32); guide its calls with
+    :func:`tiny_bundle`'s estimators.
+
+    Call it with ``num_frames=TINY_NUM_FRAMES, height=TINY_HEIGHT, width=TINY_WIDTH,
+    num_inference_steps=4, max_sequence_length=TINY_MAX_SEQUENCE_LENGTH`` (the guidance default
+    is :func:`tiny_guidance_config`, a 4-step schedule) and ``run_options=tiny_run_options()``.
+    """
+    from .sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+
+    pipe = GeCoCogVideoXPipeline(
+        **tiny_cogvideox_components(seed),
+        guidance_config=guidance_config if guidance_config is not None else tiny_guidance_config(),
+    )
+    pipe.set_progress_bar_config(disable=True)
+    return pipe
+
+
+TINY_CALL_KWARGS = dict(
+    num_frames=TINY_NUM_FRAMES,
+    height=TINY_HEIGHT,
+    width=TINY_WIDTH,
+    num_inference_steps=4,
+    max_sequence_length=TINY_MAX_SEQUENCE_LENGTH,
+)
+
+
+def tiny_call_extras(pipe: Any) -> dict[str, Any]:
+    """What the tiny stand-ins' calls need beyond the config's sampling: HunyuanVideo's prompt
+    template, bare (``"{}"``: the tiny tokenizer cannot crop the real template's system text)."""
+    name = type(pipe).__name__
+    if name.startswith("HunyuanVideo") and not name.startswith("HunyuanVideo15"):
+        return {"prompt_template": {"template": "{}", "crop_start": 0}}
+    return {}
+
+
+def tiny_call_kwargs(pipe, **changes: Any) -> dict[str, Any]:
+    """Call arguments that fit the tiny pipelines: 17 frames of 32x48, 4 steps, short prompts
+    (32x64 for LTX and LTX-2, which want multiples of 32, and for a Wan with the Wan 2.2 16x VAE;
+    plus the conditioning image for image-to-video, the bare ``"{}"`` prompt template for Hunyuan,
+    HunyuanVideo 1.5's calls without ``max_sequence_length`` (and without a size for its
+    image-to-video pipeline, which takes it from the image), and spatio-temporal guidance on the
+    tiny LTX-2 transformer's last block, which its default block list does not name)."""
+    kwargs: dict[str, Any] = dict(
+        num_frames=TINY_NUM_FRAMES,
+        height=TINY_HEIGHT,
+        width=TINY_WIDTH,
+        num_inference_steps=4,
+        max_sequence_length=TINY_MAX_SEQUENCE_LENGTH,
+    )
+    name = type(pipe).__name__
+    if "ImageToVideo" in name:
+        kwargs["image"] = tiny_image(0)
+    if name.startswith("HunyuanVideo15"):
+        del kwargs["max_sequence_length"]  # it pads its prompts to its own lengths
+        if "ImageToVideo" in name:  # the size comes from the image
+            del kwargs["height"], kwargs["width"]
+    kwargs.update(tiny_call_extras(pipe))
+    if name.startswith("LTX"):
+        kwargs["width"] = 64  # LTXPipeline wants multiples of 32
+    if name.startswith("LTX2"):
+        kwargs["spatio_temporal_guidance_blocks"] = [pipe.transformer.config.num_layers - 1]
+    if name.startswith("Wan") and pipe.vae_scale_factor_spatial == 16:
+        kwargs["width"] = 64  # 16x VAE and 2x2 patches: multiples of 32
+    kwargs.update(changes)
+    return kwargs
