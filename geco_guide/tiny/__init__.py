@@ -99,8 +99,8 @@ def tiny_guidance_config(**changes: Any):
     fused loss (the cues all get gradients, so the tests see every path)."""
     from dataclasses import replace
 
-    from .loss.presets import fused_guidance_loss
-    from .sampler.config import GuidanceConfig
+    from ..loss.presets import fused_guidance_loss
+    from ..sampler.config import GuidanceConfig
 
     base = GuidanceConfig(
         anchors=list(TINY_ANCHORS),
@@ -117,7 +117,7 @@ def tiny_guidance_config(**changes: Any):
 def tiny_run_options(**changes: Any):
     """How guidance runs on the tiny models: no checkpointing (``explicit`` plan, flags off: the
     batched chunk decode; they need no memory plan), as ``configs/tiny.yaml``'s ``run``."""
-    from .sampler.run_options import RunOptions
+    from ..sampler.run_options import RunOptions
 
     return RunOptions(**{"memory_plan": "explicit", "gradient_checkpointing": False, "vae_checkpointing": False,
                          **changes})
@@ -131,7 +131,7 @@ def tiny_pipeline(seed: int = 0, *, guidance_config: Any = None):
     num_inference_steps=4, max_sequence_length=TINY_MAX_SEQUENCE_LENGTH`` (the guidance default
     is :func:`tiny_guidance_config`, a 4-step schedule) and ``run_options=tiny_run_options()``.
     """
-    from .sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from ..sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     pipe = GeCoCogVideoXPipeline(
         **tiny_cogvideox_components(seed),
