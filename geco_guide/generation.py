@@ -232,7 +232,10 @@ def loading_line(cfg: GeCoConfig, estimators: bool = True) -> str:
     model = f"{cfg.model.name} {cfg.model.source}"
     if not estimators:
         return f"loading models: {model} ..."
-    return f"loading models: {model}, geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow} ..."
+    segmenter = ""
+    if cfg.guidance.enabled and cfg.guidance.subjects is not None:
+        segmenter = f", segmenter {cfg.estimators.segmenter} for {cfg.guidance.dynamic!r}"
+    return f"loading models: {model}, geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow}{segmenter} ..."
 
 
 def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True) -> Models:

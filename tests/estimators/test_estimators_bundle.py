@@ -1,7 +1,7 @@
 """One estimator bundle: ``load_estimators`` returns an :class:`Estimators` (geometry, flow and an
-optional text segmenter) that the metric, the hooks, the pipeline and the loaders take as one
-object; the old ``geometry, flow = load_estimators(...)`` still unpacks it for one release, with a
-FutureWarning (tiny models, CPU)."""
+optional text segmenter) that the metric, the hooks, the pipeline's call and the loaders take as
+one object; the old ``geometry, flow = load_estimators(...)`` and the old keywords of the pair are
+refused in one line naming the bundle (tiny models, CPU)."""
 
 from __future__ import annotations
 
@@ -42,14 +42,14 @@ def test_load_estimators_returns_one_named_bundle(loaded):
     assert bare.segmenter is None and set(bare.ids()) == {"geometry", "flow"} and "segmenter" not in repr(bare)
 
 
-def test_unpacking_the_old_pair_warns_and_still_works(loaded):
-    with pytest.warns(FutureWarning, match=r"estimators\.geometry and estimators\.flow") as caught:
+def test_unpacking_the_old_pair_is_refused_naming_the_attributes(loaded):
+    with pytest.raises(TypeError, match=r"^Estimators is not a \(geometry, flow\) pair: use estimators\.geometry and "
+                                        r"estimators\.flow$"):
         geometry, flow = loaded
-    assert geometry is loaded.geometry and flow is loaded.flow
-    assert caught[0].filename == __file__  # the warning points at the caller's line
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the attributes never warn
-        assert loaded.geometry is geometry and loaded.with_segmenter(None).segmenter is None
+        geometry = loaded.geometry
+        assert type(geometry).__name__ == "VGGT" and loaded.with_segmenter(None).segmenter is None
 
 
 def test_the_segmenter_makes_the_mask_source_of_any_subjects(loaded):
@@ -73,11 +73,12 @@ def test_load_segmenter_alone_names_itself(clip):
 
 def test_evaluate_video_takes_the_bundle(clip):
     oracles = Estimators(OracleGeometry(clip), OracleFlow(clip))
-    by_bundle = evaluate_video(clip.frames, fps=8, estimators=oracles)
-    by_name = evaluate_video(clip.frames, fps=8, geometry_estimator=OracleGeometry(clip), flow_estimator=OracleFlow(clip))
-    assert by_bundle.fused == by_name.fused and by_bundle.motion == by_name.motion
-    assert by_bundle.estimators == {"geometry": "OracleGeometry", "flow": "OracleFlow"}
-    with pytest.raises(ValueError, match="not both"):
+    by_keyword = evaluate_video(clip.frames, fps=8, estimators=oracles)
+    by_position = evaluate_video(clip.frames, oracles, fps=8)
+    assert by_keyword.fused == by_position.fused and by_keyword.motion == by_position.motion
+    assert by_keyword.estimators == {"geometry": "OracleGeometry", "flow": "OracleFlow"}
+    with pytest.raises(TypeError, match=r"^evaluate_video\(geometry_estimator=...\) is the earlier spelling: pass the "
+                                        r"models as one estimators=Estimators\(geometry, flow\)"):
         evaluate_video(clip.frames, fps=8, estimators=oracles, geometry_estimator=OracleGeometry(clip))
 
 
@@ -92,22 +93,28 @@ def test_attach_geco_guidance_takes_the_bundle(loaded):
 
     pipe = T.tiny_wan_pipeline(0)
     with attach_geco_guidance(pipe, T.tiny_guidance_config(), estimators=loaded) as handle:
-        assert handle.geometry_estimator is loaded.geometry and handle.flow_estimator is loaded.flow
-    with pytest.raises(ValueError, match="not both"):
+        assert handle.estimators is loaded
+        assert not hasattr(handle, "geometry_estimator") and not hasattr(handle, "flow_estimator")
+    with pytest.raises(TypeError, match=r"^attach_geco_guidance\(flow_estimator=...\) is the earlier spelling: pass the "
+                                        r"models as one estimators=Estimators\(geometry, flow\)"):
         attach_geco_guidance(pipe, T.tiny_guidance_config(), estimators=loaded, flow_estimator=loaded.flow)
+    with pytest.raises(TypeError, match=r"^attach_geco_guidance takes the estimators as one Estimators"):
+        attach_geco_guidance(pipe, T.tiny_guidance_config(), (loaded.geometry, loaded.flow))
 
 
-def test_the_pipeline_shows_its_components_as_a_bundle():
-    from geco_guide.sampler.loading import build_pipeline
+def test_a_run_loads_the_bundle_beside_the_pipeline_which_has_no_estimator_components():
+    from geco_guide.generation import load_models
 
     cfg = load_config(preset="tiny")
-    pipe = build_pipeline(cfg, components=T.tiny_cogvideox_components(0))
-    estimators = pipe.estimators
-    assert estimators.geometry is pipe.geometry_estimator and estimators.flow is pipe.flow_estimator
+    models = load_models(cfg)
+    estimators, pipe = models.estimators, models.pipe
+    assert isinstance(estimators, Estimators)
     assert estimators.ids() == estimator_ids(cfg.estimators) and estimators.segmenter is None
-    with pytest.raises(AttributeError):
-        pipe.estimators = estimators  # read-only: the components are what the pipeline saves and moves
-    assert "estimators" not in pipe.components
+    assert estimators.tiny_decoder is None  # guidance.decoder=vae: none loaded
+    # the pipeline saves and moves its own models only: the bundle enters at each call (estimators=)
+    assert set(pipe.components) == {"tokenizer", "text_encoder", "vae", "transformer", "scheduler"}
+    assert not any(hasattr(pipe, name) for name in ("estimators", "geometry_estimator", "flow_estimator",
+                                                     "guidance_decoder"))
 
 
 def test_evaluate_command_loads_the_segmenter_with_the_estimators(tmp_path, capsys):

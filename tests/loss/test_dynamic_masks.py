@@ -15,6 +15,7 @@ from PIL import Image
 
 from geco_guide.bench.synthetic import inject_deformation, moving_clip, rigid_clip
 from geco_guide.cli.evaluate import main as evaluate_main
+from geco_guide.estimators import Estimators
 from geco_guide.estimators.dynamic_masks import GivenMasks, mask_source
 from geco_guide.estimators.motion_masks import MotionMasks
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
@@ -147,7 +148,8 @@ def test_frames_below_the_minimum_unmasked_area_do_not_count(moving):
 
 @pytest.fixture(scope="module")
 def tiny_loss():
-    return GeCoLoss(VGGT.random(VGGTConfig.tiny(), seed=0), UFM.random(UFMConfig.tiny(), seed=0), GeCoLossConfig(flow_downscale=0.5))
+    return GeCoLoss(Estimators(VGGT.random(VGGTConfig.tiny(), seed=0), UFM.random(UFMConfig.tiny(), seed=0)),
+                    GeCoLossConfig(flow_downscale=0.5))
 
 
 def test_loss_takes_masks_as_tensor_or_source_and_an_empty_clip_is_zero_without_gradient(tiny_loss):
@@ -207,7 +209,7 @@ def test_bad_masks_are_one_line_before_any_estimator_runs(masks, message):
 
     frames = rigid_clip(num_frames=3, height=28, width=42).frames[None].float()
     with pytest.raises(MaskReadError) as err:
-        GeCoLoss(Refuse(), Refuse())(frames, dynamic_masks=masks)
+        GeCoLoss(Estimators(Refuse(), Refuse()))(frames, dynamic_masks=masks)
     assert message in str(err.value) and "\n" not in str(err.value)
 
 
@@ -274,7 +276,7 @@ def test_mask_source_factory():
 
 def test_evaluate_video_picks_the_protocol_frames_from_the_masks(tmp_path: Path):
     clip = moving_clip(12, 24, 32)
-    oracle = dict(geometry_estimator=OracleGeometry(clip), flow_estimator=OracleFlow(clip))
+    oracle = dict(estimators=Estimators(OracleGeometry(clip), OracleFlow(clip)))
     # 12 frames at 16 fps sampled at 8 fps: every other frame. Masks that differ per frame show
     # whether the same frames were taken.
     np.savez(tmp_path / "m.npz", masks=clip.dynamic_mask.numpy())
@@ -297,8 +299,8 @@ def test_evaluate_video_picks_the_protocol_frames_from_the_masks(tmp_path: Path)
 
 def test_all_masked_video_scores_nan_with_its_reason():
     clip = moving_clip(4, 24, 32)
-    result = evaluate_video(clip.frames.float(), fps=8, geometry_estimator=OracleGeometry(clip),
-                            flow_estimator=OracleFlow(clip), dynamic_masks=torch.ones(4, 24, 32, dtype=torch.bool))
+    result = evaluate_video(clip.frames.float(), Estimators(OracleGeometry(clip), OracleFlow(clip)), fps=8,
+                            dynamic_masks=torch.ones(4, 24, 32, dtype=torch.bool))
     assert math.isnan(result.fused) and math.isnan(result.motion)
     data = json.loads(json.dumps(result.to_dict()))
     assert data["fused"] is None
@@ -307,14 +309,13 @@ def test_all_masked_video_scores_nan_with_its_reason():
 
 
 def test_maps_draw_masked_pixels_striped(moving):
-    oracle = (OracleGeometry(moving), OracleFlow(moving))
-    maps = detection_maps(moving.frames.float(), *oracle, window=3, dynamic_masks=moving.dynamic_mask)
+    oracle = Estimators(OracleGeometry(moving), OracleFlow(moving))
+    maps = detection_maps(moving.frames.float(), oracle, window=3, dynamic_masks=moving.dynamic_mask)
     assert torch.equal(maps.dynamic_masks, moving.dynamic_mask)
     image = render_detection(maps, frame_scores(maps))
-    plain = detection_maps(moving.frames.float(), *oracle, window=3)
+    plain = detection_maps(moving.frames.float(), oracle, window=3)
     assert not torch.equal(image, render_detection(plain, frame_scores(plain)))
-    result = evaluate_video(moving.frames.float(), fps=8, geometry_estimator=oracle[0], flow_estimator=oracle[1],
-                            dynamic_masks=moving.dynamic_mask, maps=True)
+    result = evaluate_video(moving.frames.float(), oracle, fps=8, dynamic_masks=moving.dynamic_mask, maps=True)
     unmasked = replace(result, maps=replace(result.maps, dynamic_masks=None))
     assert not torch.equal(render_maps(result), render_maps(unmasked))
     images = torch.zeros(2, 3, 8, 8)

@@ -2,6 +2,7 @@ import pytest
 import torch
 
 from geco_guide.bench.ranking import average_precision, spearman
+from geco_guide.estimators import Estimators
 from geco_guide.bench.synthetic import (
     inject_deformation,
     occlusion_swap_clip,
@@ -35,7 +36,7 @@ def test_frame_pairs():
 
 @pytest.mark.parametrize("mode", ["adjacent", "center", "all"])
 def test_rigid_scene_with_ground_truth_scores_zero(rigid, mode):
-    loss = GeCoLoss(OracleGeometry(rigid), OracleFlow(rigid), GeCoLossConfig(pairs=mode))
+    loss = GeCoLoss(Estimators(OracleGeometry(rigid), OracleFlow(rigid)), GeCoLossConfig(pairs=mode))
     result = loss(rigid.frames[None])
     assert result.fused.item() < 1e-4
     assert result.motion.item() < 1e-4 and result.structure.item() < 1e-4
@@ -99,7 +100,8 @@ def test_gradients_reach_geometry_and_flow():
 
 
 def test_geco_loss_runs_end_to_end_with_tiny_vggt_and_ufm():
-    loss = GeCoLoss(VGGT.random(VGGTConfig.tiny(), seed=0), UFM.random(UFMConfig.tiny(), seed=0), GeCoLossConfig(flow_downscale=0.5))
+    estimators = Estimators(VGGT.random(VGGTConfig.tiny(), seed=0), UFM.random(UFMConfig.tiny(), seed=0))
+    loss = GeCoLoss(estimators, GeCoLossConfig(flow_downscale=0.5))
     frames = rigid_clip(num_frames=3, height=28, width=42).frames[None].float().requires_grad_(True)
     result = loss(frames)
     assert set(result.scalars()) == {"motion", "structure", "fused", "loss"}
@@ -109,7 +111,7 @@ def test_geco_loss_runs_end_to_end_with_tiny_vggt_and_ufm():
     assert frames.grad is not None and frames.grad.abs().sum() > 0
     # Without gradients through the geometry estimator, the structure cue alone gives none.
     frames.grad = None
-    no_geometry_grad = GeCoLoss(loss.geometry_estimator, loss.flow_estimator, GeCoLossConfig(cue="structure", geometry_grad=False))
+    no_geometry_grad = GeCoLoss(estimators, GeCoLossConfig(cue="structure", geometry_grad=False))
     out = no_geometry_grad(frames)
     assert not out.loss.requires_grad
 
@@ -155,15 +157,15 @@ def test_bad_config_values_name_the_option(kwargs, name):
 
 
 def test_bad_inputs_to_geco_loss(rigid):
-    loss = GeCoLoss(OracleGeometry(rigid), OracleFlow(rigid))
+    loss = GeCoLoss(Estimators(OracleGeometry(rigid), OracleFlow(rigid)))
     with pytest.raises(ValueError, match="frames"):
         loss(rigid.frames)  # missing batch dimension
     with pytest.raises(ValueError, match="at least 2"):
         loss(rigid.frames[None, :1])
     with pytest.raises(ValueError, match="unknown GeCo loss option"):
-        GeCoLoss(OracleGeometry(rigid), OracleFlow(rigid), {"pair": "adjacent"})
+        GeCoLoss(Estimators(OracleGeometry(rigid), OracleFlow(rigid)), {"pair": "adjacent"})
     with pytest.raises(ValueError, match="geometry"):
-        GeCoLoss(object(), OracleFlow(rigid))
+        GeCoLoss(Estimators(object(), OracleFlow(rigid)))
     pairs = frame_pairs(5, "adjacent")
     corr = rigid.pair_correspondences(pairs)
     with pytest.raises(ValueError, match="flow"):
@@ -172,16 +174,29 @@ def test_bad_inputs_to_geco_loss(rigid):
         geco_from_geometry(rigid.geometry(), corr, [(0, 7)] * 4)
 
 
-def test_the_estimators_are_named_as_the_pipeline_names_them_and_the_earlier_names_still_work(rigid):
+def test_the_estimators_enter_as_one_bundle_and_the_earlier_spellings_are_refused_naming_it(rigid):
     geometry, flow = OracleGeometry(rigid), OracleFlow(rigid)
-    named = GeCoLoss(geometry_estimator=geometry, flow_estimator=flow)
-    earlier = GeCoLoss(geometry=geometry, flow=flow)
-    assert named.geometry_estimator is earlier.geometry_estimator is geometry and earlier.flow_estimator is flow
-    assert float(named(rigid.frames[None]).fused) == float(earlier(rigid.frames[None]).fused)
-    with pytest.raises(ValueError, match="^pass geometry_estimator= or its earlier name geometry=, not both$"):
-        GeCoLoss(geometry, flow, geometry=geometry)
-    with pytest.raises(ValueError, match="^geometry_estimator must implement estimate_geometry"):
-        GeCoLoss(object(), flow)
+    loss = GeCoLoss(Estimators(geometry, flow))
+    assert loss.geometry_estimator is geometry and loss.flow_estimator is flow
+    assert float(loss(rigid.frames[None]).fused) == float(GeCoLoss(estimators=Estimators(geometry, flow))(
+        rigid.frames[None]).fused)
+    new = r"pass the models as one estimators=Estimators\(geometry, flow\) \(geco_guide.Estimators\)$"
+    for earlier, first in (({"geometry_estimator": geometry, "flow_estimator": flow}, "flow_estimator"),
+                           ({"geometry": geometry, "flow": flow}, "flow"), ({"geometry": geometry}, "geometry")):
+        with pytest.raises(TypeError, match=rf"^GeCoLoss\({first}=...\) is the earlier spelling: {new}"):
+            GeCoLoss(**earlier)
+    # the pair is no bundle, positionally or as a tuple (its order could be swapped without an error)
+    refused = r"^GeCoLoss takes the estimators as one Estimators\(geometry, flow\) \(geco_guide.Estimators\), got "
+    for args, name in ((((geometry, flow),), "tuple"), ((geometry, flow), "OracleGeometry"), ((None,), "NoneType")):
+        with pytest.raises(TypeError, match=refused + name + "$"):
+            GeCoLoss(*args)
+    with pytest.raises(TypeError, match="^Estimators is not a \\(geometry, flow\\) pair"):
+        first, second = Estimators(geometry, flow)
+    with pytest.raises(ValueError, match=r"^GeCoLoss: estimators.geometry must implement estimate_geometry\(frames\), "
+                                         r"got object$"):
+        GeCoLoss(Estimators(object(), flow))
+    with pytest.raises(ValueError, match=r"^GeCoLoss: estimators.flow must implement estimate_flow"):
+        GeCoLoss(Estimators(geometry, object()))
 
 
 def test_motion_statistics():

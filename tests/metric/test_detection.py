@@ -9,6 +9,7 @@ from geco_guide.bench.ranking import average_precision
 from geco_guide.bench.synthetic import occlusion_swap_clip, rigid_clip, with_warp
 from geco_guide.bench.warp import WarpParams, warp_one_frame
 from geco_guide.cli import detection
+from geco_guide.estimators import Estimators
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.io.video import write_video
 from geco_guide.metric.detection import detection_maps, frame_scores, window_indices
@@ -32,19 +33,20 @@ def test_each_frame_map_finds_the_replaced_frame_and_its_warp():
     base = rigid_clip(num_frames=6, height=32, width=48)
     warped = warp_one_frame(base.frames, params=WarpParams(seed=1))
     clip = with_warp(base, warped)
-    maps = detection_maps(clip.frames, OracleGeometry(clip), OracleFlow(clip), LOSS, window=4)
+    maps = detection_maps(clip.frames, Estimators(OracleGeometry(clip), OracleFlow(clip)), LOSS, window=4)
     fused = [row["fused"] for row in frame_scores(maps)]
     t = warped.anomalous_frame
     assert max(range(6), key=fused.__getitem__) == t
     assert average_precision(torch.where(maps.fused_valid[t], maps.fused[t], 0.0), warped.mask[t]) >= 0.9
-    rigid = detection_maps(base.frames, OracleGeometry(base), OracleFlow(base), LOSS, window=4)
+    rigid = detection_maps(base.frames, Estimators(OracleGeometry(base), OracleFlow(base)), LOSS, window=4)
     assert max(row["fused"] for row in frame_scores(rigid)) < 1e-3
 
 
 def test_the_two_way_check_only_removes_structure_pixels():
     clip = occlusion_swap_clip(num_frames=5, height=32, width=48)
-    one_way = detection_maps(clip.frames, OracleGeometry(clip), OracleFlow(clip), LOSS, window=5, two_way=False)
-    two_way = detection_maps(clip.frames, OracleGeometry(clip), OracleFlow(clip), LOSS, window=5)
+    oracle = Estimators(OracleGeometry(clip), OracleFlow(clip))
+    one_way = detection_maps(clip.frames, oracle, LOSS, window=5, two_way=False)
+    two_way = detection_maps(clip.frames, oracle, LOSS, window=5)
     assert not (two_way.structure_valid & ~one_way.structure_valid).any()
     assert two_way.structure_valid.sum() < one_way.structure_valid.sum()  # the pillar hides some
     torch.testing.assert_close(two_way.motion, one_way.motion)

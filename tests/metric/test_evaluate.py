@@ -17,7 +17,7 @@ import geco_guide
 from geco_guide.bench.synthetic import inject_deformation, rigid_clip
 from geco_guide.cli.evaluate import expand_inputs, main
 from geco_guide.config import load_config
-from geco_guide.estimators import EstimatorsConfig, load_estimators
+from geco_guide.estimators import Estimators, EstimatorsConfig, load_estimators
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.io import files
 from geco_guide.io.video import VideoReadError, read_video, write_video
@@ -49,7 +49,7 @@ def clips():
 
 
 def oracle(clip):
-    return {"geometry": OracleGeometry(clip), "flow": OracleFlow(clip)}
+    return {"estimators": Estimators(OracleGeometry(clip), OracleFlow(clip))}
 
 
 @pytest.fixture(scope="module")
@@ -106,14 +106,19 @@ def test_total_motion_of_a_known_flow():
             flow[:, 0] = 2.0 * steps[:, None, None]
             return Correspondences(flow=flow, covisibility=torch.ones(len(steps), *source.shape[-2:]))
 
-    result = evaluate_video(clip.frames, geometry_estimator=OracleGeometry(clip), flow_estimator=ConstantFlow(), fps=16)
+    result = evaluate_video(clip.frames, Estimators(OracleGeometry(clip), ConstantFlow()), fps=16)
     assert result.total_motion == pytest.approx(7 * 8.0, rel=1e-5)
     assert result.mean_motion == pytest.approx(56.0 / (17 / 16), rel=1e-5)  # over the clip's duration
-    earlier = evaluate_video(clip.frames, geometry=OracleGeometry(clip), flow=ConstantFlow(), fps=16)  # earlier names
-    assert earlier.total_motion == result.total_motion and earlier.fused == result.fused
-    with pytest.raises(ValueError, match="pass geometry_estimator= or its earlier name geometry=, not both"):
-        evaluate_video(clip.frames, geometry_estimator=OracleGeometry(clip), geometry=OracleGeometry(clip),
-                       flow_estimator=ConstantFlow(), fps=16)
+    assert result.estimators == {"geometry": "OracleGeometry", "flow": "ConstantFlow"}
+    # the earlier keywords of the pair are refused in one line naming the bundle, before any work
+    new = r"is the earlier spelling: pass the models as one estimators=Estimators\(geometry, flow\)"
+    for earlier, first in (({"geometry": OracleGeometry(clip), "flow": ConstantFlow()}, "flow"),
+                           ({"geometry_estimator": OracleGeometry(clip), "flow_estimator": ConstantFlow()},
+                            "flow_estimator")):
+        with pytest.raises(TypeError, match=rf"^evaluate_video\({first}=...\) {new}"):
+            evaluate_video(clip.frames, fps=16, **earlier)
+    with pytest.raises(TypeError, match=r"^evaluate_video takes the estimators as one Estimators\(geometry, flow\)"):
+        evaluate_video(clip.frames, (OracleGeometry(clip), ConstantFlow()), fps=16)
 
 
 def test_mp4_round_trip_with_oracle_of_the_decoded_frames(tmp_path: Path, clips, evaluated):

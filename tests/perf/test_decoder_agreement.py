@@ -66,19 +66,25 @@ def test_guiding_with_the_tiny_decoder_swaps_the_roles():
     assert all(r["guided_by"] == "tiny" and -1 <= r["cosine"] <= 1 for r in result["rows"])
 
 
-def test_rows_of_a_loaded_pipeline_leave_it_as_it_was():
+def test_rows_of_loaded_models_leave_them_as_they_were():
     from geco_guide import tiny as T
     from geco_guide.config import load_config
+    from geco_guide.generation import Models, sample
     from geco_guide.perf.decoder_agreement import agreement_rows
-    from geco_guide.sampler.context import GuidanceContext
+    from geco_guide.sampler.loading import LoadedPipeline
 
     torch.set_num_threads(1)
     pipe = T.tiny_pipeline(0)
-    pipe.register_modules(guidance_decoder=T.tiny_guidance_decoder("cogvideox"))
+    decoder = T.tiny_guidance_decoder("cogvideox")
     cfg = load_config(preset="tiny", overrides=["guidance.repeats=0x3,1x1"])
-    rows = agreement_rows(pipe, cfg, "a marble bust")
+    models = Models(LoadedPipeline(pipe, cfg.model.video_model, "the tiny pipeline's"),
+                    T.tiny_bundle(0, tiny_decoder=decoder))
+    sample(models, cfg, "a marble bust", progress=False)  # an unwatched call: the pipeline's own per-call state
+    state = (set(pipe.__dict__), set(pipe.scheduler.__dict__), [p.requires_grad for p in decoder.parameters()])
+    rows = agreement_rows(models, cfg, "a marble bust")
     assert len(rows) == 1 and rows[0]["step"] == 3 and -1 <= rows[0]["cosine"] <= 1
-    assert pipe.guidance_context_class is GuidanceContext and "guidance_context_class" not in pipe.__dict__
+    # the rows are watched through the call's observer: nothing of the measurement stays behind
+    assert (set(pipe.__dict__), set(pipe.scheduler.__dict__), [p.requires_grad for p in decoder.parameters()]) == state
 
 
 def test_cosine_and_psnr():

@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from geco_guide.perf import cost, full_size, profile, sampling
-from geco_guide.sampler.context import GuidanceContext
+from geco_guide.sampler.context import GuidanceObserver
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "benchmark.py"
 FAST = ["--threads", "1", "--warmup", "0", "--repeats", "1"]
@@ -193,7 +193,8 @@ def test_full_size_pipeline_on_meta() -> None:
         geometry, flow = VGGT(VGGTConfig()), UFM(UFMConfig())
     assert 1.1e9 < sum(p.numel() for p in geometry.parameters()) < 1.2e9  # VGGT-1B
     assert 4.0e8 < sum(p.numel() for p in flow.parameters()) < 4.5e8  # UFM-Base
-    pipe = GeCoCogVideoXPipeline(**components, geometry_estimator=geometry, flow_estimator=flow)
+    pipe = GeCoCogVideoXPipeline(**components)  # the estimators enter at the call, no components
+    assert set(pipe.components) == {"tokenizer", "text_encoder", "vae", "transformer", "scheduler"}
     assert pipe.tokenizer is None and pipe.text_encoder is None
     assert (pipe.vae_scale_factor_spatial, pipe.vae_scale_factor_temporal, pipe.vae_scaling_factor_image) == (8, 4, 0.7)
 
@@ -590,11 +591,16 @@ def test_failed_report_write_leaves_no_file(monkeypatch, tmp_path: Path):
 
 
 def test_no_private_name_is_patched_in_the_cost_trace():
-    """The cost trace uses the pipeline's seam (guidance_context_class), not mock.patch."""
+    """The cost trace watches the call through its public seam (a GuidanceObserver passed as
+    ``observer=``), not mock.patch: the updates of a step count as inside an update."""
     source = Path(cost.__file__).read_text() + SCRIPT.read_text()
-    assert "mock" not in source and "_read_scalars" not in source
-    context = cost.counting_context_class(cost.CostTracker())
-    assert issubclass(context, GuidanceContext)
+    assert "mock" not in source and "_read_scalars" not in source and "guidance_context_class" not in source
+    tracker = cost.CostTracker()
+    observer = cost.CountingObserver(tracker)
+    assert isinstance(observer, GuidanceObserver)
+    with observer.step(1, 999):
+        assert tracker.in_update == 1
+    assert tracker.in_update == 0
 
 
 def test_cost_with_the_tiny_decoder_traces_it_as_the_anchor_decode() -> None:

@@ -1,6 +1,6 @@
 """The guided update's parts: the anchor decode strategies (the frames and gradients of the
 slicing functions they stand for), the objective (decode, then score: the numbers of the decode
-and loss called by hand), and the context's public seams (the log's scalar reading, the
+and loss called by hand), and the context's public seam, its observer (each update's record, the
 objective made per memory plan, again after a fallback)."""
 
 from __future__ import annotations
@@ -19,16 +19,24 @@ from geco_guide.sampler.anchor_decode import (
     anchor_decoder,
     plan_anchor_decode,
 )
-from geco_guide.sampler.context import GuidanceContext
+from geco_guide.sampler.context import GuidanceContext, GuidanceObserver
 from geco_guide.sampler.memory_plan import PLANS, PlanChoice, explicit_plan, plan_named
 from geco_guide.sampler.objective import AnchorObjective
 from geco_guide.sampler.run_options import RunOptions
 from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across, decode_chunk
 from geco_guide.sampler.step import loss_terms
-from geco_guide.tiny import TINY_CALL_KWARGS, TINY_NUM_FRAMES, tiny_guidance_config, tiny_pipeline
+from geco_guide.tiny import (
+    TINY_CALL_KWARGS,
+    TINY_NUM_FRAMES,
+    tiny_bundle,
+    tiny_guidance_config,
+    tiny_pipeline,
+    tiny_run_options,
+)
 
 CHUNKS = anchor_latent_chunks([4, 8, 12, 16], 17, 4, 3)
 EXPLICIT_BATCHED = explicit_plan(RunOptions(vae_checkpointing=False))
+ESTIMATORS = tiny_bundle(0)
 
 
 @pytest.fixture(scope="module")
@@ -109,7 +117,7 @@ def test_the_objective_is_the_decode_then_the_loss_for_every_plan(pipe):
     config = tiny_guidance_config()
     decode = vae_decoder(pipe)
     chunks = config.anchor_chunks(TINY_NUM_FRAMES, pipe.vae_scale_factor_temporal)
-    loss_fn = GeCoLoss(pipe.geometry_estimator, pipe.flow_estimator, config.loss, check_values=False)
+    loss_fn = GeCoLoss(ESTIMATORS, config.loss, check_values=False)
     x0 = latents(pipe, seed=1)
 
     def by_hand(plan, x0):
@@ -124,8 +132,8 @@ def test_the_objective_is_the_decode_then_the_loss_for_every_plan(pipe):
         return loss.detach(), {k: v.detach() for k, v in terms.items()}, grad
 
     for plan in (EXPLICIT_BATCHED, *PLANS):
-        context = GuidanceContext(config, config.schedule(4), chunks, decode, lambda x: x[:, 0:],
-                                  pipe.geometry_estimator, pipe.flow_estimator, memory_plan=PlanChoice(plan, "test"))
+        context = GuidanceContext(config, config.schedule(4), chunks, decode, lambda x: x[:, 0:], ESTIMATORS,
+                                  memory_plan=PlanChoice(plan, "test"))
         assert isinstance(context.anchor_objective, AnchorObjective)
         assert context.update_objective is context.anchor_objective
         loss, terms, grad = loss_and_grad(context.objective)
@@ -143,65 +151,62 @@ def test_with_decode_keeps_the_loss_and_the_latent_layout():
 # ---- the seams ------------------------------------------------------------------------------------
 
 
-def run(pipe, context_class, **run_options):
-    pipe.guidance_context_class = context_class
-    try:
-        return pipe("a marble bust", generator=torch.Generator().manual_seed(3), output_type="pt",
-                    run_options=run_options, **TINY_CALL_KWARGS)
-    finally:
-        del pipe.guidance_context_class
+def run(pipe, observer=None, **run_options):
+    """A guided call of the tiny pipeline, watched by ``observer``, with ``run_options`` over the tiny ones."""
+    return pipe("a marble bust", generator=torch.Generator().manual_seed(3), output_type="pt", estimators=ESTIMATORS,
+                run_options=tiny_run_options(**run_options), observer=observer, **TINY_CALL_KWARGS)
 
 
-def test_the_log_reads_each_update_through_the_read_scalars_given(pipe):
-    from geco_guide.sampler.step import read_scalars
+def test_the_observer_sees_each_update_as_the_log_records_it(pipe):
+    seen, steps = [], []
 
-    read = []
+    class Watching(GuidanceObserver):
+        def on_update(self, record):
+            seen.append(record)
 
-    class Reading(GuidanceContext):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs, read_scalars=lambda values, device: read.append(sorted(values))
-                             or read_scalars(values, device))
+        def step(self, step, t):
+            steps.append((step, t))
+            return super().step(step, t)
 
-    out = run(pipe, Reading)
-    plain = pipe("a marble bust", generator=torch.Generator().manual_seed(3), output_type="pt", **TINY_CALL_KWARGS)
-    assert len(read) == len(out.report.log) == 5 and all({"loss", "grad_norm", "finite"} <= set(r) for r in read)
-    assert torch.equal(out.frames, plain.frames)
+    out = run(pipe, Watching())
+    plain = run(pipe)
+    assert len(seen) == len(out.report.log) == 5 and [r.to_dict() for r in seen] == out.report.log
+    assert all(r.grad_norm > 0 and not r.skipped for r in seen)
+    assert steps == sorted({(r["step"], r["t"]) for r in out.report.log}) and len(steps) == 3  # the guided steps
+    assert torch.equal(out.frames, plain.frames)  # watching changes nothing
 
 
 def test_the_objective_is_made_for_the_plan_and_again_after_a_fallback(pipe):
-    """``objective_for`` sees each plan's anchor objective: the first plan's, then after an injected
-    out-of-memory error at the first update the fallback's, whose decode that plan picks."""
+    """The observer's ``objective`` sees each plan's anchor objective: the first plan's, then after an
+    injected out-of-memory error at the first update the fallback's, whose decode that plan picks."""
     made = []
 
-    def objective_for(anchor_objective, plan):
-        made.append((plan.name, anchor_objective.decode))
-        if len(made) == 1:
-            def failing(x0):
-                raise torch.cuda.OutOfMemoryError("CUDA out of memory (injected)")
-            return failing
-        return anchor_objective
+    class Injected(GuidanceObserver):
+        def objective(self, anchor_objective, plan):
+            made.append((plan.name, anchor_objective.decode))
+            if len(made) == 1:
+                def failing(x0):
+                    raise torch.cuda.OutOfMemoryError("CUDA out of memory (injected)")
+                return failing
+            return anchor_objective
 
-    class Injected(GuidanceContext):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs, objective_for=objective_for)
-
-    out = run(pipe, Injected, memory_plan="auto", memory_budget_gb=1000.0)
+    out = run(pipe, Injected(), memory_plan="auto", memory_budget_gb=1000.0)
     (first, first_decode), (second, second_decode) = made
-    assert out.memory_plan["name"] == second != first and len(out.report.log) == 5
+    assert out.report.memory_plan["name"] == second != first and len(out.report.log) == 5
     assert isinstance(first_decode, ChunkedDecode) and not first_decode.checkpointed
     assert second_decode == plan_anchor_decode(plan_named(second), first_decode.decode, first_decode.chunks)
-    reference = run(pipe, GuidanceContext, memory_plan=second)
+    reference = run(pipe, memory_plan=second)
     assert torch.equal(out.frames, reference.frames)
 
 
 def test_the_context_keeps_its_public_face(pipe):
     config = replace(tiny_guidance_config(), repeats="0x3,1x1", time_travel=[])
     seen = []
-    context = GuidanceContext(config, config.schedule(4), CHUNKS, vae_decoder(pipe), lambda x: x,
-                              pipe.geometry_estimator, pipe.flow_estimator, on_record=seen.append)
+    context = GuidanceContext(config, config.schedule(4), CHUNKS, vae_decoder(pipe), lambda x: x, ESTIMATORS,
+                              on_record=seen.append)
     assert context.log == [] and context.memory_plan.plan == explicit_plan(RunOptions())
     context.on_record = None
-    assert context.on_record is None and context.report.log.on_record is None
+    assert context.on_record is None and context.guidance_log.on_record is None
     flags = [p.requires_grad for p in pipe.vae.parameters()]
     with context.models([pipe.transformer], pipe.vae):
         assert not any(p.requires_grad for p in pipe.vae.parameters())

@@ -12,8 +12,10 @@ from geco_guide.sampler.config import GuidanceConfig
 from geco_guide.sampler.multi_device import module_replicas, resolve_devices
 from geco_guide.sampler.run_options import RunOptions
 from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across
-from geco_guide.tiny import TINY_CALL_KWARGS, tiny_call_kwargs, tiny_estimators, tiny_guidance_config, tiny_pipeline, \
+from geco_guide.tiny import TINY_CALL_KWARGS, tiny_bundle, tiny_call_kwargs, tiny_guidance_config, tiny_pipeline, \
     tiny_run_options
+
+ESTIMATORS = tiny_bundle(0)
 
 
 def test_chunks_are_dealt_round_robin_and_only_anchor_frames_come_back():
@@ -49,35 +51,34 @@ def test_each_extra_device_gets_a_replica_of_its_own():
 def _pipe_frames(config, run):
     pipe = tiny_pipeline(seed=0)
     out = pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="pt", guidance=config,
-               run_options=run, **TINY_CALL_KWARGS)
-    return out.frames, out.report.log, pipe
+               run_options=run, estimators=ESTIMATORS, **TINY_CALL_KWARGS)
+    return out.frames, out.report, pipe
 
 
 @pytest.mark.parametrize("denoiser_grad", [False, True], ids=["fast", "faithful"])
 def test_two_devices_give_the_frames_of_one_in_the_pipeline(denoiser_grad):
     config, run = replace(tiny_guidance_config(), denoiser_grad=denoiser_grad), tiny_run_options(memory_plan="chunked")
-    one, log_one, _ = _pipe_frames(config, run)
+    one, report_one, _ = _pipe_frames(config, run)
     listed, _, _ = _pipe_frames(config, replace(run, devices=["cpu"]))
-    two, log_two, pipe = _pipe_frames(config, replace(run, devices=["cpu", "cpu"]))
+    two, report_two, pipe = _pipe_frames(config, replace(run, devices=["cpu", "cpu"]))
     assert torch.equal(one, two) and torch.equal(one, listed)
-    assert [r["loss"] for r in log_one] == [r["loss"] for r in log_two]
-    assert pipe.geco_devices == ["cpu", "cpu"]
+    assert [r["loss"] for r in report_one.log] == [r["loss"] for r in report_two.log]
+    assert report_one.devices is None and report_two.devices == ["cpu", "cpu"]
 
 
 def test_two_devices_give_the_frames_of_one_through_a_hook():
     from geco_guide import attach_geco_guidance
     from geco_guide.tiny import tiny_wan_pipeline
 
-    geometry, flow = tiny_estimators(0)
     config = GuidanceConfig(anchors=[4, 8], repeats="0x3,2x1", time_travel=[], step_size=1.0)
     videos = []
     for devices in (None, ["cpu", "cpu"]):
         pipe = tiny_wan_pipeline(0)
-        with attach_geco_guidance(pipe, config, run_options=RunOptions(memory_plan="chunked", devices=devices),
-                                  geometry_estimator=geometry, flow_estimator=flow) as handle:
+        with attach_geco_guidance(pipe, config, ESTIMATORS,
+                                  run_options=RunOptions(memory_plan="chunked", devices=devices)) as handle:
             videos.append(pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="pt",
                                **tiny_call_kwargs(pipe, num_frames=9)).frames)
-            assert handle.devices == (None if devices is None else ["cpu", "cpu"]) and handle.log
+            assert handle.last.devices == (None if devices is None else ["cpu", "cpu"]) and handle.last.log
     assert torch.equal(videos[0], videos[1])
 
 
@@ -100,9 +101,10 @@ def test_devices_must_be_a_list_of_names(devices):
 
 
 def test_generate_refuses_unknown_devices_before_loading(tmp_path, capsys, monkeypatch):
+    from geco_guide import generation
     from geco_guide.cli import generate as generate_cli
 
-    monkeypatch.setattr(generate_cli, "build_pipeline", lambda cfg: pytest.fail("models were loaded"))
+    monkeypatch.setattr(generation, "load_models", lambda *a, **k: pytest.fail("models were loaded"))
     assert generate_cli.main(["--preset", "tiny", "--prompt", "a cat", "--out", str(tmp_path / "o"),
                               "--devices", "cpu", "cuda:7"]) == 2
     err = capsys.readouterr().err.strip()
@@ -111,7 +113,7 @@ def test_generate_refuses_unknown_devices_before_loading(tmp_path, capsys, monke
 
 
 def test_devices_do_not_change_the_video_name():
-    from geco_guide.cli.generate import default_name
+    from geco_guide.generation import default_name
     from geco_guide.config import load_config
 
     plain = load_config(preset="tiny")
@@ -151,9 +153,9 @@ def test_the_cfg_halves_on_two_devices_give_the_frames_of_one(denoiser_grad):
     rounding only."""
     config = replace(tiny_guidance_config(), denoiser_grad=denoiser_grad)
     run = tiny_run_options(split_cfg=True, memory_plan="chunked")  # the anchor decode as it is across devices
-    one, log_one, _ = _pipe_frames(config, run)
-    two, log_two, pipe = _pipe_frames(config, replace(run, devices=["cpu", "cpu"]))
-    assert torch.equal(one, two) and [r["loss"] for r in log_one] == [r["loss"] for r in log_two]
+    one, report_one, _ = _pipe_frames(config, run)
+    two, report_two, pipe = _pipe_frames(config, replace(run, devices=["cpu", "cpu"]))
+    assert torch.equal(one, two) and [r["loss"] for r in report_one.log] == [r["loss"] for r in report_two.log]
     assert pipe._cfg_halves is None  # the replicas are the call's only
 
 

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from geco_guide import tiny as T
-from geco_guide.cli.generate import default_name, main, video_key
+from geco_guide.cli.generate import main
+from geco_guide.generation import default_name, video_key
 from geco_guide.config import config_to_dict, load_config
 from geco_guide.sampler.dynamic import RefreshedMasks
 from geco_guide.sampler.hooks import attach_geco_guidance
@@ -63,18 +64,25 @@ def run_pipeline(pipe, seed: int = 1, **call):
     return pipe(PROMPT, generator=torch.Generator().manual_seed(seed), output_type="latent", **T.TINY_CALL_KWARGS, **call)
 
 
+def run_tiny(pipe, estimators, seed: int = 1, **call):
+    """A call of the tiny GeCo pipeline with ``estimators`` and the tiny run options."""
+    return run_pipeline(pipe, seed, estimators=estimators, run_options=T.tiny_run_options(), **call)
+
+
 def test_pipeline_guidance_leaves_the_masked_pixels_out(estimators):
-    pipe = T.tiny_pipeline(0, estimators=estimators)
-    plain = run_pipeline(pipe)
+    pipe = T.tiny_pipeline(0)
+    plain = run_tiny(pipe, estimators)
     source = LeftHalf()
-    masked = run_pipeline(pipe, guidance={"dynamic": "the dog"}, dynamic_masks=source)
+    masked = run_tiny(pipe, estimators.with_segmenter(source), guidance={"dynamic": "the dog"})
     log = masked.report.log
     assert len(log) == UPDATES and source.calls == GUIDED_STEPS and not source.saw_grad
     assert all(r["mask_source"] == "left half" and r["masked_fraction"] == pytest.approx(0.5) for r in log)
     assert log[0]["loss"] != pytest.approx(plain.report.log[0]["loss"])  # half the frame is out
+    assert masked.report.mask_source == "left half" and masked.report.masked_fraction == pytest.approx(0.5)
+    assert plain.report.mask_source is None and plain.report.masked_fraction is None
     assert not torch.equal(masked.frames, plain.frames)
     every_other = LeftHalf()
-    run_pipeline(pipe, guidance={"dynamic": "the dog", "dynamic_refresh": 2}, dynamic_masks=every_other)
+    run_tiny(pipe, estimators.with_segmenter(every_other), guidance={"dynamic": "the dog", "dynamic_refresh": 2})
     assert every_other.calls == 2  # guided steps 1 and 3
 
 
@@ -84,17 +92,16 @@ def test_hooks_guide_with_masks_as_the_pipeline_does(estimators):
     from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     config = T.tiny_guidance_config(dynamic="the dog", denoiser_grad=False)
-    geco = GeCoCogVideoXPipeline(**T.tiny_cogvideox_components(0), estimators=estimators,
-                                 flow_estimator=estimators.flow)
+    geco = GeCoCogVideoXPipeline(**T.tiny_cogvideox_components(0))
     geco.set_progress_bar_config(disable=True)
-    ours = run_pipeline(geco, guidance=config, dynamic_masks=LeftHalf())
+    ours = run_pipeline(geco, guidance=config, estimators=estimators.with_segmenter(LeftHalf()))
     stock = CogVideoXPipeline(**T.tiny_cogvideox_components(0))
     stock.set_progress_bar_config(disable=True)
     source = LeftHalf()
-    with attach_geco_guidance(stock, config, estimators=estimators,
-                              dynamic_masks=source) as handle:
+    with attach_geco_guidance(stock, config, estimators.with_segmenter(source)) as handle:
         hooked = run_pipeline(stock).frames
     assert source.calls == GUIDED_STEPS and len(handle.log) == UPDATES
+    assert handle.last.mask_source == ours.report.mask_source == "left half"
     for a, b in zip(handle.log, ours.report.log):
         assert a["mask_source"] == b["mask_source"] == "left half"
         assert a["masked_fraction"] == b["masked_fraction"] and a["loss"] == pytest.approx(b["loss"], rel=1e-4)
@@ -102,16 +109,25 @@ def test_hooks_guide_with_masks_as_the_pipeline_does(estimators):
 
 
 def test_mask_options_that_cannot_work_fail_before_any_denoising(estimators):
-    pipe = T.tiny_pipeline(0, estimators=estimators)
+    pipe = T.tiny_pipeline(0)
     steps = []
     pipe.transformer.register_forward_pre_hook(lambda *_: steps.append(1))
     with pytest.raises(ValueError, match="guidance.dynamic='a dog' needs a text segmenter"):
-        run_pipeline(pipe, guidance={"dynamic": "a dog"})
-    with pytest.raises(ValueError, match="guidance.dynamic is null"):
-        run_pipeline(pipe, dynamic_masks=LeftHalf())
-    with pytest.raises(ValueError, match="must be a DynamicMaskSource"):
-        run_pipeline(pipe, guidance={"dynamic": "a dog"}, dynamic_masks=torch.zeros(4, 32, 48, dtype=torch.bool))
+        run_tiny(pipe, estimators, guidance={"dynamic": "a dog"})
+    not_a_source = torch.zeros(4, 32, 48, dtype=torch.bool)
+    with pytest.raises(ValueError, match="the segmenter must be a DynamicMaskSource") as err:
+        run_tiny(pipe, estimators.with_segmenter(not_a_source), guidance={"dynamic": "a dog"})
+    assert "\n" not in str(err.value)
+    with pytest.raises(ValueError, match="the segmenter must make a DynamicMaskSource"):
+        run_tiny(pipe, estimators.with_segmenter(lambda subjects: not_a_source), guidance={"dynamic": "a dog"})
+    # the masks come from the estimators' segmenter: the call has no argument of its own for them
+    with pytest.raises(TypeError, match="dynamic_masks"):
+        run_tiny(pipe, estimators, guidance={"dynamic": "a dog"}, dynamic_masks=LeftHalf())
     assert steps == []
+    with pytest.raises(TypeError, match=r"attach_geco_guidance\(dynamic_masks=...\) is the earlier spelling: the "
+                                        r"segmenter is Estimators\(..., segmenter=...\)"):
+        attach_geco_guidance(T.tiny_wan_pipeline(0), T.tiny_guidance_config(dynamic="a dog"), estimators,
+                             dynamic_masks=LeftHalf())
     for changes, match in (({"dynamic": " , "}, "dynamic must be null, 'auto' or the subjects"),
                            ({"dynamic_dilation": -1}, "dynamic_dilation must be a whole number"),
                            ({"dynamic_refresh": 0}, "dynamic_refresh must be a whole number")):
@@ -120,17 +136,18 @@ def test_mask_options_that_cannot_work_fail_before_any_denoising(estimators):
 
 
 def test_without_dynamic_the_video_its_name_and_log_stay_as_before(estimators):
-    # The names the presets give without masks (since the run options left the key and eta became
-    # step_size: before, 61238450 and 3e3f47ff).
-    assert default_name(load_config(preset="tiny"), "a marble bust") == "a-marble-bust-21df29c8-seed0"
-    assert default_name(load_config(preset="cogvideox-5b"), "a marble bust") == "a-marble-bust-e56702e3-seed0"
-    pipe = T.tiny_pipeline(0, estimators=estimators)
-    before = run_pipeline(pipe)
+    # The names the presets give without masks (since the model registry added model.name and
+    # sampling.guidance_scale_2: before, 21df29c8 and e56702e3; before the run options left the key
+    # and eta became step_size, 61238450 and 3e3f47ff).
+    assert default_name(load_config(preset="tiny"), "a marble bust") == "a-marble-bust-37535cc1-seed0"
+    assert default_name(load_config(preset="cogvideox-5b"), "a marble bust") == "a-marble-bust-277a1817-seed0"
+    pipe = T.tiny_pipeline(0)
+    before = run_tiny(pipe, estimators)
     unused = LeftHalf()
-    pipe.dynamic_mask_source = unused  # loaded, but guidance.dynamic is null: not asked
-    after = run_pipeline(pipe)
+    after = run_tiny(pipe, estimators.with_segmenter(unused))  # loaded, but guidance.dynamic is null: not asked
     assert unused.calls == 0 and torch.equal(before.frames, after.frames)
     assert all(set(record) == RECORD_KEYS for record in after.report.log)
+    assert after.report.mask_source is None and after.report.masked_fraction is None
 
 
 def test_the_video_key_counts_what_masks_the_frames():
@@ -164,7 +181,8 @@ def test_generate_with_dynamic_writes_masks_into_log_and_sidecar(dynamic, source
             "--out", str(out)]
     assert main(argv) == 0
     err = capsys.readouterr().err
-    assert ("loading segmenter: tiny-random for 'a dog' ..." in err) == (dynamic != "auto")
+    loading = [line for line in err.splitlines() if line.startswith("loading models:")]
+    assert len(loading) == 1 and ("segmenter tiny-random for 'a dog'" in loading[0]) == (dynamic != "auto")
     sidecar = json.loads(out.with_suffix(".json").read_text())
     assert sidecar["config"]["guidance"]["dynamic"] == dynamic and sidecar["dynamic_masks"] == source
     assert all(r["mask_source"] == source and 0 <= r["masked_fraction"] <= 1 for r in sidecar["guidance_log"])

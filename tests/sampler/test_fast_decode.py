@@ -30,6 +30,7 @@ from geco_guide.tiny import (
     tiny_guidance_config,
     tiny_guidance_decoder,
     tiny_pipeline,
+    tiny_run_options,
 )
 
 CL3D = torch.channels_last_3d
@@ -239,7 +240,7 @@ def test_a_replica_of_the_laid_out_vae_decodes_with_its_own_weights(monkeypatch,
     assert instance_forwards(vae) == []
 
 
-def test_a_guided_run_decodes_its_final_video_with_the_stock_vae():
+def test_a_guided_run_decodes_its_final_video_with_the_stock_vae(estimators):
     pipe = tiny_pipeline(0)
     final = {}
 
@@ -248,7 +249,8 @@ def test_a_guided_run_decodes_its_final_video_with_the_stock_vae():
         return tensors
 
     out = pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="pt",
-               run_options={"decode_layout": "channels_last"}, callback_on_step_end=keep_latents, **TINY_CALL_KWARGS)
+               run_options=tiny_run_options(decode_layout="channels_last"), estimators=estimators,
+               callback_on_step_end=keep_latents, **TINY_CALL_KWARGS)
     assert len(out.report.log) > 0
     assert instance_forwards(pipe.vae) == [] and all(p.is_contiguous() for p in pipe.vae.parameters())
     with torch.no_grad():
@@ -342,12 +344,12 @@ def test_compile_wraps_the_tiny_decoder(monkeypatch, fresh_compile_cache):
     assert "decode" not in decoder.__dict__
 
 
-def test_a_guided_run_with_compile_calls_the_compiled_decoder(monkeypatch, fresh_compile_cache):
+def test_a_guided_run_with_compile_calls_the_compiled_decoder(monkeypatch, fresh_compile_cache, estimators):
     recording = RecordingCompile()
     monkeypatch.setattr(torch, "compile", recording)
     pipe = tiny_pipeline(0)
     out = pipe("a marble bust", generator=torch.Generator().manual_seed(0), output_type="latent",
-               run_options={"compile": True}, **TINY_CALL_KWARGS)
+               run_options=tiny_run_options(compile=True), estimators=estimators, **TINY_CALL_KWARGS)
     assert len(recording.wrapped) == 1
     assert recording.calls >= 2 * len(out.report.log) > 0  # the tiny anchors: two chunk lengths per update
     assert instance_forwards(pipe.vae) == []
@@ -431,17 +433,15 @@ def anchor_decode_chunk(vae, latents):
     return frames.detach(), grad
 
 
-def test_a_hooked_pipeline_of_another_vae_is_refused_before_its_first_denoiser_call():
+def test_a_hooked_pipeline_of_another_vae_is_refused_before_its_first_denoiser_call(estimators):
     from geco_guide.sampler.hooks import attach_geco_guidance
-    from geco_guide.tiny import tiny_call_kwargs, tiny_estimators, tiny_wan_pipeline
+    from geco_guide.tiny import tiny_call_kwargs, tiny_wan_pipeline
 
     pipe = tiny_wan_pipeline(0)
     calls = []
     pipe.transformer.register_forward_pre_hook(lambda module, args: calls.append(1))
-    geometry, flow = tiny_estimators(0)
     config = {"anchors": [4, 8], "repeats": "1x4", "time_travel": []}
-    with attach_geco_guidance(pipe, config, run_options={"decode_layout": "channels_last"}, geometry_estimator=geometry,
-                              flow_estimator=flow):
+    with attach_geco_guidance(pipe, config, estimators, run_options={"decode_layout": "channels_last"}):
         with pytest.raises(TypeError, match="written for the CogVideoX VAE"):
             pipe(prompt="a cat", output_type="latent", **tiny_call_kwargs(pipe, num_frames=9))
     assert calls == []

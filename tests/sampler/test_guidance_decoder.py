@@ -13,8 +13,9 @@ from geco_guide.sampler.hooks import attach_geco_guidance
 PROMPT = "a marble bust on a table"
 
 
-def run(pipe, seed=0, **kwargs):
-    args = dict(T.TINY_CALL_KWARGS, output_type="pt")
+def run(pipe, estimators, seed=0, **kwargs):
+    """A call of the tiny GeCo pipeline guided by ``estimators``, with the tiny run options."""
+    args = dict(T.TINY_CALL_KWARGS, output_type="pt", estimators=estimators, run_options=T.tiny_run_options())
     args.update(kwargs)
     return pipe(PROMPT, generator=torch.Generator().manual_seed(seed), **args)
 
@@ -52,59 +53,66 @@ def test_anchor_chunks_follow_the_decoder():
         GuidanceConfig(decoder="taesd")
 
 
-def test_pipeline_guides_with_the_tiny_decoder_and_decodes_the_video_with_the_vae():
+def test_pipeline_guides_with_the_tiny_decoder_and_decodes_the_video_with_the_vae(estimators):
     pipe = T.tiny_pipeline(0)
-    pipe.register_modules(guidance_decoder=T.tiny_guidance_decoder("cogvideox"))
-    assert pipe.components["guidance_decoder"] is pipe.guidance_decoder
-    tiny_calls, vae_calls = Counted(pipe.guidance_decoder, "decode"), Counted(pipe.vae, "decode")
-    out = run(pipe, guidance={"decoder": "tiny"})
+    decoder = T.tiny_guidance_decoder("cogvideox")
+    with_decoder = estimators.with_tiny_decoder(decoder)
+    assert "guidance_decoder" not in pipe.components  # the tiny decoder comes with the estimators, at the call
+    tiny_calls, vae_calls = Counted(decoder, "decode"), Counted(pipe.vae, "decode")
+    out = run(pipe, with_decoder, guidance={"decoder": "tiny"})
     assert out.report.log and all(e["grad_norm"] > 0 and not e["skipped"] for e in out.report.log)
     assert tiny_calls.calls >= len(out.report.log) and vae_calls.calls == 1  # the final video only
-    assert out.guidance["decoder"] == "tiny"
+    assert out.report.guidance["decoder"] == "tiny" and out.report.decoder == "TinyDecoder(cogvideox) from random"
     # the guided latents differ from the VAE-guided run (another gradient), the frames are finite
-    exact = run(pipe)
+    tiny_before = tiny_calls.calls
+    exact = run(pipe, with_decoder)  # guidance.decoder=vae: the bundle's tiny decoder is not used
+    assert exact.report.decoder == "vae (the model's own)" and tiny_calls.calls == tiny_before
     assert torch.isfinite(out.frames).all() and not torch.equal(out.frames, exact.frames)
-    assert all(p.requires_grad is False for p in pipe.guidance_decoder.parameters())
+    assert all(p.requires_grad is False for p in decoder.parameters())
 
 
-def test_the_tiny_decoder_moves_with_the_pipeline():
-    pipe = T.tiny_pipeline(0, guidance_config=T.tiny_guidance_config(decoder="tiny"))
-    pipe.register_modules(guidance_decoder=T.tiny_guidance_decoder("cogvideox").to(torch.float64))
-    pipe.to("cpu")
-    assert pipe.guidance_decoder.device.type == "cpu" and pipe.guidance_decoder.dtype == torch.float64
+def test_the_tiny_decoder_is_loaded_onto_the_pipelines_device_and_dtype():
+    from geco_guide.generation import load_models
+
+    models = load_models(tiny_config("guidance.decoder=tiny", "model.dtype=bfloat16"), estimators=True)
+    decoder = models.estimators.tiny_decoder
+    assert decoder.device == models.pipe.device and decoder.dtype == models.pipe.vae.dtype == torch.bfloat16
 
 
-def test_tiny_without_a_decoder_or_with_the_wrong_one_is_one_line_before_any_step():
+def test_tiny_without_a_decoder_or_with_the_wrong_one_is_one_line_before_any_step(estimators):
     pipe = T.tiny_pipeline(0)
     steps = Counted(pipe.transformer, "forward")
-    with pytest.raises(ValueError, match="needs a tiny decoder: pass guidance_decoder=") as err:
-        run(pipe, guidance={"decoder": "tiny"})
+    with pytest.raises(ValueError, match=r"needs a tiny decoder: give the estimators one, "
+                                         r"Estimators\(..., tiny_decoder=") as err:
+        run(pipe, estimators, guidance={"decoder": "tiny"})
     assert "\n" not in str(err.value)
-    pipe.register_modules(guidance_decoder=T.tiny_guidance_decoder("cogvideox", latent_channels=48))
+    wrong = estimators.with_tiny_decoder(T.tiny_guidance_decoder("cogvideox", latent_channels=48))
     with pytest.raises(ValueError, match="takes 48 latent channels but this VAE makes 4"):
-        run(pipe, guidance={"decoder": "tiny"})
+        run(pipe, wrong, guidance={"decoder": "tiny"})
     assert steps.calls == 0
 
 
-def test_the_hook_takes_the_tiny_decoder_too():
-    estimators = T.tiny_estimators(0)
+def test_the_hook_takes_the_tiny_decoder_too(estimators):
     pipe = T.tiny_wan_pipeline(0)
     config = T.tiny_guidance_config(anchors=[4, 8], chunk_latents=3, repeats="0x3,2x1", time_travel=[], step_size=1.0,
                                     decoder="tiny")
     decoder = T.tiny_guidance_decoder("wan2.1")
     tiny_calls = Counted(decoder, "decode")
-    with attach_geco_guidance(pipe, config, estimators=estimators,
-                              decoder=decoder) as handle:
+    with attach_geco_guidance(pipe, config, estimators.with_tiny_decoder(decoder)) as handle:
         pipe(PROMPT, generator=torch.Generator().manual_seed(0), **T.tiny_call_kwargs(pipe, num_inference_steps=4),
              output_type="pt")
     assert len(handle.log) == 2 and tiny_calls.calls >= 2
-    with attach_geco_guidance(pipe, config, estimators=estimators):
+    assert handle.last.decoder == "TinyDecoder(wan2.1) from random"
+    with pytest.raises(TypeError, match=r"attach_geco_guidance\(decoder=...\) is the earlier spelling: the tiny "
+                                        r"decoder is Estimators\(..., tiny_decoder=...\)"):
+        attach_geco_guidance(pipe, config, estimators, decoder=decoder)
+    with attach_geco_guidance(pipe, config, estimators):
         with pytest.raises(ValueError, match="needs a tiny decoder"):
             pipe(PROMPT, generator=torch.Generator().manual_seed(0), **T.tiny_call_kwargs(pipe, num_inference_steps=4),
                  output_type="pt")
 
 
-# ---- estimators.tiny_decoder: the config key, loaded by build_pipeline -----------------------
+# ---- estimators.tiny_decoder: the config key, loaded by the generation path --------------------
 
 
 def tiny_config(*overrides):
@@ -115,67 +123,84 @@ def tiny_config(*overrides):
 
 def no_model_loads(monkeypatch):
     """Make every model load fail loudly: a check must come before it."""
+    from geco_guide import estimators, generation
     from geco_guide.sampler import loading
 
     def refuse(*args, **kwargs):
         raise AssertionError("a model loaded before the tiny decoder's weights were checked")
 
-    monkeypatch.setattr(loading, "load_estimators", refuse)
+    monkeypatch.setattr(generation, "load_models", refuse)
+    monkeypatch.setattr(estimators, "load_estimators", refuse)
     monkeypatch.setattr(loading, "load_video_pipeline", refuse)
+    monkeypatch.setattr(loading, "load_tiny_decoder", refuse)
 
 
-def test_the_tiny_preset_builds_the_tiny_random_decoder_for_its_vae():
-    from geco_guide.sampler.loading import build_pipeline
+def generate_tiny(tmp_path, *overrides):
+    """``generate`` of the tiny preset with ``overrides`` into ``tmp_path``."""
+    from geco_guide.generation import generate
+
+    return generate(tiny_config(*overrides), "a bust", out=tmp_path / "bust.mp4")
+
+
+def load_tiny_decoder_of(cfg, latent_channels=16):
+    """``load_tiny_decoder`` of ``cfg``'s estimators for its model's latents."""
+    from geco_guide.sampler.loading import load_tiny_decoder
+
+    return load_tiny_decoder(cfg.estimators, cfg.model.video_model, latent_channels, torch.float32)
+
+
+def test_the_tiny_preset_loads_the_tiny_random_decoder_for_its_vae():
+    from geco_guide.generation import load_models
+    from geco_guide.sampler.context import decoder_note
 
     cfg = tiny_config("guidance.decoder=tiny")
     assert cfg.estimators.tiny_decoder == "tiny-random"
-    pipe = build_pipeline(cfg, components=T.tiny_cogvideox_components(0))
-    assert isinstance(pipe.guidance_decoder, TinyDecoder)
-    assert pipe.guidance_decoder.latent_channels == pipe.vae.config.latent_channels == 4
-    assert pipe.geco_decoder_note == "TinyDecoder(cogvideox) from tiny-random(seed=0)"
-    # the VAE guides by default: no tiny decoder is built, even though the preset names one
-    exact = build_pipeline(tiny_config(), components=T.tiny_cogvideox_components(0))
-    assert exact.guidance_decoder is None and exact.geco_decoder_note == "vae (the model's own)"
+    models = load_models(cfg)
+    decoder = models.estimators.tiny_decoder
+    assert isinstance(decoder, TinyDecoder)
+    assert decoder.latent_channels == models.pipe.vae.config.latent_channels == 4
+    assert decoder_note(cfg.guidance.decoder, decoder) == "TinyDecoder(cogvideox) from tiny-random(seed=0)"
+    # the VAE guides by default: no tiny decoder is loaded, even though the preset names one
+    exact = load_models(tiny_config())
+    assert exact.estimators.tiny_decoder is None and decoder_note("vae", None) == "vae (the model's own)"
 
 
-def test_tiny_without_weights_is_one_line_with_the_url_and_the_key_before_any_model_loads(monkeypatch):
-    from geco_guide.sampler.loading import build_pipeline
-
+def test_tiny_without_weights_is_one_line_with_the_url_and_the_key_before_any_model_loads(monkeypatch, tmp_path):
     no_model_loads(monkeypatch)
     with pytest.raises(ValueError) as err:
-        build_pipeline(tiny_config("guidance.decoder=tiny", "estimators.tiny_decoder=null"))
+        generate_tiny(tmp_path, "guidance.decoder=tiny", "estimators.tiny_decoder=null")
     message = str(err.value)
     assert "\n" not in message and "github.com/madebyollin/taehv" in message
     assert "estimators.tiny_decoder=/path/to/taecvx.pth" in message
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_missing_tiny_decoder_file_is_one_line_naming_it_and_the_key(monkeypatch, tmp_path):
     from geco_guide.estimators.loading import WeightsNotFoundError
-    from geco_guide.sampler.loading import build_pipeline
 
     no_model_loads(monkeypatch)
     missing = tmp_path / "taecvx.pth"
     with pytest.raises(WeightsNotFoundError) as err:
-        build_pipeline(tiny_config("guidance.decoder=tiny", f"estimators.tiny_decoder={missing}"))
+        generate_tiny(tmp_path, "guidance.decoder=tiny", f"estimators.tiny_decoder={missing}")
     assert "\n" not in str(err.value) and str(missing) in str(err.value) and "estimators.tiny_decoder=" in str(err.value)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_checkpoint_file_loads_with_its_path_recorded(tmp_path):
-    from geco_guide.sampler.loading import build_pipeline, load_tiny_decoder
+    from geco_guide.sampler.context import decoder_note
 
     saved = T.tiny_guidance_decoder("cogvideox", seed=3, latent_channels=16)  # the published variant's channels
     path = tmp_path / "taecvx.pth"
     torch.save(saved.state_dict(), path)
     cfg = tiny_config("guidance.decoder=tiny", f"estimators.tiny_decoder={path}")
-    loaded = load_tiny_decoder(cfg)
+    loaded = load_tiny_decoder_of(cfg)
     assert loaded.checkpoint_file == str(path) and loaded.decoder_widths == saved.decoder_widths
     assert all(torch.equal(a, b) for a, b in zip(loaded.state_dict().values(), saved.state_dict().values()))
-    pipe = build_pipeline(cfg, components=T.tiny_cogvideox_components(0))
-    assert pipe.geco_decoder_note == f"TinyDecoder(cogvideox) from {path}"
+    assert decoder_note(cfg.guidance.decoder, loaded) == f"TinyDecoder(cogvideox) from {path}"
     # the decoder of another model is refused by its name
     torch.save(saved.state_dict(), tmp_path / "taew2_1.pth")
-    with pytest.raises(ValueError, match="Wan 2.1.*CogVideoX needs taecvx.pth"):
-        load_tiny_decoder(tiny_config("guidance.decoder=tiny", f"estimators.tiny_decoder={tmp_path / 'taew2_1.pth'}"))
+    with pytest.raises(ValueError, match="Wan 2.1.*cogvideox-5b needs taecvx.pth"):
+        load_tiny_decoder_of(tiny_config("guidance.decoder=tiny", f"estimators.tiny_decoder={tmp_path / 'taew2_1.pth'}"))
 
 
 @pytest.mark.parametrize(("key", "example"), [("geometry", "/path/to/VGGT-1B"), ("flow", "/path/to/UFM-Base")])

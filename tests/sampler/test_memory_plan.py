@@ -30,7 +30,7 @@ from geco_guide.sampler.slicing import (
     decode_anchor_frames,
     decode_chunk,
 )
-from geco_guide.tiny import TINY_CALL_KWARGS, tiny_pipeline
+from geco_guide.tiny import TINY_CALL_KWARGS, tiny_bundle, tiny_pipeline, tiny_run_options
 
 PROMPT = "a marble bust on a table"
 #: Two guided steps, one update each: short, and the second update runs after the first's plan.
@@ -38,6 +38,7 @@ SCHEDULE = {"repeats": "0x1,1x2,0x1", "time_travel": []}
 #: Today's default (GuidanceConfig(), the paper's preset): the chunks decoded one at a time in
 #: checkpointed regions, with the VAE's block checkpointing, the denoiser checkpointed.
 EXPLICIT_DEFAULT = {"memory_plan": "explicit", "vae_checkpointing": True, "gradient_checkpointing": True}
+ESTIMATORS = tiny_bundle(0)
 
 
 @pytest.fixture(scope="module")
@@ -46,9 +47,10 @@ def pipe():
 
 
 def run(pipe, mode: str, seed: int = 3, **options):
-    """A call in ``mode`` with ``options``: the run options (``memory_plan``, ...) and guidance's."""
-    args = dict(TINY_CALL_KWARGS, output_type="pt")
-    run_options = {key: value for key, value in options.items() if key in RUN_KEYS}
+    """A call in ``mode`` with ``options``: the run options (``memory_plan``, ...; over the tiny
+    ones) and guidance's."""
+    args = dict(TINY_CALL_KWARGS, output_type="pt", estimators=ESTIMATORS)
+    run_options = tiny_run_options(**{key: value for key, value in options.items() if key in RUN_KEYS})
     guidance = {key: value for key, value in options.items() if key not in RUN_KEYS}
     return pipe(PROMPT, generator=torch.Generator().manual_seed(seed), **args, run_options=run_options,
                 guidance={**SCHEDULE, "denoiser_grad": mode == "faithful", **guidance})
@@ -60,7 +62,7 @@ def run(pipe, mode: str, seed: int = 3, **options):
 @pytest.mark.parametrize("mode", ["fast", "faithful"])
 def test_every_plan_gives_the_same_frames_as_the_explicit_default(pipe, mode):
     reference = run(pipe, mode, **EXPLICIT_DEFAULT)
-    assert reference.memory_plan["name"] == "explicit" and len(reference.report.log) == 2
+    assert reference.report.memory_plan["name"] == "explicit" and len(reference.report.log) == 2
     variants = [{"memory_plan": name} for name in PLAN_NAMES if name != "explicit"]
     variants.append({"memory_plan": "explicit", "vae_checkpointing": True, "vae_block_checkpointing": False,
                      "gradient_checkpointing": False})
@@ -70,7 +72,7 @@ def test_every_plan_gives_the_same_frames_as_the_explicit_default(pipe, mode):
         assert [r["loss"] for r in out.report.log] == [r["loss"] for r in reference.report.log], guidance
     # every switch restored after the calls
     assert not pipe.transformer.is_gradient_checkpointing and not pipe.vae.is_gradient_checkpointing
-    assert not pipe.geometry_estimator.gradient_checkpointing and not pipe.flow_estimator.gradient_checkpointing
+    assert not ESTIMATORS.geometry.gradient_checkpointing and not ESTIMATORS.flow.gradient_checkpointing
 
 
 def test_one_call_per_chunk_is_the_checkpointed_decode_to_the_last_bit(pipe):
@@ -103,13 +105,14 @@ def test_the_plan_switches_are_on_during_the_call_and_reported(pipe, monkeypatch
 
     def spy(self, x0):
         seen.append((pipe.transformer.is_gradient_checkpointing, pipe.vae.is_gradient_checkpointing,
-                     pipe.geometry_estimator.gradient_checkpointing, self.memory_plan.plan.chunk_checkpointing))
+                     ESTIMATORS.geometry.gradient_checkpointing, self.memory_plan.plan.chunk_checkpointing))
         return objective(self, x0)
 
     monkeypatch.setattr(GuidanceContext, "objective", spy)
     out = run(pipe, "faithful", memory_plan="leanest")
     assert seen[0] == (True, True, True, True)
-    assert out.memory_plan["name"] == "leanest" and pipe.geco_memory_plan == out.memory_plan
+    assert out.report.memory_plan["name"] == "leanest"
+    assert not hasattr(pipe, "geco_memory_plan")  # the plan is the call's: in its report, not on the pipeline
     seen.clear()
     run(pipe, "fast", memory_plan="chunked")
     assert seen[0] == (False, False, False, True)  # the denoiser is not differentiated in fast mode
@@ -123,13 +126,11 @@ def test_partial_checkpoints_all_denoiser_blocks_but_every_fourth_and_changes_no
     from geco_guide.tiny import (
         TinySizes,
         tiny_cogvideox_components,
-        tiny_estimators,
         tiny_guidance_config,
     )
 
-    geometry, flow = tiny_estimators(0)
-    deep = GeCoCogVideoXPipeline(**tiny_cogvideox_components(0, TinySizes(layers=6)), geometry_estimator=geometry,
-                                 flow_estimator=flow, guidance_config=tiny_guidance_config())
+    deep = GeCoCogVideoXPipeline(**tiny_cogvideox_components(0, TinySizes(layers=6)),
+                                 guidance_config=tiny_guidance_config())
     deep.set_progress_bar_config(disable=True)
     blocks = deep.transformer.transformer_blocks
     seen = []
@@ -273,13 +274,13 @@ def fake_oom_at_calls(monkeypatch, calls: set[int]):
 def test_oom_at_the_first_update_falls_back_to_the_next_plan(pipe, monkeypatch, caplog, mode):
     budget = {"memory_plan": "auto", "memory_budget_gb": 1000.0}  # the tiny models' least-recompute plan
     plain = run(pipe, mode, **budget)
-    first = plain.memory_plan["name"]
-    expected = plain.memory_plan["fallbacks"][0]
+    first = plain.report.memory_plan["name"]
+    expected = plain.report.memory_plan["fallbacks"][0]
     assert PLANS.index(plan_named(expected)) > PLANS.index(plan_named(first))
     fake_oom_at_calls(monkeypatch, {0})
     with caplog.at_level("WARNING", logger="geco_guide.sampler.context"):
         out = run(pipe, mode, **budget)
-    assert out.memory_plan["name"] == expected and first in out.memory_plan["reason"]
+    assert out.report.memory_plan["name"] == expected and first in out.report.memory_plan["reason"]
     assert f"memory plan {first!r}; retrying it with {expected!r}" in caplog.text
     torch.testing.assert_close(out.frames, plain.frames, rtol=0, atol=1e-6)
     assert len(out.report.log) == len(plain.report.log)
@@ -342,7 +343,6 @@ def test_a_hooked_stock_pipeline_runs_the_plans_and_reports_them():
     from geco_guide import tiny as T
     from geco_guide.sampler.hooks import attach_geco_guidance
 
-    geometry, flow = T.tiny_estimators(0)
     stock = T.tiny_cogvideox_pipeline(0)
     kwargs = T.tiny_call_kwargs(stock, num_frames=9, output_type="pt")
     config = {"anchors": [5, 8], "repeats": "0x3,1x1", "time_travel": []}
@@ -350,18 +350,17 @@ def test_a_hooked_stock_pipeline_runs_the_plans_and_reports_them():
     for plan in ("auto", "leanest", "explicit"):
         flags = {"vae_checkpointing": True, "gradient_checkpointing": True} if plan == "explicit" else {}
         run_options = {"memory_budget_gb": 1000.0, "memory_plan": plan, **flags}
-        with attach_geco_guidance(stock, config, run_options=run_options, geometry_estimator=geometry,
-                                  flow_estimator=flow) as handle:
+        with attach_geco_guidance(stock, config, ESTIMATORS, run_options=run_options) as handle:
             frames[plan] = stock(prompt=PROMPT, generator=torch.Generator().manual_seed(0), **kwargs).frames
-            frames[plan + " plan"] = handle.memory_plan["name"]
+            frames[plan + " plan"] = handle.last.memory_plan["name"]
     assert frames["auto plan"] == "fastest" and frames["leanest plan"] == "leanest"
     assert torch.equal(frames["auto"], frames["explicit"]) and torch.equal(frames["leanest"], frames["explicit"])
     wan = T.tiny_wan_pipeline(0)
     with attach_geco_guidance(wan, {"anchors": [5, 8], "repeats": "0x3,1x1", "time_travel": []},
-                              geometry_estimator=geometry, flow_estimator=flow) as handle:
+                              ESTIMATORS) as handle:
         wan(prompt=PROMPT, generator=torch.Generator().manual_seed(0),
             **T.tiny_call_kwargs(wan, num_frames=9, output_type="latent"))
-        assert handle.memory_plan["name"] == SAFE_PLAN.name and "no estimates" in handle.memory_plan["reason"]
+        assert handle.last.memory_plan["name"] == SAFE_PLAN.name and "no estimates" in handle.last.memory_plan["reason"]
 
 
 def test_a_command_line_can_check_the_budget_before_loading():
@@ -369,7 +368,7 @@ def test_a_command_line_can_check_the_budget_before_loading():
 
     cfg = load_config(preset="cogvideox-5b", overrides=["run.memory_budget_gb=20"])
     with pytest.raises(ValueError, match="the smallest, 'checkpointed', is predicted to peak at 40.3 GiB") as err:
-        plan_before_loading(cfg.guidance, cfg.run, cfg.model.id, 49, 480, 720, "cpu")
+        plan_before_loading(cfg.guidance, cfg.run, cfg.model.source, 49, 480, 720, "cpu")
     assert "\n" not in str(err.value)
     fits = load_config(preset="cogvideox-5b", overrides=["run.memory_budget_gb=100"])
     assert plan_before_loading(fits.guidance, fits.run, "THUDM/CogVideoX-5b", 49, 480, 720, "cpu").plan.name == "chunked"

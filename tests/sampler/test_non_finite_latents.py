@@ -33,11 +33,11 @@ def _message(step: int, steps: int) -> str:
 
 @pytest.mark.parametrize("guidance", [None, False], ids=["guided", "unguided"])
 @pytest.mark.parametrize("step", [1, 3])
-def test_the_pipeline_refuses_latents_that_turn_nan_naming_the_step(guidance, step):
+def test_the_pipeline_refuses_latents_that_turn_nan_naming_the_step(guidance, step, estimators):
     pipe = T.tiny_pipeline(0)
     with pytest.raises(NonFiniteLatentsError) as err:
-        pipe(prompt=PROMPT, generator=torch.Generator().manual_seed(0), guidance=guidance,
-             callback_on_step_end=poison_at(step), **T.TINY_CALL_KWARGS)
+        pipe(prompt=PROMPT, generator=torch.Generator().manual_seed(0), guidance=guidance, estimators=estimators,
+             run_options=T.tiny_run_options(), callback_on_step_end=poison_at(step), **T.TINY_CALL_KWARGS)
     assert str(err.value) == _message(step, 4)
 
 
@@ -45,11 +45,10 @@ def test_the_pipeline_refuses_latents_that_turn_nan_naming_the_step(guidance, st
     ("1x4", 1, 2),  # every step guided: refused where the next guided step starts from them
     ("1x1,0x3", 1, 2),  # no guided step after: refused at the last step, naming the first step that made them
 ])
-def test_the_hooks_refuse_latents_that_turn_nan_naming_the_step(repeats, poisoned, named):
+def test_the_hooks_refuse_latents_that_turn_nan_naming_the_step(repeats, poisoned, named, estimators):
     pipe = T.tiny_wan_pipeline(0)
-    geometry, flow = T.tiny_estimators(0)
     config = {"anchors": [4, 8, 12, 16], "repeats": repeats, "time_travel": []}
-    with attach_geco_guidance(pipe, config, geometry_estimator=geometry, flow_estimator=flow):
+    with attach_geco_guidance(pipe, config, estimators):
         with pytest.raises(NonFiniteLatentsError) as err:
             pipe(prompt=PROMPT, generator=torch.Generator().manual_seed(0), callback_on_step_end=poison_at(poisoned),
                  **T.tiny_call_kwargs(pipe))

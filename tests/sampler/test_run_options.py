@@ -1,6 +1,7 @@
 """What guidance computes (``guidance``) apart from how one machine runs it (``run``): run options
-are never saved with a pipeline, stay out of the video key but for the options that change frames
-to float rounding, and their old ``guidance.<key>`` spellings keep working with one warning each."""
+are the call's, never saved with a pipeline, stay out of the video key but for the options that
+change frames to float rounding, and their old ``guidance.<key>`` spellings are refused in one line
+naming the new key."""
 
 from __future__ import annotations
 
@@ -11,17 +12,20 @@ from dataclasses import asdict, fields
 import pytest
 import torch
 
-from geco_guide.cli.generate import default_name, video_key
 from geco_guide.config import config_to_dict, load_config
-from geco_guide.sampler.config import GuidanceConfig, resolve_call_options
-from geco_guide.sampler.run_options import FRAME_ROUNDING_KEYS, RUN_KEYS, RenamedOptionWarning, RunOptions
-from geco_guide.tiny import TINY_CALL_KWARGS, tiny_pipeline, tiny_run_options
+from geco_guide.generation import default_name, video_key
+from geco_guide.sampler.config import GuidanceConfig
+from geco_guide.sampler.run_options import FRAME_ROUNDING_KEYS, RUN_KEYS, RunOptions, resolve_call_options
+from geco_guide.tiny import TINY_CALL_KWARGS, tiny_bundle, tiny_pipeline, tiny_run_options
 
 PROMPT = "a marble bust on a table"
+ESTIMATORS = tiny_bundle(0)
 
 
-def renamed(record) -> list[str]:
-    return [str(w.message) for w in record if issubclass(w.category, RenamedOptionWarning)]
+def one_line(err) -> str:
+    message = str(err.value)
+    assert "\n" not in message
+    return message
 
 
 def test_the_two_objects_share_no_option():
@@ -33,79 +37,93 @@ def test_save_pretrained_writes_no_run_option(tmp_path):
     from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     pipe = tiny_pipeline(0)
-    pipe.run_options = {"memory_plan": "leanest", "memory_budget_gb": 3.0, "devices": ["cpu"]}
-    assert pipe.run_options == RunOptions(memory_plan="leanest", memory_budget_gb=3.0, devices=["cpu"])
+    run = {"memory_plan": "leanest", "memory_budget_gb": 3.0, "devices": ["cpu"]}
+    out = pipe(PROMPT, generator=torch.Generator().manual_seed(1), output_type="latent", estimators=ESTIMATORS,
+               run_options=run, **TINY_CALL_KWARGS)
+    assert out.report.memory_plan["name"] == "leanest" and out.report.devices == ["cpu"]  # the call's, in its report
+    assert not hasattr(pipe, "run_options")  # and nothing of them on the pipeline
     pipe.save_pretrained(tmp_path)
     saved = json.loads((tmp_path / "model_index.json").read_text())
     assert not set(saved["guidance_config"]) & set(RUN_KEYS)
     assert not any(key in json.dumps(saved) for key in ("memory_budget_gb", "run_options", "decode_layout"))
-    loaded = GeCoCogVideoXPipeline.from_pretrained(tmp_path, geometry_estimator=pipe.geometry_estimator,
-                                                   flow_estimator=pipe.flow_estimator)
-    assert loaded.guidance_config == pipe.guidance_config and loaded.run_options == RunOptions()
+    loaded = GeCoCogVideoXPipeline.from_pretrained(tmp_path)
+    assert loaded.guidance_config == pipe.guidance_config and not hasattr(loaded, "run_options")
 
 
-def test_a_folder_saved_with_run_options_in_its_guidance_loads_them_as_run_options(tmp_path):
+def test_a_folder_saved_with_run_options_in_its_guidance_is_refused_naming_the_run_key(tmp_path):
     from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     tiny_pipeline(0).save_pretrained(tmp_path)
     index = json.loads((tmp_path / "model_index.json").read_text())
     index["guidance_config"].update(memory_plan="chunked", memory_budget_gb=7.0)  # as written before the split
     (tmp_path / "model_index.json").write_text(json.dumps(index))
-    with pytest.warns(RenamedOptionWarning, match=r"^guidance.memory_plan is now run.memory_plan"):
-        loaded = GeCoCogVideoXPipeline.from_pretrained(tmp_path)
-    assert (loaded.run_options.memory_plan, loaded.run_options.memory_budget_gb) == ("chunked", 7.0)
-    assert "memory_plan" not in loaded.config["guidance_config"]
+    with pytest.raises(ValueError, match=r"^guidance.memory_budget_gb is the earlier name of run.memory_budget_gb: "
+                                         r"use run.memory_budget_gb instead$") as err:
+        GeCoCogVideoXPipeline.from_pretrained(tmp_path)
+    one_line(err)
 
 
-def test_old_keys_work_in_config_files_and_overrides_with_one_line_each(tmp_path):
-    old = tmp_path / "old.yaml"
-    old.write_text("guidance:\n  eta: 2.0\n  memory_plan: chunked\n  devices: [cpu, cpu]\n")
+def test_old_keys_in_config_files_and_overrides_are_refused_naming_the_new_key(tmp_path):
+    for key, value, new in (("eta", "2.0", "guidance.step_size"), ("memory_plan", "chunked", "run.memory_plan"),
+                            ("devices", "[cpu, cpu]", "run.devices")):
+        old = tmp_path / f"old_{key}.yaml"
+        old.write_text(f"guidance:\n  {key}: {value}\n")
+        with pytest.raises(ValueError) as err:
+            load_config(old, preset="tiny")
+        assert one_line(err) == f"guidance.{key} is the earlier name of {new}: use {new} instead ({old})"
+    for override, new in (("guidance.memory_budget_gb=5", "run.memory_budget_gb"), ("guidance.eta=2", "guidance.step_size")):
+        with pytest.raises(ValueError) as err:
+            load_config(preset="tiny", overrides=[override])
+        old_key = override.partition("=")[0]
+        assert one_line(err) == f"{old_key} is the earlier name of {new}: use {new} instead (command line)"
     new = tmp_path / "new.yaml"
     new.write_text("guidance:\n  step_size: 2.0\nrun:\n  memory_plan: chunked\n  devices: [cpu, cpu]\n")
-    with warnings.catch_warnings(record=True) as record:
-        warnings.simplefilter("always")
-        from_old = load_config(old, preset="tiny")
-        from_override = load_config(preset="tiny", overrides=["guidance.memory_budget_gb=5", "guidance.eta=2"])
-    messages = renamed(record)
-    assert len(messages) == 5 and all("\n" not in m for m in messages)
-    assert messages[0] == f"guidance.eta ({old}) is now guidance.step_size: the old key works until the next release"
-    assert messages[1] == (f"guidance.memory_plan ({old}) is now run.memory_plan: the old key works until the "
-                           "next release")
-    assert messages[3].startswith("guidance.memory_budget_gb (command line) is now run.memory_budget_gb")
-    assert messages[4].startswith("guidance.eta (command line) is now guidance.step_size")
     with warnings.catch_warnings():
-        warnings.simplefilter("error", RenamedOptionWarning)  # the new spelling says nothing
+        warnings.simplefilter("error")  # the new spelling says nothing
         from_new = load_config(new, preset="tiny")
-        assert load_config(preset="tiny", overrides=["run.memory_budget_gb=5"]).run.memory_budget_gb == 5
-    assert from_old == from_new and from_old.run.devices == ["cpu", "cpu"]
+        from_override = load_config(preset="tiny", overrides=["run.memory_budget_gb=5", "guidance.step_size=2"])
+    assert from_new.guidance.step_size == 2 and from_new.run.memory_plan == "chunked"
+    assert from_new.run.devices == ["cpu", "cpu"]
     assert from_override.run.memory_budget_gb == 5 and from_override.guidance.step_size == 2
 
 
-def test_a_run_section_wins_over_the_old_spelling_in_the_same_file(tmp_path):
+def test_the_old_spelling_is_refused_even_beside_a_run_section(tmp_path):
     both = tmp_path / "both.yaml"
     both.write_text("guidance:\n  memory_plan: leanest\nrun:\n  memory_plan: chunked\n")
-    with pytest.warns(RenamedOptionWarning):
-        assert load_config(both, preset="tiny").run.memory_plan == "chunked"
+    with pytest.raises(ValueError, match=r"^guidance.memory_plan is the earlier name of run.memory_plan") as err:
+        load_config(both, preset="tiny")
+    one_line(err)
 
 
-def test_old_keys_in_a_call_dict_give_the_same_video_as_run_options():
+def test_old_keys_in_a_call_dict_or_as_arguments_are_refused_before_any_step():
     pipe = tiny_pipeline(0)
+    steps = []
+    pipe.transformer.register_forward_pre_hook(lambda *_: steps.append(1))
 
-    def frames(**options):
+    def call(**options):
         return pipe(PROMPT, generator=torch.Generator().manual_seed(1), output_type="latent", **TINY_CALL_KWARGS,
-                    **options).frames
+                    estimators=ESTIMATORS, **options)
 
-    with pytest.warns(RenamedOptionWarning, match="guidance.vae_checkpointing is now run.vae_checkpointing"):
-        old = frames(guidance={"eta": 2.0, "vae_checkpointing": True})
-    new = frames(guidance={"step_size": 2.0}, run_options={"vae_checkpointing": True})
-    assert torch.equal(old, new)
-    assert pipe.geco_memory_plan["chunk_checkpointing"]  # the moved flag was used
+    for guidance, old, new in (({"eta": 2.0}, "guidance.eta", "guidance.step_size"),
+                               ({"vae_checkpointing": True}, "guidance.vae_checkpointing", "run.vae_checkpointing")):
+        with pytest.raises(ValueError) as err:
+            call(guidance=guidance)
+        assert one_line(err) == f"{old} is the earlier name of {new}: use {new} instead"
+    assert steps == []
+    for kwargs, new in (({"eta": 2.0}, "GuidanceConfig(step_size=...)"),
+                        ({"memory_plan": "chunked"}, "RunOptions(memory_plan=...)")):
+        with pytest.raises(TypeError) as err:
+            GuidanceConfig(**kwargs)
+        assert one_line(err) == f"GuidanceConfig({next(iter(kwargs))}=...) is the earlier spelling of {new}: use that instead"
+    new = call(guidance={"step_size": 2.0}, run_options=tiny_run_options(vae_checkpointing=True))
+    assert new.report.memory_plan["chunk_checkpointing"] and new.report.guidance["step_size"] == 2.0  # the new spelling
 
 
-def test_a_call_dict_with_old_keys_resolves_below_the_new_ones():
-    with pytest.warns(RenamedOptionWarning):
-        config, run = resolve_call_options(None, {"memory_plan": "leanest", "eta": 1.0}, tiny_run_options(),
-                                           {"memory_plan": "chunked"})
+def test_a_call_dict_with_old_keys_is_refused_and_the_new_ones_resolve_over_the_base():
+    with pytest.raises(ValueError, match=r"^guidance.eta is the earlier name of guidance.step_size"):
+        resolve_call_options(None, {"memory_plan": "leanest", "eta": 1.0}, tiny_run_options(),
+                             {"memory_plan": "chunked"})
+    config, run = resolve_call_options(None, {"step_size": 1.0}, tiny_run_options(), {"memory_plan": "chunked"})
     assert config.step_size == 1.0 and run.memory_plan == "chunked" and run.vae_checkpointing is False
 
 
@@ -140,12 +158,12 @@ def test_an_unknown_run_option_is_one_line_naming_the_section():
         resolve_call_options(None, None, None, {"memory_planner": "auto"})
 
 
-def test_a_command_says_the_new_key_in_one_line(tmp_path, capsys):
+def test_a_command_refuses_the_old_key_in_one_line_naming_the_new_one(tmp_path, capsys):
     from geco_guide.cli import generate as generate_cli
 
     assert generate_cli.main(["--preset", "tiny", "--prompt", "a", "--out", str(tmp_path / "a.mp4"),
                               "guidance.memory_plan=chunked", "sampling.height=-16"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
-    assert lines[0] == ("warning: guidance.memory_plan (command line) is now run.memory_plan: the old key works "
-                        "until the next release")
-    assert lines[1].startswith("error: invalid value for config key 'sampling.height'") and len(lines) == 2
+    assert lines == ["error: guidance.memory_plan is the earlier name of run.memory_plan: use run.memory_plan instead "
+                     "(command line)"]
+    assert list(tmp_path.iterdir()) == []
