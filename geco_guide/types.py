@@ -20,14 +20,14 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, is_dataclass, replace
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import torch
 from torch import Tensor
 
-__all__ = ["Correspondences", "DynamicMaskSource", "FlowEstimator", "GeometryEstimator",
+__all__ = ["NAMED_MASK_SOURCES", "Correspondences", "DynamicMaskSource", "FlowEstimator", "GeometryEstimator",
            "NonFiniteFramesError", "OptionError", "SceneGeometry", "check_frame_values", "check_frames",
            "is_integer", "is_number", "merge_dataclass", "missing_estimators", "non_finite_fields", "one_of_names",
            "plural"]
@@ -95,6 +95,14 @@ class DynamicMaskSource(Protocol):
                       flow: Correspondences | None = None,
                       pairs: Sequence[tuple[int, int]] | None = None) -> Tensor:
         ...
+
+
+#: The dynamic-mask sources a name stands for (``"auto"``: the automatic detector), name -> a
+#: function making one. The sources sit above this floor, in :mod:`geco_guide.estimators`, which
+#: fills this table when it is imported; the loss reads it, so that ``GeCoLoss(...)(frames,
+#: dynamic_masks="auto")`` means what ``evaluate_video``'s ``"auto"`` means without the loss
+#: importing the estimators.
+NAMED_MASK_SOURCES: dict[str, Callable[[], DynamicMaskSource]] = {}
 
 
 def missing_estimators(geometry: Any, flow: Any) -> list[str]:

@@ -16,6 +16,7 @@ from typing import Any, Optional
 import torch
 
 from ..io.devices import resolve_device
+from . import dynamic_masks  # noqa: F401  (names the mask sources the loss takes by name: "auto")
 from .bundle import Estimators, estimator_id
 from .loading import WeightsNotFoundError
 

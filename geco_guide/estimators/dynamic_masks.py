@@ -14,8 +14,9 @@ may move on its own. The three kinds:
 
 from __future__ import annotations
 
+import inspect
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,7 @@ from torch import Tensor
 
 from ..io.masks import MASK_SUFFIXES, MaskReadError, check_masks, fit_masks, read_masks
 from ..io.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES
-from ..types import Correspondences, DynamicMaskSource, SceneGeometry
+from ..types import NAMED_MASK_SOURCES, Correspondences, DynamicMaskSource, SceneGeometry
 
 __all__ = ["AUTO", "GivenMasks", "looks_like_path", "mask_source"]
 
@@ -69,9 +70,10 @@ class GivenMasks:
 
 def looks_like_path(spec: str) -> bool:
     """Whether ``spec`` names a mask file or folder rather than text: it exists, holds a path
-    separator or ends in a mask, video or image suffix."""
-    suffixes = MASK_SUFFIXES + VIDEO_SUFFIXES + IMAGE_SUFFIXES
-    return Path(spec).exists() or os.sep in spec or spec.lower().endswith(suffixes)
+    separator or ends in a mask, video or image suffix (or ``.npy``, to be refused as a mask
+    file). An empty or blank string is none: ``Path("")`` is the working folder."""
+    suffixes = MASK_SUFFIXES + VIDEO_SUFFIXES + IMAGE_SUFFIXES + (".npy",)
+    return bool(spec.strip()) and (Path(spec).exists() or os.sep in spec or spec.lower().endswith(suffixes))
 
 
 def mask_source(spec: Any, *, device: str | torch.device = "cpu", **options: Any) -> DynamicMaskSource | None:
@@ -111,7 +113,7 @@ def mask_source(spec: Any, *, device: str | torch.device = "cpu", **options: Any
     if text == AUTO:
         from .motion_masks import MotionMasks
 
-        return MotionMasks(**options)
+        return MotionMasks(**_known_options("the automatic mask source", MotionMasks, options))
     if looks_like_path(text):
         _no_options("given masks", options)
         return GivenMasks.from_path(text)
@@ -122,9 +124,24 @@ def mask_source(spec: Any, *, device: str | torch.device = "cpu", **options: Any
             raise
         raise ValueError(f"text dynamic masks ({text!r}) need a text segmenter, which this install lacks; "
                          "pass a mask file or 'auto' instead") from None
-    return text_segmenter(text, device=device, **options)
+    return text_segmenter(text, device=device, **_known_options("a text segmenter", text_segmenter, options))
 
 
 def _no_options(what: str, options: dict[str, Any]) -> None:
     if options:
         raise ValueError(f"{what} take no options, got {sorted(options)}")
+
+
+def _known_options(what: str, factory: Callable[..., Any], options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` after checking that ``factory`` takes each as a keyword (its keyword-only
+    parameters, less ``device``, which :func:`mask_source` passes itself): ValueError naming
+    the unknown ones and the known, not the TypeError of the call."""
+    known = [name for name, parameter in inspect.signature(factory).parameters.items()
+             if parameter.kind is inspect.Parameter.KEYWORD_ONLY and name != "device"]
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise ValueError(f"{what} takes no option(s) {unknown}; its options: {', '.join(known)}")
+    return options
+
+
+NAMED_MASK_SOURCES[AUTO] = lambda: mask_source(AUTO)

@@ -43,7 +43,7 @@ from ..geometry import (
     transform_points,
     unproject,
 )
-from ..types import Correspondences, OptionError, SceneGeometry
+from ..types import Correspondences, OptionError, SceneGeometry, is_integer, is_number
 
 __all__ = ["MotionMasks", "connected_regions", "dilate", "kabsch", "splat"]
 
@@ -149,6 +149,15 @@ class MotionMasks:
     def __init__(self, *, min_residual_px: float = 1.0, min_region_px: int = 16, rigid_tolerance: float = 0.25,
                  min_inliers: float = 0.8, dilation: int = 0, covisibility_threshold: float = 0.5,
                  iterations: int = 64, seed: int = 0) -> None:
+        numbers = {"min_residual_px": min_residual_px, "rigid_tolerance": rigid_tolerance, "min_inliers": min_inliers,
+                   "covisibility_threshold": covisibility_threshold}
+        integers = {"min_region_px": min_region_px, "dilation": dilation, "iterations": iterations, "seed": seed}
+        for key, value in numbers.items():
+            if not is_number(value):
+                raise OptionError(key, f"must be a number, got {value!r}")
+        for key, value in integers.items():  # 1.5 RANSAC iterations would be truncated to 1, silently
+            if not is_integer(value):
+                raise OptionError(key, f"must be an integer, got {value!r}")
         checks = {
             "min_residual_px": (min_residual_px, min_residual_px > 0, "> 0"),
             "min_region_px": (min_region_px, min_region_px >= 3, ">= 3"),

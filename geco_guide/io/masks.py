@@ -197,6 +197,8 @@ def read_masks(path: str | os.PathLike, select: Sequence[int] | None = None) -> 
             unreadable, wrong shape, non-binary, a gap in a folder's numbering, or too few frames
             for ``select``.
     """
+    if not os.fspath(path).strip():  # Path("") is the working folder
+        raise MaskReadError("the mask file's path is empty: give a mask file or folder")
     path = Path(path)
     name = mask_file_name(path)
     if not path.exists():

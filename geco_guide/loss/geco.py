@@ -12,6 +12,7 @@ adjacent pairs this is the mean over pairs of the per-pair means.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields, replace
@@ -24,6 +25,7 @@ from torch import Tensor, nn
 from ..geometry import check_tensor, relative_pose, resize_flow, rigid_flow
 from ..io.masks import MaskReadError, check_masks, fit_masks, read_masks
 from ..types import (
+    NAMED_MASK_SOURCES,
     Correspondences,
     DynamicMaskSource,
     FlowEstimator,
@@ -40,7 +42,7 @@ from .cues import fuse_cues, lands_on_mask, masked_mean, motion_residual, struct
 from .pair_modes import PAIR_MODES
 
 __all__ = ["CUES", "MIN_UNMASKED_FRACTION", "PAIR_MODES", "GeCoLoss", "GeCoLossConfig", "GeCoMaps",
-           "GeCoResult", "frame_pairs", "geco_from_geometry", "resolve_dynamic_masks"]
+           "GeCoResult", "frame_pairs", "geco_from_geometry", "no_valid_pixels_reason", "resolve_dynamic_masks"]
 
 CUES = ("fused", "motion", "structure")
 STRUCTURE_OCCLUSION = ("depth", "covisibility")
@@ -49,6 +51,14 @@ STRUCTURE_OCCLUSION = ("depth", "covisibility")
 #: at least this fraction of the frame: a score over a sliver left between masked objects is
 #: noise. Without masks every frame with any valid pixel counts, as in the paper.
 MIN_UNMASKED_FRACTION = 0.05
+
+
+def no_valid_pixels_reason(masked: bool) -> str:
+    """Why a score over no valid pixel is NaN, in a user's words (``masked``: dynamic masks were
+    used, and a frame counts only where :data:`MIN_UNMASKED_FRACTION` of it stays valid)."""
+    if masked:
+        return f"no frame kept {MIN_UNMASKED_FRACTION:.0%} of its pixels valid outside the dynamic mask"
+    return "no pixel was valid (co-visible, confidently estimated and seen by both frames of a pair)"
 
 
 @dataclass
@@ -159,6 +169,10 @@ class GeCoResult:
             ``None`` (no masks: the paper's metric).
         masked_fraction: ``[B, S]`` fraction of each frame's pixels masked, or ``None``.
         mask_source: where the masks came from (``"given: masks.npz"``, ``"auto"``, ...), or ``None``.
+        valid_pixels: cue name -> ``[B]`` int64, the valid pixels of the frames that count in its
+            scalar: 0 when the scalar is over nothing. The scalars are then 0 with a zero gradient
+            (the loss convention: an update with nothing to measure moves nothing); a score shown
+            to a user is NaN with :func:`no_valid_pixels_reason` instead (:meth:`scalars`).
     """
 
     loss: Tensor
@@ -173,10 +187,21 @@ class GeCoResult:
     dynamic_masks: Tensor | None = None
     masked_fraction: Tensor | None = None
     mask_source: str | None = None
+    valid_pixels: dict[str, Tensor] | None = None
 
     def scalars(self) -> dict[str, float]:
-        """Plain floats: ``motion``, ``structure``, ``fused`` and ``loss``."""
-        return {name: float(getattr(self, name).detach()) for name in ("motion", "structure", "fused", "loss")}
+        """Plain floats: ``motion``, ``structure``, ``fused`` and ``loss``; a cue over no valid
+        pixel is NaN (:meth:`empty_cues`), never the 0 the loss holds (``loss`` keeps its value)."""
+        empty = set(self.empty_cues())
+        return {name: math.nan if name in empty else float(getattr(self, name).detach())
+                for name in ("motion", "structure", "fused", "loss")}
+
+    def empty_cues(self) -> list[str]:
+        """The cues whose scalar is over no valid pixel (a host sync); why:
+        :func:`no_valid_pixels_reason` of ``dynamic_masks is not None``."""
+        if self.valid_pixels is None:
+            return []
+        return [name for name in CUES if int(self.valid_pixels[name].sum()) == 0]
 
 
 def confidence_mask(confidence: Tensor, percentile: float) -> Tensor:
@@ -333,7 +358,7 @@ def geco_from_geometry(
         frame_fields.extend(_frame_average(*pair_maps.cue(name), src, num_frames))
     frame_maps = GeCoMaps(*frame_fields)
 
-    frame_scores, frame_has_valid, scalars = {}, {}, {}
+    frame_scores, frame_has_valid, scalars, valid_pixels = {}, {}, {}, {}
     for name in CUES:
         values, valid = frame_maps.cue(name)
         frame_scores[name] = masked_mean(values, valid, dims=(-2, -1))
@@ -342,6 +367,7 @@ def geco_from_geometry(
         else:
             frame_has_valid[name] = valid.flatten(2).float().mean(-1) >= MIN_UNMASKED_FRACTION
         scalars[name] = masked_mean(frame_scores[name], frame_has_valid[name], dims=(0, 1))
+        valid_pixels[name] = (valid.flatten(2).sum(-1) * frame_has_valid[name]).sum(-1)
     return GeCoResult(
         loss=scalars[config.cue],
         motion=scalars["motion"],
@@ -355,6 +381,7 @@ def geco_from_geometry(
         dynamic_masks=masks,
         masked_fraction=None if masks is None else masks.flatten(2).float().mean(-1),
         mask_source=mask_source,
+        valid_pixels=valid_pixels,
     )
 
 
@@ -434,9 +461,10 @@ class GeCoLoss(nn.Module):
             zero or non-finite, and ``guided_step`` moves nothing with either.
 
     ``forward(frames [B, S, 3, H, W] in [0, 1], dynamic_masks=None) -> GeCoResult``; dynamic
-    masks (a tensor, a mask file or a :class:`~geco_guide.types.DynamicMaskSource`, see
-    :func:`resolve_dynamic_masks`) leave moving content out. In the loss an all-masked clip is
-    ``0`` with a zero gradient, as any clip without valid pixels.
+    masks (a tensor, a mask file, ``"auto"`` (the automatic detector, as in ``evaluate_video``)
+    or a :class:`~geco_guide.types.DynamicMaskSource`, see :func:`resolve_dynamic_masks`) leave
+    moving content out. In the loss an all-masked clip is ``0`` with a zero gradient, as any clip
+    without valid pixels; ``GeCoResult.valid_pixels`` says so, and its ``scalars()`` are NaN.
     """
 
     def __init__(
@@ -496,6 +524,8 @@ class GeCoLoss(nn.Module):
             raise ValueError(f"frames must hold at least 2 frames, got {frames.shape[1]}")
         if self.check_values:
             check_frame_values(frames)
+        if isinstance(dynamic_masks, str) and dynamic_masks.strip() in NAMED_MASK_SOURCES:
+            dynamic_masks = NAMED_MASK_SOURCES[dynamic_masks.strip()]()
         given = None
         if dynamic_masks is not None and not isinstance(dynamic_masks, DynamicMaskSource):
             given = _given_masks(dynamic_masks, frames.shape[0], frames.shape[1], tuple(frames.shape[-2:]))  # before any estimator
