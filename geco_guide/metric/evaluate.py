@@ -27,7 +27,7 @@ from torch import Tensor
 
 from ..estimators import Estimators, EstimatorsConfig, load_estimators
 from ..estimators.dynamic_masks import AUTO, GivenMasks, looks_like_path, mask_source
-from ..io.masks import MaskReadError, fit_masks, read_masks
+from ..io.masks import MaskReadError, fit_masks, mask_file_name, read_masks
 from ..io.video import (
     VideoFrames,
     read_frames,
@@ -42,6 +42,7 @@ from ..loss.geco import (
     GeCoResult,
     frame_pairs,
     geco_from_geometry,
+    no_valid_pixels_reason,
     resolve_dynamic_masks,
 )
 from ..loss.motion_stats import motion_statistics
@@ -121,6 +122,7 @@ class EvaluationResult:
             (the mean masked fraction of the evaluated frames; each frame row then has its own
             ``masked_fraction`` and, where a score is ``None`` because of the mask, a ``note``),
             plus ``nan_reason`` when no frame kept enough unmasked pixels; ``None`` without.
+        nan_reason: why a score is NaN (no frame with valid pixels), ``None`` when all are finite.
     """
 
     motion: float
@@ -139,6 +141,7 @@ class EvaluationResult:
     source: str | None = None
     maps: EvaluationMaps | None = field(default=None, repr=False)
     dynamic_masks: dict[str, Any] | None = None
+    nan_reason: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (no tensors; NaN scores become ``None``)."""
@@ -158,6 +161,7 @@ class EvaluationResult:
             "estimators": self.estimators,
             "config": self.config,
             **({} if self.dynamic_masks is None else {"dynamic_masks": self.dynamic_masks}),
+            **({} if self.nan_reason is None else {"nan_reason": self.nan_reason}),
         }
 
 
@@ -213,22 +217,35 @@ def score_frames(frames: Tensor, geometry: Any, flow: Any, config: GeCoLossConfi
     return scene, geco_from_geometry(scene, correspondences, pairs, config, masks, source)
 
 
-def clip_mask_source(dynamic_masks: Any, clip: VideoFrames) -> Any:
-    """The dynamic-mask source of a read clip: given masks (a path or a tensor of the whole video)
-    are checked against the video's frame count and size and cut to the protocol's frames
-    (``clip.indices``), so windows and subsampling pick the same frames from masks and video;
-    ``"auto"``, text and mask sources pass through :func:`~geco_guide.estimators.dynamic_masks.mask_source`."""
-    if isinstance(dynamic_masks, (str, os.PathLike)) and looks_like_path(os.fspath(dynamic_masks)):
-        masks, count = read_masks(dynamic_masks, clip.indices)
-        if count != clip.num_frames:
-            raise MaskReadError(f"dynamic masks {os.fspath(dynamic_masks)!r} hold {count} frame(s), the video {clip.num_frames}")
-        source = GivenMasks(masks, f"given: {os.fspath(dynamic_masks)}")
+def clip_mask_source(dynamic_masks: Any, clip: VideoFrames, source_frames: int | None = None) -> Any:
+    """The dynamic-mask source of a read clip: given masks (a path, a tensor or
+    :class:`GivenMasks`) are checked against the video's frame count and size and cut to the
+    protocol's frames (``clip.indices``), so windows and subsampling pick the same frames from
+    masks and video; ``"auto"``, text and mask sources pass through
+    :func:`~geco_guide.estimators.dynamic_masks.mask_source`.
+
+    ``source_frames``: the frames of the whole video when the clip stops earlier
+    (``evaluation.max_frames``; ``clip.num_frames`` counts the clip's): masks of the whole video
+    are cut as the frames are, and masks of the clip alone are taken too.
+    """
+    counts = sorted({clip.num_frames, source_frames or clip.num_frames})
+    path = isinstance(dynamic_masks, (str, os.PathLike)) and looks_like_path(os.fspath(dynamic_masks))
+    if path:
+        masks, count = read_masks(dynamic_masks, clip.indices)  # the protocol's frames only
+        source, name = GivenMasks(masks, f"given: {os.fspath(dynamic_masks)}"), mask_file_name(dynamic_masks)
     else:
         source = mask_source(dynamic_masks)
-        if isinstance(source, GivenMasks):
-            source = source.at(clip.indices, clip.num_frames)
-    if isinstance(source, GivenMasks):  # a size that cannot fit fails now, not after the models load
-        fit_masks(source.masks[:1], 1, tuple(clip.frames.shape[-2:]), f"dynamic masks ({source.source_name})")
+        if not isinstance(source, GivenMasks):
+            return source
+        count, name = source.masks.shape[0], f"dynamic masks ({source.source_name})"
+    if count not in counts:
+        scored = "" if len(counts) == 1 else f" (its first {clip.num_frames} scored: evaluation.max_frames)"
+        holds = "holds" if path else "hold"  # a mask file, or masks
+        raise MaskReadError(f"{name} {holds} {count} frame(s), the video {counts[-1]}{scored}: give one mask per frame")
+    if not path:
+        source = GivenMasks(source.masks[list(clip.indices)], source.source_name)
+    # a size that cannot fit fails now, not after the models load
+    fit_masks(source.masks[:1], 1, tuple(clip.frames.shape[-2:]), name)
     return source
 
 
@@ -283,7 +300,11 @@ def protocol_fps(fps: float | None, model: str | None, cfg: EvaluationConfig) ->
     return None, "file"  # replaced by the reader's answer: file or default
 
 
-def _load_frames(video: str | os.PathLike | Tensor, fps: float | None, cfg: EvaluationConfig) -> tuple[VideoFrames, str | None]:
+def _load_frames(video: str | os.PathLike | Tensor, fps: float | None,
+                 cfg: EvaluationConfig) -> tuple[VideoFrames, str | None, int]:
+    """The protocol's frames of ``video``, its path (``None`` for a tensor) and the frame count of
+    the whole video; the clip ends at ``evaluation.max_frames``: its ``num_frames``, windows and
+    motion grid are those of its first frames."""
     select = _protocol_frames(cfg)
     if isinstance(video, Tensor):
         if video.ndim != 4 or video.shape[1] != 3 or not video.is_floating_point():
@@ -292,12 +313,12 @@ def _load_frames(video: str | os.PathLike | Tensor, fps: float | None, cfg: Eval
             raise ValueError("fps (> 0) is required when video is a tensor")
         if video.shape[0] < 2:
             raise ValueError(f"video must hold at least 2 frames, got {video.shape[0]}")
+        total = video.shape[0]
         video = video[: cfg.max_frames]
         indices = select(video.shape[0], fps)
-        return VideoFrames(video.detach()[indices].float().cpu(), indices, float(fps), video.shape[0]), None
+        return VideoFrames(video.detach()[indices].float().cpu(), indices, float(fps), video.shape[0]), None, total
     clip = read_frames(video, fps=fps, default_fps=cfg.default_fps, select=select, min_frames=2)
-    # the clip ends at max_frames: its windows and motion grid are planned on that length
-    return replace(clip, num_frames=min(clip.num_frames, cfg.max_frames or clip.num_frames)), str(video)
+    return replace(clip, num_frames=min(clip.num_frames, cfg.max_frames or clip.num_frames)), str(video), clip.num_frames
 
 
 def plan_text(plan: dict[str, int], num_frames: int, fps: float) -> str:
@@ -380,7 +401,8 @@ def evaluate_video(
             (a long clip takes a while per window).
         dynamic_masks: content that moves on its own, left out of the scores: ``None`` (the
             paper's metric), masks of the whole video (a mask video, PNG folder or ``.npz`` path,
-            or a ``[S, H, W]`` tensor; cut to the protocol's frames), ``"auto"``, text for a
+            or a ``[S, H, W]`` tensor; cut to the protocol's frames, and to
+            ``evaluation.max_frames`` as the video is), ``"auto"``, text for a
             segmenter, or a :class:`~geco_guide.types.DynamicMaskSource` (asked per window). A
             frame with fewer than :data:`~geco_guide.loss.geco.MIN_UNMASKED_FRACTION` of its
             pixels valid outside the mask scores ``None`` with a note; Total / Mean Motion stay
@@ -389,7 +411,7 @@ def evaluate_video(
     Raises:
         VideoReadError: unreadable input or fewer than 2 frames (a ValueError).
         ValueError: evaluated frames with NaN/inf values or outside ``[0, 1]``, naming them; an
-            unknown ``model``.
+            unknown ``model``; ``dynamic_masks`` that is an empty string (not the working folder).
     """
     geometry = one_of_names(geometry_estimator, geometry, "geometry_estimator", "geometry")
     flow = one_of_names(flow_estimator, flow, "flow_estimator", "flow")
@@ -401,12 +423,12 @@ def evaluate_video(
             dynamic_masks = estimators.masks_for(dynamic_masks)
     cfg, estimators_cfg = _split_config(config)
     rate, fps_source = protocol_fps(fps, model, cfg)
-    clip, source = _load_frames(video, rate, cfg)
+    clip, source, source_frames = _load_frames(video, rate, cfg)
     if rate is None:
         fps_source = clip.fps_source  # the file's rate, or default_fps for inputs without one
     # NaN pixels would score NaN (or 0.0 once masked), 0-255 frames garbage: refuse them, by index.
     check_frame_values(clip.frames, "video" if source is None else source, indices=clip.indices)
-    masks = clip_mask_source(dynamic_masks, clip)
+    masks = clip_mask_source(dynamic_masks, clip, source_frames)
     if geometry is None or flow is None:
         loaded = load_estimators(estimators_cfg, cfg.device)
         geometry = geometry if geometry is not None else loaded.geometry
@@ -472,14 +494,14 @@ def evaluate_video(
         evaluation_maps = EvaluationMaps(*stacked, frames=torch.cat(kept_frames),
                                          dynamic_masks=torch.cat(kept_masks) if kept_masks else None)
     scores = {name: _clip_score(windows, name) for name in CUES}
+    nan_reason = None if all(map(math.isfinite, scores.values())) else no_valid_pixels_reason(masks is not None)
     mask_record = None
     if masks is not None:
         fractions = [row["masked_fraction"] for row in frame_scores]
         mask_record = {"source": masks.source_name, "masked_fraction": mean_or_nan(fractions),
                        "min_unmasked_fraction": MIN_UNMASKED_FRACTION}
-        if not math.isfinite(scores["fused"]):
-            mask_record["nan_reason"] = (f"no evaluated frame kept {MIN_UNMASKED_FRACTION:.0%} of its pixels valid "
-                                         "outside the dynamic mask")
+        if nan_reason is not None:
+            mask_record["nan_reason"] = nan_reason
     return EvaluationResult(
         **scores,
         total_motion=stats.total_motion,
@@ -495,6 +517,7 @@ def evaluate_video(
         source=source,
         maps=evaluation_maps,
         dynamic_masks=mask_record,
+        nan_reason=nan_reason,
     )
 
 
@@ -522,8 +545,8 @@ def render_maps(result: EvaluationResult) -> Tensor:
     heat = [colorize(getattr(m, name), getattr(m, f"{name}_valid")) for name in MAP_PANELS[1:]]
     if m.dynamic_masks is not None:  # left out as moving on its own: striped, not "consistent"
         heat = [hatch(panel, m.dynamic_masks, scale) for panel in heat]
-    captions = [f"T={row['time_s']:.2f}S FUSED {_score_text(row['fused'])} MOTION {_score_text(row['motion'])} "
-                f"STRUCTURE {_score_text(row['structure'])}" for row in result.frame_scores]
+    captions = [f"t = {row['time_s']:.2f} s   fused {_score_text(row['fused'])}   motion {_score_text(row['motion'])}   "
+                f"structure {_score_text(row['structure'])}" for row in result.frame_scores]
     return map_frames(m.frames, heat, [name.upper() for name in MAP_PANELS], captions)
 
 
