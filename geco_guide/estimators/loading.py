@@ -20,7 +20,7 @@ from torch import Tensor, nn
 
 __all__ = ["CHECKPOINT_SUFFIXES", "CheckpointMismatchError", "UnreadableCheckpointError",
            "WeightsNotFoundError", "check_weights_available", "fetch_checkpoint_file", "fetch_config_file",
-           "load_state_dict_checked", "load_weights", "pretrained_or_one_line", "quiet_hub_retries"]
+           "load_state_dict_checked", "load_weights", "pretrained_or_one_line", "quiet_hub_retries", "short_reason"]
 
 
 class WeightsNotFoundError(FileNotFoundError):
@@ -229,7 +229,7 @@ def fetch_config_file(
         return None  # the weights' own fetch says what is missing, if anything
 
 
-def _short_reason(err: BaseException, limit: int = 100) -> str:
+def short_reason(err: BaseException, limit: int = 100) -> str:
     """``Type: first sentence`` of a reader's error (torch's run to paragraphs)."""
     text = (str(err).strip().splitlines() or [""])[0].split(". ")[0]
     text = text if len(text) <= limit else text[: limit - 3] + "..."
@@ -265,7 +265,7 @@ def load_weights(path: str | os.PathLike) -> dict[str, Tensor]:
     except UnreadableCheckpointError:
         raise
     except Exception as err:  # UnpicklingError, EOFError, RuntimeError (zip), SafetensorError, OSError, ...
-        raise unreadable(path, _short_reason(err)) from None
+        raise unreadable(path, short_reason(err)) from None
     if isinstance(state, Mapping) and "model" in state and isinstance(state["model"], Mapping):
         state = state["model"]  # training checkpoints wrap the weights
     if not isinstance(state, Mapping):
