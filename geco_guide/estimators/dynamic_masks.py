@@ -23,7 +23,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..io.masks import MASK_SUFFIXES, MaskReadError, check_masks, fit_masks, read_masks
+from ..io.masks import MASK_SUFFIXES, MaskReadError, check_masks, fit_masks, mask_file_name, read_masks
 from ..io.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES
 from ..types import NAMED_MASK_SOURCES, Correspondences, DynamicMaskSource, SceneGeometry
 
@@ -39,32 +39,40 @@ class GivenMasks:
         masks: ``[S, H, W]`` bool (or 0/1) for the ``S`` frames the source will be asked about;
             any size of the frames' aspect ratio (resized, nearest, to the frames).
         source_name: what results call them (``"given"``, ``"given: masks.npz"``).
+        path: the mask file they were read from, or ``None``: messages about them name it.
     """
 
-    def __init__(self, masks: Tensor, source_name: str = "given") -> None:
+    def __init__(self, masks: Tensor, source_name: str = "given", path: str | os.PathLike | None = None) -> None:
         self.masks = check_masks(masks).cpu()
         self.source_name = source_name
+        self.path = None if path is None else os.fspath(path)
+
+    @property
+    def name(self) -> str:
+        """What messages call them: ``mask file '...'``, or ``dynamic masks (<source name>)``."""
+        return f"dynamic masks ({self.source_name})" if self.path is None else mask_file_name(self.path)
 
     @classmethod
     def from_path(cls, path: str | os.PathLike, select: Sequence[int] | None = None) -> GivenMasks:
         """Masks read from a mask video, PNG folder or ``.npz`` (:func:`~geco_guide.io.masks.read_masks`);
         ``select`` keeps those source frames only."""
         masks, _ = read_masks(path, select)
-        return cls(masks, f"given: {path}")
+        return cls(masks, f"given: {path}", path)
 
     def at(self, indices: Sequence[int], num_frames: int) -> GivenMasks:
         """The masks of source frames ``indices`` of a video of ``num_frames`` frames (the
         protocol's selection), after checking that the masks cover that video frame for frame."""
         if self.masks.shape[0] != num_frames:
-            raise MaskReadError(f"dynamic masks ({self.source_name}) hold {self.masks.shape[0]} frame(s), the video {num_frames}")
-        return GivenMasks(self.masks[list(indices)], self.source_name)
+            raise MaskReadError(f"{self.name} {'hold' if self.path is None else 'holds'} {self.masks.shape[0]} "
+                                f"frame(s), the video {num_frames}")
+        return GivenMasks(self.masks[list(indices)], self.source_name, self.path)
 
     def dynamic_masks(self, frames: Tensor, geometry: SceneGeometry | None = None,
                       flow: Correspondences | None = None,
                       pairs: Sequence[tuple[int, int]] | None = None) -> Tensor:
         """``frames [S, 3, H, W]`` -> the given masks ``[S, H, W]`` bool at ``H x W``, on the
         frames' device (MaskReadError when ``S`` differs)."""
-        masks = fit_masks(self.masks, frames.shape[-4], tuple(frames.shape[-2:]), f"dynamic masks ({self.source_name})")
+        masks = fit_masks(self.masks, frames.shape[-4], tuple(frames.shape[-2:]), self.name)
         return masks.to(frames.device)
 
 

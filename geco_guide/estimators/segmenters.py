@@ -48,12 +48,18 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..types import Correspondences, DynamicMaskSource, SceneGeometry
-from .loading import CheckpointMismatchError, UnreadableCheckpointError, pretrained_or_one_line, short_reason
+from .loading import (
+    CheckpointMismatchError,
+    UnreadableCheckpointError,
+    WeightsSource,
+    pretrained_or_one_line,
+    short_reason,
+)
 
 __all__ = ["GROUNDING_DINO_WEIGHTS", "SAM3_WEIGHTS", "GroundedSam2Segmenter", "Sam3Segmenter",
            "SegmenterFactory", "detector_and_tracker", "model_pixels", "segmenter_from_spec",
-           "segmenters_from_spec", "subjects_of", "text_segmenter", "tiny_grounded_sam2", "tiny_sam3",
-           "union_mask"]
+           "segmenter_weight_sources", "segmenters_from_spec", "subjects_of", "text_segmenter", "tiny_grounded_sam2",
+           "tiny_sam3", "union_mask"]
 
 logger = logging.getLogger(__name__)
 
@@ -400,6 +406,20 @@ def segmenters_from_spec(spec: str, *, device: torch.device | str = "cpu", dtype
         return load_text_segmenters(model=model, source=TINY_RANDOM, device=device, dtype=dtype, seed=seed)
     return load_text_segmenters(model="grounding-sam2" if "," in spec else "sam3", source=spec, device=device,
                                 dtype=dtype)
+
+
+def segmenter_weight_sources(spec: str) -> list[WeightsSource]:
+    """The weights :func:`segmenters_from_spec` loads for the config's :data:`CONFIG_KEY`, as
+    :func:`~geco_guide.estimators.loading.check_weights` checks them before anything loads
+    (none for the tiny random models)."""
+    if not isinstance(spec, str) or spec in (TINY_RANDOM, f"{TINY_RANDOM}-grounding-sam2"):
+        return []
+    if spec == "grounding-sam2" or "," in spec:
+        folders = "/path/to/grounding-dino-tiny,/path/to/sam2.1-hiera-tiny"
+        detector, tracker = detector_and_tracker(None if spec == "grounding-sam2" else spec)
+        return [WeightsSource(CONFIG_KEY, detector, "Grounding DINO", example=folders),
+                WeightsSource(CONFIG_KEY, tracker, "SAM 2 video", example=folders)]
+    return [WeightsSource(CONFIG_KEY, spec, "SAM 3 video", example="/path/to/sam3")]
 
 
 def segmenter_from_spec(text: str, spec: str, *, device: torch.device | str = "cpu",

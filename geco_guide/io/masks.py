@@ -232,13 +232,15 @@ def fit_masks(masks: Tensor, num_frames: int, size: tuple[int, int], name: str =
         MaskReadError: ``S != num_frames``, or the aspect ratio differs from the frames' by more
             than 2 % (masks drawn for another video).
     """
+    one = name.startswith(("mask file", "mask folder"))  # one file, or masks
     if masks.shape[-3] != num_frames:
-        raise MaskReadError(f"{name} hold {masks.shape[-3]} frame(s), the video {num_frames}")
+        raise MaskReadError(f"{name} {'holds' if one else 'hold'} {masks.shape[-3]} frame(s), the video {num_frames}")
     height, width = masks.shape[-2:]
     if tuple(masks.shape[-2:]) == tuple(size):
         return masks
     if abs((width / height) / (size[1] / size[0]) - 1.0) > 0.02:
-        raise MaskReadError(f"{name} are {height}x{width}, the frames {size[0]}x{size[1]}: a different aspect ratio")
+        raise MaskReadError(f"{name} {'holds masks of' if one else 'are'} {height}x{width}, the frames "
+                            f"{size[0]}x{size[1]}: a different aspect ratio")
     flat = masks.reshape(-1, 1, height, width).float()
     resized = F.interpolate(flat, size=tuple(size), mode="nearest")
     return resized.reshape(*masks.shape[:-2], *size) > 0.5

@@ -112,7 +112,7 @@ def detection_maps(frames: Tensor, geometry: Any, flow: Any, config: GeCoLossCon
         if not isinstance(source, GivenMasks):
             raise ValueError("detection maps take given dynamic masks (a tensor or a mask file); "
                              "automatic and text masks: use evaluate_video")
-        masks = fit_masks(source.masks, frames.shape[0], tuple(frames.shape[-2:]), f"dynamic masks ({source.source_name})")
+        masks = fit_masks(source.masks, frames.shape[0], tuple(frames.shape[-2:]), source.name)
     size = min(window, frames.shape[0])
     windows = [window_indices(frames.shape[0], t, size, anchor) for t in range(frames.shape[0])]
     per_frame = [frame_maps(frames, w, geometry, flow, config, two_way, flow_batch_size, masks) for w in windows]

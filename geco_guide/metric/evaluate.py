@@ -27,7 +27,7 @@ from torch import Tensor
 
 from ..estimators import Estimators, EstimatorsConfig, load_estimators
 from ..estimators.dynamic_masks import AUTO, GivenMasks, looks_like_path, mask_source
-from ..io.masks import MaskReadError, fit_masks, mask_file_name, read_masks
+from ..io.masks import MaskReadError, fit_masks, read_masks
 from ..io.video import (
     VideoFrames,
     read_frames,
@@ -57,7 +57,7 @@ from .protocol import (
 )
 from .render import colorize, hatch, map_frames, text_scale
 
-__all__ = ["MAP_PANELS", "PAPER_NAMES", "EvaluationMaps", "EvaluationResult", "evaluate_video",
+__all__ = ["MAP_PANELS", "PAPER_NAMES", "EvaluationMaps", "EvaluationResult", "clip_mask_source", "evaluate_video",
            "finite_or_none", "mean_or_nan", "render_maps", "score_frames", "write_maps_video"]
 
 MAP_PANELS = ("source", "motion", "structure", "fused")
@@ -229,23 +229,24 @@ def clip_mask_source(dynamic_masks: Any, clip: VideoFrames, source_frames: int |
     are cut as the frames are, and masks of the clip alone are taken too.
     """
     counts = sorted({clip.num_frames, source_frames or clip.num_frames})
-    path = isinstance(dynamic_masks, (str, os.PathLike)) and looks_like_path(os.fspath(dynamic_masks))
-    if path:
+    read = isinstance(dynamic_masks, (str, os.PathLike)) and looks_like_path(os.fspath(dynamic_masks))
+    if read:
         masks, count = read_masks(dynamic_masks, clip.indices)  # the protocol's frames only
-        source, name = GivenMasks(masks, f"given: {os.fspath(dynamic_masks)}"), mask_file_name(dynamic_masks)
+        source = GivenMasks(masks, f"given: {os.fspath(dynamic_masks)}", dynamic_masks)
     else:
         source = mask_source(dynamic_masks)
         if not isinstance(source, GivenMasks):
             return source
-        count, name = source.masks.shape[0], f"dynamic masks ({source.source_name})"
+        count = source.masks.shape[0]
     if count not in counts:
         scored = "" if len(counts) == 1 else f" (its first {clip.num_frames} scored: evaluation.max_frames)"
-        holds = "holds" if path else "hold"  # a mask file, or masks
-        raise MaskReadError(f"{name} {holds} {count} frame(s), the video {counts[-1]}{scored}: give one mask per frame")
-    if not path:
-        source = GivenMasks(source.masks[list(clip.indices)], source.source_name)
+        holds = "hold" if source.path is None else "holds"  # masks, or a mask file
+        raise MaskReadError(f"{source.name} {holds} {count} frame(s), the video {counts[-1]}{scored}: "
+                            "give one mask per frame")
+    if not read:
+        source = GivenMasks(source.masks[list(clip.indices)], source.source_name, source.path)
     # a size that cannot fit fails now, not after the models load
-    fit_masks(source.masks[:1], 1, tuple(clip.frames.shape[-2:]), name)
+    fit_masks(source.masks[:1], 1, tuple(clip.frames.shape[-2:]), source.name)
     return source
 
 
@@ -459,7 +460,7 @@ def evaluate_video(
         window_frames = frames_of(window.indices)
         window_masks = masks
         if isinstance(masks, GivenMasks):
-            window_masks = GivenMasks(masks.masks[[position[i] for i in window.indices]], masks.source_name)
+            window_masks = GivenMasks(masks.masks[[position[i] for i in window.indices]], masks.source_name, masks.path)
         _, result = score_frames(window_frames, geometry, flow, cfg.loss, flow_batch_size=cfg.flow_batch_size,
                                  dynamic_masks=window_masks)
         rows = []

@@ -319,7 +319,8 @@ def test_evaluate_command_takes_dynamic_masks(tmp_path: Path, capsys):
     code = evaluate_main([str(tmp_path / "v.mp4"), "--preset", "tiny", "--out", str(tmp_path / "out2"),
                           "--dynamic-masks", str(tmp_path / "none.npz")])
     assert code == 2
-    assert capsys.readouterr().err.strip().splitlines()[-1] == f"error: --dynamic-masks {str(tmp_path / 'none.npz')!r}: no such file or folder"
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (f"error: mask file {str(tmp_path / 'none.npz')!r} does not "
+                                                                "exist (no such file or folder)")
 
 
 # --- masks with a clip cut short, empty strings, names ------------------------------------------
