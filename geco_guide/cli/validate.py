@@ -13,8 +13,9 @@ and the automatic mask's quality (:mod:`geco_guide.bench.dynamic_suite`) in ``dy
 
 A clip that cannot be read or scored (a damaged ``meta.json`` or ``truth.npz``, ground truth that
 contradicts the clip) is one error line and a row of ``errors`` in the report; the others are
-scored, and the exit code is 1 when any clip failed (2 for bad options, before any work).
-Progress (one line per clip) goes to stderr.
+scored, and the exit code is 1 when any clip failed (2 for bad options, before any work: a report
+of an earlier run in ``--out`` among them, unless ``--overwrite``). Progress (one line per clip, or
+per scored clip of ``--dynamic``) goes to stderr as the work happens.
 """
 
 from __future__ import annotations
@@ -68,11 +69,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pairs", choices=PAIR_MODES, default=None, help="frame pairs (default: all)")
     p.add_argument("--out", default=None, help="output folder (default: <first input>/validation)")
     p.add_argument("--no-grids", action="store_true", help="skip the per-clip image grids")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the report of an earlier run in --out (without it, an existing report is an error)")
     p.add_argument("--dynamic", action="store_true",
                    help="validate dynamic masks on synthetic scenes with moving objects (oracle estimators; no inputs)")
     p.add_argument("--dynamic-size", type=int, nargs=3, default=None, metavar=("FRAMES", "HEIGHT", "WIDTH"),
                    help="size of the --dynamic clips (default 9 96 128)")
     return p
+
+
+def check_no_report(paths: list[Path], overwrite: bool) -> None:
+    """ValueError (one line) when a report file of an earlier run is there and ``overwrite`` is not
+    given: the other commands refuse to replace their outputs silently too."""
+    taken = next((path for path in paths if path.exists()), None)
+    if taken is not None and not overwrite:
+        raise ValueError(f"{str(taken)!r} already exists (the report of an earlier run); pass --overwrite to replace "
+                         "it, or choose another --out folder")
 
 
 def dynamic_main(args: argparse.Namespace) -> int:
@@ -82,6 +94,7 @@ def dynamic_main(args: argparse.Namespace) -> int:
             raise ValueError("--dynamic renders its own scenes: give no benchmark folder or override")
         scenes = DynamicScenes(*args.dynamic_size) if args.dynamic_size else DynamicScenes()
         out = check_output_dir(Path(args.out) if args.out else Path("validation-dynamic"))
+        check_no_report([out / "dynamic.json", out / "dynamic.md"], args.overwrite)
     except (ValueError, WriteError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -120,6 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = config_from_args(args, overrides, {"evaluation.loss.pairs": args.pairs})
         check_device(cfg.evaluation.device, "evaluation.device")
         out = check_output_dir(Path(args.out) if args.out else Path(roots[0]) / "validation")
+        check_no_report([out / "validation.json", out / "validation.md"], args.overwrite)
         if not args.oracle:
             _progress(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {cfg.evaluation.device}")
         estimators = None if args.oracle else load_estimators(cfg.estimators, cfg.evaluation.device)

@@ -97,6 +97,19 @@ def test_validate_refuses_missing_folders_and_unwritable_outputs(clips, tmp_path
     assert "is a file" in _one_error_line(capsys.readouterr().err)
 
 
+def test_validate_refuses_to_replace_an_earlier_report_without_overwrite(clips, tmp_path, capsys):
+    out = tmp_path / "report"
+    assert validate_cli.main([str(clips / "synthetic-s0"), "--oracle", "--no-grids", "--out", str(out)]) == 0
+    earlier = (out / "validation.json").read_text()
+    capsys.readouterr()
+    assert validate_cli.main([str(clips / "synthetic-s0"), "--oracle", "--no-grids", "--out", str(out)]) == 2
+    assert "validation.json' already exists (the report of an earlier run); pass --overwrite" in _one_error_line(
+        capsys.readouterr().err)
+    assert (out / "validation.json").read_text() == earlier
+    assert validate_cli.main([str(clips / "synthetic-s0"), "--oracle", "--no-grids", "--out", str(out),
+                              "--overwrite"]) == 0
+
+
 def test_a_full_disk_writes_neither_report_file(clips, tmp_path, monkeypatch, capsys):
     def full(fd):
         raise OSError(errno.ENOSPC, "No space left on device")
