@@ -223,9 +223,11 @@ def test_the_oracle_refuses_clips_built_from_real_footage(built, tmp_path):
 # --- robustness sweep --------------------------------------------------------------------------
 
 
-def test_robustness_sweep_degrades_with_noise(tmp_path):
+def test_robustness_sweep_degrades_with_noise(tmp_path, capsys):
     assert robustness.main(["--out", str(tmp_path), "--size", "5", "24", "32", "--depth-sigmas", "0", "0.5",
                             "--flow-sigmas", "0", "20"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split(":")[0] for line in lines[:4]] == ["depth sigma=0", "depth sigma=0.5", "flow sigma=0", "flow sigma=20"]
     report = json.loads((tmp_path / "robustness.json").read_text())
     assert (tmp_path / "robustness.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     flow, depth = report["flow"], report["depth"]
@@ -233,3 +235,20 @@ def test_robustness_sweep_degrades_with_noise(tmp_path):
     assert flow["occlusion"]["structure"] == [1.0, 1.0]  # flow noise does not touch the structure cue
     assert depth["rigid_fused"][0] < 1e-3 < depth["rigid_fused"][1]  # the noise floor rises
     assert depth["warp"]["motion"][1] < depth["warp"]["motion"][0]
+
+
+def test_robustness_reports_each_level_as_soon_as_it_is_scored(monkeypatch):
+    from geco_guide.bench import robustness as sweep
+
+    lines: list[str] = []
+    seen: list[int] = []  # lines reported when each level's rigid clip is scored
+    detect = sweep.detection_ap
+
+    def counting(*args, **kwargs):
+        seen.append(len(lines))
+        return detect(*args, **kwargs)
+
+    monkeypatch.setattr(sweep, "detection_ap", counting)
+    report = sweep.run_sweep(4, 16, 24, depth_sigmas=(0.0, 0.1), flow_sigmas=(0.0,), progress=lines.append)
+    assert seen == [0, 0, 1, 1, 2, 2]  # two edited clips per level: the level before was reported already
+    assert lines == [sweep.level_line(name, report[name], k) for name, k in (("depth", 0), ("depth", 1), ("flow", 0))]
