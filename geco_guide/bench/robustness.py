@@ -164,14 +164,14 @@ def plot(report: dict[str, Any]) -> bytes:
     span decades and start at 0, which a log axis cannot show); non-finite APs are left out."""
     image = Image.new("RGB", (760, 760), (255, 255, 255))
     draw = ImageDraw.Draw(image)
-    text(draw, (90, 8), ROBUSTNESS_AXIS_NOTE, "lt")
+    text(draw, (80, 8), ROBUSTNESS_AXIS_NOTE, "lt")
     for row, noisy_input in enumerate(("depth", "flow")):
         sigmas = report[noisy_input]["sigmas"]
         levels = list(range(len(sigmas)))
         what = ROBUSTNESS_X_LABELS[noisy_input]
         for column, task in enumerate(("warp", "occlusion")):
-            left, top = 90 + column * 360, 80 + row * 350
-            panel = Panel((left, top, left + 260, top + 200), limits(levels), (0.0, 1.0))
+            left, top = 80 + column * 360, 80 + row * 350  # 300 wide: a tick label per level, apart
+            panel = Panel((left, top, left + 300, top + 200), limits(levels), (0.0, 1.0))
             title = f"{noisy_input} noise: {'Task 2 (warp)' if task == 'warp' else 'Task 3 (occlusion)'} AP"
             panel.draw_axes(draw, title, what, "AP",
                             xticks=[(k, f"{s:.2g}") for k, s in zip(levels, sigmas)])
