@@ -153,7 +153,8 @@ def main(argv: list[str] | None = None) -> int:
             _, result = score_frames(bench.frames, geometry, flow, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
             record = validate_clip(bench, result)
             if not args.no_grids:
-                record["grid"] = str(write_png(out / "grids" / f"{record['clip']}.png", grid_image(bench, result, grid_frames(bench, record))))
+                grid = grid_image(bench, result, grid_frames(bench, record), record.get("task1"))
+                record["grid"] = str(write_png(out / "grids" / f"{record['clip']}.png", grid))
         except (ValueError, OSError, RuntimeError) as err:  # one bad clip must not stop the others
             errors.append({"clip": str(folder), "error": str(err).splitlines()[0] if str(err) else type(err).__name__})
             print(f"error: {folder}: {errors[-1]['error']}", file=sys.stderr)

@@ -144,7 +144,7 @@ def render_detection(maps: EvaluationMaps, scores: list[dict[str, float | None]]
     def text(value: float | None) -> str:
         return "N/A" if value is None else f"{value:.3f}"
 
-    captions = [f"FRAME {k} " + " ".join(f"{n.upper()} {text(row[n])}" for n in ("fused", "motion", "structure"))
+    captions = [f"frame {k}   " + "   ".join(f"{n} {text(row[n])}" for n in ("fused", "motion", "structure"))
                 for k, row in enumerate(scores)]
     return map_frames(maps.frames, heat, ["SOURCE", *(name.upper() for name in PANELS)], captions)
 

@@ -58,7 +58,7 @@ from .protocol import (
 from .render import colorize, hatch, map_frames, text_scale
 
 __all__ = ["MAP_PANELS", "PAPER_NAMES", "EvaluationMaps", "EvaluationResult", "clip_mask_source", "evaluate_video",
-           "finite_or_none", "mean_or_nan", "render_maps", "score_frames", "write_maps_video"]
+           "finite_or_none", "map_caption", "mean_or_nan", "render_maps", "score_frames", "write_maps_video"]
 
 MAP_PANELS = ("source", "motion", "structure", "fused")
 PAPER_NAMES = {
@@ -546,9 +546,15 @@ def render_maps(result: EvaluationResult) -> Tensor:
     heat = [colorize(getattr(m, name), getattr(m, f"{name}_valid")) for name in MAP_PANELS[1:]]
     if m.dynamic_masks is not None:  # left out as moving on its own: striped, not "consistent"
         heat = [hatch(panel, m.dynamic_masks, scale) for panel in heat]
-    captions = [f"t = {row['time_s']:.2f} s   fused {_score_text(row['fused'])}   motion {_score_text(row['motion'])}   "
-                f"structure {_score_text(row['structure'])}" for row in result.frame_scores]
+    captions = [map_caption(row) for row in result.frame_scores]
     return map_frames(m.frames, heat, [name.upper() for name in MAP_PANELS], captions)
+
+
+def map_caption(row: dict[str, Any]) -> str:
+    """The line under a frame of the maps video: its time and scores (a frame row of
+    :attr:`EvaluationResult.frame_scores`), in lower case: ``t = 0.62 s   fused 0.051 ...``."""
+    return (f"t = {row['time_s']:.2f} s   fused {_score_text(row['fused'])}   motion {_score_text(row['motion'])}   "
+            f"structure {_score_text(row['structure'])}")
 
 
 def write_maps_video(result: EvaluationResult, path: str | os.PathLike) -> Path:

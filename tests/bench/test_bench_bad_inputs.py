@@ -30,7 +30,7 @@ from geco_guide.io import devices, files
 from geco_guide.io.video import write_video
 from geco_guide.loss.geco import GeCoLossConfig
 from geco_guide.metric.evaluate import score_frames
-from geco_guide.metric.render import READABLE_HEIGHT, VIRIDIS
+from geco_guide.metric.render import READABLE_HEIGHT, VIRIDIS, enlarge, text_scale, text_strip
 
 SIZE = ["5", "24", "32"]
 
@@ -138,11 +138,29 @@ def test_grids_carry_the_colour_scale_and_row_captions(clips):
     _, result = score_frames(bench.frames, OracleGeometry(clip), OracleFlow(clip), GeCoLossConfig(pairs="all"))
     record = validate.validate_clip(bench, result)
     frames = validate.grid_frames(bench, record)
-    grid = validate.grid_image(bench, result, frames)
+    grid = validate.grid_image(bench, result, frames, record["task1"])
     assert grid.shape[-2] >= len(frames) * READABLE_HEIGHT  # small clips are enlarged
     bottom = grid[:, -40:].permute(1, 2, 0).reshape(-1, 3)  # the colour bar under the rows
     for colour in (VIRIDIS[0], VIRIDIS[-1]):
         assert bool(((bottom - colour).abs().amax(1) < 0.02).any())
+    # the row of the frame Task 1 picks says so, and whether it is the replaced one
+    picked, replaced = record["task1"]["predicted"]["fused"], record["task1"]["anomalous_frame"]
+    caption = validate.grid_caption(bench, picked, record["task1"])
+    assert caption.startswith(f"frame {picked} (") and "Task 1: the fused score picks it as the replaced frame" in caption
+    assert caption.endswith(f"{'rightly' if picked == replaced else f'wrongly: frame {replaced} was'}); maps: "
+                            "residual, 0 = consistent")
+    strip = text_strip(caption, grid.shape[-1], text_scale(enlarge(bench.frames).shape[-2]))
+    first = grid[:, : strip.shape[-2]]  # the first row's caption (one row: the replaced frame, picked)
+    assert frames == [picked] and torch.equal(first, strip)
+    other = validate.grid_caption(bench, picked, None)
+    assert "Task 1" not in other
+
+
+def test_the_docs_say_how_many_rows_a_grid_shows():
+    from geco_guide.bench.validate import GRID_ROWS
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "validation.md").read_text()
+    assert f"row for each of up to {GRID_ROWS} judged frames" in " ".join(text.split())
 
 
 # --- benchmarks --------------------------------------------------------------------------------

@@ -350,7 +350,7 @@ def test_text_and_legend():
     assert text_scale(32) == 2 and text_scale(240) == 2 and text_scale(480) == 4  # 18-pixel text at least
     strip = text_strip("STRUCTURE", 48, 1)  # a 32x48 panel's label
     assert text_mask("STRUCTURE").shape[1] > 48 - 4 and strip[:, :, -2:].max() == 0.0 and strip.max() > 0.8
-    line = "T=0.12S FUSED 0.002 MOTION 0.002 STRUCTURE 0.002"  # the score line under four 32x48 panels
+    line = "t = 0.12 s   fused 0.002   motion 0.002   structure 0.002"  # the score line under four 32x48 panels
     assert text_strip(line, 198, 1)[:, :, -2:].max() == 0.0
     guided, strip = text_mask("GUIDED", 2), text_strip("GUIDED", 300, 2)  # it fits: full size, 2 * scale from
     rows, columns = 2 + guided.shape[0], 4 + guided.shape[1]  # the left, scale from the top
