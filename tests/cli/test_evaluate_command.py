@@ -140,3 +140,13 @@ def test_an_output_that_cannot_be_written_takes_back_the_others_and_the_score(tm
     # the rerun needs no --overwrite
     assert evaluate_cli.main(["--preset", "tiny", str(video), "--out", str(out), "--maps"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["v.geco.json", "v.maps.mp4"]
+
+
+def test_detection_names_every_missing_model_before_its_loading_line(tmp_path, capsys, video, monkeypatch):
+    from geco_guide.cli import detection
+
+    monkeypatch.setattr(detection, "load_estimators", lambda *args, **kwargs: pytest.fail("the estimators loaded"))
+    assert detection.main([str(video), f"estimators.geometry={tmp_path / 'no-vggt'}",
+                           f"estimators.flow={tmp_path / 'no-ufm'}", "--preset", "tiny", "--out", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("error: 2 models lack their weights: (1) VGGT: ") and "(2) UFM: " in err
