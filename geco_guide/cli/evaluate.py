@@ -56,7 +56,7 @@ from .kit import (
 
 if TYPE_CHECKING:  # GeCoConfig: annotations only; the rest bound at run time by _IMPLEMENTATION
     from ..config import GeCoConfig
-    from ..estimators import Estimators, load_estimators
+    from ..estimators import Estimators, load_estimators, load_segmenter
     from ..estimators.loading import check_weights
     from ..io.devices import check_device
     from ..metric.evaluate import (
@@ -73,7 +73,7 @@ __all__ = ["check_masks_fit", "check_scorable", "expand_inputs", "main", "score_
 
 #: What main runs on, imported once the arguments parsed: it loads torch.
 _IMPLEMENTATION = DeferredImports(__name__, {
-    "..estimators": ("load_estimators",),
+    "..estimators": ("load_estimators", "load_segmenter"),
     "..estimators.loading": ("check_weights",),
     "..io.devices": ("check_device",),
     "..metric.evaluate": ("PAPER_NAMES", "clip_mask_source", "evaluate_video", "finite_or_none", "mean_or_nan",
@@ -365,10 +365,12 @@ def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
         check_inputs_and_outputs(items, out, args)  # under the locks: an output of a run that ended meanwhile counts
         segmenter = wants_segmenter(dynamic)
         check_weights(cfg.estimators, segmenter=segmenter)  # every missing model named at once, nothing loaded yet
-        if segmenter:
+        segment = None
+        if segmenter:  # loaded first, each load under its own line: an error follows the line of what failed
             _progress(f"loading segmenter: {cfg.estimators.segmenter} for {dynamic!r} ...")
+            segment = load_segmenter(cfg.estimators, device)
         _progress(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {device}")
-        estimators = load_estimators(cfg.estimators, device, segmenter=segmenter)
+        estimators = load_estimators(cfg.estimators, device).with_segmenter(segment)
     except (ValueError, FileNotFoundError, WriteError) as err:  # WeightsNotFoundError is a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -57,10 +57,14 @@ from .protocol import (
 )
 from .render import colorize, hatch, map_frames, text_scale
 
-__all__ = ["MAP_PANELS", "PAPER_NAMES", "EvaluationMaps", "EvaluationResult", "clip_mask_source", "evaluate_video",
-           "finite_or_none", "map_caption", "mean_or_nan", "render_maps", "score_frames", "write_maps_video"]
+__all__ = ["MAP_PANELS", "MASKED_FRAME_NOTE", "PAPER_NAMES", "EvaluationMaps", "EvaluationResult", "clip_mask_source",
+           "evaluate_video", "finite_or_none", "map_caption", "mean_or_nan", "render_maps", "score_frames",
+           "write_maps_video"]
 
 MAP_PANELS = ("source", "motion", "structure", "fused")
+#: Why a frame's score is ``None`` with dynamic masks.
+MASKED_FRAME_NOTE = (f"scores are None where fewer than {MIN_UNMASKED_FRACTION:.0%} of the frame's pixels stay valid "
+                     "outside the dynamic mask")
 PAPER_NAMES = {
     "motion": "M_motion",
     "structure": "M_struct",
@@ -255,8 +259,7 @@ def _mask_notes(rows: list[dict[str, Any]], result: GeCoResult) -> None:
     for k, row in enumerate(rows):
         row["masked_fraction"] = float(result.masked_fraction[0, k])
         if any(row[name] is None for name in CUES):
-            row["note"] = (f"scores are None where fewer than {MIN_UNMASKED_FRACTION:.0%} of the frame's pixels "
-                           "stay valid outside the dynamic mask")
+            row["note"] = MASKED_FRAME_NOTE
 
 
 def _is_subject_text(spec: Any) -> bool:

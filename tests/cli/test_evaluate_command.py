@@ -150,3 +150,13 @@ def test_detection_names_every_missing_model_before_its_loading_line(tmp_path, c
                            f"estimators.flow={tmp_path / 'no-ufm'}", "--preset", "tiny", "--out", str(tmp_path / "d")]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and err.startswith("error: 2 models lack their weights: (1) VGGT: ") and "(2) UFM: " in err
+
+
+def test_a_segmenter_that_fails_to_load_fails_before_the_models_line(tmp_path, capsys, video, no_estimators):
+    (tmp_path / "vggt").mkdir()  # a folder, not a SAM 3 one: refused while loading, after the weights check
+    (tmp_path / "vggt" / "config.json").write_text("{}")
+    code = evaluate_cli.main(["--preset", "tiny", str(video), "--out", str(tmp_path / "out"), "--dynamic-masks",
+                              "a dog", f"estimators.segmenter={tmp_path / 'vggt'}"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 2 and err[0].startswith("loading segmenter: ")
+    assert err[1].startswith(f"error: estimators.segmenter={str(tmp_path / 'vggt')!r}: the folder's config.json")

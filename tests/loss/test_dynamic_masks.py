@@ -385,3 +385,13 @@ def test_a_result_says_how_many_pixels_it_measured_and_reports_nan_over_none(mov
     blind = geco_from_geometry(moving.geometry(torch.float64), replace(flow, covisibility=torch.zeros_like(flow.covisibility)),
                                pairs, GeCoLossConfig(cue="motion"))
     assert blind.empty_cues() == ["motion"] and float(blind.loss) == 0.0 and math.isnan(blind.scalars()["motion"])
+
+
+def test_detection_scores_of_an_almost_all_masked_frame_are_none_with_the_reason(moving):
+    oracle = (OracleGeometry(moving), OracleFlow(moving))
+    masks = torch.zeros(5, 24, 32, dtype=torch.bool)
+    masks[2] = True
+    masks[2, :, 16] = False  # one column left: 3 % of the frame, below the minimum
+    scores = frame_scores(detection_maps(moving.frames.float(), *oracle, window=3, dynamic_masks=masks))
+    assert scores[2]["fused"] is None and "fewer than 5% of the frame's pixels stay valid" in scores[2]["note"]
+    assert scores[0]["fused"] is not None and "note" not in scores[0]
