@@ -36,8 +36,7 @@ from .kit import (
 )
 
 if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
-    from ..estimators import load_estimators
-    from ..estimators.loading import check_weights
+    from ..estimators import check_weights, load_estimators
     from ..io.devices import check_device
     from ..io.video import check_fps, read_frames
     from ..metric.detection import detection_maps, frame_scores, render_detection, write_detection
@@ -47,8 +46,7 @@ __all__ = ["main", "remove_other_formats", "work_line"]
 
 #: What main runs on, imported once the arguments parsed: it loads torch.
 _IMPLEMENTATION = DeferredImports(__name__, {
-    "..estimators": ("load_estimators",),
-    "..estimators.loading": ("check_weights",),
+    "..estimators": ("check_weights", "load_estimators"),
     "..io.devices": ("check_device",),
     "..io.video": ("check_fps", "read_frames"),
     "..metric.detection": ("detection_maps", "frame_scores", "render_detection", "write_detection"),

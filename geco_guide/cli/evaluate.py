@@ -56,8 +56,7 @@ from .kit import (
 
 if TYPE_CHECKING:  # GeCoConfig: annotations only; the rest bound at run time by _IMPLEMENTATION
     from ..config import GeCoConfig
-    from ..estimators import Estimators, load_estimators, load_segmenter
-    from ..estimators.loading import check_weights
+    from ..estimators import Estimators, check_weights, load_estimators, load_segmenter
     from ..io.devices import check_device
     from ..metric.evaluate import (
         PAPER_NAMES,
@@ -73,8 +72,7 @@ __all__ = ["check_masks_fit", "check_scorable", "expand_inputs", "main", "score_
 
 #: What main runs on, imported once the arguments parsed: it loads torch.
 _IMPLEMENTATION = DeferredImports(__name__, {
-    "..estimators": ("load_estimators", "load_segmenter"),
-    "..estimators.loading": ("check_weights",),
+    "..estimators": ("check_weights", "load_estimators", "load_segmenter"),
     "..io.devices": ("check_device",),
     "..metric.evaluate": ("PAPER_NAMES", "clip_mask_source", "evaluate_video", "finite_or_none", "mean_or_nan",
                           "write_maps_video"),

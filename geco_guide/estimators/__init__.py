@@ -10,6 +10,7 @@ import runs it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Optional
 
@@ -18,10 +19,11 @@ import torch
 from ..io.devices import resolve_device
 from . import dynamic_masks  # noqa: F401  (names the mask sources the loss takes by name: "auto")
 from .bundle import Estimators, estimator_id
-from .loading import WeightsNotFoundError
+from .loading import WeightsNotFoundError, WeightsSource, check_weight_sources
 
-__all__ = ["TINY_RANDOM", "Estimators", "EstimatorsConfig", "estimator_id", "estimator_ids", "load_estimators",
-           "load_segmenter", "tiny_estimators", "tiny_random_decoder", "with_config_key"]
+__all__ = ["TINY_RANDOM", "Estimators", "EstimatorsConfig", "check_weights", "estimator_id", "estimator_ids",
+           "estimator_weight_sources", "load_estimators", "load_segmenter", "tiny_estimators", "tiny_random_decoder",
+           "with_config_key"]
 
 TINY_RANDOM = "tiny-random"
 
@@ -92,6 +94,33 @@ def estimator_ids(estimators_cfg: EstimatorsConfig, segmenter: bool = False) -> 
     # tiny random models are only reproducible with their seed
     return {key: f"{name}(seed={estimators_cfg.init_seed})" if name.startswith(TINY_RANDOM) else name
             for key, name in names.items()}
+
+
+def estimator_weight_sources(estimators_cfg: EstimatorsConfig, segmenter: bool = False) -> list[WeightsSource]:
+    """The :class:`~.loading.WeightsSource` of every model ``estimators_cfg`` names: geometry, flow
+    and, with ``segmenter``, the text segmenter's one or two; ``tiny-random`` models have none."""
+    from .segmenters import segmenter_weight_sources
+    from .ufm import UFM
+    from .vggt import VGGT
+
+    rows = [WeightsSource("estimators.geometry", estimators_cfg.geometry, VGGT.model_name, tuple(VGGT.checkpoint_files)),
+            WeightsSource("estimators.flow", estimators_cfg.flow, UFM.model_name)]
+    rows = [row for row in rows if row.source != TINY_RANDOM]
+    return rows + (segmenter_weight_sources(estimators_cfg.segmenter) if segmenter else [])
+
+
+def check_weights(estimators_cfg: EstimatorsConfig, *, segmenter: bool = False,
+                  extra: Sequence[WeightsSource] = ()) -> None:
+    """Whether every model a run loads can find its weights, found out before any loads: the
+    ``extra`` ones (a generating command's video model, say) and the estimators of
+    ``estimators_cfg`` (:func:`estimator_weight_sources`), in that order.
+
+    Raises:
+        WeightsNotFoundError: one line naming every model whose weights are missing
+            (:func:`~.loading.check_weight_sources`: each as loading it would say it, with the
+            config key that points at a local path instead).
+    """
+    check_weight_sources([*extra, *estimator_weight_sources(estimators_cfg, segmenter)])
 
 
 def load_segmenter(estimators_cfg: EstimatorsConfig, device: str | torch.device = "auto") -> Any:

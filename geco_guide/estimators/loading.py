@@ -4,8 +4,8 @@ Offline without weights ends in one :class:`WeightsNotFoundError` line that name
 id and how to pass a local folder instead; a file that cannot be read as a checkpoint (empty,
 truncated, random bytes) in one :class:`UnreadableCheckpointError` line naming it; a checkpoint
 whose keys do not fit the module in a :class:`CheckpointMismatchError` listing what is missing,
-unexpected or mis-shaped. :func:`check_weights` looks for every model's weights of a run before any
-model loads, and names all that are missing in one line.
+unexpected or mis-shaped. :func:`check_weight_sources` looks for the weights of every model of a run
+(:class:`WeightsSource` rows) before any loads, and names all that are missing in one line.
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ import torch
 from torch import Tensor, nn
 
 __all__ = ["CHECKPOINT_SUFFIXES", "CheckpointMismatchError", "UnreadableCheckpointError",
-           "WeightsNotFoundError", "WeightsSource", "check_weights", "check_weights_available",
-           "estimator_weight_sources", "fetch_checkpoint_file", "fetch_config_file", "load_state_dict_checked",
-           "load_weights", "pretrained_or_one_line", "quiet_hub_retries", "short_reason"]
+           "WeightsNotFoundError", "WeightsSource", "check_weight_sources", "check_weights_available",
+           "fetch_checkpoint_file", "fetch_config_file", "load_state_dict_checked", "load_weights",
+           "pretrained_or_one_line", "quiet_hub_retries", "short_reason"]
 
 
 class WeightsNotFoundError(FileNotFoundError):
@@ -190,7 +190,7 @@ def check_weights_available(source: str | os.PathLike, filenames: Sequence[str],
 
 @dataclass(frozen=True)
 class WeightsSource:
-    """One model whose weights a run needs, as :func:`check_weights` checks it.
+    """One model whose weights a run needs, as :func:`check_weight_sources` checks it.
 
     Attributes:
         key: the config key that names the weights (``estimators.geometry``, ``model.id``).
@@ -209,33 +209,16 @@ class WeightsSource:
     example: str | None = None
 
 
-def estimator_weight_sources(estimators_cfg: Any, segmenter: bool = False) -> list[WeightsSource]:
-    """The :class:`WeightsSource` of every model ``estimators_cfg`` (the ``estimators`` config
-    section) names: geometry, flow and, with ``segmenter``, the text segmenter's one or two;
-    ``tiny-random`` models have none."""
-    from . import TINY_RANDOM
-    from .segmenters import segmenter_weight_sources
-    from .ufm import UFM
-    from .vggt import VGGT
-
-    rows = [WeightsSource("estimators.geometry", estimators_cfg.geometry, VGGT.model_name, tuple(VGGT.checkpoint_files)),
-            WeightsSource("estimators.flow", estimators_cfg.flow, UFM.model_name)]
-    rows = [row for row in rows if row.source != TINY_RANDOM]
-    return rows + (segmenter_weight_sources(estimators_cfg.segmenter) if segmenter else [])
-
-
-def check_weights(estimators_cfg: Any, *, segmenter: bool = False, extra: Sequence[WeightsSource] = ()) -> None:
-    """Whether every model a run loads can find its weights, found out before any loads (a cache
-    look-up or one metadata request per model, :func:`check_weights_available`): the estimators
-    of ``estimators_cfg`` (:func:`estimator_weight_sources`) and the ``extra`` ones (the video
-    model of a generating command, say).
+def check_weight_sources(rows: Sequence[WeightsSource]) -> None:
+    """Whether every model of ``rows`` can find its weights (:func:`check_weights_available` each:
+    a cache look-up or one metadata request), before any loads.
 
     Raises:
         WeightsNotFoundError: one line naming every model whose weights are missing, each as
             loading it would say it, with the config key that points at a local path instead.
     """
     problems = []
-    for row in (*extra, *estimator_weight_sources(estimators_cfg, segmenter)):
+    for row in rows:
         try:
             check_weights_available(row.source, row.filenames, model_name=row.model_name, revision=row.revision)
         except WeightsNotFoundError as err:

@@ -410,7 +410,7 @@ def segmenters_from_spec(spec: str, *, device: torch.device | str = "cpu", dtype
 
 def segmenter_weight_sources(spec: str) -> list[WeightsSource]:
     """The weights :func:`segmenters_from_spec` loads for the config's :data:`CONFIG_KEY`, as
-    :func:`~geco_guide.estimators.loading.check_weights` checks them before anything loads
+    :func:`~geco_guide.estimators.check_weights` checks them before anything loads
     (none for the tiny random models)."""
     if not isinstance(spec, str) or spec in (TINY_RANDOM, f"{TINY_RANDOM}-grounding-sam2"):
         return []

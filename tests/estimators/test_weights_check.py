@@ -1,4 +1,4 @@
-"""The weights check before loading (:func:`geco_guide.estimators.loading.check_weights`): every
+"""The weights check before loading (:func:`geco_guide.estimators.check_weights`): every
 model of a run at once, in the words loading each would use."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from geco_guide.estimators import EstimatorsConfig
-from geco_guide.estimators.loading import WeightsNotFoundError, WeightsSource, check_weights, estimator_weight_sources
+from geco_guide.estimators import EstimatorsConfig, check_weights, estimator_weight_sources
+from geco_guide.estimators.loading import WeightsNotFoundError, WeightsSource
 
 
 def test_every_missing_model_is_named_in_one_line(tmp_path: Path):
