@@ -169,10 +169,10 @@ class GeCoResult:
             ``None`` (no masks: the paper's metric).
         masked_fraction: ``[B, S]`` fraction of each frame's pixels masked, or ``None``.
         mask_source: where the masks came from (``"given: masks.npz"``, ``"auto"``, ...), or ``None``.
-        valid_pixels: cue name -> ``[B]`` int64, the valid pixels of the frames that count in its
-            scalar: 0 when the scalar is over nothing. The scalars are then 0 with a zero gradient
-            (the loss convention: an update with nothing to measure moves nothing); a score shown
-            to a user is NaN with :func:`no_valid_pixels_reason` instead (:meth:`scalars`).
+
+    :attr:`valid_pixels` says how many pixels each scalar measured: with none, the scalars are 0
+    with a zero gradient (the loss convention: an update with nothing to measure moves nothing);
+    a score shown to a user is NaN with :func:`no_valid_pixels_reason` instead (:meth:`scalars`).
     """
 
     loss: Tensor
@@ -187,7 +187,13 @@ class GeCoResult:
     dynamic_masks: Tensor | None = None
     masked_fraction: Tensor | None = None
     mask_source: str | None = None
-    valid_pixels: dict[str, Tensor] | None = None
+
+    @property
+    def valid_pixels(self) -> dict[str, Tensor]:
+        """Cue name -> ``[B]`` int64: the valid pixels of the frames that count in its scalar (0:
+        the scalar is over nothing). Computed when asked: the guided step never pays for it."""
+        return {name: (self.frame_maps.cue(name)[1].flatten(2).sum(-1) * self.frame_has_valid[name]).sum(-1)
+                for name in CUES}
 
     def scalars(self) -> dict[str, float]:
         """Plain floats: ``motion``, ``structure``, ``fused`` and ``loss``; a cue over no valid
@@ -199,9 +205,8 @@ class GeCoResult:
     def empty_cues(self) -> list[str]:
         """The cues whose scalar is over no valid pixel (a host sync); why:
         :func:`no_valid_pixels_reason` of ``dynamic_masks is not None``."""
-        if self.valid_pixels is None:
-            return []
-        return [name for name in CUES if int(self.valid_pixels[name].sum()) == 0]
+        counts = self.valid_pixels
+        return [name for name in CUES if int(counts[name].sum()) == 0]
 
 
 def confidence_mask(confidence: Tensor, percentile: float) -> Tensor:
@@ -358,7 +363,7 @@ def geco_from_geometry(
         frame_fields.extend(_frame_average(*pair_maps.cue(name), src, num_frames))
     frame_maps = GeCoMaps(*frame_fields)
 
-    frame_scores, frame_has_valid, scalars, valid_pixels = {}, {}, {}, {}
+    frame_scores, frame_has_valid, scalars = {}, {}, {}
     for name in CUES:
         values, valid = frame_maps.cue(name)
         frame_scores[name] = masked_mean(values, valid, dims=(-2, -1))
@@ -367,7 +372,6 @@ def geco_from_geometry(
         else:
             frame_has_valid[name] = valid.flatten(2).float().mean(-1) >= MIN_UNMASKED_FRACTION
         scalars[name] = masked_mean(frame_scores[name], frame_has_valid[name], dims=(0, 1))
-        valid_pixels[name] = (valid.flatten(2).sum(-1) * frame_has_valid[name]).sum(-1)
     return GeCoResult(
         loss=scalars[config.cue],
         motion=scalars["motion"],
@@ -381,7 +385,6 @@ def geco_from_geometry(
         dynamic_masks=masks,
         masked_fraction=None if masks is None else masks.flatten(2).float().mean(-1),
         mask_source=mask_source,
-        valid_pixels=valid_pixels,
     )
 
 
