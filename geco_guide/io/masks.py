@@ -112,7 +112,7 @@ def _read_npz(path: Path) -> Tensor:
             raise MaskReadError(f"{name} holds Python objects, not numbers") from None
         raise MaskReadError(f"{name} is a damaged .npz archive ({type(err).__name__})") from None
     except Exception as err:  # zipfile, zlib and numpy raise several types for a damaged archive
-        raise MaskReadError(f"{name} is a damaged .npz archive ({type(err).__name__})") from None
+        raise MaskReadError(f"{name} is a damaged .npz archive ({type(err).__name__})") from err
     if not (np.issubdtype(array.dtype, np.number) or array.dtype == np.bool_):
         raise MaskReadError(f"{name} holds {array.dtype} values, not numbers")
     return check_masks(torch.from_numpy(np.ascontiguousarray(array)), name)

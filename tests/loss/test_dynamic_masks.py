@@ -330,7 +330,7 @@ def test_masks_of_the_whole_video_are_cut_as_max_frames_cuts_the_frames(tmp_path
     from geco_guide.metric.protocol import EvaluationConfig
 
     clip = moving_clip(12, 24, 32)
-    oracle = dict(geometry_estimator=OracleGeometry(clip), flow_estimator=OracleFlow(clip))
+    oracle = {"geometry_estimator": OracleGeometry(clip), "flow_estimator": OracleFlow(clip)}
     cut = EvaluationConfig(max_frames=6)
     np.savez(tmp_path / "m.npz", masks=clip.dynamic_mask.numpy())
     short = clip.frames[:6].float()
@@ -349,7 +349,7 @@ def test_masks_of_the_whole_video_are_cut_as_max_frames_cuts_the_frames(tmp_path
 
 def test_an_empty_string_is_no_mask_folder(monkeypatch, tmp_path: Path):
     clip = moving_clip(4, 24, 32)
-    oracle = dict(geometry_estimator=OracleGeometry(clip), flow_estimator=OracleFlow(clip))
+    oracle = {"geometry_estimator": OracleGeometry(clip), "flow_estimator": OracleFlow(clip)}
     for name in range(4):  # the working folder holds mask-like PNGs: an empty string must not read them
         Image.fromarray(np.zeros((24, 32), dtype=np.uint8)).save(tmp_path / f"{name}.png")
     monkeypatch.chdir(tmp_path)
