@@ -20,18 +20,17 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, is_dataclass, replace
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import torch
 from torch import Tensor
 
-__all__ = ["Correspondences", "DynamicMaskSource", "FlowEstimator", "GeometryEstimator",
-           "ESTIMATOR_KEYWORDS", "NonFiniteFramesError", "OptionError", "SceneGeometry", "check_estimator_bundle",
-           "check_frame_values", "check_frames", "refuse_estimator_keywords",
-           "is_integer", "is_number", "merge_dataclass", "missing_estimators", "non_finite_fields", "plural",
-           "refuse_renamed_arguments", "renamed_option"]
+__all__ = ["ESTIMATOR_KEYWORDS", "NAMED_MASK_SOURCES", "Correspondences", "DynamicMaskSource", "FlowEstimator",
+           "GeometryEstimator", "NonFiniteFramesError", "OptionError", "SceneGeometry", "check_estimator_bundle",
+           "check_frame_values", "check_frames", "is_integer", "is_number", "merge_dataclass", "missing_estimators",
+           "non_finite_fields", "plural", "refuse_estimator_keywords", "refuse_renamed_arguments", "renamed_option"]
 
 
 @dataclass
@@ -96,6 +95,14 @@ class DynamicMaskSource(Protocol):
                       flow: Correspondences | None = None,
                       pairs: Sequence[tuple[int, int]] | None = None) -> Tensor:
         ...
+
+
+#: The dynamic-mask sources a name stands for (``"auto"``: the automatic detector), name -> a
+#: function making one. The sources sit above this floor, in :mod:`geco_guide.estimators`, which
+#: fills this table when it is imported; the loss reads it, so that ``GeCoLoss(...)(frames,
+#: dynamic_masks="auto")`` means what ``evaluate_video``'s ``"auto"`` means without the loss
+#: importing the estimators.
+NAMED_MASK_SOURCES: dict[str, Callable[[], DynamicMaskSource]] = {}
 
 
 def missing_estimators(geometry: Any, flow: Any) -> list[str]:

@@ -28,10 +28,10 @@ from .report import MIN_INTERVAL_N, uses_tiny_models
 from .runs import config_fingerprint, read_finished
 
 __all__ = ["AGREEMENT_FILE", "ARMS", "BEST_OF", "MAX_SEED", "METRICS", "PAIR_OUTPUTS", "TINY_GUIDANCE_NOTE",
-           "UNIT_STEMS", "BestOf", "InputError", "Pair", "arm_config", "arm_label", "best_of_problem",
+           "UNIT_STEMS", "WARM_UP", "BestOf", "InputError", "Pair", "arm_config", "arm_label", "best_of_problem",
            "bootstrap_ci", "candidate_paths", "has_maps", "lowered_fused", "non_finite_scores",
            "paired_difference", "pair_dir", "parse_seeds", "plan_pairs", "read_agreement", "read_candidate",
-           "read_result", "read_run_result", "run_arms", "summarize"]
+           "read_result", "read_run_result", "run_arms", "summarize", "warm_up_pairs"]
 
 logger = logging.getLogger(__name__)
 
@@ -54,6 +54,11 @@ MAX_SEED = 2**63 - 1
 RESULT_KEYS = ("pair", "prompt_id", "prompt", "seed", "device", "side_by_side", "arms")
 ARM_KEYS = ("video", "sidecar", *METRICS, "generation_s", "evaluation_s", "peak_memory_mib", "memory_kind",
             "guidance_updates")
+#: An arm record's flag: made in its process's first unit of work (a pair, or a pair's best-of
+#: arm), so its times include the models' warm-up (first calls compile kernels, allocate memory,
+#: fill caches). Such arms are reported apart and left out of the time means. Records written
+#: before the flag existed read as False.
+WARM_UP = "warm_up"
 #: With ``guidance.decoder=tiny``: the tiny decoder measured against the VAE on one pair.
 AGREEMENT_FILE = "decoder_agreement.json"
 TINY_GUIDANCE_NOTE = ("With tiny random models the guidance effect is meaningless: guidance can lower or raise "
@@ -333,17 +338,27 @@ def comparison(results: Sequence[dict[str, Any]], arm: str, baseline: str) -> di
 
 
 def arm_summary(results: Sequence[dict[str, Any]], arm: str) -> dict[str, Any]:
-    """Means of the scores, and time and memory, of one arm over the pairs."""
+    """Means of the scores, and time and memory, of one arm over the pairs. The time means leave
+    out the arms made with the models' warm-up (:data:`WARM_UP`), unless every arm was
+    (``timing_includes_warm_up``); the total is every arm's."""
     records = [r["arms"][arm] for r in results]
+    timed = [rec for rec in records if not rec.get(WARM_UP, False)]
     summary: dict[str, Any] = {metric: _finite_mean([rec[metric] for rec in records]) for metric in METRICS}
     summary.update(
-        generation_s_mean=float(np.mean([rec["generation_s"] for rec in records])),
+        generation_s_mean=float(np.mean([rec["generation_s"] for rec in timed or records])),
         generation_s_total=float(np.sum([rec["generation_s"] for rec in records])),
-        evaluation_s_mean=float(np.mean([rec["evaluation_s"] for rec in records])),
+        evaluation_s_mean=float(np.mean([rec["evaluation_s"] for rec in timed or records])),
+        timed_pairs=len(timed or records),
+        timing_includes_warm_up=not timed,
         peak_memory_mib_max=float(np.max([rec["peak_memory_mib"] for rec in records])),
         memory_kind=records[0]["memory_kind"],
     )
     return summary
+
+
+def warm_up_pairs(results: Sequence[dict[str, Any]], arms: Sequence[str] = ARMS) -> list[str]:
+    """The pairs with an arm made with the models' warm-up (:data:`WARM_UP`)."""
+    return [r["pair"] for r in results if any(r["arms"][arm].get(WARM_UP, False) for arm in arms)]
 
 
 def _finite_mean(values: Sequence[float]) -> float | None:
@@ -371,6 +386,7 @@ def summarize(results: Sequence[dict[str, Any]], pairs: Sequence[Pair], cfg: GeC
         "pairs_planned": len(pairs),
         "missing_pairs": [p.name for p in pairs if p.name not in done],
         "non_finite_scores": non_finite_scores(results, arms),
+        "warm_up_pairs": warm_up_pairs(results, arms),
         "prompts": len({p.prompt.id for p in pairs}),
         "seeds": sorted({p.seed for p in pairs}),
         "arms": {arm: arm_summary(results, arm) for arm in arms} if results else {},

@@ -22,6 +22,7 @@ from .ab import (
     BEST_OF,
     METRICS,
     TINY_GUIDANCE_NOTE,
+    WARM_UP,
     BestOf,
     Pair,
     arm_label,
@@ -39,11 +40,11 @@ REPORT_STEMS = ("results", "summary", "report", "pareto", "run")
 
 def csv_text(results: Sequence[dict[str, Any]], arms: Sequence[str] = ARMS) -> str:
     """``results.csv``: one row per pair and arm."""
-    columns = ["pair", "prompt_id", "seed", "arm", *METRICS, "generation_s", "evaluation_s",
+    columns = ["pair", "prompt_id", "seed", "arm", *METRICS, "generation_s", "evaluation_s", WARM_UP,
                "peak_memory_mib", "memory_kind", "guidance_updates", "video", "prompt",
                *(["subjects"] if any("subjects" in result for result in results) else [])]
-    rows = [{**result, **result["arms"][arm], "arm": arm, "video": f"pairs/{result['pair']}/{result['arms'][arm]['video']}"}
-            for result in results for arm in arms]
+    rows = [{**result, **result["arms"][arm], "arm": arm, "video": f"pairs/{result['pair']}/{result['arms'][arm]['video']}",
+             WARM_UP: result["arms"][arm].get(WARM_UP, False)} for result in results for arm in arms]
     return report.csv_text(rows, columns)
 
 
@@ -62,6 +63,20 @@ def _agreement_note(agreement: dict[str, Any] | None) -> list[str]:
              f"approximation), measured on {agreement['pair']} over {agreement['updates']} updates: gradient cosine "
              f"median {fmt(agreement['cosine_median'])} (min {fmt(agreement['cosine_min'])}), anchor-frame PSNR "
              f"{fmt(agreement['psnr_mean_db'], 3)} dB ([{AGREEMENT_FILE}]({AGREEMENT_FILE}))."), ""]
+
+
+def _timing_note(summary: dict[str, Any]) -> list[str]:
+    """Which pairs' times the means leave out, and why (:data:`~geco_guide.bench.ab.WARM_UP`)."""
+    warm = summary.get("warm_up_pairs") or []
+    if not warm:
+        return []
+    if all(arm["timing_includes_warm_up"] for arm in summary["arms"].values()):
+        return [(f"Every pair was made with the models' warm-up ({', '.join(warm)}: each process's first pair, whose "
+                 "first calls compile kernels and allocate memory): the means include it. Run more pairs for "
+                 "times without it."), ""]
+    return [(f"The means leave out the first pair of each process ({', '.join(warm)}): its times include the models' "
+             f"warm-up (the first calls compile kernels and allocate memory); they are in results.csv "
+             f"({WARM_UP} = True). The totals include them."), ""]
 
 
 def _share(lowered: dict[str, Any]) -> str:
@@ -105,10 +120,10 @@ def _best_of_lines(summary: dict[str, Any], best_of: BestOf | None) -> list[str]
     if best_of is None:
         return []
     arms = summary["arms"]
-    unguided = arms["unguided"]["generation_s_total"]
-    measured = (f"measured here: the guided arm sampled for {fmt(arms['guided']['generation_s_total'] / unguided, 3)}x "
+    unguided = arms["unguided"]["generation_s_mean"]  # the means: without the warm-up where they can
+    measured = (f"measured here: the guided arm sampled for {fmt(arms['guided']['generation_s_mean'] / unguided, 3)}x "
                 f"the unguided arm's time, the {best_of.label} arm for "
-                f"{fmt(arms[BEST_OF]['generation_s_total'] / unguided, 3)}x (its {best_of.n} candidates; the first is "
+                f"{fmt(arms[BEST_OF]['generation_s_mean'] / unguided, 3)}x (its {best_of.n} candidates; the first is "
                 f"the unguided arm's video), and scoring its candidates took "
                 f"{fmt(arms[BEST_OF]['evaluation_s_mean'], 3)} s per pair") if unguided > 0 else "nothing measured"
     _, vs_unguided = _comparisons(summary, best_of)[1]
@@ -188,6 +203,7 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
              for arm in arms],
         ),
         "",
+        *_timing_note(summary),
         "![fused score: guided vs unguided per pair, and vs Total Motion](pareto.png)",
         "",
         "## Pairs",

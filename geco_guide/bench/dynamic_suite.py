@@ -29,7 +29,9 @@ And with ``movers="rigid"`` (:func:`movers_validation`), on one box (the first o
 
 from __future__ import annotations
 
+import logging
 import math
+import time
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -49,6 +51,8 @@ from .validate import cue_map, localisation
 from .warp import WarpParams, warp_clip
 
 __all__ = ["DynamicScenes", "dynamic_validation", "edited_clips", "markdown_report", "mover_clips", "movers_validation"]
+
+logger = logging.getLogger(__name__)
 
 MASKS = ("none", "true", "auto")
 
@@ -140,7 +144,8 @@ def iou(predicted: Tensor, truth: Tensor) -> float:
 
 
 def _scores(result: GeCoResult) -> dict[str, float]:
-    return {name: float(getattr(result, name)) for name in ("motion", "structure", "fused")}
+    """The cues' scores as shown to a user: NaN over no valid pixel, never the loss's 0."""
+    return {name: value for name, value in result.scalars().items() if name != "loss"}
 
 
 def dynamic_validation(scenes: DynamicScenes = DynamicScenes()) -> dict[str, Any]:
@@ -148,10 +153,17 @@ def dynamic_validation(scenes: DynamicScenes = DynamicScenes()) -> dict[str, Any
     ``auto_mask``, ``movers`` (:func:`movers_validation`) and ``targets`` (each target's value and
     whether it is met)."""
     clips = edited_clips(scenes)
-    results = {kind: {"still": score_clip(pair["still"], "none"), **{f"moving/{m}": score_clip(pair["moving"], m) for m in MASKS}}
-               for kind, pair in clips.items()}
+    # each (kind, key) scored in turn, with a log line as it finishes: the whole takes minutes
+    planned = [(kind, key) for kind in clips for key in ("still", *(f"moving/{m}" for m in MASKS))]
+    planned.append(("clean", "still/true"))  # the boxes' edges, masked alike
+    results: dict[str, dict[str, GeCoResult]] = {kind: {} for kind in clips}
+    for k, (kind, key) in enumerate(planned, start=1):
+        motion, _, masks = key.partition("/")
+        started = time.perf_counter()
+        results[kind][key] = score_clip(clips[kind][motion], masks or "none")
+        logger.info("[%d/%d] scored the %s %s clip with %s mask (%.1f s)", k, len(planned), motion, kind,
+                    masks or "no", time.perf_counter() - started)
     false_positives = {key: _scores(result) for key, result in results["clean"].items()}
-    false_positives["still/true"] = _scores(score_clip(clips["clean"]["still"], "true"))  # the boxes' edges, masked alike
     detection = {kind: {key: detection_ap(clips[kind]["still" if key == "still" else "moving"], result)
                         for key, result in results[kind].items()} for kind in ("deformation", "occlusion")}
     auto_iou = {kind: iou(results[kind]["moving/auto"].dynamic_masks[0].cpu(), clips[kind]["moving"].dynamic_mask)

@@ -280,12 +280,14 @@ def check_model_weights(cfg: GeCoConfig, names: Sequence[str], weights: dict[str
     Raises:
         WeightsNotFoundError: one line naming each missing model and how to pass a local folder.
     """
-    from ..estimators import check_estimator_weights
+    from ..estimators import check_weights
+    from ..estimators.loading import WeightsSource
     from ..sampler.loading import PIPELINE_INDEX
 
     rows = [] if cfg.model.id == TINY_RANDOM else [
-        (f"--weights {name}", weights.get(name, MODELS[name].hub_id), name, (PIPELINE_INDEX,), None) for name in names]
-    check_estimator_weights(cfg.estimators, extra=rows)
+        WeightsSource(f"--weights {name}", weights.get(name, MODELS[name].hub_id), name, (PIPELINE_INDEX,))
+        for name in names]
+    check_weights(cfg.estimators, extra=rows)
 
 
 def _video_models(cfg: GeCoConfig, name: str, weights: str | None, estimators: Estimators, guided: bool) -> Models:

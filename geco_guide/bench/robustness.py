@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import io
 import math
+from collections.abc import Callable
 from dataclasses import asdict, replace
 from typing import Any
 
@@ -38,8 +39,8 @@ from .ranking import average_precision
 from .synthetic import SyntheticClip, rigid_clip, with_overlay, with_warp
 from .warp import WarpParams, warp_clip
 
-__all__ = ["CUES", "DEPTH_SIGMAS", "FLOW_SIGMAS", "ROBUSTNESS_AXIS_NOTE", "ROBUSTNESS_X_LABELS", "plot",
-           "run_sweep", "sweep_memory_bytes"]
+__all__ = ["CUES", "DEPTH_SIGMAS", "FLOW_SIGMAS", "ROBUSTNESS_AXIS_NOTE", "ROBUSTNESS_X_LABELS", "level_line",
+           "plot", "run_sweep", "sweep_memory_bytes"]
 
 CUES = ("structure", "motion", "fused")
 COLORS = {"structure": (31, 119, 180), "motion": (255, 127, 14), "fused": (44, 160, 44)}
@@ -99,11 +100,19 @@ def detection_ap(clip: SyntheticClip, geometry: SceneGeometry, correspondences: 
     return aps
 
 
+def level_line(noisy_input: str, rows: dict[str, Any], k: int) -> str:
+    """One line of the sweep's results: level ``k`` of the noisy input's ``rows`` (as in the report)."""
+    cells = " ".join(f"{task}/{cue} {rows[task][cue][k]:.3f}" for task in ("warp", "occlusion") for cue in CUES)
+    return f"{noisy_input} sigma={rows['sigmas'][k]:g}: {cells} rigid fused {rows['rigid_fused'][k]:.4f}"
+
+
 def run_sweep(num_frames: int = 9, height: int = 48, width: int = 64, seed: int = 0,
-              depth_sigmas=DEPTH_SIGMAS, flow_sigmas=FLOW_SIGMAS, config: GeCoLossConfig | None = None) -> dict[str, Any]:
+              depth_sigmas=DEPTH_SIGMAS, flow_sigmas=FLOW_SIGMAS, config: GeCoLossConfig | None = None,
+              progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The whole study as a JSON-ready dict: per input (``depth``, ``flow``) the sigmas, per task
     (``warp``, ``occlusion``) each cue's AP per sigma, and the rigid clip's fused score per sigma.
-    ``config``: the metric's options (default: the evaluation protocol's, every ordered pair)."""
+    ``config``: the metric's options (default: the evaluation protocol's, every ordered pair);
+    ``progress``: called with each level's :func:`level_line` as soon as the level is scored."""
     config = config or EvaluationConfig().loss
     pair_list = frame_pairs(num_frames, config.pairs)
     clips = sweep_clips(num_frames, height, width, seed)
@@ -128,11 +137,14 @@ def run_sweep(num_frames: int = 9, height: int = 48, width: int = 64, seed: int 
                         for cue in CUES:
                             rows[name][cue].append(math.nan)
                     continue
-                if name == "rigid":
-                    rows["rigid_fused"].append(float(geco_from_geometry(geometry, correspondences, pair_list, config).fused))
+                if name == "rigid":  # a score over no valid pixel is NaN, never the loss's 0
+                    scored = geco_from_geometry(geometry, correspondences, pair_list, config)
+                    rows["rigid_fused"].append(scored.scalars()["fused"])
                     continue
                 for cue, ap in detection_ap(clip, geometry, correspondences, pair_list, config).items():
                     rows[name][cue].append(ap)
+            if progress is not None:
+                progress(level_line(noisy_input, rows, len(rows["rigid_fused"]) - 1))
         report[noisy_input] = rows
     return report
 
@@ -152,14 +164,14 @@ def plot(report: dict[str, Any]) -> bytes:
     span decades and start at 0, which a log axis cannot show); non-finite APs are left out."""
     image = Image.new("RGB", (760, 760), (255, 255, 255))
     draw = ImageDraw.Draw(image)
-    text(draw, (90, 8), ROBUSTNESS_AXIS_NOTE, "lt")
+    text(draw, (80, 8), ROBUSTNESS_AXIS_NOTE, "lt")
     for row, noisy_input in enumerate(("depth", "flow")):
         sigmas = report[noisy_input]["sigmas"]
         levels = list(range(len(sigmas)))
         what = ROBUSTNESS_X_LABELS[noisy_input]
         for column, task in enumerate(("warp", "occlusion")):
-            left, top = 90 + column * 360, 80 + row * 350
-            panel = Panel((left, top, left + 260, top + 200), limits(levels), (0.0, 1.0))
+            left, top = 80 + column * 360, 80 + row * 350  # 300 wide: a tick label per level, apart
+            panel = Panel((left, top, left + 300, top + 200), limits(levels), (0.0, 1.0))
             title = f"{noisy_input} noise: {'Task 2 (warp)' if task == 'warp' else 'Task 3 (occlusion)'} AP"
             panel.draw_axes(draw, title, what, "AP",
                             xticks=[(k, f"{s:.2g}") for k, s in zip(levels, sigmas)])

@@ -16,8 +16,9 @@ ground truth:
 
 Output (``--out``, default ``<first input>/validation``): ``validation.json`` (per clip, per
 frame and the means), ``validation.md`` (the paper's table layout) and ``grids/<clip>.png``
-(frame | ground truth | motion | structure | fused, one captioned row per judged frame, the maps'
-colour scale below). Written atomically.
+(frame | ground truth | motion | structure | fused, a captioned row for each of up to
+:data:`GRID_ROWS` judged frames and for the frame Task 1's fused score picks, the maps' colour scale
+below). Written atomically.
 """
 
 from __future__ import annotations
@@ -38,8 +39,8 @@ from ..metric.render import colorbar, colorize, enlarge, side_by_side, text_scal
 from .datasets import Benchmark
 from .ranking import average_precision, best_threshold_iou_f1, spearman
 
-__all__ = ["cue_map", "grid_frames", "grid_image", "localisation", "markdown_table", "summarise",
-           "validate_clip", "write_png"]
+__all__ = ["GRID_ROWS", "cue_map", "grid_caption", "grid_frames", "grid_image", "localisation", "markdown_table",
+           "summarise", "validate_clip", "write_png"]
 
 CUES = ("structure", "motion", "fused")  # the paper's row order
 CUE_NAMES = {"structure": "Structure M_struct", "motion": "Motion M_motion", "fused": "Fused M_geo"}
@@ -145,10 +146,23 @@ def markdown_table(summary: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def grid_image(bench: Benchmark, result: GeCoResult, frames: list[int]) -> Tensor:
+def grid_caption(bench: Benchmark, frame: int, task1: dict[str, Any] | None = None) -> str:
+    """The caption over a grid row: the frame, whether it holds ground-truth artifact pixels and,
+    for a Task 1 clip (``task1``: its record in :func:`validate_clip`), whether the fused score
+    picks it as the replaced frame."""
+    note = "ground-truth artifact" if bool(bench.truth["mask"][frame].any()) else "no artifact"
+    if task1 is not None and frame == task1["predicted"]["fused"]:
+        right = frame == task1["anomalous_frame"]
+        note += ("; Task 1: the fused score picks it as the replaced frame, "
+                 + ("rightly" if right else f"wrongly: frame {task1['anomalous_frame']} was"))
+    return f"frame {frame} ({note}); maps: residual, 0 = consistent"
+
+
+def grid_image(bench: Benchmark, result: GeCoResult, frames: list[int], task1: dict[str, Any] | None = None) -> Tensor:
     """``[3, H', W']`` rows of frame | ground truth | motion | structure | fused (viridis on the
     fixed map range, grey: no valid pixel) for ``frames``, each row under a caption naming its
-    frame, and the colour scale of the maps (with the grey of "no valid pixel") at the bottom."""
+    frame (:func:`grid_caption`; ``task1``: the clip's Task 1 record, whose pick the caption
+    names), and the colour scale of the maps (with the grey of "no valid pixel") at the bottom."""
     truth = bench.truth["mask"][frames].float()[:, None].expand(-1, 3, -1, -1)
     panels = [bench.frames[frames], truth]
     for cue in ("motion", "structure", "fused"):
@@ -159,8 +173,7 @@ def grid_image(bench: Benchmark, result: GeCoResult, frames: list[int]) -> Tenso
     width, scale = rows.shape[-1], text_scale(panels[0].shape[-2])
     body = []
     for t, row in zip(frames, rows):
-        note = "ground-truth artifact" if bool(bench.truth["mask"][t].any()) else "no artifact"
-        body += [text_strip(f"FRAME {t} ({note}); maps: residual, 0 = consistent", width, scale), row]
+        body += [text_strip(grid_caption(bench, t, task1), width, scale), row]
     return torch.cat([*body, colorbar(width, scale)], dim=-2)
 
 
@@ -173,7 +186,8 @@ def write_png(path: Path, image: Tensor) -> Path:
 
 
 def grid_frames(bench: Benchmark, record: dict[str, Any]) -> list[int]:
-    """Up to :data:`GRID_ROWS` judged frames (evenly spaced), plus Task 1's fused detection."""
+    """Up to :data:`GRID_ROWS` judged frames (evenly spaced: a clip warped throughout would
+    otherwise make a picture thousands of pixels high), plus the frame Task 1's fused score picks."""
     judged = judged_frames(bench)
     picked = [judged[round(k * (len(judged) - 1) / max(GRID_ROWS - 1, 1))] for k in range(min(GRID_ROWS, len(judged)))]
     if "task1" in record:

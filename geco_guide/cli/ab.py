@@ -70,6 +70,7 @@ if TYPE_CHECKING:  # the rest bound at run time by _IMPLEMENTATION
         METRICS,
         TINY_GUIDANCE_NOTE,
         UNIT_STEMS,
+        WARM_UP,
         BestOf,
         InputError,
         Pair,
@@ -93,7 +94,7 @@ if TYPE_CHECKING:  # the rest bound at run time by _IMPLEMENTATION
     from ..io.devices import resolve_device
     from ..io.video import read_video, write_video
     from ..metric.evaluate import evaluate_video, finite_or_none, write_maps_video
-    from ..metric.render import side_by_side
+    from ..metric.render import enlarge, side_by_side
     from ..perf.decoder_agreement import agreement_rows, agreement_summary
     from .. import generation
     from ..types import plural
@@ -102,9 +103,9 @@ if TYPE_CHECKING:  # the rest bound at run time by _IMPLEMENTATION
 #: What the command runs on, imported once the arguments parsed: it loads torch.
 _IMPLEMENTATION = DeferredImports(__name__, {
     "..bench.ab": ("AGREEMENT_FILE", "ARMS", "BEST_OF", "MAX_SEED", "METRICS", "TINY_GUIDANCE_NOTE", "UNIT_STEMS",
-                   "BestOf", "InputError", "Pair", "arm_config", "best_of_problem", "candidate_paths", "has_maps",
-                   "pair_dir", "parse_seeds", "plan_pairs", "read_agreement", "read_candidate", "read_result",
-                   "run_arms"),
+                   "WARM_UP", "BestOf", "InputError", "Pair", "arm_config", "best_of_problem", "candidate_paths",
+                   "has_maps", "pair_dir", "parse_seeds", "plan_pairs", "read_agreement", "read_candidate",
+                   "read_result", "run_arms"),
     "..bench.ab_report": ("write_report",),
     "..bench.report": ("fmt", "interval_text"),
     "..bench.runs": ("PeakMemory", "pin_config", "process_config", "process_state", "read_finished", "run_lock",
@@ -114,7 +115,7 @@ _IMPLEMENTATION = DeferredImports(__name__, {
     "..io.devices": ("resolve_device",),
     "..io.video": ("read_video", "write_video"),
     "..metric.evaluate": ("evaluate_video", "finite_or_none", "write_maps_video"),
-    "..metric.render": ("side_by_side",),
+    "..metric.render": ("enlarge", "side_by_side"),
     "..perf.decoder_agreement": ("agreement_rows", "agreement_summary"),
     "..types": ("plural",),
     "..": ("generation",),
@@ -172,11 +173,12 @@ def foreign_video(sidecar_path: Path, cfg: GeCoConfig, pair: Pair, arm: str) -> 
 
 
 def run_arm(models: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, maps: bool, estimators: Estimators,
-            stem: str | None = None) -> dict[str, Any]:
+            stem: str | None = None, warm_up: bool = False) -> dict[str, Any]:
     """Generate one arm of a pair into ``folder/<stem>.mp4`` (``stem``: the arm's name) + sidecar
     and score it with ``estimators``; what an unfinished run left there is replaced (other runs'
     outputs were refused before). A prompt's subjects are masked, by the estimators' segmenter, in
-    every arm's scores and in the guided arm's guidance."""
+    every arm's scores and in the guided arm's guidance. ``warm_up``: the process's first work, whose
+    times include the models' warm-up (recorded, and left out of the report's means)."""
     stem = stem or arm
     masks = estimators.masks_for(pair.prompt.subjects)
     with PeakMemory(models.pipe.device) as memory:
@@ -194,6 +196,7 @@ def run_arm(models: Any, cfg: GeCoConfig, pair: Pair, arm: str, folder: Path, ma
         "peak_memory_mib": memory.peak_mib,
         "memory_kind": memory.kind,
         "guidance_updates": len(generated.sidecar["guidance_log"]),
+        WARM_UP: warm_up,
         "evaluation": evaluation.to_dict(),
     }
     if maps:
@@ -220,23 +223,25 @@ def add_maps(cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], est
 def write_side_by_side(folder: Path, fps: float, arms: Sequence[str] | None = None,
                        labels: Sequence[str] | None = None) -> None:
     """``side_by_side.mp4``: the arms' videos next to each other, labelled (default: every arm of
-    :data:`~geco_guide.bench.ab.ARMS`, by its name)."""
+    :data:`~geco_guide.bench.ab.ARMS`, by its name), enlarged to a readable height as the maps are
+    (:func:`~geco_guide.metric.render.enlarge`: a tiny model's 60-pixel video had 6-pixel labels)."""
     arms = ARMS if arms is None else arms
-    videos = [read_video(folder / f"{arm}.mp4")[0] for arm in arms]
+    videos = [enlarge(read_video(folder / f"{arm}.mp4")[0]) for arm in arms]
     write_video(folder / "side_by_side.mp4", side_by_side(videos, list(arms if labels is None else labels)), fps=fps)
 
 
 def run_pair(models: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, estimators: Estimators,
-             where: str | None = None) -> dict[str, Any]:
-    """Both arms (with ``where``, a stderr line ``<where>: <arm> arm ...`` before each), the
-    side-by-side video, then ``result.json`` (last: it marks the pair complete)."""
+             where: str | None = None, warm_up: bool = False) -> dict[str, Any]:
+    """Both arms (with ``where``, a stderr line ``<where>: <arm> arm ...`` before each; ``warm_up``:
+    see :func:`run_arm`), the side-by-side video, then ``result.json`` (last: it marks the pair
+    complete)."""
     folder = pair_dir(out, pair)
     remove_temp_files(folder, UNIT_STEMS)
     arms = {}
     for arm in ARMS:
         if where is not None:
             print(f"{where}: {arm} arm ...", file=sys.stderr, flush=True)
-        arms[arm] = run_arm(models, cfg, pair, arm, folder, maps, estimators)
+        arms[arm] = run_arm(models, cfg, pair, arm, folder, maps, estimators, warm_up=warm_up)
     write_side_by_side(folder, cfg.sampling.fps)
     result = {
         "pair": pair.name,
@@ -254,9 +259,10 @@ def run_pair(models: Any, cfg: GeCoConfig, pair: Pair, out: Path, maps: bool, es
 
 
 def add_best_of(models: Any, cfg: GeCoConfig, pair: Pair, out: Path, result: dict[str, Any], best_of: BestOf,
-                maps: bool, estimators: Estimators, where: str | None = None, redo: bool = False) -> dict[str, Any]:
+                maps: bool, estimators: Estimators, where: str | None = None, redo: bool = False,
+                warm_up: bool = False) -> dict[str, Any]:
     """The best-of arm of a complete pair: the candidates not made whole yet (all of them with
-    ``redo``; with ``where``, a stderr line before each), the one
+    ``redo``; with ``where``, a stderr line before each; ``warm_up``: see :func:`run_arm`), the one
     :func:`~geco_guide.generation.best_candidate` picks copied to ``best_of.mp4`` with a sidecar
     listing every candidate, the three-arm side by side, then ``result.json`` with the arm."""
     folder = pair_dir(out, pair)
@@ -271,7 +277,7 @@ def add_best_of(models: Any, cfg: GeCoConfig, pair: Pair, out: Path, result: dic
                 print(f"{where}: {best_of.label} arm, candidate {k}/{best_of.n} (seed {seed}) ...", file=sys.stderr,
                       flush=True)
             record = run_arm(models, cfg, Pair(pair.prompt, seed), "unguided", candidates, False, estimators,
-                             stem=f"seed{seed}")
+                             stem=f"seed{seed}", warm_up=warm_up)
             write_json_atomic(candidate_paths(out, pair, seed)[2], record)
         records.append(record)
     kept = generation.best_candidate([record[generation.SELECTION_SCORE] for record in records])
@@ -296,6 +302,7 @@ def add_best_of(models: Any, cfg: GeCoConfig, pair: Pair, out: Path, result: dic
         "evaluation_s": sum(record["evaluation_s"] for record in records),
         "peak_memory_mib": max(record["peak_memory_mib"] for record in records),
         "guidance_updates": 0,
+        WARM_UP: any(record.get(WARM_UP, False) for record in records),
         BEST_OF: chosen,
     }
     write_side_by_side(folder, cfg.sampling.fps, run_arms(best_of), ["unguided", "guided", best_of.label])
@@ -319,8 +326,9 @@ def measure_decoder_agreement(models: Any, cfg: GeCoConfig, pair: Pair, out: Pat
 
 def _pair_line(result: dict[str, Any], best_of: BestOf | None) -> str:
     unguided, guided = (result["arms"][arm] for arm in ARMS)
+    warm = " with the models' warm-up, left out of the means" if guided.get(WARM_UP) else ""
     line = (f"fused {unguided['fused']:.4f} -> {guided['fused']:.4f} "
-            f"(sampling {unguided['generation_s']:.1f} s -> {guided['generation_s']:.1f} s)")
+            f"(sampling {unguided['generation_s']:.1f} s -> {guided['generation_s']:.1f} s{warm})")
     if best_of is not None:
         selected = result["arms"][BEST_OF]
         line += (f"; {best_of.label} {selected['fused']:.4f} (kept seed {selected[BEST_OF]['kept_seed']}, "
@@ -374,11 +382,12 @@ def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag
     work = [(pair, finished[pair.name]) for pair in extend] + [(pair, None) for pair in todo]
     for index, (pair, result) in enumerate(work, start=1):
         where = f"{tag}[{index}/{len(work)}] {pair.name}"
+        warm_up = index == 1  # the first calls of the models compile kernels and allocate memory
         if result is None:
-            result = run_pair(models, cfg, pair, out, maps, estimators, where if lines else None)
+            result = run_pair(models, cfg, pair, out, maps, estimators, where if lines else None, warm_up)
         if best_of is not None:
-            result = add_best_of(models, cfg, pair, out, result, best_of, maps, estimators, where if lines else None,
-                                 redo)
+            result = add_best_of(models, cfg, pair, out, result, best_of, maps, estimators, where if lines else None, redo,
+                                 warm_up)
         print(f"{where}: {_pair_line(result, best_of)}", flush=True)
     if measure:
         measure_decoder_agreement(models, cfg, pairs[0], out)

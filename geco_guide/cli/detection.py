@@ -6,8 +6,10 @@
 Each input writes, inside ``--out``, ``<name>.detection.mp4`` / ``.gif`` / ``<name>.detection/NNNNN.png``
 (``--format``) and last ``<name>.detection.json``. Inputs are named as ``evaluate`` names them (a
 file's stem, a frame folder's name, a folder of videos stands for its videos), numbered ``-2``,
-``-3``, ... when two share a name. Existing outputs are refused before the estimators load unless
-``--overwrite``; a PNG folder keeps no frame of an earlier, longer run.
+``-3``, ... when two share a name. Existing outputs and missing weights (every model named at
+once) are refused before the estimators load, existing outputs unless ``--overwrite``; a PNG folder
+keeps no frame of an earlier, longer run. Progress goes to stderr: the models being loaded, then
+each input and what its maps take.
 """
 
 from __future__ import annotations
@@ -34,7 +36,8 @@ from .kit import (
 )
 
 if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
-    from ..estimators import load_estimators
+    from ..estimators import check_weights, load_estimators
+    from ..io.devices import check_device
     from ..io.video import check_fps, read_frames
     from ..metric.detection import detection_maps, frame_scores, render_detection, write_detection
     from ..types import plural
@@ -43,7 +46,8 @@ __all__ = ["main", "remove_other_formats", "work_line"]
 
 #: What main runs on, imported once the arguments parsed: it loads torch.
 _IMPLEMENTATION = DeferredImports(__name__, {
-    "..estimators": ("load_estimators",),
+    "..estimators": ("check_weights", "load_estimators"),
+    "..io.devices": ("check_device",),
     "..io.video": ("check_fps", "read_frames"),
     "..metric.detection": ("detection_maps", "frame_scores", "render_detection", "write_detection"),
     "..types": ("plural",),
@@ -167,7 +171,11 @@ def main(argv: list[str] | None = None) -> int:
         items = expand_inputs([_resolved(v) for v in videos])
         check_scorable(items)
         check_outputs(out, [out / item.name for item in items if item.error is None], args.formats, args.overwrite)
-        estimators = load_estimators(cfg.estimators, cfg.evaluation.device)
+        device = check_device(cfg.evaluation.device, "evaluation.device")  # "auto" resolved once
+        check_weights(cfg.estimators)  # every missing model named at once, before anything loads
+        print(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {device}", file=sys.stderr,
+              flush=True)
+        estimators = load_estimators(cfg.estimators, device)
     except (ValueError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

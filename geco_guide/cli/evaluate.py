@@ -10,21 +10,26 @@ The protocol is :func:`geco_guide.metric.evaluate.evaluate_video`'s. Per video:
 structure | fused on the fixed colour scale of :data:`geco_guide.metric.render.MAP_RANGE`, with a
 legend). Several inputs (or a folder of videos) add ``<out>/geco_scores.csv`` (one row per video,
 failures with an ``error``) and ``<out>/geco_summary.json`` (means over videos). Every output is
-written atomically, the table and summary both or neither. A bad input is one error line and does
-not stop the others; the exit code is non-zero only when every input failed or the table could not
-be written (2 for a bad config, an unusable ``--out`` or unavailable weights, before any scoring).
+written atomically, the table and summary both or neither, a video's score JSON after its other
+outputs (one that cannot be written takes those back). While it runs, the command holds an output
+lock on each file it writes (:func:`~geco_guide.io.files.output_lock`): a second run into the same
+files is refused. A bad input is one error line and does not stop the others; the exit code is
+non-zero only when every input failed or the table could not be written (2 before any model loads:
+a bad config, an unusable ``--out``, a mask file that is unreadable or fits no input, the weights
+of any model missing (all of them named at once), another run writing the same outputs).
 Progress goes to stderr: the models being loaded, then one line per input and per window.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import io
 import math
 import os
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -33,6 +38,7 @@ from ..io.files import (
     WriteError,
     check_output_dir,
     json_text,
+    output_lock,
     unique_names,
     write_json_atomic,
     write_texts_atomic,
@@ -50,18 +56,26 @@ from .kit import (
 
 if TYPE_CHECKING:  # GeCoConfig: annotations only; the rest bound at run time by _IMPLEMENTATION
     from ..config import GeCoConfig
-    from ..estimators import Estimators, load_estimators
+    from ..estimators import Estimators, check_weights, load_estimators, load_segmenter
     from ..io.devices import check_device
-    from ..metric.evaluate import PAPER_NAMES, evaluate_video, finite_or_none, mean_or_nan, write_maps_video
+    from ..metric.evaluate import (
+        PAPER_NAMES,
+        clip_mask_source,
+        evaluate_video,
+        finite_or_none,
+        mean_or_nan,
+        write_maps_video,
+    )
     from ..types import plural
 
-__all__ = ["check_scorable", "expand_inputs", "main"]
+__all__ = ["check_masks_fit", "check_scorable", "expand_inputs", "main", "score_line"]
 
 #: What main runs on, imported once the arguments parsed: it loads torch.
 _IMPLEMENTATION = DeferredImports(__name__, {
-    "..estimators": ("load_estimators",),
+    "..estimators": ("check_weights", "load_estimators", "load_segmenter"),
     "..io.devices": ("check_device",),
-    "..metric.evaluate": ("PAPER_NAMES", "evaluate_video", "finite_or_none", "mean_or_nan", "write_maps_video"),
+    "..metric.evaluate": ("PAPER_NAMES", "clip_mask_source", "evaluate_video", "finite_or_none", "mean_or_nan",
+                          "write_maps_video"),
     "..types": ("plural",),
 })
 __getattr__ = _IMPLEMENTATION.attribute
@@ -222,18 +236,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def dynamic_mask_option(spec: str | None, device: Any) -> Any:
-    """``--dynamic-masks``: a mask path stays a path (each video reads the frames its protocol
-    picks), after checking that it exists; ``auto`` becomes one mask source for every input; text
+    """``--dynamic-masks``: a mask path is read and checked now, once, before any model loads (a
+    :class:`~geco_guide.estimators.dynamic_masks.GivenMasks` of the whole file, which each video
+    cuts to the frames its protocol picks); ``auto`` becomes one mask source for every input; text
     stays text, after checking that it names subjects: the segmenter of ``estimators.segmenter``,
-    loaded once with the estimators (:func:`wants_segmenter`), masks them."""
-    from ..estimators.dynamic_masks import AUTO, looks_like_path, mask_source
+    loaded once with the estimators (:func:`wants_segmenter`), masks them.
+
+    Raises:
+        MaskReadError: one sentence about the mask file (unreadable, not binary, wrong shape ...).
+    """
+    from ..estimators.dynamic_masks import AUTO, GivenMasks, looks_like_path, mask_source
 
     if spec is None:
         return None
     if looks_like_path(spec):
-        if not Path(spec).exists():
-            raise ValueError(f"--dynamic-masks {spec!r}: no such file or folder")
-        return spec
+        return GivenMasks.from_path(spec)
     if spec.strip() == AUTO:
         return mask_source(AUTO, device=device)
     from ..estimators.segmenters import subjects_of
@@ -244,19 +261,81 @@ def dynamic_mask_option(spec: str | None, device: Any) -> Any:
 
 def wants_segmenter(dynamic: Any) -> bool:
     """Whether the ``--dynamic-masks`` of :func:`dynamic_mask_option` is text for the segmenter."""
-    from ..estimators.dynamic_masks import looks_like_path
+    return isinstance(dynamic, str)
 
-    return isinstance(dynamic, str) and not looks_like_path(dynamic)
+
+def check_masks_fit(items: list[_Input], masks: Any, cfg: GeCoConfig) -> None:
+    """Given masks against each input, before any model loads: an input whose frame count or
+    aspect ratio the masks do not fit (:func:`~geco_guide.metric.evaluate.clip_mask_source`, with
+    ``evaluation.max_frames``) gets that one line as its error, as does one that cannot be read."""
+    from ..estimators.dynamic_masks import GivenMasks
+    from ..io.video import read_frames
+
+    if not isinstance(masks, GivenMasks):
+        return
+    limit = cfg.evaluation.max_frames
+    for item in items:
+        if item.error is not None:
+            continue
+        try:  # the first frame only is kept: its size, and the count
+            probe = read_frames(item.path, default_fps=cfg.evaluation.default_fps, select=lambda count, fps: [0])
+            clip = replace(probe, num_frames=min(probe.num_frames, limit or probe.num_frames))
+            clip_mask_source(masks, clip, probe.num_frames)
+        except ValueError as err:  # MaskReadError and VideoReadError are ValueErrors
+            item.error = str(err)
 
 
 def _progress(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
+def _outputs_of_run(items: list[_Input], out: Path, args: argparse.Namespace, table: bool) -> list[Path]:
+    """Every file this run may write into ``out``: what it holds the output locks of."""
+    paths = [p for item in items if item.error is None for p in output_files(out, item.name, args.maps, args.detection)]
+    return paths + ([out / "geco_scores.csv", out / "geco_summary.json"] if table else [])
+
+
+def _score_one(item: _Input, out: Path, estimators: Estimators, cfg: GeCoConfig, args: argparse.Namespace,
+               dynamic: Any, progress: Any) -> tuple[Any, Path, str]:
+    """Score one input and write its outputs, the score JSON last: ``(result, json path, what
+    else was written)``. When one output cannot be written (a full disk), the ones this input
+    wrote before it are removed, so that a rerun needs no ``--overwrite``."""
+    result = evaluate_video(item.path, estimators, cfg.evaluation, fps=args.fps, model=args.model,
+                            maps=args.maps, dynamic_masks=dynamic, progress=progress)
+    written: list[Path] = []
+    try:
+        notes = ""
+        if args.maps:
+            written.append(write_maps_video(result, out / f"{item.name}.maps.mp4"))
+            notes += f", maps {written[-1]}"
+        if args.detection:
+            written.append(write_detection_video(item.path, out / item.name, estimators, cfg))
+            notes += f", detection maps {written[-1]}"
+        return result, write_json_atomic(out / f"{item.name}.geco.json", result.to_dict()), notes
+    except BaseException:
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
+
+
+def score_line(name: str, result: Any, json_path: Path, notes: str) -> str:
+    """The line of one scored input: its scores (a NaN one with its reason), windows, rate and files."""
+    nan = f" (NaN: {result.nan_reason})" if result.nan_reason is not None else ""
+    return (f"{name}: M_geo={result.fused:.4f} M_motion={result.motion:.4f} M_struct={result.structure:.4f}{nan} "
+            f"TM={result.total_motion:.2f}% MM={result.mean_motion:.2f}%/s "
+            f"({plural(len(result.windows), 'window')} at {result.sampled_fps:g} fps, source {result.fps:g} fps "
+            f"from {result.fps_source}) -> {json_path}{notes}")
+
+
 @interruptible("the <stem>.geco.json (and maps) of the videos finished so far; geco_scores.csv and geco_summary.json were not written")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)  # options may follow the inputs
     _IMPLEMENTATION.load()
+    with contextlib.ExitStack() as locks:  # the output locks, held until the run ends
+        return _run(args, locks)
+
+
+def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
     overrides, videos = split_overrides(args.inputs)
     # Neither an input nor an option (a=b.mp4): a missing file, or a mistyped key.
     strays = [a for a in overrides if not is_config_key(a.partition("=")[0])]
@@ -275,13 +354,21 @@ def main(argv: list[str] | None = None) -> int:
         device = check_device(cfg.evaluation.device, "evaluation.device")  # "auto" resolved once
         out = check_output_dir(args.out if args.out is not None else cfg.output.dir)
         items = expand_inputs(videos)
-        check_inputs_and_outputs(items, out, args)
         dynamic = dynamic_mask_option(args.dynamic_masks, device)
+        check_masks_fit(items, dynamic, cfg)
+        table = len(items) > 1 or any(Path(v).is_dir() and not _holds_frames(Path(v)) for v in videos)
+        if not all(item.error is not None for item in items):  # else check_inputs_and_outputs says why
+            for path in _outputs_of_run(items, out, args, table):
+                locks.enter_context(output_lock(path, "choose another --out"))
+        check_inputs_and_outputs(items, out, args)  # under the locks: an output of a run that ended meanwhile counts
         segmenter = wants_segmenter(dynamic)
-        if segmenter:
+        check_weights(cfg.estimators, segmenter=segmenter)  # every missing model named at once, nothing loaded yet
+        segment = None
+        if segmenter:  # loaded first, each load under its own line: an error follows the line of what failed
             _progress(f"loading segmenter: {cfg.estimators.segmenter} for {dynamic!r} ...")
+            segment = load_segmenter(cfg.estimators, device)
         _progress(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {device}")
-        estimators = load_estimators(cfg.estimators, device, segmenter=segmenter)
+        estimators = load_estimators(cfg.estimators, device).with_segmenter(segment)
     except (ValueError, FileNotFoundError, WriteError) as err:  # WeightsNotFoundError is a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -292,15 +379,8 @@ def main(argv: list[str] | None = None) -> int:
         if item.error is None:
             _progress(f"[{k}/{len(items)}] scoring {item.path}")
             try:
-                result = evaluate_video(item.path, estimators, cfg.evaluation, fps=args.fps,
-                                        model=args.model, maps=args.maps, dynamic_masks=dynamic,
-                                        progress=lambda line, k=k: _progress(f"[{k}/{len(items)}]   {line}"))
-                json_path = write_json_atomic(out / f"{item.name}.geco.json", result.to_dict())
-                maps_note = ""
-                if args.maps:
-                    maps_note = f", maps {write_maps_video(result, out / f'{item.name}.maps.mp4')}"
-                if args.detection:
-                    maps_note += f", detection maps {write_detection_video(item.path, out / item.name, estimators, cfg)}"
+                result, json_path, notes = _score_one(item, out, estimators, cfg, args, dynamic,
+                                                      lambda line, k=k: _progress(f"[{k}/{len(items)}]   {line}"))
             except Exception as err:  # one bad input must not stop the others
                 row["error"] = _one_line(err)
             else:
@@ -308,18 +388,12 @@ def main(argv: list[str] | None = None) -> int:
                 row.update(num_frames=result.num_frames, fps=result.fps, fps_source=result.fps_source,
                            sampled_fps=result.sampled_fps,
                            num_windows=len(result.windows), json=str(json_path))
-                print(
-                    f"{item.name}: M_geo={result.fused:.4f} M_motion={result.motion:.4f} M_struct={result.structure:.4f} "
-                    f"TM={result.total_motion:.2f}% MM={result.mean_motion:.2f}%/s "
-                    f"({plural(len(result.windows), 'window')} at {result.sampled_fps:g} fps, source {result.fps:g} fps "
-                    f"from {result.fps_source}) "
-                    f"-> {json_path}{maps_note}"
-                )
+                print(score_line(item.name, result, json_path, notes))
         if row["error"] is not None:
             print(f"error: {item.path}: {row['error']}", file=sys.stderr)
         rows.append(row)
 
-    if len(items) > 1 or any(Path(v).is_dir() and not _holds_frames(Path(v)) for v in videos):
+    if table:
         try:
             csv_path, summary_path = _write_table(out, rows, estimators.ids(), asdict(cfg.evaluation))
         except WriteError as err:
@@ -327,4 +401,3 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         print(f"wrote {csv_path} and {summary_path}")
     return 1 if all(row["error"] is not None for row in rows) else 0
-

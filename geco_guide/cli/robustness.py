@@ -20,7 +20,7 @@ from ..loss.pair_modes import PAIR_MODES
 from .kit import DeferredImports, Parser, interruptible
 
 if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
-    from ..bench.robustness import CUES, plot, run_sweep, sweep_memory_bytes
+    from ..bench.robustness import plot, run_sweep, sweep_memory_bytes
     from ..config import SEED_RANGE
     from ..io.devices import check_memory_fits
     from ..metric.protocol import EvaluationConfig
@@ -29,7 +29,7 @@ __all__ = ["main"]
 
 #: What main runs on, imported once the arguments parsed: it loads torch.
 _IMPLEMENTATION = DeferredImports(__name__, {
-    "..bench.robustness": ("CUES", "plot", "run_sweep", "sweep_memory_bytes"),
+    "..bench.robustness": ("plot", "run_sweep", "sweep_memory_bytes"),
     "..config": ("SEED_RANGE",),
     "..io.devices": ("check_memory_fits",),
     "..metric.protocol": ("EvaluationConfig",),
@@ -84,17 +84,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     defaults = EvaluationConfig().loss
+    # a line per noise level as soon as it is scored (flushed: a pipe would hold them to the end)
     report = run_sweep(frames, height, width, args.seed, depth_sigmas, flow_sigmas,
-                       replace(defaults, pairs=args.pairs, depth_edge_tau=None if args.no_depth_edges else defaults.depth_edge_tau))
+                       replace(defaults, pairs=args.pairs, depth_edge_tau=None if args.no_depth_edges else defaults.depth_edge_tau),
+                       progress=lambda line: print(line, flush=True))
     try:
         write_texts_atomic({out / "robustness.json": json_text(report), out / "robustness.png": plot(report)})
     except WriteError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
-    for noisy_input in ("depth", "flow"):
-        rows = report[noisy_input]
-        for k, sigma in enumerate(rows["sigmas"]):
-            cells = " ".join(f"{task}/{cue} {rows[task][cue][k]:.3f}" for task in ("warp", "occlusion") for cue in CUES)
-            print(f"{noisy_input} sigma={sigma:g}: {cells} rigid fused {rows['rigid_fused'][k]:.4f}")
     print(f"wrote {out / 'robustness.json'} and {out / 'robustness.png'}")
     return 0

@@ -14,8 +14,9 @@ draws other edits.
 
 A clip that cannot be read or scored (a damaged ``meta.json`` or ``truth.npz``, ground truth that
 contradicts the clip) is one error line and a row of ``errors`` in the report; the others are
-scored, and the exit code is 1 when any clip failed (2 for bad options, before any work).
-Progress (one line per clip) goes to stderr.
+scored, and the exit code is 1 when any clip failed (2 for bad options, before any work: a report
+of an earlier run in ``--out`` among them, unless ``--overwrite``). Progress (one line per clip, or
+per scored clip of ``--dynamic``) goes to stderr as the work happens.
 """
 
 from __future__ import annotations
@@ -69,6 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pairs", choices=PAIR_MODES, default=None, help="frame pairs (default: all)")
     p.add_argument("--out", default=None, help="output folder (default: <first input>/validation)")
     p.add_argument("--no-grids", action="store_true", help="skip the per-clip image grids")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the report of an earlier run in --out (without it, an existing report is an error)")
     p.add_argument("--dynamic", action="store_true",
                    help="validate dynamic masks on synthetic scenes with moving objects (oracle estimators; no inputs)")
     p.add_argument("--dynamic-size", type=int, nargs=3, default=None, metavar=("FRAMES", "HEIGHT", "WIDTH"),
@@ -78,6 +81,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def check_no_report(paths: list[Path], overwrite: bool) -> None:
+    """ValueError (one line) when a report file of an earlier run is there and ``overwrite`` is not
+    given: the other commands refuse to replace their outputs silently too."""
+    taken = next((path for path in paths if path.exists()), None)
+    if taken is not None and not overwrite:
+        raise ValueError(f"{str(taken)!r} already exists (the report of an earlier run); pass --overwrite to replace "
+                         "it, or choose another --out folder")
+
+
 def dynamic_main(args: argparse.Namespace) -> int:
     """``--dynamic``: the report of :func:`geco_guide.bench.dynamic_suite.dynamic_validation`."""
     try:
@@ -85,6 +97,7 @@ def dynamic_main(args: argparse.Namespace) -> int:
             raise ValueError("--dynamic renders its own scenes: give no benchmark folder or override")
         scenes = DynamicScenes(*(args.dynamic_size or ()), **({} if args.dynamic_seed is None else {"seed": args.dynamic_seed}))
         out = check_output_dir(Path(args.out) if args.out else Path("validation-dynamic"))
+        check_no_report([out / "dynamic.json", out / "dynamic.md"], args.overwrite)
     except (ValueError, WriteError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -123,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = config_from_args(args, overrides, {"evaluation.loss.pairs": args.pairs})
         check_device(cfg.evaluation.device, "evaluation.device")
         out = check_output_dir(Path(args.out) if args.out else Path(roots[0]) / "validation")
+        check_no_report([out / "validation.json", out / "validation.md"], args.overwrite)
         if not args.oracle:
             _progress(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {cfg.evaluation.device}")
         estimators = None if args.oracle else load_estimators(cfg.estimators, cfg.evaluation.device)
@@ -142,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
             _, result = score_frames(bench.frames, models, cfg.evaluation.loss, flow_batch_size=cfg.evaluation.flow_batch_size)
             record = validate_clip(bench, result)
             if not args.no_grids:
-                record["grid"] = str(write_png(out / "grids" / f"{record['clip']}.png", grid_image(bench, result, grid_frames(bench, record))))
+                grid = grid_image(bench, result, grid_frames(bench, record), record.get("task1"))
+                record["grid"] = str(write_png(out / "grids" / f"{record['clip']}.png", grid))
         except (ValueError, OSError, RuntimeError) as err:  # one bad clip must not stop the others
             errors.append({"clip": str(folder), "error": str(err).splitlines()[0] if str(err) else type(err).__name__})
             print(f"error: {folder}: {errors[-1]['error']}", file=sys.stderr)

@@ -12,17 +12,18 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Optional
 
 import torch
 
 from ..io.devices import resolve_device
+from . import dynamic_masks  # noqa: F401  (names the mask sources the loss takes by name: "auto")
 from .bundle import Estimators, estimator_id
-from .loading import WeightsNotFoundError
+from .loading import WeightsNotFoundError, WeightsSource, check_weight_sources
 
-__all__ = ["TINY_RANDOM", "Estimators", "EstimatorsConfig", "check_estimator_weights", "estimator_id", "estimator_ids",
-           "load_estimators", "load_segmenter", "tiny_estimators", "tiny_random_decoder", "with_config_key"]
+__all__ = ["TINY_RANDOM", "Estimators", "EstimatorsConfig", "check_weights", "estimator_id", "estimator_ids",
+           "estimator_weight_sources", "load_estimators", "load_segmenter", "tiny_estimators", "tiny_random_decoder",
+           "with_config_key"]
 
 TINY_RANDOM = "tiny-random"
 
@@ -83,45 +84,6 @@ def with_config_key(err: Exception, key: str, example: str) -> WeightsNotFoundEr
     return WeightsNotFoundError(f"{err} (config: {key}={example})")
 
 
-def check_estimator_weights(estimators_cfg: EstimatorsConfig, *, segmenter: bool = False,
-                            extra: Sequence[tuple[str, str, str, Sequence[str], str | None]] = ()) -> None:
-    """Every model's weights a run needs, looked up before any model loads (a cache look-up or one
-    metadata request each): the geometry and flow estimators, with ``segmenter`` the text
-    segmenter, and the ``extra`` rows ``(config key, source, model name, files, revision)`` of other
-    models (the video model). All that are missing are named at once, in one line, each with its
-    config key and how to pass a local path; ``tiny-random`` needs nothing.
-
-    Raises:
-        WeightsNotFoundError: the one line.
-    """
-    from .loading import check_weights_available
-    from .ufm import UFM
-    from .vggt import VGGT
-
-    rows = [*extra,
-            ("estimators.geometry", estimators_cfg.geometry, VGGT.model_name, VGGT.checkpoint_files, None),
-            ("estimators.flow", estimators_cfg.flow, UFM.model_name, ("config.json",), None)]
-    spec = estimators_cfg.segmenter
-    if segmenter and not spec.startswith(TINY_RANDOM):
-        from .segmenters import segmenter_weights
-
-        rows.extend(("estimators.segmenter", source, name, files, None)
-                    for source, name, files in segmenter_weights(spec))
-    missing = []
-    for key, source, name, filenames, revision in rows:
-        if source is None or str(source).startswith(TINY_RANDOM):
-            continue
-        try:
-            check_weights_available(source, filenames, model_name=name, revision=revision)
-        except WeightsNotFoundError as err:
-            folder = Path(str(source)).name or str(source)
-            missing.append(f"{err} (config: {key}=/path/to/{folder})")
-    if len(missing) == 1:
-        raise WeightsNotFoundError(missing[0])
-    if missing:
-        raise WeightsNotFoundError(f"{len(missing)} models' weights are missing: " + "; ".join(missing))
-
-
 def estimator_ids(estimators_cfg: EstimatorsConfig, segmenter: bool = False) -> dict[str, str]:
     """The ids :func:`load_estimators` gives the models of ``estimators_cfg`` (``segmenter``: also
     the text segmenter's), without loading them: a report written without the models names them
@@ -132,6 +94,33 @@ def estimator_ids(estimators_cfg: EstimatorsConfig, segmenter: bool = False) -> 
     # tiny random models are only reproducible with their seed
     return {key: f"{name}(seed={estimators_cfg.init_seed})" if name.startswith(TINY_RANDOM) else name
             for key, name in names.items()}
+
+
+def estimator_weight_sources(estimators_cfg: EstimatorsConfig, segmenter: bool = False) -> list[WeightsSource]:
+    """The :class:`~.loading.WeightsSource` of every model ``estimators_cfg`` names: geometry, flow
+    and, with ``segmenter``, the text segmenter's one or two; ``tiny-random`` models have none."""
+    from .segmenters import segmenter_weight_sources
+    from .ufm import UFM
+    from .vggt import VGGT
+
+    rows = [WeightsSource("estimators.geometry", estimators_cfg.geometry, VGGT.model_name, tuple(VGGT.checkpoint_files)),
+            WeightsSource("estimators.flow", estimators_cfg.flow, UFM.model_name)]
+    rows = [row for row in rows if row.source != TINY_RANDOM]
+    return rows + (segmenter_weight_sources(estimators_cfg.segmenter) if segmenter else [])
+
+
+def check_weights(estimators_cfg: EstimatorsConfig, *, segmenter: bool = False,
+                  extra: Sequence[WeightsSource] = ()) -> None:
+    """Whether every model a run loads can find its weights, found out before any loads: the
+    ``extra`` ones (a generating command's video model, say) and the estimators of
+    ``estimators_cfg`` (:func:`estimator_weight_sources`), in that order.
+
+    Raises:
+        WeightsNotFoundError: one line naming every model whose weights are missing
+            (:func:`~.loading.check_weight_sources`: each as loading it would say it, with the
+            config key that points at a local path instead).
+    """
+    check_weight_sources([*extra, *estimator_weight_sources(estimators_cfg, segmenter)])
 
 
 def load_segmenter(estimators_cfg: EstimatorsConfig, device: str | torch.device = "auto") -> Any:

@@ -14,17 +14,18 @@ may move on its own. The three kinds:
 
 from __future__ import annotations
 
+import inspect
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from ..io.masks import MASK_SUFFIXES, MaskReadError, check_masks, fit_masks, read_masks
+from ..io.masks import MASK_SUFFIXES, MaskReadError, check_masks, fit_masks, mask_file_name, read_masks
 from ..io.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES
-from ..types import Correspondences, DynamicMaskSource, SceneGeometry
+from ..types import NAMED_MASK_SOURCES, Correspondences, DynamicMaskSource, SceneGeometry
 
 __all__ = ["AUTO", "GivenMasks", "looks_like_path", "mask_source"]
 
@@ -38,40 +39,49 @@ class GivenMasks:
         masks: ``[S, H, W]`` bool (or 0/1) for the ``S`` frames the source will be asked about;
             any size of the frames' aspect ratio (resized, nearest, to the frames).
         source_name: what results call them (``"given"``, ``"given: masks.npz"``).
+        path: the mask file they were read from, or ``None``: messages about them name it.
     """
 
-    def __init__(self, masks: Tensor, source_name: str = "given") -> None:
+    def __init__(self, masks: Tensor, source_name: str = "given", path: str | os.PathLike | None = None) -> None:
         self.masks = check_masks(masks).cpu()
         self.source_name = source_name
+        self.path = None if path is None else os.fspath(path)
+
+    @property
+    def name(self) -> str:
+        """What messages call them: ``mask file '...'``, or ``dynamic masks (<source name>)``."""
+        return f"dynamic masks ({self.source_name})" if self.path is None else mask_file_name(self.path)
 
     @classmethod
     def from_path(cls, path: str | os.PathLike, select: Sequence[int] | None = None) -> GivenMasks:
         """Masks read from a mask video, PNG folder or ``.npz`` (:func:`~geco_guide.io.masks.read_masks`);
         ``select`` keeps those source frames only."""
         masks, _ = read_masks(path, select)
-        return cls(masks, f"given: {path}")
+        return cls(masks, f"given: {path}", path)
 
     def at(self, indices: Sequence[int], num_frames: int) -> GivenMasks:
         """The masks of source frames ``indices`` of a video of ``num_frames`` frames (the
         protocol's selection), after checking that the masks cover that video frame for frame."""
         if self.masks.shape[0] != num_frames:
-            raise MaskReadError(f"dynamic masks ({self.source_name}) hold {self.masks.shape[0]} frame(s), the video {num_frames}")
-        return GivenMasks(self.masks[list(indices)], self.source_name)
+            raise MaskReadError(f"{self.name} {'hold' if self.path is None else 'holds'} {self.masks.shape[0]} "
+                                f"frame(s), the video {num_frames}")
+        return GivenMasks(self.masks[list(indices)], self.source_name, self.path)
 
     def dynamic_masks(self, frames: Tensor, geometry: SceneGeometry | None = None,
                       flow: Correspondences | None = None,
                       pairs: Sequence[tuple[int, int]] | None = None) -> Tensor:
         """``frames [S, 3, H, W]`` -> the given masks ``[S, H, W]`` bool at ``H x W``, on the
         frames' device (MaskReadError when ``S`` differs)."""
-        masks = fit_masks(self.masks, frames.shape[-4], tuple(frames.shape[-2:]), f"dynamic masks ({self.source_name})")
+        masks = fit_masks(self.masks, frames.shape[-4], tuple(frames.shape[-2:]), self.name)
         return masks.to(frames.device)
 
 
 def looks_like_path(spec: str) -> bool:
     """Whether ``spec`` names a mask file or folder rather than text: it exists, holds a path
-    separator or ends in a mask, video or image suffix."""
-    suffixes = MASK_SUFFIXES + VIDEO_SUFFIXES + IMAGE_SUFFIXES
-    return Path(spec).exists() or os.sep in spec or spec.lower().endswith(suffixes)
+    separator or ends in a mask, video or image suffix (or ``.npy``, to be refused as a mask
+    file). An empty or blank string is none: ``Path("")`` is the working folder."""
+    suffixes = MASK_SUFFIXES + VIDEO_SUFFIXES + IMAGE_SUFFIXES + (".npy",)
+    return bool(spec.strip()) and (Path(spec).exists() or os.sep in spec or spec.lower().endswith(suffixes))
 
 
 def mask_source(spec: Any, *, device: str | torch.device = "cpu", **options: Any) -> DynamicMaskSource | None:
@@ -111,7 +121,7 @@ def mask_source(spec: Any, *, device: str | torch.device = "cpu", **options: Any
     if text == AUTO:
         from .motion_masks import MotionMasks
 
-        return MotionMasks(**options)
+        return MotionMasks(**_known_options("the automatic mask source", MotionMasks, options))
     if looks_like_path(text):
         _no_options("given masks", options)
         return GivenMasks.from_path(text)
@@ -122,9 +132,24 @@ def mask_source(spec: Any, *, device: str | torch.device = "cpu", **options: Any
             raise
         raise ValueError(f"text dynamic masks ({text!r}) need a text segmenter, which this install lacks; "
                          "pass a mask file or 'auto' instead") from None
-    return text_segmenter(text, device=device, **options)
+    return text_segmenter(text, device=device, **_known_options("a text segmenter", text_segmenter, options))
 
 
 def _no_options(what: str, options: dict[str, Any]) -> None:
     if options:
         raise ValueError(f"{what} take no options, got {sorted(options)}")
+
+
+def _known_options(what: str, factory: Callable[..., Any], options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` after checking that ``factory`` takes each as a keyword (its keyword-only
+    parameters, less ``device``, which :func:`mask_source` passes itself): ValueError naming
+    the unknown ones and the known, not the TypeError of the call."""
+    known = [name for name, parameter in inspect.signature(factory).parameters.items()
+             if parameter.kind is inspect.Parameter.KEYWORD_ONLY and name != "device"]
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise ValueError(f"{what} takes no option(s) {unknown}; its options: {', '.join(known)}")
+    return options
+
+
+NAMED_MASK_SOURCES[AUTO] = lambda: mask_source(AUTO)

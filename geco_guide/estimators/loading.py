@@ -4,7 +4,8 @@ Offline without weights ends in one :class:`WeightsNotFoundError` line that name
 id and how to pass a local folder instead; a file that cannot be read as a checkpoint (empty,
 truncated, random bytes) in one :class:`UnreadableCheckpointError` line naming it; a checkpoint
 whose keys do not fit the module in a :class:`CheckpointMismatchError` listing what is missing,
-unexpected or mis-shaped.
+unexpected or mis-shaped. :func:`check_weight_sources` looks for the weights of every model of a run
+(:class:`WeightsSource` rows) before any loads, and names all that are missing in one line.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,8 +21,9 @@ import torch
 from torch import Tensor, nn
 
 __all__ = ["CHECKPOINT_SUFFIXES", "CheckpointMismatchError", "UnreadableCheckpointError",
-           "WeightsNotFoundError", "check_weights_available", "fetch_checkpoint_file", "fetch_config_file",
-           "load_state_dict_checked", "load_weights", "pretrained_or_one_line", "quiet_hub_retries"]
+           "WeightsNotFoundError", "WeightsSource", "check_weight_sources", "check_weights_available",
+           "fetch_checkpoint_file", "fetch_config_file", "load_state_dict_checked", "load_weights",
+           "pretrained_or_one_line", "quiet_hub_retries", "short_reason"]
 
 
 class WeightsNotFoundError(FileNotFoundError):
@@ -185,6 +188,49 @@ def check_weights_available(source: str | os.PathLike, filenames: Sequence[str],
     raise hub_weights_unavailable(model_name, source, reason)
 
 
+@dataclass(frozen=True)
+class WeightsSource:
+    """One model whose weights a run needs, as :func:`check_weight_sources` checks it.
+
+    Attributes:
+        key: the config key that names the weights (``estimators.geometry``, ``model.id``).
+        source: its value: a hub id or a local path.
+        model_name: what messages call the model.
+        filenames: files whose presence says the weights are there (one is enough).
+        revision: the hub revision, or None.
+        example: the local-path example of the message (default ``/path/to/<source's name>``).
+    """
+
+    key: str
+    source: str
+    model_name: str
+    filenames: tuple[str, ...] = ("config.json",)
+    revision: str | None = None
+    example: str | None = None
+
+
+def check_weight_sources(rows: Sequence[WeightsSource]) -> None:
+    """Whether every model of ``rows`` can find its weights (:func:`check_weights_available` each:
+    a cache look-up or one metadata request), before any loads.
+
+    Raises:
+        WeightsNotFoundError: one line naming every model whose weights are missing, each as
+            loading it would say it, with the config key that points at a local path instead.
+    """
+    problems = []
+    for row in rows:
+        try:
+            check_weights_available(row.source, row.filenames, model_name=row.model_name, revision=row.revision)
+        except WeightsNotFoundError as err:
+            example = row.example or f"/path/to/{Path(str(row.source)).name}"
+            problems.append(f"{err} (config: {row.key}={example})")
+    if len(problems) == 1:
+        raise WeightsNotFoundError(problems[0])
+    if problems:
+        listed = "; ".join(f"({k}) {problem}" for k, problem in enumerate(problems, start=1))
+        raise WeightsNotFoundError(f"{len(problems)} models lack their weights: {listed}")
+
+
 def hub_failure_reason(exc: Exception) -> str:
     """Why a hub request failed, as the parenthesis of :func:`hub_weights_unavailable`'s line."""
     name = type(exc).__name__
@@ -229,7 +275,7 @@ def fetch_config_file(
         return None  # the weights' own fetch says what is missing, if anything
 
 
-def _short_reason(err: BaseException, limit: int = 100) -> str:
+def short_reason(err: BaseException, limit: int = 100) -> str:
     """``Type: first sentence`` of a reader's error (torch's run to paragraphs)."""
     text = (str(err).strip().splitlines() or [""])[0].split(". ")[0]
     text = text if len(text) <= limit else text[: limit - 3] + "..."
@@ -265,7 +311,7 @@ def load_weights(path: str | os.PathLike) -> dict[str, Tensor]:
     except UnreadableCheckpointError:
         raise
     except Exception as err:  # UnpicklingError, EOFError, RuntimeError (zip), SafetensorError, OSError, ...
-        raise unreadable(path, _short_reason(err)) from None
+        raise unreadable(path, short_reason(err)) from None
     if isinstance(state, Mapping) and "model" in state and isinstance(state["model"], Mapping):
         state = state["model"]  # training checkpoints wrap the weights
     if not isinstance(state, Mapping):

@@ -48,7 +48,7 @@ from ..geometry import (
     unproject,
 )
 from ..io.masks import connected_regions
-from ..types import Correspondences, OptionError, SceneGeometry
+from ..types import Correspondences, OptionError, SceneGeometry, is_integer, is_number
 
 __all__ = ["MotionMasks", "dilate", "splat"]
 
@@ -106,6 +106,15 @@ class MotionMasks:
     def __init__(self, *, min_residual_px: float = 1.0, min_region_px: int = 16, rigid_tolerance: float = RIGID_TOLERANCE,
                  min_inliers: float = MIN_INLIERS, dilation: int = 0, covisibility_threshold: float = 0.5,
                  iterations: int = RANSAC_ITERATIONS, seed: int = 0) -> None:
+        numbers = {"min_residual_px": min_residual_px, "rigid_tolerance": rigid_tolerance, "min_inliers": min_inliers,
+                   "covisibility_threshold": covisibility_threshold}
+        integers = {"min_region_px": min_region_px, "dilation": dilation, "iterations": iterations, "seed": seed}
+        for key, value in numbers.items():
+            if not is_number(value):
+                raise OptionError(key, f"must be a number, got {value!r}")
+        for key, value in integers.items():  # 1.5 RANSAC iterations would be truncated to 1, silently
+            if not is_integer(value):
+                raise OptionError(key, f"must be an integer, got {value!r}")
         checks = {
             "min_residual_px": (min_residual_px, min_residual_px > 0, "> 0"),
             "min_region_px": (min_region_px, min_region_px >= 3, ">= 3"),

@@ -23,6 +23,11 @@ a generated video may well lack the subject its prompt names (the model did not 
 and failing then would end a guided run in the middle; GeCo simply scores those pixels as it
 would without a mask. Empty text is a ValueError.
 
+A folder of weights is checked before it is used: its ``config.json`` must describe a model of
+the segmenter's family, and every weight must fit (a missing key would stay random, an
+unexpected one go unused: another model's weights). What does not fit, or cannot be read (a
+truncated file), is one line naming ``estimators.segmenter``, without transformers' load report.
+
 ``source="tiny-random"`` builds tiny randomly initialised instances of the same classes (CPU,
 seconds, offline), as the other estimators' ``tiny-random``: their masks are noise-like, only the
 mechanics are real.
@@ -30,8 +35,12 @@ mechanics are real.
 
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
-from collections.abc import Callable, Sequence
+import pickle
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -39,12 +48,18 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..types import Correspondences, DynamicMaskSource, SceneGeometry
-from .loading import pretrained_or_one_line
+from .loading import (
+    CheckpointMismatchError,
+    UnreadableCheckpointError,
+    WeightsSource,
+    pretrained_or_one_line,
+    short_reason,
+)
 
 __all__ = ["GROUNDING_DINO_WEIGHTS", "SAM3_WEIGHTS", "GroundedSam2Segmenter", "Sam3Segmenter",
            "SegmenterFactory", "detector_and_tracker", "model_pixels", "segmenter_from_spec",
-           "segmenter_weights", "segmenters_from_spec", "subjects_of", "text_segmenter", "tiny_grounded_sam2", "tiny_sam3",
-           "union_mask"]
+           "segmenter_weight_sources", "segmenters_from_spec", "subjects_of", "text_segmenter", "tiny_grounded_sam2",
+           "tiny_sam3", "union_mask"]
 
 logger = logging.getLogger(__name__)
 
@@ -223,9 +238,78 @@ class GroundedSam2Segmenter:
 def _from_pretrained(cls: Any, source: str, what: str, folder: str, gated: bool = False) -> Any:
     """``cls.from_pretrained(source)`` of a hub id or a local folder; one-line
     :class:`WeightsNotFoundError` naming the id, :data:`CONFIG_KEY` and how to pass a folder
-    (``folder``: the example value)."""
-    return pretrained_or_one_line(cls.from_pretrained, source, model_name=what, folder_hint=f"{CONFIG_KEY}={folder}",
-                                  gated=gated)
+    (``folder``: the example value). A model (not a tokenizer) is loaded checked
+    (:func:`_checked_model`)."""
+    load = cls.from_pretrained
+    if hasattr(cls, "config_class"):
+        def load(path: str) -> Any:
+            return _checked_model(cls, path, what, source, folder)
+    return pretrained_or_one_line(load, source, model_name=what, folder_hint=f"{CONFIG_KEY}={folder}", gated=gated)
+
+
+@contextlib.contextmanager
+def _quiet_transformers() -> Iterator[None]:
+    """transformers' load report (hundreds of lines for weights that do not fit) and its progress
+    bars off: what is wrong is said in one line instead (:func:`_checked_model`)."""
+    from transformers.utils import logging as transformers_logging
+
+    level, bars = transformers_logging.get_verbosity(), transformers_logging.is_progress_bar_enabled()
+    transformers_logging.set_verbosity_error()
+    transformers_logging.disable_progress_bar()
+    try:
+        yield
+    finally:
+        transformers_logging.set_verbosity(level)
+        if bars:
+            transformers_logging.enable_progress_bar()
+
+
+def _check_model_type(cls: Any, path: str, what: str, source: str, folder: str) -> None:
+    """A local folder's ``config.json`` must describe a model of ``cls``'s family (``sam3_video``
+    for SAM 3 video, ``sam2*`` for SAM 2, ``grounding-dino``), checked before anything loads: a
+    VGGT folder would otherwise build a full-size random SAM 3 first. Hub repos are what they are."""
+    config = Path(path) / "config.json"
+    if not Path(path).is_dir():
+        return
+    where = f"{CONFIG_KEY}={source!r}"
+    if not config.is_file():
+        raise CheckpointMismatchError(f"{where}: the folder holds no config.json, so it is no {what} model "
+                                      f"(save_pretrained writes config.json beside the weights; {CONFIG_KEY}={folder})")
+    try:
+        model_type = json.loads(config.read_text(encoding="utf-8")).get("model_type")
+    except (OSError, ValueError, AttributeError) as err:
+        raise CheckpointMismatchError(f"{where}: {str(config)!r} is not a readable config.json "
+                                      f"({type(err).__name__})") from None
+    family = cls.config_class.model_type.split("_")[0]
+    if not (isinstance(model_type, str) and model_type.startswith(family)):
+        named = f"a {model_type!r} model" if isinstance(model_type, str) else "no transformers model (no model_type)"
+        raise CheckpointMismatchError(f"{where}: the folder's config.json describes {named}, not {what} "
+                                      f"({cls.config_class.model_type!r}); pass a {what} folder ({CONFIG_KEY}={folder})")
+
+
+def _checked_model(cls: Any, path: str, what: str, source: str, folder: str) -> Any:
+    """``cls.from_pretrained(path)`` without transformers' load report, refusing weights that do not
+    fit (a missing key would stay random, an unexpected one unused: another model's weights) or
+    cannot be read (truncated), in one line naming :data:`CONFIG_KEY`."""
+    _check_model_type(cls, path, what, source, folder)
+    where = f"{CONFIG_KEY}={source!r}"
+    with _quiet_transformers():
+        try:
+            model, info = cls.from_pretrained(path, output_loading_info=True)
+        except (RuntimeError, EOFError, pickle.UnpicklingError) as err:  # size mismatches, damaged torch files
+            raise UnreadableCheckpointError(f"{where}: the {what} weights cannot be loaded ({short_reason(err)}); "
+                                            "they may be truncated or of another model: download them again") from None
+        except Exception as err:
+            if type(err).__name__ != "SafetensorError":  # safetensors' own error type, for a truncated file
+                raise
+            raise UnreadableCheckpointError(f"{where}: the {what} weights cannot be read ({short_reason(err)}); "
+                                            "they may be truncated: download them again") from None
+    wrong = {kind: sorted(info.get(f"{kind}_keys") or []) for kind in ("missing", "unexpected", "mismatched")}
+    if any(wrong.values()):
+        found = "; ".join(f"{len(keys)} {kind} key(s), e.g. {str(keys[0])!r}" for kind, keys in wrong.items() if keys)
+        raise CheckpointMismatchError(f"{where}: the weights do not fit {what} ({found}): another model's weights, "
+                                      f"or damaged ones; pass a {what} folder or hub id ({CONFIG_KEY}={folder})")
+    return model
 
 
 #: Makes the mask source of a subject text (``"a dog, a person"``) with models loaded once.
@@ -324,16 +408,18 @@ def segmenters_from_spec(spec: str, *, device: torch.device | str = "cpu", dtype
                                 dtype=dtype)
 
 
-def segmenter_weights(spec: str) -> list[tuple[str, str, tuple[str, ...]]]:
-    """``(source, model name, files whose presence says the weights are there)`` of every model
-    :func:`segmenters_from_spec` would load for the weights ``spec`` (none for the tiny ones):
-    what a command looks up before anything loads."""
-    if spec.startswith(TINY_RANDOM):
+def segmenter_weight_sources(spec: str) -> list[WeightsSource]:
+    """The weights :func:`segmenters_from_spec` loads for the config's :data:`CONFIG_KEY`, as
+    :func:`~geco_guide.estimators.check_weights` checks them before anything loads
+    (none for the tiny random models)."""
+    if not isinstance(spec, str) or spec.startswith(TINY_RANDOM):
         return []
     if spec == "grounding-sam2" or "," in spec:
+        folders = "/path/to/grounding-dino-tiny,/path/to/sam2.1-hiera-tiny"
         detector, tracker = detector_and_tracker(None if spec == "grounding-sam2" else spec)
-        return [(detector, "Grounding DINO", ("config.json",)), (tracker, "SAM 2 video", ("config.json",))]
-    return [(spec, "SAM 3 video", ("config.json",))]
+        return [WeightsSource(CONFIG_KEY, detector, "Grounding DINO", example=folders),
+                WeightsSource(CONFIG_KEY, tracker, "SAM 2 video", example=folders)]
+    return [WeightsSource(CONFIG_KEY, spec, "SAM 3 video", example="/path/to/sam3")]
 
 
 def segmenter_from_spec(text: str, spec: str, *, device: torch.device | str = "cpu",

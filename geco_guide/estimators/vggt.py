@@ -318,10 +318,9 @@ class VGGT(FrozenEstimator):
         """``config``: a :class:`VGGTConfig` or section-5.1 dict; None = VGGT-1B."""
         super().__init__()
         self.config = config = self.resolve_config(config)
+        config.validate()
         depth = config.aggregator.depth
         layer_idx = tuple(config.depth_head.intermediate_layer_idx)
-        if not all(0 <= i < depth for i in layer_idx):
-            raise ValueError(f"depth_head.intermediate_layer_idx {layer_idx} outside 0..{depth - 1}")
         self.aggregator = Aggregator(config, keep_layers=(*layer_idx, depth - 1))
         self.camera_head = CameraHead(2 * config.embed_dim, config.camera_head)
         self.depth_head = DepthHead(2 * config.embed_dim, config.patch_size, config.depth_head)

@@ -230,18 +230,18 @@ def take_pid_lock(lock: Path, busy: str, elsewhere: str) -> Path:
 
 
 @contextlib.contextmanager
-def output_lock(path: str | os.PathLike) -> Iterator[None]:
+def output_lock(path: str | os.PathLike, instead: str = "choose another --out or output.name") -> Iterator[None]:
     """Hold ``.<name>.lock`` beside the output ``path`` while a run makes it, released however the
     block ends: a second run that would write the same file fails at once (one line naming the
-    pid of the first) instead of both writing and one result silently replacing the other."""
+    pid of the first, and ``instead``: what else to do) instead of both writing and one result
+    silently replacing the other."""
     path = Path(path)
     lock = path.with_name(f".{path.name}.lock")
     try:
         lock.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise ValueError(f"cannot write {str(path)!r}: {_reason(err)}") from None
-    take_pid_lock(lock, f"another run (pid {{pid}}) is writing {str(path)!r}; wait for it to end or choose "
-                        "another --out or output.name", "choose another --out or output.name")
+    take_pid_lock(lock, f"another run (pid {{pid}}) is writing {str(path)!r}; wait for it to end or {instead}", instead)
     try:
         yield
     finally:

@@ -9,11 +9,12 @@ and the robustness sweep.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Panel", "legend", "legend_width", "limits", "text", "text_width"]
+__all__ = ["FONT_SIZE", "Panel", "legend", "legend_width", "limits", "plot_font", "text", "text_width"]
 
 #: Marker shapes of :func:`marker`.
 SHAPES = ("circle", "square", "triangle", "diamond")
@@ -27,14 +28,32 @@ def limits(values: Sequence[float]) -> tuple[float, float]:
     return low - pad, high + pad
 
 
+#: Pixels of the plots' text. Pillow's default font at its default 10 pixels draws a space one
+#: or two pixels wide, so that words run together ("not toscale"); from 12 a space reads as one.
+FONT_SIZE = 12
+
+
+@functools.cache
+def plot_font() -> Any:
+    """Pillow's default font at :data:`FONT_SIZE` pixels, or its fixed bitmap font in a Pillow
+    without sizes for it (before 10.1, or built without FreeType)."""
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=FONT_SIZE)
+    except TypeError:  # Pillow < 10.1: load_default takes no size
+        return ImageFont.load_default()
+
+
 def text(draw: Any, xy: tuple[float, float], text: str, align: str) -> float:
-    """Draw black ``text`` with its box aligned at ``xy``: ``align`` is horizontal (``l``, ``m``,
-    ``r``) + vertical (``t``, ``m``, ``b``); works with bitmap fonts too. Returns the text width."""
-    left, top, right, bottom = draw.textbbox((0, 0), text)
+    """Draw black ``text`` (:func:`plot_font`) with its box aligned at ``xy``: ``align`` is
+    horizontal (``l``, ``m``, ``r``) + vertical (``t``, ``m``, ``b``); works with bitmap fonts too.
+    Returns the text width."""
+    left, top, right, bottom = draw.textbbox((0, 0), text, font=plot_font())
     width, height = right - left, bottom - top
     x = xy[0] - {"l": 0, "m": width / 2, "r": width}[align[0]] - left
     y = xy[1] - {"t": 0, "m": height / 2, "b": height}[align[1]] - top
-    draw.text((x, y), text, fill=(0, 0, 0))
+    draw.text((x, y), text, fill=(0, 0, 0), font=plot_font())
     return width
 
 
@@ -107,7 +126,7 @@ LEGEND_MARKER_W, LEGEND_GAP = 9, 24
 
 def text_width(draw: Any, text: str) -> int:
     """Pixel width of ``text`` as :func:`text` draws it."""
-    left, _, right, _ = draw.textbbox((0, 0), text)
+    left, _, right, _ = draw.textbbox((0, 0), text, font=plot_font())
     return right - left
 
 

@@ -1,7 +1,9 @@
-"""Video files: :func:`write_video` / :func:`read_video` (mp4 through imageio-ffmpeg) and
-:func:`read_frames` (mp4 and other ffmpeg formats, gif, folders of png/jpg frames, subsampled
-while decoding by a frame selector, e.g. the protocol's of :mod:`geco_guide.metric.protocol`).
-Unreadable inputs raise a one-line :class:`VideoReadError`.
+"""Video files: :func:`write_video` / :func:`read_video` (mp4 through imageio-ffmpeg, GIFs through
+Pillow) and :func:`read_frames` (mp4 and other ffmpeg formats, gif, folders of png/jpg frames,
+subsampled while decoding by a frame selector, e.g. the protocol's of
+:mod:`geco_guide.metric.protocol`). A GIF is written frame for frame and read by its frame delays
+(a frame held ``k`` times as long is ``k`` frames: :func:`gif_frame_repeats`), so a video that
+holds a frame keeps its frame count. Unreadable inputs raise a one-line :class:`VideoReadError`.
 
 Frames are float ``[S, 3, H, W]`` (or ``[S, H, W, 3]`` on input) in ``[0, 1]``, RGB. Writes are
 atomic: the file is written under a temporary name in the same folder, checked (readable, every
@@ -24,8 +26,9 @@ from torch import Tensor
 
 from .files import WriteError, atomic_path
 
-__all__ = ["FPS_RANGE", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "VideoFrames", "VideoReadError", "check_fps", "read_image",
-           "frame_files", "gif_rate", "input_stem", "read_frames", "read_video", "write_video"]
+__all__ = ["FPS_RANGE", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "VideoFrames", "VideoReadError", "check_fps",
+           "frame_files", "gif_frame_repeats", "gif_rate", "input_stem", "read_frames", "read_image", "read_video",
+           "write_video"]
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".gif")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -126,24 +129,42 @@ def write_video(path: str | os.PathLike, frames, fps: float = 8) -> Path:
 
 
 def _write_gif(path: Path, data: np.ndarray, fps: float) -> Path:
-    """``data [S, H, W, 3]`` uint8 as a looping GIF at ``fps`` (Pillow stores whole
-    centiseconds, see :func:`gif_rate`), atomically, checked to open as an image sequence.
+    """``data [S, H, W, 3]`` uint8 as a looping GIF at ``fps`` (whole centiseconds per frame, see
+    :func:`gif_rate`), every frame written, atomically, checked to hold ``S`` readable frames.
 
-    The GIF is encoded in memory and then written as bytes: imageio's writer encodes when it
-    closes, and a write that fails there (a full disk) is retried when the writer is collected,
-    printing a second, ignored traceback after the error line."""
-    import imageio.v2 as imageio
-    from PIL import Image
+    Every frame is its own GIF frame with its own palette, written with Pillow's frame encoder:
+    Pillow's animated-GIF writer merges identical consecutive frames into one longer frame, so a
+    still mask (or a video that holds a frame) would read back with fewer frames. The GIF is
+    encoded in memory and then written as bytes, so a failed write (a full disk) is one error."""
+    from PIL import GifImagePlugin, Image
 
-    encoded = imageio.mimsave("<bytes>", list(data), format="GIF", duration=1000.0 / fps, loop=0)
+    delay_ms = 1000.0 / fps
+    frames = [Image.fromarray(frame).convert("P", palette=Image.Palette.ADAPTIVE) for frame in data]
+    header, _ = GifImagePlugin.getheader(frames[0], info={"loop": 0, "duration": delay_ms})
+    parts = [*header]
+    for frame in frames:
+        parts += GifImagePlugin.getdata(frame, duration=delay_ms, include_color_table=True)
+    encoded = b"".join(bytes(part) for part in parts) + b";"
     with atomic_path(path) as tmp:
         tmp.write_bytes(encoded)
-        try:
-            with Image.open(tmp) as image:
-                image.seek(0)
-        except OSError as err:
-            raise WriteError(f"cannot write {str(path)!r}: the written file is not a readable GIF ({err})") from None
+        problem = _written_gif_problem(tmp, len(data))
+        if problem:
+            raise WriteError(f"cannot write {str(path)!r}: {problem}")
     return path
+
+
+def _written_gif_problem(path: Path, expected_frames: int) -> str | None:
+    """Why the GIF at ``path`` is not a readable image sequence of ``expected_frames`` frames, or None."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            written = image.n_frames
+    except OSError as err:
+        return f"the written file is not a readable GIF ({err})"
+    if written != expected_frames:
+        return f"the written file holds {written} frame(s), not {expected_frames}"
+    return None
 
 
 def _written_video_problem(path: Path, expected_frames: int) -> str | None:
@@ -170,8 +191,9 @@ def _written_video_problem(path: Path, expected_frames: int) -> str | None:
 
 
 def read_video(path: str | os.PathLike) -> tuple[torch.Tensor, float]:
-    """Read a video file (mp4 and the like through ffmpeg, or a GIF) -> ``(frames float
-    [S, 3, H, W] in [0, 1], fps)``; fps 0.0 where the file states none.
+    """Read a video file (mp4 and the like through ffmpeg, or a GIF, by its frame delays: see
+    :func:`gif_frame_repeats`) -> ``(frames float [S, 3, H, W] in [0, 1], fps)``; fps 0.0 where
+    the file states none.
 
     Raises:
         FileNotFoundError: no such file.
@@ -180,10 +202,13 @@ def read_video(path: str | os.PathLike) -> tuple[torch.Tensor, float]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"video file {str(path)!r} does not exist")
+    if path.suffix.lower() == ".gif":
+        images, _, _, fps, fps_source = _read_gif(path, None, 0.0, None)
+        return torch.stack(images), fps if fps_source == "file" else 0.0
     try:
         reader = _open_reader(path)
         try:
-            fps = _file_fps(reader.get_meta_data(), path.suffix.lower() == ".gif") or 0.0
+            fps = _file_fps(reader.get_meta_data()) or 0.0
             frames = [np.asarray(frame) for frame in reader]
         finally:
             reader.close()
@@ -338,22 +363,61 @@ def gif_rate(delay_ms: float) -> float:
     return min(encodes, key=lambda rate: abs(rate - literal), default=literal)
 
 
-def _file_fps(meta: dict, gif: bool) -> float | None:
-    """Frame rate from imageio metadata: ffmpeg's ``fps``, or a gif's ``duration`` (ms per frame,
-    read by :func:`gif_rate`)."""
+def _file_fps(meta: dict) -> float | None:
+    """Frame rate from imageio's ffmpeg metadata, or None where the file states none."""
     fps = meta.get("fps")
-    if fps and math.isfinite(fps) and fps > 0:
-        return float(fps)
-    duration = meta.get("duration")
-    if gif and duration and duration > 0:
-        return gif_rate(float(duration))
-    return None
+    return float(fps) if fps and math.isfinite(fps) and fps > 0 else None
+
+
+def gif_frame_repeats(delays_ms: Sequence[float]) -> tuple[list[int], float | None]:
+    """How many video frames each GIF frame stands for, and the video's rate, from the frames'
+    delays in milliseconds.
+
+    GIF writers merge identical consecutive frames into one frame shown for their summed delay
+    (Pillow's animated writer does), so a frame held ``k`` times as long as the usual one is ``k``
+    frames of the video: the usual delay is the most common one (the shortest of equally common
+    ones), and each frame counts ``round(delay / usual)`` frames, at least one. The rate is
+    :func:`gif_rate` of the usual delay. Delays of 0 (no timing) count one frame each; a GIF
+    without any timing has no rate (``None``).
+    """
+    timed = [d for d in delays_ms if d > 0]
+    if not timed:
+        return [1] * len(delays_ms), None
+    counts: dict[float, int] = {}
+    for delay in timed:
+        counts[delay] = counts.get(delay, 0) + 1
+    usual = min(counts, key=lambda d: (-counts[d], d))
+    return [max(1, round(d / usual)) if d > 0 else 1 for d in delays_ms], gif_rate(usual)
+
+
+def _read_gif(path: Path, fps: float | None, default_fps: float,
+              select: FrameSelector | None) -> tuple[list[Tensor], list[int], int, float, str]:
+    """Decode the selected frames of a GIF, its frames counted by their delays
+    (:func:`gif_frame_repeats`): one pass reads the delays, a second decodes the frames kept."""
+    from PIL import Image, ImageSequence
+
+    try:
+        with Image.open(path) as image:
+            delays = [float(frame.info.get("duration") or 0) for frame in ImageSequence.Iterator(image)]
+            repeats, file_fps = gif_frame_repeats(delays)
+            count = sum(repeats)
+            source_fps = float(fps or file_fps or default_fps)
+            fps_source = "caller" if fps else "file" if file_fps else "default"
+            indices = _selection(select, count, source_fps, path) if count >= 2 else [0]
+            owner = np.repeat(np.arange(len(repeats)), repeats)  # video frame -> GIF frame
+            arrays = {}
+            for k in sorted({int(owner[i]) for i in indices}):
+                image.seek(k)
+                arrays[k] = np.asarray(image.convert("RGB"))
+    except (OSError, ValueError, EOFError) as err:  # Pillow's errors for a damaged GIF
+        raise VideoReadError(f"cannot read video {str(path)!r}: {_error_reason(err)}") from err
+    return [_to_float_chw(arrays[int(owner[i])]) for i in indices], indices, count, source_fps, fps_source
 
 
 def _open_reader(path: Path):
     import imageio.v2 as imageio
 
-    return imageio.get_reader(path) if path.suffix.lower() == ".gif" else imageio.get_reader(path, format="FFMPEG")
+    return imageio.get_reader(path, format="FFMPEG")
 
 
 def _frame_count(reader) -> int | None:
@@ -377,7 +441,7 @@ def _read_file(path: Path, fps: float | None, default_fps: float, select: FrameS
     try:
         reader = _open_reader(path)
         try:
-            file_fps = _file_fps(reader.get_meta_data(), path.suffix.lower() == ".gif")
+            file_fps = _file_fps(reader.get_meta_data())
             source_fps = float(fps or file_fps or default_fps)
             fps_source = "caller" if fps else "file" if file_fps else "default"
             count = count or _frame_count(reader)
@@ -431,6 +495,8 @@ def read_frames(
     if path.is_dir():
         source_fps, fps_source = (float(fps), "caller") if fps else (float(default_fps), "default")
         images, indices, count = _read_folder(path, source_fps, select)
+    elif path.is_file() and path.suffix.lower() == ".gif":
+        images, indices, count, source_fps, fps_source = _read_gif(path, fps, default_fps, select)
     elif path.is_file():
         images, indices, count, source_fps, fps_source = _read_file(path, fps, default_fps, select)
     else:

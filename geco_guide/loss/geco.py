@@ -13,6 +13,7 @@ adjacent pairs this is the mean over pairs of the per-pair means.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields, replace
@@ -33,6 +34,7 @@ from ..geometry import (
 )
 from ..io.masks import MaskReadError, check_masks, fit_masks, read_masks
 from ..types import (
+    NAMED_MASK_SOURCES,
     Correspondences,
     DynamicMaskSource,
     OptionError,
@@ -48,7 +50,8 @@ from .movers import MOVER_MODES, MoverFit, MoverScores, RefreshedMovers, mover_s
 from .pair_modes import PAIR_MODES
 
 __all__ = ["CUES", "MIN_UNMASKED_FRACTION", "MOVER_MODES", "PAIR_MODES", "GeCoLoss", "GeCoLossConfig", "GeCoMaps",
-           "GeCoResult", "check_movers", "frame_pairs", "geco_from_geometry", "resolve_dynamic_masks"]
+           "GeCoResult", "check_movers", "frame_pairs", "geco_from_geometry", "no_valid_pixels_reason",
+           "resolve_dynamic_masks"]
 
 CUES = ("fused", "motion", "structure")
 STRUCTURE_OCCLUSION = ("depth", "covisibility")
@@ -57,6 +60,14 @@ STRUCTURE_OCCLUSION = ("depth", "covisibility")
 #: at least this fraction of the frame: a score over a sliver left between masked objects is
 #: noise. Without masks every frame with any valid pixel counts, as in the paper.
 MIN_UNMASKED_FRACTION = 0.05
+
+
+def no_valid_pixels_reason(masked: bool) -> str:
+    """Why a score over no valid pixel is NaN, in a user's words (``masked``: dynamic masks were
+    used, and a frame counts only where :data:`MIN_UNMASKED_FRACTION` of it stays valid)."""
+    if masked:
+        return f"no frame kept {MIN_UNMASKED_FRACTION:.0%} of its pixels valid outside the dynamic mask"
+    return "no pixel was valid (co-visible, confidently estimated and seen by both frames of a pair)"
 
 
 @dataclass
@@ -175,6 +186,10 @@ class GeCoResult:
         mask_source: where the masks came from (``"given: masks.npz"``, ``"auto"``, ...), or ``None``.
         movers: with ``movers="rigid"``, each mover's numbers and the fit
             (:class:`~geco_guide.loss.movers.MoverScores`); ``None`` otherwise.
+
+    :attr:`valid_pixels` says how many pixels each scalar measured: with none, the scalars are 0
+    with a zero gradient (the loss convention: an update with nothing to measure moves nothing);
+    a score shown to a user is NaN with :func:`no_valid_pixels_reason` instead (:meth:`scalars`).
     """
 
     loss: Tensor
@@ -191,9 +206,25 @@ class GeCoResult:
     mask_source: str | None = None
     movers: MoverScores | None = None
 
+    @property
+    def valid_pixels(self) -> dict[str, Tensor]:
+        """Cue name -> ``[B]`` int64: the valid pixels of the frames that count in its scalar (0:
+        the scalar is over nothing). Computed when asked: the guided step never pays for it."""
+        return {name: (self.frame_maps.cue(name)[1].flatten(2).sum(-1) * self.frame_has_valid[name]).sum(-1)
+                for name in CUES}
+
     def scalars(self) -> dict[str, float]:
-        """Plain floats: ``motion``, ``structure``, ``fused`` and ``loss``."""
-        return {name: float(getattr(self, name).detach()) for name in ("motion", "structure", "fused", "loss")}
+        """Plain floats: ``motion``, ``structure``, ``fused`` and ``loss``; a cue over no valid
+        pixel is NaN (:meth:`empty_cues`), never the 0 the loss holds (``loss`` keeps its value)."""
+        empty = set(self.empty_cues())
+        return {name: math.nan if name in empty else float(getattr(self, name).detach())
+                for name in ("motion", "structure", "fused", "loss")}
+
+    def empty_cues(self) -> list[str]:
+        """The cues whose scalar is over no valid pixel (a host sync); why:
+        :func:`no_valid_pixels_reason` of ``dynamic_masks is not None``."""
+        counts = self.valid_pixels
+        return [name for name in CUES if int(counts[name].sum()) == 0]
 
 
 def confidence_mask(confidence: Tensor, percentile: float) -> Tensor:
@@ -539,11 +570,13 @@ class GeCoLoss(nn.Module):
             zero or non-finite, and ``guided_step`` moves nothing with either.
 
     ``forward(frames [B, S, 3, H, W] in [0, 1], dynamic_masks=None, movers=None) -> GeCoResult``;
-    dynamic masks (a tensor, a mask file or a :class:`~geco_guide.types.DynamicMaskSource`, see
+    dynamic masks (a tensor, a mask file, ``"auto"`` (the automatic detector, as in
+    ``evaluate_video``) or a :class:`~geco_guide.types.DynamicMaskSource`, see
     :func:`resolve_dynamic_masks`) leave moving content out, or, with ``config.movers="rigid"``,
     score each rigid mover against its own motion (fitted detached; ``movers`` reuses a fit or
     holds the caller's refresh rule: :mod:`geco_guide.loss.movers`). In the loss an all-masked
-    clip is ``0`` with a zero gradient, as any clip without valid pixels.
+    clip is ``0`` with a zero gradient, as any clip without valid pixels;
+    ``GeCoResult.valid_pixels`` says so, and its ``scalars()`` are NaN.
     """
 
     def __init__(
@@ -599,6 +632,8 @@ class GeCoLoss(nn.Module):
             raise ValueError(f"frames must hold at least 2 frames, got {frames.shape[1]}")
         if self.check_values:
             check_frame_values(frames)
+        if isinstance(dynamic_masks, str) and dynamic_masks.strip() in NAMED_MASK_SOURCES:
+            dynamic_masks = NAMED_MASK_SOURCES[dynamic_masks.strip()]()
         given = None
         if dynamic_masks is not None and not isinstance(dynamic_masks, DynamicMaskSource):
             given = _given_masks(dynamic_masks, frames.shape[0], frames.shape[1], tuple(frames.shape[-2:]))  # before any estimator

@@ -32,10 +32,10 @@ from ..io.files import write_bytes_atomic
 from ..io.masks import fit_masks
 from ..io.video import check_fps, write_video
 from ..loss.cues import fuse_cues, masked_mean, structure_residual
-from ..loss.geco import GeCoLossConfig, GeCoMaps
+from ..loss.geco import MIN_UNMASKED_FRACTION, GeCoLossConfig, GeCoMaps
 from ..types import SceneGeometry, check_estimator_bundle, check_frame_values
 from .detection_options import ANCHORS, FORMATS
-from .evaluate import EvaluationMaps, score_frames
+from .evaluate import MASKED_FRAME_NOTE, EvaluationMaps, score_frames
 from .render import colorize, hatch, map_frames, text_scale
 
 __all__ = ["ANCHORS", "FORMATS", "detection_maps", "frame_scores", "render_detection", "window_indices",
@@ -113,7 +113,7 @@ def detection_maps(frames: Tensor, estimators: Any, config: GeCoLossConfig | Non
         if not isinstance(source, GivenMasks):
             raise ValueError("detection maps take given dynamic masks (a tensor or a mask file); "
                              "automatic and text masks: use evaluate_video")
-        masks = fit_masks(source.masks, frames.shape[0], tuple(frames.shape[-2:]), f"dynamic masks ({source.source_name})")
+        masks = fit_masks(source.masks, frames.shape[0], tuple(frames.shape[-2:]), source.name)
     size = min(window, frames.shape[0])
     windows = [window_indices(frames.shape[0], t, size, anchor) for t in range(frames.shape[0])]
     check_estimator_bundle(estimators, "detection_maps")
@@ -123,13 +123,19 @@ def detection_maps(frames: Tensor, estimators: Any, config: GeCoLossConfig | Non
 
 
 def frame_scores(maps: EvaluationMaps) -> list[dict[str, float | None]]:
-    """Per frame, each cue's mean over its valid pixels (``None`` without a valid pixel)."""
+    """Per frame, each cue's mean over its valid pixels: ``None`` without a valid pixel, or, with
+    dynamic masks, where fewer than :data:`~geco_guide.loss.geco.MIN_UNMASKED_FRACTION` of the
+    frame's pixels stay valid (as ``evaluate_video`` counts frames), with a ``note`` saying so."""
     rows = []
+    least = MIN_UNMASKED_FRACTION if maps.dynamic_masks is not None else 0.0
     for k in range(len(maps)):
-        row = {}
+        row: dict[str, Any] = {}
         for name in PANELS:
             values, valid = maps.cue(name)
-            row[name] = float(values[k][valid[k]].mean()) if bool(valid[k].any()) else None
+            counts = bool(valid[k].any()) and float(valid[k].float().mean()) >= least
+            row[name] = float(values[k][valid[k]].mean()) if counts else None
+            if not counts and least:
+                row["note"] = MASKED_FRAME_NOTE
         rows.append(row)
     return rows
 
@@ -146,7 +152,7 @@ def render_detection(maps: EvaluationMaps, scores: list[dict[str, float | None]]
     def text(value: float | None) -> str:
         return "N/A" if value is None else f"{value:.3f}"
 
-    captions = [f"FRAME {k} " + " ".join(f"{n.upper()} {text(row[n])}" for n in ("fused", "motion", "structure"))
+    captions = [f"frame {k}   " + "   ".join(f"{n} {text(row[n])}" for n in ("fused", "motion", "structure"))
                 for k, row in enumerate(scores)]
     return map_frames(maps.frames, heat, ["SOURCE", *(name.upper() for name in PANELS)], captions)
 

@@ -43,6 +43,7 @@ from ..loss.geco import (
     check_movers,
     frame_pairs,
     geco_from_geometry,
+    no_valid_pixels_reason,
     resolve_dynamic_masks,
 )
 from ..loss.motion_stats import motion_statistics
@@ -58,10 +59,14 @@ from .protocol import (
 )
 from .render import colorize, hatch, map_frames, outline, text_scale
 
-__all__ = ["MAP_PANELS", "PAPER_NAMES", "EvaluationMaps", "EvaluationResult", "evaluate_video",
-           "finite_or_none", "mean_or_nan", "render_maps", "score_frames", "write_maps_video"]
+__all__ = ["MAP_PANELS", "MASKED_FRAME_NOTE", "PAPER_NAMES", "EvaluationMaps", "EvaluationResult", "clip_mask_source",
+           "evaluate_video", "finite_or_none", "map_caption", "mean_or_nan", "render_maps", "score_frames",
+           "write_maps_video"]
 
 MAP_PANELS = ("source", "motion", "structure", "fused")
+#: Why a frame's score is ``None`` with dynamic masks.
+MASKED_FRAME_NOTE = (f"scores are None where fewer than {MIN_UNMASKED_FRACTION:.0%} of the frame's pixels stay valid "
+                     "outside the dynamic mask")
 PAPER_NAMES = {
     "motion": "M_motion",
     "structure": "M_struct",
@@ -131,6 +136,7 @@ class EvaluationResult:
             ``pixels``, ``inlier_fraction``, ``residual``, ``verdict`` (rigid / non-rigid) and
             ``share`` of the clip's fused score; ``rigid`` / ``non_rigid`` count them and ``share``
             adds the shares up; ``None`` with ``drop``.
+        nan_reason: why a score is NaN (no frame with valid pixels), ``None`` when all are finite.
     """
 
     motion: float
@@ -150,6 +156,7 @@ class EvaluationResult:
     maps: EvaluationMaps | None = field(default=None, repr=False)
     dynamic_masks: dict[str, Any] | None = None
     movers: dict[str, Any] | None = None
+    nan_reason: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (no tensors; NaN scores become ``None``)."""
@@ -170,6 +177,7 @@ class EvaluationResult:
             "config": self.config,
             **({} if self.dynamic_masks is None else {"dynamic_masks": self.dynamic_masks}),
             **({} if self.movers is None else {"movers": self.movers}),
+            **({} if self.nan_reason is None else {"nan_reason": self.nan_reason}),
         }
 
 
@@ -225,22 +233,36 @@ def score_frames(frames: Tensor, estimators: Estimators, config: GeCoLossConfig,
     return scene, geco_from_geometry(scene, correspondences, pairs, config, masks, source)
 
 
-def clip_mask_source(dynamic_masks: Any, clip: VideoFrames) -> Any:
-    """The dynamic-mask source of a read clip: given masks (a path or a tensor of the whole video)
-    are checked against the video's frame count and size and cut to the protocol's frames
-    (``clip.indices``), so windows and subsampling pick the same frames from masks and video;
-    ``"auto"``, text and mask sources pass through :func:`~geco_guide.estimators.dynamic_masks.mask_source`."""
-    if isinstance(dynamic_masks, (str, os.PathLike)) and looks_like_path(os.fspath(dynamic_masks)):
-        masks, count = read_masks(dynamic_masks, clip.indices)
-        if count != clip.num_frames:
-            raise MaskReadError(f"dynamic masks {os.fspath(dynamic_masks)!r} hold {count} frame(s), the video {clip.num_frames}")
-        source = GivenMasks(masks, f"given: {os.fspath(dynamic_masks)}")
+def clip_mask_source(dynamic_masks: Any, clip: VideoFrames, source_frames: int | None = None) -> Any:
+    """The dynamic-mask source of a read clip: given masks (a path, a tensor or
+    :class:`GivenMasks`) are checked against the video's frame count and size and cut to the
+    protocol's frames (``clip.indices``), so windows and subsampling pick the same frames from
+    masks and video; ``"auto"``, text and mask sources pass through
+    :func:`~geco_guide.estimators.dynamic_masks.mask_source`.
+
+    ``source_frames``: the frames of the whole video when the clip stops earlier
+    (``evaluation.max_frames``; ``clip.num_frames`` counts the clip's): masks of the whole video
+    are cut as the frames are, and masks of the clip alone are taken too.
+    """
+    counts = sorted({clip.num_frames, source_frames or clip.num_frames})
+    read = isinstance(dynamic_masks, (str, os.PathLike)) and looks_like_path(os.fspath(dynamic_masks))
+    if read:
+        masks, count = read_masks(dynamic_masks, clip.indices)  # the protocol's frames only
+        source = GivenMasks(masks, f"given: {os.fspath(dynamic_masks)}", dynamic_masks)
     else:
         source = mask_source(dynamic_masks)
-        if isinstance(source, GivenMasks):
-            source = source.at(clip.indices, clip.num_frames)
-    if isinstance(source, GivenMasks):  # a size that cannot fit fails now, not after the models load
-        fit_masks(source.masks[:1], 1, tuple(clip.frames.shape[-2:]), f"dynamic masks ({source.source_name})")
+        if not isinstance(source, GivenMasks):
+            return source
+        count = source.masks.shape[0]
+    if count not in counts:
+        scored = "" if len(counts) == 1 else f" (its first {clip.num_frames} scored: evaluation.max_frames)"
+        holds = "hold" if source.path is None else "holds"  # masks, or a mask file
+        raise MaskReadError(f"{source.name} {holds} {count} frame(s), the video {counts[-1]}{scored}: "
+                            "give one mask per frame")
+    if not read:
+        source = GivenMasks(source.masks[list(clip.indices)], source.source_name, source.path)
+    # a size that cannot fit fails now, not after the models load
+    fit_masks(source.masks[:1], 1, tuple(clip.frames.shape[-2:]), source.name)
     return source
 
 
@@ -249,8 +271,7 @@ def _mask_notes(rows: list[dict[str, Any]], result: GeCoResult) -> None:
     for k, row in enumerate(rows):
         row["masked_fraction"] = float(result.masked_fraction[0, k])
         if any(row[name] is None for name in CUES):
-            row["note"] = (f"scores are None where fewer than {MIN_UNMASKED_FRACTION:.0%} of the frame's pixels "
-                           "stay valid outside the dynamic mask")
+            row["note"] = MASKED_FRAME_NOTE
 
 
 def _is_subject_text(spec: Any) -> bool:
@@ -284,7 +305,11 @@ def protocol_fps(fps: float | None, model: str | None, cfg: EvaluationConfig) ->
     return None, "file"  # replaced by the reader's answer: file or default
 
 
-def _load_frames(video: str | os.PathLike | Tensor, fps: float | None, cfg: EvaluationConfig) -> tuple[VideoFrames, str | None]:
+def _load_frames(video: str | os.PathLike | Tensor, fps: float | None,
+                 cfg: EvaluationConfig) -> tuple[VideoFrames, str | None, int]:
+    """The protocol's frames of ``video``, its path (``None`` for a tensor) and the frame count of
+    the whole video; the clip ends at ``evaluation.max_frames``: its ``num_frames``, windows and
+    motion grid are those of its first frames."""
     select = _protocol_frames(cfg)
     if isinstance(video, Tensor):
         if video.ndim != 4 or video.shape[1] != 3 or not video.is_floating_point():
@@ -293,12 +318,12 @@ def _load_frames(video: str | os.PathLike | Tensor, fps: float | None, cfg: Eval
             raise ValueError("fps (> 0) is required when video is a tensor")
         if video.shape[0] < 2:
             raise ValueError(f"video must hold at least 2 frames, got {video.shape[0]}")
+        total = video.shape[0]
         video = video[: cfg.max_frames]
         indices = select(video.shape[0], fps)
-        return VideoFrames(video.detach()[indices].float().cpu(), indices, float(fps), video.shape[0]), None
+        return VideoFrames(video.detach()[indices].float().cpu(), indices, float(fps), video.shape[0]), None, total
     clip = read_frames(video, fps=fps, default_fps=cfg.default_fps, select=select, min_frames=2)
-    # the clip ends at max_frames: its windows and motion grid are planned on that length
-    return replace(clip, num_frames=min(clip.num_frames, cfg.max_frames or clip.num_frames)), str(video)
+    return replace(clip, num_frames=min(clip.num_frames, cfg.max_frames or clip.num_frames)), str(video), clip.num_frames
 
 
 def plan_text(plan: dict[str, int], num_frames: int, fps: float) -> str:
@@ -374,7 +399,8 @@ def evaluate_video(
             (a long clip takes a while per window).
         dynamic_masks: content that moves on its own, left out of the scores: ``None`` (the
             paper's metric), masks of the whole video (a mask video, PNG folder or ``.npz`` path,
-            or a ``[S, H, W]`` tensor; cut to the protocol's frames), ``"auto"``, text for a
+            or a ``[S, H, W]`` tensor; cut to the protocol's frames, and to
+            ``evaluation.max_frames`` as the video is), ``"auto"``, text for a
             segmenter, or a :class:`~geco_guide.types.DynamicMaskSource` (asked per window). A
             frame with fewer than :data:`~geco_guide.loss.geco.MIN_UNMASKED_FRACTION` of its
             pixels valid outside the mask scores ``None`` with a note; Total / Mean Motion stay
@@ -383,7 +409,7 @@ def evaluate_video(
     Raises:
         VideoReadError: unreadable input or fewer than 2 frames (a ValueError).
         ValueError: evaluated frames with NaN/inf values or outside ``[0, 1]``, naming them; an
-            unknown ``model``.
+            unknown ``model``; ``dynamic_masks`` that is an empty string (not the working folder).
         TypeError: estimators that are not a bundle, or passed by an earlier keyword
             (``geometry=``, ``flow_estimator=``, ...).
     """
@@ -397,14 +423,14 @@ def evaluate_video(
     if isinstance(estimators, Estimators) and estimators.segmenter is not None and _is_subject_text(dynamic_masks):
         dynamic_masks = estimators.masks_for(dynamic_masks)
     rate, fps_source = protocol_fps(fps, model, cfg)
-    clip, source = _load_frames(video, rate, cfg)
+    clip, source, source_frames = _load_frames(video, rate, cfg)
     if rate is None:
         fps_source = clip.fps_source  # the file's rate, or default_fps for inputs without one
     # NaN pixels would score NaN (or 0.0 once masked), 0-255 frames garbage: refuse them, by index.
     check_frame_values(clip.frames, "video" if source is None else source, indices=clip.indices)
     loss_config = cfg.scoring_loss()
     check_movers(loss_config, dynamic_masks is not None)
-    masks = clip_mask_source(dynamic_masks, clip)
+    masks = clip_mask_source(dynamic_masks, clip, source_frames)
     if not isinstance(estimators, Estimators):
         estimators = load_estimators(estimators or EstimatorsConfig(), cfg.device)
     device = estimator_device(estimators.geometry, estimators.flow)
@@ -435,7 +461,7 @@ def evaluate_video(
         window_frames = frames_of(window.indices)
         window_masks = masks
         if isinstance(masks, GivenMasks):
-            window_masks = GivenMasks(masks.masks[[position[i] for i in window.indices]], masks.source_name)
+            window_masks = GivenMasks(masks.masks[[position[i] for i in window.indices]], masks.source_name, masks.path)
         _, result = score_frames(window_frames, estimators, loss_config, flow_batch_size=cfg.flow_batch_size,
                                  dynamic_masks=window_masks)
         rows = []
@@ -479,14 +505,14 @@ def evaluate_video(
                                          dynamic_masks=torch.cat(kept_masks) if kept_masks else None,
                                          movers=torch.cat(kept_movers) if kept_movers else None)
     scores = {name: _clip_score(windows, name) for name in CUES}
+    nan_reason = None if all(map(math.isfinite, scores.values())) else no_valid_pixels_reason(masks is not None)
     mask_record = None
     if masks is not None:
         fractions = [row["masked_fraction"] for row in frame_scores]
         mask_record = {"source": masks.source_name, "masked_fraction": mean_or_nan(fractions),
                        "min_unmasked_fraction": MIN_UNMASKED_FRACTION}
-        if not math.isfinite(scores["fused"]):
-            mask_record["nan_reason"] = (f"no evaluated frame kept {MIN_UNMASKED_FRACTION:.0%} of its pixels valid "
-                                         "outside the dynamic mask")
+        if nan_reason is not None:
+            mask_record["nan_reason"] = nan_reason
     return EvaluationResult(
         **scores,
         total_motion=stats.total_motion,
@@ -503,6 +529,7 @@ def evaluate_video(
         maps=evaluation_maps,
         dynamic_masks=mask_record,
         movers=None if loss_config.movers == "drop" else _movers_record(movers, windows, scores["fused"]),
+        nan_reason=nan_reason,
     )
 
 
@@ -547,9 +574,15 @@ def render_maps(result: EvaluationResult) -> Tensor:
         heat = [hatch(panel, m.dynamic_masks, scale) for panel in heat]
     if m.movers is not None:  # scored against their own motion, on the static part's colour scale
         heat = [outline(panel, m.movers) for panel in heat]
-    captions = [f"T={row['time_s']:.2f}S FUSED {_score_text(row['fused'])} MOTION {_score_text(row['motion'])} "
-                f"STRUCTURE {_score_text(row['structure'])}" for row in result.frame_scores]
+    captions = [map_caption(row) for row in result.frame_scores]
     return map_frames(m.frames, heat, [name.upper() for name in MAP_PANELS], captions)
+
+
+def map_caption(row: dict[str, Any]) -> str:
+    """The line under a frame of the maps video: its time and scores (a frame row of
+    :attr:`EvaluationResult.frame_scores`), in lower case: ``t = 0.62 s   fused 0.051 ...``."""
+    return (f"t = {row['time_s']:.2f} s   fused {_score_text(row['fused'])}   motion {_score_text(row['motion'])}   "
+            f"structure {_score_text(row['structure'])}")
 
 
 def write_maps_video(result: EvaluationResult, path: str | os.PathLike) -> Path:

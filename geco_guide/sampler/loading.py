@@ -145,13 +145,14 @@ def missing_weights(model: ModelConfig, estimators: EstimatorsConfig, *, tiny_de
             how to pass a local path.
         ValueError: the tiny decoder is asked for but not named.
     """
-    from ..estimators import check_estimator_weights
+    from ..estimators import check_weights
+    from ..estimators.loading import WeightsSource
 
     rows = [] if model.source == TINY_RANDOM else [
-        ("model.id", model.source, model.name, (PIPELINE_INDEX,), model.revision)]
+        WeightsSource("model.id", model.source, model.name, (PIPELINE_INDEX,), model.revision)]
     if tiny_decoder:
         check_tiny_decoder_source(estimators)
-    check_estimator_weights(estimators, segmenter=segmenter, extra=rows)
+    check_weights(estimators, segmenter=segmenter, extra=rows)
 
 
 @dataclass

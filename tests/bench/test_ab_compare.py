@@ -32,7 +32,7 @@ from geco_guide.cli.prompt_files import Prompt, read_prompts
 from geco_guide.config import config_to_dict, load_config
 from geco_guide.io.files import write_json_atomic
 from geco_guide.io.video import read_video, write_video
-from geco_guide.metric.render import panel_layout
+from geco_guide.metric.render import READABLE_HEIGHT, enlarge, panel_layout
 
 REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / "scripts" / "ab_compare.py"
@@ -138,13 +138,40 @@ def test_end_to_end_report(reference: Path):
     pair = reference / "pairs" / "bridge-s0"
     unguided, _ = read_video(pair / "unguided.mp4")
     both, _ = read_video(pair / "side_by_side.mp4")
-    (height, width), _ = panel_layout([tuple(unguided.shape[-2:])] * 2)  # labels above, a gap between
+    # enlarged to a readable height as the maps are (the tiny models' videos are 16 pixels high)
+    enlarged = tuple(enlarge(unguided).shape[-2:])
+    assert enlarged[0] >= READABLE_HEIGHT
+    (height, width), _ = panel_layout([enlarged] * 2)  # labels above, a gap between
     even = (height + height % 2, width + width % 2)  # mp4 (yuv420p) pads odd sizes by one
-    assert both.shape == (unguided.shape[0], 3, *even) and width >= 2 * unguided.shape[-1]
+    assert both.shape == (unguided.shape[0], 3, *even) and width >= 2 * enlarged[1]
     result = json.loads((pair / "result.json").read_text())
     assert result["prompt"] == "a stone bridge over a river" and result["seed"] == 0
     assert {"unguided.json", "guided.json", "guided.mp4"} <= {p.name for p in pair.iterdir()}
     assert not _temporaries(reference)
+
+
+def test_the_first_pair_of_a_process_is_timed_apart_as_the_warm_up(reference: Path):
+    rows = _rows(reference)
+    assert {(r["pair"], r["warm_up"]) for r in rows} == {(PAIRS[0], "True"), (PAIRS[1], "False")}
+    summary = json.loads((reference / "summary.json").read_text())
+    assert summary["warm_up_pairs"] == [PAIRS[0]]
+    timed = {r["arm"]: float(r["generation_s"]) for r in rows if r["pair"] == PAIRS[1]}
+    for arm in ("unguided", "guided"):
+        record = summary["arms"][arm]
+        assert record["timed_pairs"] == 1 and not record["timing_includes_warm_up"]
+        assert record["generation_s_mean"] == pytest.approx(timed[arm])  # the warm-up pair left out
+        assert record["generation_s_total"] > record["generation_s_mean"]  # the total has both
+    report = (reference / "report.md").read_text()
+    assert f"The means leave out the first pair of each process ({PAIRS[0]}): its times include the models' " \
+           "warm-up" in report
+    # every pair a warm-up (one pair per process): the means include it, and say so
+    results = [_result("p0-s0", 0.2, 0.1)]
+    for record in results[0]["arms"].values():
+        record["warm_up"] = True
+    cfg = load_config(preset="tiny")
+    summary = core.summarize(results, core.plan_pairs([Prompt("p0", "p0")], [0]), cfg, {})
+    assert summary["arms"]["guided"]["timing_includes_warm_up"] and summary["arms"]["guided"]["generation_s_mean"] == 1.0
+    assert "Every pair was made with the models' warm-up (p0-s0" in ab_report.report_markdown(summary, results, "", "cmd")
 
 
 def test_arms_differ_only_in_guidance(reference: Path):

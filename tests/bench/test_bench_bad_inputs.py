@@ -25,12 +25,13 @@ from geco_guide.bench.robustness import plot, sweep_memory_bytes
 from geco_guide.cli import benchmarks, robustness
 from geco_guide.cli import validate as validate_cli
 from geco_guide.config import SEED_RANGE
+from geco_guide.estimators import Estimators
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.io import devices, files
 from geco_guide.io.video import write_video
 from geco_guide.loss.geco import GeCoLossConfig
 from geco_guide.metric.evaluate import score_frames
-from geco_guide.metric.render import READABLE_HEIGHT, VIRIDIS
+from geco_guide.metric.render import READABLE_HEIGHT, VIRIDIS, enlarge, text_scale, text_strip
 
 SIZE = ["5", "24", "32"]
 
@@ -97,6 +98,19 @@ def test_validate_refuses_missing_folders_and_unwritable_outputs(clips, tmp_path
     assert "is a file" in _one_error_line(capsys.readouterr().err)
 
 
+def test_validate_refuses_to_replace_an_earlier_report_without_overwrite(clips, tmp_path, capsys):
+    out = tmp_path / "report"
+    assert validate_cli.main([str(clips / "synthetic-s0"), "--oracle", "--no-grids", "--out", str(out)]) == 0
+    earlier = (out / "validation.json").read_text()
+    capsys.readouterr()
+    assert validate_cli.main([str(clips / "synthetic-s0"), "--oracle", "--no-grids", "--out", str(out)]) == 2
+    assert "validation.json' already exists (the report of an earlier run); pass --overwrite" in _one_error_line(
+        capsys.readouterr().err)
+    assert (out / "validation.json").read_text() == earlier
+    assert validate_cli.main([str(clips / "synthetic-s0"), "--oracle", "--no-grids", "--out", str(out),
+                              "--overwrite"]) == 0
+
+
 def test_a_full_disk_writes_neither_report_file(clips, tmp_path, monkeypatch, capsys):
     def full(fd):
         raise OSError(errno.ENOSPC, "No space left on device")
@@ -122,14 +136,32 @@ def test_validate_interrupted_says_what_was_kept(clips, tmp_path, monkeypatch, c
 def test_grids_carry_the_colour_scale_and_row_captions(clips):
     bench = load_benchmark(clips / "synthetic-s0")
     clip = oracle_clip(bench)
-    _, result = score_frames(bench.frames, OracleGeometry(clip), OracleFlow(clip), GeCoLossConfig(pairs="all"))
+    _, result = score_frames(bench.frames, Estimators(OracleGeometry(clip), OracleFlow(clip)), GeCoLossConfig(pairs="all"))
     record = validate.validate_clip(bench, result)
     frames = validate.grid_frames(bench, record)
-    grid = validate.grid_image(bench, result, frames)
+    grid = validate.grid_image(bench, result, frames, record["task1"])
     assert grid.shape[-2] >= len(frames) * READABLE_HEIGHT  # small clips are enlarged
     bottom = grid[:, -40:].permute(1, 2, 0).reshape(-1, 3)  # the colour bar under the rows
     for colour in (VIRIDIS[0], VIRIDIS[-1]):
         assert bool(((bottom - colour).abs().amax(1) < 0.02).any())
+    # the row of the frame Task 1 picks says so, and whether it is the replaced one
+    picked, replaced = record["task1"]["predicted"]["fused"], record["task1"]["anomalous_frame"]
+    caption = validate.grid_caption(bench, picked, record["task1"])
+    assert caption.startswith(f"frame {picked} (") and "Task 1: the fused score picks it as the replaced frame" in caption
+    assert caption.endswith(f"{'rightly' if picked == replaced else f'wrongly: frame {replaced} was'}); maps: "
+                            "residual, 0 = consistent")
+    strip = text_strip(caption, grid.shape[-1], text_scale(enlarge(bench.frames).shape[-2]))
+    first = grid[:, : strip.shape[-2]]  # the first row's caption (one row: the replaced frame, picked)
+    assert frames == [picked] and torch.equal(first, strip)
+    other = validate.grid_caption(bench, picked, None)
+    assert "Task 1" not in other
+
+
+def test_the_docs_say_how_many_rows_a_grid_shows():
+    from geco_guide.bench.validate import GRID_ROWS
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "validation.md").read_text()
+    assert f"row for each of up to {GRID_ROWS} judged frames" in " ".join(text.split())
 
 
 # --- benchmarks --------------------------------------------------------------------------------

@@ -56,9 +56,19 @@ def test_edits_sit_on_the_static_background():
             assert not (clip.mask & clip.dynamic_mask).any()
 
 
-def test_dynamic_validation_command_end_to_end(tmp_path: Path, capsys):
+def test_dynamic_validation_command_end_to_end(tmp_path: Path, capsys, monkeypatch):
     code = validate_main(["--dynamic", "--dynamic-size", "4", "24", "32", "--out", str(tmp_path / "out")])
     assert code == 0
+    progress = [line for line in capsys.readouterr().err.splitlines() if " scored the " in line]
+    assert [line.split("]")[0] for line in progress] == [f"[{k}/13" for k in range(1, 14)]
+    assert progress[0].startswith("[1/13] scored the still clean clip with no mask (")
+    # an earlier run's report is not replaced without --overwrite
+    earlier = (tmp_path / "out" / "dynamic.json").read_text()
+    assert validate_main(["--dynamic", "--dynamic-size", "4", "24", "32", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"error: {str(tmp_path / 'out' / 'dynamic.json')!r} already exists (the report of an earlier run); "
+                   "pass --overwrite to replace it, or choose another --out folder")
+    assert (tmp_path / "out" / "dynamic.json").read_text() == earlier
     report = json.loads((tmp_path / "out" / "dynamic.json").read_text())
     assert (tmp_path / "out" / "dynamic.md").read_text().startswith("# GeCo dynamic masks (oracle)")
     fp = report["false_positives"]
@@ -74,3 +84,29 @@ def test_dynamic_validation_command_end_to_end(tmp_path: Path, capsys):
     assert validate_main(["--dynamic", "--dynamic-size", "2", "24", "32"]) == 2
     errors = capsys.readouterr().err.strip().splitlines()
     assert errors[-1] == "error: dynamic validation clips need >= 4 frames of >= 24x32 pixels, got 2x24x32"
+
+
+def test_dynamic_validation_logs_each_scored_clip_as_it_finishes(monkeypatch):
+    import logging
+
+    from geco_guide.bench import dynamic_suite
+
+    lines: list[str] = []
+    seen_at_call: list[int] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: lines.append(record.getMessage())
+    logger = logging.getLogger(dynamic_suite.__name__)
+    logger.addHandler(handler)
+    score = dynamic_suite.score_clip
+
+    def counting(clip, masks):
+        seen_at_call.append(len(lines))
+        return score(clip, masks)
+
+    monkeypatch.setattr(dynamic_suite, "score_clip", counting)
+    try:
+        dynamic_suite.dynamic_validation(DynamicScenes(4, 24, 32))
+    finally:
+        logger.removeHandler(handler)
+    assert seen_at_call == list(range(13))  # the k-th clip starts once k - 1 lines were logged
+    assert len(lines) == 13 and lines[-1].startswith("[13/13] scored the still clean clip with true mask (")

@@ -29,6 +29,7 @@ from geco_guide.bench.warp import (
 )
 from geco_guide.cli import benchmarks, robustness
 from geco_guide.cli import validate as validate_cli
+from geco_guide.estimators import Estimators
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.geometry import pixel_grid, sample_bilinear
 from geco_guide.loss.geco import GeCoLossConfig
@@ -192,7 +193,7 @@ def test_a_wrong_mask_fails_the_tasks(built):
     for kind, task in (("warp-clip", "task2"), ("occlusion", "task3")):
         bench = load_benchmark(built / kind / "synthetic-s0")
         clip = oracle_clip(bench)
-        _, result = score_frames(bench.frames, OracleGeometry(clip), OracleFlow(clip), GeCoLossConfig(pairs="all"))
+        _, result = score_frames(bench.frames, Estimators(OracleGeometry(clip), OracleFlow(clip)), GeCoLossConfig(pairs="all"))
         right = validate.summarise([validate.validate_clip(bench, result)])[task]["fused"]["ap"]
         shifted = torch.roll(bench.truth["mask"], shifts=bench.frames.shape[-1] // 2, dims=-1)
         wrong = replace(bench, truth={**bench.truth, "mask": shifted})
@@ -223,9 +224,11 @@ def test_the_oracle_refuses_clips_built_from_real_footage(built, tmp_path):
 # --- robustness sweep --------------------------------------------------------------------------
 
 
-def test_robustness_sweep_degrades_with_noise(tmp_path):
+def test_robustness_sweep_degrades_with_noise(tmp_path, capsys):
     assert robustness.main(["--out", str(tmp_path), "--size", "5", "24", "32", "--depth-sigmas", "0", "0.5",
                             "--flow-sigmas", "0", "20"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split(":")[0] for line in lines[:4]] == ["depth sigma=0", "depth sigma=0.5", "flow sigma=0", "flow sigma=20"]
     report = json.loads((tmp_path / "robustness.json").read_text())
     assert (tmp_path / "robustness.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     flow, depth = report["flow"], report["depth"]
@@ -233,3 +236,20 @@ def test_robustness_sweep_degrades_with_noise(tmp_path):
     assert flow["occlusion"]["structure"] == [1.0, 1.0]  # flow noise does not touch the structure cue
     assert depth["rigid_fused"][0] < 1e-3 < depth["rigid_fused"][1]  # the noise floor rises
     assert depth["warp"]["motion"][1] < depth["warp"]["motion"][0]
+
+
+def test_robustness_reports_each_level_as_soon_as_it_is_scored(monkeypatch):
+    from geco_guide.bench import robustness as sweep
+
+    lines: list[str] = []
+    seen: list[int] = []  # lines reported when each level's rigid clip is scored
+    detect = sweep.detection_ap
+
+    def counting(*args, **kwargs):
+        seen.append(len(lines))
+        return detect(*args, **kwargs)
+
+    monkeypatch.setattr(sweep, "detection_ap", counting)
+    report = sweep.run_sweep(4, 16, 24, depth_sigmas=(0.0, 0.1), flow_sigmas=(0.0,), progress=lines.append)
+    assert seen == [0, 0, 1, 1, 2, 2]  # two edited clips per level: the level before was reported already
+    assert lines == [sweep.level_line(name, report[name], k) for name, k in (("depth", 0), ("depth", 1), ("flow", 0))]

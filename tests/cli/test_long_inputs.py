@@ -66,6 +66,7 @@ def test_detection_says_what_is_coming_and_max_frames_bounds_it(tmp_path, capsys
     assert detection.main([str(video), "--preset", "tiny", "--out", str(out), "--window", "4",
                            "--max-frames", "5"]) == 0
     err = capsys.readouterr().err
+    assert err.splitlines()[0] == "loading models: tiny-random + tiny-random on cpu"  # before the models load
     assert "5 frames (the first of 27: --max-frames): one window of 4 frames per frame, 5 geometry-estimator " \
            "calls and 15 flow pairs" in err
     report = json.loads((out / "long.detection.json").read_text())

@@ -89,6 +89,18 @@ def test_auto_masks_need_geometry_and_flow_and_check_options(moving):
     with pytest.raises(ValueError, match="need GeCo's geometry, flow and pairs"):
         MotionMasks().dynamic_masks(moving.frames)
     for key, value in (("min_residual_px", 0.0), ("min_inliers", 1.5), ("iterations", 0), ("dilation", -2),
-                       ("rigid_tolerance", math.nan)):
+                       ("rigid_tolerance", math.nan), ("iterations", 1.5), ("min_region_px", 16.5), ("dilation", True),
+                       ("seed", "0"), ("min_inliers", "0.8")):
         with pytest.raises(OptionError, match=f"^{key} must be"):
             MotionMasks(**{key: value})
+    assert MotionMasks(iterations=8, min_residual_px=2).iterations == 8  # integers are numbers too
+
+
+def test_the_mask_source_factory_refuses_options_a_source_does_not_take():
+    from geco_guide.estimators.dynamic_masks import mask_source
+
+    with pytest.raises(ValueError, match=r"^the automatic mask source takes no option\(s\) \['bogus'\]; its options: "
+                                         r"min_residual_px, .*, seed$"):
+        mask_source("auto", bogus=1)
+    with pytest.raises(ValueError, match=r"^a text segmenter takes no option\(s\) \['dilation'\]; its options: model, "):
+        mask_source("a dog", dilation=2)  # refused before any segmenter loads

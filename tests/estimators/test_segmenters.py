@@ -112,6 +112,39 @@ def test_text_segmenter_loads_a_saved_folder(tiny_model, tmp_path: Path):
     assert torch.equal(tiny.dynamic_masks(frames), loaded.dynamic_masks(frames))  # the same seed, the same model
 
 
+def test_segmenter_folders_that_hold_other_weights_are_one_line_naming_the_key(tiny_model, tmp_path: Path, capfd):
+    import shutil
+
+    from geco_guide.estimators.loading import CheckpointMismatchError, UnreadableCheckpointError
+    from geco_guide.estimators.vggt import VGGT, VGGTConfig
+
+    model, tokenizer = tiny_model
+    good = tmp_path / "sam3"
+    model.save_pretrained(good)
+    tokenizer.save_pretrained(good)
+    vggt = VGGT.random(VGGTConfig.tiny()).save_pretrained(tmp_path / "vggt")
+    other = shutil.copytree(good, tmp_path / "other")  # a SAM 3 folder holding VGGT's weights
+    shutil.copy(vggt / "model.safetensors", other / "model.safetensors")
+    truncated = shutil.copytree(good, tmp_path / "truncated")
+    weights = (good / "model.safetensors").read_bytes()
+    (truncated / "model.safetensors").write_bytes(weights[: len(weights) // 2])
+    (other_config := shutil.copytree(good, tmp_path / "sam2-config")).joinpath("config.json").write_text(
+        '{"model_type": "sam2_video"}')
+    capfd.readouterr()
+    cases = [(other, CheckpointMismatchError, "unexpected key(s), e.g. 'aggregator."),
+             (vggt, CheckpointMismatchError, "the folder's config.json describes no transformers model"),
+             (other_config, CheckpointMismatchError, "describes a 'sam2_video' model, not SAM 3 video"),
+             (truncated, UnreadableCheckpointError, "the SAM 3 video weights cannot be read (SafetensorError: ")]
+    for folder, error, message in cases:
+        with pytest.raises(error) as err:
+            segmenter_from_spec("a dog", str(folder))
+        text = str(err.value)
+        assert text.startswith(f"estimators.segmenter={str(folder)!r}: ") and message in text and "\n" not in text
+    # no load report, no progress bars: the one line says it all
+    assert capfd.readouterr().err == ""
+    assert isinstance(segmenter_from_spec("a dog", str(good)), Sam3Segmenter)
+
+
 def test_missing_weights_are_one_line(monkeypatch, tmp_path: Path):
     import huggingface_hub.constants
 

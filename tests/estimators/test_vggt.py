@@ -312,6 +312,36 @@ def test_from_pretrained_local_folder_and_errors(tmp_path: Path, tiny: VGGT, mon
     assert "\n" not in message and "geco-guide-tests/no-such-vggt" in message
 
 
+@pytest.mark.parametrize("change, message", [
+    ({"patch_size": "abc"}, "patch_size = 'abc': must be an integer >= 1"),
+    ({"patch_size": 0}, "patch_size = 0: must be an integer >= 1"),
+    ({"img_size": 70.5}, "img_size = 70.5: must be an integer >= 1"),
+    ({"img_size": 72}, "img_size = 72: must be a multiple of patch_size 14"),
+    ({"embed_dim": -4}, "embed_dim = -4: must be an integer >= 1"),
+    ({"aggregator": {"depth": 3}}, "depth_head.intermediate_layer_idx = (0, 2, 3, 4): must index the aggregator's 3"),
+    ({"aggregator": {"num_heads": 5}}, "aggregator.num_heads = 5: must divide the width 64"),
+    ({"aggregator": {"rope_freq": float("nan")}}, "aggregator.rope_freq = nan: must be a finite number > 0"),
+    ({"depth_head": {"out_channels": [16, 24, 32]}}, "depth_head.out_channels = (16, 24, 32): must be 4 integers"),
+    ({"upstream": {"patch_size": "abc"}}, "patch_size = 'abc': must be an integer >= 1"),  # the hub's schema
+])
+def test_config_json_values_are_checked_in_one_line_naming_the_file(tmp_path: Path, tiny: VGGT, change, message):
+    import json
+
+    folder = tiny.save_pretrained(tmp_path / "vggt")
+    config = tiny.config.to_dict()
+    if "upstream" in change:
+        config = {"img_size": 518, "patch_size": 14, "embed_dim": 1024, **change["upstream"]}
+    for key, value in change.items():
+        if key != "upstream":
+            config[key] = {**config[key], **value} if isinstance(value, dict) else value
+    (folder / "config.json").write_text(json.dumps(config))
+    with pytest.raises(CheckpointMismatchError) as err:
+        VGGT.from_pretrained(folder)
+    text = str(err.value)
+    assert text.startswith(f"VGGT: '{folder / 'config.json'}' is not a readable VGGT config.json (VGGT config field ")
+    assert message in text and "\n" not in text
+
+
 def test_trunk_to_bfloat16_keeps_heads_and_outputs_float32() -> None:
     model = VGGT.random(VGGTConfig.tiny(), seed=0)
     frames = torch.rand(1, 2, 3, 28, 42, generator=torch.Generator().manual_seed(0), requires_grad=True)

@@ -11,6 +11,7 @@ import torch
 from geco_guide.io.files import WriteError
 from geco_guide.io.video import (
     VideoReadError,
+    gif_frame_repeats,
     gif_rate,
     read_frames,
     read_video,
@@ -349,7 +350,7 @@ def test_text_and_legend():
     assert text_scale(32) == 2 and text_scale(240) == 2 and text_scale(480) == 4  # 18-pixel text at least
     strip = text_strip("STRUCTURE", 48, 1)  # a 32x48 panel's label
     assert text_mask("STRUCTURE").shape[1] > 48 - 4 and strip[:, :, -2:].max() == 0.0 and strip.max() > 0.8
-    line = "T=0.12S FUSED 0.002 MOTION 0.002 STRUCTURE 0.002"  # the score line under four 32x48 panels
+    line = "t = 0.12 s   fused 0.002   motion 0.002   structure 0.002"  # the score line under four 32x48 panels
     assert text_strip(line, 198, 1)[:, :, -2:].max() == 0.0
     guided, strip = text_mask("GUIDED", 2), text_strip("GUIDED", 300, 2)  # it fits: full size, 2 * scale from
     rows, columns = 2 + guided.shape[0], 4 + guided.shape[1]  # the left, scale from the top
@@ -434,6 +435,50 @@ def test_write_video_writes_gifs_by_their_suffix(tmp_path: Path):
     assert (clip.frames - frames).abs().mean() < 0.1  # a GIF's palette is lossy
     with pytest.raises(ValueError, match=r"\[0.01, 100\] for a gif"):
         write_video(tmp_path / "w.gif", frames, fps=200)
+
+
+def test_a_gif_keeps_every_frame_of_a_video_that_holds_one(tmp_path: Path):
+    from PIL import Image
+
+    still = torch.zeros(17, 3, 12, 16)
+    still[:, :, 3:7, 4:9] = 1.0  # a static mask: 17 identical frames
+    path = write_video(tmp_path / "still.gif", still, fps=8)
+    with Image.open(path) as image:
+        assert image.n_frames == 17  # Pillow's animated writer would merge them into one frame
+    clip = read_frames(path)
+    assert clip.num_frames == 17 and clip.fps == 8.0 and torch.equal(clip.frames, still)
+    video = torch.rand(6, 3, 12, 16)
+    video[3] = video[2]  # a held frame
+    frames, fps = read_video(write_video(tmp_path / "held.gif", video, fps=10))
+    assert frames.shape[0] == 6 and fps == 10.0
+
+
+def test_a_gif_whose_writer_merged_held_frames_is_read_by_its_frame_delays(tmp_path: Path):
+    import imageio.v2 as imageio
+    from PIL import Image
+
+    video = torch.rand(9, 3, 12, 16)
+    video[4] = video[5] = video[3]  # held for three frames: imageio / Pillow write one frame of 3 x 125 ms
+    data = (video.permute(0, 2, 3, 1).numpy() * 255).round().astype(np.uint8)
+    imageio.mimsave(tmp_path / "held.gif", list(data), duration=125, loop=0)
+    with Image.open(tmp_path / "held.gif") as image:
+        assert image.n_frames == 7
+    clip = read_frames(tmp_path / "held.gif")
+    assert clip.num_frames == 9 and clip.fps == 8.0
+    assert (clip.frames - video).abs().mean() < 0.1
+    picked = read_frames(tmp_path / "held.gif", select=lambda count, fps: [0, 4, 8])
+    assert picked.indices == [0, 4, 8] and (picked.frames - video[[0, 4, 8]]).abs().mean() < 0.1
+
+
+@pytest.mark.parametrize("delays, repeats, fps", [
+    ([120, 120, 370, 120], [1, 1, 3, 1], 8.0),   # Pillow's centiseconds: 3 x 125 ms stored as 37 cs
+    ([100, 100, 200, 100, 300], [1, 1, 2, 1, 3], 10.0),
+    ([500, 100, 100, 100], [5, 1, 1, 1], 10.0),   # a title frame held half a second
+    ([0, 0, 0], [1, 1, 1], None),                  # no timing: one frame each, no rate
+    ([40, 40, 0, 40], [1, 1, 1, 1], 25.0),
+])
+def test_gif_frame_repeats_count_each_frame_by_its_delay(delays, repeats, fps):
+    assert gif_frame_repeats(delays) == (repeats, fps)
 
 
 @pytest.mark.parametrize("suffix", [".gif", ".mp4"])

@@ -235,25 +235,6 @@ def test_mask_files_round_trip(tmp_path: Path, moving):
     assert torch.equal(read_masks(tmp_path / "m.npz", select=[4, 0])[0], truth[[4, 0]])
 
 
-def test_bad_mask_files_are_one_line(tmp_path: Path):
-    np.savez(tmp_path / "grey.npz", masks=np.full((2, 4, 4), 0.5))
-    np.savez(tmp_path / "two.npz", a=np.zeros((2, 4, 4)), b=np.zeros((2, 4, 4)))
-    np.savez(tmp_path / "flat.npz", masks=np.zeros((4, 4)))
-    np.savez(tmp_path / "flat2.npz", masks=np.zeros((2, 4, 4), dtype=bool))
-    (tmp_path / "broken.npz").write_bytes(b"not a zip")
-    rgb = torch.rand(3, 3, 32, 32)
-    write_video(tmp_path / "rgb.mp4", rgb, fps=8)
-    cases = {"grey.npz": "must be binary", "two.npz": "store one array or one named 'masks'",
-             "flat.npz": "must have shape [S, H, W]", "broken.npz": "cannot read masks",
-             "rgb.mp4": "are not binary", "missing": "no such file or folder"}
-    for name, message in cases.items():
-        with pytest.raises(MaskReadError) as err:
-            read_masks(tmp_path / name)
-        assert message in str(err.value) and "\n" not in str(err.value), name
-    with pytest.raises(MaskReadError, match="frames up to 7 are needed"):
-        read_masks(tmp_path / "flat2.npz", select=[0, 7])
-
-
 def test_mask_source_factory():
     assert mask_source(None) is None
     given = mask_source(torch.zeros(2, 4, 4, dtype=torch.bool))
@@ -303,7 +284,7 @@ def test_all_masked_video_scores_nan_with_its_reason():
                             dynamic_masks=torch.ones(4, 24, 32, dtype=torch.bool))
     assert math.isnan(result.fused) and math.isnan(result.motion)
     data = json.loads(json.dumps(result.to_dict()))
-    assert data["fused"] is None
+    assert data["fused"] is None and data["nan_reason"] == data["dynamic_masks"]["nan_reason"]
     assert "outside the dynamic mask" in data["dynamic_masks"]["nan_reason"]
     assert all(row["fused"] is None and "dynamic mask" in row["note"] for row in data["frame_scores"])
 
@@ -339,4 +320,79 @@ def test_evaluate_command_takes_dynamic_masks(tmp_path: Path, capsys):
     code = evaluate_main([str(tmp_path / "v.mp4"), "--preset", "tiny", "--out", str(tmp_path / "out2"),
                           "--dynamic-masks", str(tmp_path / "none.npz")])
     assert code == 2
-    assert capsys.readouterr().err.strip().splitlines()[-1] == f"error: --dynamic-masks {str(tmp_path / 'none.npz')!r}: no such file or folder"
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (f"error: mask file {str(tmp_path / 'none.npz')!r} does not "
+                                                                "exist (no such file or folder)")
+
+
+# --- masks with a clip cut short, empty strings, names ------------------------------------------
+
+
+def test_masks_of_the_whole_video_are_cut_as_max_frames_cuts_the_frames(tmp_path: Path):
+    from geco_guide.metric.protocol import EvaluationConfig
+
+    clip = moving_clip(12, 24, 32)
+    oracle = {"estimators": Estimators(OracleGeometry(clip), OracleFlow(clip))}
+    cut = EvaluationConfig(max_frames=6)
+    np.savez(tmp_path / "m.npz", masks=clip.dynamic_mask.numpy())
+    short = clip.frames[:6].float()
+    expected = evaluate_video(short, fps=16, dynamic_masks=clip.dynamic_mask[:6], maps=True, **oracle)
+    for masks in (clip.dynamic_mask, tmp_path / "m.npz", clip.dynamic_mask[:6]):  # the video's, or the clip's
+        result = evaluate_video(clip.frames.float(), fps=16, config=cut, dynamic_masks=masks, maps=True, **oracle)
+        assert result.num_frames == 6 and result.fused == expected.fused
+        assert torch.equal(result.maps.dynamic_masks, expected.maps.dynamic_masks)
+    write_video(tmp_path / "clip.mp4", clip.frames.float(), fps=16)
+    from_file = evaluate_video(tmp_path / "clip.mp4", config=cut, dynamic_masks=tmp_path / "m.npz", **oracle)
+    assert from_file.num_frames == 6
+    with pytest.raises(MaskReadError, match=r"^dynamic masks \(given\) hold 9 frame\(s\), the video 12 \(its first 6 "
+                                            r"scored: evaluation.max_frames\): give one mask per frame$"):
+        evaluate_video(clip.frames.float(), fps=16, config=cut, dynamic_masks=clip.dynamic_mask[:9], **oracle)
+
+
+def test_an_empty_string_is_no_mask_folder(monkeypatch, tmp_path: Path):
+    clip = moving_clip(4, 24, 32)
+    oracle = {"estimators": Estimators(OracleGeometry(clip), OracleFlow(clip))}
+    for name in range(4):  # the working folder holds mask-like PNGs: an empty string must not read them
+        Image.fromarray(np.zeros((24, 32), dtype=np.uint8)).save(tmp_path / f"{name}.png")
+    monkeypatch.chdir(tmp_path)
+    for empty in ("", "  "):
+        with pytest.raises(ValueError, match="empty string"):
+            evaluate_video(clip.frames.float(), fps=8, dynamic_masks=empty, **oracle)
+        with pytest.raises(MaskReadError, match="path is empty"):
+            GeCoLoss(oracle["estimators"])(clip.frames[None].float(), dynamic_masks=empty)
+
+
+def test_the_loss_takes_auto_as_evaluate_video_does(moving):
+    loss = GeCoLoss(Estimators(OracleGeometry(moving), OracleFlow(moving)), GeCoLossConfig(pairs="all"))
+    frames = moving.frames[None].float()
+    named = loss(frames, dynamic_masks="auto")
+    made = loss(frames, dynamic_masks=MotionMasks())
+    assert named.mask_source == "auto" and torch.equal(named.dynamic_masks, made.dynamic_masks)
+    assert named.dynamic_masks.any() and float(named.fused) == float(made.fused)
+
+
+def test_a_result_says_how_many_pixels_it_measured_and_reports_nan_over_none(moving):
+    some = _score(moving, moving.dynamic_mask)
+    assert all(int(some.valid_pixels[cue][0]) > 0 for cue in ("fused", "motion", "structure"))
+    assert some.empty_cues() == [] and all(math.isfinite(v) for v in some.scalars().values())
+    everything = _score(moving, torch.ones(5, 24, 32, dtype=torch.bool))
+    # the loss keeps its convention (0, zero gradient); what a user is shown is NaN, and why
+    assert float(everything.loss) == 0.0 and everything.empty_cues() == ["fused", "motion", "structure"]
+    assert all(int(everything.valid_pixels[cue][0]) == 0 for cue in ("fused", "motion", "structure"))
+    shown = everything.scalars()
+    assert shown["loss"] == 0.0 and all(math.isnan(shown[cue]) for cue in ("fused", "motion", "structure"))
+    # without masks: no co-visible pixel leaves the motion cue over nothing
+    pairs = frame_pairs(5, "adjacent")
+    flow = moving.pair_correspondences(pairs, torch.float64)
+    blind = geco_from_geometry(moving.geometry(torch.float64), replace(flow, covisibility=torch.zeros_like(flow.covisibility)),
+                               pairs, GeCoLossConfig(cue="motion"))
+    assert blind.empty_cues() == ["motion"] and float(blind.loss) == 0.0 and math.isnan(blind.scalars()["motion"])
+
+
+def test_detection_scores_of_an_almost_all_masked_frame_are_none_with_the_reason(moving):
+    oracle = Estimators(OracleGeometry(moving), OracleFlow(moving))
+    masks = torch.zeros(5, 24, 32, dtype=torch.bool)
+    masks[2] = True
+    masks[2, :, 16] = False  # one column left: 3 % of the frame, below the minimum
+    scores = frame_scores(detection_maps(moving.frames.float(), oracle, window=3, dynamic_masks=masks))
+    assert scores[2]["fused"] is None and "fewer than 5% of the frame's pixels stay valid" in scores[2]["note"]
+    assert scores[0]["fused"] is not None and "note" not in scores[0]

@@ -145,7 +145,8 @@ def test_ctrl_c_is_one_line_and_exit_code_130(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err.splitlines()
     assert err[-1] == "interrupted: the videos already done keep their outputs (each .detection.json is written last)"
     # stopped inside the maps: after the line saying what they take
-    assert err[0] == f"[1/1] {tmp_path / 'clip.mp4'} ..." and "geometry-estimator calls" in err[1] and len(err) == 3
+    assert err[0] == "loading models: tiny-random + tiny-random on cpu" and err[1] == f"[1/1] {tmp_path / 'clip.mp4'} ..."
+    assert "geometry-estimator calls" in err[2] and len(err) == 4
 
 
 def test_an_fps_the_gif_writer_cannot_take_is_one_line_before_any_map(tmp_path, capsys, monkeypatch):

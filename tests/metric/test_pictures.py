@@ -12,6 +12,7 @@ from PIL import Image, ImageDraw
 
 from geco_guide.bench import geco_eval, robustness
 from geco_guide.io.plots import legend_width, text_width
+from geco_guide.metric.evaluate import map_caption
 from geco_guide.metric.render import (
     FONT_SIZE,
     READABLE_HEIGHT,
@@ -57,7 +58,8 @@ def test_enlarge_by_whole_factors_to_a_readable_height():
 def test_map_frames_of_a_small_clip_are_enlarged_with_full_size_captions():
     frames = torch.rand(3, 3, 32, 48)
     heat = [colorize(torch.rand(3, 32, 48) * 0.2) for _ in range(3)]
-    captions = [f"T={t / 8:.2f}S FUSED 0.0561 MOTION 0.0423 STRUCTURE 0.0562" for t in range(3)]
+    captions = [map_caption({"time_s": t / 8, "fused": 0.0561, "motion": 0.0423, "structure": 0.0562}) for t in range(3)]
+    assert captions[1] == "t = 0.12 s   fused 0.056   motion 0.042   structure 0.056"  # lower case, not T=0.12S
     out = map_frames(frames, heat, ["SOURCE", "MOTION", "STRUCTURE", "FUSED"], captions)
     scale = text_scale(192)
     assert out.shape[0] == 3 and out.shape[-1] >= 4 * 288  # was 204 pixels wide before enlarging
