@@ -1,53 +1,68 @@
 """``geco <command> ...`` (installed) or ``python -m geco_guide <command> ...``: every command of the
-package under one name, as ``accelerate`` and ``huggingface-cli`` gather theirs.
+package under one name, as ``accelerate`` gathers its own.
 
-``geco generate --prompt "..."`` is ``python -m geco_guide.generate --prompt "..."`` (still the
-documented entry), and so on for each command below. Listing the commands imports none of them,
-so ``geco --help`` answers at once.
+Each command is a module of :mod:`geco_guide.cli` with ``SUMMARY`` (its line in ``geco --help``),
+``DESCRIPTION``, ``register_subcommand(parser)`` (its options) and ``run(args)`` (the work, whose
+heavy imports happen inside it), so that ``geco --help``, ``geco <command> --help`` and a mistyped
+option answer at once, without torch.
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
+from collections.abc import Sequence
 from importlib import import_module
 
 from . import __version__
+from .cli.kit import Parser, parse_command
 
-__all__ = ["COMMANDS", "main"]
+__all__ = ["COMMANDS", "build_parser", "main"]
 
-#: command -> (its module in geco_guide.cli, what it does)
+#: command -> its module in geco_guide.cli, in the order ``geco --help`` lists them
 COMMANDS = {
-    "generate": ("generate", "generate a video with GeCo guidance (or without: --no-guidance)"),
-    "evaluate": ("evaluate", "score videos with the GeCo protocol"),
-    "geco-eval": ("geco_eval", "run the GeCo-Eval benchmark: generate its prompts with video models and score them"),
-    "detection": ("detection", "per-frame detection maps: where a video breaks, frame by frame"),
-    "benchmarks": ("benchmarks", "build WarpBench/OccluBench-style clips with ground truth"),
-    "validate": ("validate", "score those clips on the paper's three detection tasks"),
-    "robustness": ("robustness", "the metric against noisy depth and flow"),
-    "ab": ("ab", "A/B test of guidance on your prompts: unguided vs guided (vs best-of-N), same noise"),
+    "generate": "generate",
+    "evaluate": "evaluate",
+    "geco-eval": "geco_eval",
+    "ab": "ab",
+    "detection": "detection",
+    "benchmarks": "benchmarks",
+    "validate": "validate",
+    "robustness": "robustness",
+    "bench": "bench",
 }
 
 
-def usage() -> str:
-    width = max(map(len, COMMANDS))
-    rows = "\n".join(f"  {name:<{width}}  {summary}" for name, (_, summary) in COMMANDS.items())
-    return (f"usage: geco <command> [options]   (also: python -m geco_guide <command>)\n\ncommands:\n{rows}\n\n"
-            "geco <command> --help shows a command's options.")
+def build_parser() -> tuple[Parser, dict[str, argparse.ArgumentParser]]:
+    """``(the geco parser, {command: its parser})``."""
+    parser = Parser(prog="geco", description="GeCo: geometric-consistency guidance and evaluation of video diffusion "
+                                             "models.", epilog="geco <command> --help shows a command's options.")
+    parser.add_argument("--version", action="version", version=f"geco_guide {__version__}")
+    commands = parser.add_subparsers(title="commands", metavar="<command>", parser_class=Parser)
+    parsers = {}
+    for name, module_name in COMMANDS.items():
+        module = import_module(f"geco_guide.cli.{module_name}")
+        command = commands.add_parser(name, help=module.SUMMARY, description=module.DESCRIPTION,
+                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+        module.register_subcommand(command)
+        command.set_defaults(run=module.run)
+        parsers[name] = command
+    return parser, parsers
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if not argv or argv[0] in ("-h", "--help"):
-        print(usage(), file=sys.stdout if argv else sys.stderr)
-        return 0 if argv else 2
-    if argv[0] == "--version":
-        print(f"geco_guide {__version__}")
-        return 0
-    if argv[0] not in COMMANDS:
-        print(f"geco: error: unknown command {argv[0]!r}; one of {', '.join(COMMANDS)} (geco --help)", file=sys.stderr)
+    parser, parsers = build_parser()
+    if not argv:
+        parser.print_help(sys.stderr)
         return 2
-    module = import_module(f"geco_guide.cli.{COMMANDS[argv[0]][0]}")
-    return module.main(argv[1:])
+    if argv[0] not in parsers:
+        if argv and not argv[0].startswith("-"):
+            parser.error(f"unknown command {argv[0]!r}; one of {', '.join(parsers)}")
+        parser.parse_args(argv)  # --help, --version, or an option geco itself lacks
+        return 2
+    args = parse_command(parsers[argv[0]], argv[1:])
+    return args.run(args)
 
 
 if __name__ == "__main__":

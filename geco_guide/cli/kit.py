@@ -13,16 +13,16 @@ import functools
 import re
 import sys
 import warnings
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from importlib import import_module
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from ..config import GeCoConfig
 
-__all__ = ["DeferredImports", "ESTIMATOR_KEYS", "Parser", "add_config_flags", "add_model_flag", "config_from_args", "interruptible",
-           "is_config_key", "one_line_warnings", "parse_count", "print_error", "split_overrides"]
+__all__ = ["ESTIMATOR_KEYS", "Parser", "add_config_flags", "add_model_flag", "command_main", "config_from_args",
+           "interruptible", "is_config_key", "one_line_warnings", "parse_command", "parse_count", "print_error",
+           "split_overrides"]
 
 #: The config keys the estimator flags set (the config's section is ``estimators``).
 ESTIMATOR_KEYS = {"geometry_estimator": "estimators.geometry", "flow_estimator": "estimators.flow"}
@@ -146,62 +146,49 @@ def one_line_warnings() -> Callable[..., None]:
 
 
 def interruptible(kept: str) -> Callable[[Callable[..., int]], Callable[..., int]]:
-    """Ctrl-C ends the decorated ``main`` with one line saying what was kept (``kept``) and exit
-    code 130, the shell's code for SIGINT, instead of a traceback from wherever it stopped; while
-    it runs, each warning is one line (:func:`one_line_warnings`) and the library's log lines
+    """Ctrl-C ends the decorated command ``run`` with one line saying what was kept (``kept``) and
+    exit code 130, the shell's code for SIGINT, instead of a traceback from wherever it stopped;
+    while it runs, each warning is one line (:func:`one_line_warnings`) and the library's log lines
     show on stderr (:func:`~geco_guide.io.logs.log_to_stderr`)."""
 
-    def decorate(main: Callable[..., int]) -> Callable[..., int]:
-        @functools.wraps(main)
-        def run(argv: list[str] | None = None) -> int:
+    def decorate(run: Callable[..., int]) -> Callable[..., int]:
+        @functools.wraps(run)
+        def guarded(*args: Any, **kwargs: Any) -> int:
             from ..io.logs import log_to_stderr
 
             log_to_stderr()
             try:
                 with warnings.catch_warnings():
                     warnings.showwarning = one_line_warnings()
-                    return main(argv)
+                    return run(*args, **kwargs)
             except KeyboardInterrupt:
                 print(f"interrupted: {kept}", file=sys.stderr)
                 return 130
 
-        return run
+        return guarded
 
     return decorate
 
 
-class DeferredImports:
-    """The names a command's implementation takes from modules that import torch, imported once
-    its arguments parsed, so that ``--help`` and an argument error answer without torch.
+def parse_command(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """``argv`` parsed by a command's ``parser``, options and positionals in any order
+    (``geco evaluate a.mp4 --out scores evaluation.max_frames=9``), except for a command made of
+    subcommands, whose options follow its subcommand."""
+    if any(isinstance(action, argparse._SubParsersAction) for action in parser._actions):
+        return parser.parse_args(argv)
+    return parser.parse_intermixed_args(argv)
 
-    ``imports`` maps each module (relative to the command's package, as in its own imports) to the
-    names imported from it, as ``from MODULE import NAMES`` would (a submodule by its package and
-    name too). The command's module sets ``__getattr__ = deferred.attribute`` (PEP 562), so that
-    ``module.NAME`` is the name as before, imported then; its ``main`` calls :meth:`load` after
-    parsing, which binds every name in the module for its functions, keeping one already bound
-    there (a stand-in a test put in its place).
-    """
 
-    def __init__(self, module: str, imports: Mapping[str, Sequence[str]]) -> None:
-        self.module = module
-        self.names = {name: source for source, names in imports.items() for name in names}
+def command_main(prog: str, description: str, register_subcommand: Callable[[argparse.ArgumentParser], Any],
+                 run: Callable[[argparse.Namespace], int]) -> Callable[[Sequence[str] | None], int]:
+    """``main(argv)`` of a command run on its own (``geco-generate``, ``python -m
+    geco_guide.generate``, a test): its options on a parser of its own, then ``run``, as ``geco
+    <command>`` runs it."""
 
-    def attribute(self, name: str) -> Any:
-        if name not in self.names:
-            raise AttributeError(f"module {self.module!r} has no attribute {name!r}")
-        return self._bind(name)
+    def main(argv: Sequence[str] | None = None) -> int:
+        parser = Parser(prog=prog, description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+        register_subcommand(parser)
+        return run(parse_command(parser, argv))
 
-    def load(self) -> None:
-        bound = vars(sys.modules[self.module])
-        for name in self.names:
-            if name not in bound:
-                self._bind(name)
-
-    def _bind(self, name: str) -> Any:
-        source = import_module(self.names[name], self.module.rpartition(".")[0])
-        try:
-            value = getattr(source, name)
-        except AttributeError:  # a submodule its package has not imported
-            value = import_module(f"{source.__name__}.{name}")
-        setattr(sys.modules[self.module], name, value)
-        return value
+    main.__doc__ = f"``{prog}``: the command on its own ({description})"
+    return main
