@@ -238,21 +238,23 @@ def loading_line(cfg: GeCoConfig, estimators: bool = True) -> str:
     return f"loading models: {model}, geometry {cfg.estimators.geometry}, flow {cfg.estimators.flow}{segmenter} ..."
 
 
-def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True) -> Models:
+def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True,
+                components: dict[str, Any] | None = None) -> Models:
     """The video pipeline of ``cfg.model`` (its tiny random stand-in with ``model.id=tiny-random``)
     and the GeCo models: ``estimators`` when it is a bundle loaded already (a run that shares it
     across models), loaded when it is ``True`` (with the segmenter where ``guidance.dynamic``
     names subjects), none when ``False``; plus the tiny decoder of the model's latents where the
     guidance decodes with it. On ``model.device``. Every model's weights were looked up before
-    (:func:`check_generation`), so the order is the one that needs each model's facts first."""
+    (:func:`check_generation`), so the order is the one that needs each model's facts first.
+    ``components``: the video pipeline's models built already (the perf harness's full-size models
+    with random weights), in place of ``model.id``'s weights."""
     import torch
 
     from .estimators import Estimators, load_estimators
     from .sampler.loading import load_tiny_decoder, load_video_pipeline, uses_tiny_decoder
     from .tiny import tiny_video_components
 
-    components = None
-    if cfg.model.source == TINY_RANDOM:
+    if components is None and cfg.model.source == TINY_RANDOM:
         components = tiny_video_components(cfg.model.video_model, cfg.model.init_seed)
     video = load_video_pipeline(cfg.model, cfg.sampling.scheduler, components)
     decoder = None

@@ -398,11 +398,11 @@ def run_shard(cfg: GeCoConfig, pairs: Sequence[Pair], out: Path, maps: bool, tag
 
 
 def local_card(cfg: GeCoConfig) -> str | None:
-    """The card of :data:`~geco_guide.perf.cost.GPU_SPECS` that ``model.device`` is, or None (a CPU,
+    """The card of :data:`~geco_guide.perf.cards.GPU_SPECS` that ``model.device`` is, or None (a CPU,
     or a GPU the cost model does not know)."""
     import torch
 
-    from ..perf.cost import GPU_SPECS
+    from ..perf.cards import GPU_SPECS
 
     device = resolve_device(cfg.model.device)
     if device.type != "cuda":
@@ -415,7 +415,7 @@ def local_card(cfg: GeCoConfig) -> str | None:
 def predicted_ratio(cfg: GeCoConfig, gpu: str) -> float:
     """The guided / unguided sampling time ratio the cost model predicts for ``cfg``'s model, video
     size, steps, schedule, mode and anchor decoder on ``gpu``, under the memory plan
-    ``memory_plan=auto`` picks for the card (as ``scripts/benchmark.py cost --gpu``)."""
+    ``memory_plan=auto`` picks for the card (as ``geco bench cost --gpu``)."""
     from ..perf.cost import cost_report, cost_settings
     from ..perf.plans import KNOWN_MODELS, card_plan
 
@@ -438,7 +438,7 @@ def predicted_ratio(cfg: GeCoConfig, gpu: str) -> float:
 def choose_best_of(value: str | None, gpu: str | None, cfg: GeCoConfig, seeds: Sequence[int]) -> BestOf | None:
     """The best-of arm ``--best-of`` and ``--gpu`` ask for (None: no third arm); one
     :class:`InputError` line for a bad value, before anything is generated."""
-    from ..perf.cost import GPU_SPECS
+    from ..perf.cards import GPU_SPECS
 
     if gpu is not None and gpu not in GPU_SPECS:
         raise InputError(f"--gpu must be one of {', '.join(GPU_SPECS)}, got {gpu!r}")

@@ -24,16 +24,15 @@ from typing import Any
 import torch
 
 from ..io.files import write_json_atomic
+from .choices import RSS_EXACT_MMAP_THRESHOLD
 
-__all__ = ["CASE_COLUMNS", "GIB", "MIB", "RSS_EXACT_MMAP_THRESHOLD", "current_memory_bytes",
+__all__ = ["CASE_COLUMNS", "GIB", "MIB", "current_memory_bytes",
            "environment_info", "markdown_table", "memory_kind", "peak_memory_bytes", "reset_peak_memory",
            "run_case_subprocess", "run_cases", "synchronize", "time_callable", "unwritable_reason",
            "write_report"]
 
 logger = logging.getLogger(__name__)
 
-#: ``--rss-exact``: allocations from 64 KiB up are mapped on their own and unmapped when freed.
-RSS_EXACT_MMAP_THRESHOLD = 64 * 1024
 MIB = 2**20
 GIB = 2**30
 
@@ -119,6 +118,9 @@ def run_case_subprocess(spec: dict[str, Any], worker: Sequence[str]) -> dict[str
     """
     command = [*worker, json.dumps(spec)]
     env = dict(os.environ)
+    # the child imports the package the parent runs, wherever it is on the parent's path
+    root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
     if spec.get("rss_exact"):
         # glibc otherwise raises its mmap threshold to 32 MiB after the first large free and keeps
         # freed blocks below it in the heap, so peak RSS overstates the live tensors.

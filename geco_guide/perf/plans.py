@@ -1,37 +1,56 @@
 """The memory plans' estimates (``plans``) and the plan of a card (``cost --gpu``), from the cost model.
 
 :func:`plan_estimates` traces every named plan (:data:`~geco_guide.sampler.memory_plan.PLANS`) of
-every known model, mode and anchor decoder with :func:`~.cost.cost_report` and keeps what the
-planner needs: the peak as weights + activations, the peak with model CPU offload, and the
-predicted H200 time. The result is the package data ``geco_guide/sampler/data/memory_plans.json``
-that ``run.memory_plan=auto`` reads at a call (no tracing at start-up).
+every traced registry model (:func:`~geco_guide.families.published.traced_models`) and the tiny
+test models, in each mode and with each anchor decoder the model has, with
+:func:`~.cost.cost_report`, and keeps what the planner needs (the peak as weights + activations,
+the peak with model CPU offload, the predicted H200 time) and what the per-family cost table needs
+(the unguided run, the units of a search, the anchor decode per card). The result is the package
+data ``geco_guide/sampler/data/memory_plans.json`` that ``run.memory_plan=auto`` reads at a call
+(no tracing at start-up) and that ``geco bench cost --all-models`` prints.
 
 With model CPU offload (``enable_model_cpu_offload()``) the pipeline keeps the estimators and the
 tiny decoder on the device (they are excluded from offload) and moves the transformer and the VAE
 in when they run: the offload peak of a stage is its live activations plus those resident
-weights plus the weights of the model at work there.
+weights plus the weights of the model at work there (one expert of a two-expert model).
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from typing import Any
 
 from ..estimators import TINY_RANDOM
+from ..families import model_named
+from ..families.published import traced_models
+from ..loss.geco import frame_pairs
 from ..sampler.config import GuidanceConfig
 from ..sampler.memory_plan import PLANS, choose_plan
 from ..sampler.run_options import RunOptions
-from .cost import GPU_SPECS, cost_report, cost_settings
+from .cards import GPU_SPECS, card_memory_gib
+from .cost import cost_report, cost_settings
 from .measure import GIB
+from .tracing import cost_guidance, trace_cost
 
-__all__ = ["KNOWN_MODELS", "card_plan", "offload_peak", "plan_estimate", "plan_estimates", "with_card"]
+__all__ = ["ANCHOR_DECODERS", "KNOWN_MODELS", "MODES", "REGENERATE", "anchor_decoders", "card_plan",
+           "offload_peak", "plan_estimate", "plan_estimates", "search_units", "unguided_estimate", "with_card"]
 
-#: The models the estimates know: the cost preset that builds each, and the hub ids that name it
-#: (so that a command line can check a budget before any model loads).
-KNOWN_MODELS: dict[str, dict[str, Any]] = {
-    "cogvideox-5b": {"preset": "full", "model_ids": ["THUDM/CogVideoX-5b", "zai-org/CogVideoX-5b"]},
-    "tiny": {"preset": "tiny", "model_ids": [TINY_RANDOM]},
-}
+logger = logging.getLogger(__name__)
+
+#: Registry aliases of hub ids the estimates also answer to (the CogVideoX organisation's new name).
+HUB_ALIASES = {"cogvideox-5b": ["zai-org/CogVideoX-5b"]}
+
+
+def _known_models() -> dict[str, dict[str, Any]]:
+    known = {name: {"preset": "full", "model": name,
+                    "model_ids": [model_named(name).hub_id, *HUB_ALIASES.get(name, [])]} for name in traced_models()}
+    return {**known, "tiny": {"preset": "tiny", "model": None, "model_ids": [TINY_RANDOM]}}
+
+
+#: The models the estimates know: the cost preset and registry model that build each, and the hub
+#: ids that name it (so that a command line can check a budget before any model loads).
+KNOWN_MODELS: dict[str, dict[str, Any]] = _known_models()
 MODES = ("fast", "faithful")
 ANCHOR_DECODERS = ("vae", "tiny")
 #: Weights on the device through a whole call under model CPU offload (the estimators are no
@@ -41,7 +60,16 @@ RESIDENT_UNDER_OFFLOAD = ("geometry_estimator", "flow_estimator", "guidance_deco
 #: decoder decodes the anchors, and that one is resident).
 STAGE_MODEL = {"denoiser_cfg": "transformer", "denoiser": "transformer", "anchor_decode": "vae",
                "final_decode": "vae"}
-REGENERATE = "python scripts/benchmark.py plans --threads 1 --json geco_guide/sampler/data/memory_plans.json"
+REGENERATE = "geco bench plans --threads 1 --json geco_guide/sampler/data/memory_plans.json"
+
+
+def anchor_decoders(key: str) -> tuple[str, ...]:
+    """The anchor decoders a known model's estimates cover: the VAE, and the tiny decoder where its
+    family has one (LTX-Video has none)."""
+    known = KNOWN_MODELS[key]
+    if known["model"] is not None and model_named(known["model"]).tiny_decoder is None:
+        return ("vae",)
+    return ANCHOR_DECODERS
 
 
 def offload_peak(report: dict[str, Any]) -> dict[str, Any]:
@@ -65,14 +93,65 @@ def offload_peak(report: dict[str, Any]) -> dict[str, Any]:
 
 
 def plan_estimate(report: dict[str, Any]) -> dict[str, Any]:
-    """What the planner keeps of one plan's cost report."""
+    """What the planner and the cost table keep of one plan's cost report: the peak (weights +
+    activations, and under model CPU offload), the predicted H200 time of the guided run, its ratio
+    to the unguided run per card, and the run's anchor decode per card (what ``run.devices``
+    spreads)."""
     offload = offload_peak(report)
+    decode = report["per_stage"].get("anchor_decode")
     return {"weights_gb": sum(report["weights_gb"].values()), "activations_gb": report["activations_peak_gb"],
             "peak_gb": report["peak_memory_gb"], "peak_at": report["peak_at"],
             "offload_weights_gb": offload["weights_gb"], "offload_activations_gb": offload["activations_gb"],
             "offload_peak_gb": offload["weights_gb"] + offload["activations_gb"], "offload_peak_at": offload["at"],
             "time_s": report["roofline"]["wall_time_s"]["H200"]["guided"],
-            "ratio_guided_over_unguided": report["roofline"]["ratio_guided_over_unguided"]}
+            "ratio_guided_over_unguided": report["roofline"]["ratio_guided_over_unguided"],
+            "anchor_decode_s": {gpu: decode["time_s"][gpu] for gpu in GPU_SPECS} if decode else None}
+
+
+def unguided_estimate(report: dict[str, Any]) -> dict[str, Any]:
+    """The unguided run of a cost ``report``, as the video model runs it without GeCo (its
+    denoiser(s) and VAE; no estimators, and no text encoder: freed or offloaded once the prompt is
+    encoded): ``time_s`` per card, ``peak_gb`` (its weights and the unguided call's activations)
+    and ``offload_peak_gb`` (under model CPU offload: the model at work and its stage's
+    activations)."""
+    weights = report["weights_gb"]
+    video = sum(weights.get(name, 0.0) for name in ("transformer", "transformer_2", "vae"))
+    stages = report["unit_traces"]["unguided"]
+    live = {f"{stage}/{kind}": value["peak_live_bytes"] / GIB for stage, kinds in stages.items()
+            for kind, value in kinds.items() if kind != "calls"}
+    offload = max(weights.get(STAGE_MODEL.get(key.split("/")[0], ""), 0.0) + gb for key, gb in live.items())
+    return {"time_s": {gpu: w["unguided"] for gpu, w in report["roofline"]["wall_time_s"].items()},
+            "peak_gb": video + max(live.values()), "offload_peak_gb": offload}
+
+
+def _seconds(trace_stage: dict[str, Any], kind: str, efficiency: float) -> dict[str, float]:
+    """Predicted seconds per card of one traced stage's ``kind`` (forward or backward)."""
+    return {gpu: trace_stage.get(kind, {}).get("roofline_s", {}).get(gpu, 0.0) / efficiency for gpu in GPU_SPECS}
+
+
+def search_units(report: dict[str, Any]) -> dict[str, Any]:
+    """One video's units of a search, per card, from a guided cost ``report`` (one update traced):
+    ``prediction_s`` (a step's prediction without gradients), ``scoring_s`` (a resampling's scoring
+    of one particle: the forward of the update's anchor decode, estimators and loss, no backward;
+    ``scoring_decode_s`` its anchor decode alone, which ``run.devices`` deals over the GPUs),
+    ``final_decode_s``, and for the selection's protocol scoring ``vggt_frame_s`` and
+    ``ufm_pair_s`` (the update's estimator forwards per frame and per pair: the geometry
+    estimator's per frame is a lower bound for longer windows, its attention across frames grows
+    faster than their count)."""
+    efficiency = report["roofline"]["efficiency"]
+    stages = report["unit_traces"]["guided"]
+    guidance = cost_guidance(report["settings"], report["mode"], "1", None)
+    pairs = len(frame_pairs(len(guidance.anchors), guidance.loss.pairs))
+    scoring = {gpu: sum(_seconds(stages[name], "forward", efficiency)[gpu] for name in
+                        ("anchor_decode", "vggt", "ufm", "loss") if name in stages) for gpu in GPU_SPECS}
+    return {"prediction_s": {gpu: report["per_stage"]["denoiser_cfg"]["time_s"][gpu] /
+                             max(report["per_stage"]["denoiser_cfg"]["count"], 1) for gpu in GPU_SPECS},
+            "scoring_s": scoring, "scoring_decode_s": _seconds(stages["anchor_decode"], "forward", efficiency),
+            "final_decode_s": report["per_stage"]["final_decode"]["time_s"],
+            "vggt_frame_s": {gpu: s / len(guidance.anchors) for gpu, s in
+                             _seconds(stages["vggt"], "forward", efficiency).items()},
+            "ufm_pair_s": {gpu: s / pairs for gpu, s in _seconds(stages["ufm"], "forward", efficiency).items()},
+            "anchors": len(guidance.anchors), "pairs": pairs}
 
 
 def seconds_text(seconds: float) -> str:
@@ -80,48 +159,65 @@ def seconds_text(seconds: float) -> str:
     return f"{seconds:.0f} s" if seconds >= 10 else f"{seconds:.3g} s"
 
 
+def _settings(known: dict[str, Any], decoder: str, plan: str) -> dict[str, Any]:
+    return cost_settings(preset=known["preset"], model=known["model"] or "cogvideox-5b", steps=None, frames=None,
+                         height=None, width=None, dtype=None, decoder=decoder, plan=plan)
+
+
+def model_estimates(key: str, on_report: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """One known model's entry of the estimates file (:func:`plan_estimates`)."""
+    known = KNOWN_MODELS[key]
+    entry: dict[str, Any] = {"model_ids": known["model_ids"], "estimates": {}}
+    for decoder in anchor_decoders(key):
+        unguided = trace_cost(_settings(known, decoder, PLANS[0].name), "unguided")  # no plan acts unguided
+        for mode in MODES:
+            table = {}
+            for plan in PLANS:
+                settings = _settings(known, decoder, plan.name)
+                report = cost_report(settings, mode, unguided=unguided)
+                table[plan.name] = plan_estimate(report)
+                entry.setdefault("signature", report["signature"])
+                entry.setdefault("video", {k: settings[k] for k in ("frames", "height", "width")})
+                if (mode, decoder, plan.name) == ("fast", "vae", PLANS[0].name):
+                    entry["schedule"] = {**{k: settings[k] for k in ("steps", "repeats", "time_travel")},
+                                         "updates": report["counts"]["updates"]}
+                    entry["unguided"] = unguided_estimate(report)
+                    entry["search_units"] = search_units(report)
+                    entry["chunk_latents"] = cost_guidance(settings, mode, "1", None).chunk_latents
+                    entry["efficiency"] = report["roofline"]["efficiency"]
+                if on_report is not None:
+                    on_report(f"{key} {mode}/{decoder} {plan.name}: peak {table[plan.name]['peak_gb']:.1f} GiB, "
+                              f"offload {table[plan.name]['offload_peak_gb']:.1f} GiB, "
+                              f"H200 {seconds_text(table[plan.name]['time_s'])}")
+            entry["estimates"][f"{mode}/{decoder}"] = table
+    return entry
+
+
 def plan_estimates(models: Sequence[str] = tuple(KNOWN_MODELS), argv: Sequence[str] = (),
                    on_report: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The estimates file: for each model of :data:`KNOWN_MODELS`, its denoiser signature, hub ids,
-    traced video size and, per ``mode/decoder``, each plan's :func:`plan_estimate`.
-    ``on_report`` is told each finished trace (a progress line)."""
+    traced video size, schedule, unguided run, search units and, per ``mode/decoder``, each plan's
+    :func:`plan_estimate`. ``on_report`` is told each finished trace (a progress line)."""
     out: dict[str, Any] = {"note": "predicted by the cost model (fake tensors, roofline calibrated on the H200), "
                                    "not measured; memory in GiB, time in H200 seconds for the traced video (the "
                                    "tiny models' times only order their plans)",
                            "command": REGENERATE, "argv": list(argv), "models": {}}
     for key in models:
-        known = KNOWN_MODELS[key]
-        entry: dict[str, Any] = {"model_ids": known["model_ids"], "estimates": {}}
-        for mode in MODES:
-            for decoder in ANCHOR_DECODERS:
-                table = {}
-                for plan in PLANS:
-                    settings = cost_settings(preset=known["preset"], steps=None, frames=None, height=None, width=None,
-                                             dtype=None, decoder=decoder, plan=plan.name)
-                    report = cost_report(settings, mode)
-                    table[plan.name] = plan_estimate(report)
-                    entry.setdefault("signature", report["signature"])
-                    entry.setdefault("video", {k: settings[k] for k in ("frames", "height", "width")})
-                    if on_report is not None:
-                        on_report(f"{key} {mode}/{decoder} {plan.name}: peak {table[plan.name]['peak_gb']:.1f} GiB, "
-                                  f"offload {table[plan.name]['offload_peak_gb']:.1f} GiB, "
-                                  f"H200 {seconds_text(table[plan.name]['time_s'])}")
-                entry["estimates"][f"{mode}/{decoder}"] = table
-        out["models"][key] = entry
+        out["models"][key] = model_estimates(key, on_report)
     return out
 
 
 def card_plan(gpu: str, mode: str, decoder: str, frames: int, height: int, width: int,
-              estimates: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The plan ``memory_plan=auto`` picks for CogVideoX-5B on ``gpu`` (its memory from
-    :data:`~.cost.GPU_SPECS`): without offload if one fits, else with model CPU offload; ``plan``
+              estimates: dict[str, Any] | None = None, model: str = "cogvideox-5b") -> dict[str, Any]:
+    """The plan ``memory_plan=auto`` picks for registry ``model`` on ``gpu`` (its memory from
+    :data:`~.cards.GPU_SPECS`): without offload if one fits, else with model CPU offload; ``plan``
     ``None`` and the planner's line in ``reason`` where none fits either."""
-    device_gb = GPU_SPECS[gpu]["memory_gb"] * 1e9 / GIB
+    device_gb = card_memory_gib(gpu)
     config = GuidanceConfig(denoiser_grad=mode == "faithful", decoder=decoder)
     errors = []
     for offload in (False, True):
         try:
-            choice = choose_plan(config, RunOptions(), model_id=KNOWN_MODELS["cogvideox-5b"]["model_ids"][0], frames=frames,
+            choice = choose_plan(config, RunOptions(), model_id=KNOWN_MODELS[model]["model_ids"][0], frames=frames,
                                  height=height, width=width, device_gb=device_gb, offload=offload, estimates=estimates)
         except ValueError as err:
             errors.append(str(err))

@@ -1,6 +1,6 @@
 """Stage profiling of a pipeline call: per-stage forward and backward intervals.
 
-Both profilers of the package (:class:`StageProfiler` here, timing; :class:`~.cost.CostTracker`,
+Both profilers of the package (:class:`StageProfiler` here, timing; :class:`~.tracing.CostTracker`,
 counting FLOPs) attribute a stage's backward with :func:`call_marking_backward`: the backward of a
 wrapped call starts at the first execution of an output's ``grad_fn`` (a node pre-hook) and ends
 when the gradient w.r.t. its last tensor input is computed (an identity autograd function on every
@@ -121,21 +121,30 @@ class StageProfiler:
     def _bwd_end(self, call: dict[str, Any]) -> None:
         call["bwd_end"] = self.now()
 
-    def mark_loop_start(self, pipe: Any) -> None:
-        """Mark the loop start: the first ``model_output`` call (every step makes at least one: the
-        unguided steps call it directly, the guided ones through ``predict``)."""
-        original = pipe.model_output
+    def mark_loop_start(self, obj: Any, name: str) -> None:
+        """Mark the loop start at the first call of ``obj.name`` (``model_output`` of the GeCo
+        pipeline: every step makes at least one, the unguided steps directly, the guided ones
+        through ``predict``), an instance attribute over the method."""
+        original = getattr(obj, name)
 
         def wrapper(*args: Any, **kwargs: Any) -> Any:
             if self.loop_start is None:
                 self.loop_start = self.now()
             return original(*args, **kwargs)
 
-        pipe.model_output = wrapper
+        setattr(obj, name, wrapper)
 
-    def on_step_end(self, pipe: Any, step: int, t: Any, callback_kwargs: dict[str, Any]) -> dict[str, Any]:
-        self.step_ends.append(self.now())
-        return {}
+    def mark_step_ends(self, scheduler: Any) -> None:
+        """Mark each step's end when ``scheduler.step`` returns (every step of the loop ends with
+        it), an instance attribute over the method."""
+        original = scheduler.step
+
+        def step(*args: Any, **kwargs: Any) -> Any:
+            out = original(*args, **kwargs)
+            self.step_ends.append(self.now())
+            return out
+
+        scheduler.step = step
 
     def intervals(self) -> list[dict[str, Any]]:
         """Every timed interval: ``stage, kind (forward|backward), grad, start, end``."""

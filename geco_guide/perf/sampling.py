@@ -1,8 +1,10 @@
-"""Sampling benchmark: guided vs unguided :class:`GeCoCogVideoXPipeline` sampling from one seed.
+"""Sampling benchmark: guided vs unguided sampling from one seed, through the one generation path.
 
-Each arm runs in its own process (:func:`run_sampling_worker`); the guided arm's stages are timed
-by a :class:`~.profile.StageProfiler`. With fewer than the nominal 50 steps the paper's schedule
-is scaled to the run's steps by the package's rule
+Each arm runs in its own process (:func:`run_sampling_worker`): its config (the tiny preset, or
+CogVideoX-5B's with random full-size weights) goes to :func:`geco_guide.generation.load_models`
+and :func:`geco_guide.generation.sample`, as ``geco generate`` makes a video; the guided arm's
+stages are timed by a :class:`~.profile.StageProfiler`. With fewer than the nominal 50 steps the
+paper's schedule is scaled to the run's steps by the package's rule
 (:func:`~geco_guide.sampler.schedule.scale_schedule`: phase boundaries rounded), and the times are
 extrapolated to 50 steps and the paper's 111 updates (``extrapolated: true``).
 """
@@ -21,8 +23,8 @@ import torch
 
 from ..estimators.bundle import Estimators
 from ..estimators.ufm import UFM, UFMConfig
-from ..families import default_anchors, model_named
 from ..estimators.vggt import VGGT, VGGTConfig
+from ..families import default_anchors, model_named
 from ..sampler.config import GuidanceConfig, fused_guidance_config
 from ..sampler.run_options import RunOptions
 from ..sampler.schedule import (
@@ -31,6 +33,8 @@ from ..sampler.schedule import (
     parse_repeats,
     scale_schedule,
 )
+from .choices import NOMINAL_STEPS
+from .full_size import CALIBRATION_MODEL, build_full_size_components, model_video, text_encoder_stand_in
 from .measure import (
     GIB,
     environment_info,
@@ -40,18 +44,17 @@ from .measure import (
     run_case_subprocess,
     synchronize,
 )
-from .full_size import FULL_SIZE_VIDEO, TEXT_EMBED_SHAPE, build_full_size_components, cast_components
 from .profile import StageProfiler, breakdown_of, summarize_profile
 
-__all__ = ["NOMINAL_STEPS", "SAMPLING_MODES", "paper_schedule_for", "run_sampling_worker",
-           "sampling_guidance", "sampling_run_options", "sampling_report", "sampling_spec", "sampling_table"]
+__all__ = ["PROMPT", "paper_schedule_for", "run_sampling_worker", "sampling_config", "sampling_guidance",
+           "sampling_models", "sampling_run_options", "sampling_report", "sampling_spec", "sampling_table"]
 
 logger = logging.getLogger(__name__)
 
-NOMINAL_STEPS = 50
-SAMPLING_MODES = ("faithful", "fast", "unguided")
 #: Breakdown stages (keys of the profiler) in report order.
 STAGES = ("denoiser", "vae_decode", "vggt", "ufm")
+#: The prompt of every arm (the full-size models' random weights make any prompt noise).
+PROMPT = "a red cube on a table"
 
 
 def paper_schedule_for(num_steps: int) -> tuple[str, list[int] | None]:
@@ -74,7 +77,7 @@ def sampling_guidance(spec: dict[str, Any]) -> GuidanceConfig | bool:
     # the fused loss (gradients through VGGT too): the costlier of the two presets, what was measured
     base = tiny_guidance_config() if spec["preset"] == "tiny" else fused_guidance_config()
     chunk_latents = base.chunk_latents if spec["chunk_latents"] is None else spec["chunk_latents"]
-    anchors = default_anchors(spec["frames"], model_named("cogvideox-5b").temporal_compression)
+    anchors = default_anchors(spec["frames"], model_named(CALIBRATION_MODEL).temporal_compression)
     return replace(base, anchors=anchors, repeats=repeats, time_travel=time_travel,
                    denoiser_grad=spec["mode"] == "faithful", chunk_latents=chunk_latents)
 
@@ -89,49 +92,62 @@ def sampling_run_options(spec: dict[str, Any]) -> RunOptions:
                    gradient_checkpointing=base.gradient_checkpointing and not spec.get("no_denoiser_checkpointing"))
 
 
-def build_sampling_pipeline(spec: dict[str, Any], device: torch.device,
-                            dtype: torch.dtype) -> tuple[Any, dict[str, Any], Estimators]:
-    """The pipeline of a sampling case, its call kwargs (random text embeddings for full size) and
-    its estimators."""
-    from ..sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+def sampling_config(spec: dict[str, Any]) -> Any:
+    """The :class:`~geco_guide.config.GeCoConfig` of one arm of ``spec``: the tiny preset or
+    CogVideoX-5B's (the paper's call), with the arm's size, steps, dtype, device and seed, the
+    harness's guidance (:func:`sampling_guidance`: off for the unguided arm) and run options
+    (:func:`sampling_run_options`), and no scoring of the anchors afterwards."""
+    from ..config import load_config
 
-    seed = spec["seed"]
+    tiny = spec["preset"] == "tiny"
+    changes = {"sampling.num_frames": spec["frames"], "sampling.height": spec["height"],
+               "sampling.width": spec["width"], "sampling.num_inference_steps": spec["steps"],
+               "sampling.guidance_scale": 6.0, "model.dtype": spec["dtype"], "model.device": spec["device"],
+               "estimators.dtype": spec["dtype"], "model.vae_tiling": bool(spec.get("vae_tiling")),
+               "seed": spec["seed"], "output.score_anchors": False}
+    if tiny:
+        changes.update({"model.init_seed": spec["seed"], "estimators.init_seed": spec["seed"]})
+    cfg = load_config(preset="tiny" if tiny else CALIBRATION_MODEL, changes=changes)
+    guidance = sampling_guidance(spec)
+    return replace(cfg, guidance=replace(cfg.guidance, enabled=False) if guidance is False else guidance,
+                   run=sampling_run_options(spec))
+
+
+def sampling_models(spec: dict[str, Any], cfg: Any) -> Any:
+    """The models of an arm, loaded by :func:`geco_guide.generation.load_models`: the tiny preset's
+    (its tiny-random models, seeded with the case's seed), or CogVideoX-5B's transformer and VAE
+    with random weights (:func:`~.full_size.build_full_size_components`), a one-layer T5 of T5-XXL's
+    width over a small tokenizer for the prompt (:func:`~.full_size.text_encoder_stand_in`: the
+    random models make noise of any prompt), and VGGT-1B and UFM-Base with random weights (trunks in
+    the sampling dtype, heads float32: what generate's ``from_pretrained(dtype=...)`` builds)."""
+    from ..generation import load_models
+
     if spec["preset"] == "tiny":
-        from ..tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_bundle, tiny_pipeline
-
-        pipe = cast_components(tiny_pipeline(seed), dtype).to(device)
-        estimators = tiny_bundle(seed)
-        for model in estimators.modules():
-            model.to(device=device, dtype=dtype)
-        call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
-    else:
-        # trunks in the sampling dtype, heads float32: what generate's from_pretrained(dtype=...) builds
-        ckpt = spec.get("estimator_checkpointing", False)
-        geometry = VGGT.random(VGGTConfig(), seed=seed, gradient_checkpointing=ckpt).trunk_to(dtype)
-        flow = UFM.random(UFMConfig(), seed=seed, gradient_checkpointing=ckpt).trunk_to(dtype)
-        pipe = GeCoCogVideoXPipeline(**build_full_size_components(device, dtype, seed))
-        estimators = Estimators(geometry.eval().to(device), flow.eval().to(device))
-        pipe.to(device)
-        if spec["vae_tiling"]:  # generate's model.vae_tiling
-            pipe.vae.enable_tiling()
-        pipe.set_progress_bar_config(disable=True)
-        gen = torch.Generator().manual_seed(seed + 1000)
-        embeds = [torch.randn(*TEXT_EMBED_SHAPE, generator=gen).to(device, dtype) for _ in range(2)]
-        call = {"prompt_embeds": embeds[0], "negative_prompt_embeds": embeds[1],
-                "max_sequence_length": TEXT_EMBED_SHAPE[1]}
-    call.update(num_frames=spec["frames"], height=spec["height"], width=spec["width"], output_type="pt")
-    return pipe, call, estimators
+        return load_models(cfg)
+    device, dtype, seed = torch.device(spec["device"]), getattr(torch, spec["dtype"]), spec["seed"]
+    ckpt = spec.get("estimator_checkpointing", False)
+    geometry = VGGT.random(VGGTConfig(), seed=seed, gradient_checkpointing=ckpt).trunk_to(dtype)
+    flow = UFM.random(UFMConfig(), seed=seed, gradient_checkpointing=ckpt).trunk_to(dtype)
+    estimators = Estimators(geometry.eval().to(device), flow.eval().to(device))
+    components = {**build_full_size_components(CALIBRATION_MODEL, device, dtype, seed),
+                  **text_encoder_stand_in(CALIBRATION_MODEL, seed + 1000)}
+    return load_models(cfg, estimators=estimators, components=components)
 
 
 def run_sampling_worker(spec: dict[str, Any]) -> dict[str, Any]:
-    """One arm (guided or unguided) of a sampling benchmark in this process."""
+    """One arm (guided or unguided) of a sampling benchmark in this process, through the
+    generation path (:func:`sampling_config`, :func:`sampling_models`,
+    :func:`geco_guide.generation.sample`)."""
+    from ..generation import sample
+
     device = torch.device(spec["device"])
-    dtype = getattr(torch, spec["dtype"])
     if spec["threads"]:
         torch.set_num_threads(spec["threads"])
     baseline = peak_memory_bytes(device)
     start = time.perf_counter()
-    pipe, call, estimators = build_sampling_pipeline(spec, device, dtype)
+    cfg = sampling_config(spec)
+    models = sampling_models(spec, cfg)
+    pipe, estimators = models.pipe, models.estimators
     synchronize(device)
     setup_s = time.perf_counter() - start
     after_setup = peak_memory_bytes(device)
@@ -141,31 +157,28 @@ def run_sampling_worker(spec: dict[str, Any]) -> dict[str, Any]:
     profiler.wrap(pipe.vae, "decode", "vae_decode")
     profiler.wrap(estimators.geometry, "estimate_geometry", "vggt")
     profiler.wrap(estimators.flow, "estimate_flow", "ufm")
-    profiler.mark_loop_start(pipe)
-    guidance, run = sampling_guidance(spec), sampling_run_options(spec)
-
-    def sample(steps: int, guidance_arg: Any) -> Any:
-        return pipe(**call, num_inference_steps=steps, guidance=guidance_arg, run_options=run, guidance_scale=6.0,
-                    generator=torch.Generator().manual_seed(spec["seed"]), callback_on_step_end=profiler.on_step_end,
-                    estimators=estimators if guidance_arg is not False else None)
+    profiler.mark_loop_start(pipe, "model_output")
+    profiler.mark_step_ends(pipe.scheduler)
 
     for _ in range(spec["warmup"]):  # 2 steps: with guidance, step 1 has updates (scaled schedule)
-        warm = sampling_guidance({**spec, "steps": 2}) if guidance is not False else False
-        sample(2, warm)
+        warm = sampling_guidance({**spec, "steps": 2})
+        warm_guidance = replace(cfg.guidance, enabled=False) if warm is False else warm
+        sample(models, replace(cfg, guidance=warm_guidance, sampling=replace(cfg.sampling, num_inference_steps=2)),
+               PROMPT, progress=False)
     profiler.reset()
     load_avg_1m = os.getloadavg()[0]
     cpu_start = time.process_time()
     start = profiler.now()
-    out = sample(spec["steps"], guidance)
+    made = sample(models, cfg, PROMPT, progress=False)
     wall = profiler.now() - start
     cpu_per_wall = (time.process_time() - cpu_start) / wall
     peak = peak_memory_bytes(device)
 
-    log = out.report.log
+    log = made.report.log
     profile = summarize_profile(profiler, log)
     loop_s = profiler.step_ends[-1] - profiler.loop_start
     step_times = [b - a for a, b in zip([profiler.loop_start, *profiler.step_ends[:-1]], profiler.step_ends)]
-    frames = out.frames
+    guidance = cfg.guidance if cfg.guidance.enabled else None
     return {
         **spec,
         "threads": torch.get_num_threads(),
@@ -177,21 +190,21 @@ def run_sampling_worker(spec: dict[str, Any]) -> dict[str, Any]:
         "step_times_s": step_times,
         "time_per_step_s": loop_s / len(step_times),
         "guided_updates": len(log),
-        "memory_plan": getattr(out, "memory_plan", None),
+        "memory_plan": made.report.memory_plan,
         "update_seconds": [r["seconds"] for r in log],
         "skipped_updates": sum(bool(r["skipped"]) for r in log),
         "losses": [r["loss"] for r in log],
         "profile": profile,
         "breakdown": breakdown_of(profile),
-        "output_shape": list(frames.shape),
-        "output_finite": bool(torch.isfinite(frames).all()),
+        "output_shape": list(made.frames.shape),
+        "output_finite": bool(torch.isfinite(made.frames).all()),
         "memory_kind": memory_kind(device),
         "baseline_gb": baseline / GIB,
         "after_setup_gb": after_setup / GIB,
         "peak_memory_gb": peak / GIB,
         "load_avg_1m": load_avg_1m,
         "cpu_per_wall": cpu_per_wall,
-        "guidance": None if guidance is False else {k: v for k, v in vars(guidance).items() if k != "loss"},
+        "guidance": None if guidance is None else {k: v for k, v in vars(guidance).items() if k != "loss"},
     }
 
 
@@ -232,7 +245,7 @@ def sampling_spec(*, full_size: bool, mode: str, steps: int | None, frames: int 
 
         video = {"frames": TINY_NUM_FRAMES, "height": TINY_HEIGHT, "width": TINY_WIDTH}
     else:
-        video = dict(FULL_SIZE_VIDEO)
+        video = model_video(CALIBRATION_MODEL)
     video.update({k: v for k, v in (("frames", frames), ("height", height), ("width", width)) if v is not None})
     steps = NOMINAL_STEPS if steps is None else steps  # 0 is an error, not the default
     dtype = dtype or ("bfloat16" if preset == "full-size" and torch.device(device).type == "cuda" else "float32")
@@ -334,7 +347,7 @@ SAMPLING_COLUMNS: tuple[tuple[str, str, str], ...] = (
 TINY_RATIO_NOTE = ("note: the tiny random models make this ratio meaningless for full size (their denoiser is "
                    "nearly free, so the estimators and the decode dominate), and the unguided arm's sub-second time "
                    "makes it swing between runs: compare the guided arm's seconds to catch a regression; "
-                   "`scripts/benchmark.py cost` predicts the full-size run.")
+                   "`geco bench cost` predicts the full-size run.")
 
 
 def sampling_table(report: dict[str, Any]) -> str:

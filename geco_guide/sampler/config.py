@@ -70,7 +70,7 @@ class GuidanceConfig:
             its chunks are :data:`~geco_guide.estimators.tiny_decoder.CONTEXT_LATENTS` long),
             whose weights a config names in ``estimators.tiny_decoder``. The final video always
             comes from the VAE. See docs/performance.md for what it saves (predicted) and how
-            to measure what it costs in fidelity (``scripts/benchmark.py decoder-agreement``).
+            to measure what it costs in fidelity (``geco bench decoder-agreement``).
         loss: the GeCo loss options (default :func:`~geco_guide.loss.presets.guidance_loss`); the
             structure cue only gives gradients with ``loss.geometry_grad=True``, since it depends
             on the frames only through the geometry estimator: ``cue="structure"`` with

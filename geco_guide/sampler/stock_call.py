@@ -50,7 +50,7 @@ from .run_options import RunOptions, check_call_options
 from .search import ParticleBatch, ParticleScorer, ParticleSearch, SearchConfig, choose_particle_batch
 from .slicing import AnchorChunk
 
-__all__ = ["StockCall", "check_estimators", "guide_stock_step", "stock_call"]
+__all__ = ["StockCall", "check_estimators", "denoiser_signature", "guide_stock_step", "spatial_compression", "stock_call"]
 
 
 class _WithVae:
@@ -126,10 +126,10 @@ class StockCall:
         """The particle batch of a search of ``particles`` particles in this call
         (:func:`~.search.choose_particle_batch`)."""
         pipe, geometry = self.pipe, self.geometry
-        scale = getattr(pipe, "vae_scale_factor_spatial", 8)
+        scale = spatial_compression(pipe)
         return choose_particle_batch(
             self.config, self.run, particles, self.memory_plan,
-            signature=model_signature(self.adapter.denoisers(pipe)[0].config), frames=geometry.num_frames,
+            signature=denoiser_signature(self.adapter.denoisers(pipe)), frames=geometry.num_frames,
             height=geometry.latent_height * scale, width=geometry.latent_width * scale,
             device_gb=planning_memory_gb(pipe._execution_device, self.devices),
             offload=bool(getattr(pipe, "_all_hooks", None)), devices=len(self.devices) if self.devices else 1)
@@ -148,6 +148,18 @@ class StockCall:
                                 self.masks, batch)
         return ParticleSearch(search, num_steps, scorer, generator=search_generator, noise=generator, batch=batch,
                               masks=self.masks if context is not None else None)
+
+
+def spatial_compression(pipe: Any) -> int:
+    """Pixels per latent of ``pipe``'s VAE, each way (LTX's pipelines name it otherwise): what turns
+    the latents' size back into the video's, which the memory plan's estimates scale with."""
+    return getattr(pipe, "vae_scale_factor_spatial", None) or getattr(pipe, "vae_spatial_compression_ratio", 8)
+
+
+def denoiser_signature(denoisers: Sequence[nn.Module]) -> dict[str, Any]:
+    """The signature the memory plan's estimates know a stock pipeline by: its first denoiser's
+    config and how many denoisers take turns (Wan 2.2 A14B's two experts)."""
+    return model_signature(denoisers[0].config, experts=len(denoisers))
 
 
 def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, config: GuidanceConfig, run: RunOptions,
@@ -181,10 +193,9 @@ def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, conf
     devices = resolve_devices(run.devices)
     home = pipe._execution_device
     masks = guidance_mask_source(config, estimators, home)
-    # the estimates know CogVideoX-5B, whose VAE is 8x spatially; other models get the safe plan
-    scale = getattr(pipe, "vae_scale_factor_spatial", 8)
+    scale = spatial_compression(pipe)
     memory_plan = choose_plan(
-        config, run, signature=model_signature(denoisers[0].config), frames=geometry.num_frames,
+        config, run, signature=denoiser_signature(denoisers), frames=geometry.num_frames,
         height=geometry.latent_height * scale, width=geometry.latent_width * scale,
         device_gb=planning_memory_gb(home, devices), offload=bool(getattr(pipe, "_all_hooks", None))
     ) if config.enabled else None

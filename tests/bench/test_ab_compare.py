@@ -714,7 +714,7 @@ def test_a_killed_best_of_run_resumes_with_the_candidates_it_made(best_of_2, pro
 
 
 def test_matched_best_of_takes_n_from_the_cost_model_on_the_named_card():
-    """N = round of the guided / unguided time ratio of ``scripts/benchmark.py cost --gpu``'s model:
+    """N = round of the guided / unguided time ratio of ``geco bench cost --gpu``'s model:
     the card's memory plan, the run's size, steps and schedule."""
     from geco_guide.perf.cost import cost_report, cost_settings
     from geco_guide.perf.plans import card_plan

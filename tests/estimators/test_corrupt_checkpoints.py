@@ -1,6 +1,6 @@
 """Checkpoint files that cannot be read (random bytes, empty, truncated) are one line naming the
 file, through the Python API and through every command that loads them: generate, the A/B script,
-GeCo-Eval and scripts/benchmark.py (tiny models, CPU; nothing here reaches the network)."""
+GeCo-Eval and geco bench (tiny models, CPU; nothing here reaches the network)."""
 
 from __future__ import annotations
 
@@ -33,7 +33,6 @@ def _script(name: str, path: Path):
 
 
 ab = _script("ab_compare_corrupt", REPO / "scripts" / "ab_compare.py")
-benchmark = _script("benchmark_corrupt", REPO / "scripts" / "benchmark.py")
 
 
 def _truncated(path: Path) -> Path:
@@ -159,12 +158,12 @@ def test_the_ab_script_prints_one_line_and_pins_nothing(tmp_path: Path, capsys, 
 
 @pytest.mark.parametrize("which", ["tiny decoder", "vggt"])
 def test_benchmark_decoder_agreement_prints_one_line(tmp_path: Path, capsys, which: str):
+    from geco_guide.cli import bench
+
     override = _damaged(tmp_path)[which]
-    with pytest.raises(SystemExit) as exit_info:
-        benchmark.main(["decoder-agreement", "--preset", "tiny", override])
-    assert exit_info.value.code == 2
+    assert bench.main(["decoder-agreement", "--preset", "tiny", override]) == 2
     err = _one_line(capsys.readouterr().err)
-    assert err.startswith("benchmark.py: error: '") and "is not a readable checkpoint" in err
+    assert err.startswith("error: '") and "is not a readable checkpoint" in err
 
 
 def test_geco_eval_prints_one_line_and_pins_nothing(tmp_path: Path, capsys):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import subprocess
@@ -18,15 +17,16 @@ from geco_guide.perf.decoder_agreement import (
     psnr_db,
 )
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "benchmark.py"
+REPO = Path(__file__).resolve().parents[2]
 ROW_KEYS = {"update", "step", "t", "guided_by", "loss_vae", "loss_tiny", "cosine", "psnr_db"}
 
 
 @pytest.fixture(scope="module")
 def report(tmp_path_factory: pytest.TempPathFactory) -> dict:
     path = tmp_path_factory.mktemp("agreement") / "agreement.json"
-    proc = subprocess.run([sys.executable, str(SCRIPT), "decoder-agreement", "--preset", "tiny", "--threads", "1",
-                           "--json", str(path)], capture_output=True, text=True, timeout=300, check=False)
+    proc = subprocess.run([sys.executable, "-m", "geco_guide.cli.bench", "decoder-agreement", "--preset", "tiny",
+                           "--threads", "1", "--json", str(path)], capture_output=True, text=True, timeout=300,
+                          check=False, cwd=REPO)
     assert proc.returncode == 0, proc.stderr
     return {**json.loads(path.read_text()), "stdout": proc.stdout}
 
@@ -105,10 +105,9 @@ def test_cosine_and_psnr():
 
 @pytest.fixture(scope="module")
 def cli():
-    spec = importlib.util.spec_from_file_location("benchmark_cli_agreement", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    from geco_guide.cli import bench
+
+    return bench
 
 
 @pytest.mark.parametrize(("argv", "expected"), [
@@ -119,19 +118,23 @@ def cli():
     (["decoder-agreement", "--preset", "tiny", "guidance.step_size=-1"], "guidance.step_size"),
     (["decoder-agreement", "--preset", "tiny", "no.such=1"], "unknown config key"),
     (["decoder-agreement", "--preset", "tiny", "--prompt", " "], "--prompt must not be empty"),
-    (["decoder-agreement", "--preset", "nope"], "invalid choice"),
+    (["decoder-agreement", "--preset", "nope"], "unknown preset 'nope'"),
     (["decoder-agreement", "--preset", "tiny", "--threads", "0"], "--threads: must be >= 1"),
-    (["cost", "--decoder", "taesd"], "invalid choice"),
+    (["cost", "--decoder", "taesd"], "--decoder must be one of vae, tiny, got 'taesd'"),
     (["cost", "--decoder", "tiny", "--mode", "unguided"], "use --mode fast or faithful"),
 ])
 def test_bad_input_is_one_error_line_before_any_work(cli, monkeypatch, capsys, argv, expected):
     def no_work(*args, **kwargs):
         raise AssertionError(f"{argv}: work started before the options were checked")
 
-    for name in ("decoder_agreement", "cost_report"):
-        monkeypatch.setattr(cli, name, no_work)
-    with pytest.raises(SystemExit) as exit_info:
-        cli.main(argv)
-    assert exit_info.value.code == 2
+    from geco_guide.perf import cost, decoder_agreement
+
+    monkeypatch.setattr(decoder_agreement, "decoder_agreement", no_work)
+    monkeypatch.setattr(cost, "cost_report", no_work)
+    try:
+        code = cli.main(argv)
+    except SystemExit as exit_info:
+        code = exit_info.code
+    assert code == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "error:" in err and expected in err, err

@@ -1,4 +1,4 @@
-"""The performance harness: geco_guide.perf and its command line, scripts/benchmark.py.
+"""The performance harness: geco_guide.perf and its command line, geco bench.
 
 The subcommands run at a tiny size and write sane JSON; no timing thresholds, only the report's
 structure and that the numbers are positive. The micro-benchmarks run concurrently to keep the
@@ -8,7 +8,6 @@ any work (checked in-process: nothing runs).
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -18,10 +17,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from geco_guide.perf import cost, full_size, profile, sampling
+from geco_guide.cli import bench
+from geco_guide.perf import cards, choices, cost, full_size, mask_cost, profile, sampling, tracing
 from geco_guide.sampler.context import GuidanceObserver
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "benchmark.py"
+REPO = Path(__file__).resolve().parents[2]
+#: geco bench in its own process (the checkout's package: run from the repository's root)
+BENCH = (sys.executable, "-m", "geco_guide.cli.bench")
 FAST = ["--threads", "1", "--warmup", "0", "--repeats", "1"]
 COMMANDS = {
     "loss": ["loss", "--frames", "2", "--height", "24", "--width", "32", *FAST],
@@ -41,8 +43,8 @@ def reports(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
     tmp = tmp_path_factory.mktemp("benchmark")
     procs = {
         name: subprocess.Popen(
-            [sys.executable, str(SCRIPT), *args, "--json", str(tmp / f"{name}.json")],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            [*BENCH, *args, "--json", str(tmp / f"{name}.json")],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
         )
         for name, args in COMMANDS.items()
     }
@@ -117,9 +119,9 @@ def sampling_report(tmp_path_factory: pytest.TempPathFactory) -> dict:
     time travel in step 1)."""
     path = tmp_path_factory.mktemp("sampling") / "sampling.json"
     proc = subprocess.run(
-        [sys.executable, str(SCRIPT), "sampling", "--preset", "tiny", "--mode", "fast", "--steps", "2",
+        [*BENCH, "sampling", "--preset", "tiny", "--mode", "fast", "--steps", "2",
          "--threads", "1", "--warmup", "0", "--json", str(path)],
-        capture_output=True, text=True, timeout=180,
+        capture_output=True, text=True, timeout=180, cwd=REPO,
     )
     assert proc.returncode == 0, proc.stderr
     return {**json.loads(path.read_text()), "stdout": proc.stdout}
@@ -134,7 +136,7 @@ def test_sampling_report(sampling_report: dict) -> None:
     assert report["config"]["guidance"]["repeats"] == "3x1,2x1" and report["config"]["guidance"]["denoiser_grad"] is False
     assert report["ratio_guided_over_unguided"] > 0
     # the tiny models' ratio comes with a sentence saying it does not carry to full size
-    assert "meaningless for full size" in report["stdout"] and "benchmark.py cost" in report["stdout"]
+    assert "meaningless for full size" in report["stdout"] and "geco bench cost" in report["stdout"]
     assert report["peak_memory_gb"] > 0 and report["peak_memory_gb_unguided"] > 0
     for arm in ("guided", "unguided"):
         assert report["wall_time_s"][arm] > 0 and report["time_per_step_s"][arm] > 0
@@ -166,12 +168,12 @@ def test_sampling_report(sampling_report: dict) -> None:
 
 
 def test_full_size_pipeline_on_meta() -> None:
-    """The --full-size parts build on the meta device (nothing allocated) with the published configs."""
+    """The --full-size parts build on the meta device (nothing allocated) with CogVideoX-5B's published configs."""
     from geco_guide.estimators.ufm import UFM, UFMConfig
     from geco_guide.estimators.vggt import VGGT, VGGTConfig
     from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
-    components = full_size.build_full_size_components("meta", torch.bfloat16)
+    components = full_size.build_full_size_components("cogvideox-5b", "meta", torch.bfloat16)
     transformer, vae = components["transformer"], components["vae"]
     for model in (transformer, vae):
         assert all(p.device.type == "meta" and p.dtype == torch.bfloat16 for p in model.parameters())
@@ -193,7 +195,7 @@ def test_full_size_pipeline_on_meta() -> None:
         geometry, flow = VGGT(VGGTConfig()), UFM(UFMConfig())
     assert 1.1e9 < sum(p.numel() for p in geometry.parameters()) < 1.2e9  # VGGT-1B
     assert 4.0e8 < sum(p.numel() for p in flow.parameters()) < 4.5e8  # UFM-Base
-    pipe = GeCoCogVideoXPipeline(**components)  # the estimators enter at the call, no components
+    pipe = GeCoCogVideoXPipeline(tokenizer=None, text_encoder=None, **components)  # the estimators enter at the call
     assert set(pipe.components) == {"tokenizer", "text_encoder", "vae", "transformer", "scheduler"}
     assert pipe.tokenizer is None and pipe.text_encoder is None
     assert (pipe.vae_scale_factor_spatial, pipe.vae_scale_factor_temporal, pipe.vae_scaling_factor_image) == (8, 4, 0.7)
@@ -218,8 +220,8 @@ def test_update_windows_run_back_to_back_from_each_step_start() -> None:
 
 
 def test_full_size_refused_on_cpu() -> None:
-    proc = subprocess.run([sys.executable, str(SCRIPT), "sampling", "--full-size", "--steps", "1"],
-                          capture_output=True, text=True, timeout=60)
+    proc = subprocess.run([*BENCH, "sampling", "--full-size", "--steps", "1"],
+                          capture_output=True, text=True, timeout=60, cwd=REPO)
     assert proc.returncode != 0 and "--allow-cpu" in proc.stderr
 
 
@@ -253,7 +255,7 @@ def test_stage_profiler_backward_intervals() -> None:
 
 def test_cost_tracker_counts_flops_and_live_memory() -> None:
     """On real tensors: a matmul's FLOPs, and memory that follows allocations and frees."""
-    tracker = cost.CostTracker()
+    tracker = tracing.CostTracker()
     with tracker.mode():
         a = torch.ones(1024)  # 4 KiB
         b = a * 2  # 8 KiB live
@@ -276,13 +278,13 @@ def test_cost_schedule_counts_at_paper_schedule() -> None:
     settings = {"preset": "full", "frames": 49, "steps": 50, "repeats": PAPER_REPEATS,
                 "time_travel": list(PAPER_TIME_TRAVEL), "chunk_latents": None, "vae_checkpointing": None,
                 "denoiser_checkpointing": None}
-    faithful = cost.count_schedule_calls("faithful", settings)
-    fast = cost.count_schedule_calls("fast", settings)
+    faithful = tracing.count_schedule_calls("faithful", settings)
+    fast = tracing.count_schedule_calls("fast", settings)
     assert faithful == {"steps": 50, "updates": 111, "denoiser_cfg": 50, "denoiser_grad": 111, "time_travel_updates": 17}
     assert fast == {"steps": 50, "updates": 111, "denoiser_cfg": 67, "denoiser_grad": 0, "time_travel_updates": 17}
-    no_tt = cost.count_schedule_calls("fast", {**settings, "time_travel": None})
+    no_tt = tracing.count_schedule_calls("fast", {**settings, "time_travel": None})
     assert no_tt["denoiser_cfg"] == 50 and no_tt["updates"] == 111
-    assert cost.count_schedule_calls("unguided", settings)["denoiser_cfg"] == 50
+    assert tracing.count_schedule_calls("unguided", settings)["denoiser_cfg"] == 50
 
 
 def test_cost_tiny_denoiser_step_equals_independent_count() -> None:
@@ -299,10 +301,11 @@ def test_cost_tiny_denoiser_step_equals_independent_count() -> None:
         tiny_pipeline,
     )
 
-    settings = {"preset": "tiny", "frames": TINY_NUM_FRAMES, "height": TINY_HEIGHT, "width": TINY_WIDTH,
-                "dtype": "float32", "seed": 0, "vae_tiling": False, "estimator_checkpointing": False,
-                "chunk_latents": None, "vae_checkpointing": None, "denoiser_checkpointing": None}
-    trace = cost.trace_cost(settings, "unguided")
+    settings = {"preset": "tiny", "model": None, "frames": TINY_NUM_FRAMES, "height": TINY_HEIGHT,
+                "width": TINY_WIDTH, "dtype": "float32", "seed": 0, "vae_tiling": False, "estimator_checkpointing": False,
+                "chunk_latents": None, "vae_checkpointing": None, "denoiser_checkpointing": None,
+                "guidance_scale": 6.0}
+    trace = tracing.trace_cost(settings, "unguided")
     cfg = trace["stages"]["denoiser_cfg"]
     assert cfg["calls"] == 1 and "backward" not in cfg
 
@@ -323,9 +326,9 @@ def test_cost_tiny_denoiser_step_equals_independent_count() -> None:
 def test_cost_report_tiny(tmp_path: Path) -> None:
     """`cost --preset tiny` writes the documented keys; guided costs more than unguided."""
     path = tmp_path / "cost.json"
-    proc = subprocess.run([sys.executable, str(SCRIPT), "cost", "--preset", "tiny", "--mode", "fast",
+    proc = subprocess.run([*BENCH, "cost", "--preset", "tiny", "--mode", "fast",
                            "--threads", "1", "--json", str(path)], check=False, capture_output=True, text=True,
-                          timeout=300)
+                          timeout=300, cwd=REPO)
     assert proc.returncode == 0, proc.stderr
     assert "kept in float32" not in proc.stderr  # diffusers' warning about an empty list of modules
     report = json.loads(path.read_text())
@@ -379,9 +382,9 @@ def test_cost_time_scales_with_the_traced_size() -> None:
     small = cost.cost_settings(preset="full", steps=None, frames=9, height=16, width=16, dtype=None)
     assert not cost.at_calibration_size(small)
     report = cost.cost_report(small, "unguided")
-    efficiency = cost.calibration_call_roofline_s() / cost.H200_UNGUIDED_STEP_S
+    efficiency = cost.calibration_call_roofline_s() / cards.H200_UNGUIDED_STEP_S
     assert report["roofline"]["efficiency"] == pytest.approx(efficiency)
-    measured_run = cost.NOMINAL_STEPS * cost.H200_UNGUIDED_STEP_S
+    measured_run = choices.NOMINAL_STEPS * cards.H200_UNGUIDED_STEP_S
     assert report["roofline"]["wall_time_s"]["H200"]["unguided"] < 0.1 * measured_run
 
     plans = json.loads((Path(cost.__file__).parents[1] / "sampler" / "data" / "memory_plans.json").read_text())
@@ -392,16 +395,20 @@ def test_cost_time_scales_with_the_traced_size() -> None:
 
 def test_the_dynamic_masks_overhead_follows_the_schedule_and_the_cards() -> None:
     """SAM 3's vision encoder on the anchors, predicted per card; the automatic masks' measured
-    time; one refresh per guided step of the paper's schedule (steps 3-49: 47 of its 111 updates)."""
-    costs = cost.dynamic_mask_costs()
+    time; one refresh per guided step of the paper's schedule (steps 3-49: 47 of its 111 updates);
+    the movers' fit at each refresh and their cues at each update."""
+    costs = mask_cost.dynamic_mask_costs()
     assert (costs["refreshes"], costs["updates"]) == (47, 111)
     sam3 = costs["sam3"]
-    assert 15e12 < cost.sam3_refresh_cost()["flops"] < 25e12  # a ViT over 4 frames of 1008x1008
+    assert 15e12 < mask_cost.sam3_refresh_cost()["flops"] < 25e12  # a ViT over 4 frames of 1008x1008
     assert 0 < sam3["H200"]["refresh_s"] < sam3["L40S"]["refresh_s"] < sam3["L4"]["refresh_s"]
     assert sam3["H200"]["run_s"] == pytest.approx(47 * sam3["H200"]["refresh_s"])
-    assert costs["auto"]["per_update_s"] == pytest.approx(cost.AUTO_MASK_REFRESH_S * 47 / 111)
-    assert cost.dynamic_mask_costs(refresh=2)["refreshes"] == 24
-    assert "| auto (measured, one CPU thread) | any | 0.68 |" in cost.dynamic_masks_table(costs)
+    assert costs["auto"]["per_update_s"] == pytest.approx(mask_cost.AUTO_MASK_REFRESH_S * 47 / 111)
+    movers = costs["movers"]
+    assert movers["run_s"] == pytest.approx(47 * mask_cost.MOVERS_FIT_S + 111 * mask_cost.MOVERS_UPDATE_S)
+    assert mask_cost.dynamic_mask_costs(refresh=2)["refreshes"] == 24
+    table = mask_cost.dynamic_masks_table(costs)
+    assert "| auto (measured, one CPU thread) | any | 0.68 |" in table and "| + movers rigid (predicted" in table
 
 
 def test_sampling_deals_the_guided_arms_anchor_decode_over_the_devices_asked_for() -> None:
@@ -417,18 +424,19 @@ def test_sampling_deals_the_guided_arms_anchor_decode_over_the_devices_asked_for
 
 
 def test_several_gpus_divide_the_anchor_decode_by_the_chunks_each_gpu_decodes() -> None:
-    cards = list(cost.GPU_SPECS)
-    report = {"settings": {"frames": 49, "height": 480, "width": 720, "chunk_latents": 3},
+    gpus = list(cards.GPU_SPECS)
+    report = {"settings": {"preset": "full", "model": "cogvideox-5b", "frames": 49, "height": 480, "width": 720,
+                           "chunk_latents": 3},
               "counts": {"updates": 100},
-              "per_stage": {"anchor_decode": {"time_s": {gpu: 400.0 for gpu in cards}}},
-              "roofline": {"wall_time_s": {gpu: {"unguided": 100.0, "guided": 800.0} for gpu in cards}}}
+              "per_stage": {"anchor_decode": {"time_s": {gpu: 400.0 for gpu in gpus}}},
+              "roofline": {"wall_time_s": {gpu: {"unguided": 100.0, "guided": 800.0} for gpu in gpus}}}
     one = cost.several_gpus(report, 1)["cards"]["H200"]
     assert one["guided_s"] == 800.0 and one["transfer_s"] == 0.0  # every chunk on the pipeline's GPU
     two, four, eight = (cost.several_gpus(report, n) for n in (2, 4, 8))
     assert (two["chunks"], two["chunks_per_gpu"], four["chunks_per_gpu"]) == (4, 2, 1)
     h200 = four["cards"]["H200"]
     chunk_bytes = 3 * 16 * 60 * 90 * 4 + 3 * 480 * 720 * 4  # a chunk's latents out, its anchor frame back
-    assert h200["transfer_s"] == pytest.approx(100 * 3 * 2 * chunk_bytes / cost.INTERCONNECT_BYTES_PER_S["H200"])
+    assert h200["transfer_s"] == pytest.approx(100 * 3 * 2 * chunk_bytes / cards.INTERCONNECT_BYTES_PER_S["H200"])
     assert h200["guided_s"] == pytest.approx(800 - 400 + 100 + h200["transfer_s"])
     assert h200["over_unguided_1gpu"] == pytest.approx(h200["guided_s"] / 100)
     assert eight["cards"]["H200"]["decode_s"] == h200["decode_s"]  # four chunks: no fifth GPU to use
@@ -442,8 +450,9 @@ def test_geco_eval_cost_counts_the_estimator_calls_of_each_pair_mode(tmp_path: P
     """9 frames at 8 fps (1.125 s): one window of floor(1.125 * 8) = 9 frames and a motion grid of
     the same 9 frames, so all pairs = 9 * 8 + 8 UFM pairs, adjacent = 8 + 8, one VGGT call."""
     out = tmp_path / "geco_eval.json"
-    proc = subprocess.run([sys.executable, str(SCRIPT), "geco-eval", "--frames", "9", "--fps", "8", "--pairs", "all",
-                           "adjacent", "--threads", "1", "--json", str(out)], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run([*BENCH, "geco-eval", "--frames", "9", "--fps", "8", "--pairs", "all",
+                           "adjacent", "--threads", "1", "--json", str(out)], capture_output=True, text=True, timeout=300,
+                          cwd=REPO)
     assert proc.returncode == 0, proc.stderr
     modes = json.loads(out.read_text())["modes"]
     assert (modes["all"]["ufm_pairs"], modes["adjacent"]["ufm_pairs"]) == (80, 16)
@@ -454,37 +463,35 @@ def test_geco_eval_cost_counts_the_estimator_calls_of_each_pair_mode(tmp_path: P
 @pytest.mark.parametrize("command", [["sampling", "--steps", "0"], ["cost", "--preset", "tiny", "--steps", "0"]])
 def test_zero_steps_is_one_error_line(command):
     """--steps 0 used to run the default 50 steps (0 is falsy)."""
-    proc = subprocess.run([sys.executable, str(SCRIPT), *command], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([*BENCH, *command], capture_output=True, text=True, timeout=120, cwd=REPO)
     assert proc.returncode != 0 and proc.stderr.strip().count("\n") == 0 and "--steps must be" in proc.stderr
 
 
 # ---- option checks: one error line, exit code 2, before any work ------------------------------
 
 
-def _cli():
-    """scripts/benchmark.py as a module (it is a script, not part of the package)."""
-    spec = importlib.util.spec_from_file_location("benchmark_cli", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-@pytest.fixture(scope="module")
+@pytest.fixture
 def cli():
-    return _cli()
+    """geco bench in this process."""
+    return bench
 
 
 def _refused(cli, monkeypatch, capsys, argv: list[str]) -> str:
     """Run ``argv`` in-process with every entry point to work replaced by a failure; return the
-    one stderr line of the refusal."""
+    one stderr line of the refusal (exit code 2: argparse's, or the command's)."""
     def no_work(*args, **kwargs):
         raise AssertionError(f"{argv}: work started before the options were checked")
 
-    for name in ("run_cases", "sampling_report", "cost_report", "geco_eval_cost", "plan_estimates"):
-        monkeypatch.setattr(cli, name, no_work)
-    with pytest.raises(SystemExit) as exit_info:
-        cli.main(argv)
-    assert exit_info.value.code == 2, argv
+    from geco_guide.perf import measure, plans, scoring_cost
+
+    for module, name in ((measure, "run_cases"), (sampling, "sampling_report"), (cost, "cost_report"),
+                         (scoring_cost, "geco_eval_cost"), (plans, "plan_estimates")):
+        monkeypatch.setattr(module, name, no_work)
+    try:
+        code = cli.main(argv)
+    except SystemExit as exit_info:
+        code = exit_info.code
+    assert code == 2, argv
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "error:" in err, err
     return err
@@ -519,7 +526,14 @@ def _refused(cli, monkeypatch, capsys, argv: list[str]) -> str:
     (["cost", "--gpu", "L4", "--mode", "unguided"], "use it with --preset full"),
     (["cost", "--gpu", "H100", "--vae-checkpointing", "off", "--estimator-checkpointing"],
      "without --vae-checkpointing, --estimator-checkpointing"),
-    (["plans", "--models", "cogvideox-2b"], "--models: invalid choice"),
+    (["plans", "--models", "hunyuanvideo-1.5"], "--models: invalid choice"),
+    (["cost", "--model", "ltx-2"], "--model: invalid choice"),
+    (["cost", "--model", "wan2.1-t2v-14b", "--frames", "83"], "must be 4k+1 frames"),
+    (["cost", "--model", "ltx-video", "--width", "720"], "--width must be a multiple of 32, got 720"),
+    (["sampling", "--memory-plan", "smallest"], "--memory-plan must be one of auto, explicit, fastest"),
+    (["cost", "--decoder", "taesd"], "--decoder must be one of vae, tiny"),
+    (["cost", "--all-models", "--model", "wan2.1-t2v-14b"], "--all-models prints the table of the shipped "
+                                                             "estimates and traces nothing: leave out --model"),
     (["plans", "--threads", "0"], "--threads: must be >= 1"),
     (["cost", "--height", "30", "--width", "30"], "--height must be a multiple of 16, got 30"),
     (["sampling", "--width", "40"], "--width must be a multiple of 16, got 40"),
@@ -593,10 +607,10 @@ def test_failed_report_write_leaves_no_file(monkeypatch, tmp_path: Path):
 def test_no_private_name_is_patched_in_the_cost_trace():
     """The cost trace watches the call through its public seam (a GuidanceObserver passed as
     ``observer=``), not mock.patch: the updates of a step count as inside an update."""
-    source = Path(cost.__file__).read_text() + SCRIPT.read_text()
+    source = "".join(Path(module.__file__).read_text() for module in (cost, tracing, bench))
     assert "mock" not in source and "_read_scalars" not in source and "guidance_context_class" not in source
-    tracker = cost.CostTracker()
-    observer = cost.CountingObserver(tracker)
+    tracker = tracing.CostTracker()
+    observer = tracing.CountingObserver(tracker)
     assert isinstance(observer, GuidanceObserver)
     with observer.step(1, 999):
         assert tracker.in_update == 1
@@ -633,14 +647,14 @@ def test_cost_gpu_runs_the_planner_for_the_card_and_reports_its_plan(cli, monkey
                                   plan=settings["plan"])
         return real(tiny, mode, argv)
 
-    monkeypatch.setattr(cli, "cost_report", tiny_report)
+    monkeypatch.setattr(cost, "cost_report", tiny_report)
     path = tmp_path / "cost.json"
-    cli.main(["cost", "--gpu", "RTX4090", "--mode", "fast", "--threads", "1", "--json", str(path)])
+    assert cli.main(["cost", "--gpu", "RTX4090", "--mode", "fast", "--threads", "1", "--json", str(path)]) == 0
     report = json.loads(path.read_text())
     # checkpointed and leanest peak alike (in the anchor decode's backward): the faster one
     assert traced == ["checkpointed"] and report["plan"] == "checkpointed" and report["card"]["offload"]
     assert report["peak_memory_gb_without_offload"] >= report["peak_memory_gb"] > 0
-    assert set(report["roofline"]["ratio_guided_over_unguided"]) == set(cost.GPU_SPECS)
+    assert set(report["roofline"]["ratio_guided_over_unguided"]) == set(cards.GPU_SPECS)
     assert "RTX4090 (22.4 GiB): memory plan checkpointed with model CPU offload" in capsys.readouterr().out
 
 

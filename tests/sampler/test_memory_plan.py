@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from geco_guide.config import load_config
-from geco_guide.perf.plans import KNOWN_MODELS, card_plan, offload_peak
+from geco_guide.perf.plans import KNOWN_MODELS, MODES, anchor_decoders, card_plan, offload_peak
 from geco_guide.sampler.config import GuidanceConfig
 from geco_guide.sampler.context import GuidanceContext
 from geco_guide.sampler.run_options import RUN_KEYS, RunOptions
@@ -301,8 +301,8 @@ def test_oom_after_the_first_update_or_with_a_named_plan_is_raised(pipe, monkeyp
 def test_the_shipped_estimates_know_the_models_and_are_package_data():
     data = load_estimates()
     assert set(data["models"]) == set(KNOWN_MODELS)
-    for entry in data["models"].values():
-        assert set(entry["estimates"]) == {"fast/vae", "fast/tiny", "faithful/vae", "faithful/tiny"}
+    for key, entry in data["models"].items():
+        assert set(entry["estimates"]) == {f"{mode}/{decoder}" for mode in MODES for decoder in anchor_decoders(key)}
         for table in entry["estimates"].values():
             assert [name for name in table] == [p.name for p in PLANS]
     full = data["models"]["cogvideox-5b"]["estimates"]["fast/vae"]
@@ -310,6 +310,44 @@ def test_the_shipped_estimates_know_the_models_and_are_package_data():
     assert full["fastest"]["time_s"] < full["chunked"]["time_s"] < full["checkpointed"]["time_s"]
     pyproject = (Path(__file__).resolve().parents[2] / "pyproject.toml").read_text()
     assert '"geco_guide.sampler" = ["data/*.json"]' in pyproject and ESTIMATES_PATH.parent.name == "data"
+    assert '"geco_guide.families" = ["data/*.json"]' in pyproject  # the published configs they are traced from
+
+
+def test_every_traced_family_is_known_by_its_signature_and_its_hub_id():
+    """A stock pipeline is known by its denoiser's config and how many denoisers take turns: Wan
+    2.2 A14B's two experts share Wan 2.1 14B's config, and the estimates tell them apart."""
+    from geco_guide.families import model_named
+    from geco_guide.families.published import published_configs, traced_models
+    from geco_guide.sampler.memory_plan import known_model, model_signature
+
+    data = load_estimates()
+    signatures = [tuple(sorted(data["models"][name]["signature"].items())) for name in traced_models()]
+    assert len(set(signatures)) == len(signatures)
+    for name in traced_models():
+        published = published_configs(name)
+        experts = 2 if published.transformer_2 is not None else 1
+        assert known_model(data, signature=model_signature(published.transformer, experts)) == name
+        assert known_model(data, model_id=model_named(name).hub_id) == name
+    wan22 = published_configs("wan2.2-t2v-a14b").transformer
+    assert known_model(data, signature=model_signature(wan22)) == "wan2.1-t2v-14b"
+    assert known_model(data, signature=model_signature(wan22, experts=2)) == "wan2.2-t2v-a14b"
+
+
+def test_each_family_gets_its_own_plans_on_a_card():
+    """The plan of each family on the H200 comes from its own estimates (the planner's reason names
+    it); a size the planner scales to reads LTX's 32x VAE right (the hooks' pixels of its latents)."""
+    from geco_guide import tiny as T
+    from geco_guide.families import model_named
+    from geco_guide.families.published import traced_models
+    from geco_guide.sampler.stock_call import spatial_compression
+
+    for name in traced_models():
+        video = model_named(name).call
+        choice = choose_plan(GuidanceConfig(denoiser_grad=False), RunOptions(), model_id=model_named(name).hub_id,
+                             frames=video["num_frames"], height=video["height"], width=video["width"],
+                             device_gb=1000.0)
+        assert f"({name})" in choice.reason and choice.predicted_peak_gb > 0
+    assert spatial_compression(T.tiny_ltx_pipeline(0)) == 32 and spatial_compression(T.tiny_wan_pipeline(0)) == 8
 
 
 def test_the_cards_get_the_plans_of_their_memory():
@@ -393,7 +431,7 @@ def test_a_video_size_no_video_has_is_refused_before_any_plan(frames, height, wi
 
 def test_the_shipped_estimates_are_what_the_cost_model_traces_now():
     """One plan of the tiny models traced again gives the shipped numbers (regenerate the file
-    with `scripts/benchmark.py plans` when this fails)."""
+    with `geco bench plans` when this fails)."""
     from geco_guide.perf.cost import cost_report, cost_settings
     from geco_guide.perf.plans import plan_estimate
 

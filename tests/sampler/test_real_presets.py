@@ -215,6 +215,7 @@ def test_geco_eval_runs_cogvideox_5b_from_local_folders(local_weights, tmp_path,
 OFFLINE_DRIVER = textwrap.dedent("""
     import contextlib, importlib.util, io, json, pathlib, sys, traceback
     root, out, video, decoder = sys.argv[1:]
+    sys.path.insert(0, root)  # the checkout's package, wherever the driver runs
     sys.argv = ["driver"]
     results = []
     def run(name, main, argv):
@@ -245,9 +246,9 @@ OFFLINE_DRIVER = textwrap.dedent("""
     open(prompts, "w").write("a stone bridge over a river, slow orbit\\n")
     ab = script(pathlib.Path(root) / "scripts" / "ab_compare.py")
     run("ab_compare", ab.main, ["--prompts", prompts, "--seeds", "0", "--out", out + "/ab", "--preset", "cogvideox-5b"])
-    bench = script(pathlib.Path(root) / "scripts" / "benchmark.py")
-    sys.argv = ["benchmark.py", "decoder-agreement", "--preset", "cogvideox-5b", "estimators.tiny_decoder=" + decoder]
-    run("benchmark decoder-agreement", bench.main, sys.argv[1:])
+    from geco_guide.cli import bench
+    run("bench decoder-agreement", bench.main, ["decoder-agreement", "--preset", "cogvideox-5b",
+                                                "estimators.tiny_decoder=" + decoder])
     print(json.dumps(results))
 """)
 
@@ -269,7 +270,7 @@ def test_offline_without_weights_every_command_with_a_real_preset_is_the_missing
     assert done.returncode == 0, done.stderr[-3000:]
     results = json.loads(done.stdout.strip().splitlines()[-1])
     assert [r["name"] for r in results] == ["generate", "generate --no-guidance", "generate fused", "evaluate",
-                                            "geco_eval", "ab_compare", "benchmark decoder-agreement"]
+                                            "geco_eval", "ab_compare", "bench decoder-agreement"]
     for result in results:
         lines = [line for line in result["err"].splitlines() if line.strip()]
         assert result["rc"] == 2, result

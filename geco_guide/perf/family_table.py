@@ -1,0 +1,98 @@
+"""The per-family cost table (``geco bench cost --all-models``): every traced registry model on an
+H200 and on a 24 GB card, unguided, guided (fast, faithful, the tiny decoder), searched at the
+particles that match guidance's time, and on 4 GPUs, from the shipped estimates (predicted; the
+cost model's traces, ``geco bench plans``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..families.published import LEFT_OUT, traced_models
+from ..sampler.memory_plan import DEVICE_HEADROOM, load_estimates
+from .cards import card_memory_gib
+from .search_cost import guidance_cost, matched_particles, search_cost
+
+__all__ = ["SEARCH_GPUS", "SEARCH_PARTICLES", "TABLE_CARDS", "family_rows", "family_table"]
+
+#: The cards of the table: the H200 the cost model is calibrated on, and a 24 GB card.
+TABLE_CARDS = ("H200", "RTX4090")
+#: The several-GPU columns: this many cards, and a search of this many particles on them.
+SEARCH_GPUS, SEARCH_PARTICLES = 4, 4
+
+
+def _seconds(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds >= 10 else f"{seconds:.2g} s"
+
+
+def _guided(cost: dict[str, Any], table: dict[str, Any] | None) -> str:
+    if cost["plan"] is None:
+        if table is None:
+            return "no tiny decoder"
+        least = min(estimate["offload_peak_gb"] for estimate in table.values())
+        return f"does not fit ({least:.1f} GiB at least, with offload)"
+    plan = cost["plan"] + (" + offload" if cost["offload"] else "")
+    return f"{_seconds(cost['time_s'])}, {cost['peak_gb']:.1f} GiB ({plan})"
+
+
+def _unguided(entry: dict[str, Any], gpu: str) -> str:
+    unguided, budget = entry["unguided"], DEVICE_HEADROOM * card_memory_gib(gpu)
+    seconds = _seconds(unguided["time_s"][gpu])
+    if unguided["peak_gb"] <= budget:
+        return f"{seconds}, {unguided['peak_gb']:.1f} GiB"
+    if unguided["offload_peak_gb"] <= budget:
+        return f"{seconds}, {unguided['offload_peak_gb']:.1f} GiB (offload)"
+    return f"does not fit ({unguided['offload_peak_gb']:.1f} GiB with offload)"
+
+
+def _search(cost: dict[str, Any], unguided_s: float) -> str:
+    if cost["peak_gb"] is None:
+        return f"K={cost['particles']}: does not fit"
+    offload = " + offload" if cost["offload"] else ""
+    return (f"K={cost['particles']}: {_seconds(cost['time_s'])} ({cost['time_s'] / unguided_s:.2f}x), "
+            f"{cost['peak_gb']:.1f} GiB{offload}")
+
+
+def family_rows(estimates: dict[str, Any] | None = None) -> list[dict[str, str]]:
+    """One row per traced model and card of :data:`TABLE_CARDS`: each column's cell as the table
+    prints it (predicted time, peak memory per card, the plan; or why it does not fit)."""
+    estimates = load_estimates() if estimates is None else estimates
+    rows = []
+    for name in (name for name in traced_models() if name in estimates["models"]):
+        entry = estimates["models"][name]
+        for gpu in TABLE_CARDS:
+            unguided_s = entry["unguided"]["time_s"][gpu]
+            faithful = guidance_cost(name, gpu, "faithful", estimates=estimates)
+            matched = matched_particles(name, gpu, estimates=estimates)
+            several = search_cost(name, SEARCH_PARTICLES, gpu, SEARCH_GPUS, estimates=estimates)
+            selecting = search_cost(name, SEARCH_PARTICLES, gpu, SEARCH_GPUS, each_gpu_selects=True,
+                                    estimates=estimates)
+            rows.append({
+                "model": name, "card": f"{gpu} ({card_memory_gib(gpu):.0f} GiB)",
+                "unguided": _unguided(entry, gpu),
+                "fast": _guided(guidance_cost(name, gpu, "fast", estimates=estimates), entry["estimates"]["fast/vae"]),
+                "faithful": _guided(faithful, entry["estimates"]["faithful/vae"]),
+                "tiny": _guided(guidance_cost(name, gpu, "faithful", "tiny", estimates=estimates),
+                                entry["estimates"].get("faithful/tiny")),
+                "search": "-" if matched is None else _search(search_cost(name, matched, gpu, estimates=estimates),
+                                                               unguided_s),
+                "gpus": _guided(guidance_cost(name, gpu, "faithful", num_gpus=SEARCH_GPUS, estimates=estimates),
+                                entry["estimates"]["faithful/vae"]),
+                "search_gpus": f"{_search(several, unguided_s)}; each GPU selecting: "
+                               f"{_seconds(selecting['time_s'])} ({selecting['time_s'] / unguided_s:.2f}x)",
+            })
+    return rows
+
+
+#: The table's columns: (key of :func:`family_rows`, header).
+COLUMNS = (("model", "model"), ("card", "card"), ("unguided", "unguided"), ("fast", "fast"),
+           ("faithful", "faithful"), ("tiny", "faithful, tiny decoder"),
+           ("search", "search, K matched to faithful"), ("gpus", f"faithful on {SEARCH_GPUS} GPUs"),
+           ("search_gpus", f"search K={SEARCH_PARTICLES} on {SEARCH_GPUS} GPUs (x unguided on 1)"))
+
+
+def family_table(estimates: dict[str, Any] | None = None) -> str:
+    """Markdown: :func:`family_rows`, then the models left out and why."""
+    lines = ["| " + " | ".join(header for _, header in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    lines += ["| " + " | ".join(row[key] for key, _ in COLUMNS) + " |" for row in family_rows(estimates)]
+    lines += ["", "Not traced: " + "; ".join(f"{name} ({why})" for name, why in LEFT_OUT.items()) + "."]
+    return "\n".join(lines)
