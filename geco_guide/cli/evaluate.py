@@ -43,42 +43,17 @@ from ..io.files import (
     write_json_atomic,
     write_texts_atomic,
 )
-from ..loss.pair_modes import PAIR_MODES
-from .kit import (
-    DeferredImports,
-    Parser,
-    add_config_flags,
-    config_from_args,
-    interruptible,
-    is_config_key,
-    split_overrides,
-)
+from .kit import add_config_flags, command_main, config_from_args, interruptible, is_config_key, split_overrides
 
-if TYPE_CHECKING:  # GeCoConfig: annotations only; the rest bound at run time by _IMPLEMENTATION
+if TYPE_CHECKING:
     from ..config import GeCoConfig
-    from ..estimators import Estimators, check_weights, load_estimators, load_segmenter
-    from ..io.devices import check_device
-    from ..metric.evaluate import (
-        PAPER_NAMES,
-        clip_mask_source,
-        evaluate_video,
-        finite_or_none,
-        mean_or_nan,
-        write_maps_video,
-    )
-    from ..types import plural
+    from ..estimators import Estimators
 
-__all__ = ["check_masks_fit", "check_scorable", "expand_inputs", "main", "score_line"]
+__all__ = ["DESCRIPTION", "SUMMARY", "check_masks_fit", "check_scorable", "expand_inputs", "main", "register_subcommand",
+           "run", "score_line"]
 
-#: What main runs on, imported once the arguments parsed: it loads torch.
-_IMPLEMENTATION = DeferredImports(__name__, {
-    "..estimators": ("check_weights", "load_estimators", "load_segmenter"),
-    "..io.devices": ("check_device",),
-    "..metric.evaluate": ("PAPER_NAMES", "clip_mask_source", "evaluate_video", "finite_or_none", "mean_or_nan",
-                          "write_maps_video"),
-    "..types": ("plural",),
-})
-__getattr__ = _IMPLEMENTATION.attribute
+SUMMARY = "score videos with the GeCo protocol"
+DESCRIPTION = "Score videos with GeCo (M_motion, M_struct, M_geo, Total/Mean Motion)."
 
 
 def write_detection_video(video: str | os.PathLike, stem: Path, estimators: Estimators, cfg: GeCoConfig) -> Path:
@@ -181,6 +156,8 @@ SUMMARY_KEYS = ("fused", "motion", "structure", "total_motion", "mean_motion")
 
 def _write_table(out: Path, rows: list[dict[str, Any]], estimators: dict[str, str], config: dict[str, Any]) -> tuple[Path, Path]:
     """``geco_scores.csv`` and ``geco_summary.json``, both or neither (:class:`WriteError`)."""
+    from ..metric.evaluate import PAPER_NAMES, finite_or_none, mean_or_nan
+
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, lineterminator="\n")
     writer.writeheader()
@@ -202,16 +179,13 @@ def _write_table(out: Path, rows: list[dict[str, Any]], estimators: dict[str, st
     return csv_path, summary_path
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(
-        prog="python -m geco_guide evaluate",
-        description="Score videos with GeCo (M_motion, M_struct, M_geo, Total/Mean Motion).",
-    )
+def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``geco evaluate`` on ``p``."""
     p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
     p.add_argument("inputs", nargs="+", metavar="VIDEO|DIR|key=value",
                    help="video files (mp4, gif, ...), folders of frames or of videos; key=value config overrides")
     add_config_flags(p)
-    p.add_argument("--model", default=None, metavar="NAME",
+    p.add_argument("--model", dest="source_model", default=None, metavar="NAME",
                    help="the video model that made the inputs (e.g. cogvideox-5b): its native frame rate "
                         "(evaluation.model_fps, the paper's table) replaces the file's")
     p.add_argument("--fps", type=float, default=None, help="source frame rate, overriding --model and the file's")
@@ -222,7 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--detection", action="store_true",
                    help="also write <stem>.detection.mp4: every frame's own maps against a window of 20 frames "
                         "around it (python -m geco_guide detection for the window, anchor and formats)")
-    p.add_argument("--pairs", choices=PAIR_MODES, default=None,
+    p.add_argument("--pairs", default=None, metavar="MODE",
                    help="frame pairs per window: all (default, the paper's script: n(n-1) flow pairs for n frames), "
                         "center (2(n-1)) or adjacent (n-1)")
     p.add_argument("--dynamic-masks", default=None, metavar="PATH|auto|TEXT",
@@ -270,6 +244,7 @@ def check_masks_fit(items: list[_Input], masks: Any, cfg: GeCoConfig) -> None:
     ``evaluation.max_frames``) gets that one line as its error, as does one that cannot be read."""
     from ..estimators.dynamic_masks import GivenMasks
     from ..io.video import read_frames
+    from ..metric.evaluate import clip_mask_source
 
     if not isinstance(masks, GivenMasks):
         return
@@ -300,7 +275,9 @@ def _score_one(item: _Input, out: Path, estimators: Estimators, cfg: GeCoConfig,
     """Score one input and write its outputs, the score JSON last: ``(result, json path, what
     else was written)``. When one output cannot be written (a full disk), the ones this input
     wrote before it are removed, so that a rerun needs no ``--overwrite``."""
-    result = evaluate_video(item.path, estimators, cfg.evaluation, fps=args.fps, model=args.model,
+    from ..metric.evaluate import evaluate_video, write_maps_video
+
+    result = evaluate_video(item.path, estimators, cfg.evaluation, fps=args.fps, model=args.source_model,
                             maps=args.maps, dynamic_masks=dynamic, progress=progress)
     written: list[Path] = []
     try:
@@ -320,6 +297,8 @@ def _score_one(item: _Input, out: Path, estimators: Estimators, cfg: GeCoConfig,
 
 def score_line(name: str, result: Any, json_path: Path, notes: str) -> str:
     """The line of one scored input: its scores (a NaN one with its reason), windows, rate and files."""
+    from ..types import plural
+
     nan = f" (NaN: {result.nan_reason})" if result.nan_reason is not None else ""
     return (f"{name}: M_geo={result.fused:.4f} M_motion={result.motion:.4f} M_struct={result.structure:.4f}{nan} "
             f"TM={result.total_motion:.2f}% MM={result.mean_motion:.2f}%/s "
@@ -328,14 +307,18 @@ def score_line(name: str, result: Any, json_path: Path, notes: str) -> str:
 
 
 @interruptible("the <stem>.geco.json (and maps) of the videos finished so far; geco_scores.csv and geco_summary.json were not written")
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_intermixed_args(argv)  # options may follow the inputs
-    _IMPLEMENTATION.load()
+def run(args: argparse.Namespace) -> int:
+    """Score the inputs ``args`` name; 0, 1 (every input failed, or the table could not be
+    written), or 2 after one line on stderr before any model loads."""
     with contextlib.ExitStack() as locks:  # the output locks, held until the run ends
         return _run(args, locks)
 
 
 def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
+    from ..estimators import check_weights, load_estimators, load_segmenter
+    from ..io.devices import check_device
+    from ..metric.evaluate import finite_or_none
+
     overrides, videos = split_overrides(args.inputs)
     # Neither an input nor an option (a=b.mp4): a missing file, or a mistyped key.
     strays = [a for a in overrides if not is_config_key(a.partition("=")[0])]
@@ -349,8 +332,8 @@ def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
             raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
         cfg = config_from_args(args, overrides, {"evaluation.loss.pairs": args.pairs,
                                                  "evaluation.max_frames": args.max_frames})
-        if args.model is not None:
-            cfg.evaluation.fps_of_model(args.model)  # an unknown name fails before the estimators load
+        if args.source_model is not None:
+            cfg.evaluation.fps_of_model(args.source_model)  # an unknown name fails before the estimators load
         device = check_device(cfg.evaluation.device, "evaluation.device")  # "auto" resolved once
         out = check_output_dir(args.out if args.out is not None else cfg.output.dir)
         items = expand_inputs(videos)
@@ -401,3 +384,6 @@ def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
             return 1
         print(f"wrote {csv_path} and {summary_path}")
     return 1 if all(row["error"] is not None for row in rows) else 0
+
+
+main = command_main("geco evaluate", DESCRIPTION, register_subcommand, run)

@@ -47,11 +47,14 @@ from ..types import (
 )
 from .cues import fuse_cues, lands_on_mask, masked_mean, motion_residual, structure_residual
 from .movers import MOVER_MODES, MoverFit, MoverScores, RefreshedMovers, mover_scores, solve_motions
-from .pair_modes import PAIR_MODES
 
 __all__ = ["CUES", "MIN_UNMASKED_FRACTION", "MOVER_MODES", "PAIR_MODES", "GeCoLoss", "GeCoLossConfig", "GeCoMaps",
            "GeCoResult", "check_movers", "frame_pairs", "geco_from_geometry", "no_valid_pixels_reason",
            "resolve_dynamic_masks"]
+
+#: adjacent: (i, i+1), n-1 pairs; center: every frame with the middle one, 2(n-1); all: every
+#: ordered pair, n(n-1) (the paper's evaluation script).
+PAIR_MODES = ("adjacent", "center", "all")
 
 CUES = ("fused", "motion", "structure")
 STRUCTURE_OCCLUSION = ("depth", "covisibility")

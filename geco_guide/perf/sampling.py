@@ -97,10 +97,10 @@ def build_sampling_pipeline(spec: dict[str, Any], device: torch.device,
 
     seed = spec["seed"]
     if spec["preset"] == "tiny":
-        from ..tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_bundle, tiny_pipeline
+        from ..tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_estimators, tiny_pipeline
 
         pipe = cast_components(tiny_pipeline(seed), dtype).to(device)
-        estimators = tiny_bundle(seed)
+        estimators = tiny_estimators(seed)
         for model in estimators.modules():
             model.to(device=device, dtype=dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}

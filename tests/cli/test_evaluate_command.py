@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+import geco_guide.estimators as estimators_package
 from geco_guide.cli import evaluate as evaluate_cli
 from geco_guide.io.files import WriteError
 from geco_guide.io.video import write_video
@@ -31,7 +32,7 @@ def no_estimators(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("the estimators were loaded")
 
-    monkeypatch.setattr(evaluate_cli, "load_estimators", refuse)
+    monkeypatch.setattr(estimators_package, "load_estimators", refuse)
 
 
 def _masks(frames: int = FRAMES, height: int = 24, width: int = 32) -> np.ndarray:
@@ -145,7 +146,7 @@ def test_an_output_that_cannot_be_written_takes_back_the_others_and_the_score(tm
 def test_detection_names_every_missing_model_before_its_loading_line(tmp_path, capsys, video, monkeypatch):
     from geco_guide.cli import detection
 
-    monkeypatch.setattr(detection, "load_estimators", lambda *args, **kwargs: pytest.fail("the estimators loaded"))
+    monkeypatch.setattr(estimators_package, "load_estimators", lambda *args, **kwargs: pytest.fail("the estimators loaded"))
     assert detection.main([str(video), f"estimators.geometry={tmp_path / 'no-vggt'}",
                            f"estimators.flow={tmp_path / 'no-ufm'}", "--preset", "tiny", "--out", str(tmp_path / "d")]) == 2
     err = capsys.readouterr().err.strip()

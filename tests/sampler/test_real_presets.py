@@ -71,9 +71,9 @@ def local_weights(tmp_path_factory) -> dict[str, str]:
 
     components["scheduler"] = CogVideoXDPMScheduler.from_config(components["scheduler"].config)
     GeCoCogVideoXPipeline(**components).save_pretrained(root / "CogVideoX-5b")
-    geometry, flow = tiny_estimators(0)
-    geometry.save_pretrained(root / "VGGT-1B")
-    flow.save_pretrained(root / "UFM-Base")
+    tiny = tiny_estimators(0)
+    tiny.geometry.save_pretrained(root / "VGGT-1B")
+    tiny.flow.save_pretrained(root / "UFM-Base")
     return {"model": str(root / "CogVideoX-5b"), "geometry": str(root / "VGGT-1B"), "flow": str(root / "UFM-Base")}
 
 
@@ -83,8 +83,8 @@ def weights_overrides(weights: dict[str, str]) -> list[str]:
 
 
 def test_estimators_round_trip_through_save_pretrained_with_their_config(tmp_path):
-    geometry, flow = tiny_estimators(3)
-    for model, cls in ((geometry, VGGT), (flow, UFM)):
+    tiny = tiny_estimators(3)
+    for model, cls in ((tiny.geometry, VGGT), (tiny.flow, UFM)):
         folder = model.save_pretrained(tmp_path / cls.model_name)
         assert sorted(p.name for p in folder.iterdir()) == ["config.json", "model.safetensors"]
         # no config= given: the folder's config.json says it is a tiny model, not the default 1B
