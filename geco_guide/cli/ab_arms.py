@@ -116,6 +116,7 @@ def validate_inputs(args: argparse.Namespace) -> Inputs:
     best_of = choose_best_of(args.best_of, args.gpu, cfg, seeds)
     search = choose_search(args.search, args.search_guided, seeds)
     if search is not None:  # K particles of the first pair, checked as generate checks them (K >= 2 if matched)
+        cfg.search.steps(cfg.sampling.num_inference_steps)  # else found when the search starts, after the pairs
         first = SearchArm(search.particles or 2, search.guided)
         generation.check_generation(arm_config(cfg, Pair(prompts[0], seeds[0]), SEARCH, first), prompts[0].text,
                                     loaded=True)
