@@ -157,9 +157,6 @@ class SearchArm:
                 f"{m['guided_s']:.3g} s, the times of pair {m['pair']}{warm}; expected {m['expected_s']:.3g} s"
                 f"{'' if m.get('fits', True) else ' (even K = 2 exceeds the guided arm: the least search)'}")
 
-    def seeds(self, pair: Pair) -> list[int]:
-        return [pair.seed + k for k in range(self.particles)]
-
     def to_dict(self) -> dict[str, Any]:
         return {"particles": self.particles, "guided": self.guided,
                 "chosen": "given" if self.matched is None else "matched", "matched": self.matched}

@@ -83,9 +83,9 @@ def _timing_note(summary: dict[str, Any]) -> list[str]:
         return [(f"Every pair was made with the models' warm-up ({', '.join(warm)}: each process's first pair, whose "
                  "first calls compile kernels and allocate memory): the means include it. Run more pairs for "
                  "times without it."), ""]
-    return [(f"The means leave out the first pair of each process ({', '.join(warm)}): its times include the models' "
-             f"warm-up (the first calls compile kernels and allocate memory); they are in results.csv "
-             f"({WARM_UP} = True). The totals include them."), ""]
+    return [(f"The means leave out the arms made with the models' warm-up (in {', '.join(warm)}: each process's first "
+             f"pair, and its first search arm): their times include the first calls, which compile kernels and "
+             f"allocate memory; they are in results.csv ({WARM_UP} = True). The totals include them."), ""]
 
 
 def _share(lowered: dict[str, Any]) -> str:

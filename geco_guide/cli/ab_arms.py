@@ -68,8 +68,10 @@ from ..perf.decoder_agreement import agreement_rows, agreement_summary
 from ..types import plural
 from .prompt_files import read_prompts
 
-__all__ = ["Inputs", "SearchRequest", "add_search", "choose_best_of", "choose_search", "execute", "local_card",
-           "match_search", "measure_particle_scoring", "validate_inputs"]
+__all__ = ["PROBE_STEPS", "Inputs", "ProcessModels", "SearchRequest", "add_best_of", "add_maps", "add_search",
+           "add_search_arms", "check_output_folder", "choose_best_of", "choose_search", "execute", "foreign_video",
+           "local_card", "make_pairs", "match_search", "measure_decoder_agreement", "measure_particle_scoring",
+           "predicted_ratio", "run_arm", "run_pair", "validate_inputs", "versions", "write_side_by_side"]
 
 #: The probe that measures one particle's scoring at a resampling step (:func:`measure_particle_scoring`):
 #: a search of one particle over this many denoising steps, resampled at each.
@@ -91,6 +93,8 @@ class SearchRequest:
 
 @dataclass
 class Inputs:
+    """What a run works on, once every input passed its checks."""
+
     cfg: GeCoConfig
     pairs: list[Pair]
     out: Path

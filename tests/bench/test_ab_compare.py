@@ -164,8 +164,8 @@ def test_the_first_pair_of_a_process_is_timed_apart_as_the_warm_up(reference: Pa
         assert record["generation_s_mean"] == pytest.approx(timed[arm])  # the warm-up pair left out
         assert record["generation_s_total"] > record["generation_s_mean"]  # the total has both
     report = (reference / "report.md").read_text()
-    assert f"The means leave out the first pair of each process ({PAIRS[0]}): its times include the models' " \
-           "warm-up" in report
+    assert f"The means leave out the arms made with the models' warm-up (in {PAIRS[0]}: each process's first " \
+           "pair, and its first search arm)" in report
     # every pair a warm-up (one pair per process): the means include it, and say so
     results = [_result("p0-s0", 0.2, 0.1)]
     for record in results[0]["arms"].values():
