@@ -485,10 +485,11 @@ def removed_on_failure(*paths: Path) -> Iterator[None]:
 
 def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None, *, overwrite: bool = False,
              models: Models | None = None, image: Any = None, announce: Callable[[str], None] | None = None,
-             ) -> GenerationResult:
+             progress: bool = True) -> GenerationResult:
     """Run one generation of ``cfg`` and write the video + JSON sidecar. ``models`` skips loading
     (a run's earlier :class:`Models`); existing outputs are replaced only with ``overwrite``
-    (checked before anything loads); ``announce`` is told what loads before it does.
+    (checked before anything loads); ``announce`` is told what loads before it does; ``progress``:
+    the pipeline's progress bar (off for a log, where it would write a line per step).
 
     Once every check passed, the run holds its video's :func:`~geco_guide.io.files.output_lock`: a
     second run of the same output name at the same time is refused (one line naming the first's
@@ -498,7 +499,7 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     cfg = check_generation(cfg, prompt, (video_path, sidecar_path), overwrite=overwrite, loaded=models is not None)
     with output_lock(video_path):  # every check passed: from here on the name is this run's
         check_output_paths((video_path, sidecar_path), overwrite)  # again: a run that ended meanwhile wrote it
-        return _load_sample_and_write(cfg, prompt, video_path, sidecar_path, models, image, announce)
+        return _load_sample_and_write(cfg, prompt, video_path, sidecar_path, models, image, announce, progress)
 
 
 def _scores_needed(cfg: GeCoConfig) -> bool:
@@ -506,7 +507,8 @@ def _scores_needed(cfg: GeCoConfig) -> bool:
 
 
 def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidecar_path: Path, models: Models | None,
-                           image: Any, announce: Callable[[str], None] | None) -> GenerationResult:
+                           image: Any, announce: Callable[[str], None] | None, progress: bool = True,
+                           ) -> GenerationResult:
     """The heavy part of :func:`generate`, once every check passed and the output name is held."""
     from .io.video import write_video
 
@@ -518,7 +520,7 @@ def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidec
             announce(loading_line(cfg, needs_estimators))
         models = load_models(cfg, estimators=needs_estimators)
     timings["load_s"] = time.perf_counter() - start
-    made = sample(models, cfg, prompt, image=image)
+    made = sample(models, cfg, prompt, image=image, progress=progress)
     timings["sampling_s"] = made.seconds
     scores = None
     if _scores_needed(cfg):

@@ -1,5 +1,5 @@
 """Checkpoint files that cannot be read (random bytes, empty, truncated) are one line naming the
-file, through the Python API and through every command that loads them: generate, the A/B script,
+file, through the Python API and through every command that loads them: generate, geco ab,
 GeCo-Eval and scripts/benchmark.py (tiny models, CPU; nothing here reaches the network)."""
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from geco_guide.cli import ab
 from geco_guide.cli.generate import main as generate_main
 from geco_guide.config import load_config
 from geco_guide.estimators import load_estimators
@@ -32,7 +33,6 @@ def _script(name: str, path: Path):
     return module
 
 
-ab = _script("ab_compare_corrupt", REPO / "scripts" / "ab_compare.py")
 benchmark = _script("benchmark_corrupt", REPO / "scripts" / "benchmark.py")
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from geco_guide.cli import ab
 from geco_guide.cli import generate as generate_module
 from geco_guide.config import CONFIG_DIR, load_config, preset_path
 from geco_guide.estimators.tiny_decoder import TinyDecoder
@@ -29,8 +30,6 @@ from geco_guide.estimators.ufm import UFM
 from geco_guide.estimators.vggt import VGGT
 from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 from geco_guide.tiny import tiny_cogvideox_components, tiny_estimators
-
-from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
@@ -179,15 +178,14 @@ def test_the_memory_planner_resolves_auto_and_refuses_a_missing_device():
             plan_before_loading(paper_guidance_config(), RunOptions(), "THUDM/CogVideoX-5b", 49, 480, 720, "cuda")
 
 
-def test_the_ab_script_runs_the_paper_preset_from_local_folders(local_weights, tmp_path, capsys):
+def test_geco_ab_runs_the_paper_preset_from_local_folders(local_weights, tmp_path, capsys):
     prompts = tmp_path / "prompts.txt"
     prompts.write_text(PROMPT + "\n")
     out = tmp_path / "ab"
     # the runner's own path (pairs, run.json, scores, report) is what this adds to the generate tests,
     # which run the shipped schedule: 10 steps, the preset's repeats and time travel scaled to them
-    rc = load_script("ab_compare.py").main(["--prompts", str(prompts), "--seeds", "0", "--out", str(out),
-                                  "--preset", "cogvideox-5b", *weights_overrides(local_weights), *SMALL_VIDEO,
-                                  "sampling.num_inference_steps=10"])
+    rc = ab.main(["--prompts", str(prompts), "--seeds", "0", "--out", str(out), "--preset", "cogvideox-5b",
+                  *weights_overrides(local_weights), *SMALL_VIDEO, "sampling.num_inference_steps=10"])
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     run = json.loads((out / "run.json").read_text())
@@ -216,6 +214,7 @@ OFFLINE_DRIVER = textwrap.dedent("""
     import contextlib, importlib.util, io, json, pathlib, sys, traceback
     root, out, video, decoder = sys.argv[1:]
     sys.argv = ["driver"]
+    sys.path.insert(0, root)  # this checkout's package, not an installed one
     results = []
     def run(name, main, argv):
         err = io.StringIO()
@@ -234,7 +233,7 @@ OFFLINE_DRIVER = textwrap.dedent("""
         sys.modules[spec.name] = module
         spec.loader.exec_module(module)
         return module
-    from geco_guide.cli import evaluate, generate, geco_eval
+    from geco_guide.cli import ab, evaluate, generate, geco_eval
     prompt = ["--prompt", "a stone bridge over a river, slow orbit"]
     run("generate", generate.main, ["--preset", "cogvideox-5b", *prompt, "--out", out + "/g.mp4"])
     run("generate --no-guidance", generate.main, ["--preset", "cogvideox-5b", "--no-guidance", *prompt, "--out", out + "/u.mp4"])
@@ -243,8 +242,7 @@ OFFLINE_DRIVER = textwrap.dedent("""
     run("geco_eval", geco_eval.main, ["--models", "cogvideox-5b", "--limit", "1", "--seeds", "0", "--out", out + "/bench"])
     prompts = out + "/prompts.txt"
     open(prompts, "w").write("a stone bridge over a river, slow orbit\\n")
-    ab = script(pathlib.Path(root) / "scripts" / "ab_compare.py")
-    run("ab_compare", ab.main, ["--prompts", prompts, "--seeds", "0", "--out", out + "/ab", "--preset", "cogvideox-5b"])
+    run("ab", ab.main, ["--prompts", prompts, "--seeds", "0", "--out", out + "/ab", "--preset", "cogvideox-5b"])
     bench = script(pathlib.Path(root) / "scripts" / "benchmark.py")
     sys.argv = ["benchmark.py", "decoder-agreement", "--preset", "cogvideox-5b", "estimators.tiny_decoder=" + decoder]
     run("benchmark decoder-agreement", bench.main, sys.argv[1:])
@@ -269,7 +267,7 @@ def test_offline_without_weights_every_command_with_a_real_preset_is_the_missing
     assert done.returncode == 0, done.stderr[-3000:]
     results = json.loads(done.stdout.strip().splitlines()[-1])
     assert [r["name"] for r in results] == ["generate", "generate --no-guidance", "generate fused", "evaluate",
-                                            "geco_eval", "ab_compare", "benchmark decoder-agreement"]
+                                            "geco_eval", "ab", "benchmark decoder-agreement"]
     for result in results:
         lines = [line for line in result["err"].splitlines() if line.strip()]
         assert result["rc"] == 2, result
