@@ -59,11 +59,10 @@ with a different config is refused (unless ``--overwrite``).
 from __future__ import annotations
 
 import argparse
-import shlex
 
 from .kit import add_config_flags, command_main, interruptible, print_error
 
-__all__ = ["DESCRIPTION", "SUMMARY", "command_line", "main", "register_subcommand", "run"]
+__all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 
 SUMMARY = "A/B test on your prompts: unguided vs guided video from the same noise, with best-of-N and search arms"
 DESCRIPTION = """\
@@ -78,11 +77,6 @@ examples:
 
 Rerun the same command to resume a stopped run; add --best-of or --search to a finished run to add
 the arm to its pairs."""
-
-#: The options a command line of the run names, as ``(flag, dest)``: valued, then switches.
-_VALUED = (("--preset", "preset"), ("--config", "config"), ("--geometry-estimator", "geometry_estimator"),
-           ("--flow-estimator", "flow_estimator"), ("--best-of", "best_of"), ("--gpu", "gpu"), ("--search", "search"))
-_SWITCHES = (("--maps", "maps"), ("--search-guided", "search_guided"), ("--overwrite", "overwrite"))
 
 
 def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -115,16 +109,6 @@ def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
     return parser
 
 
-def command_line(args: argparse.Namespace) -> str:
-    """The ``geco ab`` command line of ``args`` (the report's: the command that resumes the run),
-    however the command was started (``geco``, ``python -m``, ``accelerate launch``, a test)."""
-    parts = ["geco", "ab", "--prompts", args.prompts, "--seeds", *args.seeds, "--out", args.out]
-    parts += [item for flag, dest in _VALUED if getattr(args, dest, None) is not None
-              for item in (flag, str(getattr(args, dest)))]
-    parts += [flag for flag, dest in _SWITCHES if getattr(args, dest, False)]
-    return shlex.join([*parts, *args.overrides])
-
-
 @interruptible("finished pairs and arms are kept (each is written whole or not at all); rerun the same command to "
                "resume")
 def run(args: argparse.Namespace) -> int:
@@ -135,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         inputs = ab_arms.validate_inputs(args)
         with run_lock(inputs.out, "A/B"):
-            return ab_arms.execute(inputs, args.maps, args.overwrite, command_line(args))
+            return ab_arms.execute(inputs, args.maps, args.overwrite, args.command_line)
     except (ValueError, FileNotFoundError) as err:
         return print_error(err)
 
