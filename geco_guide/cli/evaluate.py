@@ -56,20 +56,37 @@ SUMMARY = "score videos with the GeCo protocol"
 DESCRIPTION = "Score videos with GeCo (M_motion, M_struct, M_geo, Total/Mean Motion)."
 
 
-def write_detection_video(video: str | os.PathLike, stem: Path, estimators: Estimators, cfg: GeCoConfig) -> Path:
+def write_detection_video(video: str | os.PathLike, stem: Path, estimators: Estimators, cfg: GeCoConfig,
+                          masks: Any = None) -> Path:
     """``<stem>.detection.mp4``: the per-frame detection maps of every frame of ``video``
     (:mod:`geco_guide.metric.detection`, its defaults: a 20-frame window centred on the frame), the first
-    ``evaluation.max_frames`` of them when it is set."""
+    ``evaluation.max_frames`` of them when it is set; ``masks``: the video's given masks
+    (a :class:`~geco_guide.estimators.dynamic_masks.GivenMasks`), left out of the maps as the scores
+    leave them out."""
     from ..io.video import read_frames
     from ..metric.detection import detection_maps, frame_scores, render_detection, write_detection
 
     limit = cfg.evaluation.max_frames
     first = None if limit is None else (lambda num_frames, fps: list(range(min(num_frames, limit))))
     clip = read_frames(video, default_fps=cfg.evaluation.default_fps, min_frames=2, select=first)
+    if masks is not None:  # the masks of the frames read, as the scores cut them
+        masks = masks.at(range(clip.frames.shape[0]), clip.num_frames).masks
     maps = detection_maps(clip.frames, estimators, cfg.evaluation.loss,
-                          flow_batch_size=cfg.evaluation.flow_batch_size)
+                          flow_batch_size=cfg.evaluation.flow_batch_size, dynamic_masks=masks)
     (path,) = write_detection(render_detection(maps, frame_scores(maps)), stem, ["mp4"], clip.fps)
     return path
+
+
+def check_detection_masks(detection: bool, masks: Any) -> None:
+    """ValueError (one line) for ``--detection`` with automatic or text ``--dynamic-masks``: the
+    detection maps judge each frame against a window of its own, which those masks are not made
+    for (given masks of the video are applied to them)."""
+    from ..estimators.dynamic_masks import GivenMasks
+
+    if detection and masks is not None and not isinstance(masks, GivenMasks):
+        raise ValueError("--detection draws its maps with given masks only (a mask file of the video); with "
+                         "--dynamic-masks auto or subject text, score without --detection or write the masks to a "
+                         "file first")
 
 
 @dataclass
@@ -286,7 +303,7 @@ def _score_one(item: _Input, out: Path, estimators: Estimators, cfg: GeCoConfig,
             written.append(write_maps_video(result, out / f"{item.name}.maps.mp4"))
             notes += f", maps {written[-1]}"
         if args.detection:
-            written.append(write_detection_video(item.path, out / item.name, estimators, cfg))
+            written.append(write_detection_video(item.path, out / item.name, estimators, cfg, dynamic))
             notes += f", detection maps {written[-1]}"
         return result, write_json_atomic(out / f"{item.name}.geco.json", result.to_dict()), notes
     except BaseException:
@@ -338,6 +355,7 @@ def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
         out = check_output_dir(args.out if args.out is not None else cfg.output.dir)
         items = expand_inputs(videos)
         dynamic = dynamic_mask_option(args.dynamic_masks, device)
+        check_detection_masks(args.detection, dynamic)
         check_masks_fit(items, dynamic, cfg)
         table = len(items) > 1 or any(Path(v).is_dir() and not _holds_frames(Path(v)) for v in videos)
         if not all(item.error is not None for item in items):  # else check_inputs_and_outputs says why
