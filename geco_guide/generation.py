@@ -66,7 +66,7 @@ KEYLESS_SECTIONS = ("output", "evaluation")
 #: :func:`video_key` then, so that every video made before they existed keeps its name.
 DYNAMIC_KEYS = ("dynamic", "dynamic_dilation", "dynamic_refresh", "movers")
 SCORES_NOTE = ("These are the anchor frames' scores with the guidance loss' settings; "
-               "python -m geco_guide evaluate scores the whole video with the paper's protocol (a different number).")
+               "geco evaluate scores the whole video with the paper's protocol (a different number).")
 #: The score best-of-N selection keeps the lowest of: the fused map under the GeCo protocol.
 SELECTION_SCORE = "fused"
 #: The largest N of best-of-N: each candidate is a whole video.

@@ -281,3 +281,18 @@ def test_guidance_the_call_would_refuse_is_one_line_before_loading(tmp_path: Pat
                                                                     message):
     assert main(["--preset", "tiny", "--prompt", "a cat", "--out", str(tmp_path / "out"), *overrides]) == 2
     assert message in _error_line(capsys)
+
+
+def test_guidance_over_no_valid_pixel_says_so_and_its_scores_are_nan_with_the_reason(tmp_path: Path, capsys):
+    # the tiny random segmenter masks about 96 % of every anchor frame: no frame keeps the 5 % a
+    # score needs, so each update measures nothing (loss 0, zero gradient), which must not read as perfect
+    out = tmp_path / "dog.mp4"
+    assert main(["--preset", "tiny", "--prompt", "a dog runs", "--dynamic", "a dog", "estimators.segmenter=tiny-random",
+                 "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "fused=nan motion=nan structure=nan" in captured.out
+    assert "(NaN: no frame kept 5% of its pixels valid outside the dynamic mask)" in captured.out
+    assert "guidance update(s) saw no valid pixel (everything masked or invalid: loss 0, zero gradient)" in captured.err
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert sidecar["geco_scores"]["fused"] is None and sidecar["geco_scores"]["nan_reason"].startswith("no frame kept")
+    assert all(record["valid_fraction"] == 0 for record in sidecar["guidance_log"])
