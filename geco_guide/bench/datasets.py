@@ -14,7 +14,7 @@ Each clip becomes a folder ``<out>/<name>-s<seed>/`` holding
 ``synthetic`` renders :func:`geco_guide.bench.synthetic.rigid_clip` instead of reading a video, and
 ``synthetic-3d`` is :func:`geco_guide.bench.synthetic.occlusion_swap_clip` (an occlusion edit made in
 3D: the re-revealed box is a real surface the flow can follow); such folders record it, and :func:`oracle_clip` rebuilds their exact depth, cameras and flow, so
-``python -m geco_guide validate --oracle`` can score them with ground-truth estimators.
+``geco validate --oracle`` can score them with ground-truth estimators.
 Everything is deterministic from the seed and written atomically.
 """
 

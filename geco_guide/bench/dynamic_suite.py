@@ -1,5 +1,5 @@
 """Dynamic masks checked against ground truth on synthetic scenes with objects that move on their own
-(the command is ``python -m geco_guide validate --dynamic``; numbers in docs/validation.md).
+(the command is ``geco validate --dynamic``; numbers in docs/validation.md).
 
 The scene is :func:`~geco_guide.bench.synthetic.moving_clip` (the gallery, an orbiting camera, two
 boxes that move on their own), next to the same scene with the boxes still. GeCo runs with the

@@ -1,10 +1,10 @@
-"""``python -m geco_guide benchmarks``: build WarpBench/OccluBench clips (:mod:`geco_guide.bench.datasets`).
+"""``geco benchmarks``: build WarpBench/OccluBench clips (:mod:`geco_guide.bench.datasets`).
 
-    python -m geco_guide benchmarks warp clip.mp4 frames/ --out bench/warp --mode frame --seeds 0 1 2
-    python -m geco_guide benchmarks warp clip.mp4 --mask object.png --out bench/warp-clip
-    python -m geco_guide benchmarks occlusion clip.mp4 --object duck.png --out bench/occlusion
-    python -m geco_guide benchmarks warp synthetic --out bench/synthetic-warp --seeds 0 1 2   # offline, exact ground truth
-    python -m geco_guide benchmarks occlusion synthetic-3d --out bench/synthetic-occlusion-3d
+    geco benchmarks warp clip.mp4 frames/ --out bench/warp --mode frame --seeds 0 1 2
+    geco benchmarks warp clip.mp4 --mask object.png --out bench/warp-clip
+    geco benchmarks occlusion clip.mp4 --object duck.png --out bench/occlusion
+    geco benchmarks warp synthetic --out bench/synthetic-warp --seeds 0 1 2   # offline, exact ground truth
+    geco benchmarks occlusion synthetic-3d --out bench/synthetic-occlusion-3d
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
-"""``python -m geco_guide detection``: per-frame detection maps (:mod:`geco_guide.metric.detection`).
+"""``geco detection``: per-frame detection maps (:mod:`geco_guide.metric.detection`).
 
-    python -m geco_guide detection clip.mp4 --out maps                  # VGGT-1B + UFM-Base, mp4
-    python -m geco_guide detection frames/ --preset tiny --window 8 --anchor end --format gif png
+    geco detection clip.mp4 --out maps                  # VGGT-1B + UFM-Base, mp4
+    geco detection frames/ --preset tiny --window 8 --anchor end --format gif png
 
 Each input writes, inside ``--out``, ``<name>.detection.mp4`` / ``.gif`` / ``<name>.detection/NNNNN.png``
 (``--format``) and last ``<name>.detection.json``. Inputs are named as ``evaluate`` names them (a

@@ -1,9 +1,9 @@
-"""``python -m geco_guide evaluate VIDEO [VIDEO ...|DIR]``: score videos with the GeCo metric.
+"""``geco evaluate VIDEO [VIDEO ...|DIR]``: score videos with the GeCo metric.
 
-    python -m geco_guide evaluate clip.mp4 --maps                 # VGGT-1B + UFM-Base from the hub
-    python -m geco_guide evaluate videos/ --geometry-estimator /data/VGGT-1B --flow-estimator /data/UFM-Base --out scores
-    python -m geco_guide evaluate --preset tiny clip.mp4 frames/   # tiny random models, CPU, offline
-    python -m geco_guide evaluate clip.mp4 --model cogvideox-5b    # timed at the model's native 16 fps
+    geco evaluate clip.mp4 --maps                 # VGGT-1B + UFM-Base from the hub
+    geco evaluate videos/ --geometry-estimator /data/VGGT-1B --flow-estimator /data/UFM-Base --out scores
+    geco evaluate --preset tiny clip.mp4 frames/   # tiny random models, CPU, offline
+    geco evaluate clip.mp4 --model cogvideox-5b    # timed at the model's native 16 fps
 
 The protocol is :func:`geco_guide.metric.evaluate.evaluate_video`'s. Per video:
 ``<out>/<stem>.geco.json`` and with ``--maps`` ``<out>/<stem>.maps.mp4`` (source | motion |
@@ -212,7 +212,7 @@ def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="replace the outputs of an earlier run in --out (without it, an existing output is an error)")
     p.add_argument("--detection", action="store_true",
                    help="also write <stem>.detection.mp4: every frame's own maps against a window of 20 frames "
-                        "around it (python -m geco_guide detection for the window, anchor and formats)")
+                        "around it (geco detection for the window, anchor and formats)")
     p.add_argument("--pairs", default=None, metavar="MODE",
                    help="frame pairs per window: all (default, the paper's script: n(n-1) flow pairs for n frames), "
                         "center (2(n-1)) or adjacent (n-1)")

@@ -1,11 +1,11 @@
-"""``python -m geco_guide geco-eval --models ... --out DIR``: the GeCo-Eval benchmark
+"""``geco geco-eval --models ... --out DIR``: the GeCo-Eval benchmark
 (:mod:`geco_guide.bench.geco_eval`).
 
-    python -m geco_guide geco-eval --models cogvideox-5b wan2.1-t2v-1.3b --seeds 0 1 2 3 --out bench
-    python -m geco_guide geco-eval --models cogvideox-5b --guided --scenario indoor --out bench
-    python -m geco_guide geco-eval --videos sora-2=downloads/sora --out bench
-    python -m geco_guide geco-eval --suite dynamic --models cogvideox-5b --guided --out bench-dynamic
-    python -m geco_guide geco-eval --preset tiny --models cogvideox-5b wan2.1-t2v-1.3b --limit 2 --out bench-tiny
+    geco geco-eval --models cogvideox-5b wan2.1-t2v-1.3b --seeds 0 1 2 3 --out bench
+    geco geco-eval --models cogvideox-5b --guided --scenario indoor --out bench
+    geco geco-eval --videos sora-2=downloads/sora --out bench
+    geco geco-eval --suite dynamic --models cogvideox-5b --guided --out bench-dynamic
+    geco geco-eval --preset tiny --models cogvideox-5b wan2.1-t2v-1.3b --limit 2 --out bench-tiny
 
 The same command resumes a stopped run; ``--overwrite`` starts afresh in its folder.
 """

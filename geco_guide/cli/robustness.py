@@ -1,6 +1,6 @@
-"""``python -m geco_guide robustness``: the noise sweep of :mod:`geco_guide.bench.robustness`.
+"""``geco robustness``: the noise sweep of :mod:`geco_guide.bench.robustness`.
 
-    python -m geco_guide robustness --out robustness            # CPU, offline, about a minute
+    geco robustness --out robustness            # CPU, offline, about a minute
 
 Every option is checked, the output folder included, and the sweep's memory predicted
 (:func:`~geco_guide.bench.robustness.sweep_memory_bytes`) before the sweep runs.

@@ -1,10 +1,10 @@
-"""``python -m geco_guide validate``: score built benchmarks on the paper's three detection tasks
+"""``geco validate``: score built benchmarks on the paper's three detection tasks
 (:mod:`geco_guide.bench.validate`).
 
-    python -m geco_guide validate bench/synthetic-warp bench/synthetic-occlusion --oracle   # exact geometry, CPU
-    python -m geco_guide validate bench/warp bench/occlusion                               # VGGT-1B + UFM-Base
-    python -m geco_guide validate bench/warp --preset tiny                                 # tiny random models
-    python -m geco_guide validate --dynamic --out validation-dynamic                       # dynamic masks vs ground truth
+    geco validate bench/synthetic-warp bench/synthetic-occlusion --oracle   # exact geometry, CPU
+    geco validate bench/warp bench/occlusion                               # VGGT-1B + UFM-Base
+    geco validate bench/warp --preset tiny                                 # tiny random models
+    geco validate --dynamic --out validation-dynamic                       # dynamic masks vs ground truth
 
 ``--dynamic`` needs no benchmark folder: it renders the synthetic scenes with objects that move on
 their own and reports, with the oracle estimators, the false positives, the artifact detection AP,

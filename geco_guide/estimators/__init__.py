@@ -1,7 +1,7 @@
 """Frozen GeCo backbones, and the one function that builds them from a config.
 
 :func:`load_estimators` is shared by ``python -m geco_guide.generate`` and
-``python -m geco_guide evaluate``: hub ids, local folders, or ``tiny-random`` for the tiny,
+``geco evaluate``: hub ids, local folders, or ``tiny-random`` for the tiny,
 randomly initialised offline models of :func:`tiny_estimators`, returned as one
 :class:`~.bundle.Estimators` (geometry, flow and, when asked for, the text segmenter). This module stays light (no
 model code is imported until an estimator is built), because every ``geco_guide.estimators.*``
