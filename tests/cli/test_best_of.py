@@ -61,3 +61,26 @@ def test_best_of_loads_the_models_once_for_every_candidate(tmp_path, monkeypatch
                               "output.score_anchors=false"]) == 0
     sidecar = json.loads(out.with_suffix(".json").read_text())
     assert len(loads) == 1 and len(sidecar["best_of"]["candidates"]) == 2 and sidecar["dynamic_masks"] == "auto"
+
+
+def test_the_selection_leaves_out_what_the_guidance_leaves_out(tmp_path, monkeypatch):
+    from geco_guide.metric import evaluate
+
+    seen = []
+    real = evaluate.evaluate_video
+
+    def recorded(video, estimators=None, config=None, **kwargs):
+        seen.append(kwargs.get("dynamic_masks"))
+        return real(video, estimators, config, **kwargs)
+
+    monkeypatch.setattr(evaluate, "evaluate_video", recorded)
+    common = [*TINY, "output.score_anchors=false", "sampling.num_inference_steps=2", "guidance.repeats=1x2",
+              "guidance.time_travel=[]"]
+    assert generate_cli.main([*common, "--best-of", "2", "--dynamic", "auto", "--out", str(tmp_path / "a.mp4")]) == 0
+    assert seen == ["auto", "auto"]  # each candidate scored without what moves on its own, as guided
+    seen.clear()
+    assert generate_cli.main([*common, "--search", "2", "--dynamic", "auto", "--out", str(tmp_path / "b.mp4")]) == 0
+    assert seen == ["auto", "auto"]
+    seen.clear()
+    assert generate_cli.main([*common, "--best-of", "2", "--out", str(tmp_path / "c.mp4")]) == 0
+    assert seen == [None, None]  # the paper's protocol
