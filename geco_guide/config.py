@@ -40,7 +40,7 @@ from .estimators import EstimatorsConfig
 from .families import MODELS, default_anchors, frames_problem, model_named, video_models
 from .metric.protocol import EvaluationConfig
 from .sampler.config import GuidanceConfig, paper_guidance_config
-from .sampler.loading import ModelConfig
+from .sampler.loading import CHECKPOINT_SCHEDULER, SCHEDULERS, ModelConfig
 from .sampler.run_options import RunOptions, check_run_for_guidance
 from .sampler.sampling import SamplingConfig, sampling_problem, with_model_defaults
 from .sampler.search import SearchConfig
@@ -136,7 +136,7 @@ def _container_mismatch(base: DictConfig, other: Any, prefix: str = "") -> tuple
     if not isinstance(other, (DictConfig, Mapping)):
         return None
     for key, value in other.items():
-        node = base.get(key) if key in base else None
+        node = base._get_node(key) if key in base else None  # a None list is a ListConfig node, its value None
         is_mapping = isinstance(value, (DictConfig, Mapping))
         if isinstance(node, DictConfig):
             if not is_mapping:
@@ -265,7 +265,8 @@ def to_config(cfg: DictConfig | dict | GeCoConfig) -> GeCoConfig:
         raise ValueError(f"invalid value for config key 'model.name': must be one of {', '.join(video_models())}, "
                          f"got {obj.model.name!r}")
     model = model_named(obj.model.name)
-    obj = replace(obj, sampling=with_model_defaults(obj.sampling, model))
+    # the registry fills what the config leaves null: the weights' hub id, the call, the anchors
+    obj = replace(obj, model=replace(obj.model, id=obj.model.source), sampling=with_model_defaults(obj.sampling, model))
     if obj.guidance.anchors is None and frames_problem(obj.sampling.num_frames, model.temporal_compression) is None:
         anchors = default_anchors(obj.sampling.num_frames, model.temporal_compression)
         obj = replace(obj, guidance=replace(obj.guidance, anchors=anchors))
@@ -318,9 +319,11 @@ def validate_config(cfg: GeCoConfig) -> None:
     problem = sampling_problem(s, model)
     if problem is not None:
         raise ValueError(f"invalid value for config key 'sampling.{problem[0]}': {problem[1]}")
-    _require(s.scheduler in (None, "ddim", "dpm"), "sampling.scheduler", f"must be ddim, dpm or null, got {s.scheduler!r}")
-    _require(s.scheduler is None or model.cogvideox_vae, "sampling.scheduler",
-             f"ddim and dpm are CogVideoX's schedulers; {model.name} samples with its own (null), got {s.scheduler!r}")
+    _require(s.scheduler in (None, CHECKPOINT_SCHEDULER, *SCHEDULERS), "sampling.scheduler",
+             f"must be ddim, dpm, checkpoint or null, got {s.scheduler!r}")
+    _require(s.scheduler in (None, CHECKPOINT_SCHEDULER) or model.cogvideox_vae, "sampling.scheduler",
+             f"ddim and dpm are CogVideoX's schedulers; {model.name} samples with its own (checkpoint or null), "
+             f"got {s.scheduler!r}")
     g = cfg.guidance
     # GuidanceConfig's own checks against this run, each error named by its key
     for check, key in ((g.check_loss, "guidance.loss.geometry_grad"),

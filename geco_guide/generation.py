@@ -51,7 +51,7 @@ if TYPE_CHECKING:
 
 __all__ = ["KEYLESS_SECTIONS", "SCORES_NOTE", "SELECTION_SCORE", "GenerationResult", "Models", "Sample",
            "best_candidate", "check_generation", "check_prompt", "default_name", "generate", "generate_best_of",
-           "load_models", "loading_line", "output_paths", "sample", "sample_search", "slugify", "versions",
+           "load_models", "loading_line", "output_paths", "sample", "sample_search", "selection_masks", "slugify", "versions",
            "video_key"]
 
 logger = logging.getLogger(__name__)
@@ -66,7 +66,7 @@ KEYLESS_SECTIONS = ("output", "evaluation")
 #: :func:`video_key` then, so that every video made before they existed keeps its name.
 DYNAMIC_KEYS = ("dynamic", "dynamic_dilation", "dynamic_refresh", "movers")
 SCORES_NOTE = ("These are the anchor frames' scores with the guidance loss' settings; "
-               "python -m geco_guide evaluate scores the whole video with the paper's protocol (a different number).")
+               "geco evaluate scores the whole video with the paper's protocol (a different number).")
 #: The score best-of-N selection keeps the lowest of: the fused map under the GeCo protocol.
 SELECTION_SCORE = "fused"
 #: The largest N of best-of-N: each candidate is a whole video.
@@ -366,10 +366,10 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
     draws from a generator of :func:`~geco_guide.sampler.search.search_seed` of ``seed``). Each
     final particle is then scored with the GeCo protocol
     (:func:`~geco_guide.metric.evaluate.evaluate_video`, the config's ``evaluation`` section, at
-    ``sampling.fps``; its frames as decoded, where best-of-N scores its written files) and the one
-    of least fused score kept, as best-of-N keeps its candidates (a NaN ranks last, ties go to the
-    earlier particle). ``on_particle(k, scores)`` is called after
-    each is scored.
+    ``sampling.fps``, with the run's dynamic masks (:func:`selection_masks`); its frames as
+    decoded, where best-of-N scores its written files) and the one of least fused score kept, as
+    best-of-N keeps its candidates (a NaN ranks last, ties go to the earlier particle).
+    ``on_particle(k, scores)`` is called after each is scored.
 
     Returns:
         The kept video; its ``search``: the search's record (:meth:`ParticleSearch.report
@@ -414,10 +414,11 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
         report = handle.last
     frames = output.frames.float().cpu()  # [K, F, 3, H, W] in [0, 1]
     selection_start = time.perf_counter()
-    scores = []
+    scores, masks = [], selection_masks(cfg, models)
     for k in range(particles):
         try:
-            scored = evaluate_video(frames[k], models.estimators, cfg.evaluation, fps=cfg.sampling.fps)
+            scored = evaluate_video(frames[k], models.estimators, cfg.evaluation, fps=cfg.sampling.fps,
+                                    dynamic_masks=masks)
             values = {key: finite_or_none(getattr(scored, key)) for key in ("fused", "motion", "structure")}
         except ValueError:  # NaN frames: the particle ranks last
             values = dict.fromkeys(("fused", "motion", "structure"))
@@ -487,10 +488,11 @@ def removed_on_failure(*paths: Path) -> Iterator[None]:
 
 def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None, *, overwrite: bool = False,
              models: Models | None = None, image: Any = None, announce: Callable[[str], None] | None = None,
-             ) -> GenerationResult:
+             progress: bool = True) -> GenerationResult:
     """Run one generation of ``cfg`` and write the video + JSON sidecar. ``models`` skips loading
     (a run's earlier :class:`Models`); existing outputs are replaced only with ``overwrite``
-    (checked before anything loads); ``announce`` is told what loads before it does.
+    (checked before anything loads); ``announce`` is told what loads before it does; ``progress``:
+    the pipeline's progress bar (off for a log, where it would write a line per step).
 
     Once every check passed, the run holds its video's :func:`~geco_guide.io.files.output_lock`: a
     second run of the same output name at the same time is refused (one line naming the first's
@@ -500,7 +502,7 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     cfg = check_generation(cfg, prompt, (video_path, sidecar_path), overwrite=overwrite, loaded=models is not None)
     with output_lock(video_path):  # every check passed: from here on the name is this run's
         check_output_paths((video_path, sidecar_path), overwrite)  # again: a run that ended meanwhile wrote it
-        return _load_sample_and_write(cfg, prompt, video_path, sidecar_path, models, image, announce)
+        return _load_sample_and_write(cfg, prompt, video_path, sidecar_path, models, image, announce, progress)
 
 
 def _scores_needed(cfg: GeCoConfig) -> bool:
@@ -508,7 +510,8 @@ def _scores_needed(cfg: GeCoConfig) -> bool:
 
 
 def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidecar_path: Path, models: Models | None,
-                           image: Any, announce: Callable[[str], None] | None) -> GenerationResult:
+                           image: Any, announce: Callable[[str], None] | None, progress: bool = True,
+                           ) -> GenerationResult:
     """The heavy part of :func:`generate`, once every check passed and the output name is held."""
     from .io.video import write_video
 
@@ -520,7 +523,7 @@ def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidec
             announce(loading_line(cfg, needs_estimators))
         models = load_models(cfg, estimators=needs_estimators)
     timings["load_s"] = time.perf_counter() - start
-    made = sample(models, cfg, prompt, image=image)
+    made = sample(models, cfg, prompt, image=image, progress=progress)
     timings["sampling_s"] = made.seconds
     scores = None
     if _scores_needed(cfg):
@@ -600,6 +603,17 @@ def best_candidate(scores: list[float]) -> int:
     return min(range(len(scores)), key=lambda k: (not math.isfinite(scores[k]), scores[k] if math.isfinite(scores[k]) else 0))
 
 
+def selection_masks(cfg: GeCoConfig, models: Models) -> Any:
+    """The ``dynamic_masks`` the selection of best-of-N and search scores candidates with: what
+    moves on its own is left out of the choice as the run's guidance leaves it out
+    (``guidance.dynamic``: ``"auto"`` or the subjects, masked by the estimators' segmenter);
+    ``None`` without (the paper's protocol)."""
+    dynamic = cfg.guidance.dynamic
+    if dynamic is None or not (cfg.guidance.enabled or cfg.search.enabled):
+        return None
+    return dynamic if cfg.guidance.subjects is None else models.estimators.masks_for(cfg.guidance.subjects)
+
+
 def check_best_of(count: Any, seed: int) -> None:
     """ValueError (one line) unless ``count`` is a whole number in ``[1, MAX_CANDIDATES]`` whose
     seeds ``seed .. seed + count - 1`` all fit 64 bits."""
@@ -616,8 +630,9 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
     """Selection, the other way to spend compute on geometry: ``count`` videos of the seeds
     ``cfg.seed`` .. ``cfg.seed + count - 1`` (guided or not, as ``cfg`` says), each scored with the
     GeCo protocol (:func:`~geco_guide.metric.evaluate.evaluate_video`, the config's ``evaluation``
-    section); the one of least fused score is kept (a NaN score ranks last, ties go to the
-    earlier seed). The models load once for every candidate.
+    section, with the run's dynamic masks: :func:`selection_masks`); the one of least fused score
+    is kept (a NaN score ranks last, ties go to the earlier seed). The models load once for every
+    candidate.
 
     Writes the kept video and its sidecar, which adds ``best_of``: every candidate's seed and
     protocol scores and the seed kept. The default name ends in ``-best-of-<count>``. The
@@ -652,7 +667,8 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
                         announce(loading_line(cfg))
                     models = load_models(cfg)
                 result = generate(seed_cfg, prompt, out=work / f"seed{seed_cfg.seed}.mp4", models=models, image=image)
-                scored = evaluate_video(result.video_path, models.estimators, cfg.evaluation)
+                scored = evaluate_video(result.video_path, models.estimators, cfg.evaluation,
+                                        dynamic_masks=selection_masks(cfg, models))
                 candidates.append((result, scored))
                 if on_candidate is not None:
                     on_candidate(k, seed_cfg.seed, scored)

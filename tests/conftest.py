@@ -42,9 +42,31 @@ def ufm_fixture() -> dict:
 def estimators():
     """The tiny random VGGT and UFM (seed 0) as one :class:`~geco_guide.estimators.Estimators`,
     built once for the session; frozen, so the tests that share them cannot change them."""
-    from geco_guide.tiny import tiny_bundle
+    from geco_guide.tiny import tiny_estimators
 
-    return tiny_bundle(0)
+    return tiny_estimators(0)
+
+
+@pytest.fixture
+def stub_generation(monkeypatch):
+    """Stands in for loading and sampling in :mod:`geco_guide.generation`: call it with the
+    ``[1, F, 3, H, W]`` frames the run's video is made of; the rest of the path (checks, sidecar,
+    writing) is the real one."""
+    from types import SimpleNamespace
+
+    from geco_guide import generation
+    from geco_guide.families import model_named
+    from geco_guide.sampler.context import GuidanceReport
+    from geco_guide.sampler.loading import LoadedPipeline
+
+    def stub(frames):
+        pipe = SimpleNamespace(device=frames.device)
+        monkeypatch.setattr(generation, "load_models", lambda cfg, estimators=True: generation.Models(
+            LoadedPipeline(pipe, model_named(cfg.model.name), "stub"), None))
+        monkeypatch.setattr(generation, "sample", lambda models, cfg, prompt, **kwargs: generation.Sample(
+            frames, GuidanceReport(scheduler="stub"), 0.0))
+
+    return stub
 
 
 def pytest_collection_modifyitems(config, items):

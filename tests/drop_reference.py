@@ -82,7 +82,7 @@ def evaluation_numbers() -> dict:
 
 
 if __name__ == "__main__":
-    from geco_guide.tiny import tiny_bundle
+    from geco_guide.tiny import tiny_estimators
 
-    torch.save({"loss": loss_numbers(tiny_bundle(0)), "evaluation": evaluation_numbers()}, FIXTURE)
+    torch.save({"loss": loss_numbers(tiny_estimators(0)), "evaluation": evaluation_numbers()}, FIXTURE)
     print(f"wrote {FIXTURE}")

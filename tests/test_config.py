@@ -189,10 +189,9 @@ def test_options_of_the_wrong_type_are_one_line_naming_the_key(section, changes,
     options = {"guidance": GuidanceConfig, "run": RunOptions}[section]
     with pytest.raises(ValueError, match=re.escape(message)):
         options(**changes)
-    geometry, flow = tiny_estimators(0)
     argument = {"config": changes} if section == "guidance" else {"run_options": changes}
     with pytest.raises(ValueError, match=f"^{section}: {re.escape(message)}"):  # the hook's dict, before any call
-        attach_geco_guidance(tiny_wan_pipeline(0), **argument, geometry=geometry, flow=flow)
+        attach_geco_guidance(tiny_wan_pipeline(0), estimators=tiny_estimators(0), **argument)
 
 
 def test_numbers_of_other_numeric_types_are_taken_as_they_are():

@@ -16,7 +16,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_presets_come_from_the_top_level_configs_folder():
     assert CONFIG_DIR == ROOT / "configs"  # a checkout (editable install) reads them in place
-    assert sorted(p.name for p in CONFIG_DIR.glob("*.yaml")) == ["cogvideox-5b-fused.yaml", "cogvideox-5b.yaml", "tiny.yaml"]
+    from geco_guide.families import video_models
+
+    # the paper's two, the tiny one, and one per registry model that has weights
+    expected = {"cogvideox-5b-fused.yaml", "tiny.yaml", *(f"{name}.yaml" for name in video_models())}
+    assert sorted(p.name for p in CONFIG_DIR.glob("*.yaml")) == sorted(expected)
     assert load_config(ROOT / "configs" / "tiny.yaml") == load_config(preset="tiny")
 
 

@@ -3,10 +3,13 @@ update's gradient reaches the geometry estimator, and the structure cue without 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
 from geco_guide.config import config_to_dict, load_config
+from geco_guide.estimators import Estimators
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig
 from geco_guide.sampler.config import (
     GuidanceConfig,
@@ -39,9 +42,12 @@ def test_paper_preset_is_the_papers_experiment_and_fused_differs_only_in_the_los
     a, b = _flatten(config_to_dict(paper)), _flatten(config_to_dict(fused))
     assert {k for k in a if a[k] != b[k]} == {"guidance.loss.cue", "guidance.loss.geometry_grad"}
     # the Python API: GuidanceConfig() (and paper_guidance_config()) is the CLI default, the paper's
-    # experiment; fused_guidance_config() the fused preset's
-    assert paper_guidance_config() == paper.guidance == GuidanceConfig() == load_config().guidance
-    assert fused_guidance_config() == fused.guidance
+    # experiment; fused_guidance_config() the fused preset's. Its anchors (None) are the paper's four
+    # spread over the call's video, which the config names once it knows the model (CogVideoX-5b: 49 frames).
+    assert paper_guidance_config() == GuidanceConfig() and GuidanceConfig().anchors is None
+    assert GuidanceConfig().anchors_for(49, 4) == [12, 24, 36, 48]
+    assert replace(GuidanceConfig(), anchors=[12, 24, 36, 48]) == paper.guidance == load_config().guidance
+    assert replace(fused_guidance_config(), anchors=[12, 24, 36, 48]) == fused.guidance
 
 
 class _GradProbe:
@@ -64,12 +70,13 @@ class _GradProbe:
 
 @pytest.mark.parametrize("leaky", [False, True])
 def test_paper_preset_gradient_does_not_reach_the_geometry_estimator_and_fused_does(leaky):
-    vggt, ufm = tiny_estimators(0)
+    tiny = tiny_estimators(0)
+    vggt, ufm = tiny.geometry, tiny.flow
     frames = torch.rand(1, 3, 3, 32, 48, generator=torch.Generator().manual_seed(0))
     grads = {}
     for preset in ("cogvideox-5b", "cogvideox-5b-fused"):
         probe = _GradProbe(vggt, leaky=leaky)
-        loss_fn = GeCoLoss(probe, ufm, load_config(preset=preset).guidance.loss)
+        loss_fn = GeCoLoss(Estimators(probe, ufm), load_config(preset=preset).guidance.loss)
         x = frames.clone().requires_grad_(True)
         loss_fn(x).loss.backward()
         grads[preset] = (probe.seen, x.grad)
@@ -84,7 +91,8 @@ def test_paper_preset_gradient_does_not_reach_the_geometry_estimator_and_fused_d
 def test_rigid_flow_depends_on_the_frames_only_through_the_flow_estimator():
     # with geometry_grad=False, the motion cue's gradient equals the one with the geometry frozen
     # to constants computed beforehand
-    vggt, ufm = tiny_estimators(0)
+    tiny = tiny_estimators(0)
+    vggt, ufm = tiny.geometry, tiny.flow
     frames = torch.rand(1, 3, 3, 32, 48, generator=torch.Generator().manual_seed(1))
     config = load_config(preset="cogvideox-5b").guidance.loss
     with torch.no_grad():
@@ -95,8 +103,8 @@ def test_rigid_flow_depends_on_the_frames_only_through_the_flow_estimator():
             return SceneGeometry(fixed.depth, fixed.intrinsics, fixed.extrinsics, fixed.confidence)
 
     x1, x2 = frames.clone().requires_grad_(True), frames.clone().requires_grad_(True)
-    GeCoLoss(_GradProbe(vggt, leaky=True), ufm, config)(x1).loss.backward()
-    GeCoLoss(Constant(), ufm, config)(x2).loss.backward()
+    GeCoLoss(Estimators(_GradProbe(vggt, leaky=True), ufm), config)(x1).loss.backward()
+    GeCoLoss(Estimators(Constant(), ufm), config)(x2).loss.backward()
     torch.testing.assert_close(x1.grad, x2.grad)
 
 

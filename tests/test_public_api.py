@@ -41,8 +41,7 @@ from geco_guide import GuidanceConfig
 from geco_guide.bench.synthetic import rigid_clip
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 clip = rigid_clip(num_frames=4, height=24, width=32)
-result = geco_guide.evaluate_video(clip.frames, fps=8, geometry_estimator=OracleGeometry(clip),
-                                   flow_estimator=OracleFlow(clip))
+result = geco_guide.evaluate_video(clip.frames, geco_guide.Estimators(OracleGeometry(clip), OracleFlow(clip)), fps=8)
 assert result.fused == result.fused  # a score, not NaN
 print(sorted(m for m in ("diffusers", "transformers", "accelerate") if m in sys.modules))
 """

@@ -5,6 +5,7 @@ ValueError, never a crash (grid_sample's backward segfaults on a NaN grid) and n
 from __future__ import annotations
 
 import errno
+import functools
 import json
 import math
 import os
@@ -16,12 +17,13 @@ from types import SimpleNamespace
 import pytest
 import torch
 
+import geco_guide.estimators as estimators_package
+from geco_guide import generation
 from geco_guide.bench.synthetic import inject_deformation, rigid_clip
-from geco_guide.cli import evaluate as evaluate_module
-from geco_guide.cli import generate as generate_module
 from geco_guide.cli.evaluate import main as evaluate_main
-from geco_guide.cli.generate import generate, main
+from geco_guide.cli.generate import main
 from geco_guide.config import load_config
+from geco_guide.estimators import Estimators
 from geco_guide.estimators.loading import fetch_checkpoint_file
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.geometry import inside_image, sample_bilinear
@@ -118,7 +120,7 @@ def test_a_non_finite_camera_invalidates_its_pairs_only(clip):
 
 @pytest.fixture(scope="module")
 def tiny_loss():
-    return GeCoLoss(*tiny_estimators(0), GeCoLossConfig(flow_downscale=0.5))
+    return GeCoLoss(tiny_estimators(0), GeCoLossConfig(flow_downscale=0.5))
 
 
 @pytest.mark.parametrize("value", BAD_VALUES + (255.0, -0.5))
@@ -141,7 +143,8 @@ def test_geco_loss_on_good_frames_is_finite_forward_and_backward(clip, tiny_loss
 def test_sampler_mode_gives_nan_scalars_and_no_update_for_nan_frames(clip, tiny_loss):
     """The samplers' loss (check_values=False: no host sync per update) never scores a NaN decode
     as consistent, and its gradient moves nothing (guided_step drops a non-finite one)."""
-    sampler_loss = GeCoLoss(tiny_loss.geometry_estimator, tiny_loss.flow_estimator, tiny_loss.config, check_values=False)
+    sampler_loss = GeCoLoss(Estimators(tiny_loss.geometry_estimator, tiny_loss.flow_estimator), tiny_loss.config,
+                            check_values=False)
     frames = clip.frames[None].float().clone()
     frames[0, 1, :, :4] = math.nan
     frames.requires_grad_(True)
@@ -170,20 +173,21 @@ def test_evaluate_video_refuses_bad_frames_naming_the_frame(clip, value, message
     frames = clip.frames.float().clone()
     frames[2, 0, 1, 1] = value
     with pytest.raises(ValueError, match=rf"{message}.*frame\(s\) \[2\]"):
-        evaluate_video(frames, geometry=OracleGeometry(clip), flow=OracleFlow(clip), fps=8)
+        evaluate_video(frames, Estimators(OracleGeometry(clip), OracleFlow(clip)), fps=8)
 
 
-def _stub_pipe(frames: torch.Tensor):
-    """Stands in for the video pipeline: returns ``frames`` as the sampled video."""
-    return lambda **kwargs: SimpleNamespace(frames=frames, guidance_log=[])
+def test_generate_refuses_a_diverged_video_and_writes_nothing(tmp_path: Path, monkeypatch):
+    from geco_guide.sampler.context import GuidanceReport
 
-
-def test_generate_refuses_a_diverged_video_and_writes_nothing(tmp_path: Path):
-    cfg = load_config(preset="tiny", overrides=[f"output.dir={tmp_path}"])
+    cfg = load_config(preset="tiny", overrides=[f"output.dir={tmp_path}", "output.score_anchors=false"])
+    models = generation.load_models(cfg, estimators=False)
     frames = torch.rand(1, 17, 3, 32, 48)
     frames[0, 5:] = math.nan
+    call = type(models.pipe).__call__
+    monkeypatch.setattr(type(models.pipe), "__call__", functools.wraps(call)(lambda self, **kwargs: SimpleNamespace(
+        frames=frames, report=GuidanceReport())))
     with pytest.raises(ValueError, match=r"sampling diverged, nothing was written.*frame\(s\) \[5, 6,"):
-        generate(cfg, "a cat", pipe=_stub_pipe(frames))
+        generation.generate(cfg, "a cat", models=models)
     assert list(tmp_path.iterdir()) == []
 
 
@@ -256,7 +260,7 @@ def no_loading(monkeypatch):
     """Fail loudly if generate gets as far as loading models."""
     def refuse(cfg):
         raise AssertionError("models were loaded")
-    monkeypatch.setattr(generate_module, "build_pipeline", refuse)
+    monkeypatch.setattr(generation, "load_models", refuse)
 
 
 def _one_error_line(capsys) -> str:
@@ -306,7 +310,7 @@ def test_offline_errors_name_the_hf_command(monkeypatch, tmp_path: Path):
                               cache_dir=tmp_path)
     cfg = load_config(preset="tiny", overrides=["model.id=geco-test-missing/CogVideoX-nothing"])
     with pytest.raises(FileNotFoundError, match="`hf download geco-test-missing/CogVideoX-nothing`"):
-        load_video_pipeline(cfg)
+        load_video_pipeline(cfg.model)
 
 
 # --------------------------------------------------------------------------------------------
@@ -374,13 +378,13 @@ def truncating_writer(monkeypatch):
     monkeypatch.setattr(imageio, "get_writer", Writer)
 
 
-def test_cli_full_disk_is_one_line_naming_the_video_and_writes_nothing(tmp_path: Path, capsys, monkeypatch,
+def test_cli_full_disk_is_one_line_naming_the_video_and_writes_nothing(tmp_path: Path, capsys, stub_generation,
                                                                        truncating_writer):
-    frames = torch.rand(1, 9, 3, 32, 48)
-    monkeypatch.setattr(generate_module, "build_pipeline", lambda cfg: _stub_pipe(frames))
+    stub_generation(torch.rand(1, 9, 3, 32, 48))
     out = tmp_path / "clip.mp4"
     assert main(["--preset", "tiny", "--prompt", "a cat", "--out", str(out), "output.score_anchors=false"]) == 2
-    assert f"cannot write '{out}'" in _one_error_line(capsys)
+    loading, error = capsys.readouterr().err.strip().splitlines()  # the error follows the line of what loaded
+    assert loading.startswith("loading models: ") and error.startswith(f"error: cannot write '{out}'")
     assert list(tmp_path.iterdir()) == []
 
 
@@ -392,7 +396,7 @@ def test_cli_full_disk_is_one_line_naming_the_video_and_writes_nothing(tmp_path:
 def no_estimators(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("estimators were loaded")
-    monkeypatch.setattr(evaluate_module, "load_estimators", refuse)
+    monkeypatch.setattr(estimators_package, "load_estimators", refuse)
 
 
 def test_evaluate_names_a_missing_input_that_looks_like_an_override(tmp_path: Path, capsys, no_estimators):
@@ -415,9 +419,10 @@ def test_evaluate_cuda_without_cuda_is_one_line_before_loading(tmp_path: Path, c
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
 @pytest.mark.parametrize("override", ["model.device=cuda", "evaluation.device=cuda"])
 def test_geco_eval_cuda_without_cuda_is_one_line_before_loading(tmp_path: Path, capsys, monkeypatch, override):
+    from geco_guide.bench import runs
     from geco_guide.cli import geco_eval
 
-    monkeypatch.setattr(geco_eval, "process_state", lambda cfg: pytest.fail("the run started"))
+    monkeypatch.setattr(runs, "process_state", lambda cfg: pytest.fail("the run started"))
     argv = ["--preset", "tiny", "--models", "cogvideox-5b", "--limit", "1", "--out", str(tmp_path / "x"), override]
     assert geco_eval.main(argv) == 2
     assert f"use {override.split('=')[0]}=cpu or auto" in _one_error_line(capsys)
@@ -436,7 +441,6 @@ def test_guidance_config_refuses_bad_values_in_the_python_api_and_the_hook(chang
 
     with pytest.raises(ValueError, match=key):
         GuidanceConfig(**changes)
-    vggt, ufm = tiny_estimators(0)
     pipe = tiny_wan_pipeline(0)
     with pytest.raises(ValueError, match=key):
-        attach_geco_guidance(pipe, changes, geometry=vggt, flow=ufm)
+        attach_geco_guidance(pipe, changes, tiny_estimators(0))

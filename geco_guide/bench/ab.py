@@ -1,10 +1,13 @@
 """The A/B comparison of GeCo guidance, without the generation: prompt x seed pairs, the files of
-a pair folder and when they make a complete pair, and the paired statistics of the report.
+a pair folder and when they make a complete pair, the search arm's matched K, and the paired
+statistics of the report.
 
 A pair holds the unguided and the guided arm (same config and seed, so the same initial noise)
-and, with best-of-N, a third arm: the unguided seeds ``seed .. seed + N - 1`` (the seeds
-``generate --best-of N`` takes; the first is the unguided arm's own video), each scored with the
-GeCo protocol, the least fused kept. The generation itself is :mod:`geco_guide.cli.ab`'s.
+and, with best-of-N, the unguided seeds ``seed .. seed + N - 1`` (the seeds ``generate --best-of
+N`` takes; the first is the unguided arm's own video), each scored with the GeCo protocol, the
+least fused kept; with a search, ``K`` particles of the seeds ``seed .. seed + K - 1`` (particle 0
+from the pair's own noise, as ``generate --search K`` seeds them) resampled by their GeCo scores.
+The generation itself is :mod:`geco_guide.cli.ab_arms`'.
 """
 
 from __future__ import annotations
@@ -24,23 +27,28 @@ from ..config import GeCoConfig, config_to_dict
 from ..estimators import estimator_ids
 from ..io.video import read_frames
 from ..loss.geco import CUES
+from ..sampler.search import MAX_PARTICLES
 from .report import MIN_INTERVAL_N, uses_tiny_models
 from .runs import config_fingerprint, read_finished
 
-__all__ = ["AGREEMENT_FILE", "ARMS", "BEST_OF", "MAX_SEED", "METRICS", "PAIR_OUTPUTS", "TINY_GUIDANCE_NOTE",
-           "UNIT_STEMS", "WARM_UP", "BestOf", "InputError", "Pair", "arm_config", "arm_label", "best_of_problem",
-           "bootstrap_ci", "candidate_paths", "has_maps", "lowered_fused", "non_finite_scores",
-           "paired_difference", "pair_dir", "parse_seeds", "plan_pairs", "read_agreement", "read_candidate",
-           "read_result", "read_run_result", "run_arms", "summarize", "warm_up_pairs"]
+__all__ = ["AGREEMENT_FILE", "ARMS", "BEST_OF", "MATCHED_SEARCH_FILE", "MAX_SEED", "METRICS", "MOTION_DROP",
+           "PAIR_OUTPUTS", "SEARCH", "TINY_GUIDANCE_NOTE", "UNIT_STEMS", "WARM_UP", "BestOf", "InputError", "Pair",
+           "SearchArm", "arm_config", "arm_label", "arm_title", "best_of_problem", "bootstrap_ci", "candidate_paths",
+           "expected_search_s", "has_maps", "lowered_fused", "matched_particles", "motion_change",
+           "non_finite_scores", "paired_difference", "pair_dir", "parse_seeds", "plan_pairs", "read_agreement",
+           "read_candidate", "read_matched_search", "read_result", "read_run_result", "run_arms", "search_problem",
+           "summarize", "warm_up_pairs"]
 
 logger = logging.getLogger(__name__)
 
 ARMS = ("unguided", "guided")
-#: The third arm's key in result.json and results.csv: selection among unguided seeds.
+#: The best-of arm's key in result.json and results.csv: selection among unguided seeds.
 BEST_OF = "best_of"
+#: The search arm's key in result.json and results.csv: particle search with GeCo as the verifier.
+SEARCH = "search"
 METRICS = (*CUES, "total_motion", "mean_motion")
-UNIT_STEMS = ("unguided", "guided", BEST_OF, "side_by_side", "unguided_maps", "guided_maps", f"{BEST_OF}_maps",
-              "result")
+UNIT_STEMS = ("unguided", "guided", BEST_OF, SEARCH, "side_by_side", "unguided_maps", "guided_maps",
+              f"{BEST_OF}_maps", f"{SEARCH}_maps", "result")
 #: What a complete pair holds besides result.json: a pair missing one of them is redone.
 PAIR_OUTPUTS = (*(f"{arm}{ext}" for arm in ARMS for ext in (".mp4", ".json")), "side_by_side.mp4")
 #: The best-of candidates beyond the unguided arm's own video, one ``seed<S>`` video, sidecar and
@@ -61,6 +69,14 @@ ARM_KEYS = ("video", "sidecar", *METRICS, "generation_s", "evaluation_s", "peak_
 WARM_UP = "warm_up"
 #: With ``guidance.decoder=tiny``: the tiny decoder measured against the VAE on one pair.
 AGREEMENT_FILE = "decoder_agreement.json"
+#: With ``--search matched``: the K chosen, how, and the times it came from; kept for the folder, so
+#: that a resumed run searches with the same K.
+MATCHED_SEARCH_FILE = "search_matched.json"
+#: The fields of :data:`MATCHED_SEARCH_FILE` a resumed run reads: a file without one is measured again.
+MATCHED_KEYS = ("particles", "pair", "unguided_s", "guided_s", "scoring_s", "resamplings", "expected_s")
+#: An arm whose Total Motion is on average (paired, relative to the unguided arm's mean) this
+#: fraction or more below the unguided arm's is flagged: it may score as steadier by moving less.
+MOTION_DROP = 0.10
 TINY_GUIDANCE_NOTE = ("With tiny random models the guidance effect is meaningless: guidance can lower or raise "
                       "the score.")
 
@@ -113,12 +129,57 @@ class BestOf:
                 "predicted_ratio": self.predicted_ratio}
 
 
-def run_arms(best_of: BestOf | None) -> tuple[str, ...]:
-    return ARMS if best_of is None else (*ARMS, BEST_OF)
+@dataclass(frozen=True)
+class SearchArm:
+    """The search arm: a particle search (:mod:`geco_guide.sampler.search`, the config's
+    ``search.*`` options) of ``particles`` particles per pair, particle ``k`` from seed ``seed + k``
+    (particle 0 from the pair's own noise); its particles unguided (the comparison with guidance at
+    matched compute) unless ``guided``. ``matched``: the choice of ``--search matched`` as
+    :data:`MATCHED_SEARCH_FILE` records it (K, the pair and the times it came from), ``None``
+    when K was given."""
+
+    particles: int
+    guided: bool = False
+    matched: dict[str, Any] | None = None
+
+    @property
+    def label(self) -> str:
+        return f"{'guided ' if self.guided else ''}search-{self.particles}"
+
+    @property
+    def how(self) -> str:
+        if self.matched is None:
+            return "given (--search)"
+        m = self.matched
+        warm = ", timed with the models' warm-up" if m.get("warm_up") else ""
+        return (f"matched on this machine: the largest K >= 2 with K x (unguided {m['unguided_s']:.3g} s + "
+                f"{m['resamplings']} resampling(s) x one particle's scoring {m['scoring_s']:.3g} s) <= guided "
+                f"{m['guided_s']:.3g} s, the times of pair {m['pair']}{warm}; expected {m['expected_s']:.3g} s"
+                f"{'' if m.get('fits', True) else ' (even K = 2 exceeds the guided arm: the least search)'}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"particles": self.particles, "guided": self.guided,
+                "chosen": "given" if self.matched is None else "matched", "matched": self.matched}
 
 
-def arm_label(arm: str, best_of: BestOf | None) -> str:
-    return best_of.label if arm == BEST_OF and best_of is not None else arm
+def arm_title(arm: str, record: dict[str, Any]) -> str:
+    """The label of ``arm`` of a pair by its own record (its N, its K): what the pair's side by side
+    shows."""
+    if arm == BEST_OF:
+        return BestOf(record[BEST_OF]["n"]).label
+    if arm == SEARCH:
+        return SearchArm(record[SEARCH]["particles"], record[SEARCH]["guided"]).label
+    return arm
+
+
+def run_arms(best_of: BestOf | None, search: SearchArm | None = None) -> tuple[str, ...]:
+    return (*ARMS, *((BEST_OF,) if best_of is not None else ()), *((SEARCH,) if search is not None else ()))
+
+
+def arm_label(arm: str, best_of: BestOf | None, search: SearchArm | None = None) -> str:
+    if arm == BEST_OF and best_of is not None:
+        return best_of.label
+    return search.label if arm == SEARCH and search is not None else arm
 
 
 def parse_seeds(values: Sequence[str]) -> list[int]:
@@ -142,13 +203,17 @@ def plan_pairs(prompts: Sequence[Any], seeds: Sequence[int]) -> list[Pair]:
     return [Pair(prompt, seed) for prompt in prompts for seed in seeds]
 
 
-def arm_config(cfg: GeCoConfig, pair: Pair, arm: str) -> GeCoConfig:
-    """The config one arm generates with: the pair's seed, guidance on for the guided arm only,
-    with the masks of the prompt's subjects (if any). A best-of candidate is the unguided arm of
-    its seed's pair."""
-    guided = arm == "guided"
-    dynamic = pair.prompt.subjects if guided and pair.prompt.subjects is not None else cfg.guidance.dynamic
-    return replace(cfg, seed=pair.seed, guidance=replace(cfg.guidance, enabled=guided, dynamic=dynamic))
+def arm_config(cfg: GeCoConfig, pair: Pair, arm: str, search: SearchArm | None = None) -> GeCoConfig:
+    """The config one arm generates with: the pair's seed, guidance on for the guided arm (and the
+    search arm's particles where ``search.guided``), the masks of the prompt's subjects (if any) in
+    the guidance and in the search's scoring of its particles; the search arm ``search.particles``
+    particles. A best-of candidate is the unguided arm of its seed's pair."""
+    searched = arm == SEARCH
+    guided = arm == "guided" or (searched and search.guided)
+    masked = (guided or searched) and pair.prompt.subjects is not None
+    cfg = replace(cfg, seed=pair.seed, guidance=replace(cfg.guidance, enabled=guided,
+                                                        dynamic=pair.prompt.subjects if masked else cfg.guidance.dynamic))
+    return replace(cfg, search=replace(cfg.search, particles=search.particles)) if searched else cfg
 
 
 # ----------------------------------------------------------------------------------------------
@@ -269,10 +334,33 @@ def read_candidate(out: Path, pair: Pair, seed: int, warn: bool = False, verify:
     return record
 
 
-def read_run_result(out: Path, pair: Pair, best_of: BestOf | None) -> dict[str, Any] | None:
+def search_problem(out: Path, pair: Pair, result: dict[str, Any], search: SearchArm, verify: bool = False) -> str | None:
+    """Why the complete pair ``result`` lacks a whole search arm of ``search.particles`` particles,
+    guided as ``search.guided`` says (none, one of another K, a field or file missing, with
+    ``verify`` a video that does not decode), or None."""
+    folder = pair_dir(out, pair)
+    record = result["arms"].get(SEARCH)
+    if record is None:
+        return f"pair {pair.name} has no {search.label} arm"
+    problem = arms_problem(folder / "result.json", result["arms"], (SEARCH,))
+    made = record.get(SEARCH) or {}
+    if problem is None and (made.get("particles"), made.get("guided")) != (search.particles, search.guided):
+        problem = f"{folder / 'result.json'} holds a search arm of other particles"
+    if problem is None:
+        problem = next((f"{folder / name} is missing" for name in (f"{SEARCH}.mp4", f"{SEARCH}.json")
+                        if not (folder / name).is_file()), None)
+    if problem is None and verify:
+        problem = videos_problem(folder, (SEARCH,))
+    return problem
+
+
+def read_run_result(out: Path, pair: Pair, best_of: BestOf | None,
+                    search: SearchArm | None = None) -> dict[str, Any] | None:
     """The pair's result when it holds every arm of the run, else None (read quietly, for the report)."""
     result = read_result(out, pair)
     if result is None or (best_of is not None and best_of_problem(out, pair, result, best_of) is not None):
+        return None
+    if search is not None and search_problem(out, pair, result, search) is not None:
         return None
     return result
 
@@ -294,6 +382,61 @@ def read_agreement(out: Path, warn: bool = False) -> dict[str, Any] | None:
         if warn:
             logger.warning("warning: %s is damaged; it is measured again", path)
         return None
+
+
+def read_matched_search(out: Path, warn: bool = False) -> dict[str, Any] | None:
+    """The choice of ``--search matched`` recorded in ``out/``:data:`MATCHED_SEARCH_FILE`, or None
+    when there is none or it is damaged (with ``warn``, a warning names a damaged one: K is chosen
+    again)."""
+    path = out / MATCHED_SEARCH_FILE
+    if not path.is_file():
+        return None
+    try:
+        chosen = json.loads(path.read_text(encoding="utf-8"))
+        whole = isinstance(chosen, dict) and all(key in chosen for key in MATCHED_KEYS)
+        particles = chosen["particles"] if whole else None
+        if whole and isinstance(particles, int) and not isinstance(particles, bool) and particles >= 2:
+            return chosen
+    except (OSError, ValueError):
+        pass
+    if warn:
+        logger.warning("warning: %s is damaged; the search's K is matched again", path)
+    return None
+
+
+# ----------------------------------------------------------------------------------------------
+# the search arm's K at matched compute
+
+
+def expected_search_s(particles: int, unguided_s: float, scoring_s: float, resamplings: int) -> float:
+    """What a search of ``particles`` unguided particles is expected to take (s): each particle an
+    unguided video (``unguided_s``), and each scored at every one of the ``resamplings`` steps
+    (``scoring_s``: one particle's decode of its anchor chunks and GeCo loss, no gradient)."""
+    return particles * (unguided_s + resamplings * scoring_s)
+
+
+def matched_particles(unguided_s: float, guided_s: float, scoring_s: float, resamplings: int,
+                      most: int = MAX_PARTICLES) -> tuple[int, bool]:
+    """``(K, fits)`` of ``--search matched``: the largest ``K >= 2`` (at most ``most``) whose
+    :func:`expected_search_s` does not exceed the guided arm's ``guided_s``; where even ``K = 2``
+    exceeds it, ``(2, False)``: the least search. Times in seconds, measured on the run's machine.
+
+    Raises:
+        ValueError: a time that is not a finite number >= 0, or a per-particle time of 0.
+    """
+    times = (unguided_s, guided_s, scoring_s)
+    if not all(isinstance(t, (int, float)) and math.isfinite(t) and t >= 0 for t in times) or resamplings < 0:
+        raise ValueError(f"matched K needs finite times >= 0, got unguided {unguided_s}, guided {guided_s}, scoring "
+                         f"{scoring_s} at {resamplings} resampling(s)")
+    per_particle = expected_search_s(1, unguided_s, scoring_s, resamplings)
+    if per_particle <= 0:
+        raise ValueError("matched K needs an unguided arm that took time: its measured time is 0")
+    k = min(most, max(2, math.floor(guided_s / per_particle)))
+    while k < most and expected_search_s(k + 1, unguided_s, scoring_s, resamplings) <= guided_s:
+        k += 1  # the division's rounding
+    while k > 2 and expected_search_s(k, unguided_s, scoring_s, resamplings) > guided_s:
+        k -= 1
+    return k, expected_search_s(k, unguided_s, scoring_s, resamplings) <= guided_s
 
 
 # ----------------------------------------------------------------------------------------------
@@ -332,9 +475,26 @@ def lowered_fused(results: Sequence[dict[str, Any]], arm: str = "guided", baseli
     return {"count": int(sum(lowered)), "n": len(lowered), "fraction": sum(lowered) / len(lowered) if lowered else None}
 
 
+def motion_change(results: Sequence[dict[str, Any]], arm: str, baseline: str = "unguided") -> dict[str, Any]:
+    """How much less (or more) ``arm`` moves than ``baseline``: the mean paired Total Motion
+    difference over the pairs where both are finite, relative to ``baseline``'s mean over those
+    pairs (``relative``, None without such pairs or with a baseline that does not move), and
+    ``flagged`` where it drops by :data:`MOTION_DROP` or more: a method can look steadier by
+    moving less."""
+    both = np.array([(r["arms"][baseline]["total_motion"], r["arms"][arm]["total_motion"]) for r in results],
+                    dtype=float).reshape(-1, 2)
+    both = both[np.isfinite(both).all(axis=1)]
+    base = float(both[:, 0].mean()) if len(both) else 0.0
+    relative = float((both[:, 1] - both[:, 0]).mean() / base) if base > 0 else None
+    return {"n": len(both), "relative": relative, "flagged": relative is not None and relative <= -MOTION_DROP}
+
+
 def comparison(results: Sequence[dict[str, Any]], arm: str, baseline: str) -> dict[str, Any]:
+    """``arm`` against ``baseline``, pair by pair: every metric's paired difference, the pairs where
+    ``arm`` scored the lower fused, and its change of Total Motion (:func:`motion_change`)."""
     return {"paired_differences": {metric: paired_difference(results, metric, arm, baseline) for metric in METRICS},
-            "lowered_fused": lowered_fused(results, arm, baseline)}
+            "lowered_fused": lowered_fused(results, arm, baseline),
+            "total_motion_change": motion_change(results, arm, baseline)}
 
 
 def arm_summary(results: Sequence[dict[str, Any]], arm: str) -> dict[str, Any]:
@@ -353,6 +513,8 @@ def arm_summary(results: Sequence[dict[str, Any]], arm: str) -> dict[str, Any]:
         peak_memory_mib_max=float(np.max([rec["peak_memory_mib"] for rec in records])),
         memory_kind=records[0]["memory_kind"],
     )
+    if arm == SEARCH:  # its sampling includes the resampling steps: the particles' scoring, the copies' re-noising
+        summary["resampling_s_mean"] = float(np.mean([rec[SEARCH]["resampling_s"] for rec in timed or records]))
     return summary
 
 
@@ -376,11 +538,13 @@ def non_finite_scores(results: Sequence[dict[str, Any]], arms: Sequence[str] = A
 
 
 def summarize(results: Sequence[dict[str, Any]], pairs: Sequence[Pair], cfg: GeCoConfig, versions: dict[str, str],
-              best_of: BestOf | None = None) -> dict[str, Any]:
-    """Everything ``summary.json`` and ``report.md`` say, from the complete pairs' results; with
-    ``best_of``, the third arm against each of the others (``best_of``)."""
+              best_of: BestOf | None = None, search: SearchArm | None = None) -> dict[str, Any]:
+    """Everything ``summary.json`` and ``report.md`` say, from the complete pairs' results: guided
+    against unguided (``paired_differences``, ``guidance_lowered_fused``,
+    ``guidance_total_motion_change``); with ``best_of`` and ``search``, each of those arms against
+    the unguided arm and the guided arm against it (``best_of``, ``search``)."""
     done = {r["pair"] for r in results}
-    arms = run_arms(best_of)
+    arms = run_arms(best_of, search)
     summary = {
         "pairs": len(results),
         "pairs_planned": len(pairs),
@@ -392,6 +556,7 @@ def summarize(results: Sequence[dict[str, Any]], pairs: Sequence[Pair], cfg: GeC
         "arms": {arm: arm_summary(results, arm) for arm in arms} if results else {},
         "paired_differences": {metric: paired_difference(results, metric) for metric in METRICS},
         "guidance_lowered_fused": lowered_fused(results),
+        "guidance_total_motion_change": motion_change(results, "guided"),
         "bootstrap": {"resamples": BOOTSTRAP_RESAMPLES, "seed": BOOTSTRAP_SEED, "level": CI_LEVEL},
         "config_sha": config_fingerprint(cfg),
         "models": {"video": cfg.model.id,
@@ -405,4 +570,7 @@ def summarize(results: Sequence[dict[str, Any]], pairs: Sequence[Pair], cfg: GeC
     if best_of is not None:
         summary[BEST_OF] = {**best_of.to_dict(), "vs_unguided": comparison(results, BEST_OF, "unguided"),
                             "guided_vs_best_of": comparison(results, "guided", BEST_OF)}
+    if search is not None:
+        summary[SEARCH] = {**search.to_dict(), "vs_unguided": comparison(results, SEARCH, "unguided"),
+                           "guided_vs_search": comparison(results, "guided", SEARCH)}
     return summary

@@ -14,7 +14,7 @@ Each clip becomes a folder ``<out>/<name>-s<seed>/`` holding
 ``synthetic`` renders :func:`geco_guide.bench.synthetic.rigid_clip` instead of reading a video, and
 ``synthetic-3d`` is :func:`geco_guide.bench.synthetic.occlusion_swap_clip` (an occlusion edit made in
 3D: the re-revealed box is a real surface the flow can follow); such folders record it, and :func:`oracle_clip` rebuilds their exact depth, cameras and flow, so
-``python -m geco_guide validate --oracle`` can score them with ground-truth estimators.
+``geco validate --oracle`` can score them with ground-truth estimators.
 Everything is deterministic from the seed and written atomically.
 """
 
@@ -35,7 +35,6 @@ from torch import Tensor
 
 from ..io.files import write_bytes_atomic, write_json_atomic
 from ..io.video import VIDEO_SUFFIXES, input_stem, read_frames
-from .kinds import KINDS, SYNTHETIC, SYNTHETIC_3D
 from .occlusion import (
     OcclusionParams,
     OcclusionResult,
@@ -55,6 +54,10 @@ from .warp import WarpParams, WarpResult, warp_clip, warp_one_frame
 __all__ = ["KINDS", "SYNTHETIC", "SYNTHETIC_3D", "Benchmark", "build_one", "check_synthetic_size",
            "evenly_spaced", "find_benchmarks", "load_benchmark", "load_clip", "oracle_clip", "output_stem",
            "scene_track", "write_benchmark"]
+
+KINDS = ("warp", "occlusion")
+SYNTHETIC = "synthetic"  # the gallery scene (rigid_clip): any edit
+SYNTHETIC_3D = "synthetic-3d"  # occlusion_swap_clip: an occlusion inconsistency built in 3D
 
 
 @dataclass
@@ -323,8 +326,9 @@ def build_one(kind: str, source: str, frames: Tensor, synthetic: SyntheticClip |
         return frames, {"mask": synthetic.mask}, meta
     if kind == "warp":
         mask = read_mask(args.mask, num_frames, height, width) if args.mask else None
-        params = WarpParams(num_controls=args.controls, amplitude=args.amplitude, beta=args.beta,
-                            feather_px=args.feather, mask_threshold=args.mask_threshold, seed=seed)
+        given = {"num_controls": args.controls, "amplitude": args.amplitude, "beta": args.beta,
+                 "feather_px": args.feather, "mask_threshold": args.mask_threshold}
+        params = WarpParams(**{key: value for key, value in given.items() if value is not None}, seed=seed)
         result, truth = build_warp(frames, mask, params, args.mode)
         meta.update(mode=args.mode, anomalous_frame=result.anomalous_frame, params=asdict(params),
                     mask=args.mask or "central ellipse", controls=result.controls.tolist())

@@ -1,5 +1,5 @@
 """Dynamic masks checked against ground truth on synthetic scenes with objects that move on their own
-(the command is ``python -m geco_guide validate --dynamic``; numbers in docs/validation.md).
+(the command is ``geco validate --dynamic``; numbers in docs/validation.md).
 
 The scene is :func:`~geco_guide.bench.synthetic.moving_clip` (the gallery, an orbiting camera, two
 boxes that move on their own), next to the same scene with the boxes still. GeCo runs with the
@@ -225,15 +225,22 @@ def movers_validation(scenes: DynamicScenes = DynamicScenes()) -> dict[str, Any]
     runs = {"still/none/drop": ("still", "none", "drop"), "moving/none/drop": ("moving", "none", "drop"),
             "moving/auto/drop": ("moving", "auto", "drop"), "moving/auto/rigid": ("moving", "auto", "rigid"),
             "moving/true/rigid": ("moving", "true", "rigid")}
-    rigid = {key: score_clip(clips[c], m, mv) for key, (c, m, mv) in runs.items()}
     deformed_runs = {"still/none/drop": ("deformed_still", "none", "drop"),
                      "moving/auto/drop": ("deformed_moving", "auto", "drop"),
                      "moving/auto/rigid": ("deformed_moving", "auto", "rigid"),
                      "moving/true/rigid": ("deformed_moving", "true", "rigid")}
-    deformed = {key: (clips[c], score_clip(clips[c], m, mv)) for key, (c, m, mv) in deformed_runs.items()}
-    stretching = clips["stretching"]
-    non_rigid = {f"{m}/{mv}": score_clip(stretching, m, mv)
-                 for m, mv in (("none", "drop"), ("true", "drop"), ("true", "rigid"), ("auto", "drop"), ("auto", "rigid"))}
+    stretching_runs = {f"{m}/{mv}": ("stretching", m, mv)
+                       for m, mv in (("none", "drop"), ("true", "drop"), ("true", "rigid"), ("auto", "drop"), ("auto", "rigid"))}
+    planned = [(group, key, run) for group, group_runs in (("rigid", runs), ("deformed", deformed_runs),
+                                                          ("non_rigid", stretching_runs)) for key, run in group_runs.items()]
+    scored: dict[str, dict[str, GeCoResult]] = {"rigid": {}, "deformed": {}, "non_rigid": {}}
+    for k, (group, key, (clip, masks, movers)) in enumerate(planned, start=1):  # a log line as each finishes
+        started = time.perf_counter()
+        scored[group][key] = score_clip(clips[clip], masks, movers)
+        logger.info("[%d/%d] scored the movers' %s clip with %s mask, movers %s (%.1f s)", k, len(planned), clip, masks,
+                    movers, time.perf_counter() - started)
+    rigid, non_rigid = scored["rigid"], scored["non_rigid"]
+    deformed = {key: (clips[deformed_runs[key][0]], result) for key, result in scored["deformed"].items()}
     fused = {key: float(result.fused) for key, result in rigid.items()}
     added = fused["moving/none/drop"] - fused["still/none/drop"]
     removed = (fused["moving/none/drop"] - fused["moving/auto/rigid"]) / added

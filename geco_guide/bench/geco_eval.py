@@ -66,12 +66,20 @@ from .runs import (
     config_fingerprint,
     read_finished,
 )
-from .suites import CAMERAS, DYNAMIC_SUITE, PROMPT_FILES, SCENARIOS, SUITE
 
 __all__ = ["CAMERAS", "DYNAMIC_SUITE", "PARETO_LEFT", "PROMPT_FILES", "SCENARIOS", "SUITE", "Job",
            "check_guided_models", "check_model_weights", "csv_text", "existing_video_jobs", "job_config", "load_prompts",
            "movers_cell", "plot_png", "prompts_without_video", "remove_run_outputs", "run_jobs", "select_prompts",
            "write_report"]
+
+SCENARIOS = ("object-centric", "indoor", "outdoor", "appearance-complex")
+CAMERAS = ("slow", "fast")
+#: The paper's 80 prompts.
+SUITE = "geco-eval"
+#: Our own prompts with moving subjects (not the paper's): scored and guided with their masks.
+DYNAMIC_SUITE = "dynamic"
+#: suite -> its JSON-lines file, package data of :mod:`geco_guide.bench`
+PROMPT_FILES = {SUITE: "data/geco_eval_prompts.jsonl", DYNAMIC_SUITE: "data/geco_eval_dynamic_prompts.jsonl"}
 
 logger = logging.getLogger(__name__)
 
@@ -131,7 +139,8 @@ def job_config(cfg: GeCoConfig, name: str, *, guided: bool = False, weights: str
 
     model = MODELS[name]
     tiny = cfg.model.id == TINY_RANDOM
-    sampling = replace(cfg.sampling, **tiny_sampling(model)) if tiny else SamplingConfig()
+    # the scheduler is the model's (the config filled CogVideoX's ddim for the tiny preset's model)
+    sampling = replace(cfg.sampling, **tiny_sampling(model), scheduler=None) if tiny else SamplingConfig()
     guidance = replace(cfg.guidance, enabled=guided, anchors=None, dynamic=subjects if guided else None)
     return to_config(replace(cfg, model=replace(cfg.model, name=name, id=TINY_RANDOM if tiny else weights),
                              sampling=sampling, guidance=guidance))
@@ -285,8 +294,8 @@ def check_model_weights(cfg: GeCoConfig, names: Sequence[str], weights: dict[str
     from ..sampler.loading import PIPELINE_INDEX
 
     rows = [] if cfg.model.id == TINY_RANDOM else [
-        WeightsSource(f"--weights {name}", weights.get(name, MODELS[name].hub_id), name, (PIPELINE_INDEX,))
-        for name in names]
+        WeightsSource(f"--weights {name}", weights.get(name, MODELS[name].hub_id), name, (PIPELINE_INDEX,),
+                      example=f"/path/to/{Path(MODELS[name].hub_id).name}") for name in names]
     check_weights(cfg.estimators, extra=rows)
 
 
@@ -554,7 +563,7 @@ def model_weights(cfg: GeCoConfig, names: Sequence[str], weights: dict[str, str]
     found = {}
     for name in names:
         model = MODELS.get(name)
-        if model is None:
+        if model is None or not model.generates:
             found[name] = "existing videos (--videos)"
         elif cfg.model.id == TINY_RANDOM:
             found[name] = f"{TINY_RANDOM} ({model.family} family, init seed {cfg.model.init_seed})"

@@ -33,7 +33,6 @@ from ..loss.geco import GeCoLossConfig, frame_pairs, geco_from_geometry
 from ..metric.protocol import EvaluationConfig
 from ..types import Correspondences, SceneGeometry
 from .datasets import scene_track
-from .noise_levels import DEPTH_SIGMAS, FLOW_SIGMAS
 from .occlusion import OcclusionParams, composite_occlusion, default_region
 from .ranking import average_precision
 from .synthetic import SyntheticClip, rigid_clip, with_overlay, with_warp
@@ -41,6 +40,11 @@ from .warp import WarpParams, warp_clip
 
 __all__ = ["CUES", "DEPTH_SIGMAS", "FLOW_SIGMAS", "ROBUSTNESS_AXIS_NOTE", "ROBUSTNESS_X_LABELS", "level_line",
            "plot", "run_sweep", "sweep_memory_bytes"]
+
+#: Relative depth errors: each depth is multiplied by ``exp(sigma n)``, ``n ~ N(0, 1)``.
+DEPTH_SIGMAS = (0.0, 0.01, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0)
+#: Flow errors in pixels: ``sigma n`` is added to each flow vector.
+FLOW_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0)
 
 CUES = ("structure", "motion", "fused")
 COLORS = {"structure": (31, 119, 180), "motion": (255, 127, 14), "fused": (44, 160, 44)}

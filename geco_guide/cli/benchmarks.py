@@ -1,10 +1,10 @@
-"""``python -m geco_guide benchmarks``: build WarpBench/OccluBench clips (:mod:`geco_guide.bench.datasets`).
+"""``geco benchmarks``: build WarpBench/OccluBench clips (:mod:`geco_guide.bench.datasets`).
 
-    python -m geco_guide benchmarks warp clip.mp4 frames/ --out bench/warp --mode frame --seeds 0 1 2
-    python -m geco_guide benchmarks warp clip.mp4 --mask object.png --out bench/warp-clip
-    python -m geco_guide benchmarks occlusion clip.mp4 --object duck.png --out bench/occlusion
-    python -m geco_guide benchmarks warp synthetic --out bench/synthetic-warp --seeds 0 1 2   # offline, exact ground truth
-    python -m geco_guide benchmarks occlusion synthetic-3d --out bench/synthetic-occlusion-3d
+    geco benchmarks warp clip.mp4 frames/ --out bench/warp --mode frame --seeds 0 1 2
+    geco benchmarks warp clip.mp4 --mask object.png --out bench/warp-clip
+    geco benchmarks occlusion clip.mp4 --object duck.png --out bench/occlusion
+    geco benchmarks warp synthetic --out bench/synthetic-warp --seeds 0 1 2   # offline, exact ground truth
+    geco benchmarks occlusion synthetic-3d --out bench/synthetic-occlusion-3d
 """
 
 from __future__ import annotations
@@ -12,28 +12,19 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-from ..bench.kinds import KINDS, SYNTHETIC, SYNTHETIC_3D
-from ..bench.warp_params import WarpParams
 from ..io.files import WriteError, check_output_dir, unique_names
-from .kit import DeferredImports, Parser, interruptible
+from .kit import check_choice, command_main, interruptible
 
-if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
-    from ..bench.datasets import build_one, check_synthetic_size, load_clip, output_stem, write_benchmark
+__all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 
-__all__ = ["main"]
-
-#: What main runs on, imported once the arguments parsed: it loads torch.
-_IMPLEMENTATION = DeferredImports(__name__, {
-    "..bench.datasets": ("build_one", "check_synthetic_size", "load_clip", "output_stem", "write_benchmark"),
-})
-__getattr__ = _IMPLEMENTATION.attribute
+SUMMARY = "build WarpBench/OccluBench-style clips with ground truth"
+DESCRIPTION = "Build WarpBench/OccluBench-style clips with ground truth."
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="python -m geco_guide benchmarks", description="Build WarpBench/OccluBench-style clips with ground truth.")
-    p.add_argument("kind", choices=KINDS, help="which benchmark's clips to build")
+def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``geco benchmarks`` on ``p`` (the warp's defaults: :class:`~geco_guide.bench.warp.WarpParams`'s)."""
+    p.add_argument("kind", metavar="KIND", help="which benchmark's clips to build: warp or occlusion")
     p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|synthetic|synthetic-3d",
                    help="clips to edit; synthetic: the gallery scene with exact ground truth; synthetic-3d "
                         "(occlusion only): a pillar hides a wall region that re-appears with another box, in 3D")
@@ -46,12 +37,14 @@ def build_parser() -> argparse.ArgumentParser:
     warp.add_argument("--mode", choices=("clip", "frame"), default="clip",
                       help="clip: warp every frame (Task 2); frame: replace one random frame (Task 1)")
     warp.add_argument("--mask", default=None, help="foreground mask image, or folder/video of per-frame masks")
-    warp.add_argument("--controls", type=int, default=WarpParams.num_controls,
-                      help=f"thin-plate-spline control points of the warp, at least 3 (default: {WarpParams.num_controls})")
-    warp.add_argument("--amplitude", type=float, default=WarpParams.amplitude, help="control displacement std (px)")
-    warp.add_argument("--beta", type=float, default=WarpParams.beta, help="EMA factor over time")
-    warp.add_argument("--feather", type=float, default=None, help="feather width in px")
-    warp.add_argument("--mask-threshold", type=float, default=WarpParams.mask_threshold, help="artifact: |U| > this (px)")
+    warp.add_argument("--controls", type=int, default=None,
+                      help="thin-plate-spline control points of the warp, at least 3 (default: 12)")
+    warp.add_argument("--amplitude", type=float, default=None, help="control displacement std in px (default: 4)")
+    warp.add_argument("--beta", type=float, default=None, help="EMA factor over time (default: 0.5)")
+    warp.add_argument("--feather", type=float, default=None,
+                      help="feather width in px (default: a quarter of the mask's largest inscribed radius)")
+    warp.add_argument("--mask-threshold", type=float, default=None,
+                      help="artifact pixels move more than this, in px (default: 0.1)")
     occ = p.add_argument_group("occlusion")
     occ.add_argument("--object", default=None, help="the re-revealed object: an image, or a video / frame folder (its middle frame); default procedural")
     occ.add_argument("--object-mask", default=None, help="its alpha mask image (default: an ellipse)")
@@ -62,10 +55,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 @interruptible("the clip folders finished so far (each complete with its meta.json); a folder without meta.json is incomplete")
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    _IMPLEMENTATION.load()
+def run(args: argparse.Namespace) -> int:
+    """Build the clips ``args`` ask for; 0, 1 (every input failed), or 2 after one line on stderr."""
+    from ..bench.datasets import (
+        KINDS,
+        SYNTHETIC,
+        SYNTHETIC_3D,
+        build_one,
+        check_synthetic_size,
+        load_clip,
+        output_stem,
+        write_benchmark,
+    )
+
     try:
+        check_choice("the benchmark kind", args.kind, KINDS)
         if args.max_frames < 3:
             raise ValueError(f"--max-frames must be >= 3, got {args.max_frames}")
         if any(source in (SYNTHETIC, SYNTHETIC_3D) for source in args.inputs):
@@ -90,3 +94,5 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {source}: {str(err).splitlines()[0] if str(err) else type(err).__name__}", file=sys.stderr)
     return 1 if failed == len(args.inputs) else 0
 
+
+main = command_main("geco benchmarks", DESCRIPTION, register_subcommand, run)

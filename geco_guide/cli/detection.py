@@ -1,7 +1,7 @@
-"""``python -m geco_guide detection``: per-frame detection maps (:mod:`geco_guide.metric.detection`).
+"""``geco detection``: per-frame detection maps (:mod:`geco_guide.metric.detection`).
 
-    python -m geco_guide detection clip.mp4 --out maps                  # VGGT-1B + UFM-Base, mp4
-    python -m geco_guide detection frames/ --preset tiny --window 8 --anchor end --format gif png
+    geco detection clip.mp4 --out maps                  # VGGT-1B + UFM-Base, mp4
+    geco detection frames/ --preset tiny --window 8 --anchor end --format gif png
 
 Each input writes, inside ``--out``, ``<name>.detection.mp4`` / ``.gif`` / ``<name>.detection/NNNNN.png``
 (``--format``) and last ``<name>.detection.json``. Inputs are named as ``evaluate`` names them (a
@@ -21,38 +21,15 @@ import sys
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from ..io.files import write_json_atomic
-from ..metric.detection_options import ANCHORS, FORMATS
 from .evaluate import check_scorable, expand_inputs
-from .kit import (
-    DeferredImports,
-    Parser,
-    add_config_flags,
-    config_from_args,
-    interruptible,
-    split_overrides,
-)
+from .kit import add_config_flags, check_choice, command_main, config_from_args, interruptible, split_overrides
 
-if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
-    from ..estimators import check_weights, load_estimators
-    from ..io.devices import check_device
-    from ..io.video import check_fps, read_frames
-    from ..metric.detection import detection_maps, frame_scores, render_detection, write_detection
-    from ..types import plural
+__all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "remove_other_formats", "run", "work_line"]
 
-__all__ = ["main", "remove_other_formats", "work_line"]
-
-#: What main runs on, imported once the arguments parsed: it loads torch.
-_IMPLEMENTATION = DeferredImports(__name__, {
-    "..estimators": ("check_weights", "load_estimators"),
-    "..io.devices": ("check_device",),
-    "..io.video": ("check_fps", "read_frames"),
-    "..metric.detection": ("detection_maps", "frame_scores", "render_detection", "write_detection"),
-    "..types": ("plural",),
-})
-__getattr__ = _IMPLEMENTATION.attribute
+SUMMARY = "per-frame detection maps: where a video breaks, frame by frame"
+DESCRIPTION = "Per-frame GeCo detection maps (a window per frame)."
 
 #: The names :func:`geco_guide.metric.detection.write_pngs` gives the frames of a PNG folder.
 FRAME_PNG = re.compile(r"(\d{5})\.png")
@@ -60,15 +37,16 @@ FRAME_PNG = re.compile(r"(\d{5})\.png")
 LONG_INPUT_FRAMES = 200
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="python -m geco_guide detection", description="Per-frame GeCo detection maps (a window per frame).")
+def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``geco detection`` on ``p``."""
     p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|key=value",
                    help="videos, frame folders or folders of videos, and config overrides (key=value)")
     p.add_argument("--out", default="detection", help="output folder: every file goes inside it")
     p.add_argument("--window", type=int, default=20, help="frames per window (the demo's default: 20)")
-    p.add_argument("--anchor", choices=ANCHORS, default="center", help="where the frame sits in its window")
+    p.add_argument("--anchor", default="center", metavar="WHERE",
+                   help="where the frame sits in its window: start, center (default) or end")
     p.add_argument("--one-way", action="store_true", help="structure occlusion test in one direction only")
-    p.add_argument("--format", nargs="+", choices=FORMATS, default=["mp4"], dest="formats",
+    p.add_argument("--format", nargs="+", default=["mp4"], dest="formats", metavar="FORMAT",
                    help="what to write: an mp4, a gif and/or a folder of PNG frames (default: mp4)")
     p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the input's)")
     p.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier run of the same names")
@@ -117,6 +95,8 @@ def remove_other_formats(stem: Path, formats: list[str]) -> None:
     """Delete what an earlier run of ``stem`` wrote in the formats this run does not (an
     ``--overwrite`` run's outputs are exactly the formats it was asked for): the files, and of a
     PNG folder its frame PNGs (the folder too, once empty)."""
+    from ..metric.detection import FORMATS
+
     for path in output_paths(stem, [f for f in FORMATS if f not in formats])[:-1]:
         if path.is_dir():
             remove_stale_frames(path, 0)
@@ -150,14 +130,22 @@ def _resolved(video: str) -> str:
 
 
 @interruptible("the videos already done keep their outputs (each .detection.json is written last)")
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    _IMPLEMENTATION.load()
+def run(args: argparse.Namespace) -> int:
+    """The detection maps of the inputs ``args`` name; 0, 1 (every input failed), or 2 after one
+    line on stderr before any model loads."""
+    from ..estimators import check_weights, load_estimators
+    from ..io.devices import check_device
+    from ..io.video import check_fps, read_frames
+    from ..metric.detection import ANCHORS, FORMATS, detection_maps, frame_scores, render_detection, write_detection
+    from ..types import plural
+
     overrides, videos = split_overrides(args.inputs)
     out = Path(args.out)
     try:
         if not videos:
             raise ValueError("no input video given")
+        check_choice("--anchor", args.anchor, ANCHORS)
+        check_choice("--format", args.formats, FORMATS)
         if args.window < 2:
             raise ValueError(f"--window must be >= 2, got {args.window}")
         if args.max_frames is not None and args.max_frames < 2:
@@ -213,3 +201,6 @@ def main(argv: list[str] | None = None) -> int:
         worst = max(range(len(scores)), key=lambda k: -1.0 if scores[k]["fused"] is None else scores[k]["fused"])
         print(f"{video}: {plural(len(scores), 'frame')}, least consistent frame {worst} -> {', '.join(map(str, written))}")
     return 1 if failed == len(items) else 0
+
+
+main = command_main("geco detection", DESCRIPTION, register_subcommand, run)

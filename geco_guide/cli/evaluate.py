@@ -1,9 +1,9 @@
-"""``python -m geco_guide evaluate VIDEO [VIDEO ...|DIR]``: score videos with the GeCo metric.
+"""``geco evaluate VIDEO [VIDEO ...|DIR]``: score videos with the GeCo metric.
 
-    python -m geco_guide evaluate clip.mp4 --maps                 # VGGT-1B + UFM-Base from the hub
-    python -m geco_guide evaluate videos/ --geometry-estimator /data/VGGT-1B --flow-estimator /data/UFM-Base --out scores
-    python -m geco_guide evaluate --preset tiny clip.mp4 frames/   # tiny random models, CPU, offline
-    python -m geco_guide evaluate clip.mp4 --model cogvideox-5b    # timed at the model's native 16 fps
+    geco evaluate clip.mp4 --maps                 # VGGT-1B + UFM-Base from the hub
+    geco evaluate videos/ --geometry-estimator /data/VGGT-1B --flow-estimator /data/UFM-Base --out scores
+    geco evaluate --preset tiny clip.mp4 frames/   # tiny random models, CPU, offline
+    geco evaluate clip.mp4 --model cogvideox-5b    # timed at the model's native 16 fps
 
 The protocol is :func:`geco_guide.metric.evaluate.evaluate_video`'s. Per video:
 ``<out>/<stem>.geco.json`` and with ``--maps`` ``<out>/<stem>.maps.mp4`` (source | motion |
@@ -43,58 +43,50 @@ from ..io.files import (
     write_json_atomic,
     write_texts_atomic,
 )
-from ..loss.pair_modes import PAIR_MODES
-from .kit import (
-    DeferredImports,
-    Parser,
-    add_config_flags,
-    config_from_args,
-    interruptible,
-    is_config_key,
-    split_overrides,
-)
+from .kit import add_config_flags, command_main, config_from_args, interruptible, is_config_key, split_overrides
 
-if TYPE_CHECKING:  # GeCoConfig: annotations only; the rest bound at run time by _IMPLEMENTATION
+if TYPE_CHECKING:
     from ..config import GeCoConfig
-    from ..estimators import Estimators, check_weights, load_estimators, load_segmenter
-    from ..io.devices import check_device
-    from ..metric.evaluate import (
-        PAPER_NAMES,
-        clip_mask_source,
-        evaluate_video,
-        finite_or_none,
-        mean_or_nan,
-        write_maps_video,
-    )
-    from ..types import plural
+    from ..estimators import Estimators
 
-__all__ = ["check_masks_fit", "check_scorable", "expand_inputs", "main", "score_line"]
+__all__ = ["DESCRIPTION", "SUMMARY", "check_masks_fit", "check_scorable", "expand_inputs", "main", "register_subcommand",
+           "run", "score_line"]
 
-#: What main runs on, imported once the arguments parsed: it loads torch.
-_IMPLEMENTATION = DeferredImports(__name__, {
-    "..estimators": ("check_weights", "load_estimators", "load_segmenter"),
-    "..io.devices": ("check_device",),
-    "..metric.evaluate": ("PAPER_NAMES", "clip_mask_source", "evaluate_video", "finite_or_none", "mean_or_nan",
-                          "write_maps_video"),
-    "..types": ("plural",),
-})
-__getattr__ = _IMPLEMENTATION.attribute
+SUMMARY = "score videos with the GeCo protocol"
+DESCRIPTION = "Score videos with GeCo (M_motion, M_struct, M_geo, Total/Mean Motion)."
 
 
-def write_detection_video(video: str | os.PathLike, stem: Path, estimators: Estimators, cfg: GeCoConfig) -> Path:
+def write_detection_video(video: str | os.PathLike, stem: Path, estimators: Estimators, cfg: GeCoConfig,
+                          masks: Any = None) -> Path:
     """``<stem>.detection.mp4``: the per-frame detection maps of every frame of ``video``
     (:mod:`geco_guide.metric.detection`, its defaults: a 20-frame window centred on the frame), the first
-    ``evaluation.max_frames`` of them when it is set."""
+    ``evaluation.max_frames`` of them when it is set; ``masks``: the video's given masks
+    (a :class:`~geco_guide.estimators.dynamic_masks.GivenMasks`), left out of the maps as the scores
+    leave them out."""
     from ..io.video import read_frames
     from ..metric.detection import detection_maps, frame_scores, render_detection, write_detection
 
     limit = cfg.evaluation.max_frames
     first = None if limit is None else (lambda num_frames, fps: list(range(min(num_frames, limit))))
     clip = read_frames(video, default_fps=cfg.evaluation.default_fps, min_frames=2, select=first)
+    if masks is not None:  # the masks of the frames read, as the scores cut them
+        masks = masks.at(range(clip.frames.shape[0]), clip.num_frames).masks
     maps = detection_maps(clip.frames, estimators, cfg.evaluation.loss,
-                          flow_batch_size=cfg.evaluation.flow_batch_size)
+                          flow_batch_size=cfg.evaluation.flow_batch_size, dynamic_masks=masks)
     (path,) = write_detection(render_detection(maps, frame_scores(maps)), stem, ["mp4"], clip.fps)
     return path
+
+
+def check_detection_masks(detection: bool, masks: Any) -> None:
+    """ValueError (one line) for ``--detection`` with automatic or text ``--dynamic-masks``: the
+    detection maps judge each frame against a window of its own, which those masks are not made
+    for (given masks of the video are applied to them)."""
+    from ..estimators.dynamic_masks import GivenMasks
+
+    if detection and masks is not None and not isinstance(masks, GivenMasks):
+        raise ValueError("--detection draws its maps with given masks only (a mask file of the video); with "
+                         "--dynamic-masks auto or subject text, score without --detection or write the masks to a "
+                         "file first")
 
 
 @dataclass
@@ -181,6 +173,8 @@ SUMMARY_KEYS = ("fused", "motion", "structure", "total_motion", "mean_motion")
 
 def _write_table(out: Path, rows: list[dict[str, Any]], estimators: dict[str, str], config: dict[str, Any]) -> tuple[Path, Path]:
     """``geco_scores.csv`` and ``geco_summary.json``, both or neither (:class:`WriteError`)."""
+    from ..metric.evaluate import PAPER_NAMES, finite_or_none, mean_or_nan
+
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, lineterminator="\n")
     writer.writeheader()
@@ -202,16 +196,13 @@ def _write_table(out: Path, rows: list[dict[str, Any]], estimators: dict[str, st
     return csv_path, summary_path
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(
-        prog="python -m geco_guide evaluate",
-        description="Score videos with GeCo (M_motion, M_struct, M_geo, Total/Mean Motion).",
-    )
+def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``geco evaluate`` on ``p``."""
     p.add_argument("--version", action="version", version=f"geco_guide {__version__}")
     p.add_argument("inputs", nargs="+", metavar="VIDEO|DIR|key=value",
                    help="video files (mp4, gif, ...), folders of frames or of videos; key=value config overrides")
     add_config_flags(p)
-    p.add_argument("--model", default=None, metavar="NAME",
+    p.add_argument("--model", dest="source_model", default=None, metavar="NAME",
                    help="the video model that made the inputs (e.g. cogvideox-5b): its native frame rate "
                         "(evaluation.model_fps, the paper's table) replaces the file's")
     p.add_argument("--fps", type=float, default=None, help="source frame rate, overriding --model and the file's")
@@ -221,8 +212,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace the outputs of an earlier run in --out (without it, an existing output is an error)")
     p.add_argument("--detection", action="store_true",
                    help="also write <stem>.detection.mp4: every frame's own maps against a window of 20 frames "
-                        "around it (python -m geco_guide detection for the window, anchor and formats)")
-    p.add_argument("--pairs", choices=PAIR_MODES, default=None,
+                        "around it (geco detection for the window, anchor and formats)")
+    p.add_argument("--pairs", default=None, metavar="MODE",
                    help="frame pairs per window: all (default, the paper's script: n(n-1) flow pairs for n frames), "
                         "center (2(n-1)) or adjacent (n-1)")
     p.add_argument("--dynamic-masks", default=None, metavar="PATH|auto|TEXT",
@@ -270,6 +261,7 @@ def check_masks_fit(items: list[_Input], masks: Any, cfg: GeCoConfig) -> None:
     ``evaluation.max_frames``) gets that one line as its error, as does one that cannot be read."""
     from ..estimators.dynamic_masks import GivenMasks
     from ..io.video import read_frames
+    from ..metric.evaluate import clip_mask_source
 
     if not isinstance(masks, GivenMasks):
         return
@@ -300,7 +292,9 @@ def _score_one(item: _Input, out: Path, estimators: Estimators, cfg: GeCoConfig,
     """Score one input and write its outputs, the score JSON last: ``(result, json path, what
     else was written)``. When one output cannot be written (a full disk), the ones this input
     wrote before it are removed, so that a rerun needs no ``--overwrite``."""
-    result = evaluate_video(item.path, estimators, cfg.evaluation, fps=args.fps, model=args.model,
+    from ..metric.evaluate import evaluate_video, write_maps_video
+
+    result = evaluate_video(item.path, estimators, cfg.evaluation, fps=args.fps, model=args.source_model,
                             maps=args.maps, dynamic_masks=dynamic, progress=progress)
     written: list[Path] = []
     try:
@@ -309,7 +303,7 @@ def _score_one(item: _Input, out: Path, estimators: Estimators, cfg: GeCoConfig,
             written.append(write_maps_video(result, out / f"{item.name}.maps.mp4"))
             notes += f", maps {written[-1]}"
         if args.detection:
-            written.append(write_detection_video(item.path, out / item.name, estimators, cfg))
+            written.append(write_detection_video(item.path, out / item.name, estimators, cfg, dynamic))
             notes += f", detection maps {written[-1]}"
         return result, write_json_atomic(out / f"{item.name}.geco.json", result.to_dict()), notes
     except BaseException:
@@ -320,6 +314,8 @@ def _score_one(item: _Input, out: Path, estimators: Estimators, cfg: GeCoConfig,
 
 def score_line(name: str, result: Any, json_path: Path, notes: str) -> str:
     """The line of one scored input: its scores (a NaN one with its reason), windows, rate and files."""
+    from ..types import plural
+
     nan = f" (NaN: {result.nan_reason})" if result.nan_reason is not None else ""
     return (f"{name}: M_geo={result.fused:.4f} M_motion={result.motion:.4f} M_struct={result.structure:.4f}{nan} "
             f"TM={result.total_motion:.2f}% MM={result.mean_motion:.2f}%/s "
@@ -328,14 +324,18 @@ def score_line(name: str, result: Any, json_path: Path, notes: str) -> str:
 
 
 @interruptible("the <stem>.geco.json (and maps) of the videos finished so far; geco_scores.csv and geco_summary.json were not written")
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_intermixed_args(argv)  # options may follow the inputs
-    _IMPLEMENTATION.load()
+def run(args: argparse.Namespace) -> int:
+    """Score the inputs ``args`` name; 0, 1 (every input failed, or the table could not be
+    written), or 2 after one line on stderr before any model loads."""
     with contextlib.ExitStack() as locks:  # the output locks, held until the run ends
         return _run(args, locks)
 
 
 def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
+    from ..estimators import check_weights, load_estimators, load_segmenter
+    from ..io.devices import check_device
+    from ..metric.evaluate import finite_or_none
+
     overrides, videos = split_overrides(args.inputs)
     # Neither an input nor an option (a=b.mp4): a missing file, or a mistyped key.
     strays = [a for a in overrides if not is_config_key(a.partition("=")[0])]
@@ -349,12 +349,13 @@ def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
             raise ValueError(f"--fps must be a finite number > 0, got {args.fps}")
         cfg = config_from_args(args, overrides, {"evaluation.loss.pairs": args.pairs,
                                                  "evaluation.max_frames": args.max_frames})
-        if args.model is not None:
-            cfg.evaluation.fps_of_model(args.model)  # an unknown name fails before the estimators load
+        if args.source_model is not None:
+            cfg.evaluation.fps_of_model(args.source_model)  # an unknown name fails before the estimators load
         device = check_device(cfg.evaluation.device, "evaluation.device")  # "auto" resolved once
         out = check_output_dir(args.out if args.out is not None else cfg.output.dir)
         items = expand_inputs(videos)
         dynamic = dynamic_mask_option(args.dynamic_masks, device)
+        check_detection_masks(args.detection, dynamic)
         check_masks_fit(items, dynamic, cfg)
         table = len(items) > 1 or any(Path(v).is_dir() and not _holds_frames(Path(v)) for v in videos)
         if not all(item.error is not None for item in items):  # else check_inputs_and_outputs says why
@@ -401,3 +402,6 @@ def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
             return 1
         print(f"wrote {csv_path} and {summary_path}")
     return 1 if all(row["error"] is not None for row in rows) else 0
+
+
+main = command_main("geco evaluate", DESCRIPTION, register_subcommand, run)

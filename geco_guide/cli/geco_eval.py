@@ -1,11 +1,11 @@
-"""``python -m geco_guide geco-eval --models ... --out DIR``: the GeCo-Eval benchmark
+"""``geco geco-eval --models ... --out DIR``: the GeCo-Eval benchmark
 (:mod:`geco_guide.bench.geco_eval`).
 
-    python -m geco_guide geco-eval --models cogvideox-5b wan2.1-t2v-1.3b --seeds 0 1 2 3 --out bench
-    python -m geco_guide geco-eval --models cogvideox-5b --guided --scenario indoor --out bench
-    python -m geco_guide geco-eval --videos sora-2=downloads/sora --out bench
-    python -m geco_guide geco-eval --suite dynamic --models cogvideox-5b --guided --out bench-dynamic
-    python -m geco_guide geco-eval --preset tiny --models cogvideox-5b wan2.1-t2v-1.3b --limit 2 --out bench-tiny
+    geco geco-eval --models cogvideox-5b wan2.1-t2v-1.3b --seeds 0 1 2 3 --out bench
+    geco geco-eval --models cogvideox-5b --guided --scenario indoor --out bench
+    geco geco-eval --videos sora-2=downloads/sora --out bench
+    geco geco-eval --suite dynamic --models cogvideox-5b --guided --out bench-dynamic
+    geco geco-eval --preset tiny --models cogvideox-5b wan2.1-t2v-1.3b --limit 2 --out bench-tiny
 
 The same command resumes a stopped run; ``--overwrite`` starts afresh in its folder.
 """
@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import shlex
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import partial
@@ -24,14 +22,15 @@ from typing import TYPE_CHECKING
 
 from .. import __version__
 from ..io.files import WriteError
-from .kit import Parser, add_config_flags, config_from_args, interruptible, print_error
+from .kit import add_config_flags, command_main, config_from_args, interruptible, print_error
 
 if TYPE_CHECKING:
     from ..bench.geco_eval import Job
     from ..config import GeCoConfig
 
-__all__ = ["main", "register_subcommand", "run"]
+__all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 
+SUMMARY = "run the GeCo-Eval benchmark: generate its prompts with video models and score them"
 DESCRIPTION = "GeCo-Eval: generate the paper's 80 prompts with video models and score them with GeCo."
 
 
@@ -137,7 +136,8 @@ def plan(args: argparse.Namespace) -> Plan:
     return Plan(cfg, jobs, weights, no_video)
 
 
-def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
+@interruptible("finished videos and scores are kept; rerun the same command to resume")
+def run(args: argparse.Namespace) -> int:
     """The benchmark ``args`` ask for; 0, 1 (videos failed or missing), or 2 after one line on stderr."""
     from ..bench.geco_eval import check_guided_models, check_model_weights
     from ..bench.runs import check_output_folder, run_lock
@@ -153,18 +153,12 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
         if args.guided:
             check_guided_models(cfg, args.models)
         with run_lock(out, "GeCo-Eval"):
-            return execute(args, planned, out, argv)
+            return execute(args, planned, out)
     except (ValueError, FileNotFoundError) as err:
         return print_error(err)
 
 
-@interruptible("finished videos and scores are kept; rerun the same command to resume")
-def main(argv: list[str] | None = None) -> int:
-    """``geco-eval``: the command on its own."""
-    return run(register_subcommand(Parser(prog="geco geco-eval", description=DESCRIPTION)).parse_args(argv), argv)
-
-
-def execute(args: argparse.Namespace, planned: Plan, out: Path, argv: list[str] | None) -> int:
+def execute(args: argparse.Namespace, planned: Plan, out: Path) -> int:
     """Every process's share of the jobs, then on the main process the report; the exit code."""
     from ..bench.geco_eval import remove_run_outputs, run_jobs, write_report
     from ..bench.runs import pin_config, process_config, process_state, shard
@@ -184,10 +178,12 @@ def execute(args: argparse.Namespace, planned: Plan, out: Path, argv: list[str] 
         state.wait_for_everyone()
         if not state.is_main_process:
             return 0
-        command = shlex.join(["python", "-m", "geco_guide", "geco-eval", *(sys.argv[1:] if argv is None else argv)])
-        summary = write_report(out, planned.jobs, cfg, command, planned.weights, planned.no_video)
+        summary = write_report(out, planned.jobs, cfg, args.command_line, planned.weights, planned.no_video)
     except (FileNotFoundError, WriteError) as err:  # weights not available (WeightsNotFoundError), disk full
         return print_error(err)
     failed, missing = len(summary["failed"]), len(summary["missing"]) + len(summary["no_video"])
     print(f"{plural(summary['videos'], 'video')} scored ({failed} failed, {missing} missing); report: {out / 'report.md'}")
     return 0 if not failed and not missing else 1
+
+
+main = command_main("geco geco-eval", DESCRIPTION, register_subcommand, run)

@@ -21,10 +21,11 @@ import sys
 from typing import Any
 
 from .. import __version__
-from .kit import add_config_flags, add_model_flag, config_from_args, print_error, interruptible, parse_count
+from .kit import add_config_flags, add_model_flag, command_main, config_from_args, interruptible, parse_count, print_error
 
-__all__ = ["main", "register_subcommand", "run"]
+__all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 
+SUMMARY = "generate a video with GeCo guidance (or without: --no-guidance)"
 DESCRIPTION = "Generate a video with GeCo geometric-consistency guidance (or without: --no-guidance)."
 
 
@@ -76,6 +77,7 @@ def _announce(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
+@interruptible("nothing was written (outputs are written atomically)")
 def run(args: argparse.Namespace) -> int:
     """Generate the video ``args`` ask for; 0, or 2 after one line on stderr."""
     from ..estimators.loading import WeightsNotFoundError
@@ -155,10 +157,4 @@ def _print_guidance(sidecar: dict[str, Any]) -> None:
               f"zero gradient) at steps {sorted({r['step'] for r in empty})}", file=sys.stderr)
 
 
-@interruptible("nothing was written (outputs are written atomically)")
-def main(argv: list[str] | None = None) -> int:
-    """``python -m geco_guide.generate``: the command on its own."""
-    from .kit import Parser
-
-    parser = register_subcommand(Parser(prog="geco generate", description=DESCRIPTION))
-    return run(parser.parse_args(argv))
+main = command_main("geco generate", DESCRIPTION, register_subcommand, run)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import functools
 import re
+import shlex
 import sys
 import warnings
 from collections.abc import Callable, Iterable, Sequence
@@ -20,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from ..config import GeCoConfig
 
-__all__ = ["ESTIMATOR_KEYS", "Parser", "add_config_flags", "add_model_flag", "command_main", "config_from_args",
+__all__ = ["ESTIMATOR_KEYS", "Parser", "add_config_flags", "add_model_flag", "check_choice", "command_main", "config_from_args",
            "interruptible", "is_config_key", "one_line_warnings", "parse_command", "parse_count", "print_error",
            "split_overrides"]
 
@@ -79,6 +80,14 @@ def parse_count(text: str) -> int:
     if not re.fullmatch(r"\s*\d+\s*", text) or int(text) < 1:
         raise argparse.ArgumentTypeError(f"must be a whole number >= 1 written in digits, got {text!r}")
     return int(text)
+
+
+def check_choice(option: str, values: str | Sequence[str], choices: Sequence[str]) -> None:
+    """ValueError (one line) unless every one of ``values`` is one of ``choices``: the check of an
+    option whose choices live with the code that reads them (a torch module), made in ``run``."""
+    for value in [values] if isinstance(values, str) else values:
+        if value not in choices:
+            raise ValueError(f"{option} takes one of {', '.join(choices)}; got {value!r}")
 
 
 def print_error(err: BaseException) -> int:
@@ -173,10 +182,15 @@ def interruptible(kept: str) -> Callable[[Callable[..., int]], Callable[..., int
 def parse_command(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
     """``argv`` parsed by a command's ``parser``, options and positionals in any order
     (``geco evaluate a.mp4 --out scores evaluation.max_frames=9``), except for a command made of
-    subcommands, whose options follow its subcommand."""
+    subcommands, whose options follow its subcommand; ``args.command_line`` is the command as
+    typed (``geco <command> ...``), for the reports that say how to run them again."""
+    argv = sys.argv[1:] if argv is None else list(argv)
     if any(isinstance(action, argparse._SubParsersAction) for action in parser._actions):
-        return parser.parse_args(argv)
-    return parser.parse_intermixed_args(argv)
+        args = parser.parse_args(argv)
+    else:
+        args = parser.parse_intermixed_args(argv)
+    args.command_line = shlex.join([*parser.prog.split(), *argv])
+    return args
 
 
 def command_main(prog: str, description: str, register_subcommand: Callable[[argparse.ArgumentParser], Any],

@@ -1,4 +1,4 @@
-"""Prompt files (what ``scripts/ab_compare.py --prompts`` reads): one prompt per line, or JSON
+"""Prompt files (what ``geco ab --prompts`` reads): one prompt per line, or JSON
 lines ``{"id": ..., "prompt": ..., "subjects": ...}``, or a GeCo-Eval suite by name
 (``geco-eval[:SCENARIO][:CAMERA]``, the paper's; ``dynamic[...]``, ours with moving subjects).
 

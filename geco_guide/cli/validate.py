@@ -1,10 +1,10 @@
-"""``python -m geco_guide validate``: score built benchmarks on the paper's three detection tasks
+"""``geco validate``: score built benchmarks on the paper's three detection tasks
 (:mod:`geco_guide.bench.validate`).
 
-    python -m geco_guide validate bench/synthetic-warp bench/synthetic-occlusion --oracle   # exact geometry, CPU
-    python -m geco_guide validate bench/warp bench/occlusion                               # VGGT-1B + UFM-Base
-    python -m geco_guide validate bench/warp --preset tiny                                 # tiny random models
-    python -m geco_guide validate --dynamic --out validation-dynamic                       # dynamic masks vs ground truth
+    geco validate bench/synthetic-warp bench/synthetic-occlusion --oracle   # exact geometry, CPU
+    geco validate bench/warp bench/occlusion                               # VGGT-1B + UFM-Base
+    geco validate bench/warp --preset tiny                                 # tiny random models
+    geco validate --dynamic --out validation-dynamic                       # dynamic masks vs ground truth
 
 ``--dynamic`` needs no benchmark folder: it renders the synthetic scenes with objects that move on
 their own and reports, with the oracle estimators, the false positives, the artifact detection AP,
@@ -25,49 +25,23 @@ import argparse
 import sys
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from ..io.files import WriteError, check_output_dir, json_text, write_texts_atomic
-from ..loss.pair_modes import PAIR_MODES
-from .kit import (
-    DeferredImports,
-    Parser,
-    add_config_flags,
-    config_from_args,
-    interruptible,
-    split_overrides,
-)
+from .kit import add_config_flags, command_main, config_from_args, interruptible, split_overrides
 
-if TYPE_CHECKING:  # bound at run time by _IMPLEMENTATION
-    from ..bench.datasets import find_benchmarks, load_benchmark, oracle_clip
-    from ..bench.dynamic_suite import DynamicScenes, dynamic_validation, markdown_report
-    from ..bench.validate import grid_frames, grid_image, markdown_table, summarise, validate_clip, write_png
-    from ..estimators import Estimators, load_estimators
-    from ..estimators.oracle import OracleFlow, OracleGeometry
-    from ..io.devices import check_device
-    from ..metric.evaluate import score_frames
+__all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 
-__all__ = ["main"]
-
-#: What main runs on, imported once the arguments parsed: it loads torch.
-_IMPLEMENTATION = DeferredImports(__name__, {
-    "..bench.datasets": ("find_benchmarks", "load_benchmark", "oracle_clip"),
-    "..bench.dynamic_suite": ("DynamicScenes", "dynamic_validation", "markdown_report"),
-    "..bench.validate": ("grid_frames", "grid_image", "markdown_table", "summarise", "validate_clip", "write_png"),
-    "..estimators": ("Estimators", "load_estimators"),
-    "..estimators.oracle": ("OracleFlow", "OracleGeometry"),
-    "..io.devices": ("check_device",),
-    "..metric.evaluate": ("score_frames",),
-})
-__getattr__ = _IMPLEMENTATION.attribute
+SUMMARY = "score built benchmark clips on the paper's three detection tasks"
+DESCRIPTION = "Score benchmark clips on the paper's three detection tasks."
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = Parser(prog="python -m geco_guide validate", description="Score benchmark clips on the paper's three detection tasks.")
+def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``geco validate`` on ``p``."""
     p.add_argument("inputs", nargs="*", metavar="DIR|key=value", help="benchmark folders; key=value config overrides")
     p.add_argument("--oracle", action="store_true", help="ground-truth estimators (clips built from 'synthetic')")
     add_config_flags(p)
-    p.add_argument("--pairs", choices=PAIR_MODES, default=None, help="frame pairs (default: all)")
+    p.add_argument("--pairs", default=None, metavar="MODE",
+                   help="frame pairs per window: all (default), center or adjacent (evaluation.loss.pairs)")
     p.add_argument("--out", default=None, help="output folder (default: <first input>/validation)")
     p.add_argument("--no-grids", action="store_true", help="skip the per-clip image grids")
     p.add_argument("--overwrite", action="store_true",
@@ -92,6 +66,8 @@ def check_no_report(paths: list[Path], overwrite: bool) -> None:
 
 def dynamic_main(args: argparse.Namespace) -> int:
     """``--dynamic``: the report of :func:`geco_guide.bench.dynamic_suite.dynamic_validation`."""
+    from ..bench.dynamic_suite import DynamicScenes, dynamic_validation, markdown_report
+
     try:
         if args.inputs:
             raise ValueError("--dynamic renders its own scenes: give no benchmark folder or override")
@@ -120,14 +96,25 @@ def _progress(message: str) -> None:
 
 @interruptible("nothing of this run's report: validation.json and validation.md are written together at the end "
                "(grids of the clips scored so far stay in <out>/grids)")
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    _IMPLEMENTATION.load()
+def run(args: argparse.Namespace) -> int:
+    """The validation report ``args`` ask for; 0, 1 (a clip failed, or the report could not be
+    written), or 2 after one line on stderr before any work."""
     if args.dynamic:
         return dynamic_main(args)
     if args.dynamic_size or args.dynamic_seed is not None:
         print(f"error: {'--dynamic-size' if args.dynamic_size else '--dynamic-seed'} needs --dynamic", file=sys.stderr)
         return 2
+    return _validate_benchmarks(args)
+
+
+def _validate_benchmarks(args: argparse.Namespace) -> int:
+    from ..bench.datasets import find_benchmarks, load_benchmark, oracle_clip
+    from ..bench.validate import grid_frames, grid_image, markdown_table, summarise, validate_clip, write_png
+    from ..estimators import Estimators, load_estimators
+    from ..estimators.oracle import OracleFlow, OracleGeometry
+    from ..io.devices import check_device
+    from ..metric.evaluate import score_frames
+
     overrides, roots = split_overrides(args.inputs)
     try:
         if not roots:
@@ -180,3 +167,6 @@ def main(argv: list[str] | None = None) -> int:
     print(table, end="")
     print(f"wrote {out / 'validation.json'} and {out / 'validation.md'}")
     return 1 if errors or not records else 0
+
+
+main = command_main("geco validate", DESCRIPTION, register_subcommand, run)

@@ -1,7 +1,7 @@
 """Frozen GeCo backbones, and the one function that builds them from a config.
 
 :func:`load_estimators` is shared by ``python -m geco_guide.generate`` and
-``python -m geco_guide evaluate``: hub ids, local folders, or ``tiny-random`` for the tiny,
+``geco evaluate``: hub ids, local folders, or ``tiny-random`` for the tiny,
 randomly initialised offline models of :func:`tiny_estimators`, returned as one
 :class:`~.bundle.Estimators` (geometry, flow and, when asked for, the text segmenter). This module stays light (no
 model code is imported until an estimator is built), because every ``geco_guide.estimators.*``
@@ -55,13 +55,14 @@ class EstimatorsConfig:
     segmenter: str = "facebook/sam3"
 
 
-def tiny_estimators(seed: int = 0) -> tuple[Any, Any]:
-    """Tiny random ``(VGGT, UFM)`` estimators (geometry, flow) of the real architectures, seeded:
-    what the ``tiny-random`` ids load (offline, CPU, seconds)."""
+def tiny_estimators(seed: int = 0, **more: Any) -> Estimators:
+    """Tiny random VGGT and UFM of the real architectures, seeded, as one :class:`Estimators`
+    (with ``more`` of its fields: ``segmenter``, ``tiny_decoder``): what the ``tiny-random`` ids
+    load (offline, CPU, seconds)."""
     from .ufm import UFM, UFMConfig
     from .vggt import VGGT, VGGTConfig
 
-    return VGGT.random(VGGTConfig.tiny(), seed=seed), UFM.random(UFMConfig.tiny(), seed=seed)
+    return Estimators(VGGT.random(VGGTConfig.tiny(), seed=seed), UFM.random(UFMConfig.tiny(), seed=seed), **more)
 
 
 def tiny_random_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int | None = None) -> Any:
@@ -169,7 +170,7 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
     if TINY_RANDOM in (estimators_cfg.geometry, estimators_cfg.flow):
         tiny = tiny_estimators(estimators_cfg.init_seed)
     if estimators_cfg.geometry == TINY_RANDOM:
-        geometry = tiny[0].to(device).trunk_to(dtype)
+        geometry = tiny.geometry.to(device).trunk_to(dtype)
     else:
         from .vggt import VGGT
 
@@ -178,7 +179,7 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
         except WeightsNotFoundError as err:
             raise with_config_key(err, "estimators.geometry", "/path/to/VGGT-1B") from None
     if estimators_cfg.flow == TINY_RANDOM:
-        flow = tiny[1].to(device).trunk_to(dtype)
+        flow = tiny.flow.to(device).trunk_to(dtype)
     else:
         from .ufm import UFM
 

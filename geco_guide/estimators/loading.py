@@ -193,7 +193,8 @@ class WeightsSource:
     """One model whose weights a run needs, as :func:`check_weight_sources` checks it.
 
     Attributes:
-        key: the config key that names the weights (``estimators.geometry``, ``model.id``).
+        key: the config key that names the weights (``estimators.geometry``, ``model.id``), or
+            the command-line flag that does (``--weights NAME``).
         source: its value: a hub id or a local path.
         model_name: what messages call the model.
         filenames: files whose presence says the weights are there (one is enough).
@@ -223,7 +224,8 @@ def check_weight_sources(rows: Sequence[WeightsSource]) -> None:
             check_weights_available(row.source, row.filenames, model_name=row.model_name, revision=row.revision)
         except WeightsNotFoundError as err:
             example = row.example or f"/path/to/{Path(str(row.source)).name}"
-            problems.append(f"{err} (config: {row.key}={example})")
+            where = row.key if row.key.startswith("--") else f"config: {row.key}"  # a flag, or a config key
+            problems.append(f"{err} ({where}={example})")
     if len(problems) == 1:
         raise WeightsNotFoundError(problems[0])
     if problems:

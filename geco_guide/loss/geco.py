@@ -47,11 +47,14 @@ from ..types import (
 )
 from .cues import fuse_cues, lands_on_mask, masked_mean, motion_residual, structure_residual
 from .movers import MOVER_MODES, MoverFit, MoverScores, RefreshedMovers, mover_scores, solve_motions
-from .pair_modes import PAIR_MODES
 
 __all__ = ["CUES", "MIN_UNMASKED_FRACTION", "MOVER_MODES", "PAIR_MODES", "GeCoLoss", "GeCoLossConfig", "GeCoMaps",
            "GeCoResult", "check_movers", "frame_pairs", "geco_from_geometry", "no_valid_pixels_reason",
            "resolve_dynamic_masks"]
+
+#: adjacent: (i, i+1), n-1 pairs; center: every frame with the middle one, 2(n-1); all: every
+#: ordered pair, n(n-1) (the paper's evaluation script).
+PAIR_MODES = ("adjacent", "center", "all")
 
 CUES = ("fused", "motion", "structure")
 STRUCTURE_OCCLUSION = ("depth", "covisibility")
@@ -186,6 +189,7 @@ class GeCoResult:
         mask_source: where the masks came from (``"given: masks.npz"``, ``"auto"``, ...), or ``None``.
         movers: with ``movers="rigid"``, each mover's numbers and the fit
             (:class:`~geco_guide.loss.movers.MoverScores`); ``None`` otherwise.
+        cue: the configured cue, the one :attr:`loss` is.
 
     :attr:`valid_pixels` says how many pixels each scalar measured: with none, the scalars are 0
     with a zero gradient (the loss convention: an update with nothing to measure moves nothing);
@@ -205,11 +209,12 @@ class GeCoResult:
     masked_fraction: Tensor | None = None
     mask_source: str | None = None
     movers: MoverScores | None = None
+    cue: str = "fused"
 
     @property
     def valid_pixels(self) -> dict[str, Tensor]:
         """Cue name -> ``[B]`` int64: the valid pixels of the frames that count in its scalar (0:
-        the scalar is over nothing). Computed when asked: the guided step never pays for it."""
+        the scalar is over nothing). Computed when asked, on the maps' device."""
         return {name: (self.frame_maps.cue(name)[1].flatten(2).sum(-1) * self.frame_has_valid[name]).sum(-1)
                 for name in CUES}
 
@@ -219,6 +224,12 @@ class GeCoResult:
         empty = set(self.empty_cues())
         return {name: math.nan if name in empty else float(getattr(self, name).detach())
                 for name in ("motion", "structure", "fused", "loss")}
+
+    def valid_fraction(self) -> Tensor:
+        """0-dim: the fraction of the frames' pixels :attr:`loss` measured (0: the loss is 0 with a
+        zero gradient, having nothing to measure); no host sync."""
+        counts = self.valid_pixels[self.cue].sum()
+        return counts / self.frame_maps.cue(self.cue)[1].numel()
 
     def empty_cues(self) -> list[str]:
         """The cues whose scalar is over no valid pixel (a host sync); why:
@@ -432,6 +443,7 @@ def geco_from_geometry(
         masked_fraction=None if masks is None else masks.flatten(2).float().mean(-1),
         mask_source=mask_source,
         movers=scores,
+        cue=config.cue,
     )
 
 

@@ -34,12 +34,16 @@ from ..io.video import check_fps, write_video
 from ..loss.cues import fuse_cues, masked_mean, structure_residual
 from ..loss.geco import MIN_UNMASKED_FRACTION, GeCoLossConfig, GeCoMaps
 from ..types import SceneGeometry, check_estimator_bundle, check_frame_values
-from .detection_options import ANCHORS, FORMATS
 from .evaluate import MASKED_FRAME_NOTE, EvaluationMaps, score_frames
 from .render import colorize, hatch, map_frames, text_scale
 
 __all__ = ["ANCHORS", "FORMATS", "detection_maps", "frame_scores", "render_detection", "window_indices",
            "write_detection", "write_pngs"]
+
+#: Where a frame sits in its window.
+ANCHORS = ("start", "center", "end")
+#: What the maps are written as: an mp4, a gif, a folder of PNG frames.
+FORMATS = ("mp4", "gif", "png")
 
 PANELS = ("motion", "structure", "fused")
 

@@ -10,13 +10,16 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Optional
 
+from ..families import paper_fps
 from ..loss.geco import MOVER_MODES, GeCoLossConfig, frame_pairs
 from ..loss.presets import evaluation_loss
 from ..types import OptionError
-from .model_fps import PAPER_MODEL_FPS
 
 __all__ = ["PAPER_MODEL_FPS", "EvaluationConfig", "Window", "evaluation_windows", "motion_grid",
            "sampled_rate", "scoring_plan", "time_grid_indices"]
+
+#: model -> its native frame rate (fps), the table GeCo-Eval times its windows with (the registry's)
+PAPER_MODEL_FPS = paper_fps()
 
 
 def sampled_rate(fps: float, max_fps: float) -> float:

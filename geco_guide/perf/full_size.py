@@ -214,7 +214,8 @@ def build_cost_pipeline(settings: dict[str, Any], fake_mode: Any) -> tuple[Any, 
         from ..tiny import TINY_MAX_SEQUENCE_LENGTH, tiny_estimators, tiny_guidance_decoder, tiny_pipeline
 
         pipe = tiny_pipeline(settings["seed"])
-        geometry, flow = tiny_estimators(settings["seed"])
+        tiny = tiny_estimators(settings["seed"])
+        geometry, flow = tiny.geometry, tiny.flow
         decoder = tiny_guidance_decoder("cogvideox", settings["seed"]) if settings.get("decoder") == "tiny" else None
         cast_components(pipe, dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}

@@ -163,7 +163,7 @@ class GuidanceReport:
     Attributes:
         guidance: the resolved :class:`GuidanceConfig` of the call (a dict), ``None`` without guidance.
         log: one dict per guided update (``step, repeat, t, loss, motion, structure, fused,
-            grad_norm, seconds, time_travel, skipped``; with dynamic masks ``masked_fraction`` and
+            grad_norm, seconds, time_travel, skipped, valid_fraction``; with dynamic masks ``masked_fraction`` and
             ``mask_source``).
         memory_plan: the memory plan the call ran with (:meth:`PlanChoice.to_dict
             <geco_guide.sampler.memory_plan.PlanChoice.to_dict>`, after any fallback).
@@ -228,6 +228,7 @@ class GuidanceLog:
                 seconds=time.perf_counter() - update.started,
                 time_travel=update.time_travel,
                 skipped=not scalars["finite"],
+                valid_fraction=scalars.get("valid_fraction"),
                 masked_fraction=scalars.get("masked_fraction"),
                 mask_source=mask_source,
                 particles=None if particles is None else [particles[0], particles[-1]],

@@ -38,7 +38,7 @@ from .memory_plan import PlanChoice, plan_before_loading
 from .run_options import RunOptions
 from .search import SearchConfig, check_search_before_loading
 
-__all__ = ["PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
+__all__ = ["CHECKPOINT_SCHEDULER", "PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
            "check_guidance_before_loading", "check_tiny_decoder", "choose_scheduler", "load_tiny_decoder",
            "load_video_pipeline", "missing_weights", "pipeline_from_pretrained", "quiet_hub_logs", "split_cfg_acts",
            "uses_tiny_decoder", "warn_idle_options"]
@@ -217,23 +217,27 @@ def load_video_pipeline(model: ModelConfig, scheduler: str | None = None,
 #: ``sampling.scheduler`` -> the scheduler class it builds from the checkpoint's scheduler config
 #: (CogVideoX's: the paper samples with deterministic DDIM, and CogVideoX-5B ships DPM).
 SCHEDULERS = {"ddim": "CogVideoXDDIMScheduler", "dpm": "CogVideoXDPMScheduler"}
+#: ``sampling.scheduler`` that keeps the checkpoint's own scheduler (the default of every family
+#: but CogVideoX's, whose default is the paper's DDIM)
+CHECKPOINT_SCHEDULER = "checkpoint"
 
 
 def choose_scheduler(pipe: Any, name: str | None, model: VideoModel) -> str:
     """Give ``pipe`` the scheduler ``sampling.scheduler`` names; returns the sidecar's note.
 
     ``ddim`` / ``dpm`` (CogVideoX models only): CogVideoX's DDIM / DPM scheduler built from the
-    checkpoint's scheduler config; ``None``: the checkpoint's own scheduler, untouched. The
-    pipeline itself never replaces a scheduler.
+    checkpoint's scheduler config; ``checkpoint`` or ``None``: the checkpoint's own scheduler,
+    untouched. The pipeline itself never replaces a scheduler.
     """
     shipped = type(pipe.scheduler).__name__
-    if name is None:
+    if name in (None, CHECKPOINT_SCHEDULER):
         return f"{shipped} (the checkpoint's)"
     if name not in SCHEDULERS:
-        raise ValueError(f"sampling.scheduler must be one of {sorted(SCHEDULERS)} or null, got {name!r}")
+        raise ValueError(f"sampling.scheduler must be one of {sorted(SCHEDULERS)}, {CHECKPOINT_SCHEDULER} or null, "
+                         f"got {name!r}")
     if not model.cogvideox_vae:
         raise ValueError(f"sampling.scheduler={name} is CogVideoX's; {model.name} samples with its own scheduler: "
-                         "use sampling.scheduler=null")
+                         f"use sampling.scheduler={CHECKPOINT_SCHEDULER}")
     import diffusers
 
     cls = getattr(diffusers, SCHEDULERS[name])

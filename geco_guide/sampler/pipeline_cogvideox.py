@@ -42,7 +42,7 @@ from diffusers.utils import logging
 from torch import Tensor
 
 from ..loss.geco import GeCoLoss
-from ..types import check_estimator_bundle
+from ..types import check_estimator_bundle, refuse_estimator_keywords
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .anchor_decode import anchor_decoder
 from .config import GuidanceConfig, resolve_guidance_config
@@ -301,6 +301,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         observer: GuidanceObserver | None = None,
         search: SearchConfig | Mapping[str, Any] | None = None,
         search_generator: torch.Generator | None = None,
+        **earlier: Any,
     ) -> GeCoCogVideoXPipelineOutput | tuple:
         """Generate a video; arguments as :meth:`CogVideoXPipeline.__call__`, plus:
 
@@ -327,11 +328,19 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 final videos, ``report.search`` what the search did (scores, ancestors, lineages).
             search_generator: the generator of the search's resampling draws (required with
                 ``search``), apart from the particles' own.
+            earlier: nothing is taken here: an earlier spelling (``geometry_estimator=``,
+                ``dynamic_masks=``, ...) is refused in one line naming the new one, any other
+                keyword as Python refuses it.
 
         Returns:
             :class:`GeCoCogVideoXPipelineOutput` (``frames``, ``report``) or ``(frames,)`` when
             ``return_dict=False``.
         """
+        if "dynamic_masks" in earlier:
+            raise TypeError("GeCoCogVideoXPipeline(dynamic_masks=...) is the earlier spelling: name what moves in "
+                            "guidance={'dynamic': 'auto' or the subjects} and pass the text segmenter in "
+                            "estimators=Estimators(geometry, flow, segmenter=...)")
+        refuse_estimator_keywords("GeCoCogVideoXPipeline", earlier)
         if isinstance(callback_on_step_end, (PipelineCallback, MultiPipelineCallbacks)):
             callback_on_step_end_tensor_inputs = callback_on_step_end.tensor_inputs
 

@@ -32,8 +32,8 @@ class SamplingConfig:
         use_dynamic_cfg: CogVideoX's dynamic CFG.
         max_sequence_length: the text encoder's length (``null``: the pipeline's default).
         scheduler: ``ddim`` / ``dpm``: CogVideoX's DDIM / DPM built from the checkpoint's config
-            (the paper samples with DDIM); ``null``: the model's default (DDIM for CogVideoX,
-            the checkpoint's own scheduler for the others).
+            (the paper samples with DDIM); ``checkpoint``: the checkpoint's own scheduler;
+            ``null``: the model's default (DDIM for CogVideoX, the checkpoint's for the others).
     """
 
     num_inference_steps: Optional[int] = None

@@ -61,8 +61,10 @@ class Update:
 @dataclass
 class GuidanceRecord:
     """One guided update of the guidance log: step index, timestep, loss and cues before the
-    update, ``||g||``, seconds; with dynamic masks also the mean fraction of the anchor frames'
-    pixels masked and the masks' source (absent from :meth:`to_dict` without masks); in a search
+    update, ``||g||``, seconds, the fraction of the anchor frames' pixels the loss measured
+    (``valid_fraction``: 0 when everything was masked or invalid; ``None`` for a loss that is a
+    bare tensor); with dynamic masks also the mean fraction of the anchor frames' pixels masked and
+    the masks' source (absent from :meth:`to_dict` without masks); in a search
     whose particles are guided in sub-batches, the first and last particle of the update's
     sub-batch (absent without a search)."""
 
@@ -77,6 +79,7 @@ class GuidanceRecord:
     seconds: float
     time_travel: bool
     skipped: bool = False
+    valid_fraction: float | None = None
     masked_fraction: float | None = None
     mask_source: str | None = None
     particles: list[int] | None = None
@@ -92,11 +95,13 @@ class GuidanceRecord:
 
 def loss_terms(result: Any) -> tuple[Tensor, dict[str, Tensor]]:
     """The loss to differentiate and the scalars to record of a loss result (a ``GeCoResult`` or a
-    scalar tensor), as tensors: reading them is a host sync. A result with dynamic masks adds
-    ``masked_fraction``, the mean over clips and frames."""
+    scalar tensor), as tensors: reading them is a host sync. A ``GeCoResult`` adds
+    ``valid_fraction`` (the fraction of the anchors' pixels its loss measured: 0 moves nothing) and,
+    with dynamic masks, ``masked_fraction``, the mean over clips and frames."""
     if isinstance(result, Tensor):
         return result, {"loss": result}
     terms = {name: getattr(result, name) for name in ("loss", "motion", "structure", "fused")}
+    terms["valid_fraction"] = result.valid_fraction()
     if getattr(result, "masked_fraction", None) is not None:
         terms["masked_fraction"] = result.masked_fraction.mean()
     return result.loss, terms
@@ -189,15 +194,26 @@ def guided_step(
 
 def score_anchor_frames(video: Tensor, anchors: Sequence[int], loss_fn: Callable[[Tensor], Any]) -> dict[str, float]:
     """GeCo scalars (``motion``, ``structure``, ``fused``, ``loss``) of the anchor frames of a
-    decoded ``video [B, F, 3, H, W]`` in ``[0, 1]``, without gradients."""
+    decoded ``video [B, F, 3, H, W]`` in ``[0, 1]``, without gradients: a cue over no valid pixel
+    is NaN, and ``nan_reason`` says why (``GeCoResult.scalars``); with dynamic masks also
+    ``masked_fraction``."""
+    from ..loss.geco import no_valid_pixels_reason
+
     if video.ndim != 5:
         raise ValueError(f"video must be [B, F, 3, H, W], got shape {list(video.shape)}")
     bad = [a for a in anchors if not 0 <= a < video.shape[1]]
     if bad:
         raise ValueError(f"anchors {bad} out of range for a {video.shape[1]}-frame video")
     with torch.no_grad():
-        _, terms = loss_terms(loss_fn(video[:, list(anchors)].float()))
-    return read_scalars(terms, video.device)
+        result = loss_fn(video[:, list(anchors)].float())
+    if isinstance(result, Tensor):
+        return {"loss": float(result)}
+    scores: dict[str, Any] = result.scalars()
+    if result.masked_fraction is not None:
+        scores["masked_fraction"] = float(result.masked_fraction.mean())
+    if result.empty_cues():
+        scores["nan_reason"] = no_valid_pixels_reason(result.dynamic_masks is not None)
+    return scores
 
 
 class NonFiniteLatentsError(ValueError):

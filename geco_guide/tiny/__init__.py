@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..estimators import Estimators, tiny_estimators, tiny_random_decoder
+from ..estimators import tiny_estimators, tiny_random_decoder
 from ..families import VideoModel
 from .components import (
     TINY_ANCHORS,
@@ -49,7 +49,7 @@ from .pipelines import (
 
 __all__ = ["HUNYUAN15_LATENT_CHANNELS", "TINY_ANCHORS", "TINY_CALL_KWARGS", "TINY_HEIGHT",
            "TINY_MAX_SEQUENCE_LENGTH", "TINY_NUM_FRAMES", "TINY_WIDTH", "TinySizes", "TinyTokenizer",
-           "WAN22_LATENT_CHANNELS", "tiny_bundle", "tiny_call_extras", "tiny_call_kwargs", "tiny_cogvideox15_pipeline",
+           "WAN22_LATENT_CHANNELS", "tiny_call_extras", "tiny_call_kwargs", "tiny_cogvideox15_pipeline",
            "tiny_cogvideox_components", "tiny_cogvideox_i2v_pipeline", "tiny_cogvideox_pipeline",
            "tiny_cogvideox_transformer", "tiny_estimators", "tiny_guidance_config", "tiny_guidance_decoder",
            "tiny_hunyuan15_i2v_pipeline", "tiny_hunyuan15_pipeline", "tiny_hunyuan_pipeline", "tiny_image", "tiny_ltx2_pipeline",
@@ -79,13 +79,6 @@ def tiny_sampling(model: VideoModel) -> dict[str, int]:
     width = TINY_WIDTH if TINY_WIDTH % model.size_multiple == 0 else -(-TINY_WIDTH // model.size_multiple) * model.size_multiple
     height = TINY_HEIGHT if TINY_HEIGHT % model.size_multiple == 0 else -(-TINY_HEIGHT // model.size_multiple) * model.size_multiple
     return {"num_frames": TINY_NUM_FRAMES, "height": height, "width": width}
-
-
-def tiny_bundle(seed: int = 0, **more: Any) -> Estimators:
-    """The tiny random VGGT and UFM (:func:`tiny_estimators`) as one
-    :class:`~geco_guide.estimators.Estimators`, with ``more`` of its fields (``segmenter``,
-    ``tiny_decoder``)."""
-    return Estimators(*tiny_estimators(seed), **more)
 
 
 def tiny_guidance_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int = TinySizes.latent_channels):
@@ -125,7 +118,7 @@ def tiny_run_options(**changes: Any):
 
 def tiny_pipeline(seed: int = 0, *, guidance_config: Any = None):
     """A ready tiny :class:`GeCoCogVideoXPipeline` (CPU, fp32); guide its calls with
-    :func:`tiny_bundle`'s estimators.
+    :func:`tiny_estimators`.
 
     Call it with ``num_frames=TINY_NUM_FRAMES, height=TINY_HEIGHT, width=TINY_WIDTH,
     num_inference_steps=4, max_sequence_length=TINY_MAX_SEQUENCE_LENGTH`` (the guidance default

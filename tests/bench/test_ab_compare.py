@@ -1,7 +1,7 @@
-"""The A/B command (``geco ab``, ``scripts/ab_compare.py``): the run end to end (tiny models, CPU),
-resuming after a kill, bad inputs, and the best-of-N arm.
+"""The A/B command (``geco ab``): the run end to end (tiny models, CPU), resuming after a kill,
+bad inputs, and the best-of-N arm (the search arm: test_ab_search.py).
 
-The end-to-end and interruption tests run the script in subprocesses with 2 sampling steps; the
+The end-to-end and interruption tests run the command in subprocesses with 2 sampling steps; the
 statistics, report and input checks run in process (:mod:`geco_guide.cli.ab`) on hand-made results.
 """
 
@@ -27,7 +27,8 @@ from geco_guide.bench import ab as core
 from geco_guide.bench import ab_report
 from geco_guide.bench.report import MIN_INTERVAL_N
 from geco_guide.bench.runs import LOCK_NAME, shard, take_run_lock
-from geco_guide.cli import ab
+from geco_guide.cli import ab, ab_arms
+from geco_guide.cli.kit import Parser
 from geco_guide.cli.prompt_files import Prompt, read_prompts
 from geco_guide.config import config_to_dict, load_config
 from geco_guide.io.files import write_json_atomic
@@ -35,7 +36,8 @@ from geco_guide.io.video import read_video, write_video
 from geco_guide.metric.render import READABLE_HEIGHT, enlarge, panel_layout
 
 REPO = Path(__file__).resolve().parents[2]
-SCRIPT = REPO / "scripts" / "ab_compare.py"
+#: ``geco ab`` in a process of its own (``python -m geco_guide ab`` runs the same ``main``)
+DRIVER = "import sys; from geco_guide.cli.ab import main; sys.exit(main(sys.argv[1:]))"
 FAST = [  # the tiny preset, shortened: 9 frames, 2 steps with one guided update each, 5 scored frames
     "--preset", "tiny", "sampling.num_frames=9", "guidance.anchors=[4,8]", "sampling.num_inference_steps=2",
     "guidance.repeats=1x2", "guidance.time_travel=[]", "output.score_anchors=false", "evaluation.max_fps=4",
@@ -47,7 +49,7 @@ SCORES = ("fused", "motion", "structure", "total_motion", "mean_motion")
 
 
 def _command(prompts: Path, out: Path) -> list[str]:
-    return [sys.executable, str(SCRIPT), "--prompts", str(prompts), "--seeds", "0", "--out", str(out), *FAST]
+    return [sys.executable, "-c", DRIVER, "--prompts", str(prompts), "--seeds", "0", "--out", str(out), *FAST]
 
 
 def _env() -> dict[str, str]:
@@ -90,7 +92,7 @@ def reference(prompts_file: Path, tmp_path_factory: pytest.TempPathFactory) -> P
     assert note == core.TINY_GUIDANCE_NOTE
     assert last.startswith("2 pairs: fused guided - unguided") and last.endswith(str(out / "report.md"))
     # no terminal, no progress bar: a line when the models load and one per pair and arm instead
-    assert "loading models: CogVideoX tiny-random, geometry tiny-random, flow tiny-random ..." in proc.stderr
+    assert "loading models: cogvideox-5b tiny-random, geometry tiny-random, flow tiny-random ..." in proc.stderr
     assert "[1/2] a-marble-bust-s0: unguided arm ...\n[1/2] a-marble-bust-s0: guided arm ...\n" in proc.stderr
     assert "[2/2] bridge-s0: guided arm ..." in proc.stderr and "it/s" not in proc.stderr
     return out
@@ -162,8 +164,8 @@ def test_the_first_pair_of_a_process_is_timed_apart_as_the_warm_up(reference: Pa
         assert record["generation_s_mean"] == pytest.approx(timed[arm])  # the warm-up pair left out
         assert record["generation_s_total"] > record["generation_s_mean"]  # the total has both
     report = (reference / "report.md").read_text()
-    assert f"The means leave out the first pair of each process ({PAIRS[0]}): its times include the models' " \
-           "warm-up" in report
+    assert f"The means leave out the arms made with the models' warm-up (in {PAIRS[0]}: each process's first " \
+           "pair, and its first search arm)" in report
     # every pair a warm-up (one pair per process): the means include it, and say so
     results = [_result("p0-s0", 0.2, 0.1)]
     for record in results[0]["arms"].values():
@@ -221,9 +223,9 @@ def test_rerun_after_kill_finishes_with_the_same_results(reference: Path, prompt
 def test_sharded_run_matches_the_single_process_run(reference: Path, prompts_file: Path, tmp_path: Path):
     """Two processes (torchrun, as ``accelerate launch`` starts them) share the pairs; the main one merges."""
     out = tmp_path / "sharded"
-    launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
-    proc = subprocess.run([*launcher, *_command(prompts_file, out)[1:]], env=_env(), capture_output=True, text=True, check=False,
-                          timeout=300)
+    launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", "--no-python"]
+    proc = subprocess.run([*launcher, *_command(prompts_file, out)], env=_env(), capture_output=True, text=True,
+                          check=False, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "[rank 0 of 2] 0 of 1 pair already" in proc.stdout and "[rank 1 of 2] 0 of 1 pair already" in proc.stdout
     _assert_same_scores(_rows(out), _rows(reference))
@@ -398,8 +400,13 @@ def no_models(monkeypatch: pytest.MonkeyPatch) -> None:
     def fail(*args, **kwargs):
         raise AssertionError("models must not be loaded for bad inputs")
 
-    monkeypatch.setattr(ab, "process_state", fail)
-    monkeypatch.setattr(ab, "run_shard", fail)
+    monkeypatch.setattr(ab_arms, "process_state", fail)
+    monkeypatch.setattr(ab_arms, "execute", fail)
+
+
+def _args(argv: list[str]):
+    """``argv`` parsed as ``geco ab`` parses it."""
+    return ab.register_subcommand(Parser(prog="geco ab")).parse_args(argv)
 
 
 def _write(path: Path, text: str) -> Path:
@@ -471,14 +478,14 @@ def test_outputs_of_another_run_in_a_pair_folder_are_refused_unless_overwrite(tm
     pair = core.Pair(Prompt("a-cat", "a cat"), 0)
     sidecar = {"prompt": "a cat", "config": config_to_dict(core.arm_config(cfg, pair, "guided"))}
     write_json_atomic(core.pair_dir(out, pair) / "guided.json", sidecar)  # this run's, unfinished: redone
-    assert ab.validate_inputs(ab.build_parser().parse_args(argv)).pairs == [pair]
+    assert ab_arms.validate_inputs(_args(argv)).pairs == [pair]
     sidecar["config"]["guidance"]["step_size"] = 123.0
     write_json_atomic(core.pair_dir(out, pair) / "guided.json", sidecar)
     assert ab.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err == (f"error: {core.pair_dir(out, pair) / 'guided.json'} was made by another run (its prompt or config "
                    "differ); pass --overwrite to replace it, or use a new --out folder")
-    assert ab.validate_inputs(ab.build_parser().parse_args([*argv, "--overwrite"])).pairs == [pair]
+    assert ab_arms.validate_inputs(_args([*argv, "--overwrite"])).pairs == [pair]
 
 
 def test_a_second_run_in_one_folder_is_refused_while_the_first_holds_the_lock(tmp_path, capsys, no_models):
@@ -516,13 +523,13 @@ def test_ctrl_c_is_one_line_exit_130_and_releases_the_lock(tmp_path, capsys, mon
         raise KeyboardInterrupt
 
     state = SimpleNamespace(process_index=0, num_processes=1, is_main_process=True, wait_for_everyone=lambda: None)
-    monkeypatch.setattr(ab, "process_state", lambda cfg: state)
-    monkeypatch.setattr(ab, "run_shard", interrupted)
+    monkeypatch.setattr(ab_arms, "process_state", lambda cfg: state)
+    monkeypatch.setattr(ab_arms, "make_pairs", interrupted)
     out = tmp_path / "out"
     argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out), "--preset", "tiny"]
     assert ab.main(argv) == 130
-    assert capsys.readouterr().err == ("interrupted: finished pairs are kept (each pair is written whole or not at "
-                                       "all); rerun the same command to resume\n")
+    assert capsys.readouterr().err == ("interrupted: finished pairs and arms are kept (each is written whole or not "
+                                       "at all); rerun the same command to resume\n")
     assert not (out / LOCK_NAME).exists()
 
 
@@ -720,7 +727,7 @@ def test_matched_best_of_takes_n_from_the_cost_model_on_the_named_card():
     from geco_guide.perf.plans import card_plan
 
     cfg = load_config(preset="tiny", overrides=FAST[2:])
-    chosen = ab.choose_best_of("matched", "L40S", cfg, [0, 1])
+    chosen = ab_arms.choose_best_of("matched", "L40S", cfg, [0, 1])
     s = cfg.sampling
     plan = card_plan("L40S", "faithful", "vae", s.num_frames, s.height, s.width)["plan"]
     settings = cost_settings(preset="tiny", steps=2, frames=9, height=s.height, width=s.width, dtype=None, plan=plan)
@@ -731,7 +738,7 @@ def test_matched_best_of_takes_n_from_the_cost_model_on_the_named_card():
 
 
 def test_the_candidate_kept_is_the_least_finite_score_the_earlier_on_ties():
-    from geco_guide.cli.generate import best_candidate
+    from geco_guide.generation import best_candidate
 
     assert best_candidate([float("nan"), 0.3, 0.2, 0.2]) == 2
     assert best_candidate([float("nan"), float("nan")]) == 0
@@ -759,15 +766,15 @@ def test_bad_best_of_values_are_one_line_before_any_work(extra, message, tmp_pat
                                         ("NVIDIA GeForce RTX 4090", "RTX4090"), ("NVIDIA RTX A6000", "A6000"),
                                         ("NVIDIA H100 80GB HBM3", "H100"), ("Tesla V100-SXM2-16GB", None)])
 def test_the_local_gpu_names_the_card_matched_predicts_for(name, card, monkeypatch):
-    monkeypatch.setattr(ab, "resolve_device", lambda device: torch.device("cuda", 0))
+    monkeypatch.setattr(ab_arms, "resolve_device", lambda device: torch.device("cuda", 0))
     monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: name)
-    assert ab.local_card(load_config(preset="tiny")) == card
+    assert ab_arms.local_card(load_config(preset="tiny")) == card
 
 
 def test_matched_for_a_model_the_cost_model_does_not_know_is_refused():
     cfg = load_config(preset="tiny", overrides=["model.id=my/model"])
     with pytest.raises(core.InputError, match="not model.id 'my/model'; pass an integer --best-of N"):
-        ab.choose_best_of("matched", "H200", cfg, [0])
+        ab_arms.choose_best_of("matched", "H200", cfg, [0])
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")

@@ -5,20 +5,14 @@ any seed; docs/validation.md gives several)."""
 from __future__ import annotations
 
 import pytest
+from photometric import photometric_error
 
-from geco_guide.bench.dynamic_suite import TARGETS, DynamicScenes, mover_clips, movers_validation
-from geco_guide.geometry import pixel_grid, sample_bilinear
-
-
-def _photometric_error(clip, i, j, where):
-    """Mean |frame_j(p + flow) - frame_i(p)| over covisible pixels of ``where`` and their count."""
-    flow, covisible = clip.correspondences(i, j)
-    height, width = flow.shape[-2:]
-    target = pixel_grid(height, width, dtype=flow.dtype) + flow.permute(1, 2, 0)
-    warped = sample_bilinear(clip.frames[j][None].to(flow.dtype), target[None])[0]
-    error = (warped - clip.frames[i].to(flow.dtype)).abs().mean(0)
-    keep = (covisible > 0.5) & where
-    return error[keep].mean().item(), int(keep.sum())
+from geco_guide.bench.dynamic_suite import (
+    TARGETS,
+    DynamicScenes,
+    mover_clips,
+    movers_validation,
+)
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +24,7 @@ def test_the_deformed_and_the_stretching_box_have_exact_flow(clips):
     for name in ("deformed_moving", "stretching"):
         clip = clips[name]
         on_box = clip.dynamic_mask[0]
-        error, count = _photometric_error(clip, 0, 3, on_box)
+        error, count = photometric_error(clip, 0, 3, on_box)
         assert count > 50 and error < 0.02, name
         # their own motion is more than the camera's: the tests below have teeth
         assert clip.residual_displacement(0, 3)[on_box].max() > 2.0, name

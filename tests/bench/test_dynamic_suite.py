@@ -1,5 +1,5 @@
 """The dynamic GeCo-Eval suite (ours, not the paper's): its prompts, ``geco_eval --suite dynamic``
-and the A/B script's subject column, on the tiny models with a tiny random segmenter."""
+and ``geco ab``'s subject column, on the tiny models with a tiny random segmenter."""
 
 from __future__ import annotations
 
@@ -12,8 +12,11 @@ from pathlib import Path
 import pytest
 
 from geco_guide.bench.geco_eval import CAMERAS, SCENARIOS, csv_text, load_prompts, movers_cell, select_prompts
+from geco_guide.bench.ab import SEARCH, Pair, SearchArm, arm_config
 from geco_guide.cli import ab
 from geco_guide.cli.geco_eval import main
+from geco_guide.cli.kit import Parser, config_from_args
+from geco_guide.cli.prompt_files import read_prompts
 from geco_guide.estimators.segmenters import subjects_of
 
 REPO = Path(__file__).resolve().parents[2]
@@ -92,32 +95,42 @@ def test_geco_eval_dynamic_scores_the_subjects_as_movers(tmp_path: Path):
 def test_ab_prompts_take_a_subject_column(tmp_path: Path):
     path = tmp_path / "prompts.jsonl"
     path.write_text('{"id": "dog", "prompt": "a dog runs on a lawn", "subjects": "a dog, a ball"}\na stone bridge\n')
-    dog, bridge = ab.read_prompts(path)
+    dog, bridge = read_prompts(path)
     assert dog.subjects == "a dog, a ball" and bridge.subjects is None
     path.write_text('{"id": "dog", "prompt": "a dog", "subjects": " , "}\n')
     with pytest.raises(ValueError, match=r"prompts.jsonl:1: 'subjects' subject text ' , ' names no subject"):
-        ab.read_prompts(path)
-    suite = ab.read_prompts("dynamic:outdoor:fast")
+        read_prompts(path)
+    suite = read_prompts("dynamic:outdoor:fast")
     assert [p.id for p in suite] == ["m16", "m17", "m18"] and suite[2].subjects == "a dog, a frisbee"
-    cfg = ab.config_from_args(ab.build_parser().parse_args(["--prompts", "x", "--seeds", "0", "--out", "o",
-                                                            "--preset", "tiny"]), [])
-    pair = ab.Pair(dog, 3)
-    assert ab.arm_config(cfg, pair, "guided").guidance.dynamic == "a dog, a ball"
-    assert ab.arm_config(cfg, pair, "unguided").guidance.dynamic is None
+    parser = ab.register_subcommand(Parser(prog="geco ab"))
+    cfg = config_from_args(parser.parse_args(["--prompts", "x", "--seeds", "0", "--out", "o", "--preset", "tiny"]), [])
+    pair = Pair(dog, 3)
+    assert arm_config(cfg, pair, "guided").guidance.dynamic == "a dog, a ball"
+    assert arm_config(cfg, pair, "unguided").guidance.dynamic is None
+    # the search scores its particles without the subjects, its particles guided or not
+    for guided in (False, True):
+        searched = arm_config(cfg, pair, SEARCH, SearchArm(3, guided))
+        assert searched.guidance.dynamic == "a dog, a ball" and searched.guidance.enabled == guided
+        assert searched.search.particles == 3 and searched.seed == 3
 
 
-def test_ab_run_masks_both_scores_and_the_guided_arm(tmp_path: Path):
+def test_ab_run_masks_every_arm_s_scores_the_guidance_and_the_search(tmp_path: Path):
     prompts = tmp_path / "prompts.jsonl"
     prompts.write_text('{"id": "dog", "prompt": "a dog runs on a lawn", "subjects": "a dog"}\n')
     fast = ["sampling.num_frames=9", "guidance.anchors=[4,8]", "sampling.num_inference_steps=2", "guidance.repeats=1x2",
             "guidance.time_travel=[]", "output.score_anchors=false", "evaluation.max_fps=4"]
     out = tmp_path / "ab"
     assert ab.main(["--prompts", str(prompts), "--seeds", "0", "--out", str(out), "--preset", "tiny", SEGMENTER,
-                    *fast]) == 0
+                    *fast, "--search", "2"]) == 0
     result = json.loads((out / "pairs" / "dog-s0" / "result.json").read_text())
     assert result["subjects"] == "a dog"
-    assert {arm: result["arms"][arm]["evaluation"]["dynamic_masks"]["source"] for arm in ("unguided", "guided")} == {
-        "unguided": "grounding-sam2: a dog", "guided": "grounding-sam2: a dog"}
+    arms = ("unguided", "guided", SEARCH)
+    assert {arm: result["arms"][arm]["evaluation"]["dynamic_masks"]["source"] for arm in arms} == dict.fromkeys(
+        arms, "grounding-sam2: a dog")
+    searched = json.loads((out / "pairs" / "dog-s0" / "search.json").read_text())
+    # its particles unguided, scored at the resampling steps without the subjects (guidance.dynamic)
+    assert searched["config"]["guidance"]["dynamic"] == "a dog" and not searched["config"]["guidance"]["enabled"]
+    assert searched["guidance_log"] == [] and searched["search"]["particles"] == 2
     guided = json.loads((out / "pairs" / "dog-s0" / "guided.json").read_text())
     unguided = json.loads((out / "pairs" / "dog-s0" / "unguided.json").read_text())
     assert guided["config"]["guidance"]["dynamic"] == "a dog" and guided["dynamic_masks"] == "grounding-sam2: a dog"

@@ -6,33 +6,26 @@ import json
 from pathlib import Path
 
 import torch
+from photometric import photometric_error
 
-from geco_guide.bench.dynamic_suite import DynamicScenes, dynamic_validation, edited_clips
+from geco_guide.bench.dynamic_suite import (
+    DynamicScenes,
+    dynamic_validation,
+    edited_clips,
+)
 from geco_guide.bench.synthetic import moving_clip, rigid_clip
 from geco_guide.cli.validate import main as validate_main
-from geco_guide.geometry import pixel_grid, sample_bilinear
-
-
-def _photometric_error(clip, i, j, where):
-    """Mean |frame_j(p + flow) - frame_i(p)| over covisible pixels of ``where`` and their count."""
-    flow, covisible = clip.correspondences(i, j)
-    height, width = flow.shape[-2:]
-    target = pixel_grid(height, width, dtype=flow.dtype) + flow.permute(1, 2, 0)
-    warped = sample_bilinear(clip.frames[j][None].to(flow.dtype), target[None])[0]
-    error = (warped - clip.frames[i].to(flow.dtype)).abs().mean(0)
-    keep = (covisible > 0.5) & where
-    return error[keep].mean().item(), int(keep.sum())
 
 
 def test_moving_boxes_flow_with_their_own_motion():
     clip = moving_clip(3, 48, 64)
     on_box = clip.dynamic_mask[0]
-    error, count = _photometric_error(clip, 0, 2, on_box)
+    error, count = photometric_error(clip, 0, 2, on_box)
     assert count > 50 and error < 0.02
     # The camera's flow alone does not explain the boxes: the test has teeth.
     rigid_flow, _ = clip.rigid_correspondences(0, 2)
     assert (clip.correspondences(0, 2)[0] - rigid_flow).norm(dim=0)[on_box].mean() > 2.0
-    background, _ = _photometric_error(clip, 0, 2, ~on_box)
+    background, _ = photometric_error(clip, 0, 2, ~on_box)
     assert background < 0.01
     static = ~on_box & (clip.correspondences(0, 2)[1] > 0.5)
     assert clip.residual_displacement(0, 2)[static].max() < 1e-9  # float64: the background moves with the camera only
@@ -60,7 +53,7 @@ def test_dynamic_validation_command_end_to_end(tmp_path: Path, capsys, monkeypat
     code = validate_main(["--dynamic", "--dynamic-size", "4", "24", "32", "--out", str(tmp_path / "out")])
     assert code == 0
     progress = [line for line in capsys.readouterr().err.splitlines() if " scored the " in line]
-    assert [line.split("]")[0] for line in progress] == [f"[{k}/13" for k in range(1, 14)]
+    assert [line.split("]")[0] for line in progress] == [f"[{k}/13" for k in range(1, 14)] + [f"[{k}/14" for k in range(1, 15)]
     assert progress[0].startswith("[1/13] scored the still clean clip with no mask (")
     # an earlier run's report is not replaced without --overwrite
     earlier = (tmp_path / "out" / "dynamic.json").read_text()
@@ -99,14 +92,16 @@ def test_dynamic_validation_logs_each_scored_clip_as_it_finishes(monkeypatch):
     logger.addHandler(handler)
     score = dynamic_suite.score_clip
 
-    def counting(clip, masks):
+    def counting(clip, masks, movers="drop"):
         seen_at_call.append(len(lines))
-        return score(clip, masks)
+        return score(clip, masks, movers)
 
     monkeypatch.setattr(dynamic_suite, "score_clip", counting)
     try:
         dynamic_suite.dynamic_validation(DynamicScenes(4, 24, 32))
     finally:
         logger.removeHandler(handler)
-    assert seen_at_call == list(range(13))  # the k-th clip starts once k - 1 lines were logged
-    assert len(lines) == 13 and lines[-1].startswith("[13/13] scored the still clean clip with true mask (")
+    # the k-th clip starts once k - 1 lines were logged: 13 clips of the masks, then 14 of the movers
+    assert seen_at_call == list(range(27)) and len(lines) == 27
+    assert lines[12].startswith("[13/13] scored the still clean clip with true mask (")
+    assert lines[-1].startswith("[14/14] scored the movers' stretching clip with auto mask, movers rigid (")

@@ -11,10 +11,9 @@ import pytest
 
 from geco_guide.bench import geco_eval
 from geco_guide.bench.geco_eval import load_prompts, select_prompts
-from geco_guide.bench.models import MODELS
+from geco_guide.families import MODELS, SCORED_ONLY, default_anchors, video_models
 from geco_guide.cli.evaluate import main as evaluate_main
 from geco_guide.cli.geco_eval import main
-from geco_guide.sampler.slicing import default_anchors
 
 TINY_RUN = ["--preset", "tiny", "--models", "cogvideox-5b", "wan2.1-t2v-1.3b", "--seeds", "0", "--limit", "1", "--guided"]
 
@@ -40,16 +39,15 @@ def test_registry_anchors_and_frame_rates():
     assert set(MODELS) <= set(EvaluationConfig().model_fps)  # every model has its native rate
     assert default_anchors(49, 4) == [12, 24, 36, 48]  # the paper's
     assert default_anchors(81, 4) == [20, 40, 60, 80] and default_anchors(161, 8) == [40, 80, 120, 160]
-    for model in MODELS.values():
+    for model in (MODELS[name] for name in video_models()):
         assert (model.call["num_frames"] - 1) % model.temporal_compression == 0
 
 
 def test_one_registry_whose_frame_rates_are_the_metrics_table():
-    from geco_guide.bench.models import SCORED_ONLY
     from geco_guide.metric.protocol import PAPER_MODEL_FPS
 
-    assert {name: model.fps for name, model in MODELS.items()} == {name: PAPER_MODEL_FPS[name] for name in MODELS}
-    assert set(MODELS) | set(SCORED_ONLY) == set(PAPER_MODEL_FPS) and not set(MODELS) & set(SCORED_ONLY)
+    assert {name: model.eval_fps for name, model in MODELS.items()} == PAPER_MODEL_FPS
+    assert set(video_models()) | set(SCORED_ONLY) == set(PAPER_MODEL_FPS) and not set(video_models()) & set(SCORED_ONLY)
     assert all(name == model.name for name, model in MODELS.items())
 
 
@@ -146,7 +144,7 @@ def test_bad_inputs_are_one_line_before_any_model_loads(tmp_path: Path, tiny_run
     def no_loading(*args, **kwargs):
         raise AssertionError("a model was loaded")
 
-    monkeypatch.setattr(geco_eval, "load_model", no_loading)
+    monkeypatch.setattr(geco_eval, "load_models", no_loading)
     monkeypatch.setattr(geco_eval, "load_estimators", no_loading)
     cases = [
         (["--models", "sora-3"], "unknown model 'sora-3'"),
@@ -209,11 +207,11 @@ def test_unavailable_weights_are_one_line_naming_the_repo_and_the_weights_option
     monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))  # an empty cache
     monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
     monkeypatch.setattr(diffusers.utils.constants, "HF_HUB_OFFLINE", True, raising=False)
-    cfg = load_config(overrides=["model.device=cpu"])
+    cfg = load_config(overrides=["model.device=cpu", "estimators.geometry=tiny-random", "estimators.flow=tiny-random"])
     with pytest.raises(WeightsNotFoundError) as err:
-        geco_eval.load_model(MODELS["ltx-video"], cfg)
+        geco_eval.check_model_weights(cfg, ["ltx-video"], {})
     message = str(err.value)
     assert "\n" not in message and "`hf download Lightricks/LTX-Video`" in message
     assert "--weights ltx-video=/path/to/LTX-Video" in message
-    with pytest.raises(WeightsNotFoundError, match="local folder"):
-        geco_eval.load_model(MODELS["ltx-video"], cfg, weights=str(tmp_path / "missing"))
+    with pytest.raises(WeightsNotFoundError, match="does not exist"):
+        geco_eval.check_model_weights(cfg, ["ltx-video"], {"ltx-video": str(tmp_path / "missing")})

@@ -17,7 +17,6 @@ import torch
 
 from geco_guide.bench import geco_eval, runs
 from geco_guide.bench.runs import check_output_folder, config_fingerprint, read_finished
-from geco_guide.cli import geco_eval as cli
 from geco_guide.cli.geco_eval import main
 from geco_guide.config import config_to_dict, load_config
 from geco_guide.estimators.loading import WeightsNotFoundError
@@ -164,10 +163,10 @@ def test_out_folders_that_cannot_be_written_are_one_line(tmp_path: Path, monkeyp
 
 
 def test_missing_weights_leave_no_run_json(tmp_path: Path, monkeypatch, capsys):
-    def missing(model, cfg, weights=None):
-        raise WeightsNotFoundError(f"{model.name}: weights not found")
+    def missing(cfg, estimators=True):
+        raise WeightsNotFoundError(f"{cfg.model.name}: weights not found")
 
-    monkeypatch.setattr(geco_eval, "load_model", missing)
+    monkeypatch.setattr(geco_eval, "load_models", missing)
     out = tmp_path / "out"
     assert main(["--preset", "tiny", "--models", "cogvideox-5b", "--seeds", "0", "--limit", "1", "--out", str(out)]) == 2
     err = capsys.readouterr().err.splitlines()
@@ -177,10 +176,10 @@ def test_missing_weights_leave_no_run_json(tmp_path: Path, monkeypatch, capsys):
 
 def test_a_generation_that_fails_is_recorded_and_the_run_pinned_once_the_model_loaded(tmp_path: Path, monkeypatch,
                                                                                         capsys):
-    def diverged(self, job):
-        raise ValueError(f"{self.model.name} {job.name}: sampling produced non-finite frames; nothing was written")
+    def diverged(models, cfg, prompt, **kwargs):
+        raise ValueError(f"{cfg.model.name}: sampling produced non-finite frames; nothing was written")
 
-    monkeypatch.setattr(geco_eval.Generator, "__call__", diverged)
+    monkeypatch.setattr(geco_eval, "sample", diverged)
     out = tmp_path / "out"
     assert main(["--preset", "tiny", "--models", "cogvideox-5b", "--seeds", "0", "--limit", "1", "--out", str(out)]) == 1
     captured = capsys.readouterr()
@@ -220,7 +219,7 @@ def test_ctrl_c_is_one_line_and_exit_code_130(tmp_path: Path, monkeypatch, capsy
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "run_jobs", interrupted)
+    monkeypatch.setattr(geco_eval, "run_jobs", interrupted)
     videos = _videos(tmp_path / "in", {"a1-s0": 17})
     assert _score(videos, tmp_path / "out", "--limit", "1") == 130
     assert capsys.readouterr().err == INTERRUPTED
@@ -263,9 +262,9 @@ def _generate(out: Path, *extra: str) -> int:
 
 @pytest.mark.parametrize("models, overrides, message", [
     (["ltx-video"], ["run.decode_layout=channels_last"],
-     "ltx-video guided: run.decode_layout=channels_last is written for the CogVideoX VAE, not LTX-Video's"),
+     "ltx-video guided: run.decode_layout=channels_last is written for the CogVideoX VAE, not ltx-video's"),
     (["cogvideox-5b", "ltx-video"], ["guidance.decoder=tiny"],
-     "ltx-video guided: guidance.decoder=tiny: there is no tiny decoder for LTX-Video latents"),
+     "ltx-video guided: guidance.decoder=tiny: there is no tiny decoder for ltx-video's latents"),
     (["wan2.1-t2v-1.3b"], ["guidance.decoder=tiny", "estimators.tiny_decoder=null"],
      "wan2.1-t2v-1.3b guided: guidance.decoder=tiny needs the tiny decoder's weights"),
     (["cogvideox-5b"], ["run.memory_plan=auto", "run.memory_budget_gb=0.001"],
@@ -273,7 +272,7 @@ def _generate(out: Path, *extra: str) -> int:
 ])
 def test_guided_options_a_model_refuses_are_one_line_before_the_run_starts(tmp_path: Path, monkeypatch, capsys,
                                                                             models, overrides, message):
-    monkeypatch.setattr(cli, "process_state", lambda cfg: pytest.fail("the run started"))
+    monkeypatch.setattr(runs, "process_state", lambda cfg: pytest.fail("the run started"))
     out = tmp_path / "out"
     assert _generate(out, "--models", *models, "--guided", *overrides) == 2
     assert _one_line(capsys.readouterr().err).startswith(f"error: {message}")
@@ -284,10 +283,10 @@ def test_a_named_tiny_decoder_of_another_family_is_refused_before_the_run_starts
     from geco_guide.estimators import tiny_random_decoder
 
     torch.save(tiny_random_decoder("wan2.1").state_dict(), tmp_path / "taew2_1.pth")
-    monkeypatch.setattr(cli, "process_state", lambda cfg: pytest.fail("the run started"))
+    monkeypatch.setattr(runs, "process_state", lambda cfg: pytest.fail("the run started"))
     assert _generate(tmp_path / "out", "--models", "cogvideox-5b", "--guided", "guidance.decoder=tiny",
                      f"estimators.tiny_decoder={tmp_path / 'taew2_1.pth'}") == 2
-    assert "is the tiny decoder of Wan 2.1, Wan 2.2 14B; CogVideoX needs taecvx.pth" in _one_line(capsys.readouterr().err)
+    assert "is the tiny decoder of Wan 2.1, Wan 2.2 14B; cogvideox-5b needs taecvx.pth" in _one_line(capsys.readouterr().err)
 
 
 def test_guidance_by_the_tiny_decoder_loads_the_one_each_family_needs(tmp_path: Path, capsys):
@@ -300,14 +299,14 @@ def test_guidance_by_the_tiny_decoder_loads_the_one_each_family_needs(tmp_path: 
 
 
 def test_a_guided_call_that_fails_on_an_option_is_recorded_and_the_run_goes_on(tmp_path: Path, monkeypatch, capsys):
-    original = geco_eval.Generator.__call__
+    original = geco_eval.sample
 
-    def refused(self, job):
-        if job.guided:  # what a pipeline raises for an option it cannot take
-            raise TypeError(f"{self.model.name}: this pipeline cannot take that option")
-        return original(self, job)
+    def refused(models, cfg, prompt, **kwargs):
+        if cfg.guidance.enabled:  # what a pipeline raises for an option it cannot take
+            raise TypeError(f"{cfg.model.name}: this pipeline cannot take that option")
+        return original(models, cfg, prompt, **kwargs)
 
-    monkeypatch.setattr(geco_eval.Generator, "__call__", refused)
+    monkeypatch.setattr(geco_eval, "sample", refused)
     out = tmp_path / "out"
     assert _generate(out, "--models", "cogvideox-5b", "--guided", "sampling.num_inference_steps=2",
                      "guidance.repeats=1x2", "guidance.time_travel=[]") == 1
@@ -318,12 +317,15 @@ def test_a_guided_call_that_fails_on_an_option_is_recorded_and_the_run_goes_on(t
 
 
 def test_the_weights_of_every_model_are_checked_before_the_run_starts(tmp_path: Path, monkeypatch, capsys):
-    monkeypatch.setattr(cli, "process_state", lambda cfg: pytest.fail("the run started"))
+    monkeypatch.setattr(runs, "process_state", lambda cfg: pytest.fail("the run started"))
     out = tmp_path / "out"
     rc = main(["--preset", "cogvideox-5b", "--models", "wan2.1-t2v-1.3b", "cogvideox-5b", "--seeds", "0",
                "--limit", "1", "--weights", f"wan2.1-t2v-1.3b={tmp_path / 'nowhere'}", "--out", str(out)])
     assert rc == 2
     err = _one_line(capsys.readouterr().err)
-    assert err.startswith(f"error: wan2.1-t2v-1.3b: local path '{tmp_path / 'nowhere'}' does not exist")
-    assert err.rstrip().endswith("(--weights wan2.1-t2v-1.3b=/path/to/Wan2.1-T2V-1.3B-Diffusers)")
+    # the video models first, then the estimators the preset names (not in this machine's cache either)
+    assert err.startswith(f"error: 4 models lack their weights: (1) wan2.1-t2v-1.3b: local path '{tmp_path / 'nowhere'}' "
+                          "does not exist")
+    assert "(--weights wan2.1-t2v-1.3b=/path/to/Wan2.1-T2V-1.3B-Diffusers); (2) cogvideox-5b" in err
+    assert err.rstrip().endswith("(config: estimators.flow=/path/to/UFM-Base)")
     assert not out.exists()

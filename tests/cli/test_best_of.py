@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
+from geco_guide import generation
 from geco_guide.cli import generate as generate_cli
 
 TINY = ["--preset", "tiny", "--prompt", "a marble bust"]
@@ -35,23 +38,49 @@ def test_best_of_guided_videos_is_allowed(tmp_path):
 
 
 def test_best_of_below_one_is_one_line_before_loading(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(generate_cli, "build_pipeline", lambda cfg: (_ for _ in ()).throw(AssertionError("loaded")))
-    for count in ("0", "-2"):
-        assert generate_cli.main([*TINY, "--best-of", count, "--out", str(tmp_path)]) == 2
+    monkeypatch.setattr(generation, "load_models", lambda cfg, estimators=True: (_ for _ in ()).throw(AssertionError("loaded")))
+    for count in ("0", "-2", "2.5"):
+        with pytest.raises(SystemExit) as stop:
+            generate_cli.main([*TINY, "--best-of", count, "--out", str(tmp_path)])
         err = capsys.readouterr().err.strip()
-        assert err == f"error: --best-of must be an integer >= 1, got {count}" and not any(tmp_path.iterdir())
+        assert stop.value.code == 2 and err.startswith("error: argument --best-of: must be a whole number >= 1"), err
+        assert "\n" not in err and not any(tmp_path.iterdir())
 
 
-def test_best_of_loads_the_segmenter_once_for_every_candidate(tmp_path, monkeypatch):
+def test_best_of_loads_the_models_once_for_every_candidate(tmp_path, monkeypatch):
     loads = []
-    real = generate_cli.loading.load_dynamic_masks
+    real = generation.load_models
 
-    def counted(cfg):
+    def counted(cfg, estimators=True):
         loads.append(1)
-        return real(cfg)
+        return real(cfg, estimators=estimators)
 
-    monkeypatch.setattr(generate_cli.loading, "load_dynamic_masks", counted)
+    monkeypatch.setattr(generation, "load_models", counted)
     out = tmp_path / "moving.mp4"
     assert generate_cli.main([*TINY, "--best-of", "2", "--dynamic", "auto", "--out", str(out),
                               "output.score_anchors=false"]) == 0
-    assert len(loads) == 1 and json.loads(out.with_suffix(".json").read_text())["dynamic_masks"] == "auto"
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert len(loads) == 1 and len(sidecar["best_of"]["candidates"]) == 2 and sidecar["dynamic_masks"] == "auto"
+
+
+def test_the_selection_leaves_out_what_the_guidance_leaves_out(tmp_path, monkeypatch):
+    from geco_guide.metric import evaluate
+
+    seen = []
+    real = evaluate.evaluate_video
+
+    def recorded(video, estimators=None, config=None, **kwargs):
+        seen.append(kwargs.get("dynamic_masks"))
+        return real(video, estimators, config, **kwargs)
+
+    monkeypatch.setattr(evaluate, "evaluate_video", recorded)
+    common = [*TINY, "output.score_anchors=false", "sampling.num_inference_steps=2", "guidance.repeats=1x2",
+              "guidance.time_travel=[]"]
+    assert generate_cli.main([*common, "--best-of", "2", "--dynamic", "auto", "--out", str(tmp_path / "a.mp4")]) == 0
+    assert seen == ["auto", "auto"]  # each candidate scored without what moves on its own, as guided
+    seen.clear()
+    assert generate_cli.main([*common, "--search", "2", "--dynamic", "auto", "--out", str(tmp_path / "b.mp4")]) == 0
+    assert seen == ["auto", "auto"]
+    seen.clear()
+    assert generate_cli.main([*common, "--best-of", "2", "--out", str(tmp_path / "c.mp4")]) == 0
+    assert seen == [None, None]  # the paper's protocol

@@ -31,10 +31,13 @@ def test_errors_are_one_line(capsys):
     assert err.startswith("error: ") and err.count("\n") == 1, err
 
 
-@pytest.mark.parametrize("flags", [["--geometry-estimator", "g", "--flow-estimator", "f"], ["--vggt", "g", "--ufm", "f"]])
-def test_estimator_flags_and_their_aliases_share_a_destination(flags):
-    args = parser().parse_args(["--preset", "tiny", *flags])
+def test_estimator_flags_set_the_estimators_and_their_earlier_names_are_refused(capsys):
+    args = parser().parse_args(["--preset", "tiny", "--geometry-estimator", "g", "--flow-estimator", "f"])
     assert (args.geometry_estimator, args.flow_estimator) == ("g", "f")
+    for old, new in (("--vggt", "--geometry-estimator"), ("--ufm", "--flow-estimator")):
+        with pytest.raises(SystemExit):
+            parser().parse_args([old, "g"])
+        assert capsys.readouterr().err.strip() == f"error: {old} is the earlier name of {new}: use {new} instead (see --help)"
 
 
 def test_overrides_are_told_from_inputs(tmp_path: Path):
@@ -46,7 +49,7 @@ def test_overrides_are_told_from_inputs(tmp_path: Path):
 
 
 def test_the_config_takes_preset_overrides_and_flags_in_that_order():
-    args = parser().parse_args(["--preset", "tiny", "--vggt", "tiny-random"])
+    args = parser().parse_args(["--preset", "tiny", "--geometry-estimator", "tiny-random"])
     cfg = config_from_args(args, ["seed=5", "estimators.geometry=elsewhere"], {"evaluation.loss.pairs": "center",
                                                                             "seed": None})
     assert cfg.seed == 5 and cfg.estimators.geometry == "tiny-random" and cfg.evaluation.loss.pairs == "center"

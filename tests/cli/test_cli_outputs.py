@@ -11,6 +11,8 @@ import sys
 import pytest
 import torch
 
+import geco_guide.estimators as estimators_package
+from geco_guide import generation
 from geco_guide.cli import detection as detection_cli
 from geco_guide.cli import evaluate as evaluate_cli
 from geco_guide.cli import generate as generate_cli
@@ -22,8 +24,8 @@ def no_estimators(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("the estimators were loaded")
 
-    monkeypatch.setattr(evaluate_cli, "load_estimators", refuse)
-    monkeypatch.setattr(detection_cli, "load_estimators", refuse)
+    monkeypatch.setattr(estimators_package, "load_estimators", refuse)
+    monkeypatch.setattr(estimators_package, "load_estimators", refuse)
 
 
 def _one_error_line(capsys) -> str:
@@ -79,7 +81,7 @@ def test_detection_overwrite_leaves_only_the_formats_asked_for(tmp_path):
 
 
 def test_a_prompt_that_is_not_utf8_is_one_line_before_loading(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(generate_cli, "build_pipeline", lambda cfg: pytest.fail("models were loaded"))
+    monkeypatch.setattr(generation, "load_models", lambda cfg, estimators=True: pytest.fail("models were loaded"))
     prompt = b"a caf\xe9 on a street".decode("utf-8", "surrogateescape")  # Latin-1 bytes from a terminal
     assert generate_cli.main(["--preset", "tiny", "--prompt", prompt, "--out", str(tmp_path)]) == 2
     assert "not valid UTF-8 text (an undecodable byte at character 6)" in _one_error_line(capsys)

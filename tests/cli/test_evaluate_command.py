@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+import geco_guide.estimators as estimators_package
 from geco_guide.cli import evaluate as evaluate_cli
 from geco_guide.io.files import WriteError
 from geco_guide.io.video import write_video
@@ -31,7 +32,7 @@ def no_estimators(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("the estimators were loaded")
 
-    monkeypatch.setattr(evaluate_cli, "load_estimators", refuse)
+    monkeypatch.setattr(estimators_package, "load_estimators", refuse)
 
 
 def _masks(frames: int = FRAMES, height: int = 24, width: int = 32) -> np.ndarray:
@@ -145,7 +146,7 @@ def test_an_output_that_cannot_be_written_takes_back_the_others_and_the_score(tm
 def test_detection_names_every_missing_model_before_its_loading_line(tmp_path, capsys, video, monkeypatch):
     from geco_guide.cli import detection
 
-    monkeypatch.setattr(detection, "load_estimators", lambda *args, **kwargs: pytest.fail("the estimators loaded"))
+    monkeypatch.setattr(estimators_package, "load_estimators", lambda *args, **kwargs: pytest.fail("the estimators loaded"))
     assert detection.main([str(video), f"estimators.geometry={tmp_path / 'no-vggt'}",
                            f"estimators.flow={tmp_path / 'no-ufm'}", "--preset", "tiny", "--out", str(tmp_path / "d")]) == 2
     err = capsys.readouterr().err.strip()
@@ -160,3 +161,31 @@ def test_a_segmenter_that_fails_to_load_fails_before_the_models_line(tmp_path, c
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 2 and err[0].startswith("loading segmenter: ")
     assert err[1].startswith(f"error: estimators.segmenter={str(tmp_path / 'vggt')!r}: the folder's config.json")
+
+
+def test_detection_with_masks_that_are_not_a_file_is_one_line_before_loading(video, tmp_path, capsys, no_estimators):
+    for masks in ("auto", "a dog"):
+        code = evaluate_cli.main([str(video), "--preset", "tiny", "--detection", "--dynamic-masks", masks,
+                                  "--out", str(tmp_path / "out")])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and err.startswith("error: --detection draws its maps with given masks only"), err
+        assert "\n" not in err and not (tmp_path / "out" / "v.detection.mp4").exists()
+
+
+def test_detection_maps_leave_out_the_given_masks_of_the_frames_scored(video, tmp_path, monkeypatch):
+    from geco_guide.metric import detection
+
+    np.savez(tmp_path / "m.npz", masks=_masks())
+    seen = []
+    real = detection.detection_maps
+
+    def recorded(frames, estimators, config=None, **kwargs):
+        seen.append(kwargs["dynamic_masks"])
+        return real(frames, estimators, config, **kwargs)
+
+    monkeypatch.setattr(detection, "detection_maps", recorded)
+    assert evaluate_cli.main([str(video), "--preset", "tiny", "--detection", "--dynamic-masks", str(tmp_path / "m.npz"),
+                              "--max-frames", "6", "--out", str(tmp_path / "out")]) == 0
+    (masks,) = seen  # the first 6 frames' masks, as the scores cut them
+    assert torch.equal(masks, torch.from_numpy(_masks()[:6]))
+    assert (tmp_path / "out" / "v.detection.mp4").is_file()

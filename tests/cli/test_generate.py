@@ -8,19 +8,13 @@ import re
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
 import torch
 
-from geco_guide.cli import generate as generate_module
-from geco_guide.cli.generate import (
-    SCORES_NOTE,
-    default_name,
-    main,
-    output_paths,
-    video_key,
-)
+from geco_guide import generation
+from geco_guide.cli.generate import main
+from geco_guide.generation import SCORES_NOTE, default_name, output_paths, video_key
 from geco_guide.config import config_to_dict, load_config
 from geco_guide.estimators.loading import WeightsNotFoundError
 from geco_guide.io.files import WriteError
@@ -41,7 +35,7 @@ def test_cli_tiny_preset_writes_playable_mp4_and_sidecar(tmp_path: Path):
     video, sidecar = tmp_path / "run.mp4", tmp_path / "run.json"
     assert f"wrote video:   {video}" in proc.stdout and "GeCo scores of anchor frames" in proc.stdout
     assert SCORES_NOTE in proc.stdout  # says why evaluate prints another number for the same video
-    assert "loading models: CogVideoX tiny-random, geometry tiny-random, flow tiny-random ..." in proc.stderr
+    assert "loading models: cogvideox-5b tiny-random, geometry tiny-random, flow tiny-random ..." in proc.stderr
     frames, fps = read_video(video)
     assert frames.shape == (17, 3, 32, 48) and fps == pytest.approx(8.0)
     data = json.loads(sidecar.read_text())
@@ -82,12 +76,12 @@ def test_offline_without_weights_is_one_clear_error(monkeypatch):
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     cfg = load_config(preset="tiny", overrides=["model.id=geco-test-missing/CogVideoX-nothing"])
     with pytest.raises(WeightsNotFoundError) as info:
-        load_video_pipeline(cfg)
+        load_video_pipeline(cfg.model)
     msg = str(info.value)
     assert "geco-test-missing/CogVideoX-nothing" in msg and "model.id=/path/to/" in msg and "\n" not in msg
     cfg = load_config(preset="tiny", overrides=["model.id=/nonexistent/folder/cogvideox"])
     with pytest.raises(WeightsNotFoundError, match="local folder '/nonexistent/folder/cogvideox' does not exist"):
-        load_video_pipeline(cfg)
+        load_video_pipeline(cfg.model)
 
 
 def test_output_paths(tmp_path: Path):
@@ -117,7 +111,7 @@ def test_default_names_differ_for_prompts_with_one_prefix_and_for_configs_that_c
 
 def test_the_video_key_is_the_same_in_another_process():
     cfg = load_config(preset="tiny")
-    code = ("from geco_guide.cli.generate import default_name; from geco_guide.config import load_config; "
+    code = ("from geco_guide.generation import default_name; from geco_guide.config import load_config; "
             "print(default_name(load_config(preset='tiny'), 'a cat'))")
     env = dict(os.environ, PYTHONHASHSEED="123", PYTHONPATH=str(REPO))
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60,
@@ -130,28 +124,17 @@ def test_the_video_key_is_the_same_in_another_process():
 # outputs are never lost: checked before anything loads, written together
 
 
-def _stub_pipe(frames: torch.Tensor):
-    """Stands in for the video pipeline: returns ``frames`` as the sampled video."""
-
-    def pipe(**kwargs):
-        return SimpleNamespace(frames=frames, guidance_log=[])
-
-    pipe.scheduler, pipe.device = object(), torch.device("cpu")
-    return pipe
-
-
 @pytest.fixture
 def no_loading(monkeypatch):
-    def refuse(cfg):
+    def refuse(cfg, estimators=True):
         raise AssertionError("models were loaded")
 
-    monkeypatch.setattr(generate_module, "build_pipeline", refuse)
+    monkeypatch.setattr(generation, "load_models", refuse)
 
 
 @pytest.fixture
-def stub_loading(monkeypatch):
-    frames = torch.rand(1, 9, 3, 32, 48)
-    monkeypatch.setattr(generate_module, "build_pipeline", lambda cfg: _stub_pipe(frames))
+def stub_loading(stub_generation):
+    stub_generation(torch.rand(1, 9, 3, 32, 48))
 
 
 def _run(out: Path, *extra: str) -> int:
@@ -164,7 +147,7 @@ def _error_line(capsys) -> str:
     return err
 
 
-def test_an_existing_output_is_refused_before_loading_unless_overwrite(tmp_path: Path, capsys, monkeypatch,
+def test_an_existing_output_is_refused_before_loading_unless_overwrite(tmp_path: Path, capsys, stub_generation,
                                                                        no_loading):
     video = tmp_path / "clip.mp4"
     video.write_bytes(b"an earlier video")
@@ -175,8 +158,7 @@ def test_an_existing_output_is_refused_before_loading_unless_overwrite(tmp_path:
     assert _run(video) == 2 and "clip.json' already exists" in _error_line(capsys)
     assert video.exists() is False
 
-    frames = torch.rand(1, 9, 3, 32, 48)
-    monkeypatch.setattr(generate_module, "build_pipeline", lambda cfg: _stub_pipe(frames))
+    stub_generation(torch.rand(1, 9, 3, 32, 48))
     assert _run(video, "--overwrite") == 0
     assert json.loads((tmp_path / "clip.json").read_text())["video"] == "clip.mp4"
     assert read_video(video)[0].shape[0] == 9
@@ -216,7 +198,7 @@ def test_a_video_too_big_for_the_device_is_one_line_before_loading(tmp_path: Pat
     err = _error_line(capsys)
     assert ("a 49-frame 16384x16384 video (sampling.num_frames/height/width) needs at least 147 GiB of memory, more "
             "than the 24 GiB of RAM") in err
-    generate_module.check_video_fits(load_config(preset="tiny"))  # the tiny preset fits
+    generation.check_generation(load_config(preset="tiny"), "a cat")  # the tiny preset fits
 
 
 def test_out_paths_that_cannot_be_written_are_one_line_before_loading(tmp_path: Path, capsys, monkeypatch,
@@ -249,19 +231,20 @@ def test_a_failed_sidecar_write_leaves_no_video_without_its_sidecar(tmp_path: Pa
     def full_disk(path, data):
         raise WriteError(f"cannot write {str(path)!r}: No space left on device")
 
-    monkeypatch.setattr(generate_module, "write_json_atomic", full_disk)
+    monkeypatch.setattr(generation, "write_json_atomic", full_disk)
     assert _run(tmp_path / "clip.mp4") == 2
-    assert "No space left on device" in _error_line(capsys)
+    loading, error = capsys.readouterr().err.strip().splitlines()  # the error follows the line of what loaded
+    assert loading.startswith("loading models: ") and error.startswith("error: ") and "No space left on device" in error
     assert list(tmp_path.iterdir()) == []
 
 
 def test_ctrl_c_is_one_line_and_exit_code_130(tmp_path: Path, capsys, monkeypatch):
-    def interrupted(cfg):
+    def interrupted(cfg, estimators=True):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(generate_module, "build_pipeline", interrupted)
+    monkeypatch.setattr(generation, "load_models", interrupted)
     assert _run(tmp_path / "clip.mp4") == 130
-    assert capsys.readouterr().err == "interrupted: nothing was written (outputs are written atomically)\n"
+    assert capsys.readouterr().err.splitlines()[-1] == "interrupted: nothing was written (outputs are written atomically)"
     assert list(tmp_path.iterdir()) == []
 
 
@@ -270,7 +253,7 @@ def test_ctrl_c_is_one_line_and_exit_code_130(tmp_path: Path, capsys, monkeypatc
     [
         ("ddim", "CogVideoXDDIMScheduler", "built from the checkpoint's CogVideoXDPMScheduler config"),
         ("dpm", "CogVideoXDPMScheduler", "sampling.scheduler=dpm, the checkpoint's"),
-        ("null", "CogVideoXDPMScheduler", "(the checkpoint's)"),
+        ("checkpoint", "CogVideoXDPMScheduler", "(the checkpoint's)"),
     ],
 )
 def test_scheduler_is_chosen_by_the_config_and_named_in_the_sidecar(choice, cls, note):
@@ -283,7 +266,7 @@ def test_scheduler_is_chosen_by_the_config_and_named_in_the_sidecar(choice, cls,
     cfg = load_config(preset="tiny", overrides=[f"sampling.scheduler={choice}"])
     pipe = tiny_pipeline(0)
     pipe.scheduler = CogVideoXDPMScheduler.from_config(pipe.scheduler.config)  # as CogVideoX-5B ships
-    text = choose_scheduler(pipe, cfg.sampling.scheduler)
+    text = choose_scheduler(pipe, cfg.sampling.scheduler, cfg.model.video_model)
     assert type(pipe.scheduler).__name__ == cls and text.startswith(cls) and note in text
     assert load_config(preset="cogvideox-5b").sampling.scheduler == "ddim"
     with pytest.raises(ValueError, match="sampling.scheduler"):
@@ -298,3 +281,18 @@ def test_guidance_the_call_would_refuse_is_one_line_before_loading(tmp_path: Pat
                                                                     message):
     assert main(["--preset", "tiny", "--prompt", "a cat", "--out", str(tmp_path / "out"), *overrides]) == 2
     assert message in _error_line(capsys)
+
+
+def test_guidance_over_no_valid_pixel_says_so_and_its_scores_are_nan_with_the_reason(tmp_path: Path, capsys):
+    # the tiny random segmenter masks about 96 % of every anchor frame: no frame keeps the 5 % a
+    # score needs, so each update measures nothing (loss 0, zero gradient), which must not read as perfect
+    out = tmp_path / "dog.mp4"
+    assert main(["--preset", "tiny", "--prompt", "a dog runs", "--dynamic", "a dog", "estimators.segmenter=tiny-random",
+                 "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "fused=nan motion=nan structure=nan" in captured.out
+    assert "(NaN: no frame kept 5% of its pixels valid outside the dynamic mask)" in captured.out
+    assert "guidance update(s) saw no valid pixel (everything masked or invalid: loss 0, zero gradient)" in captured.err
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert sidecar["geco_scores"]["fused"] is None and sidecar["geco_scores"]["nan_reason"].startswith("no frame kept")
+    assert all(record["valid_fraction"] == 0 for record in sidecar["guidance_log"])

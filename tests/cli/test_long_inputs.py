@@ -8,6 +8,7 @@ import json
 
 import pytest
 
+from geco_guide.estimators import Estimators
 from geco_guide.bench.synthetic import rigid_clip
 from geco_guide.cli import detection
 from geco_guide.config import load_config
@@ -36,7 +37,7 @@ def test_scoring_plan_counts_the_windows_and_the_motion_pairs():
 def test_evaluate_says_what_is_coming_and_max_frames_bounds_it():
     clip = rigid_clip(num_frames=9, height=32, width=48)
     frames = clip.frames.repeat(5, 1, 1, 1)  # 45 frames, 4.5 s at 10 fps: two windows
-    oracle = {"geometry_estimator": OracleGeometry(clip), "flow_estimator": OracleFlow(clip)}
+    oracle = {"estimators": Estimators(OracleGeometry(clip), OracleFlow(clip))}
     lines: list[str] = []
     full = evaluate_video(frames, fps=10, progress=lines.append, **oracle)
     plan = scoring_plan(45, 10.0, EvaluationConfig())

@@ -1,18 +1,17 @@
 """Checkpoint files that cannot be read (random bytes, empty, truncated) are one line naming the
-file, through the Python API and through every command that loads them: generate, the A/B script,
+file, through the Python API and through every command that loads them: generate, geco ab,
 GeCo-Eval and geco bench (tiny models, CPU; nothing here reaches the network)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import random
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 
+from geco_guide.cli import ab
 from geco_guide.cli.generate import main as generate_main
 from geco_guide.config import load_config
 from geco_guide.estimators import load_estimators
@@ -21,18 +20,8 @@ from geco_guide.estimators.tiny_decoder import TinyDecoder
 from geco_guide.estimators.ufm import UFM, UFMConfig
 from geco_guide.estimators.vggt import VGGT, VGGTConfig
 
-REPO = Path(__file__).resolve().parents[2]
 
 
-def _script(name: str, path: Path):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
-ab = _script("ab_compare_corrupt", REPO / "scripts" / "ab_compare.py")
 
 
 def _truncated(path: Path) -> Path:

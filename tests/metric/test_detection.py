@@ -5,6 +5,7 @@ import json
 import pytest
 import torch
 
+import geco_guide.estimators as estimators_package
 from geco_guide.bench.ranking import average_precision
 from geco_guide.bench.synthetic import occlusion_swap_clip, rigid_clip, with_warp
 from geco_guide.bench.warp import WarpParams, warp_one_frame
@@ -111,7 +112,7 @@ def test_existing_outputs_are_refused_before_loading_unless_overwrite(tmp_path, 
         raise AssertionError("estimators were loaded")
 
     with monkeypatch.context() as patch:
-        patch.setattr(detection, "load_estimators", refuse)
+        patch.setattr(estimators_package, "load_estimators", refuse)
         assert _detect(video, "--out", out, "--format", "png") == 2
         err = capsys.readouterr().err.strip()
         assert err == (f"error: {str(out / 'clip.detection')!r} already exists; pass --overwrite to replace it, "
@@ -140,7 +141,9 @@ def test_ctrl_c_is_one_line_and_exit_code_130(tmp_path, capsys, monkeypatch):
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(detection, "detection_maps", interrupted)
+    from geco_guide.metric import detection as detection_metric
+
+    monkeypatch.setattr(detection_metric, "detection_maps", interrupted)
     assert _detect(_clip(tmp_path / "clip.mp4"), "--out", tmp_path / "maps") == 130
     err = capsys.readouterr().err.splitlines()
     assert err[-1] == "interrupted: the videos already done keep their outputs (each .detection.json is written last)"
@@ -155,7 +158,7 @@ def test_an_fps_the_gif_writer_cannot_take_is_one_line_before_any_map(tmp_path, 
     def refuse(*args, **kwargs):
         raise AssertionError("models were loaded")
 
-    monkeypatch.setattr(detection, "load_estimators", refuse)
+    monkeypatch.setattr(estimators_package, "load_estimators", refuse)
     assert detection.main([str(video), "--out", str(tmp_path / "out"), "--format", "gif", "--fps", "1e-300"]) == 2
     err = capsys.readouterr().err.strip()
     assert err == "error: fps must be in [0.01, 100] for a gif video, got 1e-300"

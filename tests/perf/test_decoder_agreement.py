@@ -78,7 +78,7 @@ def test_rows_of_loaded_models_leave_them_as_they_were():
     decoder = T.tiny_guidance_decoder("cogvideox")
     cfg = load_config(preset="tiny", overrides=["guidance.repeats=0x3,1x1"])
     models = Models(LoadedPipeline(pipe, cfg.model.video_model, "the tiny pipeline's"),
-                    T.tiny_bundle(0, tiny_decoder=decoder))
+                    T.tiny_estimators(0, tiny_decoder=decoder))
     sample(models, cfg, "a marble bust", progress=False)  # an unwatched call: the pipeline's own per-call state
     state = (set(pipe.__dict__), set(pipe.scheduler.__dict__), [p.requires_grad for p in decoder.parameters()])
     rows = agreement_rows(models, cfg, "a marble bust")

@@ -28,7 +28,7 @@ from geco_guide.sampler.step import loss_terms
 from geco_guide.tiny import (
     TINY_CALL_KWARGS,
     TINY_NUM_FRAMES,
-    tiny_bundle,
+    tiny_estimators,
     tiny_guidance_config,
     tiny_pipeline,
     tiny_run_options,
@@ -36,7 +36,7 @@ from geco_guide.tiny import (
 
 CHUNKS = anchor_latent_chunks([4, 8, 12, 16], 17, 4, 3)
 EXPLICIT_BATCHED = explicit_plan(RunOptions(vae_checkpointing=False))
-ESTIMATORS = tiny_bundle(0)
+ESTIMATORS = tiny_estimators(0)
 
 
 @pytest.fixture(scope="module")

@@ -12,10 +12,10 @@ from geco_guide.sampler.config import GuidanceConfig
 from geco_guide.sampler.multi_device import module_replicas, resolve_devices
 from geco_guide.sampler.run_options import RunOptions
 from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across
-from geco_guide.tiny import TINY_CALL_KWARGS, tiny_bundle, tiny_call_kwargs, tiny_guidance_config, tiny_pipeline, \
+from geco_guide.tiny import TINY_CALL_KWARGS, tiny_estimators, tiny_call_kwargs, tiny_guidance_config, tiny_pipeline, \
     tiny_run_options
 
-ESTIMATORS = tiny_bundle(0)
+ESTIMATORS = tiny_estimators(0)
 
 
 def test_chunks_are_dealt_round_robin_and_only_anchor_frames_come_back():

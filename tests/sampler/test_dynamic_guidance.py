@@ -21,7 +21,7 @@ PROMPT = "a dog on a lawn"
 GUIDED_STEPS, UPDATES = 3, 5
 #: The keys of a guidance-log record without masks (as before masks existed).
 RECORD_KEYS = {"step", "repeat", "t", "loss", "motion", "structure", "fused", "grad_norm", "seconds", "time_travel",
-               "skipped"}
+               "skipped", "valid_fraction"}
 
 
 class LeftHalf:
@@ -121,8 +121,14 @@ def test_mask_options_that_cannot_work_fail_before_any_denoising(estimators):
     with pytest.raises(ValueError, match="the segmenter must make a DynamicMaskSource"):
         run_tiny(pipe, estimators.with_segmenter(lambda subjects: not_a_source), guidance={"dynamic": "a dog"})
     # the masks come from the estimators' segmenter: the call has no argument of its own for them
-    with pytest.raises(TypeError, match="dynamic_masks"):
+    with pytest.raises(TypeError, match=r"^GeCoCogVideoXPipeline\(dynamic_masks=...\) is the earlier spelling: name "
+                                        r"what moves in guidance="):
         run_tiny(pipe, estimators, guidance={"dynamic": "a dog"}, dynamic_masks=LeftHalf())
+    with pytest.raises(TypeError, match=r"^GeCoCogVideoXPipeline\(geometry_estimator=...\) is the earlier spelling: "
+                                        r"pass the models as one estimators=Estimators\(geometry, flow\)"):
+        run_tiny(pipe, estimators, geometry_estimator=estimators.geometry)
+    with pytest.raises(TypeError, match=r"^GeCoCogVideoXPipeline\(\) got an unexpected keyword argument 'num_frame'"):
+        run_tiny(pipe, estimators, num_frame=9)
     assert steps == []
     with pytest.raises(TypeError, match=r"attach_geco_guidance\(dynamic_masks=...\) is the earlier spelling: the "
                                         r"segmenter is Estimators\(..., segmenter=...\)"):
@@ -140,7 +146,7 @@ def test_without_dynamic_the_video_its_name_and_log_stay_as_before(estimators):
     # sampling.guidance_scale_2: before, 21df29c8 and e56702e3; before the run options left the key
     # and eta became step_size, 61238450 and 3e3f47ff).
     assert default_name(load_config(preset="tiny"), "a marble bust") == "a-marble-bust-37535cc1-seed0"
-    assert default_name(load_config(preset="cogvideox-5b"), "a marble bust") == "a-marble-bust-277a1817-seed0"
+    assert default_name(load_config(preset="cogvideox-5b"), "a marble bust") == "a-marble-bust-940e6926-seed0"
     pipe = T.tiny_pipeline(0)
     before = run_tiny(pipe, estimators)
     unused = LeftHalf()

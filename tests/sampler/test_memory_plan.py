@@ -30,7 +30,7 @@ from geco_guide.sampler.slicing import (
     decode_anchor_frames,
     decode_chunk,
 )
-from geco_guide.tiny import TINY_CALL_KWARGS, tiny_bundle, tiny_pipeline, tiny_run_options
+from geco_guide.tiny import TINY_CALL_KWARGS, tiny_estimators, tiny_pipeline, tiny_run_options
 
 PROMPT = "a marble bust on a table"
 #: Two guided steps, one update each: short, and the second update runs after the first's plan.
@@ -38,7 +38,7 @@ SCHEDULE = {"repeats": "0x1,1x2,0x1", "time_travel": []}
 #: Today's default (GuidanceConfig(), the paper's preset): the chunks decoded one at a time in
 #: checkpointed regions, with the VAE's block checkpointing, the denoiser checkpointed.
 EXPLICIT_DEFAULT = {"memory_plan": "explicit", "vae_checkpointing": True, "gradient_checkpointing": True}
-ESTIMATORS = tiny_bundle(0)
+ESTIMATORS = tiny_estimators(0)
 
 
 @pytest.fixture(scope="module")

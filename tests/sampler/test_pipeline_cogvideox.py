@@ -16,7 +16,7 @@ from geco_guide.sampler.step import guided_step, loss_terms, score_anchor_frames
 from geco_guide.tiny import (
     TINY_ANCHORS,
     TINY_CALL_KWARGS,
-    tiny_bundle,
+    tiny_estimators,
     tiny_cogvideox_components,
     tiny_guidance_decoder,
     tiny_pipeline,
@@ -26,7 +26,7 @@ from geco_guide.tiny import (
 PROMPT = "a marble bust on a table"
 
 
-ESTIMATORS = tiny_bundle(0)
+ESTIMATORS = tiny_estimators(0)
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,7 @@ from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 from geco_guide.loss.presets import fused_guidance_loss
 from geco_guide.tiny import (
-    tiny_bundle,
+    tiny_estimators,
     TINY_CALL_KWARGS,
     TinySizes,
     tiny_cogvideox_components,
@@ -61,7 +61,7 @@ def call(pipe, seed=0, **kwargs):
     """A call of ``pipe``; ours with the tiny estimators and run options unless told otherwise."""
     args = dict(TINY_CALL_KWARGS, output_type="latent")
     if isinstance(pipe, GeCoCogVideoXPipeline):
-        args.update(estimators=tiny_bundle(0), run_options=tiny_run_options())
+        args.update(estimators=tiny_estimators(0), run_options=tiny_run_options())
     args.update(kwargs)
     return pipe(PROMPT, generator=torch.Generator().manual_seed(seed), **args)
 

@@ -22,6 +22,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from geco_guide.cli import ab
 from geco_guide.cli import generate as generate_module
 from geco_guide.config import CONFIG_DIR, load_config, preset_path
 from geco_guide.estimators.tiny_decoder import TinyDecoder
@@ -29,8 +30,6 @@ from geco_guide.estimators.ufm import UFM
 from geco_guide.estimators.vggt import VGGT
 from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 from geco_guide.tiny import tiny_cogvideox_components, tiny_estimators
-
-from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
@@ -71,9 +70,9 @@ def local_weights(tmp_path_factory) -> dict[str, str]:
 
     components["scheduler"] = CogVideoXDPMScheduler.from_config(components["scheduler"].config)
     GeCoCogVideoXPipeline(**components).save_pretrained(root / "CogVideoX-5b")
-    geometry, flow = tiny_estimators(0)
-    geometry.save_pretrained(root / "VGGT-1B")
-    flow.save_pretrained(root / "UFM-Base")
+    tiny = tiny_estimators(0)
+    tiny.geometry.save_pretrained(root / "VGGT-1B")
+    tiny.flow.save_pretrained(root / "UFM-Base")
     return {"model": str(root / "CogVideoX-5b"), "geometry": str(root / "VGGT-1B"), "flow": str(root / "UFM-Base")}
 
 
@@ -83,8 +82,8 @@ def weights_overrides(weights: dict[str, str]) -> list[str]:
 
 
 def test_estimators_round_trip_through_save_pretrained_with_their_config(tmp_path):
-    geometry, flow = tiny_estimators(3)
-    for model, cls in ((geometry, VGGT), (flow, UFM)):
+    tiny = tiny_estimators(3)
+    for model, cls in ((tiny.geometry, VGGT), (tiny.flow, UFM)):
         folder = model.save_pretrained(tmp_path / cls.model_name)
         assert sorted(p.name for p in folder.iterdir()) == ["config.json", "model.safetensors"]
         # no config= given: the folder's config.json says it is a tiny model, not the default 1B
@@ -179,15 +178,14 @@ def test_the_memory_planner_resolves_auto_and_refuses_a_missing_device():
             plan_before_loading(paper_guidance_config(), RunOptions(), "THUDM/CogVideoX-5b", 49, 480, 720, "cuda")
 
 
-def test_the_ab_script_runs_the_paper_preset_from_local_folders(local_weights, tmp_path, capsys):
+def test_geco_ab_runs_the_paper_preset_from_local_folders(local_weights, tmp_path, capsys):
     prompts = tmp_path / "prompts.txt"
     prompts.write_text(PROMPT + "\n")
     out = tmp_path / "ab"
     # the runner's own path (pairs, run.json, scores, report) is what this adds to the generate tests,
     # which run the shipped schedule: 10 steps, the preset's repeats and time travel scaled to them
-    rc = load_script("ab_compare.py").main(["--prompts", str(prompts), "--seeds", "0", "--out", str(out),
-                                  "--preset", "cogvideox-5b", *weights_overrides(local_weights), *SMALL_VIDEO,
-                                  "sampling.num_inference_steps=10"])
+    rc = ab.main(["--prompts", str(prompts), "--seeds", "0", "--out", str(out), "--preset", "cogvideox-5b",
+                  *weights_overrides(local_weights), *SMALL_VIDEO, "sampling.num_inference_steps=10"])
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     run = json.loads((out / "run.json").read_text())
@@ -213,9 +211,9 @@ def test_geco_eval_runs_cogvideox_5b_from_local_folders(local_weights, tmp_path,
 
 
 OFFLINE_DRIVER = textwrap.dedent("""
-    import contextlib, importlib.util, io, json, pathlib, sys, traceback
+    import contextlib, io, json, sys, traceback
     root, out, video, decoder = sys.argv[1:]
-    sys.path.insert(0, root)  # the checkout's package, wherever the driver runs
+    sys.path.insert(0, root)  # this checkout's package, wherever the driver runs, not an installed one
     sys.argv = ["driver"]
     results = []
     def run(name, main, argv):
@@ -229,13 +227,7 @@ OFFLINE_DRIVER = textwrap.dedent("""
         except BaseException:
             rc, err = "traceback", io.StringIO(traceback.format_exc())
         results.append({"name": name, "rc": rc, "err": err.getvalue()})
-    def script(path):
-        spec = importlib.util.spec_from_file_location(path.stem.replace("-", "_"), path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module
-        spec.loader.exec_module(module)
-        return module
-    from geco_guide.cli import evaluate, generate, geco_eval
+    from geco_guide.cli import ab, evaluate, generate, geco_eval
     prompt = ["--prompt", "a stone bridge over a river, slow orbit"]
     run("generate", generate.main, ["--preset", "cogvideox-5b", *prompt, "--out", out + "/g.mp4"])
     run("generate --no-guidance", generate.main, ["--preset", "cogvideox-5b", "--no-guidance", *prompt, "--out", out + "/u.mp4"])
@@ -244,8 +236,7 @@ OFFLINE_DRIVER = textwrap.dedent("""
     run("geco_eval", geco_eval.main, ["--models", "cogvideox-5b", "--limit", "1", "--seeds", "0", "--out", out + "/bench"])
     prompts = out + "/prompts.txt"
     open(prompts, "w").write("a stone bridge over a river, slow orbit\\n")
-    ab = script(pathlib.Path(root) / "scripts" / "ab_compare.py")
-    run("ab_compare", ab.main, ["--prompts", prompts, "--seeds", "0", "--out", out + "/ab", "--preset", "cogvideox-5b"])
+    run("ab", ab.main, ["--prompts", prompts, "--seeds", "0", "--out", out + "/ab", "--preset", "cogvideox-5b"])
     from geco_guide.cli import bench
     run("bench decoder-agreement", bench.main, ["decoder-agreement", "--preset", "cogvideox-5b",
                                                 "estimators.tiny_decoder=" + decoder])
@@ -270,7 +261,7 @@ def test_offline_without_weights_every_command_with_a_real_preset_is_the_missing
     assert done.returncode == 0, done.stderr[-3000:]
     results = json.loads(done.stdout.strip().splitlines()[-1])
     assert [r["name"] for r in results] == ["generate", "generate --no-guidance", "generate fused", "evaluate",
-                                            "geco_eval", "ab_compare", "bench decoder-agreement"]
+                                            "geco_eval", "ab", "bench decoder-agreement"]
     for result in results:
         lines = [line for line in result["err"].splitlines() if line.strip()]
         assert result["rc"] == 2, result

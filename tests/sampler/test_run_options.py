@@ -16,10 +16,10 @@ from geco_guide.config import config_to_dict, load_config
 from geco_guide.generation import default_name, video_key
 from geco_guide.sampler.config import GuidanceConfig
 from geco_guide.sampler.run_options import FRAME_ROUNDING_KEYS, RUN_KEYS, RunOptions, resolve_call_options
-from geco_guide.tiny import TINY_CALL_KWARGS, tiny_bundle, tiny_pipeline, tiny_run_options
+from geco_guide.tiny import TINY_CALL_KWARGS, tiny_estimators, tiny_pipeline, tiny_run_options
 
 PROMPT = "a marble bust on a table"
-ESTIMATORS = tiny_bundle(0)
+ESTIMATORS = tiny_estimators(0)
 
 
 def one_line(err) -> str:
