@@ -173,11 +173,11 @@ def foreign_video(sidecar_path: Path, cfg: GeCoConfig, pair: Pair, arm: str) -> 
 
 
 def local_card(cfg: GeCoConfig) -> str | None:
-    """The card of :data:`~geco_guide.perf.cost.GPU_SPECS` that ``model.device`` is, or None (a CPU,
+    """The card of :data:`~geco_guide.perf.cards.GPU_SPECS` that ``model.device`` is, or None (a CPU,
     or a GPU the cost model does not know)."""
     import torch
 
-    from ..perf.cost import GPU_SPECS
+    from ..perf.cards import GPU_SPECS
 
     device = resolve_device(cfg.model.device)
     if device.type != "cuda":
@@ -190,22 +190,25 @@ def local_card(cfg: GeCoConfig) -> str | None:
 def predicted_ratio(cfg: GeCoConfig, gpu: str) -> float:
     """The guided / unguided sampling time ratio the cost model predicts for ``cfg``'s model, video
     size, steps, schedule, mode and anchor decoder on ``gpu``, under the memory plan
-    ``memory_plan=auto`` picks for the card (as ``geco bench cost --gpu``)."""
+    ``memory_plan=auto`` picks for the card (as ``geco bench cost --gpu``). The model is the
+    registry's ``model.name`` (whatever folder holds its weights), or the tiny models."""
+    from ..estimators import TINY_RANDOM
     from ..perf.cost import cost_report, cost_settings
     from ..perf.plans import KNOWN_MODELS, card_plan
 
-    preset = next((known["preset"] for known in KNOWN_MODELS.values() if cfg.model.id in known["model_ids"]), None)
-    if preset is None:
-        ids = ", ".join(model_id for known in KNOWN_MODELS.values() for model_id in known["model_ids"])
-        raise InputError(f"--best-of matched: the cost model knows the models {ids}, not model.id {cfg.model.id!r}; "
-                         "pass an integer --best-of N")
-    s, guidance = cfg.sampling, cfg.guidance
+    key = "tiny" if cfg.model.id == TINY_RANDOM and cfg.model.name == KNOWN_MODELS["tiny"]["family"] else cfg.model.name
+    if key not in KNOWN_MODELS:
+        traced = ", ".join(name for name in KNOWN_MODELS if name != "tiny")
+        raise InputError(f"--best-of matched: the cost model does not trace {cfg.model.name!r} (it traces {traced} "
+                         "and the tiny models); pass an integer --best-of N")
+    known, s, guidance = KNOWN_MODELS[key], cfg.sampling, cfg.guidance
     mode = "faithful" if guidance.denoiser_grad else "fast"
-    card = card_plan(gpu, mode, guidance.decoder, s.num_frames, s.height, s.width)
+    card = card_plan(gpu, mode, guidance.decoder, s.num_frames, s.height, s.width, model=key)
     if card["plan"] is None:
         raise InputError(f"--best-of matched: no guided run of this config fits the {gpu}: {card['reason']}")
-    settings = cost_settings(preset=preset, steps=s.num_inference_steps, frames=s.num_frames, height=s.height,
-                             width=s.width, dtype=None, decoder=guidance.decoder, plan=card["plan"])
+    settings = cost_settings(preset=known["preset"], model=known["model"] or known["family"],
+                             steps=s.num_inference_steps, frames=s.num_frames, height=s.height, width=s.width,
+                             dtype=None, decoder=guidance.decoder, plan=card["plan"])
     settings.update(repeats=guidance.repeats, time_travel=list(guidance.time_travel or []) or None)
     return float(cost_report(settings, mode)["roofline"]["ratio_guided_over_unguided"][gpu])
 
@@ -213,7 +216,7 @@ def predicted_ratio(cfg: GeCoConfig, gpu: str) -> float:
 def choose_best_of(value: str | None, gpu: str | None, cfg: GeCoConfig, seeds: Sequence[int]) -> BestOf | None:
     """The best-of arm ``--best-of`` and ``--gpu`` ask for (None: no best-of arm); one
     :class:`InputError` line for a bad value, before anything is generated."""
-    from ..perf.cost import GPU_SPECS
+    from ..perf.cards import GPU_SPECS
 
     if gpu is not None and gpu not in GPU_SPECS:
         raise InputError(f"--gpu must be one of {', '.join(GPU_SPECS)}, got {gpu!r}")

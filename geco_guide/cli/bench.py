@@ -34,10 +34,8 @@ import sys
 from typing import Any
 
 from ..families.published import traced_models
-from ..loss.pair_modes import PAIR_MODES
 from ..perf.cards import GPU_SPECS, H200_UNGUIDED_STEP_S
-from ..perf.choices import NOMINAL_STEPS, RSS_EXACT_MMAP_THRESHOLD, SAMPLING_MODES
-from .kit import Parser, command_main, interruptible, print_error
+from .kit import Parser, check_choice, command_main, interruptible, print_error
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 
@@ -50,6 +48,9 @@ AGREEMENT_PROMPT = "a marble bust on a wooden table, the camera orbiting it slow
 SUBCOMMANDS = ("loss", "estimators", "vae", "sampling", "cost", "plans", "decoder-agreement", "geco-eval")
 #: Named memory plans and anchor decoders, checked in :func:`run` (their lists live with torch).
 CHECKED_LATER = "checked before any work"
+#: faithful: backpropagate through the denoiser (the paper); fast: its output held constant;
+#: unguided: no guidance.
+SAMPLING_MODES = ("faithful", "fast", "unguided")
 
 
 class BadOption(ValueError):
@@ -100,8 +101,8 @@ def _json(parser: argparse.ArgumentParser, what: str = "also write the report as
 
 def _rss_exact(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rss-exact", action="store_true",
-                        help="CPU memory: run the workers with glibc's MALLOC_MMAP_THRESHOLD_="
-                             f"{RSS_EXACT_MMAP_THRESHOLD}, so that freed tensors leave the resident set at once "
+                        help="CPU memory: run the workers with a small glibc MALLOC_MMAP_THRESHOLD_ (64 KiB), "
+                             "so that freed tensors leave the resident set at once "
                              "and peak RSS follows the live tensors (slower: every allocation maps fresh pages)")
 
 
@@ -122,7 +123,8 @@ def _micro(sub: Any) -> None:
     loss.add_argument("--frames", type=frame_count, default=4, help="frames S (default: 4)")
     loss.add_argument("--height", type=positive_int, default=480, help="frame height (default: 480)")
     loss.add_argument("--width", type=positive_int, default=720, help="frame width (default: 720)")
-    loss.add_argument("--pairs", choices=PAIR_MODES, default="adjacent", help="frame pairs (default: adjacent)")
+    loss.add_argument("--pairs", default="adjacent", metavar="MODE",
+                      help=f"frame pairs: adjacent (default), center or all ({CHECKED_LATER})")
     _common(loss, repeats=3)
 
     est = sub.add_parser("estimators", help="VGGT and UFM forward / forward+backward w.r.t. the frames")
@@ -165,8 +167,8 @@ def _sampling(sub: Any) -> None:
                       help="faithful: backprop through the denoiser (paper); fast: denoiser output held "
                            "constant; unguided: only the unguided arm (default: faithful)")
     samp.add_argument("--steps", type=int, default=None,
-                      help=f"denoising steps run (default {NOMINAL_STEPS}); fewer scale the paper schedule "
-                           f"and extrapolate the times to {NOMINAL_STEPS} steps")
+                      help="denoising steps run (default: the paper's 50); fewer scale the paper schedule "
+                           "and extrapolate the times to 50 steps")
     samp.add_argument("--frames", type=positive_int, default=None, help="frames (default: 17 tiny, 49 full size)")
     samp.add_argument("--height", type=positive_int, default=None,
                       help="height, a multiple of 16 (default: 32 tiny, 480 full size)")
@@ -287,7 +289,7 @@ def _others(sub: Any) -> None:
     geval.add_argument("--fps", type=positive_float, default=16.0, help="its native frame rate (default: 16, CogVideoX)")
     geval.add_argument("--height", type=positive_int, default=32, help="height of the tiny run (default: 32)")
     geval.add_argument("--width", type=positive_int, default=48, help="width of the tiny run (default: 48)")
-    geval.add_argument("--pairs", nargs="+", choices=PAIR_MODES, default=["all", "center", "adjacent"],
+    geval.add_argument("--pairs", nargs="+", default=["all", "center", "adjacent"], metavar="MODE",
                        help="the frame pairs of each window to estimate, one row each (default: all center adjacent)")
     geval.add_argument("--videos", type=positive_int, default=320,
                        help="videos per model (default: 320 = 80 prompts x 4 seeds)")
@@ -421,7 +423,11 @@ def check_options(args: argparse.Namespace) -> None:
         reason = unwritable_reason(args.json)
         if reason:
             raise BadOption(f"--json: {reason}")
-    if args.command == "vae":
+    if args.command in ("loss", "geco-eval"):
+        from ..loss.geco import PAIR_MODES
+
+        check_choice("--pairs", args.pairs, PAIR_MODES)
+    elif args.command == "vae":
         _check_frames(args.frames, guided=False)
         _check_sides(args.height, args.width, VAE_SIDE_MULTIPLE)
     elif args.command == "sampling":
@@ -437,6 +443,7 @@ def _check_sampling(args: argparse.Namespace) -> None:
 
     from ..sampler.memory_plan import PLAN_NAMES
     from ..sampler.multi_device import resolve_devices
+    from ..sampler.schedule import PAPER_STEPS
 
     if args.memory_plan not in PLAN_NAMES:
         raise BadOption(f"--memory-plan must be one of {', '.join(PLAN_NAMES)}, got {args.memory_plan!r}")
@@ -446,8 +453,8 @@ def _check_sampling(args: argparse.Namespace) -> None:
         raise BadOption("sampling --full-size on CPU is refused: CogVideoX-5B + VGGT-1B + UFM-Base weights alone are "
                         "about 30 GiB in float32 (7.4 G parameters) and a 49x480x720 step would take hours; run it on "
                         "a GPU (--device cuda) or pass --allow-cpu to insist.")
-    if args.steps is not None and not 1 <= args.steps <= NOMINAL_STEPS:
-        raise BadOption(f"--steps must be in [1, {NOMINAL_STEPS}], got {args.steps}")
+    if args.steps is not None and not 1 <= args.steps <= PAPER_STEPS:
+        raise BadOption(f"--steps must be in [1, {PAPER_STEPS}], got {args.steps}")
     if args.frames is not None:
         _check_frames(args.frames, guided=args.mode != "unguided")
     _check_sides(args.height, args.width, PIPELINE_SIDE_MULTIPLE)

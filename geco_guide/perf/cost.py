@@ -22,7 +22,7 @@ from typing import Any
 import torch
 
 from ..families import default_anchors
-from .choices import NOMINAL_STEPS
+from ..sampler.schedule import PAPER_STEPS
 from .cards import GPU_SPECS, H200_UNGUIDED_STEP_S, INTERCONNECT_BYTES_PER_S
 from .full_size import CALIBRATION_MODEL, model_video, text_embed_shape
 from .measure import GIB, environment_info
@@ -144,7 +144,7 @@ def cost_settings(*, preset: str, steps: int | None, frames: int | None, height:
         base = tiny_guidance_config()
         schedule = {"steps": 4, "repeats": base.repeats, "time_travel": base.time_travel, "guidance_scale": 6.0}
         if paper_schedule:
-            schedule.update(steps=NOMINAL_STEPS, repeats=PAPER_REPEATS, time_travel=list(PAPER_TIME_TRAVEL))
+            schedule.update(steps=PAPER_STEPS, repeats=PAPER_REPEATS, time_travel=list(PAPER_TIME_TRAVEL))
         dtype, model = dtype or "float32", None
     else:
         video, schedule = model_video(model), model_schedule(model)

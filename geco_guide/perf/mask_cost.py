@@ -9,7 +9,7 @@ import torch
 
 from ..sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
 from .cards import GPU_SPECS, H200_UNGUIDED_STEP_S
-from .choices import NOMINAL_STEPS
+from ..sampler.schedule import PAPER_STEPS
 from .cost import calibration_call_roofline_s
 from .tracing import CostTracker
 
@@ -64,7 +64,7 @@ MOVERS_FIT_S = 0.754
 MOVERS_UPDATE_S = 0.657 - 0.482
 
 
-def dynamic_mask_costs(num_steps: int = NOMINAL_STEPS, refresh: int = 1) -> dict[str, Any]:
+def dynamic_mask_costs(num_steps: int = PAPER_STEPS, refresh: int = 1) -> dict[str, Any]:
     """The predicted overhead of ``guidance.dynamic`` on the paper's schedule of ``num_steps``
     steps with masks refreshed every ``refresh``-th guided step: per refresh, per whole run and
     per update, for SAM 3 (:func:`sam3_refresh_cost`, per card) and the automatic masks

@@ -24,12 +24,14 @@ from typing import Any
 import torch
 
 from ..io.files import write_json_atomic
-from .choices import RSS_EXACT_MMAP_THRESHOLD
 
 __all__ = ["CASE_COLUMNS", "GIB", "MIB", "current_memory_bytes",
            "environment_info", "markdown_table", "memory_kind", "peak_memory_bytes", "reset_peak_memory",
            "run_case_subprocess", "run_cases", "synchronize", "time_callable", "unwritable_reason",
            "write_report"]
+
+#: ``--rss-exact``: allocations from 64 KiB up are mapped on their own and unmapped when freed.
+RSS_EXACT_MMAP_THRESHOLD = 64 * 1024
 
 logger = logging.getLogger(__name__)
 

@@ -30,6 +30,7 @@ from ..sampler.memory_plan import PLANS, choose_plan
 from ..sampler.run_options import RunOptions
 from .cards import GPU_SPECS, card_memory_gib
 from .cost import cost_report, cost_settings
+from .full_size import CALIBRATION_MODEL
 from .measure import GIB
 from .tracing import cost_guidance, trace_cost
 
@@ -45,11 +46,11 @@ HUB_ALIASES = {"cogvideox-5b": ["zai-org/CogVideoX-5b"]}
 def _known_models() -> dict[str, dict[str, Any]]:
     known = {name: {"preset": "full", "model": name,
                     "model_ids": [model_named(name).hub_id, *HUB_ALIASES.get(name, [])]} for name in traced_models()}
-    return {**known, "tiny": {"preset": "tiny", "model": None, "model_ids": [TINY_RANDOM]}}
+    return {**known, "tiny": {"preset": "tiny", "model": None, "family": CALIBRATION_MODEL, "model_ids": [TINY_RANDOM]}}
 
 
-#: The models the estimates know: the cost preset and registry model that build each, and the hub
-#: ids that name it (so that a command line can check a budget before any model loads).
+#: The models the estimates know: the cost preset and registry model that build each (the tiny
+#: models: CogVideoX's stand-ins, ``family``), and the hub ids that name it (so that a command line can check a budget before any model loads).
 KNOWN_MODELS: dict[str, dict[str, Any]] = _known_models()
 MODES = ("fast", "faithful")
 ANCHOR_DECODERS = ("vae", "tiny")
@@ -160,7 +161,7 @@ def seconds_text(seconds: float) -> str:
 
 
 def _settings(known: dict[str, Any], decoder: str, plan: str) -> dict[str, Any]:
-    return cost_settings(preset=known["preset"], model=known["model"] or "cogvideox-5b", steps=None, frames=None,
+    return cost_settings(preset=known["preset"], model=known["model"] or known["family"], steps=None, frames=None,
                          height=None, width=None, dtype=None, decoder=decoder, plan=plan)
 
 

@@ -33,7 +33,7 @@ from ..sampler.schedule import (
     parse_repeats,
     scale_schedule,
 )
-from .choices import NOMINAL_STEPS
+from ..sampler.schedule import PAPER_STEPS
 from .full_size import CALIBRATION_MODEL, build_full_size_components, model_video, text_encoder_stand_in
 from .measure import (
     GIB,
@@ -247,7 +247,7 @@ def sampling_spec(*, full_size: bool, mode: str, steps: int | None, frames: int 
     else:
         video = model_video(CALIBRATION_MODEL)
     video.update({k: v for k, v in (("frames", frames), ("height", height), ("width", width)) if v is not None})
-    steps = NOMINAL_STEPS if steps is None else steps  # 0 is an error, not the default
+    steps = PAPER_STEPS if steps is None else steps  # 0 is an error, not the default
     dtype = dtype or ("bfloat16" if preset == "full-size" and torch.device(device).type == "cuda" else "float32")
     return {"workload": "sampling", "preset": preset, "mode": mode, "steps": steps, **video,
             "device": device, "dtype": dtype, "threads": threads, "seed": seed,
@@ -271,7 +271,7 @@ def sampling_report(spec: dict[str, Any], worker: Sequence[str], argv: Sequence[
         arms[arm] = run_case_subprocess(case, worker)
         logger.info("  wall %.4g s, peak %.3f GiB", arms[arm]["wall_s"], arms[arm]["peak_memory_gb"])
 
-    extrapolated = steps < NOMINAL_STEPS
+    extrapolated = steps < PAPER_STEPS
     paper_updates = sum(parse_repeats(PAPER_REPEATS))
     guided = arms.get("guided")
     main_arm = guided or arms["unguided"]
@@ -283,7 +283,7 @@ def sampling_report(spec: dict[str, Any], worker: Sequence[str], argv: Sequence[
         "mode": mode,
         "preset": preset,
         "steps": steps,
-        "nominal_steps": NOMINAL_STEPS,
+        "nominal_steps": PAPER_STEPS,
         "extrapolated": extrapolated,
         "config": {**video, "dtype": spec["dtype"], "seed": spec["seed"], "warmup": spec["warmup"],
                    "guidance_scale": 6.0, "estimator_checkpointing": spec["estimator_checkpointing"],
@@ -305,10 +305,10 @@ def sampling_report(spec: dict[str, Any], worker: Sequence[str], argv: Sequence[
     if guided:
         ratio = guided["wall_s"] / arms["unguided"]["wall_s"]
     if extrapolated:
-        ext = {arm: extrapolate_arm(r, NOMINAL_STEPS, paper_updates if arm == "guided" else 0)
+        ext = {arm: extrapolate_arm(r, PAPER_STEPS, paper_updates if arm == "guided" else 0)
                for arm, r in arms.items()}
         report["extrapolated_to_nominal"] = {
-            "note": f"per-step and per-update times of the {steps}-step run scaled to {NOMINAL_STEPS} steps "
+            "note": f"per-step and per-update times of the {steps}-step run scaled to {PAPER_STEPS} steps "
                     f"and the paper's {paper_updates} guided updates (not measured)",
             "wall_time_s": {arm: e["wall_s"] for arm, e in ext.items()},
             "time_per_step_s": {arm: e["time_per_step_s"] for arm, e in ext.items()},

@@ -33,6 +33,8 @@ class ScheduleScaledWarning(UserWarning):
 # One config is often checked more than once before a run (config, then pipeline): say it once.
 warnings.filterwarnings("once", category=ScheduleScaledWarning)
 
+#: The paper's denoising steps, the count its schedule is written for.
+PAPER_STEPS = 50
 PAPER_REPEATS = "0x3,3x17,2x30"
 PAPER_STEP_SIZE = 3.0
 PAPER_TIME_TRAVEL = (15, 20)

@@ -772,9 +772,17 @@ def test_the_local_gpu_names_the_card_matched_predicts_for(name, card, monkeypat
 
 
 def test_matched_for_a_model_the_cost_model_does_not_know_is_refused():
-    cfg = load_config(preset="tiny", overrides=["model.id=my/model"])
-    with pytest.raises(core.InputError, match="not model.id 'my/model'; pass an integer --best-of N"):
+    cfg = load_config(preset="hunyuanvideo-1.5", overrides=["model.id=my/model"])
+    with pytest.raises(core.InputError, match="does not trace 'hunyuanvideo-1.5' .*; pass an integer --best-of N"):
         ab_arms.choose_best_of("matched", "H200", cfg, [0])
+
+
+@pytest.mark.slow
+def test_matched_predicts_for_another_family_from_its_published_configs():
+    """Wan 2.1 1.3B's preset: N from a trace of its own denoiser and VAE (fake tensors)."""
+    torch.set_num_threads(1)
+    best_of = ab_arms.choose_best_of("matched", "H200", load_config(preset="wan2.1-t2v-1.3b"), [0])
+    assert best_of.gpu == "H200" and best_of.n == max(2, round(best_of.predicted_ratio)) and best_of.predicted_ratio > 1
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")

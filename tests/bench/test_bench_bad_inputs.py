@@ -126,7 +126,9 @@ def test_validate_interrupted_says_what_was_kept(clips, tmp_path, monkeypatch, c
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(validate_cli, "score_frames", interrupt)
+    from geco_guide.metric import evaluate as metric_evaluate
+
+    monkeypatch.setattr(metric_evaluate, "score_frames", interrupt)  # run imports it when it runs
     assert validate_cli.main([str(clips), "--oracle", "--out", str(tmp_path / "r")]) == 130
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("interrupted: ") and "Traceback" not in "\n".join(err)

@@ -133,7 +133,8 @@ def test_an_output_that_cannot_be_written_takes_back_the_others_and_the_score(tm
     def full_disk(stem, estimators, cfg, **kwargs):
         raise WriteError(f"cannot write '{stem}.detection.mp4': No space left on device")
 
-    monkeypatch.setattr(evaluate_cli, "write_detection_video", lambda video, stem, estimators, cfg: full_disk(stem, estimators, cfg))
+    monkeypatch.setattr(evaluate_cli, "write_detection_video",
+                        lambda video, stem, estimators, cfg, masks: full_disk(stem, estimators, cfg))
     assert evaluate_cli.main(["--preset", "tiny", str(video), "--out", str(out), "--maps", "--detection"]) == 1
     assert "No space left on device" in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == []  # neither the maps written before, nor a score

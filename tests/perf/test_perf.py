@@ -18,8 +18,9 @@ import pytest
 import torch
 
 from geco_guide.cli import bench
-from geco_guide.perf import cards, choices, cost, full_size, mask_cost, profile, sampling, tracing
+from geco_guide.perf import cards, cost, full_size, mask_cost, profile, sampling, tracing
 from geco_guide.sampler.context import GuidanceObserver
+from geco_guide.sampler.schedule import PAPER_STEPS
 
 REPO = Path(__file__).resolve().parents[2]
 #: geco bench in its own process (the checkout's package: run from the repository's root)
@@ -275,7 +276,7 @@ def test_cost_schedule_counts_at_paper_schedule() -> None:
     differentiated denoiser calls and 50 without gradients, fast 67 (docs/performance.md)."""
     from geco_guide.sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
 
-    settings = {"preset": "full", "frames": 49, "steps": 50, "repeats": PAPER_REPEATS,
+    settings = {"preset": "full", "model": "cogvideox-5b", "frames": 49, "steps": 50, "repeats": PAPER_REPEATS,
                 "time_travel": list(PAPER_TIME_TRAVEL), "chunk_latents": None, "vae_checkpointing": None,
                 "denoiser_checkpointing": None}
     faithful = tracing.count_schedule_calls("faithful", settings)
@@ -384,7 +385,7 @@ def test_cost_time_scales_with_the_traced_size() -> None:
     report = cost.cost_report(small, "unguided")
     efficiency = cost.calibration_call_roofline_s() / cards.H200_UNGUIDED_STEP_S
     assert report["roofline"]["efficiency"] == pytest.approx(efficiency)
-    measured_run = choices.NOMINAL_STEPS * cards.H200_UNGUIDED_STEP_S
+    measured_run = PAPER_STEPS * cards.H200_UNGUIDED_STEP_S
     assert report["roofline"]["wall_time_s"]["H200"]["unguided"] < 0.1 * measured_run
 
     plans = json.loads((Path(cost.__file__).parents[1] / "sampler" / "data" / "memory_plans.json").read_text())
