@@ -666,7 +666,11 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
                     if announce is not None:
                         announce(loading_line(cfg))
                     models = load_models(cfg)
+                if announce is not None:
+                    announce(f"candidate {k + 1}/{count} (seed {seed_cfg.seed}): sampling ...")
                 result = generate(seed_cfg, prompt, out=work / f"seed{seed_cfg.seed}.mp4", models=models, image=image)
+                if announce is not None:
+                    announce(f"candidate {k + 1}/{count}: scoring it with the GeCo protocol ...")
                 scored = evaluate_video(result.video_path, models.estimators, cfg.evaluation,
                                         dynamic_masks=selection_masks(cfg, models))
                 candidates.append((result, scored))

@@ -60,7 +60,7 @@ from __future__ import annotations
 
 import argparse
 
-from .kit import add_config_flags, command_main, interruptible, print_error
+from .kit import add_config_flags, command_main, interruptible, output_folder, print_error
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 
@@ -86,7 +86,7 @@ def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
                              "suite: geco-eval, geco-eval:indoor, geco-eval:fast, geco-eval:outdoor:slow, ...; or ours "
                              "with moving subjects: dynamic, dynamic:indoor, ...")
     parser.add_argument("--seeds", required=True, nargs="+", metavar="SEED", help="sampling seeds (integers)")
-    parser.add_argument("--out", required=True, help="output folder (reuse it to resume)")
+    parser.add_argument("--out", type=output_folder, required=True, help="output folder (reuse it to resume)")
     add_config_flags(parser, preset_help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
     parser.add_argument("--maps", action="store_true", help="also write each arm's GeCo maps video")
     parser.add_argument("--best-of", default=None, metavar="N|matched",

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from ..io.files import WriteError, check_output_dir, unique_names
-from .kit import check_choice, command_main, interruptible
+from .kit import check_choice, command_main, interruptible, output_folder
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 
@@ -28,7 +28,7 @@ def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|synthetic|synthetic-3d",
                    help="clips to edit; synthetic: the gallery scene with exact ground truth; synthetic-3d "
                         "(occlusion only): a pillar hides a wall region that re-appears with another box, in 3D")
-    p.add_argument("--out", required=True, help="output folder (one sub-folder per clip and seed)")
+    p.add_argument("--out", type=output_folder, required=True, help="output folder (one sub-folder per clip and seed)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="one clip per input and seed")
     p.add_argument("--max-frames", type=int, default=20, help="frames kept per input, evenly spaced (paper: 20)")
     p.add_argument("--synthetic-size", type=int, nargs=3, default=(9, 48, 64), metavar=("FRAMES", "H", "W"),

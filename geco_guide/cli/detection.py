@@ -24,7 +24,15 @@ from pathlib import Path
 
 from ..io.files import write_json_atomic
 from .evaluate import check_scorable, expand_inputs
-from .kit import add_config_flags, check_choice, command_main, config_from_args, interruptible, split_overrides
+from .kit import (
+    add_config_flags,
+    check_choice,
+    command_main,
+    config_from_args,
+    interruptible,
+    output_folder,
+    split_overrides,
+)
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "remove_other_formats", "run", "work_line"]
 
@@ -41,7 +49,7 @@ def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``geco detection`` on ``p``."""
     p.add_argument("inputs", nargs="+", metavar="VIDEO|FRAMES_DIR|key=value",
                    help="videos, frame folders or folders of videos, and config overrides (key=value)")
-    p.add_argument("--out", default="detection", help="output folder: every file goes inside it")
+    p.add_argument("--out", type=output_folder, default="detection", help="output folder: every file goes inside it")
     p.add_argument("--window", type=int, default=20, help="frames per window (the demo's default: 20)")
     p.add_argument("--anchor", default="center", metavar="WHERE",
                    help="where the frame sits in its window: start, center (default) or end")

@@ -43,7 +43,15 @@ from ..io.files import (
     write_json_atomic,
     write_texts_atomic,
 )
-from .kit import add_config_flags, command_main, config_from_args, interruptible, is_config_key, split_overrides
+from .kit import (
+    add_config_flags,
+    command_main,
+    config_from_args,
+    interruptible,
+    is_config_key,
+    output_folder,
+    split_overrides,
+)
 
 if TYPE_CHECKING:
     from ..config import GeCoConfig
@@ -206,7 +214,7 @@ def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="the video model that made the inputs (e.g. cogvideox-5b): its native frame rate "
                         "(evaluation.model_fps, the paper's table) replaces the file's")
     p.add_argument("--fps", type=float, default=None, help="source frame rate, overriding --model and the file's")
-    p.add_argument("--out", default=None, help="output folder (default: the config's output.dir)")
+    p.add_argument("--out", type=output_folder, default=None, help="output folder (default: the config's output.dir)")
     p.add_argument("--maps", action="store_true", help="also write <stem>.maps.mp4 with the heat maps")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the outputs of an earlier run in --out (without it, an existing output is an error)")
@@ -317,10 +325,13 @@ def score_line(name: str, result: Any, json_path: Path, notes: str) -> str:
     from ..types import plural
 
     nan = f" (NaN: {result.nan_reason})" if result.nan_reason is not None else ""
+    masks = result.dynamic_masks
+    masked = ("" if masks is None else
+              f", dynamic masks {masks['source']} masking {100 * masks['masked_fraction']:.1f}% of the pixels scored")
     return (f"{name}: M_geo={result.fused:.4f} M_motion={result.motion:.4f} M_struct={result.structure:.4f}{nan} "
             f"TM={result.total_motion:.2f}% MM={result.mean_motion:.2f}%/s "
             f"({plural(len(result.windows), 'window')} at {result.sampled_fps:g} fps, source {result.fps:g} fps "
-            f"from {result.fps_source}) -> {json_path}{notes}")
+            f"from {result.fps_source}{masked}) -> {json_path}{notes}")
 
 
 @interruptible("the <stem>.geco.json (and maps) of the videos finished so far; geco_scores.csv and geco_summary.json were not written")

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 from .. import __version__
 from ..io.files import WriteError
-from .kit import add_config_flags, command_main, config_from_args, interruptible, print_error
+from .kit import add_config_flags, command_main, config_from_args, interruptible, output_folder, print_error
 
 if TYPE_CHECKING:
     from ..bench.geco_eval import Job
@@ -56,7 +56,7 @@ def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
     parser.add_argument("--limit", type=int, default=None, help="only the first N prompts of the selection")
     parser.add_argument("--weights", nargs="+", default=[], metavar="NAME=DIR", help="a local folder for a model's weights")
     parser.add_argument("--fps", type=float, default=None, help="frame rate of the --videos inputs (overrides the table)")
-    parser.add_argument("--out", required=True, help="output folder (reuse it to resume)")
+    parser.add_argument("--out", type=output_folder, required=True, help="output folder (reuse it to resume)")
     parser.add_argument("--overwrite", action="store_true",
                         help="start afresh in --out: delete the videos, results and report an earlier run wrote there "
                              "(other files stay), even of another config")

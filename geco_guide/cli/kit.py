@@ -74,6 +74,13 @@ def add_model_flag(parser: argparse.ArgumentParser) -> None:
                              "preset of configs/ where there is one)")
 
 
+def output_folder(text: str) -> str:
+    """argparse type of ``--out``: a folder's name; an empty one would write into the working folder."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("must name an output folder, got an empty string")
+    return text
+
+
 def parse_count(text: str) -> int:
     """A whole number >= 1 written in digits (``--best-of``, ``--search``): ``1e20`` or ``2.5`` are
     refused by argparse in one line."""

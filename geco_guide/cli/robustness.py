@@ -14,7 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..io.files import WriteError, check_output_dir, json_text, write_texts_atomic
-from .kit import check_choice, command_main, interruptible
+from .kit import check_choice, command_main, interruptible, output_folder
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 
@@ -31,7 +31,7 @@ def _sigmas(values: list[float], name: str) -> tuple[float, ...]:
 def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of ``geco robustness`` on ``p`` (the default noise levels:
     :data:`~geco_guide.bench.robustness.DEPTH_SIGMAS` and ``FLOW_SIGMAS``)."""
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", type=output_folder, required=True, help="output folder")
     p.add_argument("--size", type=int, nargs=3, default=(9, 48, 64), metavar=("FRAMES", "H", "W"),
                    help="the synthetic scene the noise is added to: frames, height, width (default: 9 48 64)")
     p.add_argument("--seed", type=int, default=0, help="seed of the scene's warps and occlusions and of the noise "

@@ -27,7 +27,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from ..io.files import WriteError, check_output_dir, json_text, write_texts_atomic
-from .kit import add_config_flags, command_main, config_from_args, interruptible, split_overrides
+from .kit import add_config_flags, command_main, config_from_args, interruptible, output_folder, split_overrides
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 
@@ -42,7 +42,7 @@ def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     add_config_flags(p)
     p.add_argument("--pairs", default=None, metavar="MODE",
                    help="frame pairs per window: all (default), center or adjacent (evaluation.loss.pairs)")
-    p.add_argument("--out", default=None, help="output folder (default: <first input>/validation)")
+    p.add_argument("--out", type=output_folder, default=None, help="output folder (default: <first input>/validation)")
     p.add_argument("--no-grids", action="store_true", help="skip the per-clip image grids")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the report of an earlier run in --out (without it, an existing report is an error)")
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
 def _validate_benchmarks(args: argparse.Namespace) -> int:
     from ..bench.datasets import find_benchmarks, load_benchmark, oracle_clip
     from ..bench.validate import grid_frames, grid_image, markdown_table, summarise, validate_clip, write_png
-    from ..estimators import Estimators, load_estimators
+    from ..estimators import Estimators, check_weights, load_estimators
     from ..estimators.oracle import OracleFlow, OracleGeometry
     from ..io.devices import check_device
     from ..metric.evaluate import score_frames
@@ -125,9 +125,10 @@ def _validate_benchmarks(args: argparse.Namespace) -> int:
         out = check_output_dir(Path(args.out) if args.out else Path(roots[0]) / "validation")
         check_no_report([out / "validation.json", out / "validation.md"], args.overwrite)
         if not args.oracle:
+            check_weights(cfg.estimators)  # every missing model named at once, before the loading line
             _progress(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {cfg.evaluation.device}")
         estimators = None if args.oracle else load_estimators(cfg.estimators, cfg.evaluation.device)
-    except (ValueError, FileNotFoundError, WriteError) as err:
+    except (ValueError, FileNotFoundError, WriteError) as err:  # missing weights among them
         print(f"error: {err}", file=sys.stderr)
         return 2
     records, errors = [], []

@@ -168,14 +168,14 @@ def cost_report(settings: dict[str, Any], mode: str, argv: Sequence[str] = (),
     (:func:`~.tracing.trace_cost`; a memory plan acts on the guided updates only, so the plans of
     one model share it)."""
     start = time.perf_counter()
-    what = settings["model"] or "the tiny models"
+    what = f"{settings['model']}'s" if settings["model"] else "the tiny models'"
     if unguided is None:
         unguided = trace_cost(settings, "unguided")
-        logger.info("traced %s's unguided step in %.0f s", what, unguided["trace_s"])
+        logger.info("traced %s unguided step in %.0f s", what, unguided["trace_s"])
     guided = None
     if mode != "unguided":
         guided = trace_cost(settings, mode)
-        logger.info("traced %s's %s update in %.0f s", what, mode, guided["trace_s"])
+        logger.info("traced %s %s update in %.0f s", what, mode, guided["trace_s"])
     counts_unguided = count_schedule_calls("unguided", settings)
     counts = count_schedule_calls(mode, settings) if mode != "unguided" else counts_unguided
     run = whole_run_costs(unguided, guided, counts, counts_unguided)

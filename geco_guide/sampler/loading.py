@@ -40,7 +40,7 @@ from .search import SearchConfig, check_search_before_loading
 
 __all__ = ["CHECKPOINT_SCHEDULER", "PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
            "check_guidance_before_loading", "check_tiny_decoder", "choose_scheduler", "load_tiny_decoder",
-           "load_video_pipeline", "missing_weights", "pipeline_from_pretrained", "quiet_hub_logs", "split_cfg_acts",
+           "load_video_pipeline", "missing_weights", "pipeline_from_pretrained", "quiet_hub_logs",
            "uses_tiny_decoder", "warn_idle_options"]
 
 logger = logging.getLogger(__name__)
@@ -343,6 +343,10 @@ def check_guidance_before_loading(guidance: GuidanceConfig, run: RunOptions, est
         guidance.check_loss()
         guidance.schedule(num_steps)
         guidance.anchor_chunks(num_frames, model.temporal_compression)
+        if run.split_cfg and model.guided_by != "pipeline":
+            raise ValueError(f"run.split_cfg splits the denoiser calls of GeCoCogVideoXPipeline; {model.name} is "
+                             "guided by the hooks, which leave its pipeline's own denoiser calls as they are: use "
+                             "run.split_cfg=false")
         if run.decode_layout != "default" and not model.cogvideox_vae:
             raise ValueError(f"run.decode_layout={run.decode_layout} is written for the CogVideoX VAE, not "
                              f"{model.name}'s: use run.decode_layout=default")
@@ -355,8 +359,8 @@ def warn_idle_options(model: VideoModel, sampling: Any, guidance: GuidanceConfig
                       search: SearchConfig | None = None) -> None:
     """One warning line for each option set that cannot act on the run (it changes neither the
     frames nor the video's name): ``guidance.dynamic`` without guidance or search, ``run.split_cfg``
-    without guidance, without CFG, or on a model the hooks guide, ``run.particle_batch`` without
-    a search."""
+    without guidance or without CFG (on a model the hooks guide, a guided call refuses it before
+    loading), ``run.particle_batch`` without a search."""
     searching = search is not None and search.enabled
     if guidance.dynamic is not None and not guidance.enabled and not searching:
         logger.warning("guidance.dynamic=%r does nothing without guidance (--no-guidance): nothing is masked",
@@ -364,16 +368,11 @@ def warn_idle_options(model: VideoModel, sampling: Any, guidance: GuidanceConfig
     if run.particle_batch is not None and not searching:
         logger.warning("run.particle_batch=%d does nothing without a search (search.particles): one video is one "
                        "batch", run.particle_batch)
-    if run.split_cfg and not split_cfg_acts(model, sampling, guidance, run):
-        why = ("without guidance" if not guidance.enabled else "without CFG (sampling.guidance_scale <= 1)"
-               if sampling.guidance_scale <= 1.0 else f"on {model.name}, whose stock denoiser calls the hooks "
-               "leave as they are")
-        logger.warning("run.split_cfg does nothing %s: the frames are those of one call", why)
-
-
-def split_cfg_acts(model: VideoModel, sampling: Any, guidance: GuidanceConfig, run: RunOptions) -> bool:
-    """Whether ``run.split_cfg`` changes anything: a guided call with CFG on the paper's loop."""
-    return run.split_cfg and guidance.enabled and sampling.guidance_scale > 1.0 and model.guided_by == "pipeline"
+    if run.split_cfg and guidance.enabled and sampling.guidance_scale <= 1.0:
+        logger.warning("run.split_cfg does nothing without CFG (sampling.guidance_scale <= 1): the frames are those "
+                       "of one call")
+    elif run.split_cfg and not guidance.enabled:
+        logger.warning("run.split_cfg does nothing without guidance: the frames are those of one call")
 
 
 def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceConfig, run: RunOptions,

@@ -122,6 +122,14 @@ def test_a_full_disk_writes_neither_report_file(clips, tmp_path, monkeypatch, ca
     assert list(out.iterdir()) == []  # no validation.json without its .md, no temporaries
 
 
+def test_validate_names_every_missing_model_before_its_loading_line(clips, tmp_path, capsys):
+    code = validate_cli.main([str(clips), "--out", str(tmp_path / "r"), f"estimators.geometry={tmp_path / 'no-vggt'}",
+                              f"estimators.flow={tmp_path / 'no-ufm'}"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err and "loading" not in err, err
+    assert err.startswith("error: 2 models lack their weights: (1) VGGT: local path ") and "(2) UFM: " in err
+
+
 def test_validate_interrupted_says_what_was_kept(clips, tmp_path, monkeypatch, capsys):
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt

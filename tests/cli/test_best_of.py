@@ -23,7 +23,9 @@ def test_best_of_keeps_the_candidate_of_least_protocol_score(tmp_path, capsys):
     assert [c["seed"] for c in candidates] == [5, 6, 7] and best_of["n"] == 3
     assert best_of["kept_seed"] == min(candidates, key=lambda c: c["fused"])["seed"]
     err = capsys.readouterr().err
-    assert err.count("candidate ") == 3 and "candidate 3/3 (seed 7): protocol fused=" in err
+    assert err.count("protocol fused=") == 3 and "candidate 3/3 (seed 7): protocol fused=" in err
+    # a line as each candidate starts and as its scoring starts: no silence over a candidate's work
+    assert err.count(": sampling ...") == 3 and err.count(": scoring it with the GeCo protocol ...") == 3
     # the kept video is the one that seed makes on its own
     single = tmp_path / "single.mp4"
     assert generate_cli.main([*TINY, "--no-guidance", "--seed", str(best_of["kept_seed"]), "--out", str(single)]) == 0

@@ -79,13 +79,13 @@ HEAVY = ("torch", "diffusers", "transformers", "accelerate")
 #: ``--help`` and an unknown option do, without torch.
 REFUSED_BY_ARGPARSE = {
     "generate": [[]],
-    "evaluate": [[]],
-    "geco_eval": [["--models", "cogvideox-5b"]],
-    "detection": [[]],
-    "validate": [],
-    "robustness": [[]],
-    "benchmarks": [["warp"]],
-    "ab": [["--seeds", "0"]],
+    "evaluate": [[], ["clip.mp4", "--out", ""]],
+    "geco_eval": [["--models", "cogvideox-5b"], ["--models", "cogvideox-5b", "--out", " "]],
+    "detection": [[], ["clip.mp4", "--out", ""]],
+    "validate": [["bench", "--out", ""]],
+    "robustness": [[], ["--out", ""]],
+    "benchmarks": [["warp"], ["warp", "synthetic", "--out", ""]],
+    "ab": [["--seeds", "0"], ["--prompts", "p.txt", "--seeds", "0", "--out", ""]],
 }
 #: Per command, values the command refuses in one line before any work (their choices live with
 #: the code that reads them, which imports torch).
@@ -126,6 +126,8 @@ def test_help_and_argument_errors_answer_without_torch(command, extra):
         assert code == 0 and out.startswith(f"usage: geco {command.replace('_', '-')}"), err
     else:
         assert code == 2 and err.startswith("error:") and "\n" not in err, err
+    if "--out" in extra and not extra[extra.index("--out") + 1].strip():  # never the working folder
+        assert "argument --out: must name an output folder, got an empty string" in err, err
 
 
 @pytest.mark.parametrize("command", sorted(REFUSED_BY_THE_COMMAND))

@@ -80,6 +80,9 @@ def test_masks_of_the_whole_video_fit_a_clip_cut_by_max_frames(tmp_path, capsys,
                               "--dynamic-masks", str(tmp_path / "m.npz")]) == 0
     data = json.loads((tmp_path / "out" / "v.geco.json").read_text())
     assert data["num_frames"] == 5 and data["dynamic_masks"]["source"] == f"given: {tmp_path / 'm.npz'}"
+    line = capsys.readouterr().out.strip().splitlines()[-1]  # the masks are said on screen, not only in the JSON
+    fraction = 100 * data["dynamic_masks"]["masked_fraction"]
+    assert f"dynamic masks given: {tmp_path / 'm.npz'} masking {fraction:.1f}% of the pixels scored" in line, line
 
 
 def test_a_score_over_no_pixel_prints_nan_with_its_reason(tmp_path, capsys, video):

@@ -55,9 +55,11 @@ def _pipe_frames(config, run):
     return out.frames, out.report, pipe
 
 
+@pytest.mark.parametrize("plan", ["chunked", "explicit"], ids=["a-chunk-per-call", "batched-chunks"])
 @pytest.mark.parametrize("denoiser_grad", [False, True], ids=["fast", "faithful"])
-def test_two_devices_give_the_frames_of_one_in_the_pipeline(denoiser_grad):
-    config, run = replace(tiny_guidance_config(), denoiser_grad=denoiser_grad), tiny_run_options(memory_plan="chunked")
+def test_two_devices_give_the_frames_of_one_in_the_pipeline(denoiser_grad, plan):
+    # explicit: the tiny preset's own flags, which batch the chunks of one length in one decode call
+    config, run = replace(tiny_guidance_config(), denoiser_grad=denoiser_grad), tiny_run_options(memory_plan=plan)
     one, report_one, _ = _pipe_frames(config, run)
     listed, _, _ = _pipe_frames(config, replace(run, devices=["cpu"]))
     two, report_two, pipe = _pipe_frames(config, replace(run, devices=["cpu", "cpu"]))

@@ -186,7 +186,8 @@ def test_generate_with_dynamic_writes_masks_into_log_and_sidecar(dynamic, source
     argv = ["--preset", "tiny", "--prompt", PROMPT, "--dynamic", dynamic, "estimators.segmenter=tiny-random",
             "--out", str(out)]
     assert main(argv) == 0
-    err = capsys.readouterr().err
+    out_text, err = capsys.readouterr()
+    assert sum(line.startswith(f"dynamic masks: {source}, masked ") for line in out_text.splitlines()) == 1, out_text
     loading = [line for line in err.splitlines() if line.startswith("loading models:")]
     assert len(loading) == 1 and ("segmenter tiny-random for 'a dog'" in loading[0]) == (dynamic != "auto")
     sidecar = json.loads(out.with_suffix(".json").read_text())
