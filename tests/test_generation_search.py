@@ -34,6 +34,7 @@ def test_the_video_key_names_a_search_and_nothing_else_changes():
             != video_key(config_to_dict(tiny(*unguided)), PROMPT))
 
 
+@pytest.mark.slow
 def test_one_particle_without_resampling_writes_the_plain_video(tmp_path):
     cfg = tiny("guidance.enabled=false", "output.score_anchors=false")
     models = generation.load_models(cfg)
@@ -44,6 +45,7 @@ def test_one_particle_without_resampling_writes_the_plain_video(tmp_path):
     assert searched.sidecar["search"]["kept_lineage"] == [0] and "search" not in plain.sidecar
 
 
+@pytest.mark.slow
 def test_a_search_keeps_the_final_particle_of_least_protocol_score(tmp_path):
     cfg = tiny("guidance.enabled=false", "search.particles=3", "search.resample_steps=[1,2]",
                "search.temperature=0.001", seed=5)

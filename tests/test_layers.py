@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 PACKAGE = Path(__file__).resolve().parents[1] / "geco_guide"
 ENTRY_POINTS = ("__main__", "generate")
 
@@ -97,6 +99,7 @@ def graph() -> dict[str, set[str]]:
     return edges
 
 
+@pytest.mark.slow
 def test_every_import_points_down_or_stays_in_its_room():
     wrong = []
     for source, targets in graph().items():
@@ -154,6 +157,7 @@ def test_the_text_segmenters_import_transformers_lazily():
         assert not top & set(DIFFUSION_PACKAGES), name
 
 
+@pytest.mark.slow
 def test_scoring_a_video_with_the_public_api_loads_no_diffusers():
     probe = ("import sys, geco_guide; geco_guide.GeCoLoss; geco_guide.evaluate_video; "
              f"print(sorted(m for m in {DIFFUSION_PACKAGES!r} if m in sys.modules))")

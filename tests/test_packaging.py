@@ -9,6 +9,8 @@ import sysconfig
 import venv
 from pathlib import Path
 
+import pytest
+
 from geco_guide.config import CONFIG_DIR, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,6 +43,7 @@ def run(command: list, **kwargs) -> subprocess.CompletedProcess:
     return out
 
 
+@pytest.mark.slow
 def test_a_built_wheel_runs_the_tiny_preset_outside_the_checkout(tmp_path: Path):
     wheels = tmp_path / "wheels"
     run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w", wheels, ROOT])

@@ -33,6 +33,7 @@ def test_dir_lists_the_public_names_only():
     assert not {"TYPE_CHECKING", "import_module", "_import_module", "_EXPORTS"} & set(names)
 
 
+@pytest.mark.slow
 def test_importing_the_package_and_scoring_a_video_load_no_diffusion_code():
     probe = """
 import sys

@@ -44,6 +44,7 @@ def test_readme_has_offline_examples():
 
 
 @pytest.mark.parametrize("path, code", EXAMPLES)
+@pytest.mark.slow
 def test_example_runs(path, code):
     exec(compile(code, str(path), "exec"), {"__name__": "__readme__"})
 

@@ -204,6 +204,7 @@ def _float_keys(obj, prefix=""):
             yield f"{prefix}{f.name}"
 
 
+@pytest.mark.slow
 def test_every_float_option_refuses_nan_and_inf_naming_the_key():
     keys = list(_float_keys(load_config(preset="tiny")))
     expected = {"guidance.step_size", "sampling.guidance_scale", "guidance.loss.occlusion_tau", "evaluation.window_seconds"}

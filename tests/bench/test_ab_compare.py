@@ -102,6 +102,7 @@ def reference(prompts_file: Path, tmp_path_factory: pytest.TempPathFactory) -> P
 # end to end
 
 
+@pytest.mark.slow
 def test_end_to_end_report(reference: Path):
     rows = _rows(reference)
     assert len(rows) == 4
@@ -152,6 +153,7 @@ def test_end_to_end_report(reference: Path):
     assert not _temporaries(reference)
 
 
+@pytest.mark.slow
 def test_the_first_pair_of_a_process_is_timed_apart_as_the_warm_up(reference: Path):
     rows = _rows(reference)
     assert {(r["pair"], r["warm_up"]) for r in rows} == {(PAIRS[0], "True"), (PAIRS[1], "False")}
@@ -176,6 +178,7 @@ def test_the_first_pair_of_a_process_is_timed_apart_as_the_warm_up(reference: Pa
     assert "Every pair was made with the models' warm-up (p0-s0" in ab_report.report_markdown(summary, results, "", "cmd")
 
 
+@pytest.mark.slow
 def test_arms_differ_only_in_guidance(reference: Path):
     """Both arms ran `generate` with the same seed and config but guidance.enabled, so from the same
     initial noise (generate seeds its generator from the config); the unguided arm logged no update."""
@@ -191,6 +194,7 @@ def test_arms_differ_only_in_guidance(reference: Path):
 # interruption
 
 
+@pytest.mark.slow
 def test_rerun_after_kill_finishes_with_the_same_results(reference: Path, prompts_file: Path, tmp_path: Path):
     out = tmp_path / "killed"
     first = out / "pairs" / PAIRS[0] / "result.json"
@@ -220,6 +224,7 @@ def test_rerun_after_kill_finishes_with_the_same_results(reference: Path, prompt
     assert not _temporaries(out)
 
 
+@pytest.mark.slow
 def test_sharded_run_matches_the_single_process_run(reference: Path, prompts_file: Path, tmp_path: Path):
     """Two processes (torchrun, as ``accelerate launch`` starts them) share the pairs; the main one merges."""
     out = tmp_path / "sharded"
@@ -231,6 +236,7 @@ def test_sharded_run_matches_the_single_process_run(reference: Path, prompts_fil
     _assert_same_scores(_rows(out), _rows(reference))
 
 
+@pytest.mark.slow
 def test_rerun_redoes_a_damaged_pair_and_maps_the_complete_ones(reference: Path, prompts_file: Path, tmp_path: Path):
     """A resumed folder with ``--maps``: the pair whose result.json is damaged is redone (a warning
     names the file), the complete pair gets its maps without being generated again."""
@@ -351,6 +357,7 @@ def _whole_pair(folder: Path, frames: int = 3) -> dict:
     return result
 
 
+@pytest.mark.slow
 def test_resume_checks_the_fields_and_the_videos_of_a_pair(tmp_path: Path, capsys):
     pair = core.Pair(Prompt("cat", "a cat"), 0)
     folder = core.pair_dir(tmp_path, pair)
@@ -573,6 +580,7 @@ def test_the_geco_eval_suite_as_prompts(tmp_path, capsys, no_models):
     assert "unknown filter 'underwater'" in err and err.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_a_run_guided_by_the_tiny_decoder_measures_it_against_the_vae(tmp_path: Path, capsys):
     out = tmp_path / "out"
     argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out),
@@ -587,6 +595,7 @@ def test_a_run_guided_by_the_tiny_decoder_measures_it_against_the_vae(tmp_path: 
     assert "measuring the tiny decoder against the VAE on a-cat-s0" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_resumed_run_measures_the_agreement_that_an_interrupted_run_did_not(tmp_path: Path, capsys):
     out = tmp_path / "out"
     argv = ["--prompts", str(_write(tmp_path / "p.txt", "a cat\n")), "--seeds", "0", "--out", str(out),
@@ -648,6 +657,7 @@ def best_of_2(reference: Path, prompts_file: Path, tmp_path_factory: pytest.Temp
     return out, proc.stderr
 
 
+@pytest.mark.slow
 def test_the_best_of_arm_keeps_the_candidate_of_least_fused_score(best_of_2, reference: Path):
     out, stderr = best_of_2
     assert "[1/2] a-marble-bust-s0: best-of-2 arm, candidate 2/2 (seed 1) ..." in stderr
@@ -686,6 +696,7 @@ def test_the_best_of_arm_keeps_the_candidate_of_least_fused_score(best_of_2, ref
     assert not _temporaries(out)
 
 
+@pytest.mark.slow
 def test_a_killed_best_of_run_resumes_with_the_candidates_it_made(best_of_2, prompts_file: Path, tmp_path: Path):
     """Killed after a candidate was scored: the rerun makes only the missing candidates and arms,
     and every output of the run is there."""
@@ -720,6 +731,7 @@ def test_a_killed_best_of_run_resumes_with_the_candidates_it_made(best_of_2, pro
     assert (out / "report.md").is_file() and (out / "pareto.png").is_file() and not _temporaries(out)
 
 
+@pytest.mark.slow
 def test_matched_best_of_takes_n_from_the_cost_model_on_the_named_card():
     """N = round of the guided / unguided time ratio of ``geco bench cost --gpu``'s model:
     the card's memory plan, the run's size, steps and schedule."""

@@ -205,6 +205,7 @@ def test_bad_search_values_are_one_line_before_any_work(extra, message, tmp_path
 # end to end, tiny preset
 
 
+@pytest.mark.slow
 def test_the_search_arm_is_added_to_a_finished_run_without_redoing_its_arms(two_arms: Path, searched: Path):
     assert _files(searched) == _files(two_arms)  # the unguided and guided arms: not made again
     for name in PAIRS:
@@ -234,6 +235,7 @@ def test_the_search_arm_is_added_to_a_finished_run_without_redoing_its_arms(two_
     assert "unguided vs guided vs search-2" in report and "K = 2, given (--search)" in report
 
 
+@pytest.mark.slow
 def test_a_run_stopped_after_a_pair_resumes_with_nothing_redone(searched: Path, two_arms: Path, prompts_file: Path,
                                                                tmp_path: Path, capsys, monkeypatch):
     out = tmp_path / "stopped"
@@ -271,6 +273,7 @@ def test_a_run_stopped_after_a_pair_resumes_with_nothing_redone(searched: Path, 
     assert "loading models" not in captured.err and "2 of 2 pairs already have the search-2 arm" in captured.out
 
 
+@pytest.mark.slow
 def test_matched_k_comes_from_the_run_s_measured_times_and_is_kept_for_the_folder(two_arms: Path, prompts_file: Path,
                                                                                 tmp_path: Path, capsys):
     out = tmp_path / "matched"
@@ -308,6 +311,7 @@ def test_matched_k_comes_from_the_run_s_measured_times_and_is_kept_for_the_folde
             for name in PAIRS} == {k + 1}
 
 
+@pytest.mark.slow
 def test_without_resampling_the_search_arm_is_best_of_k_from_the_same_seeds(prompts_file: Path, tmp_path: Path):
     """No resampling step and one particle per call: particle k is the video of seed s + k bit for
     bit, so the search keeps what best-of-K keeps (the same noise as the other arms)."""

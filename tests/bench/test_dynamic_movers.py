@@ -20,6 +20,7 @@ def clips():
     return mover_clips(DynamicScenes(6, 48, 64, seed=0))
 
 
+@pytest.mark.slow
 def test_the_deformed_and_the_stretching_box_have_exact_flow(clips):
     for name in ("deformed_moving", "stretching"):
         clip = clips[name]
@@ -40,6 +41,7 @@ def report():
     return movers_validation(DynamicScenes(6, 48, 64, seed=0))
 
 
+@pytest.mark.slow
 def test_rigid_removes_what_a_rigid_mover_adds(report):
     rigid = report["rigid"]
     added = rigid["moving/none/drop"] - rigid["still/none/drop"]
@@ -49,6 +51,7 @@ def test_rigid_removes_what_a_rigid_mover_adds(report):
     assert [row["verdict"] for row in report["movers"]["moving/auto/rigid"]] == ["rigid"]
 
 
+@pytest.mark.slow
 def test_a_mover_that_changes_shape_is_found_by_rigid_and_lost_by_drop(report):
     deformed = report["deformed"]
     assert deformed["ap_ratio"] >= TARGETS["movers_ap_ratio"]
@@ -56,6 +59,7 @@ def test_a_mover_that_changes_shape_is_found_by_rigid_and_lost_by_drop(report):
     assert deformed["moving/true/rigid"] >= TARGETS["movers_ap_ratio"] * deformed["still/none/drop"]
 
 
+@pytest.mark.slow
 def test_a_non_rigid_mover_is_masked_not_scored(report):
     non_rigid = report["non_rigid"]
     assert [row["verdict"] for row in report["movers"]["stretching/true/rigid"]] == ["non-rigid"]

@@ -57,6 +57,7 @@ def test_results_csv_has_a_movers_column_when_movers_are_scored():
     assert header.endswith(",subjects,movers") and line.endswith(',a car,"2 rigid, 1 non-rigid, 31.0 % of fused"')
 
 
+@pytest.mark.slow
 def test_geco_eval_dynamic_scores_and_guides_with_the_subjects_masks(tmp_path: Path, capsys):
     out = tmp_path / "run"
     argv = ["--preset", "tiny", "--suite", "dynamic", "--models", "cogvideox-5b", "--guided", "--limit", "1",
@@ -79,6 +80,7 @@ def test_geco_eval_dynamic_scores_and_guides_with_the_subjects_masks(tmp_path: P
     assert [r["subjects"] for r in rows] == ["a dog", "a dog"]
 
 
+@pytest.mark.slow
 def test_geco_eval_dynamic_scores_the_subjects_as_movers(tmp_path: Path):
     out = tmp_path / "run"
     argv = ["--preset", "tiny", "--suite", "dynamic", "--models", "cogvideox-5b", "--limit", "1", "--seeds", "0",
@@ -114,6 +116,7 @@ def test_ab_prompts_take_a_subject_column(tmp_path: Path):
         assert searched.search.particles == 3 and searched.seed == 3
 
 
+@pytest.mark.slow
 def test_ab_run_masks_every_arm_s_scores_the_guidance_and_the_search(tmp_path: Path):
     prompts = tmp_path / "prompts.jsonl"
     prompts.write_text('{"id": "dog", "prompt": "a dog runs on a lawn", "subjects": "a dog"}\n')

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 import torch
 from photometric import photometric_error
 
@@ -49,6 +50,7 @@ def test_edits_sit_on_the_static_background():
             assert not (clip.mask & clip.dynamic_mask).any()
 
 
+@pytest.mark.slow
 def test_dynamic_validation_command_end_to_end(tmp_path: Path, capsys, monkeypatch):
     code = validate_main(["--dynamic", "--dynamic-size", "4", "24", "32", "--out", str(tmp_path / "out")])
     assert code == 0
@@ -79,6 +81,7 @@ def test_dynamic_validation_command_end_to_end(tmp_path: Path, capsys, monkeypat
     assert errors[-1] == "error: dynamic validation clips need >= 4 frames of >= 24x32 pixels, got 2x24x32"
 
 
+@pytest.mark.slow
 def test_dynamic_validation_logs_each_scored_clip_as_it_finishes(monkeypatch):
     import logging
 

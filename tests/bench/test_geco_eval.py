@@ -58,6 +58,7 @@ def tiny_run(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_tiny_run_writes_videos_results_and_a_consistent_report(tiny_run: Path):
     out = tiny_run
     arms = ["cogvideox-5b", "cogvideox-5b-guided", "wan2.1-t2v-1.3b", "wan2.1-t2v-1.3b-guided"]
@@ -113,6 +114,7 @@ def test_pareto_draws_no_empty_scenario_panels():
     assert columns_drawn(plot_png(five)) == 5
 
 
+@pytest.mark.slow
 def test_rerun_resumes_and_a_redone_video_is_identical(tiny_run: Path, tmp_path: Path, capsys):
     out = tmp_path / "bench"
     shutil.copytree(tiny_run, out)
@@ -129,6 +131,7 @@ def test_rerun_resumes_and_a_redone_video_is_identical(tiny_run: Path, tmp_path:
     assert main([*TINY_RUN, "--out", str(out)]) == 0 and "4 of 4 videos already done" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_score_existing_videos_at_the_models_native_rate(tiny_run: Path, tmp_path: Path):
     downloads = tmp_path / "sora"
     (downloads / "a1").mkdir(parents=True)
@@ -140,6 +143,7 @@ def test_score_existing_videos_at_the_models_native_rate(tiny_run: Path, tmp_pat
     assert result["generation_s"] is None and result["video"] == str(downloads / "a1" / "take.mp4")
 
 
+@pytest.mark.slow
 def test_bad_inputs_are_one_line_before_any_model_loads(tmp_path: Path, tiny_run: Path, monkeypatch, capsys):
     def no_loading(*args, **kwargs):
         raise AssertionError("a model was loaded")
@@ -165,6 +169,7 @@ def test_bad_inputs_are_one_line_before_any_model_loads(tmp_path: Path, tiny_run
     assert "another config" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_evaluate_cli_uses_the_models_native_rate(tiny_run: Path, tmp_path: Path, capsys):
     video = tiny_run / "videos" / "wan2.1-t2v-1.3b" / "a1-s0.mp4"
     out = tmp_path / "scores"

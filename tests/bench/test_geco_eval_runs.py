@@ -45,6 +45,7 @@ def _one_line(text: str) -> str:
     return text
 
 
+@pytest.mark.slow
 def test_bad_videos_are_recorded_as_failed_and_the_others_scored(tmp_path: Path, capsys):
     videos = _videos(tmp_path / "in", {"a1-s0": 17, "a2-s0": 1}, garbage=("a3-s0",))
     out = tmp_path / "out"
@@ -78,6 +79,7 @@ def test_an_fps_that_leaves_one_frame_per_window_still_scores_the_video(tmp_path
     assert "1 video scored (0 failed, 0 missing)" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_videos_covering_part_of_the_selection_count_the_rest_missing(tmp_path: Path, capsys):
     videos = _videos(tmp_path / "in", {"a1-s0": 17, "a2-s0": 17})
     out = tmp_path / "out"
@@ -88,6 +90,7 @@ def test_videos_covering_part_of_the_selection_count_the_rest_missing(tmp_path: 
     assert "**No video** in the --videos folder for: sora-2/a3, sora-2/a4, sora-2/a5" in (out / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_resume_redoes_results_that_lack_fields_or_point_at_another_video(tmp_path: Path, capsys):
     videos = _videos(tmp_path / "in", {"a1-s0": 17, "a2-s0": 17})
     out = tmp_path / "out"
@@ -189,6 +192,7 @@ def test_a_generation_that_fails_is_recorded_and_the_run_pinned_once_the_model_l
     assert failure["error"].endswith("non-finite frames; nothing was written") and failure["seed"] == 0
 
 
+@pytest.mark.slow
 def test_overwrite_starts_afresh_removing_only_the_runs_files(tmp_path: Path, capsys):
     videos = _videos(tmp_path / "in", {"a1-s0": 17})
     out = tmp_path / "out"
@@ -206,6 +210,7 @@ def test_overwrite_starts_afresh_removing_only_the_runs_files(tmp_path: Path, ca
     assert (out / "videos" / "sora-2" / "a1-s0.json").is_file()
 
 
+@pytest.mark.slow
 def test_progress_names_each_job_and_the_models_loading(tmp_path: Path, capsys):
     videos = _videos(tmp_path / "in", {"a1-s0": 17, "a2-s0": 17})
     assert _score(videos, tmp_path / "out", "--limit", "2") == 0
@@ -234,6 +239,7 @@ def test_a_second_run_in_one_folder_is_refused_while_the_first_holds_the_lock(tm
     assert err == f"error: another GeCo-Eval run (pid {os.getppid()}) is writing to {out}; wait for it to end or use another --out folder\n"
 
 
+@pytest.mark.slow
 def test_the_lock_is_released_when_the_run_ends(tmp_path: Path, capsys):
     out = tmp_path / "out"
     assert _score(_videos(tmp_path / "in", {"a1-s0": 17}), out, "--limit", "1") == 0
@@ -289,6 +295,7 @@ def test_a_named_tiny_decoder_of_another_family_is_refused_before_the_run_starts
     assert "is the tiny decoder of Wan 2.1, Wan 2.2 14B; cogvideox-5b needs taecvx.pth" in _one_line(capsys.readouterr().err)
 
 
+@pytest.mark.slow
 def test_guidance_by_the_tiny_decoder_loads_the_one_each_family_needs(tmp_path: Path, capsys):
     out = tmp_path / "out"
     assert _generate(out, "--models", "cogvideox-5b", "wan2.1-t2v-1.3b", "--guided", "guidance.decoder=tiny",
@@ -298,6 +305,7 @@ def test_guidance_by_the_tiny_decoder_loads_the_one_each_family_needs(tmp_path: 
         assert json.loads((out / "videos" / arm / "a1-s0.json").read_text())["guidance_updates"] > 0
 
 
+@pytest.mark.slow
 def test_a_guided_call_that_fails_on_an_option_is_recorded_and_the_run_goes_on(tmp_path: Path, monkeypatch, capsys):
     original = geco_eval.sample
 

@@ -159,6 +159,7 @@ def test_builders_write_complete_deterministic_folders(built, tmp_path):
     assert torch.equal(again.frames, bench.frames) and torch.equal(again.truth["displacement"], bench.truth["displacement"])
 
 
+@pytest.mark.slow
 def test_oracle_estimators_solve_the_three_tasks(built):
     out = built / "report"
     code = validate_cli.main([str(built / "warp-frame"), str(built / "warp-clip"), str(built / "occlusion"),

@@ -47,6 +47,7 @@ def test_geco_runs_bench_as_one_of_its_commands(capsys):
     assert stop.value.code == 0 and PUBLIC in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_a_cost_run_prints_the_stage_table_and_a_line_per_trace(capsys, tmp_path):
     out = tmp_path / "cost.json"
     assert bench.main(["cost", "--preset", "tiny", "--mode", "fast", "--threads", "1", "--json", str(out)]) == 0
@@ -58,6 +59,7 @@ def test_a_cost_run_prints_the_stage_table_and_a_line_per_trace(capsys, tmp_path
     assert json.loads(out.read_text())["counts"]["updates"] == 5
 
 
+@pytest.mark.slow
 def test_several_gpus_print_one_progress_line_per_card(capsys):
     from geco_guide.perf.cards import GPU_SPECS
 
@@ -68,6 +70,7 @@ def test_several_gpus_print_one_progress_line_per_card(capsys):
     assert "run.devices over 2 GPUs" in captured.out
 
 
+@pytest.mark.slow
 def test_dynamic_masks_without_guidance_is_one_warning_line(capsys):
     assert bench.main(["cost", "--preset", "tiny", "--mode", "unguided", "--dynamic-masks", "--threads", "1"]) == 0
     captured = capsys.readouterr()

@@ -12,6 +12,7 @@ from geco_guide.cli import generate as generate_cli
 TINY = ["--preset", "tiny", "--prompt", "a marble bust"]
 
 
+@pytest.mark.slow
 def test_best_of_keeps_the_candidate_of_least_protocol_score(tmp_path, capsys):
     out = tmp_path / "best"
     assert generate_cli.main([*TINY, "--no-guidance", "--best-of", "3", "--seed", "5", "--out", str(out)]) == 0
@@ -32,6 +33,7 @@ def test_best_of_keeps_the_candidate_of_least_protocol_score(tmp_path, capsys):
     assert single.read_bytes() == video.read_bytes()
 
 
+@pytest.mark.slow
 def test_best_of_guided_videos_is_allowed(tmp_path):
     out = tmp_path / "guided.mp4"
     assert generate_cli.main([*TINY, "--best-of", "2", "--out", str(out), "output.score_anchors=false"]) == 0
@@ -49,6 +51,7 @@ def test_best_of_below_one_is_one_line_before_loading(tmp_path, capsys, monkeypa
         assert "\n" not in err and not any(tmp_path.iterdir())
 
 
+@pytest.mark.slow
 def test_best_of_loads_the_models_once_for_every_candidate(tmp_path, monkeypatch):
     loads = []
     real = generation.load_models
@@ -65,6 +68,7 @@ def test_best_of_loads_the_models_once_for_every_candidate(tmp_path, monkeypatch
     assert len(loads) == 1 and len(sidecar["best_of"]["candidates"]) == 2 and sidecar["dynamic_masks"] == "auto"
 
 
+@pytest.mark.slow
 def test_the_selection_leaves_out_what_the_guidance_leaves_out(tmp_path, monkeypatch):
     from geco_guide.metric import evaluate
 

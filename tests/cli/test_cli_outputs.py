@@ -98,6 +98,7 @@ def test_a_bad_output_type_is_refused_before_denoising():
     assert calls == []
 
 
+@pytest.mark.slow
 def test_two_generate_runs_of_one_output_at_once_refuse_the_second(tmp_path, capsys):
     out = tmp_path / "x.mp4"
     holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])

@@ -131,6 +131,7 @@ def test_help_and_argument_errors_answer_without_torch(command, extra):
 
 
 @pytest.mark.parametrize("command", sorted(REFUSED_BY_THE_COMMAND))
+@pytest.mark.slow
 def test_a_bad_value_is_one_line_before_any_work(command, tmp_path):
     code, out, err, _ = run_probe(["geco", command.replace("_", "-"), *REFUSED_BY_THE_COMMAND[command]], GECO,
                                   cwd=tmp_path)
@@ -172,6 +173,7 @@ def test_each_command_is_reached_through_geco(name, capsys):
     assert exit.value.code == 0 and "usage:" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_generate_says_what_the_progress_bar_and_the_update_count_count(tmp_path, capsys):
     from geco_guide.cli.generate import main
 

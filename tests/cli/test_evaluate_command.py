@@ -85,6 +85,7 @@ def test_masks_of_the_whole_video_fit_a_clip_cut_by_max_frames(tmp_path, capsys,
     assert f"dynamic masks given: {tmp_path / 'm.npz'} masking {fraction:.1f}% of the pixels scored" in line, line
 
 
+@pytest.mark.slow
 def test_a_score_over_no_pixel_prints_nan_with_its_reason(tmp_path, capsys, video):
     np.savez(tmp_path / "all.npz", masks=np.ones((FRAMES, 24, 32), dtype=bool))
     assert evaluate_cli.main(["--preset", "tiny", str(video), "--out", str(tmp_path / "out"),
@@ -130,6 +131,7 @@ def test_a_second_run_into_the_same_outputs_is_refused(tmp_path, capsys, video, 
     assert not (out / ".v.geco.json.lock").exists()
 
 
+@pytest.mark.slow
 def test_an_output_that_cannot_be_written_takes_back_the_others_and_the_score(tmp_path, capsys, video, monkeypatch):
     out = tmp_path / "out"
 
@@ -176,6 +178,7 @@ def test_detection_with_masks_that_are_not_a_file_is_one_line_before_loading(vid
         assert "\n" not in err and not (tmp_path / "out" / "v.detection.mp4").exists()
 
 
+@pytest.mark.slow
 def test_detection_maps_leave_out_the_given_masks_of_the_frames_scored(video, tmp_path, monkeypatch):
     from geco_guide.metric import detection
 

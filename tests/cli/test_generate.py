@@ -24,6 +24,7 @@ from geco_guide.sampler.loading import load_video_pipeline
 REPO = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.slow
 def test_cli_tiny_preset_writes_playable_mp4_and_sidecar(tmp_path: Path):
     env = dict(os.environ, HF_HUB_OFFLINE="1", PYTHONPATH=str(REPO))
     proc = subprocess.run(
@@ -109,6 +110,7 @@ def test_default_names_differ_for_prompts_with_one_prefix_and_for_configs_that_c
     assert default_name(unguided, "a cat").endswith("-seed0-unguided")
 
 
+@pytest.mark.slow
 def test_the_video_key_is_the_same_in_another_process():
     cfg = load_config(preset="tiny")
     code = ("from geco_guide.generation import default_name; from geco_guide.config import load_config; "
@@ -182,6 +184,7 @@ def test_out_suffixes_other_than_mp4_or_gif_are_one_line(tmp_path: Path, capsys,
     assert list(tmp_path.iterdir()) == []  # no folder named x.avi
 
 
+@pytest.mark.slow
 def test_out_gif_writes_a_gif_and_its_sidecar(tmp_path: Path, capsys):
     assert _run(tmp_path / "x.gif") == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.gif", "x.json"]
@@ -283,6 +286,7 @@ def test_guidance_the_call_would_refuse_is_one_line_before_loading(tmp_path: Pat
     assert message in _error_line(capsys)
 
 
+@pytest.mark.slow
 def test_guidance_over_no_valid_pixel_says_so_and_its_scores_are_nan_with_the_reason(tmp_path: Path, capsys):
     # the tiny random segmenter masks about 96 % of every anchor frame: no frame keeps the 5 % a
     # score needs, so each update measures nothing (loss 0, zero gradient), which must not read as perfect

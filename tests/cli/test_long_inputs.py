@@ -34,6 +34,7 @@ def test_scoring_plan_counts_the_windows_and_the_motion_pairs():
         EvaluationConfig(max_frames=1)
 
 
+@pytest.mark.slow
 def test_evaluate_says_what_is_coming_and_max_frames_bounds_it():
     clip = rigid_clip(num_frames=9, height=32, width=48)
     frames = clip.frames.repeat(5, 1, 1, 1)  # 45 frames, 4.5 s at 10 fps: two windows

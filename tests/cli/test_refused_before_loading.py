@@ -81,6 +81,7 @@ class _returns:
     (["sampling.guidance_scale=1.0"], ["run.split_cfg=true"], "run.split_cfg does nothing without CFG"),
     (["--no-guidance"], ["run.particle_batch=2"], "run.particle_batch=2 does nothing without a search"),
 ])
+@pytest.mark.slow
 def test_an_option_that_cannot_act_is_one_warning_and_renames_nothing(argv, idle, warning, tmp_path, capsys):
     common = [*TINY, *argv, "sampling.num_inference_steps=2"]
     assert main([*common, "--out", str(tmp_path / "plain")]) == 0

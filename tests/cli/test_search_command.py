@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from geco_guide.cli import generate as generate_cli
 
 TINY = ["--preset", "tiny", "--prompt", "a marble bust"]
 
 
+@pytest.mark.slow
 def test_search_writes_the_kept_particle_and_every_particles_scores(tmp_path, capsys):
     # a model the hooks guide (Wan 2.1, UniPC): the stock pipeline's batch is the particles
     out = tmp_path / "searched.mp4"

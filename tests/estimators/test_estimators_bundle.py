@@ -117,6 +117,7 @@ def test_a_run_loads_the_bundle_beside_the_pipeline_which_has_no_estimator_compo
                                                      "guidance_decoder"))
 
 
+@pytest.mark.slow
 def test_evaluate_command_loads_the_segmenter_with_the_estimators(tmp_path, capsys):
     from geco_guide.cli.evaluate import main as evaluate_main
     from geco_guide.io.video import write_video

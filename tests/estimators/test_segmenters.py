@@ -69,6 +69,7 @@ def test_model_pixels_resize_and_normalise():
     assert pixels.shape == (2, 3, 8, 8) and torch.allclose(pixels, torch.ones(()))
 
 
+@pytest.mark.slow
 def test_tiny_sam3_segments_a_clip_without_gradients(tiny_model):
     model, tokenizer = tiny_model
     segmenter = Sam3Segmenter(model, tokenizer, subjects_of("a dog, a person"))
@@ -100,6 +101,7 @@ def test_a_subject_not_found_masks_nothing_with_one_warning(tiny_model, caplog):
     assert warnings == ["sam3: a unicorn: found none of the subjects in the 3 frames; nothing is masked"]
 
 
+@pytest.mark.slow
 def test_text_segmenter_loads_a_saved_folder(tiny_model, tmp_path: Path):
     model, tokenizer = tiny_model
     model.save_pretrained(tmp_path)
@@ -112,6 +114,7 @@ def test_text_segmenter_loads_a_saved_folder(tiny_model, tmp_path: Path):
     assert torch.equal(tiny.dynamic_masks(frames), loaded.dynamic_masks(frames))  # the same seed, the same model
 
 
+@pytest.mark.slow
 def test_segmenter_folders_that_hold_other_weights_are_one_line_naming_the_key(tiny_model, tmp_path: Path, capfd):
     import shutil
 
@@ -178,6 +181,7 @@ def test_tiny_grounding_sam2_tracks_the_first_frames_boxes(tiny_grounded):
     assert not segmenter.dynamic_masks(frames).any()
 
 
+@pytest.mark.slow
 def test_grounding_sam2_loads_saved_folders_from_the_config_spec(tiny_grounded, tmp_path: Path):
     detector, tokenizer, tracker = tiny_grounded
     detector.save_pretrained(tmp_path / "detector")

@@ -53,6 +53,7 @@ def test_the_two_way_check_only_removes_structure_pixels():
     torch.testing.assert_close(two_way.motion, one_way.motion)
 
 
+@pytest.mark.slow
 def test_cli_writes_every_format(tmp_path, capsys):
     video = write_video(tmp_path / "clip.mp4", rigid_clip(num_frames=4, height=32, width=48).frames, fps=8)
     out = tmp_path / "maps"
@@ -78,6 +79,7 @@ def _detect(*args):
     return detection.main([*map(str, args), "--preset", "tiny", "--window", "3"])
 
 
+@pytest.mark.slow
 def test_inputs_with_one_stem_get_numbered_outputs(tmp_path, capsys):
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
@@ -103,6 +105,7 @@ def test_a_frame_folder_given_as_dot_writes_inside_out(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["maps", "shot"]
 
 
+@pytest.mark.slow
 def test_existing_outputs_are_refused_before_loading_unless_overwrite(tmp_path, capsys, monkeypatch):
     video, out = _clip(tmp_path / "clip.mp4"), tmp_path / "maps"
     assert _detect(video, "--out", out, "--format", "png") == 0

@@ -238,6 +238,7 @@ def test_shared_estimator_loader_builds_tiny_models():
 # --- CLI ----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_cli_scores_videos_and_reports_bad_inputs(tmp_path: Path, capsys):
     rigid = rigid_clip(num_frames=6, height=32, width=48)
     write_video(tmp_path / "static.mp4", rigid.frames, fps=8)
@@ -298,6 +299,7 @@ def test_cli_exit_codes(tmp_path: Path, capsys):
     assert "evaluation.max_fps" in err and "\n" not in err
 
 
+@pytest.mark.slow
 def test_cli_detection_view_writes_every_frames_own_maps(tmp_path: Path, capsys):
     rigid = rigid_clip(num_frames=6, height=32, width=48)
     video = write_video(tmp_path / "deformed.mp4", inject_deformation(rigid).frames, fps=8)
@@ -327,6 +329,7 @@ def test_an_unwritable_out_is_refused_before_scoring(tmp_path: Path, capsys):
     assert err.startswith("error: --out") and "is a file" in err and "\n" not in err
 
 
+@pytest.mark.slow
 def test_a_full_disk_is_one_line_per_output_and_leaves_no_table(tmp_path: Path, monkeypatch, capsys):
     videos = _two_videos(tmp_path)
 
@@ -341,6 +344,7 @@ def test_a_full_disk_is_one_line_per_output_and_leaves_no_table(tmp_path: Path, 
     assert list(out.iterdir()) == []  # no csv without its summary, no temporaries
 
 
+@pytest.mark.slow
 def test_progress_goes_to_stderr_and_a_dot_is_named_after_its_folder(tmp_path: Path, monkeypatch, capsys):
     folder = tmp_path / "myclips"
     folder.mkdir()

@@ -31,6 +31,7 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> dict:
     return {**json.loads(path.read_text()), "stdout": proc.stdout}
 
 
+@pytest.mark.slow
 def test_every_update_has_both_losses_a_cosine_and_a_psnr(report):
     rows = report["rows"]
     # the tiny preset's schedule 0x1,2x2,1x1 with time travel at step 2: 5 updates
@@ -43,6 +44,7 @@ def test_every_update_has_both_losses_a_cosine_and_a_psnr(report):
         assert row["loss_vae"] > 0 and row["loss_tiny"] > 0 and row["loss_vae"] != row["loss_tiny"]
 
 
+@pytest.mark.slow
 def test_the_summary_and_the_record(report):
     s, rows = report["summary"], report["rows"]
     cosines = sorted(r["cosine"] for r in rows)
@@ -55,6 +57,7 @@ def test_the_summary_and_the_record(report):
     assert "gradient cosine median" in report["stdout"]
 
 
+@pytest.mark.slow
 def test_guiding_with_the_tiny_decoder_swaps_the_roles():
     from geco_guide.config import load_config
     from geco_guide.perf.decoder_agreement import decoder_agreement
@@ -66,6 +69,7 @@ def test_guiding_with_the_tiny_decoder_swaps_the_roles():
     assert all(r["guided_by"] == "tiny" and -1 <= r["cosine"] <= 1 for r in result["rows"])
 
 
+@pytest.mark.slow
 def test_rows_of_loaded_models_leave_them_as_they_were():
     from geco_guide import tiny as T
     from geco_guide.config import load_config

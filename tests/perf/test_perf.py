@@ -68,6 +68,7 @@ def _check_result(result: dict) -> None:
     assert result["memory_kind"] == "peak_rss" and result["threads"] == 1 and result["load_avg_1m"] >= 0
 
 
+@pytest.mark.slow
 def test_loss_report(reports: dict[str, dict]) -> None:
     report = reports["loss"]
     assert report["subcommand"] == "loss"
@@ -82,6 +83,7 @@ def test_loss_report(reports: dict[str, dict]) -> None:
     assert "| geco_from_geometry | forward_backward |" in report["stdout"]
 
 
+@pytest.mark.slow
 def test_estimators_report(reports: dict[str, dict]) -> None:
     results = reports["estimators"]["results"]
     assert [(r["case"], r["mode"]) for r in results] == [
@@ -94,6 +96,7 @@ def test_estimators_report(reports: dict[str, dict]) -> None:
     assert networks == {"vggt-tiny": "42x70", "ufm-tiny": "56x98"}
 
 
+@pytest.mark.slow
 def test_vae_report(reports: dict[str, dict]) -> None:
     results = reports["vae"]["results"]
     assert [(r["case"], r["mode"]) for r in results] == [("vae-tiny", "forward"), ("vae-tiny", "forward_backward")]
@@ -128,6 +131,7 @@ def sampling_report(tmp_path_factory: pytest.TempPathFactory) -> dict:
     return {**json.loads(path.read_text()), "stdout": proc.stdout}
 
 
+@pytest.mark.slow
 def test_sampling_report(sampling_report: dict) -> None:
     report = sampling_report
     assert {"device", "mode", "ratio_guided_over_unguided", "peak_memory_gb", "breakdown", "steps",
@@ -220,6 +224,7 @@ def test_update_windows_run_back_to_back_from_each_step_start() -> None:
     assert windows == [(11.0, 11.5), (11.5, 11.75), (13.0, 14.0)]
 
 
+@pytest.mark.slow
 def test_full_size_refused_on_cpu() -> None:
     proc = subprocess.run([*BENCH, "sampling", "--full-size", "--steps", "1"],
                           capture_output=True, text=True, timeout=60, cwd=REPO)
@@ -324,6 +329,7 @@ def test_cost_tiny_denoiser_step_equals_independent_count() -> None:
     assert cfg["forward"]["flops"] == counter.get_total_flops()
 
 
+@pytest.mark.slow
 def test_cost_report_tiny(tmp_path: Path) -> None:
     """`cost --preset tiny` writes the documented keys; guided costs more than unguided."""
     path = tmp_path / "cost.json"
@@ -376,6 +382,7 @@ def test_casting_a_model_warns_only_about_float32_modules_it_has() -> None:
         dlogging.set_verbosity(level)
 
 
+@pytest.mark.slow
 def test_cost_time_scales_with_the_traced_size() -> None:
     """The efficiency comes from the measured size whatever size is traced: a 9x16x16 video
     predicts a fraction of the 49x480x720 run's unguided time (not the measured step's 50 x 1.78 s),
@@ -394,6 +401,7 @@ def test_cost_time_scales_with_the_traced_size() -> None:
     assert max(times["tiny"]) < min(times["cogvideox-5b"])
 
 
+@pytest.mark.slow
 def test_the_dynamic_masks_overhead_follows_the_schedule_and_the_cards() -> None:
     """SAM 3's vision encoder on the anchors, predicted per card; the automatic masks' measured
     time; one refresh per guided step of the paper's schedule (steps 3-49: 47 of its 111 updates);
@@ -447,6 +455,7 @@ def test_several_gpus_divide_the_anchor_decode_by_the_chunks_each_gpu_decodes() 
         cost.several_gpus(report, 0)
 
 
+@pytest.mark.slow
 def test_geco_eval_cost_counts_the_estimator_calls_of_each_pair_mode(tmp_path: Path):
     """9 frames at 8 fps (1.125 s): one window of floor(1.125 * 8) = 9 frames and a motion grid of
     the same 9 frames, so all pairs = 9 * 8 + 8 UFM pairs, adjacent = 8 + 8, one VGGT call."""
@@ -462,6 +471,7 @@ def test_geco_eval_cost_counts_the_estimator_calls_of_each_pair_mode(tmp_path: P
 
 
 @pytest.mark.parametrize("command", [["sampling", "--steps", "0"], ["cost", "--preset", "tiny", "--steps", "0"]])
+@pytest.mark.slow
 def test_zero_steps_is_one_error_line(command):
     """--steps 0 used to run the default 50 steps (0 is falsy)."""
     proc = subprocess.run([*BENCH, *command], capture_output=True, text=True, timeout=120, cwd=REPO)
@@ -618,6 +628,7 @@ def test_no_private_name_is_patched_in_the_cost_trace():
     assert tracker.in_update == 0
 
 
+@pytest.mark.slow
 def test_cost_with_the_tiny_decoder_traces_it_as_the_anchor_decode() -> None:
     """`cost --decoder tiny`: the tiny decoder's decode is the anchor decode (its weights counted),
     the VAE only decodes the final video."""
@@ -636,6 +647,7 @@ def test_cost_with_the_tiny_decoder_traces_it_as_the_anchor_decode() -> None:
     assert "the tiny decoder (an approximation" in cost.cost_table(tiny) and "tiny decoder" not in cost.cost_table(vae)
 
 
+@pytest.mark.slow
 def test_cost_gpu_runs_the_planner_for_the_card_and_reports_its_plan(cli, monkeypatch, capsys, tmp_path: Path):
     """`cost --gpu RTX4090`: the plan auto picks for 24 GB (with offload: none fits without), traced with
     that plan; the tiny models stand in for the full-size trace (seconds instead of a minute)."""

@@ -81,6 +81,7 @@ def test_guidance_on_several_gpus_spreads_the_anchor_decode_and_a_24_gb_card_say
         search_cost.guidance_cost("hunyuanvideo-1.5", "H200")
 
 
+@pytest.mark.slow
 def test_the_estimates_of_one_family_are_what_the_cost_model_traces_now(monkeypatch):
     """One plan of Wan 2.1 1.3B traced again (its published configs, fake tensors) gives the shipped
     numbers (regenerate the file with `geco bench plans` when this fails); the calibrating trace of

@@ -78,6 +78,7 @@ def test_each_plan_picks_its_strategy_once():
     assert isinstance(plan_anchor_decode(plan_named("chunked"), decode, CHUNKS, []), ChunkedDecode)
 
 
+@pytest.mark.slow
 def test_the_strategies_give_the_frames_and_gradients_of_the_slicing_functions(pipe):
     decode, z = vae_decoder(pipe), latents(pipe)
     cases = [
@@ -93,6 +94,7 @@ def test_the_strategies_give_the_frames_and_gradients_of_the_slicing_functions(p
     assert all(torch.equal(a, b) for a, b in zip(frames_and_grad(cases[1][0], z), frames_and_grad(cases[2][0], z)))
 
 
+@pytest.mark.slow
 def test_across_devices_copies_the_replicas_once_and_gives_the_frames_of_the_function(pipe):
     decode, z, devices = vae_decoder(pipe), latents(pipe), [torch.device("cpu"), torch.device("cpu")]
     copied = []
@@ -111,6 +113,7 @@ def test_across_devices_copies_the_replicas_once_and_gives_the_frames_of_the_fun
 # ---- the objective --------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_objective_is_the_decode_then_the_loss_for_every_plan(pipe):
     """On the tiny pipeline's models: the context's objective for each plan gives the loss, terms
     and gradient of the plan's decode and the GeCo loss called by hand, bit for bit."""
@@ -157,6 +160,7 @@ def run(pipe, observer=None, **run_options):
                 run_options=tiny_run_options(**run_options), observer=observer, **TINY_CALL_KWARGS)
 
 
+@pytest.mark.slow
 def test_the_observer_sees_each_update_as_the_log_records_it(pipe):
     seen, steps = [], []
 
@@ -176,6 +180,7 @@ def test_the_observer_sees_each_update_as_the_log_records_it(pipe):
     assert torch.equal(out.frames, plain.frames)  # watching changes nothing
 
 
+@pytest.mark.slow
 def test_the_objective_is_made_for_the_plan_and_again_after_a_fallback(pipe):
     """The observer's ``objective`` sees each plan's anchor objective: the first plan's, then after an
     injected out-of-memory error at the first update the fallback's, whose decode that plan picks."""

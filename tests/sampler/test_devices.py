@@ -57,6 +57,7 @@ def _pipe_frames(config, run):
 
 @pytest.mark.parametrize("plan", ["chunked", "explicit"], ids=["a-chunk-per-call", "batched-chunks"])
 @pytest.mark.parametrize("denoiser_grad", [False, True], ids=["fast", "faithful"])
+@pytest.mark.slow
 def test_two_devices_give_the_frames_of_one_in_the_pipeline(denoiser_grad, plan):
     # explicit: the tiny preset's own flags, which batch the chunks of one length in one decode call
     config, run = replace(tiny_guidance_config(), denoiser_grad=denoiser_grad), tiny_run_options(memory_plan=plan)
@@ -68,6 +69,7 @@ def test_two_devices_give_the_frames_of_one_in_the_pipeline(denoiser_grad, plan)
     assert report_one.devices is None and report_two.devices == ["cpu", "cpu"]
 
 
+@pytest.mark.slow
 def test_two_devices_give_the_frames_of_one_through_a_hook():
     from geco_guide import attach_geco_guidance
     from geco_guide.tiny import tiny_wan_pipeline
@@ -149,6 +151,7 @@ def test_the_pipeline_plans_for_the_devices_it_deals_the_decode_over(monkeypatch
 
 
 @pytest.mark.parametrize("denoiser_grad", [False, True], ids=["fast", "faithful"])
+@pytest.mark.slow
 def test_the_cfg_halves_on_two_devices_give_the_frames_of_one(denoiser_grad):
     """run.split_cfg: the unconditional and conditional halves as two calls, on two devices (two
     replicas) or one after the other on one: bitwise the same; the stock one-call batch to float

@@ -69,6 +69,7 @@ def run_tiny(pipe, estimators, seed: int = 1, **call):
     return run_pipeline(pipe, seed, estimators=estimators, run_options=T.tiny_run_options(), **call)
 
 
+@pytest.mark.slow
 def test_pipeline_guidance_leaves_the_masked_pixels_out(estimators):
     pipe = T.tiny_pipeline(0)
     plain = run_tiny(pipe, estimators)
@@ -86,6 +87,7 @@ def test_pipeline_guidance_leaves_the_masked_pixels_out(estimators):
     assert every_other.calls == 2  # guided steps 1 and 3
 
 
+@pytest.mark.slow
 def test_hooks_guide_with_masks_as_the_pipeline_does(estimators):
     from diffusers import CogVideoXPipeline
 
@@ -141,6 +143,7 @@ def test_mask_options_that_cannot_work_fail_before_any_denoising(estimators):
             T.tiny_guidance_config(**changes)
 
 
+@pytest.mark.slow
 def test_without_dynamic_the_video_its_name_and_log_stay_as_before(estimators):
     # The names the presets give without masks (since the model registry added model.name and
     # sampling.guidance_scale_2: before, 21df29c8 and e56702e3; before the run options left the key
@@ -181,6 +184,7 @@ def test_the_video_key_counts_what_masks_the_frames():
 
 
 @pytest.mark.parametrize("dynamic, source", [("a dog", "sam3: a dog"), ("auto", "auto")])
+@pytest.mark.slow
 def test_generate_with_dynamic_writes_masks_into_log_and_sidecar(dynamic, source, tmp_path: Path, capsys):
     out = tmp_path / "run.mp4"
     argv = ["--preset", "tiny", "--prompt", PROMPT, "--dynamic", dynamic, "estimators.segmenter=tiny-random",

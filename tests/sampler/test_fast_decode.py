@@ -80,6 +80,7 @@ def fresh_compile_cache(monkeypatch):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("checkpoint_chunks", [False, True])
+@pytest.mark.slow
 def test_channels_last_decode_gives_the_stock_frames_and_gradients(dtype, checkpoint_chunks):
     vae, latents = frozen_vae(dtype), latents_of(dtype)
     frames, grad = anchor_decode(vae, latents, checkpoint_chunks)
@@ -91,6 +92,7 @@ def test_channels_last_decode_gives_the_stock_frames_and_gradients(dtype, checkp
     assert grad.abs().max() > 0
 
 
+@pytest.mark.slow
 def test_every_convolution_sees_channels_last_inputs_for_a_batch_of_one():
     vae = frozen_vae()
     seen = []
@@ -104,6 +106,7 @@ def test_every_convolution_sees_channels_last_inputs_for_a_batch_of_one():
     assert [name for name, kept in seen if not kept] == []
 
 
+@pytest.mark.slow
 def test_the_vae_is_restored_on_exit_even_after_an_error(fresh_compile_cache):
     vae = frozen_vae()
     weights = {name: p.detach().clone() for name, p in vae.named_parameters()}
@@ -240,6 +243,7 @@ def test_a_replica_of_the_laid_out_vae_decodes_with_its_own_weights(monkeypatch,
     assert instance_forwards(vae) == []
 
 
+@pytest.mark.slow
 def test_a_guided_run_decodes_its_final_video_with_the_stock_vae(estimators):
     pipe = tiny_pipeline(0)
     final = {}
@@ -303,6 +307,7 @@ class RecordingCompile:
 
 
 @pytest.mark.parametrize("layout", ["default", "channels_last"])
+@pytest.mark.slow
 def test_compile_wraps_the_decoder_once_for_every_step(monkeypatch, fresh_compile_cache, layout):
     recording = RecordingCompile()
     monkeypatch.setattr(torch, "compile", recording)
@@ -344,6 +349,7 @@ def test_compile_wraps_the_tiny_decoder(monkeypatch, fresh_compile_cache):
     assert "decode" not in decoder.__dict__
 
 
+@pytest.mark.slow
 def test_a_guided_run_with_compile_calls_the_compiled_decoder(monkeypatch, fresh_compile_cache, estimators):
     recording = RecordingCompile()
     monkeypatch.setattr(torch, "compile", recording)
@@ -390,6 +396,7 @@ def test_torch_compile_refusing_the_platform_warns_and_decodes_eagerly(monkeypat
     assert torch.equal(frames, expected[0])
 
 
+@pytest.mark.slow
 def test_compiled_channels_last_decode_traces_forward_and_backward_once(monkeypatch, fresh_compile_cache):
     """Dynamo and AOTAutograd for real (no code generation, which takes minutes here): the traced
     graphs give the eager frames and gradients, and a second step reuses them."""

@@ -33,6 +33,7 @@ class Counted:
         setattr(obj, name, counted)
 
 
+@pytest.mark.slow
 def test_the_context_is_the_shortest_that_gives_the_whole_sequence_frame():
     decoder = TinyDecoder.random("cogvideox", seed=0)
     latents = torch.randn(1, 13, 16, 4, 6, generator=torch.Generator().manual_seed(0))
@@ -53,6 +54,7 @@ def test_anchor_chunks_follow_the_decoder():
         GuidanceConfig(decoder="taesd")
 
 
+@pytest.mark.slow
 def test_pipeline_guides_with_the_tiny_decoder_and_decodes_the_video_with_the_vae(estimators):
     pipe = T.tiny_pipeline(0)
     decoder = T.tiny_guidance_decoder("cogvideox")
@@ -215,6 +217,7 @@ def test_missing_estimator_weights_name_the_config_key(tmp_path, key, example):
     assert "\n" not in str(err.value) and f"estimators.{key}={example}" in str(err.value)
 
 
+@pytest.mark.slow
 def test_generate_runs_the_tiny_preset_with_the_tiny_decoder_offline(tmp_path):
     import json
 

@@ -59,6 +59,7 @@ def test_guided_updates_with_rigid_movers_lower_a_deforming_movers_residual():
 
 
 @pytest.mark.parametrize("front_door", ["pipeline", "hooks"])
+@pytest.mark.slow
 def test_rigid_movers_guide_in_the_pipeline_and_under_the_hooks(front_door, estimators):
     config = T.tiny_guidance_config(repeats="0x2,1x2", time_travel=[], dynamic="auto", movers="rigid")
     if front_door == "pipeline":

@@ -78,6 +78,7 @@ def state_of(pipe):
         ("hunyuan", True),
     ],
 )
+@pytest.mark.slow
 def test_guidance_lowers_geco_loss_and_detach_restores_bitwise(family, faithful, estimators):
     config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=faithful)
     never_hooked = BUILDERS[family](0)
@@ -126,6 +127,7 @@ def test_hook_on_stock_cogvideox_matches_geco_pipeline(faithful, estimators):
     torch.testing.assert_close(hooked, ours.frames, rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_time_travel_is_reproducible_from_the_generator(estimators):
     pipe = T.tiny_hunyuan_pipeline(0)
     config = T.tiny_guidance_config(anchors=ANCHORS, repeats="0x2,1x2", time_travel=[2, 3], step_size=1.0, denoiser_grad=False)
@@ -318,6 +320,7 @@ def test_stochastic_scheduler_noise_comes_from_the_calls_generator(estimators):
     assert torch.equal(a, b) and not torch.equal(a, c)
 
 
+@pytest.mark.slow
 def test_eta_reaches_a_ddim_scheduler_through_the_hook(estimators):
     from diffusers import DDIMScheduler
 
@@ -354,6 +357,7 @@ def test_denoiser_cache_is_refused_before_any_denoising_step(estimators):
 
 
 @pytest.mark.parametrize("family, faithful", [("wan", True), ("cogvideox", False)])
+@pytest.mark.slow
 def test_model_cpu_offload_with_the_hook_gives_the_same_video(family, faithful, estimators):
     """accelerate's model offload hooks (device="cpu", so it runs without an accelerator) on a
     pipeline that the guidance hook guides: every model still runs where its inputs are, the
@@ -408,6 +412,7 @@ def test_the_denoiser_capture_is_a_hook_of_diffusers_registry(estimators):
 
 
 @pytest.mark.parametrize("family", ["cogvideox", "cogvideox-1.5", "wan", "hunyuan", "ltx"])
+@pytest.mark.slow
 def test_the_callers_latents_are_checked_before_any_denoising_step(family, estimators):
     pipe = BUILDERS[family](0)
     shapes = []

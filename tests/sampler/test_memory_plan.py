@@ -61,6 +61,7 @@ def run(pipe, mode: str, seed: int = 3, **options):
 
 
 @pytest.mark.parametrize("mode", ["fast", "faithful"])
+@pytest.mark.slow
 def test_every_plan_gives_the_same_frames_as_the_explicit_default(pipe, mode):
     reference = run(pipe, mode, **EXPLICIT_DEFAULT)
     assert reference.report.memory_plan["name"] == "explicit" and len(reference.report.log) == 2
@@ -76,6 +77,7 @@ def test_every_plan_gives_the_same_frames_as_the_explicit_default(pipe, mode):
     assert not ESTIMATORS.geometry.gradient_checkpointing and not ESTIMATORS.flow.gradient_checkpointing
 
 
+@pytest.mark.slow
 def test_one_call_per_chunk_is_the_checkpointed_decode_to_the_last_bit(pipe):
     """The named plans' decode without checkpointing (one call per chunk) gives the checkpointed
     decode's numbers and gradient exactly; the explicit plan without ``vae_checkpointing`` batches
@@ -100,6 +102,7 @@ def test_one_call_per_chunk_is_the_checkpointed_decode_to_the_last_bit(pipe):
     assert single_calls == [1, 1, 1, 1] and sorted(batched_calls) == [1, 3]
 
 
+@pytest.mark.slow
 def test_the_plan_switches_are_on_during_the_call_and_reported(pipe, monkeypatch):
     seen = []
     objective = GuidanceContext.objective
@@ -119,6 +122,7 @@ def test_the_plan_switches_are_on_during_the_call_and_reported(pipe, monkeypatch
     assert seen[0] == (False, False, False, True)  # the denoiser is not differentiated in fast mode
 
 
+@pytest.mark.slow
 def test_partial_checkpoints_all_denoiser_blocks_but_every_fourth_and_changes_nothing():
     """``partial`` on a 6-block tiny transformer: blocks 1-3 and 5 checkpointed one by one during the
     faithful call (the model's own checkpointing off), blocks 0 and 4 kept; the frames are the
@@ -272,6 +276,7 @@ def fake_oom_at_calls(monkeypatch, calls: set[int]):
 
 
 @pytest.mark.parametrize("mode", ["fast", "faithful"])
+@pytest.mark.slow
 def test_oom_at_the_first_update_falls_back_to_the_next_plan(pipe, monkeypatch, caplog, mode):
     budget = {"memory_plan": "auto", "memory_budget_gb": 1000.0}  # the tiny models' least-recompute plan
     plain = run(pipe, mode, **budget)
@@ -378,6 +383,7 @@ def test_offload_peak_counts_the_resident_estimators_and_the_model_at_work():
 # ---- the hooks ----------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_hooked_stock_pipeline_runs_the_plans_and_reports_them():
     """attach_geco_guidance: the stock tiny CogVideoX pipeline is a model the estimates know (auto
     picks its least-recompute plan), every plan gives the same frames there too, and the handle
@@ -433,6 +439,7 @@ def test_a_video_size_no_video_has_is_refused_before_any_plan(frames, height, wi
     assert "\n" not in str(err.value)
 
 
+@pytest.mark.slow
 def test_the_shipped_estimates_are_what_the_cost_model_traces_now():
     """One plan of the tiny models traced again gives the shipped numbers (regenerate the file
     with `geco bench plans` when this fails)."""

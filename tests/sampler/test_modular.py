@@ -74,6 +74,7 @@ def without_seconds(log: list[dict]) -> list[dict]:
         pytest.param(True, True, [1, 1], False, id="faithful-cfg"),
     ],
 )
+@pytest.mark.slow
 def test_the_block_gives_the_hooked_wan_pipelines_frames(version, faithful, cfg, time_travel, bitwise, estimators):
     bundle = estimators
     config = T.tiny_guidance_config(**SCHEDULE, time_travel=time_travel, denoiser_grad=faithful)
@@ -146,6 +147,7 @@ def modules_cache(tmp_path, monkeypatch):
             del sys.modules[name]
 
 
+@pytest.mark.slow
 def test_the_block_saves_and_loads_as_a_diffusers_custom_block(tmp_path, modules_cache, estimators):
     from diffusers.modular_pipelines import ModularPipelineBlocks
 

@@ -77,6 +77,7 @@ def final_latents(pipe, seed=0, **changes):
     ("hunyuanvideo1.5-i2v", False),
     ("ltx-2", True),
 ])
+@pytest.mark.slow
 def test_guidance_runs_end_to_end_and_detach_restores_bitwise(family, faithful, estimators):
     config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=faithful)
     reference = call(BUILDERS[family](0)).frames
@@ -111,6 +112,7 @@ def test_guidance_off_gives_the_stock_output_bit_for_bit(family, estimators):
 
 
 @pytest.mark.parametrize("family", FAMILIES)
+@pytest.mark.slow
 def test_the_frame_scored_at_anchor_f_is_frame_f_of_the_output(family, estimators):
     """Every frame 1..16 of a guided 17-frame video as an anchor, each decoded from its chunk as
     guidance decodes it (the adapter's layout, de-normalisation and decode, on the final latents).
@@ -188,6 +190,7 @@ def test_frame_counts_the_vae_cannot_make_are_refused_before_any_denoising_step(
     ("wan2.2-ti2v-5b", "wan2.2-5b", T.WAN22_LATENT_CHANNELS),  # taew2_2
     ("hunyuanvideo1.5", "hunyuanvideo1.5", T.HUNYUAN15_LATENT_CHANNELS),  # taehv1_5
 ])
+@pytest.mark.slow
 def test_the_tiny_decoder_of_the_family_decodes_the_anchors(family, variant, channels, estimators):
     """The published tiny decoders of these families take their real latent channels (48, 32) and
     the pipelines' latents as they are, at the VAEs' 16x spatial scale (pixel patches of 2)."""
@@ -204,6 +207,7 @@ def test_the_tiny_decoder_of_the_family_decodes_the_anchors(family, variant, cha
 
 
 @pytest.mark.parametrize("family", ["wan2.2-ti2v-5b", "hunyuanvideo1.5", "ltx-2"])
+@pytest.mark.slow
 def test_the_callers_latents_are_checked_before_any_denoising_step(family, estimators):
     """The latents a caller passes: ``[B, C, F, h, w]`` for all three (LTX-2 packs them itself), of
     the call's size, finite."""
@@ -278,6 +282,7 @@ def test_hunyuan15_guider_rescale_is_followed_at_every_sample(estimators):
 # ---- LTX-2: video guided, audio passed through ----------------------------------------------------
 
 
+@pytest.mark.slow
 def test_ltx2_combination_rebuilds_cfg_stg_modality_and_rescale(estimators, monkeypatch):
     """The tiny call runs the pipeline's defaults: CFG 3, spatio-temporal guidance 1 (a third call),
     modality isolation 3 (a fourth), guidance_rescale 0.7, all made on clean estimates. A faithful

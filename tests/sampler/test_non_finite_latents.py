@@ -33,6 +33,7 @@ def _message(step: int, steps: int) -> str:
 
 @pytest.mark.parametrize("guidance", [None, False], ids=["guided", "unguided"])
 @pytest.mark.parametrize("step", [1, 3])
+@pytest.mark.slow
 def test_the_pipeline_refuses_latents_that_turn_nan_naming_the_step(guidance, step, estimators):
     pipe = T.tiny_pipeline(0)
     with pytest.raises(NonFiniteLatentsError) as err:
@@ -45,6 +46,7 @@ def test_the_pipeline_refuses_latents_that_turn_nan_naming_the_step(guidance, st
     ("1x4", 1, 2),  # every step guided: refused where the next guided step starts from them
     ("1x1,0x3", 1, 2),  # no guided step after: refused at the last step, naming the first step that made them
 ])
+@pytest.mark.slow
 def test_the_hooks_refuse_latents_that_turn_nan_naming_the_step(repeats, poisoned, named, estimators):
     pipe = T.tiny_wan_pipeline(0)
     config = {"anchors": [4, 8, 12, 16], "repeats": repeats, "time_travel": []}

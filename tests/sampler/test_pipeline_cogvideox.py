@@ -165,6 +165,7 @@ def test_guidance_off_matches_stock_pipeline_bitwise(pipe):
         assert ours.report.scheduler == "CogVideoXDDIMScheduler"
 
 
+@pytest.mark.slow
 def test_guided_run_lowers_geco_loss_on_anchor_frames(pipe):
     unguided = run(pipe, seed=0, guidance=False).frames
     guided = run(pipe, seed=0)
@@ -182,6 +183,7 @@ def test_guided_run_lowers_geco_loss_on_anchor_frames(pipe):
     assert guided.report.log[0]["t"] == int(pipe.scheduler.timesteps[1])
 
 
+@pytest.mark.slow
 def test_same_seed_same_frames_with_time_travel(pipe):
     cfg = {"repeats": "0x1,1x3", "time_travel": [1, 3]}  # every update time-travels
     a = run(pipe, seed=7, guidance=cfg).frames
@@ -191,6 +193,7 @@ def test_same_seed_same_frames_with_time_travel(pipe):
     assert not torch.equal(a, c)
 
 
+@pytest.mark.slow
 def test_only_anchor_chunks_are_decoded_and_models_stay_frozen(pipe):
     models = {
         "transformer": pipe.transformer, "vae": pipe.vae, "text_encoder": pipe.text_encoder,
@@ -223,6 +226,7 @@ def test_only_anchor_chunks_are_decoded_and_models_stay_frozen(pipe):
 
 
 @pytest.mark.parametrize("denoiser_grad", [True, False])
+@pytest.mark.slow
 def test_denoiser_calls_per_mode_and_no_host_syncs_in_the_updates(pipe, denoiser_grad):
     # tiny schedule: R = 0, 2, 2, 1 with time travel at step 2
     counter, text = CountingForward(pipe.transformer), CountingForward(pipe.text_encoder)
@@ -298,6 +302,7 @@ def test_guidance_needs_estimators_but_unguided_does_not(pipe):
     assert run(pipe, guidance=False, estimators=None, output_type="latent").frames.shape[1] == 5
 
 
+@pytest.mark.slow
 def test_from_pretrained_keeps_the_checkpoints_scheduler(tmp_path, pipe):
     # the scheduler the checkpoint ships (CogVideoXDPMScheduler for CogVideoX-5B) is kept;
     # the paper's DDIM is chosen explicitly (the cogvideox-5b preset does, see test_presets.py)
@@ -323,6 +328,7 @@ def test_from_pretrained_keeps_the_checkpoints_scheduler(tmp_path, pipe):
     assert len(guided.report.log) == 5 and guided.report.scheduler == "CogVideoXDPMScheduler"
 
 
+@pytest.mark.slow
 def test_gradient_checkpointing_gives_the_same_update(pipe):
     cfg = {"repeats": "0x2,1x1,0x1", "time_travel": []}
     explicit = {"memory_plan": "explicit"}  # the flags, as given
@@ -387,6 +393,7 @@ def test_latents_of_another_shape_are_refused_naming_the_expected_one(pipe, axis
 
 
 @pytest.mark.parametrize("time_travel", [[], None])
+@pytest.mark.slow
 def test_a_nan_decode_by_the_tiny_decoder_skips_the_update_and_leaves_the_latents_finite(time_travel):
     guided = tiny_pipeline(0)
     decoder = tiny_guidance_decoder("cogvideox")

@@ -83,6 +83,7 @@ def test_guidance_off_is_stock_ddim_for_every_timestep_spacing(spacing, estimato
 
 
 @pytest.mark.parametrize("spacing", ["linspace", "leading"])
+@pytest.mark.slow
 def test_guided_pipeline_uses_the_schedulers_alpha_prev_like_the_hooks(spacing, estimators):
     # time travel steps and re-noises with alpha_prev = alphas[t - T // n], the rule scheduler.step
     # uses; the hooks use it too, so the pipeline and the hooked stock pipeline agree
@@ -98,6 +99,7 @@ def test_guided_pipeline_uses_the_schedulers_alpha_prev_like_the_hooks(spacing, 
     torch.testing.assert_close(hooked, ours_out.frames, rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_eta_and_generator_reach_the_scheduler_step(estimators):
     # mirrors prepare_extra_step_kwargs in test_inference: a DDIM that honours eta draws its noise
     # from the call's generator, with guidance off (as stock) and on
@@ -163,6 +165,7 @@ def test_none_components_are_accepted(estimators):
     ],
     ids=["cogvideox-ddim", "cogvideox-dpm", "ddim"],
 )
+@pytest.mark.slow
 def test_the_users_scheduler_is_kept(make, estimators):
     # mirrors test_components_function and test_save_load_local (the scheduler is a component,
     # kept as given); the paper's DDIM is chosen explicitly by the caller or the preset
@@ -198,6 +201,7 @@ def test_to_device_dtype_and_save_are_diffusers_own(estimators):
 # ---- with guidance on: contracts hold, or the combination is refused clearly --------------------
 
 
+@pytest.mark.slow
 def test_other_step_counts_scale_the_schedule_with_a_warning(estimators):
     # mirrors test_inference (diffusers' dummy inputs use num_inference_steps=2)
     _, ours = pair(estimators, repeats="0x2,2x2")  # written for 4 steps
@@ -211,6 +215,7 @@ def test_other_step_counts_scale_the_schedule_with_a_warning(estimators):
         call(ours, 0)  # the step count it was written for: no warning
 
 
+@pytest.mark.slow
 def test_batched_guidance_normalises_per_video(estimators):
     # mirrors test_inference_batch_single_identical: two identical videos in one batch (same
     # prompt, same generator seed) stay identical when guided
@@ -238,6 +243,7 @@ def test_callback_inputs_with_guidance_on(estimators):
     assert len(out.report.log) == 2 and ours.guidance_scale == 1.0
 
 
+@pytest.mark.slow
 def test_fused_qkv_projections_with_guidance(estimators):
     # mirrors test_fused_qkv_projections
     _, ours = pair(estimators, denoiser_grad=True)
@@ -288,6 +294,7 @@ def test_denoiser_caches_are_refused_with_guidance_and_work_without(cache, estim
         ours.transformer.disable_cache()
 
 
+@pytest.mark.slow
 def test_save_load_round_trips_the_guidance_config(tmp_path, estimators):
     # mirrors test_save_load_local and test_save_load_optional_components
     _, ours = pair(estimators, step_size=1.5, loss=replace(fused_guidance_loss(), cue="motion"))
@@ -306,6 +313,7 @@ def test_save_load_round_trips_the_guidance_config(tmp_path, estimators):
     assert "guidance_config" in repr(ours)
 
 
+@pytest.mark.slow
 def test_model_cpu_offload_with_guidance(estimators):
     # mirrors test_model_cpu_offload_forward_pass / test_cpu_offload_forward_pass_twice: accelerate's
     # model offload hooks (device="cpu" here, so it runs without an accelerator) change nothing,
@@ -327,6 +335,7 @@ def test_model_cpu_offload_with_guidance(estimators):
 
 
 @pytest.mark.parametrize("version", ["1.0", "1.5"])
+@pytest.mark.slow
 def test_latents_of_the_shape_the_stock_pipeline_draws_give_its_output(version, estimators):
     stock = tiny_cogvideox_pipeline(0, version=version)
     stock.set_progress_bar_config(disable=True)

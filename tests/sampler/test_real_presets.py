@@ -81,6 +81,7 @@ def weights_overrides(weights: dict[str, str]) -> list[str]:
             f"estimators.flow={weights['flow']}"]
 
 
+@pytest.mark.slow
 def test_estimators_round_trip_through_save_pretrained_with_their_config(tmp_path):
     tiny = tiny_estimators(3)
     for model, cls in ((tiny.geometry, VGGT), (tiny.flow, UFM)):
@@ -104,6 +105,7 @@ def test_estimators_round_trip_through_save_pretrained_with_their_config(tmp_pat
 
 
 @pytest.mark.parametrize("preset", FOLDER_PRESETS)
+@pytest.mark.slow
 def test_a_real_preset_generates_from_local_folders_as_shipped(preset, local_weights, tmp_path, capsys):
     out = tmp_path / "video.mp4"
     rc = generate_module.main(["--preset", preset, "--prompt", PROMPT, "--out", str(out),
@@ -178,6 +180,7 @@ def test_the_memory_planner_resolves_auto_and_refuses_a_missing_device():
             plan_before_loading(paper_guidance_config(), RunOptions(), "THUDM/CogVideoX-5b", 49, 480, 720, "cuda")
 
 
+@pytest.mark.slow
 def test_geco_ab_runs_the_paper_preset_from_local_folders(local_weights, tmp_path, capsys):
     prompts = tmp_path / "prompts.txt"
     prompts.write_text(PROMPT + "\n")
@@ -193,6 +196,7 @@ def test_geco_ab_runs_the_paper_preset_from_local_folders(local_weights, tmp_pat
     assert (out / "report.md").is_file()
 
 
+@pytest.mark.slow
 def test_geco_eval_runs_cogvideox_5b_from_local_folders(local_weights, tmp_path, capsys, monkeypatch):
     from dataclasses import replace
 
@@ -244,6 +248,7 @@ OFFLINE_DRIVER = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_offline_without_weights_every_command_with_a_real_preset_is_the_missing_weights_line(tmp_path):
     # one process for all (a process per command would pay the imports each time); offline and an
     # empty hub cache, as on a fresh machine without network

@@ -33,6 +33,7 @@ def test_the_two_objects_share_no_option():
     assert set(FRAME_ROUNDING_KEYS) <= set(RUN_KEYS)
 
 
+@pytest.mark.slow
 def test_save_pretrained_writes_no_run_option(tmp_path):
     from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 
@@ -95,6 +96,7 @@ def test_the_old_spelling_is_refused_even_beside_a_run_section(tmp_path):
     one_line(err)
 
 
+@pytest.mark.slow
 def test_old_keys_in_a_call_dict_or_as_arguments_are_refused_before_any_step():
     pipe = tiny_pipeline(0)
     steps = []

@@ -291,6 +291,7 @@ def test_pipeline_renoised_copies_explore_with_their_own_noise(estimators, monke
     assert torch.equal(out.frames[1], out.frames[2])  # the same noise (seeds 1, 1): the same move
 
 
+@pytest.mark.slow
 def test_pipeline_sub_batches_and_devices_give_the_same_frames(estimators):
     pipe = cogvideox()
     search = SearchConfig(particles=3, resample_steps=[1, 2], temperature=0.001)
@@ -378,6 +379,7 @@ def test_hooks_one_particle_without_resampling_is_the_plain_video(family, estima
     assert torch.equal(searched, plain) and report.search["lineages"] == [[0]]
 
 
+@pytest.mark.slow
 def test_hooks_guided_particles_of_one_per_call_are_their_seeds_guided_videos(estimators):
     pipe = T.tiny_wan_pipeline(0)
     with attach_geco_guidance(pipe, GUIDED, estimators, T.tiny_run_options()):
@@ -389,6 +391,7 @@ def test_hooks_guided_particles_of_one_per_call_are_their_seeds_guided_videos(es
     assert [tuple(r["particles"]) for r in report.log] == [(0, 0), (1, 1), (0, 0), (1, 1)]
 
 
+@pytest.mark.slow
 def test_hooks_resampling_carries_the_multistep_history(estimators, monkeypatch):
     pipe = T.tiny_wan_pipeline(0)  # UniPC: the next steps read model_outputs and last_sample
     run = T.tiny_run_options(particle_batch=1)  # one particle per call: its numbers its own
@@ -424,6 +427,7 @@ def test_hooks_carry_the_steps_per_particle_arguments(estimators, monkeypatch):
     assert torch.equal(copies[0], copies[1]) and torch.equal(copies[0], plain[0])
 
 
+@pytest.mark.slow
 def test_hooks_sub_batches_and_devices_give_the_same_frames(estimators):
     pipe = T.tiny_wan_pipeline(0)
     search = SearchConfig(particles=3, resample_steps=[1, 2], temperature=0.001)
@@ -468,6 +472,7 @@ class LeftHalf:
         return masks
 
 
+@pytest.mark.slow
 def test_search_with_dynamic_masks_scores_without_what_moves_and_guides_each_particle(estimators, monkeypatch):
     pipe = cogvideox()
     search = SearchConfig(particles=2, resample_steps=[2], scheme=fixed_scheme(monkeypatch, "copy", [1, 1]))

@@ -124,6 +124,7 @@ def test_chunk_decode_of_the_whole_video_matches_a_full_decode():
     assert 0 <= frames.min() and frames.max() <= 1
 
 
+@pytest.mark.slow
 def test_batched_chunk_decode_matches_decoding_each_chunk_alone():
     from geco_guide.tiny import tiny_cogvideox_components
 
@@ -137,6 +138,7 @@ def test_batched_chunk_decode_matches_decoding_each_chunk_alone():
             torch.testing.assert_close(frames[:, k], alone[:, alone.shape[1] - 1 - chunk.from_end])
 
 
+@pytest.mark.slow
 def test_checkpointed_chunks_give_the_same_frames_and_gradient():
     from geco_guide.tiny import tiny_cogvideox_components
 
