@@ -126,3 +126,29 @@ def test_geco_generate_model_runs_every_model_from_a_folder_as_shipped(name, gui
         assert sidecar["geco_scores"]["anchors"] == config["guidance"]["anchors"]
     else:
         assert sidecar["guidance_log"] == [] and sidecar["memory_plan"] is None
+
+
+@pytest.mark.parametrize("name", GENERATING)
+def test_offline_without_weights_each_model_is_the_missing_weights_line(name, tmp_path, monkeypatch, capsys):
+    """A fresh machine without network: ``geco generate --model NAME`` (its preset as shipped) ends in
+    one line naming the hub id, the config key and how to pass a local folder, before anything loads."""
+    import diffusers.utils.constants
+    import huggingface_hub.constants
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf-home"))
+    # both libraries read the variables once, at import
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(tmp_path / "hf-home" / "hub"))
+    monkeypatch.setattr(diffusers.utils.constants, "HF_HUB_OFFLINE", True, raising=False)
+    model = model_named(name)
+    argv = ["--model", name, "--prompt", PROMPT, "--out", str(tmp_path / "video.mp4")]
+    if model.image_to_video:
+        tiny.tiny_image(0, 64, 64).save(tmp_path / "image.png")
+        argv += ["--image", str(tmp_path / "image.png")]
+    assert generate.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "loading" not in err and err.startswith("error: "), err
+    assert model.hub_id in err and "(offline and not in the cache)" in err, err
+    assert f"(config: model.id=/path/to/{model.hub_id.split('/')[-1]})" in err, err
+    assert not (tmp_path / "video.mp4").exists()
