@@ -33,7 +33,7 @@ import re
 import shutil
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -221,10 +221,30 @@ class Models:
 
     video: LoadedPipeline
     estimators: Estimators | None
+    #: the estimators' copies on other devices, by devices (:meth:`estimators_on`)
+    _replicas: dict[tuple[str, ...], list[Estimators]] = field(default_factory=dict, repr=False)
 
     @property
     def pipe(self) -> Any:
         return self.video.pipe
+
+    def estimators_on(self, devices: list[Any]) -> list[Estimators]:
+        """The estimators on each of ``devices``: the bundle itself where its geometry and flow
+        models live on that device, copies of them elsewhere (made once per run and devices; the
+        segmenter is shared). What a search's selection scores its particles with, device by
+        device."""
+        from torch import nn
+
+        from .sampler.multi_device import module_replicas
+
+        key = tuple(str(device) for device in devices)
+        if key not in self._replicas:
+            estimators = self.estimators
+            geometry, flow = (module_replicas(model, devices) if isinstance(model, nn.Module)
+                              else [model] * len(devices) for model in (estimators.geometry, estimators.flow))
+            self._replicas[key] = [replace(estimators, geometry=g, flow=f, tiny_decoder=None)
+                                   for g, f in zip(geometry, flow)]
+        return self._replicas[key]
 
 
 def loading_line(cfg: GeCoConfig, estimators: bool = True) -> str:
@@ -384,6 +404,7 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
     import torch
 
     from .metric.evaluate import evaluate_video, finite_or_none
+    from .sampler.multi_device import dealt_work, resolve_devices
     from .sampler.sampling import call_arguments
     from .sampler.search import search_seed
     from .tiny import tiny_call_extras
@@ -408,20 +429,28 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
     else:
         from .sampler.hooks import attach_geco_guidance
 
-        with attach_geco_guidance(pipe, cfg.guidance, models.estimators, cfg.run, search=cfg.search) as handle:
-            handle.observer, handle.search_generator = observer, search_generator
+        with attach_geco_guidance(pipe, cfg.guidance, models.estimators, cfg.run) as handle:
+            handle.observer = observer
+            if cfg.search.enabled:
+                handle.enable_search(cfg.search, search_generator)
             output = pipe(**arguments)
         report = handle.last
     frames = output.frames.float().cpu()  # [K, F, 3, H, W] in [0, 1]
     selection_start = time.perf_counter()
-    scores, masks = [], selection_masks(cfg, models)
-    for k in range(particles):
+    masks = selection_masks(cfg, models)
+    devices = resolve_devices(cfg.run.devices)
+    bundles = models.estimators_on(devices) if devices and len(devices) > 1 else [models.estimators]
+
+    def protocol_scores(k: int, place: int) -> dict[str, float | None]:
         try:
-            scored = evaluate_video(frames[k], models.estimators, cfg.evaluation, fps=cfg.sampling.fps,
+            scored = evaluate_video(frames[k], bundles[place], cfg.evaluation, fps=cfg.sampling.fps,
                                     dynamic_masks=masks)
-            values = {key: finite_or_none(getattr(scored, key)) for key in ("fused", "motion", "structure")}
+            return {key: finite_or_none(getattr(scored, key)) for key in ("fused", "motion", "structure")}
         except ValueError:  # NaN frames: the particle ranks last
-            values = dict.fromkeys(("fused", "motion", "structure"))
+            return dict.fromkeys(("fused", "motion", "structure"))
+
+    scores = []
+    for k, values in enumerate(dealt_work(particles, len(bundles), protocol_scores)):  # each device its share
         scores.append(values)
         if on_particle is not None:
             on_particle(k, values)
@@ -430,6 +459,7 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
     _check_sampled(video)
     record = report.search
     search = {**record, "score": f"{SELECTION_SCORE} (the GeCo protocol, evaluation.*)", "kept": kept,
+              **({"selection_devices": [str(device) for device in devices]} if len(bundles) > 1 else {}),
               "kept_lineage": record["lineages"][kept], "selection_s": time.perf_counter() - selection_start,
               "final_particles": [{"particle": k, "seed": seed + record["lineages"][k][0],
                                    "lineage": record["lineages"][k], **scores[k]} for k in range(particles)]}

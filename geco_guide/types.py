@@ -18,6 +18,8 @@ frames.
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 import numbers
 from collections.abc import Callable, Mapping, Sequence
@@ -30,7 +32,7 @@ from torch import Tensor
 __all__ = ["ESTIMATOR_KEYWORDS", "NAMED_MASK_SOURCES", "Correspondences", "DynamicMaskSource", "FlowEstimator",
            "GeometryEstimator", "NonFiniteFramesError", "OptionError", "SceneGeometry", "check_estimator_bundle",
            "check_frame_values", "check_frames", "is_integer", "is_number", "merge_dataclass", "missing_estimators",
-           "non_finite_fields", "plural", "refuse_estimator_keywords", "refuse_renamed_arguments", "renamed_option"]
+           "non_finite_fields", "plural", "refuses_earlier_keywords", "refuse_renamed_arguments", "renamed_option"]
 
 
 @dataclass
@@ -115,17 +117,36 @@ def missing_estimators(geometry: Any, flow: Any) -> list[str]:
 #: The keyword arguments that once passed the two estimators one by one.
 ESTIMATOR_KEYWORDS = ("geometry_estimator", "flow_estimator", "geometry", "flow")
 
+_F = TypeVar("_F", bound=Callable[..., Any])
 
-def refuse_estimator_keywords(where: str, keywords: Mapping[str, Any]) -> None:
-    """TypeError (one line) for keyword arguments ``where`` (e.g. ``"GeCoLoss"``) does not take:
-    an earlier keyword of the estimator pair (``geometry=``, ``flow_estimator=``, ...) names the
-    new spelling, ``estimators=Estimators(geometry, flow)``; any other is refused as Python would."""
-    old = sorted(key for key in keywords if key in ESTIMATOR_KEYWORDS)
-    if old:
-        raise TypeError(f"{where}({old[0]}=...) is the earlier spelling: pass the models as one "
-                        "estimators=Estimators(geometry, flow) (geco_guide.Estimators)")
-    if keywords:
-        raise TypeError(f"{where}() got an unexpected keyword argument {sorted(keywords)[0]!r}")
+
+def refuses_earlier_keywords(where: str, **hints: str) -> Callable[[_F], _F]:
+    """Decorate a public entry point so that a keyword it does not take is refused in one line
+    (a TypeError) before the call: an earlier spelling of the estimator pair (``geometry=``,
+    ``flow_estimator=``, ...) names ``estimators=Estimators(geometry, flow)``, a keyword of
+    ``hints`` (earlier spelling -> where it went) names its new place, any other is refused as
+    Python would, under ``where`` (e.g. ``"GeCoLoss"``). The signature stays the function's own.
+    """
+    def decorate(function: _F) -> _F:
+        accepted = set(inspect.signature(function).parameters)
+
+        @functools.wraps(function)
+        def call(*args: Any, **kwargs: Any) -> Any:
+            unknown = sorted(key for key in kwargs if key not in accepted)
+            if unknown:
+                hinted = [key for key in unknown if key in hints]
+                old = [key for key in unknown if key in ESTIMATOR_KEYWORDS]
+                if hinted:
+                    raise TypeError(f"{where}({hinted[0]}=...) is the earlier spelling: {hints[hinted[0]]}")
+                if old:
+                    raise TypeError(f"{where}({old[0]}=...) is the earlier spelling: pass the models as one "
+                                    "estimators=Estimators(geometry, flow) (geco_guide.Estimators)")
+                raise TypeError(f"{where}() got an unexpected keyword argument {unknown[0]!r}")
+            return function(*args, **kwargs)
+
+        return call  # type: ignore[return-value]
+
+    return decorate
 
 
 def check_estimator_bundle(estimators: Any, where: str) -> None:

@@ -63,6 +63,20 @@ def test_a_search_keeps_the_final_particle_of_least_protocol_score(tmp_path):
     assert search["score"].startswith("fused (the GeCo protocol") and search["particle_batch"]["size"] == 3
 
 
+@pytest.mark.slow
+def test_a_search_dealt_over_devices_writes_the_same_video_and_scores(tmp_path):
+    options = ("guidance.enabled=false", "search.particles=3", "search.resample_steps=[1]", "run.particle_batch=1")
+    models = generation.load_models(tiny(*options))
+    one = generate(tiny(*options), PROMPT, tmp_path / "one.mp4", models=models)
+    dealt = generate(tiny(*options, "run.devices=[cpu,cpu]"), PROMPT, tmp_path / "dealt.mp4", models=models)
+    assert dealt.video_path.read_bytes() == one.video_path.read_bytes()
+    # each device decodes and scores its share of the final particles, to the same numbers
+    assert dealt.sidecar["search"]["final_particles"] == one.sidecar["search"]["final_particles"]
+    assert dealt.sidecar["search"]["selection_devices"] == ["cpu", "cpu"]
+    assert dealt.sidecar["search"]["final_decode_devices"] == ["cpu", "cpu"]
+    assert "selection_devices" not in one.sidecar["search"]
+
+
 def test_search_errors_are_one_line_before_anything_loads(tmp_path, monkeypatch):
     monkeypatch.setattr(generation, "load_models", lambda *a, **k: (_ for _ in ()).throw(AssertionError("loaded")))
     cases = [

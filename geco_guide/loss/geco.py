@@ -40,7 +40,7 @@ from ..types import (
     OptionError,
     SceneGeometry,
     check_estimator_bundle,
-    refuse_estimator_keywords,
+    refuses_earlier_keywords,
     check_frame_values,
     check_frames,
     non_finite_fields,
@@ -591,16 +591,15 @@ class GeCoLoss(nn.Module):
     ``GeCoResult.valid_pixels`` says so, and its ``scalars()`` are NaN.
     """
 
+    @refuses_earlier_keywords("GeCoLoss")
     def __init__(
         self,
         estimators: Any = None,
         config: GeCoLossConfig | dict | None = None,
         *,
         check_values: bool = True,
-        **earlier: Any,
     ) -> None:
         super().__init__()
-        refuse_estimator_keywords("GeCoLoss", earlier)
         check_estimator_bundle(estimators, "GeCoLoss")
         if isinstance(config, dict):
             known = {f.name for f in fields(GeCoLossConfig)}

@@ -48,7 +48,7 @@ from ..loss.geco import (
 )
 from ..loss.motion_stats import motion_statistics
 from ..types import (Correspondences, SceneGeometry, check_estimator_bundle, check_frame_values, plural,
-                     refuse_estimator_keywords)
+                     refuses_earlier_keywords)
 from .protocol import (
     EvaluationConfig,
     Window,
@@ -360,6 +360,7 @@ def _clip_score(windows: list[dict[str, Any]], name: str) -> float:
     return sum(value * weight for value, weight in scored) / total if total else math.nan
 
 
+@refuses_earlier_keywords("evaluate_video")
 @torch.no_grad()
 def evaluate_video(
     video: str | os.PathLike | Tensor,
@@ -371,7 +372,6 @@ def evaluate_video(
     maps: bool = False,
     progress: Callable[[str], None] | None = None,
     dynamic_masks: Any = None,
-    **earlier: Any,
 ) -> EvaluationResult:
     """GeCo scores of a video under the GeCo-Eval protocol (:class:`EvaluationConfig`).
 
@@ -413,7 +413,6 @@ def evaluate_video(
         TypeError: estimators that are not a bundle, or passed by an earlier keyword
             (``geometry=``, ``flow_estimator=``, ...).
     """
-    refuse_estimator_keywords("evaluate_video", earlier)
     if isinstance(estimators, Estimators) or not (estimators is None or isinstance(estimators, EstimatorsConfig)):
         check_estimator_bundle(estimators, "evaluate_video")
     if config is not None and not isinstance(config, EvaluationConfig):

@@ -64,8 +64,6 @@ def family_rows(estimates: dict[str, Any] | None = None) -> list[dict[str, str]]
             faithful = guidance_cost(name, gpu, "faithful", estimates=estimates)
             matched = matched_particles(name, gpu, estimates=estimates)
             several = search_cost(name, SEARCH_PARTICLES, gpu, SEARCH_GPUS, estimates=estimates)
-            selecting = search_cost(name, SEARCH_PARTICLES, gpu, SEARCH_GPUS, each_gpu_selects=True,
-                                    estimates=estimates)
             rows.append({
                 "model": name, "card": f"{gpu} ({card_memory_gib(gpu):.0f} GiB)",
                 "unguided": _unguided(entry, gpu),
@@ -77,8 +75,7 @@ def family_rows(estimates: dict[str, Any] | None = None) -> list[dict[str, str]]
                                                                unguided_s),
                 "gpus": _guided(guidance_cost(name, gpu, "faithful", num_gpus=SEARCH_GPUS, estimates=estimates),
                                 entry["estimates"]["faithful/vae"]),
-                "search_gpus": f"{_search(several, unguided_s)}; each GPU selecting: "
-                               f"{_seconds(selecting['time_s'])} ({selecting['time_s'] / unguided_s:.2f}x)",
+                "search_gpus": _search(several, unguided_s),
             })
     return rows
 

@@ -11,10 +11,9 @@ traced, so a caller can ask for any card, mode, number of particles and number o
   ``K x`` the denoiser's prediction at every step (the particles dealt over the GPUs in
   sub-batches), at most ``K - 1`` more per resampling (the re-noised copies), a scoring of every
   particle at each resampling (its anchor decode, whose chunks ``run.devices`` deals over the
-  GPUs, and the estimators' forward), then each final particle's decode and its protocol scoring
-  (the selection), on the pipeline's GPU as the implementation runs them today; with
-  ``each_gpu_selects`` each GPU scores, decodes and selects among its own particles (no
-  communication but the scores).
+  GPUs, and the estimators' forward on the pipeline's GPU), then each final particle's decode and
+  its protocol scoring (the selection), each GPU decoding and scoring its share of the particles
+  at once (only the scores meet), as ``run.devices`` runs them.
 * :func:`matched_particles`: the most particles whose search is predicted to take no longer than
   guidance on the card.
 
@@ -123,7 +122,7 @@ def _particle_batch(name: str, entry: dict[str, Any], particles: int, gpu: str, 
     return None, False, reason
 
 
-def search_cost(name: str, particles: int, gpu: str, num_gpus: int = 1, *, each_gpu_selects: bool = False,
+def search_cost(name: str, particles: int, gpu: str, num_gpus: int = 1,
                 estimates: dict[str, Any] | None = None) -> dict[str, Any]:
     """A search of ``particles`` unguided particles of registry model ``name``'s traced video on
     ``num_gpus`` cards ``gpu`` with the default ``search`` options (resampling every tenth of the
@@ -138,17 +137,12 @@ def search_cost(name: str, particles: int, gpu: str, num_gpus: int = 1, *, each_
     per_gpu = -(-particles // num_gpus)
     renoised = -(-(particles - 1) * resamplings // num_gpus)  # at most: every copy after the first
     denoiser = (steps * per_gpu + renoised) * units["prediction_s"][gpu]
-    if each_gpu_selects:
-        scorings = per_gpu * resamplings * units["scoring_s"][gpu]
-        finals, selecting = per_gpu, per_gpu
-    else:
-        chunks, chunk_bytes = _chunks(name, entry)
-        decode = units["scoring_decode_s"][gpu] * particles * resamplings
-        spread, moved = decode_over_gpus(decode, chunks, num_gpus, particles * resamplings, chunk_bytes, gpu)
-        scorings = (units["scoring_s"][gpu] - units["scoring_decode_s"][gpu]) * particles * resamplings + spread + moved
-        finals, selecting = particles, particles
-    final = finals * units["final_decode_s"][gpu]
-    protocol = selecting * protocol_seconds(name, gpu, estimates)
+    chunks, chunk_bytes = _chunks(name, entry)
+    decode = units["scoring_decode_s"][gpu] * particles * resamplings
+    spread, moved = decode_over_gpus(decode, chunks, num_gpus, particles * resamplings, chunk_bytes, gpu)
+    scorings = (units["scoring_s"][gpu] - units["scoring_decode_s"][gpu]) * particles * resamplings + spread + moved
+    final = per_gpu * units["final_decode_s"][gpu]
+    protocol = per_gpu * protocol_seconds(name, gpu, estimates)
     batch, offload, reason = _particle_batch(name, entry, particles, gpu, num_gpus, estimates)
     return {"particles": particles, "num_gpus": num_gpus, "time_s": denoiser + scorings + final + protocol,
             "denoiser_s": denoiser, "scoring_s": scorings, "final_decode_s": final, "protocol_s": protocol,

@@ -31,7 +31,7 @@ may override the combination, as LTX does for ``guidance_rescale``) and checked 
 output the pipeline passed: an output the calls cannot reproduce fails loudly instead of guiding
 with a wrong prediction.
 
-With a particle search (``search=``, :mod:`.search`), a fourth piece: a ``ModelHook`` under the
+With a particle search (``handle.enable_search``, :mod:`.search`), a fourth piece: a ``ModelHook`` under the
 capture (:class:`ParticleSplit`) runs the pipeline's own denoiser calls of the ``K`` particles in
 sub-batches (dealt over ``run.devices``), the wrapped ``step`` guides the particles sub-batch by
 sub-batch (the replay cut to their rows) and, at a resampling step, scores and resamples them and
@@ -58,7 +58,7 @@ import copy
 import functools
 import inspect
 import types
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -66,7 +66,7 @@ import torch
 from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
-from ..types import refuse_estimator_keywords
+from ..types import refuses_earlier_keywords
 from .adapters import CallGeometry, PipelineAdapter, adapter_for, check_scheduler, fit_combination, noise_levels
 from .config import GuidanceConfig
 from .context import GuidanceContext, GuidanceObserver, GuidanceReport
@@ -75,6 +75,7 @@ from .multi_device import module_replicas
 from .particles import (
     ParticleBatches,
     call_rows,
+    deal_final_decode,
     hidden_states_of,
     output_tensor,
     particle_batches,
@@ -273,20 +274,18 @@ class GeCoGuidanceHandle:
         observer: a :class:`~geco_guide.sampler.context.GuidanceObserver` watching the next
             calls' updates, or ``None``.
         search: the particle search of the next calls (a
-            :class:`~geco_guide.sampler.search.SearchConfig`; ``None``: none; may be replaced
-            between calls): call the pipeline with ``num_videos_per_prompt=search.particles``, one
-            prompt and a generator per particle.
-        search_generator: the generator of the search's resampling draws (a ``torch.Generator``,
-            required with ``search``).
+            :class:`~geco_guide.sampler.search.SearchConfig`; ``None``: none), set by
+            :meth:`enable_search`.
+        search_generator: the generator of the search's resampling draws, set with ``search``.
         last: what the last call decided (:class:`~geco_guide.sampler.context.GuidanceReport`),
             ``None`` before one; set when its denoising loop ends.
         geometry: the :class:`~geco_guide.sampler.adapters.CallGeometry` of the last call.
     """
 
     def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, estimators: Any,
-                 run_options: RunOptions | None = None, search: SearchConfig | None = None):
+                 run_options: RunOptions | None = None):
         self.pipe = pipe
-        self.search = search
+        self.search: SearchConfig | None = None
         self.search_generator: torch.Generator | None = None
         self.run_options = run_options if run_options is not None else RunOptions()
         self.adapter = adapter
@@ -302,8 +301,35 @@ class GeCoGuidanceHandle:
         self._schedulers: list[tuple[Any, Any]] = []
         self._saved_prepare: Any = _MISSING
         self._slicing: tuple[Any, bool] | None = None  # a search call's VAE and its use_slicing before
+        self._restore_decode: Callable[[], None] | None = None  # puts back a search's dealt final decode
         self._attached = False
         self._replaying = False
+
+    def enable_search(self, search: SearchConfig | Mapping[str, Any], generator: torch.Generator) -> None:
+        """Make every following call a particle search (:mod:`.search`), guided or not
+        (``config.enabled``): call the pipeline with one prompt,
+        ``num_videos_per_prompt=search.particles`` and a generator per particle; ``last.search``
+        says what it did.
+
+        Args:
+            search: a :class:`~geco_guide.sampler.search.SearchConfig` or a dict of its fields.
+            generator: the generator of the resamplings' draws, apart from the particles' own.
+
+        Raises:
+            ValueError: a search without particles, or a ``generator`` that is no ``torch.Generator``.
+        """
+        resolved = resolve_search_config(search)
+        if resolved is None:
+            raise ValueError("enable_search needs search.particles (a number of particles); "
+                             "disable_search() samples without one")
+        if not isinstance(generator, torch.Generator):
+            raise ValueError("a search draws its resamplings from a generator of its own: pass a torch.Generator, "
+                             f"got {type(generator).__name__}")
+        self.search, self.search_generator = resolved, generator
+
+    def disable_search(self) -> None:
+        """Sample the following calls without a particle search."""
+        self.search, self.search_generator = None, None
 
     @property
     def log(self) -> list[dict[str, Any]]:
@@ -339,10 +365,14 @@ class GeCoGuidanceHandle:
         self._patch_scheduler(pipe.scheduler)
         self._attached = True
 
-    def _restore_slicing(self) -> None:
+    def _restore_vae(self) -> None:
+        """Put back what a search call changed on the VAE: its ``use_slicing``, its ``decode``."""
         if self._slicing is not None:
             vae, previous = self._slicing
             vae.use_slicing, self._slicing = previous, None
+        if self._restore_decode is not None:
+            self._restore_decode()
+            self._restore_decode = None
 
     def _register_hooks(self, module: nn.Module) -> None:
         """The particle split (inner) and the capture (outer) in ``module``'s hook registry."""
@@ -409,7 +439,7 @@ class GeCoGuidanceHandle:
             else:
                 scheduler.__dict__["step"] = previous
         self._schedulers.clear()
-        self._restore_slicing()
+        self._restore_vae()
         self._state = None
         self._attached = False
 
@@ -431,7 +461,7 @@ class GeCoGuidanceHandle:
         self.last = None
         for _, _, split in self._hooked.values():
             split.places = None
-        self._restore_slicing()
+        self._restore_vae()
         search = resolve_search_config(self.search)
         if not config.enabled and search is None:
             self.last = GuidanceReport(scheduler=type(self.pipe.scheduler).__name__)
@@ -526,6 +556,10 @@ class GeCoGuidanceHandle:
             if state.search is not None:
                 report.search = {**state.search.report(state.search_config.particles),
                                  "particle_batch": state.particle_batch.to_dict()}
+                vae = getattr(self.pipe, "vae", None)
+                if state.call.devices and vae is not None:
+                    self._restore_decode = deal_final_decode(vae, state.call.devices)
+                    report.search["final_decode_devices"] = [str(device) for device in state.call.devices]
             self.last = report
         return result
 
@@ -586,13 +620,16 @@ def check_hook_run_options(run: RunOptions) -> None:
                          "pipeline's own denoiser calls as they are: use run.split_cfg=false here")
 
 
+@refuses_earlier_keywords(
+    "attach_geco_guidance",
+    decoder="the tiny decoder is Estimators(..., tiny_decoder=...)",
+    dynamic_masks="the segmenter is Estimators(..., segmenter=...); what moves is config.dynamic",
+    search="a search is handle.enable_search(SearchConfig(...), generator) on the handle this returns")
 def attach_geco_guidance(
     pipe,
     config: GuidanceConfig | Mapping[str, Any] | None = None,
     estimators: Any = None,
     run_options: RunOptions | Mapping[str, Any] | None = None,
-    search: SearchConfig | Mapping[str, Any] | None = None,
-    **earlier: Any,
 ) -> GeCoGuidanceHandle:
     """Guide every following call of a stock diffusers video pipeline with GeCo.
 
@@ -614,17 +651,12 @@ def attach_geco_guidance(
         run_options: how the guidance runs on this machine (a
             :class:`~geco_guide.sampler.run_options.RunOptions` or a dict of its fields: memory
             plan, decode layout, devices).
-        search: a particle search of every following call (a
-            :class:`~geco_guide.sampler.search.SearchConfig` or a dict of its fields; ``None``:
-            none), with or without guidance (``config.enabled``): call the pipeline with one
-            prompt, ``num_videos_per_prompt=search.particles`` and a generator per particle, and
-            set ``handle.search_generator`` (the resamplings' draws); ``handle.last.search`` says
-            what it did.
 
     Returns:
         A :class:`GeCoGuidanceHandle`; ``handle.detach()`` (or leaving ``with handle:``)
         restores the pipeline exactly. ``handle.log`` holds the current or last call's guidance
-        log, ``handle.last`` what the last call decided.
+        log, ``handle.last`` what the last call decided. ``handle.enable_search(...)`` makes the
+        following calls a particle search, with or without guidance.
 
     Raises:
         ValueError: an unsupported pipeline (naming the supported ones and how to register an
@@ -633,13 +665,6 @@ def attach_geco_guidance(
         TypeError: estimators that are no bundle, or passed by an earlier keyword (``geometry=``,
             ``flow_estimator=``, ``decoder=``, ``dynamic_masks=``).
     """
-    if earlier:
-        key = sorted(earlier)[0]
-        where = {"decoder": "the tiny decoder is Estimators(..., tiny_decoder=...)",
-                 "dynamic_masks": "the segmenter is Estimators(..., segmenter=...); what moves is config.dynamic"}
-        if key in where:
-            raise TypeError(f"attach_geco_guidance({key}=...) is the earlier spelling: {where[key]}")
-        refuse_estimator_keywords("attach_geco_guidance", earlier)
     if isinstance(pipe, GeCoCogVideoXPipeline):
         raise ValueError(
             "GeCoCogVideoXPipeline guides itself: pass guidance=... to its call instead of attaching a hook"
@@ -651,6 +676,6 @@ def attach_geco_guidance(
     current = pipe.__dict__.get("prepare_latents")
     if getattr(current, "_geco_handle", None) is not None:
         raise ValueError("this pipeline already has GeCo guidance attached; detach() it first")
-    handle = GeCoGuidanceHandle(pipe, adapter, config, estimators, run_options, resolve_search_config(search))
+    handle = GeCoGuidanceHandle(pipe, adapter, config, estimators, run_options)
     handle._attach()
     return handle

@@ -16,15 +16,16 @@ mode's backward then run on their own devices too.
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, TypeVar
 
 import torch
 from torch import nn
 
 from ..io.devices import check_device
 
-__all__ = ["CfgHalves", "module_replicas", "resolve_devices", "to_device"]
+__all__ = ["CfgHalves", "dealt_work", "module_replicas", "resolve_devices", "to_device"]
 
 #: ``run.devices: [auto]``: every GPU torch sees.
 AUTO = "auto"
@@ -72,6 +73,34 @@ def to_device(value: Any, device: torch.device) -> Any:
     if isinstance(value, (tuple, list)):
         return type(value)(to_device(v, device) for v in value)
     return value
+
+
+_T = TypeVar("_T")
+
+
+def dealt_work(count: int, places: int, work: Callable[[int, int], _T]) -> Iterator[_T]:
+    """``work(k, k mod places)`` for ``k`` in ``range(count)``, yielded in order of ``k``: the items
+    of one place one after another in a thread of that place's own, so that the places (devices)
+    work at once even where an item reads a value back (a score), which would stall a loop
+    issuing every device's kernels from one thread. Each thread works in the caller's grad mode.
+    One place: the items run in the caller's thread."""
+    if places <= 1:
+        yield from (work(k, 0) for k in range(count))
+        return
+    grad = torch.is_grad_enabled()
+
+    def in_grad_mode(k: int) -> _T:
+        with torch.set_grad_enabled(grad):
+            return work(k, k % places)
+
+    pools = [ThreadPoolExecutor(max_workers=1) for _ in range(places)]
+    try:
+        futures = [pools[k % places].submit(in_grad_mode, k) for k in range(count)]
+        for future in futures:
+            yield future.result()
+    finally:
+        for pool in pools:
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 class CfgHalves:

@@ -26,9 +26,9 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .multi_device import module_replicas, to_device
+from .multi_device import dealt_work, module_replicas, to_device
 
-__all__ = ["UNBATCHED_KEYS", "ParticleBatches", "call_rows", "denoiser_places", "hidden_states_of", "output_tensor",
+__all__ = ["UNBATCHED_KEYS", "ParticleBatches", "call_rows", "deal_final_decode", "denoiser_places", "hidden_states_of", "output_tensor",
            "particle_batches", "particle_rows", "reorder_scheduler_state", "with_output_tensor"]
 
 #: Keyword arguments of a denoiser that never carry the batch, even where their first dimension
@@ -140,6 +140,41 @@ class ParticleBatches:
         inverse = torch.empty(batch, dtype=torch.long)
         inverse[torch.as_tensor(order)] = torch.arange(batch)
         return with_output_tensor(outputs[0], joined[inverse.to(home)])
+
+
+def deal_final_decode(vae: nn.Module, devices: Sequence[torch.device]) -> Callable[[], None]:
+    """Deal a search's final decode over ``devices``: ``vae.decode`` of ``K`` videos becomes the
+    decode of video ``k`` alone on ``devices[k mod N]`` (the VAE itself where it lives, a replica
+    elsewhere; the call's other batched arguments, e.g. LTX's decode timestep, cut the same way),
+    the devices decoding at once (:func:`~.multi_device.dealt_work`); the frames meet, in the
+    videos' order, on the device of the latents. Each video is its own decode as on one device
+    (the VAE's ``use_slicing``), so the frames are the same. Returns the function that puts the
+    VAE's own ``decode`` back. Install it after the denoising loop: the anchor decodes of the
+    loop call ``vae.decode`` too."""
+    replicas = module_replicas(vae, devices)
+    previous = vae.__dict__.get("decode")
+    decodes = [replica.decode for replica in replicas]
+
+    def decode(latents: Tensor, *args: Any, **kwargs: Any) -> Any:
+        batch, home = latents.shape[0], latents.device
+
+        def one_video(k: int, place: int) -> Any:
+            target = None if devices[place] == home else devices[place]
+            video_args, video_kwargs = call_rows((latents, *args), kwargs, [k], batch, target)
+            return decodes[place](*video_args, **video_kwargs)
+
+        outputs = list(dealt_work(batch, len(devices), one_video))
+        return with_output_tensor(outputs[0], torch.cat([output_tensor(out).to(home) for out in outputs]))
+
+    vae.decode = decode
+
+    def restore() -> None:
+        if previous is None:
+            vae.__dict__.pop("decode", None)
+        else:
+            vae.decode = previous
+
+    return restore
 
 
 def _is_state(value: Any, shape: torch.Size) -> bool:

@@ -42,7 +42,7 @@ from diffusers.utils import logging
 from torch import Tensor
 
 from ..loss.geco import GeCoLoss
-from ..types import check_estimator_bundle, refuse_estimator_keywords
+from ..types import check_estimator_bundle, refuses_earlier_keywords
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .anchor_decode import anchor_decoder
 from .config import GuidanceConfig, resolve_guidance_config
@@ -51,7 +51,7 @@ from .multi_device import CfgHalves, resolve_devices
 from .dynamic import guidance_mask_source
 from .anchor_decode import plan_anchor_decode
 from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature, planning_memory_gb
-from .particles import ParticleBatches, denoiser_places, output_tensor, particle_batches, particle_rows
+from .particles import ParticleBatches, deal_final_decode, denoiser_places, output_tensor, particle_batches, particle_rows
 from .run_options import RunOptions, resolve_call_options
 from .search import (
     ParticleScorer,
@@ -271,6 +271,10 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
     # ------------------------------------------------------------------------------------------
 
+    @refuses_earlier_keywords(
+        "GeCoCogVideoXPipeline",
+        dynamic_masks="name what moves in guidance={'dynamic': 'auto' or the subjects} and pass the text segmenter "
+                      "in estimators=Estimators(geometry, flow, segmenter=...)")
     @torch.no_grad()
     def __call__(
         self,
@@ -301,7 +305,6 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         observer: GuidanceObserver | None = None,
         search: SearchConfig | Mapping[str, Any] | None = None,
         search_generator: torch.Generator | None = None,
-        **earlier: Any,
     ) -> GeCoCogVideoXPipelineOutput | tuple:
         """Generate a video; arguments as :meth:`CogVideoXPipeline.__call__`, plus:
 
@@ -328,19 +331,14 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 final videos, ``report.search`` what the search did (scores, ancestors, lineages).
             search_generator: the generator of the search's resampling draws (required with
                 ``search``), apart from the particles' own.
-            earlier: nothing is taken here: an earlier spelling (``geometry_estimator=``,
-                ``dynamic_masks=``, ...) is refused in one line naming the new one, any other
-                keyword as Python refuses it.
+
+        An earlier spelling (``geometry_estimator=``, ``dynamic_masks=``, ...) is refused in one
+        line naming the new one.
 
         Returns:
             :class:`GeCoCogVideoXPipelineOutput` (``frames``, ``report``) or ``(frames,)`` when
             ``return_dict=False``.
         """
-        if "dynamic_masks" in earlier:
-            raise TypeError("GeCoCogVideoXPipeline(dynamic_masks=...) is the earlier spelling: name what moves in "
-                            "guidance={'dynamic': 'auto' or the subjects} and pass the text segmenter in "
-                            "estimators=Estimators(geometry, flow, segmenter=...)")
-        refuse_estimator_keywords("GeCoCogVideoXPipeline", earlier)
         if isinstance(callback_on_step_end, (PipelineCallback, MultiPipelineCallbacks)):
             callback_on_step_end_tensor_inputs = callback_on_step_end.tensor_inputs
 
@@ -562,9 +560,17 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         if not output_type == "latent":
             latents = latents[:, additional_frames:]
             latents = latents.to(self.vae.dtype) if keep_fp32 else latents
-            # a search's videos one at a time: each particle's frames as its own decode makes them
-            video = (torch.cat([self.decode_latents(latents[k:k + 1]) for k in range(particles)]) if particles
-                     else self.decode_latents(latents))
+            if particles and devices:  # each device decodes its share of the particles
+                restore = deal_final_decode(self.vae, devices)
+                report.search["final_decode_devices"] = [str(device) for device in devices]
+                try:
+                    video = self.decode_latents(latents)
+                finally:
+                    restore()
+            elif particles:  # a search's videos one at a time: each particle's frames as its own decode makes them
+                video = torch.cat([self.decode_latents(latents[k:k + 1]) for k in range(particles)])
+            else:
+                video = self.decode_latents(latents)
             video = self.video_processor.postprocess_video(video=video, output_type=output_type)
         else:
             video = latents.to(prompt_embeds.dtype) if keep_fp32 else latents

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import inspect
 import re
 
 import pytest
@@ -385,6 +386,12 @@ def test_the_earlier_spellings_are_refused_naming_the_new_one(keywords, estimato
         geometry, flow = estimators  # the bundle is no pair
     with pytest.raises(TypeError, match="takes the estimators as one"):
         attach_geco_guidance(pipe, None, (estimators.geometry, estimators.flow))
+
+
+def test_attach_takes_the_pipeline_config_estimators_and_run_options_and_refuses_other_keywords():
+    assert list(inspect.signature(attach_geco_guidance).parameters) == ["pipe", "config", "estimators", "run_options"]
+    with pytest.raises(TypeError, match=r"^attach_geco_guidance\(\) got an unexpected keyword argument 'run'$"):
+        attach_geco_guidance(T.tiny_ltx_pipeline(0), run={})
 
 
 def test_the_handle_reports_what_the_last_call_decided(estimators):

@@ -18,6 +18,7 @@ from geco_guide.sampler import search as S
 from geco_guide.sampler.dynamic import RefreshedMasks
 from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.memory_plan import PlanChoice, plan_named
+from geco_guide.sampler.multi_device import dealt_work
 from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
 from geco_guide.sampler.search import SearchConfig
 from geco_guide.types import OptionError
@@ -227,7 +228,7 @@ def cogvideox(scheduler: str = "ddim") -> GeCoCogVideoXPipeline:
 
 def run_pipeline(pipe, estimators, seeds=(0,), search=None, guidance=UNGUIDED, run=None, search_seed=7, prompt=PROMPT,
                  **changes):
-    kwargs = dict(T.TINY_CALL_KWARGS, num_frames=NUM_FRAMES, output_type="latent", **changes)
+    kwargs = dict(T.TINY_CALL_KWARGS, num_frames=NUM_FRAMES, **{"output_type": "latent", **changes})
     return pipe(prompt, generator=gens(*seeds) if search is not None else torch.Generator().manual_seed(seeds[0]),
                 guidance=guidance, estimators=estimators, run_options=run or T.tiny_run_options(),
                 search=search, search_generator=torch.Generator().manual_seed(search_seed), **kwargs)
@@ -291,18 +292,62 @@ def test_pipeline_renoised_copies_explore_with_their_own_noise(estimators, monke
     assert torch.equal(out.frames[1], out.frames[2])  # the same noise (seeds 1, 1): the same move
 
 
+class RecordingVae(torch.nn.Module):
+    """A VAE whose decode doubles its latents and records, per call, its batch, its timestep rows,
+    its replica and whether autograd was recording."""
+
+    def __init__(self):
+        super().__init__()
+        self.weight = torch.nn.Parameter(torch.tensor(2.0))
+        self.calls = []
+
+    def decode(self, latents, temb=None, return_dict=True):
+        self.calls.append((latents.shape[0], None if temb is None else temb.tolist(), id(self), torch.is_grad_enabled()))
+        frames = latents * self.weight
+        return (frames,) if not return_dict else type("DecoderOutput", (), {"sample": frames})()
+
+
+def test_the_final_decode_dealt_over_devices_decodes_each_video_alone_in_order_and_goes_back():
+    vae = RecordingVae()
+    latents, temb = torch.arange(5.0).view(5, 1, 1), torch.tensor([10.0, 11.0, 12.0, 13.0, 14.0])
+    restore = P.deal_final_decode(vae, [torch.device("cpu")] * 2)
+    with torch.no_grad():
+        dealt = vae.decode(latents, temb, return_dict=False)[0]
+    assert torch.equal(dealt, latents * 2) and not dealt.requires_grad
+    home = [call for call in vae.calls if call[2] == id(vae)]
+    assert [call[1] for call in home] == [[10.0], [12.0], [14.0]]  # videos 0, 2, 4 here; 1 and 3 on the copy
+    assert all(call[0] == 1 and not call[3] for call in vae.calls)  # one video a call, no graph in the threads
+    assert len(vae.calls) == 3
+    restore()
+    assert "decode" not in vae.__dict__ and vae.decode(latents).sample.shape == (5, 1, 1)
+
+
+def test_dealt_work_keeps_the_order_and_raises_what_an_item_raises():
+    assert list(dealt_work(5, 2, lambda k, place: (k, place))) == [(0, 0), (1, 1), (2, 0), (3, 1), (4, 0)]
+
+    def failing(k, place):
+        if k == 3:
+            raise ValueError("item 3")
+        return k
+
+    with pytest.raises(ValueError, match="item 3"):
+        list(dealt_work(4, 2, failing))
+
+
 @pytest.mark.slow
 def test_pipeline_sub_batches_and_devices_give_the_same_frames(estimators):
     pipe = cogvideox()
     search = SearchConfig(particles=3, resample_steps=[1, 2], temperature=0.001)
     one_batch = run_pipeline(pipe, estimators, seeds=(0, 1, 2), search=search, guidance=GUIDED,
-                             run=T.tiny_run_options(particle_batch=3))
+                             run=T.tiny_run_options(particle_batch=3), output_type="pt")
     singles = run_pipeline(pipe, estimators, seeds=(0, 1, 2), search=search, guidance=GUIDED,
-                           run=T.tiny_run_options(particle_batch=1))
+                           run=T.tiny_run_options(particle_batch=1), output_type="pt")
     dealt = run_pipeline(pipe, estimators, seeds=(0, 1, 2), search=search, guidance=GUIDED,
-                         run=T.tiny_run_options(particle_batch=1, devices=["cpu", "cpu"]))
-    assert torch.equal(dealt.frames, singles.frames)  # a sub-batch is the same call on any replica
-    # batches of another size sum in another order: the same resamplings, latents to float rounding
+                         run=T.tiny_run_options(particle_batch=1, devices=["cpu", "cpu"]), output_type="pt")
+    assert torch.equal(dealt.frames, singles.frames)  # a sub-batch and a video's decode: the same on any replica
+    assert dealt.report.search["final_decode_devices"] == ["cpu", "cpu"]
+    assert "final_decode_devices" not in singles.report.search and "decode" not in pipe.vae.__dict__
+    # batches of another size sum in another order: the same resamplings, frames to float rounding
     ancestors = [r["ancestors"] for r in one_batch.report.search["resamplings"]]
     assert ancestors == [r["ancestors"] for r in singles.report.search["resamplings"]]
     torch.testing.assert_close(one_batch.frames, singles.frames, rtol=0, atol=1e-3)
@@ -365,8 +410,8 @@ def run_hooked(pipe, estimators, seeds, search=None, guidance=UNGUIDED, run=None
     kwargs = T.tiny_call_kwargs(pipe, num_frames=NUM_FRAMES, output_type="pt")
     if search is None:
         return pipe(prompt=PROMPT, generator=torch.Generator().manual_seed(seeds[0]), **kwargs).frames, None
-    with attach_geco_guidance(pipe, guidance, estimators, run or T.tiny_run_options(), search=search) as handle:
-        handle.search_generator = torch.Generator().manual_seed(search_seed)
+    with attach_geco_guidance(pipe, guidance, estimators, run or T.tiny_run_options()) as handle:
+        handle.enable_search(search, torch.Generator().manual_seed(search_seed))
         frames = pipe(prompt=PROMPT, generator=gens(*seeds), num_videos_per_prompt=len(seeds), **kwargs).frames
     return frames, handle.last
 
@@ -419,8 +464,8 @@ def test_hooks_carry_the_steps_per_particle_arguments(estimators, monkeypatch):
     for scheme, ancestors in (("none", None), ("copy", [0, 0])):
         search = SearchConfig(particles=2, resample_steps=[] if ancestors is None else [2], renoise=False,
                               **({} if ancestors is None else {"scheme": fixed_scheme(monkeypatch, scheme, ancestors)}))
-        with attach_geco_guidance(pipe, UNGUIDED, estimators, T.tiny_run_options(particle_batch=1), search=search) as h:
-            h.search_generator = torch.Generator().manual_seed(0)
+        with attach_geco_guidance(pipe, UNGUIDED, estimators, T.tiny_run_options(particle_batch=1)) as h:
+            h.enable_search(search, torch.Generator().manual_seed(0))
             # stock CogVideoX makes one video per prompt: the particles are two prompts; both slots the same seed
             outputs.append(pipe(prompt=[PROMPT, PROMPT], generator=gens(5, 5), **kwargs).frames)
     plain, copies = outputs
@@ -433,9 +478,11 @@ def test_hooks_sub_batches_and_devices_give_the_same_frames(estimators):
     search = SearchConfig(particles=3, resample_steps=[1, 2], temperature=0.001)
     one_batch, a = run_hooked(pipe, estimators, (0, 1, 2), search, GUIDED, T.tiny_run_options(particle_batch=3))
     singles, b = run_hooked(pipe, estimators, (0, 1, 2), search, GUIDED, T.tiny_run_options(particle_batch=1))
-    dealt, _ = run_hooked(pipe, estimators, (0, 1, 2), search, GUIDED,
+    dealt, c = run_hooked(pipe, estimators, (0, 1, 2), search, GUIDED,
                           T.tiny_run_options(particle_batch=1, devices=["cpu", "cpu"]))
     assert torch.equal(dealt, singles)
+    assert c.search["final_decode_devices"] == ["cpu", "cpu"] and "final_decode_devices" not in b.search
+    assert "decode" not in pipe.vae.__dict__  # the dealt final decode went with the handle
     assert [r["ancestors"] for r in a.search["resamplings"]] == [r["ancestors"] for r in b.search["resamplings"]]
     # to float rounding, grown by the guided updates: far below an 8-bit level (1/255)
     torch.testing.assert_close(one_batch, singles, rtol=0, atol=1e-3)
@@ -447,13 +494,22 @@ def test_hooks_search_errors_are_one_line_before_any_denoising_step(estimators):
     forwards = CountingHook()
     HookRegistry.check_if_exists_or_initialize(pipe.transformer).register_hook(forwards, "count")
     kwargs = T.tiny_call_kwargs(pipe, num_frames=NUM_FRAMES, output_type="pt")
-    with attach_geco_guidance(pipe, UNGUIDED, estimators, search=SearchConfig(particles=2)) as handle:
-        handle.search_generator = torch.Generator().manual_seed(0)
+    with attach_geco_guidance(pipe, UNGUIDED, estimators) as handle:
+        with pytest.raises(TypeError, match=r"^attach_geco_guidance\(search=...\) is the earlier spelling: a search is "
+                                            r"handle.enable_search"):
+            attach_geco_guidance(pipe, UNGUIDED, estimators, search=SearchConfig(particles=2))
+        with pytest.raises(ValueError, match="enable_search needs search.particles"):
+            handle.enable_search(SearchConfig(), torch.Generator())
+        with pytest.raises(ValueError, match="pass a torch.Generator, got int"):
+            handle.enable_search(SearchConfig(particles=2), 0)
+        handle.enable_search(SearchConfig(particles=2), torch.Generator().manual_seed(0))
         with pytest.raises(ValueError, match="num_videos_per_prompt=2"):
             pipe(prompt=PROMPT, generator=torch.Generator().manual_seed(0), **kwargs)
-        handle.search = SearchConfig(particles=2, resample_steps=[9])
+        handle.enable_search({"particles": 2, "resample_steps": [9]}, torch.Generator().manual_seed(0))
         with pytest.raises(ValueError, match=r"search.resample_steps \[9\] are outside the 4 denoising steps"):
             pipe(prompt=PROMPT, generator=gens(0, 1), num_videos_per_prompt=2, **kwargs)
+        handle.disable_search()
+        assert handle.search is None and handle.search_generator is None
     assert forwards.n == 0  # refused at prepare_latents; the steps at the first denoiser call, before it runs
 
 
