@@ -75,6 +75,13 @@ def test_a_search_dealt_over_devices_writes_the_same_video_and_scores(tmp_path):
     assert dealt.sidecar["search"]["selection_devices"] == ["cpu", "cpu"]
     assert dealt.sidecar["search"]["final_decode_devices"] == ["cpu", "cpu"]
     assert "selection_devices" not in one.sidecar["search"]
+    assert one.sidecar["dynamic_masks"] is None
+
+
+@pytest.mark.slow
+def test_an_unguided_search_says_what_its_scores_left_out(tmp_path):
+    cfg = tiny("guidance.enabled=false", "guidance.dynamic=auto", "search.particles=2", "search.resample_steps=[1]")
+    assert generate(cfg, PROMPT, tmp_path).sidecar["dynamic_masks"] == "auto"
 
 
 def test_search_errors_are_one_line_before_anything_loads(tmp_path, monkeypatch):

@@ -554,6 +554,8 @@ class GeCoGuidanceHandle:
             report = (state.context.report(scheduler) if state.context is not None
                       else GuidanceReport(scheduler=type(scheduler).__name__))
             if state.search is not None:
+                masks = state.call.masks
+                report.mask_source = None if masks is None else masks.source_name  # what its scores left out
                 report.search = {**state.search.report(state.search_config.particles),
                                  "particle_batch": state.particle_batch.to_dict()}
                 vae = getattr(self.pipe, "vae", None)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from functools import partial
@@ -98,6 +99,14 @@ class GeCoCogVideoXPipelineOutput(CogVideoXPipelineOutput):
     report: GuidanceReport | None = None
 
 
+#: The components the estimators once were, and where each went: the pipeline's constructor and
+#: ``from_pretrained`` refuse them in one line.
+EARLIER_COMPONENTS = {
+    name: "the estimators are no components: pass estimators=Estimators(geometry, flow) (geco_guide.Estimators) "
+          "to each call" for name in ("geometry_estimator", "flow_estimator")
+} | {"guidance_decoder": "the tiny decoder is no component: pass estimators=Estimators(geometry, flow, "
+                        "tiny_decoder=...) to each call"}
+
 #: What ``output_type`` may be: the video processor's kinds, or the latents themselves.
 OUTPUT_TYPES = ("pil", "np", "pt", "latent")
 
@@ -134,6 +143,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         out.frames, out.report.log
     """
 
+    @refuses_earlier_keywords("GeCoCogVideoXPipeline", **EARLIER_COMPONENTS)
     def __init__(
         self,
         tokenizer,
@@ -148,6 +158,17 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         self.register_to_config(guidance_config=asdict(resolve_guidance_config(None, guidance_config)))
         self._cfg_halves: CfgHalves | None = None  # a guided call's run.split_cfg
         self._particle_batches: ParticleBatches | None = None  # a search's denoiser calls
+
+    @classmethod
+    def from_pretrained(cls, pretrained_model_name_or_path: str | os.PathLike, **kwargs: Any) -> GeCoCogVideoXPipeline:
+        """:meth:`DiffusionPipeline.from_pretrained`, which would only warn about an earlier
+        component (``geometry_estimator=``, ``flow_estimator=``, ``guidance_decoder=``) and drop
+        it: refused in one line naming the call's ``estimators=`` instead."""
+        earlier = sorted(set(kwargs) & set(EARLIER_COMPONENTS))
+        if earlier:
+            raise TypeError(f"GeCoCogVideoXPipeline.from_pretrained({earlier[0]}=...) is the earlier spelling: "
+                            f"{EARLIER_COMPONENTS[earlier[0]]}")
+        return super().from_pretrained(pretrained_model_name_or_path, **kwargs)
 
     @property
     def guidance_config(self) -> GuidanceConfig:
@@ -554,6 +575,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         self._cfg_halves = self._particle_batches = None
         report = geco.report(self.scheduler) if geco else GuidanceReport(scheduler=type(self.scheduler).__name__)
         if searcher is not None:
+            report.mask_source = None if masks is None else masks.source_name  # what its scores left out
             report.search = {**searcher.report(particles), "particle_batch": particle_batch.to_dict()}
         watch.check()
 

@@ -302,6 +302,18 @@ def test_guidance_needs_estimators_but_unguided_does_not(pipe):
     assert run(pipe, guidance=False, estimators=None, output_type="latent").frames.shape[1] == 5
 
 
+@pytest.mark.parametrize("component", ["geometry_estimator", "flow_estimator", "guidance_decoder"])
+def test_the_earlier_components_are_refused_at_construction_and_loading(tmp_path, component):
+    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+
+    with pytest.raises(TypeError, match=rf"^GeCoCogVideoXPipeline\({component}=...\) is the earlier spelling: the .* "
+                                        r"to each call$"):
+        GeCoCogVideoXPipeline(**tiny_cogvideox_components(0), **{component: None})
+    with pytest.raises(TypeError, match=rf"^GeCoCogVideoXPipeline.from_pretrained\({component}=...\) is the earlier "
+                                        r"spelling: the .* to each call$"):
+        GeCoCogVideoXPipeline.from_pretrained(tmp_path, **{component: None})  # refused before reading the folder
+
+
 @pytest.mark.slow
 def test_from_pretrained_keeps_the_checkpoints_scheduler(tmp_path, pipe):
     # the scheduler the checkpoint ships (CogVideoXDPMScheduler for CogVideoX-5B) is kept;

@@ -539,6 +539,10 @@ def test_search_with_dynamic_masks_scores_without_what_moves_and_guides_each_par
                           guidance=T.tiny_guidance_config(anchors=ANCHORS, enabled=False, dynamic="the dog"))
     assert source.clips == 2  # each particle's anchors, at the one resampling
     assert masked.report.search["resamplings"][0]["scores"] != plain.report.search["resamplings"][0]["scores"]
+    assert masked.report.mask_source == "left half" and plain.report.mask_source is None
+    unguided_masks = T.tiny_guidance_config(anchors=ANCHORS, enabled=False, dynamic="the dog")
+    _, hooked = run_hooked(T.tiny_wan_pipeline(0), with_masks, (0, 1), search, unguided_masks)
+    assert hooked.mask_source == "left half"  # under the hooks too
     guided = T.tiny_guidance_config(anchors=ANCHORS, repeats="0x1,1x3", time_travel=[], step_size=1.0,
                                     denoiser_grad=False, dynamic="the dog", dynamic_refresh=2)
     source.clips = 0
