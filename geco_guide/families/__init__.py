@@ -42,6 +42,8 @@ class VideoModel:
         family: the family its pipeline, latents and tiny stand-in belong to (:data:`FAMILIES`).
         hub_id: the diffusers checkpoint (``model.id`` replaces it with a folder); ``None`` for a
             model GeCo-Eval only scores (no open weights).
+        hub_aliases: the other hub ids of the same checkpoint (an organisation's new name), which
+            the memory plans' estimates answer to as well.
         pipeline: the diffusers pipeline class's name.
         call: the model card's default call: ``num_frames``, ``height``, ``width``,
             ``num_inference_steps``, ``guidance_scale`` and, for a two-expert model,
@@ -85,6 +87,7 @@ class VideoModel:
     scheduler: str | None = None
     image_to_video: bool = False
     source: str = ""
+    hub_aliases: tuple[str, ...] = ()
 
     @property
     def generates(self) -> bool:
@@ -145,11 +148,14 @@ _WAN21 = dict(family="wan", pipeline="WanPipeline", tiny_decoder="wan2.1", fps=1
 #: ``source`` of each); native rates: the GeCo paper's supplement ("Frame rate of evaluated
 #: models"), the models it has no row for at their card's export rate.
 MODELS: dict[str, VideoModel] = {m.name: m for m in (
-    VideoModel("cogvideox-2b", hub_id="THUDM/CogVideoX-2b", call=_call(49, 480, 720, 50, 6.0),
+    VideoModel("cogvideox-2b", hub_id="THUDM/CogVideoX-2b", hub_aliases=("zai-org/CogVideoX-2b",),
+               call=_call(49, 480, 720, 50, 6.0),
                source="CogVideoX-2b model card; diffusers CogVideoXPipeline docs", **_COGVIDEOX),
-    VideoModel("cogvideox-5b", hub_id="THUDM/CogVideoX-5b", call=_call(49, 480, 720, 50, 6.0),
+    VideoModel("cogvideox-5b", hub_id="THUDM/CogVideoX-5b", hub_aliases=("zai-org/CogVideoX-5b",),
+               call=_call(49, 480, 720, 50, 6.0),
                source="CogVideoX-5b model card; the GeCo paper's guidance experiment", **_COGVIDEOX),
-    VideoModel("cogvideox1.5-5b", family="cogvideox1.5", hub_id="THUDM/CogVideoX1.5-5B", pipeline="CogVideoXPipeline",
+    VideoModel("cogvideox1.5-5b", family="cogvideox1.5", hub_id="THUDM/CogVideoX1.5-5B",
+               hub_aliases=("zai-org/CogVideoX1.5-5B",), pipeline="CogVideoXPipeline",
                call=_call(81, 768, 1360, 50, 6.0), fps=16, eval_fps=16.0, frame_multiple=8,
                tiny_decoder="cogvideox", tiny="tiny_cogvideox15_pipeline", guided_by="pipeline", scheduler="ddim",
                source="CogVideoX1.5-5B model card"),
@@ -162,6 +168,7 @@ MODELS: dict[str, VideoModel] = {m.name: m for m in (
                tiny_decoder="wan2.1", tiny="tiny_wan22_a14b_pipeline",
                source="Wan2.2-T2V-A14B-Diffusers model card (two experts)"),
     VideoModel("cogvideox-5b-i2v", family="cogvideox", hub_id="THUDM/CogVideoX-5b-I2V",
+               hub_aliases=("zai-org/CogVideoX-5b-I2V",),
                pipeline="CogVideoXImageToVideoPipeline", call=_call(49, 480, 720, 50, 6.0), fps=8, eval_fps=16.0,
                frame_multiple=8, tiny_decoder="cogvideox", tiny="tiny_cogvideox_i2v_pipeline", scheduler="ddim",
                image_to_video=True, source="CogVideoX-5b-I2V model card (guided by the hooks: the paper's loop is "

@@ -39,13 +39,12 @@ __all__ = ["ANCHOR_DECODERS", "KNOWN_MODELS", "MODES", "REGENERATE", "anchor_dec
 
 logger = logging.getLogger(__name__)
 
-#: Registry aliases of hub ids the estimates also answer to (the CogVideoX organisation's new name).
-HUB_ALIASES = {"cogvideox-5b": ["zai-org/CogVideoX-5b"]}
-
 
 def _known_models() -> dict[str, dict[str, Any]]:
-    known = {name: {"preset": "full", "model": name,
-                    "model_ids": [model_named(name).hub_id, *HUB_ALIASES.get(name, [])]} for name in traced_models()}
+    known = {}
+    for name in traced_models():
+        model = model_named(name)
+        known[name] = {"preset": "full", "model": name, "model_ids": [model.hub_id, *model.hub_aliases]}
     return {**known, "tiny": {"preset": "tiny", "model": None, "family": CALIBRATION_MODEL, "model_ids": [TINY_RANDOM]}}
 
 

@@ -106,3 +106,12 @@ def test_four_particles_on_four_h200s_are_predicted_within_one_and_a_half_unguid
     for name in ("cogvideox-5b", "wan2.1-t2v-1.3b", "hunyuanvideo"):
         unguided = load_estimates()["models"][name]["unguided"]["time_s"]["H200"]
         assert search_cost.search_cost(name, 4, "H200", num_gpus=4)["time_s"] < 1.5 * unguided
+
+
+def test_the_estimates_answer_to_every_hub_id_of_the_registry():
+    from geco_guide.families import model_named
+
+    for name, entry in load_estimates()["models"].items():
+        if name != "tiny":
+            model = model_named(name)
+            assert entry["model_ids"] == [model.hub_id, *model.hub_aliases]
