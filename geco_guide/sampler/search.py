@@ -506,6 +506,7 @@ def choose_particle_batch(guidance: GuidanceConfig, run: RunOptions, particles: 
     name = plan.plan.name if guided and plan is not None and plan.plan.name in parts else (
         "fastest" if guided else "leanest")  # an explicit plan: the one that keeps everything
     weights, activations = parts[name]
+    work = f"{mode} mode, plan {name}" if guided else f"unguided, bounded by a fast update under plan {name}"
     held = particles * particle_gb(frames, height, width)
     free = budget - weights - held
     if free < activations:
@@ -513,11 +514,11 @@ def choose_particle_batch(guidance: GuidanceConfig, run: RunOptions, particles: 
         raise ValueError(
             f"search.particles={particles} does not fit {budget:.1f} GiB: the particles' latents and videos take "
             f"{held:.1f} GiB beside the weights ({weights:.1f} GiB) and one particle's work ({activations:.1f} GiB, "
-            f"{key}, {mode} mode, plan {name}); at most {max(most, 0)} particles fit (or set run.memory_budget_gb)")
+            f"{key}, {work}); at most {max(most, 0)} particles fit (or set run.memory_budget_gb)")
     size = min(-(-particles // devices), particles if activations <= 0 else int(free // activations))
     peak = weights + held + size * activations
-    return ParticleBatch(size, f"auto: the most particles predicted to fit {budget:.1f} GiB ({key}, {mode} mode, "
-                               f"plan {name})", predicted_peak_gb=peak)
+    return ParticleBatch(size, f"auto: the most particles predicted to fit {budget:.1f} GiB ({key}, {work})",
+                         predicted_peak_gb=peak)
 
 
 def check_search_before_loading(search: SearchConfig, guidance: GuidanceConfig, run: RunOptions, *, model_id: str,

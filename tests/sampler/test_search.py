@@ -4,6 +4,7 @@ GeCoCogVideoXPipeline and under the hooks (tiny models, CPU)."""
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -203,7 +204,11 @@ def test_the_particle_batch_is_the_memory_plans_choice():
     args = dict(model_id="m", frames=1, height=1, width=1, device_gb=None, estimates=estimates)
     run = T.tiny_run_options(memory_plan="auto", memory_budget_gb=100.0)
     plan = PlanChoice(plan_named("leanest"), "test")
-    assert S.choose_particle_batch(UNGUIDED, run, 8, None, **args).size == 4  # (100 - 10) // 20
+    unguided = S.choose_particle_batch(UNGUIDED, run, 8, None, **args)
+    assert unguided.size == 4  # (100 - 10) // 20
+    assert unguided.reason.endswith("(m, unguided, bounded by a fast update under plan leanest)")
+    guided = S.choose_particle_batch(GUIDED, run, 3, plan, **args)
+    assert re.search(r"\(m, (fast|faithful) mode, plan leanest\)$", guided.reason)
     assert S.choose_particle_batch(UNGUIDED, run, 8, None, devices=4, **args).size == 2  # a sub-batch per device
     assert S.choose_particle_batch(GUIDED, run, 3, plan, **args).size == 3
     assert S.choose_particle_batch(UNGUIDED, T.tiny_run_options(particle_batch=5), 3, None, **args).size == 3
