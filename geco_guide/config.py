@@ -156,7 +156,8 @@ def model_preset(name: str) -> str | None:
     (one line listing the models) for a name the registry does not know."""
     if name not in video_models():
         model_named(name)  # raises, listing the names
-        raise ValueError(f"{name} has no open weights: GeCo-Eval only scores its videos (--videos {name}=DIR)")
+        raise ValueError(f"{name} has no open weights to generate with: its videos can only be scored (geco evaluate; "
+                         f"geco geco-eval --videos {name}=DIR)")
     return name if (CONFIG_DIR / f"{name}.yaml").is_file() else None
 
 

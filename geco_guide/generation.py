@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     from .sampler.loading import LoadedPipeline
 
 __all__ = ["KEYLESS_SECTIONS", "SCORES_NOTE", "SELECTION_SCORE", "GenerationResult", "Models", "Sample",
-           "best_candidate", "check_generation", "check_prompt", "default_name", "generate", "generate_best_of",
+           "best_candidate", "check_conditioning", "check_generation", "check_prompt", "default_name", "generate", "generate_best_of",
            "load_models", "loading_line", "output_paths", "sample", "sample_search", "selection_masks", "slugify", "versions",
            "video_key"]
 
@@ -172,13 +172,30 @@ def check_prompt(prompt: str) -> None:
                          "check the encoding of the terminal or file it came from") from None
 
 
+def check_conditioning(cfg: GeCoConfig, image: bool) -> None:
+    """ValueError (one line) where the run's conditioning ``image`` (given or not) and its model
+    disagree: an image-to-video model needs one, a text-to-video model takes none, and a search
+    is of text-to-video models only (its particles would each need the image's latents)."""
+    entry = cfg.model.video_model
+    if entry.image_to_video and not image:
+        raise ValueError(f"model.name={entry.name} is an image-to-video model: it needs a conditioning image, which "
+                         "geco generate --image PATH gives; choose a text-to-video model otherwise")
+    if image and not entry.image_to_video:
+        raise ValueError(f"model.name={entry.name} is a text-to-video model: it takes no conditioning image; drop "
+                         "--image, or choose an image-to-video model")
+    if image and cfg.search.enabled:
+        raise ValueError("a search of an image-to-video model is not supported: leave search.particles unset with "
+                         "--image")
+
+
 def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (), *, overwrite: bool = False,
-                     loaded: bool = False) -> GeCoConfig:
+                     loaded: bool = False, image: bool = False) -> GeCoConfig:
     """Every check a generation can make before anything loads, in one pass; returns ``cfg`` with
     ``model.device`` resolved (``auto``: cuda where there is one, else cpu), so that the memory
     planner, the loaders and the sidecar all see the same real device.
 
-    Checks the prompt, the run's config (:func:`~geco_guide.sampler.loading.check_before_loading`:
+    Checks the prompt, the conditioning ``image`` (whether one is given) against the model
+    (:func:`check_conditioning`), the run's config (:func:`~geco_guide.sampler.loading.check_before_loading`:
     the guidance against the model, every model's weights unless the models are ``loaded``, the
     devices, the size against the device's memory; a warning for each option that cannot act),
     the output ``paths`` (refused if present without ``overwrite``) and the frame rate for their
@@ -192,6 +209,7 @@ def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (),
     from .sampler.loading import check_before_loading
 
     check_prompt(prompt)
+    check_conditioning(cfg, image)
     if cfg.search.enabled and cfg.seed + cfg.search.particles - 1 > SEED_RANGE[1]:
         raise ValueError(f"search.particles={cfg.search.particles} from seed {cfg.seed} needs seeds up to "
                          f"{cfg.seed + cfg.search.particles - 1}, over the 64-bit limit {SEED_RANGE[1]}: choose a "
@@ -323,11 +341,13 @@ def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = N
     With ``search.particles`` set, the video is a search's (:func:`sample_search`).
 
     Raises:
-        ValueError: the sampled frames hold NaN/inf (nothing is made of them), or an option the
-            pipeline has no argument for.
+        ValueError: the sampled frames hold NaN/inf (nothing is made of them), an option the
+            pipeline has no argument for, or an ``image`` the model does not take (or lacks:
+            :func:`check_conditioning`).
     """
     if cfg.search.enabled:
         return sample_search(models, cfg, prompt, seed=seed, image=image, observer=observer, progress=progress)
+    check_conditioning(cfg, image is not None)
     import torch
 
     from .sampler.context import GuidanceReport
@@ -399,7 +419,7 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
 
     Raises:
         ValueError: (one line) a conditioning ``image`` (a search of an image-to-video model is
-            not supported), or the kept video holds NaN/inf.
+            not supported: :func:`check_conditioning`), or the kept video holds NaN/inf.
     """
     import torch
 
@@ -409,8 +429,7 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
     from .sampler.search import search_seed
     from .tiny import tiny_call_extras
 
-    if image is not None:
-        raise ValueError("a search of an image-to-video model is not supported: leave search.particles unset with --image")
+    check_conditioning(cfg, image is not None)
     seed = cfg.seed if seed is None else seed
     particles = cfg.search.particles
     pipe, entry = models.pipe, models.video.model
@@ -529,7 +548,8 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     pid), and the existence check, made again under the lock, holds until the files are written.
     """
     video_path, sidecar_path = output_paths(cfg, prompt, out)
-    cfg = check_generation(cfg, prompt, (video_path, sidecar_path), overwrite=overwrite, loaded=models is not None)
+    cfg = check_generation(cfg, prompt, (video_path, sidecar_path), overwrite=overwrite, loaded=models is not None,
+                           image=image is not None)
     with output_lock(video_path):  # every check passed: from here on the name is this run's
         check_output_paths((video_path, sidecar_path), overwrite)  # again: a run that ended meanwhile wrote it
         return _load_sample_and_write(cfg, prompt, video_path, sidecar_path, models, image, announce, progress)
@@ -683,7 +703,7 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
     if not cfg.output.name:
         cfg = replace(cfg, output=replace(cfg.output, name=f"{default_name(cfg, prompt)}-best-of-{count}"))
     video_path, sidecar_path = output_paths(cfg, prompt, out)
-    cfg = check_generation(cfg, prompt, (video_path, sidecar_path), overwrite=overwrite)
+    cfg = check_generation(cfg, prompt, (video_path, sidecar_path), overwrite=overwrite, image=image is not None)
     work = video_path.with_name(f".{video_path.stem}.candidates")
     models, candidates = None, []
     with output_lock(video_path):

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from geco_guide import tiny
-from geco_guide.cli import generate
+from geco_guide.cli import ab, generate, geco_eval
 from geco_guide.config import load_config, model_preset
 from geco_guide.families import MODELS, SCORED_ONLY, default_anchors, frames_problem, model_named, video_models
 
@@ -76,6 +76,35 @@ def test_an_unknown_or_scored_only_model_is_one_line(capsys):
         assert expected in err and "\n" not in err
 
 
+def test_the_conditioning_image_and_the_model_must_agree_before_anything_loads(tmp_path, capsys):
+    """An image-to-video model without --image, a text-to-video one with it, a search with it: one
+    line each, before any model loads or any file is written; so for the commands with no image."""
+    tiny.tiny_image(0, 64, 64).save(tmp_path / "image.png")
+    prompts = tmp_path / "prompts.txt"
+    prompts.write_text(PROMPT + "\n")
+    i2v = next(name for name in GENERATING if model_named(name).image_to_video)
+    image = ["--image", str(tmp_path / "image.png")]
+    cases = [
+        (generate.main, ["--model", i2v, "model.id=tiny-random"], "is an image-to-video model: it needs a conditioning image"),
+        (generate.main, ["--preset", "tiny", *image], "is a text-to-video model: it takes no conditioning image"),
+        (generate.main, ["--model", i2v, "model.id=tiny-random", *image, "--search", "2"],
+         "a search of an image-to-video model is not supported"),
+        (generate.main, ["--model", i2v, "model.id=tiny-random", "--best-of", "2"], "is an image-to-video model"),
+    ]
+    for main, argv, expected in cases:
+        assert main([*argv, "--prompt", PROMPT, "--out", str(tmp_path / "video.mp4")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert expected in err and "\n" not in err and "loading" not in err, err
+    assert ab.main(["--prompts", str(prompts), "--seeds", "0", "--out", str(tmp_path / "ab"), "--model", i2v,
+                    "model.id=tiny-random"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"model.name={i2v} is an image-to-video model" in err and "\n" not in err, err
+    assert geco_eval.main(["--models", i2v, "--out", str(tmp_path / "eval"), "--preset", "tiny"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "image-to-video model and GeCo-Eval's prompts are text only" in err and "\n" not in err, err
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["image.png", "prompts.txt"]
+
+
 @pytest.fixture(scope="module")
 def folders(tmp_path_factory) -> dict[str, Path]:
     """Every registry model's tiny stand-in, written with ``save_pretrained`` as a user's download."""
@@ -126,6 +155,25 @@ def test_geco_generate_model_runs_every_model_from_a_folder_as_shipped(name, gui
         assert sidecar["geco_scores"]["anchors"] == config["guidance"]["anchors"]
     else:
         assert sidecar["guidance_log"] == [] and sidecar["memory_plan"] is None
+
+
+@pytest.mark.slow
+def test_geco_ab_model_runs_a_registry_model_from_a_folder(folders, tmp_path, capsys):
+    name = "wan2.1-t2v-1.3b"
+    prompts = tmp_path / "prompts.txt"
+    prompts.write_text(PROMPT + "\n")
+    out = tmp_path / "ab"
+    rc = ab.main(["--prompts", str(prompts), "--seeds", "0", "--out", str(out), "--model", name,
+                  f"model.id={folders[name]}", *small_video(name)])
+    captured = capsys.readouterr()
+    assert rc == 0, captured.err
+    config = json.loads((out / "run.json").read_text())["config"]
+    shipped = load_config(model_preset=model_preset(name), changes={"model.name": name})
+    assert config["model"]["name"] == name and config["sampling"]["fps"] == shipped.sampling.fps
+    pair = next((out / "pairs").iterdir())
+    for arm in ("unguided", "guided"):
+        assert json.loads((pair / f"{arm}.json").read_text())["model"] == name
+    assert (out / "report.md").is_file()
 
 
 @pytest.mark.parametrize("name", GENERATING)

@@ -4,6 +4,7 @@ noise, and at matched compute selection (``--best-of``) and particle search (``-
     geco ab --prompts prompts.txt --seeds 0 1 2 --out ab/ --preset tiny
     geco ab --prompts prompts.jsonl --seeds 0 --out ab/ --config my.yaml guidance.step_size=2.0
     geco ab --prompts prompts.jsonl --seeds 0 10 20 --out ab/ --preset cogvideox-5b --search matched
+    geco ab --prompts prompts.txt --seeds 0 1 --out ab/ --model wan2.2-t2v-a14b
     accelerate launch -m geco_guide ab --prompts prompts.txt --seeds 0 1 --out ab/ --preset cogvideox-5b
 
 The prompts file holds one prompt per line, or JSON lines ``{"id": "bust", "prompt": "..."}``
@@ -60,7 +61,7 @@ from __future__ import annotations
 
 import argparse
 
-from .kit import add_config_flags, command_main, interruptible, output_folder, print_error
+from .kit import add_config_flags, add_model_flag, command_main, interruptible, output_folder, print_error
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 
@@ -73,6 +74,7 @@ particle search with GeCo as the verifier (--search).
 examples:
   geco ab --prompts prompts.txt --seeds 0 1 2 --out ab --preset tiny
   geco ab --prompts prompts.jsonl --seeds 0 10 20 --out ab --preset cogvideox-5b --best-of 4 --search matched
+  geco ab --prompts prompts.txt --seeds 0 1 --out ab --model wan2.2-t2v-a14b
   accelerate launch -m geco_guide ab --prompts prompts.txt --seeds 0 1 --out ab --preset cogvideox-5b
 
 Rerun the same command to resume a stopped run; add --best-of or --search to a finished run to add
@@ -87,7 +89,8 @@ def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
                              "with moving subjects: dynamic, dynamic:indoor, ...")
     parser.add_argument("--seeds", required=True, nargs="+", metavar="SEED", help="sampling seeds (integers)")
     parser.add_argument("--out", type=output_folder, required=True, help="output folder (reuse it to resume)")
-    add_config_flags(parser, preset_help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused")
+    add_config_flags(parser, preset_help="a preset of configs/: tiny, cogvideox-5b, cogvideox-5b-fused, or a model's")
+    add_model_flag(parser)
     parser.add_argument("--maps", action="store_true", help="also write each arm's GeCo maps video")
     parser.add_argument("--best-of", default=None, metavar="N|matched",
                         help="an arm of selection: per pair N unguided seeds (seed .. seed+N-1), each scored with the "
