@@ -128,11 +128,15 @@ def refuses_earlier_keywords(where: str, **hints: str) -> Callable[[_F], _F]:
     Python would, under ``where`` (e.g. ``"GeCoLoss"``). The signature stays the function's own.
     """
     def decorate(function: _F) -> _F:
-        accepted = set(inspect.signature(function).parameters)
+        parameters = inspect.signature(function).parameters.values()
+        accepted = {p.name for p in parameters}
+        if any(p.kind is p.VAR_KEYWORD for p in parameters):  # it takes any keyword: refuse the earlier ones alone
+            accepted = None
 
         @functools.wraps(function)
         def call(*args: Any, **kwargs: Any) -> Any:
-            unknown = sorted(key for key in kwargs if key not in accepted)
+            unknown = sorted(key for key in kwargs if (key not in accepted if accepted is not None
+                                                       else key in hints or key in ESTIMATOR_KEYWORDS))
             if unknown:
                 hinted = [key for key in unknown if key in hints]
                 old = [key for key in unknown if key in ESTIMATOR_KEYWORDS]

@@ -59,3 +59,27 @@ def test_every_module_lists_its_public_names(name):
     assert len(public) == len(set(public)), f"{name}.__all__ lists a name twice"
     assert not [n for n in public if n.startswith("_")], f"{name}.__all__ lists private names"
     assert not [n for n in public if not hasattr(module, n)], f"{name}.__all__ lists names it lacks"
+
+
+def test_an_entry_point_refuses_its_earlier_keywords_in_one_line_and_keeps_its_signature():
+    import inspect
+
+    from geco_guide.types import refuses_earlier_keywords
+
+    @refuses_earlier_keywords("fixed", masks="the masks are config.dynamic")
+    def fixed(video, estimators=None):
+        return video
+
+    @refuses_earlier_keywords("open", masks="the masks are config.dynamic")
+    def open_ended(video, **options):
+        return options
+
+    assert list(inspect.signature(fixed).parameters) == ["video", "estimators"] and fixed(1, estimators=2) == 1
+    assert open_ended(1, fps=8) == {"fps": 8}  # a function that takes any keyword keeps taking them
+    for function, where in ((fixed, "fixed"), (open_ended, "open")):
+        with pytest.raises(TypeError, match=rf"^{where}\(masks=\.\.\.\) is the earlier spelling: the masks are"):
+            function(1, masks=None)
+        with pytest.raises(TypeError, match=rf"^{where}\(geometry=\.\.\.\) is the earlier spelling: pass the models as one"):
+            function(1, geometry=None)
+    with pytest.raises(TypeError, match=r"^fixed\(\) got an unexpected keyword argument 'fps'$"):
+        fixed(1, fps=8)
