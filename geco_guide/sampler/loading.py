@@ -143,7 +143,7 @@ def missing_weights(model: ModelConfig, estimators: EstimatorsConfig, *, tiny_de
     Raises:
         WeightsNotFoundError: one line naming every missing model: its repo id, the config key and
             how to pass a local path.
-        ValueError: the tiny decoder is asked for but not named.
+        ValueError: the tiny decoder is asked for but the model has none, or it is not named.
     """
     from ..estimators import check_weights
     from ..estimators.loading import WeightsSource
@@ -151,7 +151,7 @@ def missing_weights(model: ModelConfig, estimators: EstimatorsConfig, *, tiny_de
     rows = [] if model.source == TINY_RANDOM else [
         WeightsSource("model.id", model.source, model.name, (PIPELINE_INDEX,), model.revision)]
     if tiny_decoder:
-        check_tiny_decoder_source(estimators)
+        check_tiny_decoder_source(estimators, model.video_model)
     check_weights(estimators, segmenter=segmenter, extra=rows)
 
 
@@ -253,41 +253,43 @@ def uses_tiny_decoder(guidance: GuidanceConfig, searching: bool = False) -> bool
     return bool((guidance.enabled or searching) and guidance.decoder == "tiny")
 
 
-def check_tiny_decoder_source(estimators: EstimatorsConfig) -> None:
-    """One line, before any model loads, when the tiny decoder's weights are not named or not there.
+def check_tiny_decoder_source(estimators: EstimatorsConfig, model: VideoModel) -> Any:
+    """The :class:`~geco_guide.estimators.tiny_decoder.TinyDecoderVariant` of ``model``'s latents,
+    once its weights are named and there: one line, before any model loads, otherwise, naming the
+    file of ``model``'s variant.
 
     Raises:
-        ValueError: ``estimators.tiny_decoder`` is not set.
+        ValueError: ``model`` has no tiny decoder, or ``estimators.tiny_decoder`` is not set.
         WeightsNotFoundError: it names a checkpoint file that does not exist.
     """
-    from ..estimators.tiny_decoder import WEIGHTS_URL
+    from ..estimators.tiny_decoder import WEIGHTS_URL, resolve_variant
 
-    source = estimators.tiny_decoder
-    if not source:
-        raise ValueError(
-            f"guidance.decoder=tiny needs the tiny decoder's weights: download them from {WEIGHTS_URL} (taecvx.pth for "
-            "CogVideoX) and set estimators.tiny_decoder=/path/to/taecvx.pth (or use guidance.decoder=vae)"
-        )
-    path = Path(source).expanduser()
-    if source != TINY_RANDOM and path.suffix.lower() in CHECKPOINT_SUFFIXES and not path.is_file():
-        raise WeightsNotFoundError(
-            f"estimators.tiny_decoder={source}: no such file (download it from {WEIGHTS_URL} and set "
-            "estimators.tiny_decoder=/path/to/taecvx.pth)"
-        )
-
-
-def check_tiny_decoder(estimators: EstimatorsConfig, model: VideoModel) -> Any:
-    """The :class:`~geco_guide.estimators.tiny_decoder.TinyDecoderVariant` of ``model``'s latents;
-    ValueError (one line) when the model has none, or the checkpoint file of
-    ``estimators.tiny_decoder`` is named for another model's (a name that tells no variant is left
-    to the strict load, which checks the keys)."""
-    from ..estimators.tiny_decoder import resolve_variant, variant_from_filename
-
-    check_tiny_decoder_source(estimators)
     if model.tiny_decoder is None:
         raise ValueError(f"guidance.decoder=tiny: there is no tiny decoder for {model.name}'s latents; use "
                          "guidance.decoder=vae")
     variant = resolve_variant(model.tiny_decoder)
+    file = f"{variant.checkpoint}.pth"
+    source = estimators.tiny_decoder
+    if not source:
+        raise ValueError(f"guidance.decoder=tiny needs the tiny decoder's weights: download {file} (for {model.name}) "
+                         f"from {WEIGHTS_URL} and set estimators.tiny_decoder=/path/to/{file} (or use "
+                         "guidance.decoder=vae)")
+    path = Path(source).expanduser()
+    if source != TINY_RANDOM and path.suffix.lower() in CHECKPOINT_SUFFIXES and not path.is_file():
+        raise WeightsNotFoundError(f"estimators.tiny_decoder={source}: no such file (download {file} from {WEIGHTS_URL} "
+                                   f"and set estimators.tiny_decoder=/path/to/{file})")
+    return variant
+
+
+def check_tiny_decoder(estimators: EstimatorsConfig, model: VideoModel) -> Any:
+    """The :class:`~geco_guide.estimators.tiny_decoder.TinyDecoderVariant` of ``model``'s latents;
+    ValueError (one line) when the model has none, its weights are not named
+    (:func:`check_tiny_decoder_source`), or the checkpoint file of ``estimators.tiny_decoder`` is
+    named for another model's (a name that tells no variant is left to the strict load, which
+    checks the keys)."""
+    from ..estimators.tiny_decoder import variant_from_filename
+
+    variant = check_tiny_decoder_source(estimators, model)
     source = estimators.tiny_decoder
     path = Path(source).expanduser()
     try:

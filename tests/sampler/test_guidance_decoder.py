@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -175,6 +177,22 @@ def test_tiny_without_weights_is_one_line_with_the_url_and_the_key_before_any_mo
     assert "\n" not in message and "github.com/madebyollin/taehv" in message
     assert "estimators.tiny_decoder=/path/to/taecvx.pth" in message
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("model", "expected"), [
+    ("wan2.1-t2v-1.3b", "download taew2_1.pth (for wan2.1-t2v-1.3b)"),
+    ("wan2.2-ti2v-5b", "download taew2_2.pth (for wan2.2-ti2v-5b)"),
+    ("hunyuanvideo-1.5", "download taehv1_5.pth (for hunyuanvideo-1.5)"),
+    ("ltx-video", "there is no tiny decoder for ltx-video's latents; use guidance.decoder=vae"),
+])
+def test_the_tiny_decoder_line_names_the_file_of_the_models_latents(model, expected):
+    from geco_guide.estimators import EstimatorsConfig
+    from geco_guide.families import model_named
+    from geco_guide.sampler.loading import check_tiny_decoder_source
+
+    # a model without a tiny decoder says so before asking for weights it could not use
+    with pytest.raises(ValueError, match=f"^guidance.decoder=tiny.*{re.escape(expected)}"):
+        check_tiny_decoder_source(EstimatorsConfig(tiny_decoder=None), model_named(model))
 
 
 def test_a_missing_tiny_decoder_file_is_one_line_naming_it_and_the_key(monkeypatch, tmp_path):
