@@ -196,8 +196,30 @@ def parse_command(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -
         args = parser.parse_args(argv)
     else:
         args = parser.parse_intermixed_args(argv)
+        _return_overrides(parser, args)
     args.command_line = shlex.join([*parser.prog.split(), *argv])
     return args
+
+
+def _return_overrides(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Give the command's ``key=value`` positionals back what a list option took of them: an
+    option of several values (``--devices cuda:0 cuda:1``) takes every word after it, so the
+    overrides typed after it would be read as devices (or seeds, or model names)."""
+    positional = next((action for action in parser._actions if not action.option_strings
+                       and action.nargs in ("*", "+") and "key=value" in str(action.metavar)), None)
+    if positional is None:
+        return
+    for action in parser._actions:
+        values = getattr(args, action.dest, None)
+        if not action.option_strings or action.nargs not in ("*", "+") or not isinstance(values, list):
+            continue
+        overrides, kept = split_overrides(value for value in values if isinstance(value, str))
+        if overrides:
+            if action.nargs == "+" and not kept:
+                parser.error(f"argument {action.option_strings[0]}: expected at least one value before "
+                             f"{overrides[0]!r}")
+            setattr(args, action.dest, [value for value in values if value not in overrides])
+            setattr(args, positional.dest, [*(getattr(args, positional.dest) or []), *overrides])
 
 
 def command_main(prog: str, description: str, register_subcommand: Callable[[argparse.ArgumentParser], Any],

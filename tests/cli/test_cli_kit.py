@@ -65,3 +65,19 @@ def test_ctrl_c_is_one_line_and_exit_code_130(capsys):
     assert main([]) == 130
     err = capsys.readouterr().err
     assert err == "interrupted: the finished videos are kept; rerun to resume\n"
+
+
+def test_overrides_typed_after_a_list_option_go_back_to_the_overrides(capsys):
+    from geco_guide.cli.kit import parse_command
+
+    p = Parser(prog="test")
+    p.add_argument("--devices", nargs="+", default=None)
+    p.add_argument("--seeds", nargs="+", default=None)
+    p.add_argument("overrides", nargs="*", metavar="key=value")
+    args = parse_command(p, ["a=1", "--devices", "cuda:0", "cuda:1", "b=2", "--seeds", "0", "c.d=3"])
+    assert args.devices == ["cuda:0", "cuda:1"] and args.seeds == ["0"] and args.overrides == ["a=1", "b=2", "c.d=3"]
+    with pytest.raises(SystemExit) as info:
+        parse_command(p, ["--devices", "b=2"])
+    err = capsys.readouterr().err.strip()
+    assert info.value.code == 2 and "\n" not in err
+    assert "argument --devices: expected at least one value before 'b=2'" in err
