@@ -189,8 +189,7 @@ def parse_seeds(values: Sequence[str]) -> list[int]:
         try:
             seed = int(value)
         except ValueError:
-            hint = " (put key=value overrides before --seeds, or after another option)" if "=" in value else ""
-            raise InputError(f"--seeds takes integers, got {value!r}{hint}") from None
+            raise InputError(f"--seeds takes integers, got {value!r}") from None
         if not 0 <= seed <= MAX_SEED:
             raise InputError(f"--seeds must be in [0, 2**63), got {seed}")
         if seed in seeds:

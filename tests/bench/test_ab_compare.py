@@ -433,7 +433,8 @@ def _write(path: Path, text: str) -> Path:
         ("a cat\n", ["zero"], [], "--seeds takes integers, got 'zero'"),
         ("a cat\n", ["-1"], [], "must be in [0, 2**63)"),
         ("a cat\n", ["1", "1"], [], "lists 1 twice"),
-        ("a cat\n", ["0", "guidance.step_size=2"], [], "put key=value overrides before --seeds"),
+        # an override typed after --seeds is read as one, not as a seed
+        ("a cat\n", ["0", "sampling.nope=1"], [], "unknown config key 'sampling.nope'"),
         ("a cat\n", ["0"], ["sampling.nope=1"], "unknown config key 'sampling.nope'"),
         ("a cat\n", ["0"], ["sampling.num_frames=10"], "sampling.num_frames"),
         ("a cat\n", ["0"], ["guidance.enabled=false"], "nothing to compare"),
