@@ -129,14 +129,13 @@ def refuses_earlier_keywords(where: str, **hints: str) -> Callable[[_F], _F]:
     """
     def decorate(function: _F) -> _F:
         parameters = inspect.signature(function).parameters.values()
-        accepted = {p.name for p in parameters}
-        if any(p.kind is p.VAR_KEYWORD for p in parameters):  # it takes any keyword: refuse the earlier ones alone
-            accepted = None
+        named = {p.name for p in parameters}
+        takes_any = any(p.kind is p.VAR_KEYWORD for p in parameters)  # then only the earlier spellings are refused
+        earlier = {*hints, *ESTIMATOR_KEYWORDS}
 
         @functools.wraps(function)
         def call(*args: Any, **kwargs: Any) -> Any:
-            unknown = sorted(key for key in kwargs if (key not in accepted if accepted is not None
-                                                       else key in hints or key in ESTIMATOR_KEYWORDS))
+            unknown = sorted(key for key in kwargs if key not in named and (not takes_any or key in earlier))
             if unknown:
                 hinted = [key for key in unknown if key in hints]
                 old = [key for key in unknown if key in ESTIMATOR_KEYWORDS]
