@@ -96,26 +96,18 @@ def preset_path(name: str) -> Path:
 
 
 def _key_error(err: OmegaConfBaseException, source: str) -> ValueError:
+    """The one line of a merge's key error: an unknown key, the new spelling of a renamed one
+    (:attr:`GuidanceConfig.RENAMED`), or a value its field cannot take."""
     key = getattr(err, "full_key", None) or getattr(err, "key", None) or "?"
     if isinstance(err, (ConfigKeyError, ConfigAttributeError)):
-        return ValueError(f"unknown config key {key!r} ({source})")
+        section, _, leaf = str(key).partition(".")
+        renamed = renamed_option(GuidanceConfig, leaf, "guidance") if section == "guidance" else None
+        return ValueError(f"{renamed or f'unknown config key {key!r}'} ({source})")
     msg = str(err).split("\n")[0]
     return ValueError(f"invalid value for config key {key!r} ({source}): {msg}")
 
 
-def _refuse_renamed_keys(other: Any, source: str) -> None:
-    """ValueError (one line naming the new key) for a key of ``other`` (a config mapping) that is
-    the earlier spelling of one (:attr:`GuidanceConfig.RENAMED`)."""
-    if not isinstance(other, (DictConfig, Mapping)) or not isinstance(other.get("guidance"), (DictConfig, Mapping)):
-        return
-    for key in other["guidance"]:
-        problem = renamed_option(GuidanceConfig, key, "guidance")
-        if problem is not None:
-            raise ValueError(f"{problem} ({source})")
-
-
 def _merge(base: DictConfig, other: Any, source: str) -> DictConfig:
-    _refuse_renamed_keys(other, source)
     try:
         return OmegaConf.merge(base, other)
     except (OmegaConfBaseException, TypeError) as err:  # TypeError: a mapping merged into a list
@@ -228,10 +220,6 @@ def _parse_override(cfg: DictConfig, item: str) -> DictConfig:
     take the text as is (YAML would read ``guidance.repeats=0x2`` as the hex number 2)."""
     key, _, raw = item.partition("=")
     key = key.strip()
-    section, _, leaf = key.partition(".")
-    problem = renamed_option(GuidanceConfig, leaf, "guidance") if section == "guidance" else None
-    if problem is not None:
-        raise ValueError(f"{problem} (command line)")
     parent_key, _, leaf = key.rpartition(".")
     try:
         parent = OmegaConf.select(cfg, parent_key) if parent_key else cfg

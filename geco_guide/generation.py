@@ -290,11 +290,14 @@ def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True,
 
     from .estimators import Estimators, load_estimators
     from .sampler.loading import load_tiny_decoder, load_video_pipeline, uses_tiny_decoder
-    from .tiny import tiny_video_components
+    from .tiny import tiny_call_extras, tiny_video_components
 
-    if components is None and cfg.model.source == TINY_RANDOM:
-        components = tiny_video_components(cfg.model.video_model, cfg.model.init_seed)
-    video = load_video_pipeline(cfg.model, cfg.sampling.scheduler, components)
+    extras = {}
+    if cfg.model.source == TINY_RANDOM:
+        extras = tiny_call_extras(cfg.model.video_model.pipeline)
+        if components is None:
+            components = tiny_video_components(cfg.model.video_model, cfg.model.init_seed)
+    video = replace(load_video_pipeline(cfg.model, cfg.sampling.scheduler, components), call_extras=extras)
     decoder = None
     if estimators is not False and uses_tiny_decoder(cfg.guidance, cfg.search.enabled):
         vae_config = video.pipe.vae.config
@@ -352,11 +355,10 @@ def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = N
 
     from .sampler.context import GuidanceReport
     from .sampler.sampling import call_arguments
-    from .tiny import tiny_call_extras
 
     pipe, entry = models.pipe, models.video.model
     generator = torch.Generator(device="cpu").manual_seed(cfg.seed if seed is None else seed)
-    extra = tiny_call_extras(pipe) if cfg.model.source == TINY_RANDOM else {}
+    extra = dict(models.video.call_extras)
     if image is not None:
         extra["image"] = image
     arguments = call_arguments(pipe, cfg.sampling, prompt=prompt, generator=generator, **extra)
@@ -423,11 +425,11 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
     """
     import torch
 
+    from .io.devices import resolve_devices
     from .metric.evaluate import evaluate_video, finite_or_none
-    from .sampler.multi_device import dealt_work, resolve_devices
+    from .sampler.multi_device import dealt_work
     from .sampler.sampling import call_arguments
     from .sampler.search import search_seed
-    from .tiny import tiny_call_extras
 
     check_conditioning(cfg, image is not None)
     seed = cfg.seed if seed is None else seed
@@ -435,7 +437,7 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
     pipe, entry = models.pipe, models.video.model
     generators = [torch.Generator(device="cpu").manual_seed(seed + k) for k in range(particles)]
     search_generator = torch.Generator(device="cpu").manual_seed(search_seed(seed))
-    extra = tiny_call_extras(pipe) if cfg.model.source == TINY_RANDOM else {}
+    extra = dict(models.video.call_extras)
     if entry.guided_by != "pipeline":  # a stock pipeline's batch: its videos per prompt
         extra["num_videos_per_prompt"] = particles
     arguments = call_arguments(pipe, cfg.sampling, prompt=prompt, generator=generators, **extra)

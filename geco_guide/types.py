@@ -152,15 +152,21 @@ def refuses_earlier_keywords(where: str, **hints: str) -> Callable[[_F], _F]:
     return decorate
 
 
-def check_estimator_bundle(estimators: Any, where: str) -> None:
-    """Refuse what is not an estimator bundle (``.geometry`` a :class:`GeometryEstimator`, ``.flow``
-    a :class:`FlowEstimator`: :class:`geco_guide.estimators.Estimators`), in one line naming
-    ``where`` (e.g. ``"GeCoLoss"``).
+def check_estimator_bundle(estimators: Any, where: str, argument: str | None = None) -> Any:
+    """``estimators`` if it is an estimator bundle (``.geometry`` a :class:`GeometryEstimator`,
+    ``.flow`` a :class:`FlowEstimator`: :class:`geco_guide.estimators.Estimators`); refused
+    otherwise in one line naming ``where`` (e.g. ``"GeCoLoss"``). Where guidance was passed its
+    models by the keyword ``argument``, ``None`` is refused as models not given, naming how to pass
+    them.
 
     Raises:
-        TypeError: not a bundle (a tuple, a lone model, ``None``).
-        ValueError: a bundle whose geometry or flow estimator lacks its method.
+        TypeError: not a bundle (a tuple, a lone model, ``None`` without ``argument``).
+        ValueError: a bundle whose geometry or flow estimator lacks its method, or ``None`` passed
+            as ``argument``.
     """
+    if estimators is None and argument is not None:
+        raise ValueError(f"GeCo guidance needs its models: pass {argument}=Estimators(geometry, flow) to {where} "
+                         "(geco_guide.Estimators; e.g. geco_guide.estimators.load_estimators)")
     if isinstance(estimators, tuple) or not (hasattr(estimators, "geometry") and hasattr(estimators, "flow")):
         raise TypeError(f"{where} takes the estimators as one Estimators(geometry, flow) (geco_guide.Estimators), "
                         f"got {type(estimators).__name__}")
@@ -170,6 +176,7 @@ def check_estimator_bundle(estimators: Any, where: str) -> None:
         name = missing[0]
         raise ValueError(f"{where}: estimators.{name} must implement {methods[name]}, got "
                          f"{type(getattr(estimators, name)).__name__}")
+    return estimators
 
 
 def check_frames(frames: Tensor, name: str = "frames") -> None:

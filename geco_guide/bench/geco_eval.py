@@ -46,7 +46,7 @@ from ..config import GeCoConfig, config_to_yaml, to_config
 from ..estimators import TINY_RANDOM, Estimators, estimator_ids, load_estimators
 from ..families import MODELS
 from ..generation import Models, load_models, sample
-from ..io.devices import resolve_device
+from ..io.devices import planning_memory_gb, resolve_device, resolve_devices
 from ..io.files import (
     WriteError,
     remove_temp_files,
@@ -56,7 +56,8 @@ from ..io.plots import Panel, legend, legend_width, limits, text
 from ..io.video import VIDEO_SUFFIXES, write_video
 from ..loss.geco import CUES
 from ..metric.evaluate import PAPER_NAMES, evaluate_video
-from ..sampler.loading import check_guidance_before_loading, quiet_hub_logs
+from ..sampler.loading import check_guidance_before_loading, check_tiny_decoder, quiet_hub_logs
+from ..sampler.memory_plan import plan_before_loading
 from ..sampler.sampling import SamplingConfig
 from ..types import plural
 from . import report
@@ -263,8 +264,8 @@ def remove_run_outputs(out: Path) -> None:
 
 def check_guided_models(cfg: GeCoConfig, names: Sequence[str]) -> None:
     """What a guided call of each model would refuse and ``generate`` checks before loading (the
-    loss, the schedule, the anchors, the decode layout for its VAE, the tiny decoder for its
-    latents, a memory plan that fits), before any model loads or any file is written.
+    tiny decoder for its latents, a memory plan that fits, the loss, the schedule, the decode
+    layout for its VAE, the anchors), before any model loads or any file is written.
 
     Raises:
         ValueError: one line naming the model.
@@ -273,10 +274,13 @@ def check_guided_models(cfg: GeCoConfig, names: Sequence[str]) -> None:
     for name in names:
         try:
             guided = job_config(cfg, name, guided=True)
-            s = guided.sampling
-            check_guidance_before_loading(guided.guidance, guided.run, guided.estimators, MODELS[name],
-                                          model_id=guided.model.source, num_frames=s.num_frames, height=s.height,
-                                          width=s.width, num_steps=s.num_inference_steps, device=guided.model.device)
+            s, g = guided.sampling, guided.guidance
+            if g.decoder == "tiny":
+                check_tiny_decoder(guided.estimators, MODELS[name])
+            device_gb = planning_memory_gb(guided.model.device, resolve_devices(guided.run.devices))
+            plan_before_loading(g, guided.run, guided.model.source, s.num_frames, s.height, s.width, device_gb)
+            check_guidance_before_loading(g, guided.run, MODELS[name], num_frames=s.num_frames,
+                                          num_steps=s.num_inference_steps)
         except ValueError as err:
             raise ValueError(f"{name} guided: {err}") from None
 

@@ -442,7 +442,7 @@ def _check_sampling(args: argparse.Namespace) -> None:
     import torch
 
     from ..sampler.memory_plan import PLAN_NAMES
-    from ..sampler.multi_device import resolve_devices
+    from ..io.devices import resolve_devices
     from ..sampler.schedule import PAPER_STEPS
 
     if args.memory_plan not in PLAN_NAMES:

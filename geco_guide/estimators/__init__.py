@@ -135,9 +135,10 @@ def load_segmenter(estimators_cfg: EstimatorsConfig, device: str | torch.device 
     """
     from .segmenters import segmenters_from_spec
 
+    segment_id = estimator_ids(estimators_cfg, segmenter=True)["segmenter"]
     segment = segmenters_from_spec(estimators_cfg.segmenter, device=resolve_device(device),
                                    dtype=getattr(torch, estimators_cfg.dtype), seed=estimators_cfg.init_seed)
-    segment.geco_estimator_id = estimator_ids(estimators_cfg, segmenter=True)["segmenter"]
+    segment.geco_estimator_id = segment_id
     return segment
 
 
@@ -162,13 +163,13 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
             folder instead, when the weights are unavailable.
     """
     dtype = getattr(torch, estimators_cfg.dtype)
-    device = resolve_device(device)
-    # the segmenter first: its missing weights end the run before the larger models load
-    segment = load_segmenter(estimators_cfg, device) if segmenter else None
     ids = estimator_ids(estimators_cfg)
     tiny = None
     if TINY_RANDOM in (estimators_cfg.geometry, estimators_cfg.flow):
         tiny = tiny_estimators(estimators_cfg.init_seed)
+    # the segmenter before the larger models: its missing weights end the run before they load
+    segment = load_segmenter(estimators_cfg, device) if segmenter else None
+    device = resolve_device(device)
     if estimators_cfg.geometry == TINY_RANDOM:
         geometry = tiny.geometry.to(device).trunk_to(dtype)
     else:

@@ -1,13 +1,17 @@
-"""Torch devices: what ``auto`` means, a one-line error for a device this machine lacks, and one
-for a working set that cannot fit in its memory."""
+"""Torch devices: what ``auto`` means, a one-line error for a device this machine lacks (the model's
+device and the devices of ``run.devices``), how much memory each has, and a one-line error for a
+working set that cannot fit in it."""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
+from typing import Any
 
 import torch
 
-__all__ = ["COMPUTE_DEVICES", "check_device", "check_memory_fits", "memory_limit", "resolve_device"]
+__all__ = ["AUTO", "COMPUTE_DEVICES", "check_device", "check_memory_fits", "device_memory_gb", "memory_limit",
+           "planning_memory_gb", "resolve_device", "resolve_devices"]
 
 
 def resolve_device(name: str | torch.device) -> torch.device:
@@ -47,6 +51,29 @@ def check_device(name: str | torch.device, key: str = "model.device", fix: str |
     return device
 
 
+#: ``run.devices: [auto]``: every GPU torch sees.
+AUTO = "auto"
+
+
+def resolve_devices(names: Sequence[str] | None, key: str = "run.devices") -> list[torch.device] | None:
+    """The devices of ``run.devices``: ``None`` (the pipeline's one device) -> ``None``;
+    ``["auto"]`` -> every visible CUDA device; names -> those devices, each checked.
+
+    Raises:
+        ValueError: (one line naming ``key``) a device this machine lacks, or ``auto`` without a GPU.
+    """
+    if names is None:
+        return None
+    if list(names) == [AUTO]:
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise ValueError(f"{key}=[auto] means every visible GPU, and this machine has none: leave {key} unset "
+                             "(null) or list the devices")
+        return [torch.device("cuda", index) for index in range(count)]
+    return [check_device(name, key, fix=f"list devices this machine has, or leave {key} unset (one device)")
+            for name in names]
+
+
 def memory_limit(device: str | torch.device) -> int | None:
     """Bytes of memory that ``device`` has in all: a CUDA device's total memory, the machine's
     physical RAM for the CPU (and any other device); None where the system does not say."""
@@ -57,6 +84,28 @@ def memory_limit(device: str | torch.device) -> int | None:
         return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
     except (AttributeError, ValueError, OSError):  # not a POSIX system
         return None
+
+
+def device_memory_gb(device: Any) -> float | None:
+    """Total memory (GiB) of a CUDA device (``auto`` resolved), or a CPU's physical RAM; ``None``
+    where unknown.
+
+    Raises:
+        ValueError: (one line) a device this machine lacks, e.g. ``cuda`` without CUDA.
+    """
+    device = check_device(device)
+    limit = memory_limit(device) if device.type in ("cuda", "cpu") else None
+    return None if limit is None else limit / 2**30
+
+
+def planning_memory_gb(home: Any, devices: Sequence[Any] | None = None) -> float | None:
+    """The device memory (GiB) a guided call plans for: ``home``'s (the pipeline's execution
+    device, :func:`device_memory_gb`), or with ``run.devices`` the smallest of ``home``'s and
+    theirs. One plan then fits every device, and an out-of-memory fallback is one decision for all
+    of them. Conservative: each device is held to the one-device peak, though the replicas hold
+    only the decoder and their share of the anchor chunks. ``None`` where no memory is known."""
+    known = [gb for gb in (device_memory_gb(d) for d in [home, *(devices or [])]) if gb is not None]
+    return min(known) if known else None
 
 
 def _gib(nbytes: float) -> str:

@@ -355,7 +355,7 @@ class GuidanceContext:
         dynamic_masks: what moves on its own, left out of the loss
             (:func:`~.dynamic.guidance_mask_source`), or ``None`` (the paper: no masks).
         devices: the devices the anchor chunks are dealt over
-            (:func:`~.multi_device.resolve_devices` of ``run.devices``), each with a replica of
+            (:func:`~geco_guide.io.devices.resolve_devices` of ``run.devices``), each with a replica of
             ``decode_chunk``'s module, or ``None``: one device.
         observer: watches the updates (:class:`GuidanceObserver`), or ``None``.
     """

@@ -66,7 +66,7 @@ import torch
 from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
-from ..types import refuses_earlier_keywords
+from ..types import check_estimator_bundle, refuses_earlier_keywords
 from .adapters import CallGeometry, PipelineAdapter, adapter_for, check_scheduler, fit_combination, noise_levels
 from .config import GuidanceConfig
 from .context import GuidanceContext, GuidanceObserver, GuidanceReport
@@ -86,7 +86,7 @@ from .pipeline_cogvideox import GeCoCogVideoXPipeline
 from .search import ParticleBatch, ParticleSearch, SearchConfig, check_search_call, resolve_search_config
 from .slicing import check_latents
 from .step import LatentsWatch
-from .stock_call import StockCall, check_estimators, guide_stock_step, stock_call
+from .stock_call import StockCall, guide_stock_step, stock_call
 
 __all__ = ["CAPTURE_HOOK", "PARTICLE_HOOK", "DenoiserCapture", "GeCoGuidanceHandle", "ParticleSplit",
            "attach_geco_guidance"]
@@ -673,8 +673,8 @@ def attach_geco_guidance(
         )
     adapter = adapter_for(pipe)
     config, run_options = resolve_call_options(None, config, None, run_options)
+    check_estimator_bundle(estimators, "attach_geco_guidance", argument="estimators")
     check_hook_run_options(run_options)
-    check_estimators(estimators, "attach_geco_guidance")
     current = pipe.__dict__.get("prepare_latents")
     if getattr(current, "_geco_handle", None) is not None:
         raise ValueError("this pipeline already has GeCo guidance attached; detach() it first")

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
@@ -34,14 +34,14 @@ from ..estimators.loading import (
 )
 from ..io.devices import resolve_device
 from .config import GuidanceConfig
-from .memory_plan import PlanChoice, plan_before_loading
+from .memory_plan import plan_before_loading
 from .run_options import RunOptions
 from .search import SearchConfig, check_search_before_loading
 
 __all__ = ["CHECKPOINT_SCHEDULER", "PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
-           "check_guidance_before_loading", "check_tiny_decoder", "choose_scheduler", "load_tiny_decoder",
+           "check_guidance_before_loading", "check_tiny_decoder", "load_tiny_decoder",
            "load_video_pipeline", "missing_weights", "pipeline_from_pretrained", "quiet_hub_logs",
-           "uses_tiny_decoder", "warn_idle_options"]
+           "scheduler_class", "uses_tiny_decoder", "warn_idle_options"]
 
 logger = logging.getLogger(__name__)
 
@@ -143,7 +143,8 @@ def missing_weights(model: ModelConfig, estimators: EstimatorsConfig, *, tiny_de
     Raises:
         WeightsNotFoundError: one line naming every missing model: its repo id, the config key and
             how to pass a local path.
-        ValueError: the tiny decoder is asked for but the model has none, or it is not named.
+        ValueError: the tiny decoder is asked for but the model has none, it is not named, or its
+            file is another model's (:func:`check_tiny_decoder`).
     """
     from ..estimators import check_weights
     from ..estimators.loading import WeightsSource
@@ -151,7 +152,7 @@ def missing_weights(model: ModelConfig, estimators: EstimatorsConfig, *, tiny_de
     rows = [] if model.source == TINY_RANDOM else [
         WeightsSource("model.id", model.source, model.name, (PIPELINE_INDEX,), model.revision)]
     if tiny_decoder:
-        check_tiny_decoder_source(estimators, model.video_model)
+        check_tiny_decoder(estimators, model.video_model)
     check_weights(estimators, segmenter=segmenter, extra=rows)
 
 
@@ -163,25 +164,29 @@ class LoadedPipeline:
         pipe: the pipeline, on the model's device: a ``GeCoCogVideoXPipeline`` for the models
             guided by the paper's loop, the stock diffusers pipeline for the others.
         model: its registry entry.
-        scheduler: which scheduler it samples with and why (:func:`choose_scheduler`).
+        scheduler: which scheduler it samples with and why (:func:`scheduler_class`).
+        call_extras: what its calls need beyond the config's sampling (a tiny stand-in's:
+            :func:`geco_guide.tiny.tiny_call_extras`).
     """
 
     pipe: Any
     model: VideoModel
     scheduler: str
+    call_extras: dict[str, Any] = field(default_factory=dict)
 
 
 def load_video_pipeline(model: ModelConfig, scheduler: str | None = None,
                         components: dict[str, Any] | None = None) -> LoadedPipeline:
     """The pipeline of ``model`` (its registry entry's class; ``GeCoCogVideoXPipeline`` for the
     models the paper's loop guides) in ``model.dtype`` on ``model.device``, with the scheduler
-    ``scheduler`` names (:func:`choose_scheduler`).
+    ``scheduler`` names (:func:`scheduler_class`).
 
     ``components`` (the pipeline's models, e.g. of :func:`geco_guide.tiny.tiny_video_components`)
     are used instead of loading ``model.source``; ``tiny-random`` requires them, since the tiny
     models are built above this floor.
 
     Raises:
+        ValueError: (one line, before anything loads) a ``scheduler`` the model has not.
         WeightsNotFoundError: one line naming the model id, ``model.id`` and how to pass a local
             folder, when the weights are neither in a local folder nor in the hub cache / reachable.
     """
@@ -192,6 +197,7 @@ def load_video_pipeline(model: ModelConfig, scheduler: str | None = None,
         from .pipeline_cogvideox import GeCoCogVideoXPipeline as cls
     else:
         cls = getattr(diffusers, entry.pipeline)
+    scheduler_cls = scheduler_class(scheduler, entry)
     dtype = getattr(torch, model.dtype)
     if components is not None:
         pipe = cls(**components)
@@ -205,7 +211,15 @@ def load_video_pipeline(model: ModelConfig, scheduler: str | None = None,
         folder = model.source.rstrip("/").split("/")[-1]
         pipe = pipeline_from_pretrained(cls, model.source, entry.name, f"model.id=/path/to/{folder}", dtype=dtype,
                                         revision=model.revision)
-    note = choose_scheduler(pipe, scheduler, entry)
+    shipped = type(pipe.scheduler).__name__
+    if scheduler_cls is None:
+        note = f"{shipped} (the checkpoint's)"
+    elif type(pipe.scheduler) is scheduler_cls:
+        note = f"{shipped} (sampling.scheduler={scheduler}, the checkpoint's)"
+    else:
+        pipe.scheduler = scheduler_cls.from_config(pipe.scheduler.config)
+        note = (f"{scheduler_cls.__name__} (sampling.scheduler={scheduler}, built from the checkpoint's {shipped} "
+                "config)")
     if model.vae_tiling and hasattr(pipe.vae, "enable_tiling"):
         pipe.vae.enable_tiling()
     if model.vae_slicing and hasattr(pipe.vae, "enable_slicing"):
@@ -222,16 +236,18 @@ SCHEDULERS = {"ddim": "CogVideoXDDIMScheduler", "dpm": "CogVideoXDPMScheduler"}
 CHECKPOINT_SCHEDULER = "checkpoint"
 
 
-def choose_scheduler(pipe: Any, name: str | None, model: VideoModel) -> str:
-    """Give ``pipe`` the scheduler ``sampling.scheduler`` names; returns the sidecar's note.
+def scheduler_class(name: str | None, model: VideoModel) -> type | None:
+    """The scheduler class ``sampling.scheduler`` names for ``model``, checked before its pipeline
+    loads: ``ddim`` / ``dpm`` (CogVideoX models only) CogVideoX's DDIM / DPM scheduler, built from
+    the checkpoint's scheduler config once the pipeline is loaded; ``checkpoint`` or ``None``:
+    ``None``, the checkpoint's own scheduler, untouched. The pipeline itself never replaces a
+    scheduler.
 
-    ``ddim`` / ``dpm`` (CogVideoX models only): CogVideoX's DDIM / DPM scheduler built from the
-    checkpoint's scheduler config; ``checkpoint`` or ``None``: the checkpoint's own scheduler,
-    untouched. The pipeline itself never replaces a scheduler.
+    Raises:
+        ValueError: (one line) an unknown name, or CogVideoX's scheduler for another family.
     """
-    shipped = type(pipe.scheduler).__name__
     if name in (None, CHECKPOINT_SCHEDULER):
-        return f"{shipped} (the checkpoint's)"
+        return None
     if name not in SCHEDULERS:
         raise ValueError(f"sampling.scheduler must be one of {sorted(SCHEDULERS)}, {CHECKPOINT_SCHEDULER} or null, "
                          f"got {name!r}")
@@ -240,11 +256,7 @@ def choose_scheduler(pipe: Any, name: str | None, model: VideoModel) -> str:
                          f"use sampling.scheduler={CHECKPOINT_SCHEDULER}")
     import diffusers
 
-    cls = getattr(diffusers, SCHEDULERS[name])
-    if type(pipe.scheduler) is cls:
-        return f"{cls.__name__} (sampling.scheduler={name}, the checkpoint's)"
-    pipe.scheduler = cls.from_config(pipe.scheduler.config)
-    return f"{cls.__name__} (sampling.scheduler={name}, built from the checkpoint's {shipped} config)"
+    return getattr(diffusers, SCHEDULERS[name])
 
 
 def uses_tiny_decoder(guidance: GuidanceConfig, searching: bool = False) -> bool:
@@ -253,16 +265,18 @@ def uses_tiny_decoder(guidance: GuidanceConfig, searching: bool = False) -> bool
     return bool((guidance.enabled or searching) and guidance.decoder == "tiny")
 
 
-def check_tiny_decoder_source(estimators: EstimatorsConfig, model: VideoModel) -> Any:
+def check_tiny_decoder(estimators: EstimatorsConfig, model: VideoModel) -> Any:
     """The :class:`~geco_guide.estimators.tiny_decoder.TinyDecoderVariant` of ``model``'s latents,
-    once its weights are named and there: one line, before any model loads, otherwise, naming the
-    file of ``model``'s variant.
+    once its weights are named, there, and not another model's: one line, before any model loads,
+    otherwise, naming the file of ``model``'s variant (a file name that tells no variant is left to
+    the strict load, which checks the keys).
 
     Raises:
-        ValueError: ``model`` has no tiny decoder, or ``estimators.tiny_decoder`` is not set.
+        ValueError: ``model`` has no tiny decoder, ``estimators.tiny_decoder`` is not set, or it
+            names the checkpoint file of another model's.
         WeightsNotFoundError: it names a checkpoint file that does not exist.
     """
-    from ..estimators.tiny_decoder import WEIGHTS_URL, resolve_variant
+    from ..estimators.tiny_decoder import WEIGHTS_URL, resolve_variant, variant_from_filename
 
     if model.tiny_decoder is None:
         raise ValueError(f"guidance.decoder=tiny: there is no tiny decoder for {model.name}'s latents; use "
@@ -278,27 +292,13 @@ def check_tiny_decoder_source(estimators: EstimatorsConfig, model: VideoModel) -
     if source != TINY_RANDOM and path.suffix.lower() in CHECKPOINT_SUFFIXES and not path.is_file():
         raise WeightsNotFoundError(f"estimators.tiny_decoder={source}: no such file (download {file} from {WEIGHTS_URL} "
                                    f"and set estimators.tiny_decoder=/path/to/{file})")
-    return variant
-
-
-def check_tiny_decoder(estimators: EstimatorsConfig, model: VideoModel) -> Any:
-    """The :class:`~geco_guide.estimators.tiny_decoder.TinyDecoderVariant` of ``model``'s latents;
-    ValueError (one line) when the model has none, its weights are not named
-    (:func:`check_tiny_decoder_source`), or the checkpoint file of ``estimators.tiny_decoder`` is
-    named for another model's (a name that tells no variant is left to the strict load, which
-    checks the keys)."""
-    from ..estimators.tiny_decoder import variant_from_filename
-
-    variant = check_tiny_decoder_source(estimators, model)
-    source = estimators.tiny_decoder
-    path = Path(source).expanduser()
     try:
         named = variant_from_filename(path) if source != TINY_RANDOM and path.is_file() else None
     except ValueError:
         named = None
     if named is not None and named.name != variant.name:
         raise ValueError(f"estimators.tiny_decoder={source} is the tiny decoder of {named.models}; "
-                         f"{model.name} needs {variant.checkpoint}.pth")
+                         f"{model.name} needs {file}")
     return variant
 
 
@@ -327,24 +327,18 @@ def load_tiny_decoder(estimators: EstimatorsConfig, model: VideoModel, latent_ch
         raise with_config_key(err, "estimators.tiny_decoder", f"/path/to/{variant.checkpoint}.pth") from None
 
 
-def check_guidance_before_loading(guidance: GuidanceConfig, run: RunOptions, estimators: EstimatorsConfig,
-                                  model: VideoModel, *, model_id: str, num_frames: int, height: int, width: int,
-                                  num_steps: int, device: str) -> PlanChoice | None:
-    """Every check of the guidance that needs no model, for a command to make before any model
-    loads and before it writes anything: the loss, the anchors and the schedule for the call, the
-    decode layout for the model's VAE, the tiny decoder's weights (named, there, of this model),
-    and a memory plan that fits (:func:`~.memory_plan.plan_before_loading` for a
-    ``num_frames x height x width`` video of ``model_id`` on ``device``). Returns the predicted
-    plan (``None`` without guidance).
+def check_guidance_before_loading(guidance: GuidanceConfig, run: RunOptions, model: VideoModel, *,
+                                  num_frames: int, num_steps: int) -> None:
+    """What the guidance computes, checked against ``model`` before any model loads: with guidance
+    on, the loss, the schedule over ``num_steps`` steps and the run options the model's guidance
+    can act on; the anchors of a ``num_frames`` video (decoded by a search too, guided or not).
 
     Raises:
         ValueError: one line naming the option.
-        WeightsNotFoundError: ``estimators.tiny_decoder`` names a file that does not exist.
     """
     if guidance.enabled:
         guidance.check_loss()
         guidance.schedule(num_steps)
-        guidance.anchor_chunks(num_frames, model.temporal_compression)
         if run.split_cfg and model.guided_by != "pipeline":
             raise ValueError(f"run.split_cfg splits the denoiser calls of GeCoCogVideoXPipeline; {model.name} is "
                              "guided by the hooks, which leave its pipeline's own denoiser calls as they are: use "
@@ -352,9 +346,7 @@ def check_guidance_before_loading(guidance: GuidanceConfig, run: RunOptions, est
         if run.decode_layout != "default" and not model.cogvideox_vae:
             raise ValueError(f"run.decode_layout={run.decode_layout} is written for the CogVideoX VAE, not "
                              f"{model.name}'s: use run.decode_layout=default")
-        if guidance.decoder == "tiny":
-            check_tiny_decoder(estimators, model)
-    return plan_before_loading(guidance, run, model_id, num_frames, height, width, device)
+    guidance.anchor_chunks(num_frames, model.temporal_compression)
 
 
 def warn_idle_options(model: VideoModel, sampling: Any, guidance: GuidanceConfig, run: RunOptions,
@@ -380,43 +372,51 @@ def warn_idle_options(model: VideoModel, sampling: Any, guidance: GuidanceConfig
 def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceConfig, run: RunOptions,
                          estimators: EstimatorsConfig, *, weights: bool = True,
                          search: SearchConfig | None = None) -> torch.device:
-    """Every check of a run that its config alone can fail, in one pass before anything loads: the
-    device, then with ``weights`` every model's weights (all missing ones named at once: the
-    problem a fresh machine has, named before what its memory could not hold), the guidance against
-    the model (loss, schedule, anchors, decode layout, tiny decoder, a memory plan that fits),
-    options that cannot act (a warning each), the devices of ``run.devices``, and the video's size
-    against the device's memory; with a ``search`` its particles against the memory
-    (:func:`~.search.check_search_before_loading`). Returns the device ``model.device`` stands for
-    (``auto`` resolved), what the loaders and the sidecar then use.
+    """Every check of a run that its config alone can fail, in one pass before anything loads, from
+    what a fresh machine lacks to what the run asks of the machine it has:
+
+    1. with ``weights`` (the models are not loaded yet), every model's weights, the tiny decoder's
+       where the guidance decodes with it (all missing ones named at once);
+    2. the devices (``model.device``, ``run.devices``) and the memory a plan budgets for;
+    3. options that cannot act (a warning each), the memory plan that fits
+       (:func:`~.memory_plan.plan_before_loading`), a ``search``'s particles beside it
+       (:func:`~.search.check_search_before_loading`), and what the guidance computes
+       (:func:`check_guidance_before_loading`: loss, schedule, decode options, anchors);
+    4. the decoded videos (the search's particles: on the device and on the host until the
+       selection) against the device's memory: a lower bound of the run's peak, so a refusal is
+       certain.
+
+    Returns the device ``model.device`` stands for (``auto`` resolved), what the loaders and the
+    sidecar then use.
 
     Raises:
         ValueError: one line naming the option.
         WeightsNotFoundError: one line naming every missing model and how to pass a local path.
     """
-    from ..io.devices import check_device, check_memory_fits
-    from .multi_device import resolve_devices
+    from ..io.devices import check_device, check_memory_fits, planning_memory_gb, resolve_devices
 
     entry = model.video_model
-    device = check_device(model.device)
     searching = search is not None and search.enabled
+    anchored = guidance.enabled or searching  # a search decodes and scores guidance's anchors too
+    tiny_decoder = uses_tiny_decoder(guidance, searching)
+    segmenter = anchored and guidance.subjects is not None
     if weights:
-        missing_weights(model, estimators, tiny_decoder=uses_tiny_decoder(guidance, searching),
-                        segmenter=(guidance.enabled or searching) and guidance.subjects is not None)
-    check_guidance_before_loading(guidance, run, estimators, entry, model_id=model.source,
-                                  num_frames=sampling.num_frames, height=sampling.height, width=sampling.width,
-                                  num_steps=sampling.num_inference_steps, device=str(device))
+        missing_weights(model, estimators, tiny_decoder=tiny_decoder, segmenter=segmenter)
+    devices = resolve_devices(run.devices) if anchored else None
+    device = check_device(model.device)
+    device_gb = planning_memory_gb(device, devices)
     warn_idle_options(entry, sampling, guidance, run, search)
-    if guidance.enabled or searching:
-        resolve_devices(run.devices)  # a device this machine lacks: one line before loading
-    # the decoded video alone, in float32, is a lower bound of the run's peak: a refusal is certain
-    check_memory_fits(sampling.num_frames * 3 * sampling.height * sampling.width * 4, device,
-                      f"a {sampling.num_frames}-frame {sampling.height}x{sampling.width} video "
-                      "(sampling.num_frames/height/width)")
+    frames, height, width = sampling.num_frames, sampling.height, sampling.width
+    plan = plan_before_loading(guidance, run, model.source, frames, height, width, device_gb)
     if searching:
-        if not guidance.enabled:  # the search decodes and scores guidance's anchors
-            guidance.anchor_chunks(sampling.num_frames, entry.temporal_compression)
-            if guidance.decoder == "tiny":
-                check_tiny_decoder(estimators, entry)
-        check_search_before_loading(search, guidance, run, model_id=model.source, frames=sampling.num_frames,
-                                    height=sampling.height, width=sampling.width, device=str(device))
+        check_search_before_loading(search, guidance, run, plan, model_id=model.source, frames=frames, height=height,
+                                    width=width, device_gb=device_gb, devices=len(devices) if devices else 1)
+    if anchored:
+        check_guidance_before_loading(guidance, run, entry, num_frames=frames, num_steps=sampling.num_inference_steps)
+    video = frames * 3 * height * width * 4  # float32
+    if searching:
+        what = f"search.particles={search.particles} videos of {frames}x{height}x{width}"
+        for where in (device, "cpu"):
+            check_memory_fits(search.particles * video, where, what)
+    check_memory_fits(video, device, f"a {frames}-frame {height}x{width} video (sampling.num_frames/height/width)")
     return device

@@ -30,7 +30,7 @@ device's memory (a CUDA device's total, a CPU's physical RAM).
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -41,8 +41,8 @@ if TYPE_CHECKING:  # the run options take the plans' names from here
     from .run_options import RunOptions
 
 __all__ = ["DEVICE_HEADROOM", "ESTIMATES_PATH", "GIB", "PLANS", "PLAN_NAMES", "SAFE_PLAN", "MemoryPlan",
-           "PlanChoice", "choose_plan", "device_memory_gb", "explicit_plan", "known_model", "load_estimates",
-           "planning_memory_gb", "model_signature", "plan_before_loading", "plan_named", "predicted_parts",
+           "PlanChoice", "choose_plan", "explicit_plan", "known_model", "load_estimates",
+           "model_signature", "plan_before_loading", "plan_named", "predicted_parts",
            "stored_signature"]
 
 GIB = 2**30
@@ -234,30 +234,6 @@ def predicted_parts(entry: Mapping[str, Any], mode: str, decoder: str, frames: i
     return {name: (e[prefix + "weights_gb"], scale * e[prefix + "activations_gb"]) for name, e in table.items()}
 
 
-def device_memory_gb(device: Any) -> float | None:
-    """Total memory (GiB) of a CUDA device (``auto`` resolved), or a CPU's physical RAM; ``None``
-    where unknown.
-
-    Raises:
-        ValueError: (one line) a device this machine lacks, e.g. ``cuda`` without CUDA.
-    """
-    from ..io.devices import check_device, memory_limit
-
-    device = check_device(device)
-    limit = memory_limit(device) if device.type in ("cuda", "cpu") else None
-    return None if limit is None else limit / GIB
-
-
-def planning_memory_gb(home: Any, devices: Sequence[Any] | None = None) -> float | None:
-    """The device memory (GiB) a guided call plans for: ``home``'s (the pipeline's execution
-    device, :func:`device_memory_gb`), or with ``run.devices`` the smallest of ``home``'s and
-    theirs. One plan then fits every device, and an out-of-memory fallback is one decision for all
-    of them. Conservative: each device is held to the one-device peak, though the replicas hold
-    only the decoder and their share of the anchor chunks. ``None`` where no memory is known."""
-    known = [gb for gb in (device_memory_gb(d) for d in [home, *(devices or [])]) if gb is not None]
-    return min(known) if known else None
-
-
 def choose_plan(config: GuidanceConfig, run: RunOptions, *, signature: Mapping[str, Any] | None = None, model_id: str | None = None,
                 frames: int, height: int, width: int, device_gb: float | None, offload: bool = False,
                 estimates: Mapping[str, Any] | None = None) -> PlanChoice:
@@ -321,25 +297,22 @@ def choose_plan(config: GuidanceConfig, run: RunOptions, *, signature: Mapping[s
 
 
 def plan_before_loading(config: GuidanceConfig, run: RunOptions, model_id: str, frames: int, height: int, width: int,
-                        device: Any) -> PlanChoice | None:
+                        device_gb: float | None) -> PlanChoice | None:
     """The plan a guided call of the pipeline ``model_id`` (a hub id or a local folder, known by its
-    denoiser's stored config or by its id) on ``device`` (``auto`` resolved as the loaders resolve
-    it) is predicted to get, for a command line to check before any model loads
-    (``None`` without guidance; a model id the estimates do not know gets :data:`SAFE_PLAN`, as
-    its call would).
+    denoiser's stored config or by its id) is predicted to get on devices of ``device_gb`` GiB
+    (:func:`~geco_guide.io.devices.planning_memory_gb` of the model's device and ``run.devices``;
+    ``None``: unknown), for a command line to check before any model loads (``None`` without
+    guidance; a model id the estimates do not know gets :data:`SAFE_PLAN`, as its call would).
 
     Raises:
-        ValueError: (one line) where no plan fits the budget (:func:`choose_plan`), or ``device``
-            is not one this machine has, or a size no video has (not a positive integer).
+        ValueError: (one line) where no plan fits the budget (:func:`choose_plan`), or a size no
+            video has (not a positive integer).
     """
-    from .multi_device import resolve_devices
-
     check_video_size(frames, height, width)
     if not config.enabled:
         return None
     return choose_plan(config, run, signature=stored_signature(model_id), model_id=model_id, frames=frames,
-                       height=height, width=width,
-                       device_gb=planning_memory_gb(device, resolve_devices(getattr(run, "devices", None))))
+                       height=height, width=width, device_gb=device_gb)
 
 
 def check_video_size(frames: Any, height: Any, width: Any) -> None:

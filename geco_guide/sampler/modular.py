@@ -44,13 +44,14 @@ from torch import Tensor
 
 from ..estimators.bundle import Estimators
 from ..io.files import write_texts_atomic
+from ..types import check_estimator_bundle
 from .adapters import PipelineAdapter, WanAdapter
 from .config import GuidanceConfig
 from .context import GuidanceContext, GuidanceReport
 from .run_options import RunOptions, resolve_call_options
 from .slicing import check_latents
 from .step import LatentsWatch
-from .stock_call import check_estimators, guide_stock_step, stock_call
+from .stock_call import guide_stock_step, stock_call
 
 __all__ = ["GeCoWan22DenoiseStep", "GeCoWanDenoiseStep", "save_geco_block"]
 
@@ -123,7 +124,7 @@ class _GeCoLoop:
         config, run = resolve_call_options(None, block_state.geco_guidance, None, block_state.geco_run_options)
         if not config.enabled:
             return None
-        estimators = check_estimators(block_state.geco_estimators, "the GeCo block", "geco_estimators")
+        estimators = check_estimator_bundle(block_state.geco_estimators, "the GeCo block", argument="geco_estimators")
         latents = block_state.latents
         check_latents(latents, None, "this call")
         geometry = self.adapter.call_geometry(components, {}, latents)

@@ -23,32 +23,7 @@ from typing import Any, TypeVar
 import torch
 from torch import nn
 
-from ..io.devices import check_device
-
-__all__ = ["CfgHalves", "dealt_work", "module_replicas", "resolve_devices", "to_device"]
-
-#: ``run.devices: [auto]``: every GPU torch sees.
-AUTO = "auto"
-
-
-def resolve_devices(names: Sequence[str] | None, key: str = "run.devices") -> list[torch.device] | None:
-    """The devices of ``run.devices``: ``None`` (the pipeline's one device) -> ``None``;
-    ``["auto"]`` -> every visible CUDA device; names -> those devices, each checked.
-
-    Raises:
-        ValueError: (one line naming ``key``) a device this machine lacks, or ``auto`` without a GPU.
-    """
-    if names is None:
-        return None
-    if list(names) == [AUTO]:
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if count == 0:
-            raise ValueError(f"{key}=[auto] means every visible GPU, and this machine has none: leave {key} unset "
-                             "(null) or list the devices")
-        return [torch.device("cuda", index) for index in range(count)]
-    return [check_device(name, key, fix=f"list devices this machine has, or leave {key} unset (one device)")
-            for name in names]
-
+__all__ = ["CfgHalves", "dealt_work", "module_replicas", "to_device"]
 
 def module_replicas(module: nn.Module, devices: Sequence[torch.device]) -> list[nn.Module]:
     """One copy of the frozen ``module`` per entry of ``devices``: the module itself for the first

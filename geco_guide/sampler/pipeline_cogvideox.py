@@ -42,16 +42,17 @@ from diffusers.pipelines.cogvideo.pipeline_output import CogVideoXPipelineOutput
 from diffusers.utils import logging
 from torch import Tensor
 
+from ..io.devices import planning_memory_gb, resolve_devices
 from ..loss.geco import GeCoLoss
 from ..types import check_estimator_bundle, refuses_earlier_keywords
 from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
 from .anchor_decode import anchor_decoder
 from .config import GuidanceConfig, resolve_guidance_config
 from .context import GuidanceContext, GuidanceObserver, GuidanceReport
-from .multi_device import CfgHalves, resolve_devices
+from .multi_device import CfgHalves
 from .dynamic import guidance_mask_source
 from .anchor_decode import plan_anchor_decode
-from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature, planning_memory_gb
+from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
 from .particles import ParticleBatches, deal_final_decode, denoiser_places, output_tensor, particle_batches, particle_rows
 from .run_options import RunOptions, resolve_call_options
 from .search import (

@@ -521,30 +521,22 @@ def choose_particle_batch(guidance: GuidanceConfig, run: RunOptions, particles: 
                          predicted_peak_gb=peak)
 
 
-def check_search_before_loading(search: SearchConfig, guidance: GuidanceConfig, run: RunOptions, *, model_id: str,
-                                frames: int, height: int, width: int, device: Any) -> ParticleBatch:
+def check_search_before_loading(search: SearchConfig, guidance: GuidanceConfig, run: RunOptions,
+                                plan: PlanChoice | None, *, model_id: str, frames: int, height: int, width: int,
+                                device_gb: float | None, devices: int = 1) -> ParticleBatch:
     """The particle batch a search of a ``frames x height x width`` video of the pipeline
-    ``model_id`` on ``device`` is predicted to get (:func:`choose_particle_batch`, the model known by
-    its stored denoiser config or its id), for a command to check before any model loads.
+    ``model_id`` is predicted to get (:func:`choose_particle_batch`, the model known by its stored
+    denoiser config or its id) beside the guidance's ``plan``, on ``devices`` devices of
+    ``device_gb`` GiB, for a command to check before any model loads.
 
     Raises:
-        ValueError: (one line) the particles do not fit the memory plan's budget, or their decoded
-            videos alone (a lower bound of what the search holds) exceed the device's memory or
-            the machine's RAM.
+        ValueError: (one line) the particles do not fit the memory plan's budget.
     """
-    from ..io.devices import check_memory_fits
-    from .memory_plan import plan_before_loading, planning_memory_gb, stored_signature
-    from .multi_device import resolve_devices
+    from .memory_plan import stored_signature
 
-    devices = resolve_devices(run.devices)
-    videos = search.particles * frames * 3 * height * width * 4
-    what = f"search.particles={search.particles} videos of {frames}x{height}x{width}"
-    for where in (device, "cpu"):  # made on the device, kept on the host until the selection
-        check_memory_fits(videos, where, what)
-    plan = plan_before_loading(guidance, run, model_id, frames, height, width, device)
     return choose_particle_batch(guidance, run, search.particles, plan, signature=stored_signature(model_id),
-                                 model_id=model_id, frames=frames, height=height, width=width,
-                                 device_gb=planning_memory_gb(device, devices), devices=len(devices) if devices else 1)
+                                 model_id=model_id, frames=frames, height=height, width=width, device_gb=device_gb,
+                                 devices=devices)
 
 
 @dataclass(frozen=True)

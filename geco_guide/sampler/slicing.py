@@ -23,7 +23,6 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from ..families import default_anchors
 
 __all__ = ["AnchorChunk", "anchor_latent_chunks", "check_latents", "check_num_frames",
            "check_paired_latent_frames", "decode_anchor_frames", "decode_anchor_frames_across",
@@ -148,11 +147,9 @@ def anchor_latent_chunks(
     first_group = list(latent_to_pixels(0, temporal_compression))
     bad = [a for a in anchors if not 0 <= a < num_frames]
     if bad:
-        suggested = [a for a in default_anchors(num_frames, temporal_compression) if a < num_frames]
-        example = f", e.g. {suggested} (the quarter points)" if len(suggested) >= 2 else ""
         raise ValueError(
             f"anchors {bad} are out of range for a {num_frames}-frame video: set anchors (guidance.anchors) to "
-            f"frames in {first_group[-1] + 1}..{num_frames - 1}{example}"
+            f"frames in {first_group[-1] + 1}..{num_frames - 1}, or to null (the paper's four, spread over the video)"
         )
     inside = [a for a in anchors if a in first_group]
     if inside:

@@ -30,8 +30,8 @@ import torch
 from torch import Tensor, nn
 
 from ..estimators.bundle import Estimators
+from ..io.devices import planning_memory_gb, resolve_devices
 from ..loss.geco import GeCoLoss
-from ..types import check_estimator_bundle
 from .adapters import (
     CallGeometry,
     PipelineAdapter,
@@ -44,13 +44,12 @@ from .anchor_decode import AnchorDecode, anchor_decoder, plan_anchor_decode
 from .config import GuidanceConfig
 from .context import GuidanceContext, GuidanceObserver
 from .dynamic import RefreshedMasks, guidance_mask_source
-from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature, planning_memory_gb
-from .multi_device import resolve_devices
+from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
 from .run_options import RunOptions, check_call_options
 from .search import ParticleBatch, ParticleScorer, ParticleSearch, SearchConfig, choose_particle_batch
 from .slicing import AnchorChunk
 
-__all__ = ["StockCall", "check_estimators", "denoiser_signature", "guide_stock_step", "spatial_compression", "stock_call"]
+__all__ = ["StockCall", "denoiser_signature", "guide_stock_step", "spatial_compression", "stock_call"]
 
 
 class _WithVae:
@@ -69,18 +68,6 @@ def _vae_decode_with(pipe: Any, adapter: PipelineAdapter, vae: nn.Module) -> Cal
     return functools.partial(adapter.decode, pipe if vae is pipe.vae else _WithVae(pipe, vae))
 
 
-def check_estimators(estimators: Any, where: str, argument: str = "estimators") -> Estimators:
-    """``estimators`` if it is an estimator bundle whose geometry and flow estimators meet their
-    protocols (:func:`~geco_guide.types.check_estimator_bundle`). One line naming ``where`` they
-    were passed (``attach_geco_guidance``) and the ``argument``: ValueError for none or a
-    bundle lacking a method, TypeError for another type."""
-    if estimators is None:
-        raise ValueError(f"GeCo guidance needs its models: pass {argument}=Estimators(geometry, flow) to {where} "
-                         "(geco_guide.Estimators; e.g. geco_guide.estimators.load_estimators)")
-    check_estimator_bundle(estimators, where)
-    return estimators
-
-
 @dataclass(frozen=True)
 class StockCall:
     """What one guided call of a stock pipeline decided before its first denoising step
@@ -93,6 +80,8 @@ class StockCall:
         decode_chunk: their decode (the adapter's by the VAE, or the tiny decoder's).
         masks: the dynamic masks of ``config.dynamic``, or ``None``.
         devices: ``run.devices`` resolved, or ``None`` for one device.
+        device_gb: the memory (GiB) a plan budgets for on them
+            (:func:`~geco_guide.io.devices.planning_memory_gb`), ``None`` where unknown.
         memory_plan: the plan chosen for the call (a fallback is the context's); ``None`` for a
             call that only searches (no guidance).
     """
@@ -107,6 +96,7 @@ class StockCall:
     decode_chunk: AnchorDecode
     masks: RefreshedMasks | None
     devices: list[torch.device] | None
+    device_gb: float | None
     memory_plan: PlanChoice | None
 
     def context(self, num_steps: int, generator: torch.Generator | list[torch.Generator] | None = None,
@@ -131,8 +121,8 @@ class StockCall:
             self.config, self.run, particles, self.memory_plan,
             signature=denoiser_signature(self.adapter.denoisers(pipe)), frames=geometry.num_frames,
             height=geometry.latent_height * scale, width=geometry.latent_width * scale,
-            device_gb=planning_memory_gb(pipe._execution_device, self.devices),
-            offload=bool(getattr(pipe, "_all_hooks", None)), devices=len(self.devices) if self.devices else 1)
+            device_gb=self.device_gb, offload=bool(getattr(pipe, "_all_hooks", None)),
+            devices=len(self.devices) if self.devices else 1)
 
     def searcher(self, search: SearchConfig, num_steps: int, context: GuidanceContext | None, batch: int,
                  generator: torch.Generator | list[torch.Generator] | None,
@@ -190,17 +180,18 @@ def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, conf
     check_scheduler(pipe.scheduler)
     decode_chunk = anchor_decoder(config, run, functools.partial(_vae_decode_with, pipe, adapter),
                                   estimators.tiny_decoder, pipe.vae)
-    devices = resolve_devices(run.devices)
     home = pipe._execution_device
     masks = guidance_mask_source(config, estimators, home)
     scale = spatial_compression(pipe)
+    devices = resolve_devices(run.devices)
+    device_gb = planning_memory_gb(home, devices)
     memory_plan = choose_plan(
         config, run, signature=denoiser_signature(denoisers), frames=geometry.num_frames,
-        height=geometry.latent_height * scale, width=geometry.latent_width * scale,
-        device_gb=planning_memory_gb(home, devices), offload=bool(getattr(pipe, "_all_hooks", None))
+        height=geometry.latent_height * scale, width=geometry.latent_width * scale, device_gb=device_gb,
+        offload=bool(getattr(pipe, "_all_hooks", None))
     ) if config.enabled else None
     return StockCall(pipe, adapter, geometry, config, run, estimators, chunks, decode_chunk, masks, devices,
-                     memory_plan)
+                     device_gb, memory_plan)
 
 
 def guide_stock_step(

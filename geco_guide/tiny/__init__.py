@@ -143,10 +143,11 @@ TINY_CALL_KWARGS = dict(
 )
 
 
-def tiny_call_extras(pipe: Any) -> dict[str, Any]:
-    """What the tiny stand-ins' calls need beyond the config's sampling: HunyuanVideo's prompt
-    template, bare (``"{}"``: the tiny tokenizer cannot crop the real template's system text)."""
-    name = type(pipe).__name__
+def tiny_call_extras(pipeline: str) -> dict[str, Any]:
+    """What the calls of the tiny stand-in of the pipeline class named ``pipeline`` need beyond the
+    config's sampling: HunyuanVideo's prompt template, bare (``"{}"``: the tiny tokenizer cannot
+    crop the real template's system text)."""
+    name = pipeline
     if name.startswith("HunyuanVideo") and not name.startswith("HunyuanVideo15"):
         return {"prompt_template": {"template": "{}", "crop_start": 0}}
     return {}
@@ -173,7 +174,7 @@ def tiny_call_kwargs(pipe, **changes: Any) -> dict[str, Any]:
         del kwargs["max_sequence_length"]  # it pads its prompts to its own lengths
         if "ImageToVideo" in name:  # the size comes from the image
             del kwargs["height"], kwargs["width"]
-    kwargs.update(tiny_call_extras(pipe))
+    kwargs.update(tiny_call_extras(type(pipe).__name__))
     if name.startswith("LTX"):
         kwargs["width"] = 64  # LTXPipeline wants multiples of 32
     if name.startswith("LTX2"):

@@ -263,14 +263,15 @@ def test_scheduler_is_chosen_by_the_config_and_named_in_the_sidecar(choice, cls,
     # the pipeline keeps the scheduler it is given; the config (the presets: ddim) chooses
     from diffusers import CogVideoXDPMScheduler
 
-    from geco_guide.sampler.loading import choose_scheduler
+    from geco_guide.sampler.loading import load_video_pipeline
     from geco_guide.tiny import tiny_pipeline
 
     cfg = load_config(preset="tiny", overrides=[f"sampling.scheduler={choice}"])
     pipe = tiny_pipeline(0)
     pipe.scheduler = CogVideoXDPMScheduler.from_config(pipe.scheduler.config)  # as CogVideoX-5B ships
-    text = choose_scheduler(pipe, cfg.sampling.scheduler, cfg.model.video_model)
-    assert type(pipe.scheduler).__name__ == cls and text.startswith(cls) and note in text
+    loaded = load_video_pipeline(cfg.model, cfg.sampling.scheduler, pipe.components)
+    text = loaded.scheduler
+    assert type(loaded.pipe.scheduler).__name__ == cls and text.startswith(cls) and note in text
     assert load_config(preset="cogvideox-5b").sampling.scheduler == "ddim"
     with pytest.raises(ValueError, match="sampling.scheduler"):
         load_config(preset="tiny", overrides=["sampling.scheduler=euler"])

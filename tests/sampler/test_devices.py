@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from geco_guide.sampler.config import GuidanceConfig
-from geco_guide.sampler.multi_device import module_replicas, resolve_devices
+from geco_guide.io.devices import resolve_devices
+from geco_guide.sampler.multi_device import module_replicas
 from geco_guide.sampler.run_options import RunOptions
 from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across
 from geco_guide.tiny import TINY_CALL_KWARGS, tiny_estimators, tiny_call_kwargs, tiny_guidance_config, tiny_pipeline, \
@@ -126,13 +127,13 @@ def test_devices_do_not_change_the_video_name():
 
 
 def test_one_plan_fits_the_smallest_of_the_devices(monkeypatch):
-    from geco_guide.sampler import memory_plan
+    from geco_guide.io import devices
 
     memory = {"cuda:0": 80.0, "cuda:1": 24.0, "cuda:2": None}
-    monkeypatch.setattr(memory_plan, "device_memory_gb", lambda device: memory[str(device)])
-    assert memory_plan.planning_memory_gb("cuda:0") == 80.0
-    assert memory_plan.planning_memory_gb("cuda:0", ["cuda:1", "cuda:2"]) == 24.0  # an unknown one adds nothing
-    assert memory_plan.planning_memory_gb("cuda:2") is None
+    monkeypatch.setattr(devices, "device_memory_gb", lambda device: memory[str(device)])
+    assert devices.planning_memory_gb("cuda:0") == 80.0
+    assert devices.planning_memory_gb("cuda:0", ["cuda:1", "cuda:2"]) == 24.0  # an unknown one adds nothing
+    assert devices.planning_memory_gb("cuda:2") is None
 
 
 def test_the_pipeline_plans_for_the_devices_it_deals_the_decode_over(monkeypatch):

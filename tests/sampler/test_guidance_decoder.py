@@ -188,11 +188,11 @@ def test_tiny_without_weights_is_one_line_with_the_url_and_the_key_before_any_mo
 def test_the_tiny_decoder_line_names_the_file_of_the_models_latents(model, expected):
     from geco_guide.estimators import EstimatorsConfig
     from geco_guide.families import model_named
-    from geco_guide.sampler.loading import check_tiny_decoder_source
+    from geco_guide.sampler.loading import check_tiny_decoder
 
     # a model without a tiny decoder says so before asking for weights it could not use
     with pytest.raises(ValueError, match=f"^guidance.decoder=tiny.*{re.escape(expected)}"):
-        check_tiny_decoder_source(EstimatorsConfig(tiny_decoder=None), model_named(model))
+        check_tiny_decoder(EstimatorsConfig(tiny_decoder=None), model_named(model))
 
 
 def test_a_missing_tiny_decoder_file_is_one_line_naming_it_and_the_key(monkeypatch, tmp_path):

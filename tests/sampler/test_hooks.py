@@ -223,7 +223,8 @@ def test_default_anchors_spread_over_the_video_and_explicit_ones_must_fit(estima
         with pytest.raises(ValueError) as err:
             run(pipe, num_frames=17)
     assert str(err.value) == ("anchors [24, 36, 48] are out of range for a 17-frame video: set anchors "
-                              "(guidance.anchors) to frames in 1..16, e.g. [4, 8, 12, 16] (the quarter points)")
+                              "(guidance.anchors) to frames in 1..16, or to null (the paper's four, spread over the "
+                              "video)")
 
 
 def test_unsupported_pipelines_get_a_clear_error(estimators):

@@ -416,13 +416,13 @@ def test_a_command_line_can_check_the_budget_before_loading():
 
     cfg = load_config(preset="cogvideox-5b", overrides=["run.memory_budget_gb=20"])
     with pytest.raises(ValueError, match="the smallest, 'checkpointed', is predicted to peak at 40.3 GiB") as err:
-        plan_before_loading(cfg.guidance, cfg.run, cfg.model.source, 49, 480, 720, "cpu")
+        plan_before_loading(cfg.guidance, cfg.run, cfg.model.source, 49, 480, 720, None)
     assert "\n" not in str(err.value)
     fits = load_config(preset="cogvideox-5b", overrides=["run.memory_budget_gb=100"])
-    assert plan_before_loading(fits.guidance, fits.run, "THUDM/CogVideoX-5b", 49, 480, 720, "cpu").plan.name == "chunked"
-    assert plan_before_loading(fits.guidance, fits.run, "someone/else", 49, 480, 720, "cpu").plan == SAFE_PLAN
+    assert plan_before_loading(fits.guidance, fits.run, "THUDM/CogVideoX-5b", 49, 480, 720, None).plan.name == "chunked"
+    assert plan_before_loading(fits.guidance, fits.run, "someone/else", 49, 480, 720, None).plan == SAFE_PLAN
     off = load_config(preset="cogvideox-5b", overrides=["guidance.enabled=false"])
-    assert plan_before_loading(off.guidance, off.run, "THUDM/CogVideoX-5b", 49, 480, 720, "cpu") is None
+    assert plan_before_loading(off.guidance, off.run, "THUDM/CogVideoX-5b", 49, 480, 720, None) is None
 
 
 @pytest.mark.parametrize("frames, height, width, bad", [
@@ -435,7 +435,7 @@ def test_a_video_size_no_video_has_is_refused_before_any_plan(frames, height, wi
 
     guidance = GuidanceConfig(enabled=enabled)
     with pytest.raises(ValueError, match=rf"^a memory plan needs a video size of positive integers: {bad} ") as err:
-        plan_before_loading(guidance, RunOptions(), "THUDM/CogVideoX-5b", frames, height, width, "cpu")
+        plan_before_loading(guidance, RunOptions(), "THUDM/CogVideoX-5b", frames, height, width, None)
     assert "\n" not in str(err.value)
 
 

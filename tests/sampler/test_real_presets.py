@@ -161,23 +161,25 @@ def test_the_planner_knows_a_local_folder_by_its_denoiser_config(tmp_path, capsy
 def test_an_unusable_device_is_one_line_naming_the_key(tmp_path, capsys):
     missing = "cuda:7" if torch.cuda.is_available() else "cuda"
     rc = generate_module.main(["--preset", "cogvideox-5b", "--prompt", PROMPT, "--out", str(tmp_path),
-                               f"model.device={missing}"])
+                               f"model.device={missing}", "model.id=tiny-random", "estimators.geometry=tiny-random",
+                               "estimators.flow=tiny-random"])  # weights there: missing ones are named first
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "\n" not in err and "model.device" in err and repr(missing) in err
 
 
 def test_the_memory_planner_resolves_auto_and_refuses_a_missing_device():
     from geco_guide.sampler.config import paper_guidance_config
-    from geco_guide.sampler.memory_plan import device_memory_gb, plan_before_loading
+    from geco_guide.io.devices import device_memory_gb
+    from geco_guide.sampler.memory_plan import plan_before_loading
     from geco_guide.sampler.run_options import RunOptions
 
     assert device_memory_gb("auto") == device_memory_gb("cuda" if torch.cuda.is_available() else "cpu")
     choice = plan_before_loading(paper_guidance_config(), RunOptions(memory_budget_gb=200.0), "THUDM/CogVideoX-5b",
-                                 49, 480, 720, "auto")
+                                 49, 480, 720, device_memory_gb("auto"))
     assert choice is not None and choice.plan.name
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="device 'cuda' is not available"):
-            plan_before_loading(paper_guidance_config(), RunOptions(), "THUDM/CogVideoX-5b", 49, 480, 720, "cuda")
+            device_memory_gb("cuda")
 
 
 @pytest.mark.slow
