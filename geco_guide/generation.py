@@ -3,10 +3,11 @@
 ``geco generate``, ``geco ab``, ``--best-of``, GeCo-Eval and the perf harness all make their videos
 here, for every model of the registry (:mod:`geco_guide.families`):
 
-1. :func:`check_generation` checks what the config and the files alone can show, in one pass and
-   before anything loads: the prompt, the outputs, the device, the size, every model's weights
-   (all missing ones named at once), the guidance against the model (anchors, schedule, tiny
-   decoder, memory plan), options that cannot act.
+1. :func:`check_generation` checks what the config and the files alone can show, in one pass down
+   the layers and before anything loads: the prompt and the image, every model's weights (all
+   missing ones named at once), the devices and their memory, options that cannot act, the memory
+   plan, a search's particles, the guidance against the model (loss, schedule, anchors), the
+   video's size against the memory, the outputs.
 2. :func:`load_models` loads what the run needs once: the video pipeline of the model (the
    paper's ``GeCoCogVideoXPipeline`` for CogVideoX, the stock diffusers pipeline otherwise) and
    the estimators (with the segmenter and the tiny decoder where the guidance uses them).
@@ -196,10 +197,10 @@ def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (),
 
     Checks the prompt, the conditioning ``image`` (whether one is given) against the model
     (:func:`check_conditioning`), the run's config (:func:`~geco_guide.sampler.loading.check_before_loading`:
-    the guidance against the model, every model's weights unless the models are ``loaded``, the
-    devices, the size against the device's memory; a warning for each option that cannot act),
-    the output ``paths`` (refused if present without ``overwrite``) and the frame rate for their
-    format.
+    every model's weights unless the models are ``loaded``, the devices and their memory, a
+    warning for each option that cannot act, the memory plan, a search's particles, the guidance
+    against the model, the size against the device's memory), the output ``paths`` (refused if
+    present without ``overwrite``) and the frame rate for their format.
 
     Raises:
         ValueError: one line naming the option, file or value.
