@@ -441,8 +441,8 @@ def check_options(args: argparse.Namespace) -> None:
 def _check_sampling(args: argparse.Namespace) -> None:
     import torch
 
-    from ..sampler.memory_plan import PLAN_NAMES
     from ..io.devices import resolve_devices
+    from ..sampler.memory_plan import PLAN_NAMES
     from ..sampler.schedule import PAPER_STEPS
 
     if args.memory_plan not in PLAN_NAMES:

@@ -147,8 +147,7 @@ def tiny_call_extras(pipeline: str) -> dict[str, Any]:
     """What the calls of the tiny stand-in of the pipeline class named ``pipeline`` need beyond the
     config's sampling: HunyuanVideo's prompt template, bare (``"{}"``: the tiny tokenizer cannot
     crop the real template's system text)."""
-    name = pipeline
-    if name.startswith("HunyuanVideo") and not name.startswith("HunyuanVideo15"):
+    if pipeline.startswith("HunyuanVideo") and not pipeline.startswith("HunyuanVideo15"):
         return {"prompt_template": {"template": "{}", "crop_start": 0}}
     return {}
 
