@@ -46,13 +46,14 @@ def _type_checking_only(tree: ast.AST) -> set[int]:
     return lines
 
 
-def imported_modules(path: Path, *, external: bool = False) -> set[str]:
+def imported_modules(path: Path, *, external: bool = False, type_checking: bool = False) -> set[str]:
     """Absolute names of the modules ``path`` imports anywhere in it (relative imports resolved,
-    ``from package import module`` counted as the module); geco_guide's, or the others'."""
+    ``from package import module`` counted as the module); geco_guide's, or the others'. Those
+    under ``if TYPE_CHECKING:`` only with ``type_checking``."""
     module = module_name(path)
     package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
     tree = ast.parse(path.read_text())
-    skip = _type_checking_only(tree)
+    skip = set() if type_checking else _type_checking_only(tree)
     names: set[str] = set()
     for node in ast.walk(tree):
         if getattr(node, "lineno", None) in skip:
@@ -86,12 +87,14 @@ def sources() -> list[Path]:
     return sorted(PACKAGE.rglob("*.py"))
 
 
-def graph() -> dict[str, set[str]]:
+def graph(*, type_checking: bool = False) -> dict[str, set[str]]:
+    """Module -> the package's modules it imports (with ``type_checking``, those imported for type
+    hints only as well)."""
     edges: dict[str, set[str]] = {}
     known = {module_name(p) for p in sources()}
     for path in sources():
         targets = set()
-        for name in imported_modules(path):
+        for name in imported_modules(path, type_checking=type_checking):
             while name not in known and "." in name:  # a name imported from a module: the module
                 name = name.rsplit(".", 1)[0]
             targets.add(name)
@@ -117,8 +120,8 @@ def test_the_package_facade_imports_nothing_at_import_time():
     assert graph()["geco_guide"] == set()
 
 
-def test_no_import_circles_lazy_imports_included():
-    edges = graph()
+def import_circles(edges: dict[str, set[str]]) -> list[str]:
+    """Each circle of ``edges`` found by a depth-first walk, as ``a -> b -> a``."""
     state: dict[str, int] = {}
     circles = []
 
@@ -136,7 +139,27 @@ def test_no_import_circles_lazy_imports_included():
     for node in sorted(edges):
         if node not in state:
             visit(node, [node])
+    return circles
+
+
+def test_no_import_circles_lazy_and_type_checking_imports_included():
+    """An import under ``if TYPE_CHECKING:`` is a circle all the same: the two modules cannot be
+    understood (or moved) one without the other, and the guard is all that keeps it from failing."""
+    circles = import_circles(graph(type_checking=True))
     assert not circles, "\n".join(circles)
+
+
+def test_the_circle_walk_finds_a_circle_guarded_by_type_checking(tmp_path, monkeypatch):
+    package = tmp_path / "geco_guide"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "plans.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                                      "    from .options import Options\n")
+    (package / "options.py").write_text("from .plans import NAMES\n")
+    monkeypatch.setattr(sys.modules[__name__], "PACKAGE", package)
+    assert import_circles(graph()) == []
+    assert import_circles(graph(type_checking=True)) == [
+        "geco_guide.options -> geco_guide.plans -> geco_guide.options"]
 
 
 def test_the_metric_and_the_floors_below_import_no_diffusion_code():

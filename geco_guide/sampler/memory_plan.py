@@ -36,7 +36,9 @@ from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-if TYPE_CHECKING:  # the run options take the plans' names from here
+from .plan_names import AUTO, EXPLICIT, NAMED_PLANS, PLAN_NAMES
+
+if TYPE_CHECKING:
     from .config import GuidanceConfig
     from .run_options import RunOptions
 
@@ -46,7 +48,6 @@ __all__ = ["DEVICE_HEADROOM", "ESTIMATES_PATH", "GIB", "PLANS", "PLAN_NAMES", "S
            "stored_signature"]
 
 GIB = 2**30
-AUTO, EXPLICIT = "auto", "explicit"
 #: The estimates of the known models, written by ``geco bench plans``.
 ESTIMATES_PATH = Path(__file__).resolve().parent / "data" / "memory_plans.json"
 #: Share of a device's memory a plan may be predicted to use: the H200 runs peaked 4.2 % (faithful) and
@@ -88,15 +89,16 @@ class MemoryPlan:
 #: The ``partial`` plan keeps every 4th denoiser block: at 49x480x720 a quarter of the faithful
 #: transformer's activations (about 25 GiB) is what fits beside ``chunked`` on a 141 GB card.
 PARTIAL_KEEP_EVERY = 4
-#: The named plans, from the least recomputation (and the most memory) to the least memory.
+_FASTEST, _PARTIAL, _CHUNKED, _CHECKPOINTED, _LEANEST = NAMED_PLANS
+#: The named plans (:data:`~.plan_names.NAMED_PLANS`), from the least recomputation (and the most
+#: memory) to the least memory.
 PLANS = (
-    MemoryPlan("fastest", False, False, False, False),
-    MemoryPlan("partial", True, False, True, False, denoiser_keep_every=PARTIAL_KEEP_EVERY),
-    MemoryPlan("chunked", True, False, True, False),
-    MemoryPlan("checkpointed", True, True, True, False),
-    MemoryPlan("leanest", True, True, True, True),
+    MemoryPlan(_FASTEST, False, False, False, False),
+    MemoryPlan(_PARTIAL, True, False, True, False, denoiser_keep_every=PARTIAL_KEEP_EVERY),
+    MemoryPlan(_CHUNKED, True, False, True, False),
+    MemoryPlan(_CHECKPOINTED, True, True, True, False),
+    MemoryPlan(_LEANEST, True, True, True, True),
 )
-PLAN_NAMES = (AUTO, EXPLICIT, *(plan.name for plan in PLANS))
 SAFE_PLAN = PLANS[-1]
 
 

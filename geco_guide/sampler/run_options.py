@@ -23,7 +23,7 @@ from typing import Any, Optional
 from ..types import OptionError, is_integer, is_number, merge_dataclass, non_finite_fields
 from .config import GuidanceConfig, resolve_guidance_config
 from .fast_decode import DECODE_LAYOUTS
-from .memory_plan import PLAN_NAMES
+from .plan_names import PLAN_NAMES
 
 __all__ = ["FRAME_ROUNDING_KEYS", "RUN_KEYS", "RunOptions", "check_call_options", "check_run_for_guidance",
            "resolve_call_options", "resolve_run_options"]
