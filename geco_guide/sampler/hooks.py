@@ -316,8 +316,12 @@ class GeCoGuidanceHandle:
             generator: the generator of the resamplings' draws, apart from the particles' own.
 
         Raises:
-            ValueError: a search without particles, or a ``generator`` that is no ``torch.Generator``.
+            ValueError: a detached handle (no call it could act on), a search without particles, or a
+                ``generator`` that is no ``torch.Generator``.
         """
+        if not self._attached:
+            raise ValueError("this guidance handle is detached (detach() or the end of its with block): a search "
+                             "would act on no call; attach_geco_guidance(pipe, ...) again and enable it on that handle")
         resolved = resolve_search_config(search)
         if resolved is None:
             raise ValueError("enable_search needs search.particles (a number of particles); "

@@ -448,3 +448,19 @@ def test_the_callers_latents_are_checked_before_any_denoising_step(family, estim
         finally:
             counter.handle.remove()
     assert len(handle.log) == 2
+
+
+@pytest.mark.parametrize("detach", ["detach", "with block"])
+def test_a_detached_handle_refuses_a_search_in_one_line(detach, estimators):
+    from geco_guide.sampler.search import SearchConfig
+
+    pipe = T.tiny_ltx_pipeline(0)
+    if detach == "detach":
+        handle = attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), estimators=estimators)
+        handle.detach()
+    else:
+        with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), estimators=estimators) as handle:
+            pass
+    with pytest.raises(ValueError, match=r"^this guidance handle is detached .*attach_geco_guidance\(pipe, \.\.\.\) again") as err:
+        handle.enable_search(SearchConfig(particles=2), torch.Generator().manual_seed(0))
+    assert "\n" not in str(err.value) and handle.search is None
