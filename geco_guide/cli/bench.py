@@ -33,7 +33,7 @@ import math
 import sys
 from typing import Any
 
-from ..families.published import traced_models
+from ..families.published import PackageDataError, traced_models
 from ..perf.cards import GPU_SPECS, H200_UNGUIDED_STEP_S
 from .kit import Parser, check_choice, command_main, interruptible, print_error
 
@@ -699,7 +699,7 @@ def run(args: argparse.Namespace) -> int:
         return print_error(err)
     try:
         WORK[args.command](args)
-    except BadOption as err:
+    except (BadOption, PackageDataError) as err:
         return print_error(err)
     return 0
 

@@ -11,6 +11,10 @@ classes from them on the meta device: no weights, nothing downloaded.
 
 :data:`LEFT_OUT` names the registry models the cost model does not trace, and why.
 
+The file is read when a model's configs are asked for, never to build a command line (the traced
+models are the registry's, less :data:`LEFT_OUT`); a file that is missing, not JSON or without a
+model's entry is one line naming it (:class:`PackageDataError`, :func:`read_package_json`).
+
 Ground floor: reads JSON, imports nothing heavy.
 """
 
@@ -22,7 +26,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-__all__ = ["LEFT_OUT", "PUBLISHED_PATH", "PublishedConfigs", "published_configs", "traced_models"]
+__all__ = ["LEFT_OUT", "PUBLISHED_PATH", "PackageDataError", "PublishedConfigs", "published_configs",
+           "read_package_json", "traced_models"]
 
 PUBLISHED_PATH = Path(__file__).resolve().parent / "data" / "published_configs.json"
 
@@ -72,16 +77,43 @@ class PublishedConfigs:
                 if key != "_class_name"}
 
 
+class PackageDataError(ValueError):
+    """A data file the package ships is missing or damaged: one line naming the file and how to
+    get a sound one back."""
+
+
+def read_package_json(path: Path, remedy: str = "reinstall geco_guide") -> dict[str, Any]:
+    """The ``{"models": {...}}`` table of the package data file ``path``.
+
+    Raises:
+        PackageDataError: (one line naming ``path`` and ``remedy``) the file is missing or
+            unreadable, is not JSON, or holds no ``models`` table.
+    """
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise PackageDataError(f"the package data file {path} cannot be read ({err.strerror or err}): "
+                               f"{remedy}") from None
+    try:
+        table = json.loads(text)
+    except ValueError as err:
+        raise PackageDataError(f"the package data file {path} is damaged (not JSON: {err}): {remedy}") from None
+    if not isinstance(table, dict) or not isinstance(table.get("models"), dict):
+        raise PackageDataError(f"the package data file {path} is damaged (no 'models' table): {remedy}")
+    return table
+
+
 @lru_cache(maxsize=1)
 def _table() -> dict[str, Any]:
-    return json.loads(PUBLISHED_PATH.read_text(encoding="utf-8"))["models"]
+    return read_package_json(PUBLISHED_PATH)["models"]
 
 
 def traced_models() -> list[str]:
-    """The registry names whose published configs are known, in the registry's order."""
+    """The registry names the cost model traces, in the registry's order: every model that
+    generates, less :data:`LEFT_OUT` (a command line lists them without reading the data file)."""
     from . import MODELS
 
-    return [name for name in MODELS if name in _table()]
+    return [name for name, model in MODELS.items() if model.generates and name not in LEFT_OUT]
 
 
 def published_configs(name: str) -> PublishedConfigs:
@@ -91,10 +123,17 @@ def published_configs(name: str) -> PublishedConfigs:
         ValueError: (one line) a model without published configs here, with the reason where it
             was left out.
     """
-    entry = _table().get(name)
-    if entry is None:
+    if name not in traced_models():
         why = LEFT_OUT.get(name, "no published configs were gathered for it")
         raise ValueError(f"the cost model does not trace {name!r}: {why}; traced: {', '.join(traced_models())}")
-    return PublishedConfigs(name=name, transformer=entry["transformer"], vae=entry["vae"], scheduler=entry["scheduler"],
-                            pipeline=entry["pipeline"], prompt_tokens=entry["text"]["prompt_tokens"],
-                            source=entry["source"], transformer_2=entry.get("transformer_2"))
+    entry = _table().get(name)
+    try:
+        return PublishedConfigs(name=name, transformer=dict(entry["transformer"]), vae=dict(entry["vae"]),
+                                scheduler=dict(entry["scheduler"]), pipeline=dict(entry["pipeline"]),
+                                prompt_tokens=int(entry["text"]["prompt_tokens"]), source=str(entry["source"]),
+                                transformer_2=entry.get("transformer_2"))
+    except (KeyError, TypeError, ValueError) as err:
+        problem = "no entry" if entry is None else (
+            f"an entry without the key {err}" if isinstance(err, KeyError) else f"a damaged entry ({err})")
+        raise PackageDataError(f"the package data file {PUBLISHED_PATH} is damaged ({name} has {problem}): "
+                               "reinstall geco_guide") from None

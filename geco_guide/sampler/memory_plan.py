@@ -30,12 +30,14 @@ device's memory (a CUDA device's total, a CPU's physical RAM).
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ..families.published import PackageDataError, read_package_json
 from .plan_names import AUTO, EXPLICIT, NAMED_PLANS, PLAN_NAMES
 
 if TYPE_CHECKING:
@@ -46,6 +48,8 @@ __all__ = ["DEVICE_HEADROOM", "ESTIMATES_PATH", "GIB", "PLANS", "PLAN_NAMES", "S
            "PlanChoice", "choose_plan", "explicit_plan", "known_model", "load_estimates",
            "model_signature", "plan_before_loading", "plan_named", "predicted_parts",
            "stored_signature"]
+
+logger = logging.getLogger(__name__)
 
 GIB = 2**30
 #: The estimates of the known models, written by ``geco bench plans``.
@@ -147,13 +151,36 @@ def explicit_plan(run: Any) -> MemoryPlan:
                       batch_chunks=True)
 
 
-@lru_cache(maxsize=1)
-def load_estimates(path: str = str(ESTIMATES_PATH)) -> dict[str, Any]:
-    """The shipped estimates (``{"models": {key: {...}}}``); an empty table if the file is missing."""
-    try:
-        return json.loads(Path(path).read_text())
-    except FileNotFoundError:
+#: The keys of an estimates entry the planner reads.
+ENTRY_KEYS = ("model_ids", "signature", "estimates", "video")
+
+
+def load_estimates(path: str | Path | None = None) -> dict[str, Any]:
+    """The estimates (``{"models": {key: {...}}}``) of ``path`` (default :data:`ESTIMATES_PATH`),
+    read once per file. A missing file is a warning naming the plan every model then gets
+    (:data:`SAFE_PLAN`), and an empty table.
+
+    Raises:
+        PackageDataError: (one line naming the file) it is not JSON, holds no ``models`` table, or
+            an entry lacks a key of :data:`ENTRY_KEYS`.
+    """
+    return _read_estimates(str(ESTIMATES_PATH if path is None else path))
+
+
+@lru_cache(maxsize=4)
+def _read_estimates(path: str) -> dict[str, Any]:
+    remedy = f"regenerate it with `geco bench plans --json {path}` or reinstall geco_guide"
+    if not Path(path).exists():
+        logger.warning("the memory plans' estimates %s are missing: run.memory_plan=auto gives every model the most "
+                       "memory-saving plan, %r (%s)", path, SAFE_PLAN.name, remedy)
         return {"models": {}}
+    table = read_package_json(Path(path), remedy)
+    for key, entry in table["models"].items():
+        missing = [name for name in ENTRY_KEYS if not isinstance(entry, dict) or name not in entry]
+        if missing:
+            raise PackageDataError(f"the package data file {path} is damaged (the entry {key!r} lacks "
+                                   f"{', '.join(missing)}): {remedy}")
+    return table
 
 
 def model_signature(transformer_config: Any, experts: int = 1) -> dict[str, Any]:
@@ -268,8 +295,8 @@ def choose_plan(config: GuidanceConfig, run: RunOptions, *, signature: Mapping[s
     if peaks is None or budget is None:
         why = "no memory budget known" if peaks is not None else (
             f"no estimates for this model in {mode} mode with decoder {config.decoder}")
-        return PlanChoice(SAFE_PLAN, f"auto: {why}: the most memory-saving plan", budget_gb=budget,
-                          fallbacks=())
+        return PlanChoice(SAFE_PLAN, f"auto: {why}: the most memory-saving plan, {SAFE_PLAN.name!r}",
+                          budget_gb=budget, fallbacks=())
     times = entry["estimates"][f"{mode}/{config.decoder}"]
     estimated = [p for p in PLANS if p.name in peaks]  # an older file may lack a newer plan
     fitting = [p for p in estimated if peaks[p.name] <= budget]
@@ -313,8 +340,11 @@ def plan_before_loading(config: GuidanceConfig, run: RunOptions, model_id: str, 
     check_video_size(frames, height, width)
     if not config.enabled:
         return None
-    return choose_plan(config, run, signature=stored_signature(model_id), model_id=model_id, frames=frames,
-                       height=height, width=width, device_gb=device_gb)
+    choice = choose_plan(config, run, signature=stored_signature(model_id), model_id=model_id, frames=frames,
+                         height=height, width=width, device_gb=device_gb)
+    if run.memory_plan == AUTO and choice.predicted_peak_gb is None:
+        logger.warning("run.memory_plan=%s", choice.reason)
+    return choice
 
 
 def check_video_size(frames: Any, height: Any, width: Any) -> None:
