@@ -57,6 +57,8 @@ __all__ = ["GeCoWan22DenoiseStep", "GeCoWanDenoiseStep", "save_geco_block"]
 
 #: The sub-block of a Wan denoise loop that steps the scheduler: guidance runs just before it.
 SCHEDULER_STEP = "after_denoiser"
+#: The denoisers a Wan pipeline may hold: Wan 2.1 the first, Wan 2.2 both (its two experts).
+EXPERTS = ("transformer", "transformer_2")
 
 
 class _GuidedCall:
@@ -71,6 +73,9 @@ class _GeCoLoop:
     before the stock loop class, whose sub-blocks and loop it keeps."""
 
     adapter: PipelineAdapter = WanAdapter()
+    #: the Wan version whose loop this is, and the denoisers (experts) its sub-blocks call
+    version: str
+    experts: tuple[str, ...]
 
     @property
     def description(self) -> str:
@@ -103,6 +108,7 @@ class _GeCoLoop:
 
     def loop_step(self, components: Any, block_state: BlockState, i: int, t: Tensor) -> tuple[Any, BlockState]:
         if i == 0:
+            self._check_pipeline(components)
             block_state.geco_call = self._start(components, block_state)
         call = block_state.geco_call
         for name, block in self.sub_blocks.items():
@@ -112,6 +118,19 @@ class _GeCoLoop:
         if call is not None and i == call.watch.num_steps - 1:
             block_state.geco_report = call.context.report(components.scheduler)
         return components, block_state
+
+    def _check_pipeline(self, components: Any) -> None:
+        """ValueError (one line, before the first step) for a pipeline that lacks a denoiser this
+        loop calls: Wan 2.2's loop in a Wan 2.1 pipeline, which has no ``transformer_2`` (diffusers'
+        loop would fail on ``None.forward`` after the text encoding and the latents)."""
+        present = tuple(name for name in EXPERTS if getattr(components, name, None) is not None)
+        missing = [name for name in self.experts if name not in present]
+        if not missing:
+            return
+        other = next((loop for loop in (GeCoWanDenoiseStep, GeCoWan22DenoiseStep) if loop.experts == present), None)
+        fix = f"insert {other.__name__} (Wan {other.version}'s loop) instead" if other else "load its weights"
+        raise ValueError(f"{type(self).__name__} is Wan {self.version}'s denoise loop, calling "
+                         f"{' and '.join(self.experts)}; the pipeline it is in has no {' and no '.join(missing)}: {fix}")
 
     def _start(self, components: Any, block_state: BlockState) -> _GuidedCall | None:
         """The call's guidance, checked before its first step (``None`` unguided), and its outputs."""
@@ -180,11 +199,15 @@ class GeCoWanDenoiseStep(_GeCoLoop, WanDenoiseStep):
     """Wan 2.1's text-to-video denoise loop (``WanDenoiseStep``) with GeCo guidance before each
     scheduler step: the ``denoise`` loop of ``WanModularPipeline`` (see the module docstring)."""
 
+    version, experts = "2.1", ("transformer",)
+
 
 class GeCoWan22DenoiseStep(_GeCoLoop, Wan22DenoiseStep):
     """Wan 2.2's text-to-video denoise loop (``Wan22DenoiseStep``: two experts, two guiders)
     with GeCo guidance before each scheduler step: the ``denoise`` loop of
     ``Wan22ModularPipeline`` (see the module docstring)."""
+
+    version, experts = "2.2", EXPERTS
 
 
 _BLOCK_CODE = '''"""GeCo guidance in diffusers' Modular Wan denoise loops. The blocks' code is the geco_guide

@@ -6,6 +6,7 @@ diffusers shares custom blocks."""
 from __future__ import annotations
 
 import json
+import re
 import sys
 
 import pytest
@@ -218,4 +219,16 @@ def test_bad_guidance_inputs_fail_in_one_line_before_the_first_step(given, chang
     with pytest.raises(error, match=message) as raised:
         modular_call(pipe, prompt_embeds(stock), geco_guidance=config, geco_run_options=run_options,
                      geco_estimators=estimators if given is TINY else given)
+    assert "\n" not in str(raised.value) and calls == []
+
+
+def test_wan_22s_loop_in_a_wan_21_pipeline_is_one_line_before_the_first_step():
+    stock = T.tiny_wan_pipeline(0, version="2.1")
+    pipe = T.tiny_wan_modular_pipeline(0, version="2.1", denoise_loop=GeCoWan22DenoiseStep())
+    calls = []
+    pipe.transformer.register_forward_pre_hook(lambda module, args: calls.append(1))
+    message = ("GeCoWan22DenoiseStep is Wan 2.2's denoise loop, calling transformer and transformer_2; the pipeline it "
+               "is in has no transformer_2: insert GeCoWanDenoiseStep (Wan 2.1's loop) instead")
+    with pytest.raises(ValueError, match="^" + re.escape(message)) as raised:  # guided or not, the loop is wrong
+        modular_call(pipe, prompt_embeds(stock), output="videos")
     assert "\n" not in str(raised.value) and calls == []
