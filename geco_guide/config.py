@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Optional
 
@@ -37,7 +37,8 @@ from omegaconf.errors import (
 )
 
 from .estimators import EstimatorsConfig
-from .families import MODELS, default_anchors, frames_problem, model_named, video_models
+from .families import (MODELS, default_anchors, did_you_mean, frames_problem, generating_model, model_named,
+                       video_models)
 from .metric.protocol import EvaluationConfig
 from .sampler.config import GuidanceConfig, paper_guidance_config
 from .sampler.loading import CHECKPOINT_SCHEDULER, SCHEDULERS, ModelConfig
@@ -102,9 +103,20 @@ def _key_error(err: OmegaConfBaseException, source: str) -> ValueError:
     if isinstance(err, (ConfigKeyError, ConfigAttributeError)):
         section, _, leaf = str(key).partition(".")
         renamed = renamed_option(GuidanceConfig, leaf, "guidance") if section == "guidance" else None
-        return ValueError(f"{renamed or f'unknown config key {key!r}'} ({source})")
+        return ValueError(f"{renamed or f'unknown config key {key!r}{_close_keys(str(key))}'} ({source})")
     msg = str(err).split("\n")[0]
     return ValueError(f"invalid value for config key {key!r} ({source}): {msg}")
+
+
+def _close_keys(key: str) -> str:
+    """The keys of ``key``'s section close to its misspelt last name, as :func:`did_you_mean` says them."""
+    section, _, leaf = key.rpartition(".")
+    node: Any = GeCoConfig()
+    for name in filter(None, section.split(".")):
+        node = getattr(node, name, None)
+    if not is_dataclass(node):
+        return ""
+    return did_you_mean(leaf, [f.name for f in fields(node)], f"{section}." if section else "")
 
 
 def _merge(base: DictConfig, other: Any, source: str) -> DictConfig:
@@ -146,10 +158,7 @@ def _container_mismatch(base: DictConfig, other: Any, prefix: str = "") -> tuple
 def model_preset(name: str) -> str | None:
     """The preset of configs/ named for the model ``name`` (``--model NAME``), or ``None``; ValueError
     (one line listing the models) for a name the registry does not know."""
-    if name not in video_models():
-        model_named(name)  # raises, listing the names
-        raise ValueError(f"{name} has no open weights to generate with: its videos can only be scored (geco evaluate; "
-                         f"geco geco-eval --videos {name}=DIR)")
+    generating_model(name)
     return name if (CONFIG_DIR / f"{name}.yaml").is_file() else None
 
 
@@ -252,7 +261,7 @@ def to_config(cfg: DictConfig | dict | GeCoConfig) -> GeCoConfig:
         raise ValueError(f"invalid value for config key '{_section_of(cfg)}.{err.key}': {err}") from None
     if obj.model.name not in MODELS or not MODELS[obj.model.name].generates:
         raise ValueError(f"invalid value for config key 'model.name': must be one of {', '.join(video_models())}, "
-                         f"got {obj.model.name!r}")
+                         f"got {obj.model.name!r}{did_you_mean(obj.model.name, video_models())}")
     model = model_named(obj.model.name)
     # the registry fills what the config leaves null: the weights' hub id, the call, the anchors
     obj = replace(obj, model=replace(obj.model, id=obj.model.source), sampling=with_model_defaults(obj.sampling, model))

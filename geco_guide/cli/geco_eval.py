@@ -103,13 +103,10 @@ def _check_seeds(seeds: Sequence[int]) -> None:
 def plan(args: argparse.Namespace) -> Plan:
     """Every check that needs no model: config, selection, model names, folders."""
     from ..bench.geco_eval import Job, existing_video_jobs, load_prompts, prompts_without_video
-    from ..families import model_named, video_models
+    from ..families import generating_model
 
     cfg = config_from_args(args, args.overrides)
-    unknown = [m for m in args.models if m not in video_models()]
-    if unknown:
-        raise ValueError(f"unknown model {unknown[0]!r}; one of {', '.join(video_models())}")
-    conditioned = [m for m in args.models if model_named(m).image_to_video]
+    conditioned = [m for m in args.models if generating_model(m).image_to_video]
     if conditioned:
         raise ValueError(f"--models {conditioned[0]} is an image-to-video model and GeCo-Eval's prompts are text only: "
                          "generate its videos with geco generate --image and score them with --videos NAME=DIR")

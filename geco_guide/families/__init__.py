@@ -16,11 +16,14 @@ are :mod:`geco_guide.families.published`.
 
 from __future__ import annotations
 
+import difflib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
 __all__ = ["DEFAULT_MODEL", "FAMILIES", "MODELS", "PAPER_ANCHOR_COUNT", "SCORED_ONLY", "VideoModel",
-           "default_anchors", "frames_problem", "model_named", "paper_fps", "video_models"]
+           "default_anchors", "did_you_mean", "frames_problem", "generating_model", "model_named", "paper_fps",
+           "video_models"]
 
 #: The model the config's defaults are: the paper's guidance experiment.
 DEFAULT_MODEL = "cogvideox-5b"
@@ -214,13 +217,37 @@ def video_models() -> list[str]:
     return [name for name, model in MODELS.items() if model.generates]
 
 
+def did_you_mean(word: Any, names: Iterable[str], prefix: str = "") -> str:
+    """`` (did you mean 'a' or 'b'?)`` naming at most three of ``names`` close to the misspelt
+    ``word``: those it begins (``wan2.2`` for ``wan2.2-t2v-a14b``), else difflib's close matches
+    (``stepsize`` for ``step_size``), each written after ``prefix`` (a config key's section:
+    ``guidance.``); ``''`` where none is close."""
+    names = list(names)
+    typed = str(word).lower()
+    close = [name for name in names if typed and name.lower().startswith(typed)][:3]
+    close = close or difflib.get_close_matches(typed, names, n=3)
+    return f" (did you mean {' or '.join(repr(prefix + name) for name in close)}?)" if close else ""
+
+
 def model_named(name: str) -> VideoModel:
-    """The :class:`VideoModel` of ``name``; ValueError (one line) listing the names otherwise."""
+    """The :class:`VideoModel` of ``name``; ValueError (one line) listing the names otherwise,
+    the closest first."""
     try:
         return MODELS[name]
     except (KeyError, TypeError):
-        raise ValueError(f"unknown model {name!r}; one of {', '.join(video_models())} "
+        raise ValueError(f"unknown model {name!r}{did_you_mean(name, MODELS)}; one of {', '.join(video_models())} "
                          f"(scored only: {', '.join(SCORED_ONLY)})") from None
+
+
+def generating_model(name: str) -> VideoModel:
+    """The :class:`VideoModel` of ``name``, one the package generates with; ValueError (one line)
+    for a name the registry does not know (:func:`model_named`) or a model it only scores, saying
+    how to score its videos."""
+    model = model_named(name)
+    if not model.generates:
+        raise ValueError(f"{name} has no open weights to generate with: its videos can only be scored (geco evaluate; "
+                         f"geco geco-eval --videos {name}=DIR)")
+    return model
 
 
 def paper_fps() -> dict[str, float]:
