@@ -36,14 +36,14 @@ from omegaconf.errors import (
     OmegaConfBaseException,
 )
 
-from .estimators import EstimatorsConfig
+from .estimators import TINY_RANDOM, EstimatorsConfig
 from .families import (MODELS, default_anchors, did_you_mean, frames_problem, generating_model, model_named,
                        video_models)
 from .metric.protocol import EvaluationConfig
 from .sampler.config import GuidanceConfig, paper_guidance_config
 from .sampler.loading import CHECKPOINT_SCHEDULER, SCHEDULERS, ModelConfig
 from .sampler.run_options import RunOptions, check_run_for_guidance
-from .sampler.sampling import SamplingConfig, sampling_problem, with_model_defaults
+from .sampler.sampling import SamplingConfig, fit_to_model, sampling_problem, with_model_defaults
 from .sampler.search import SearchConfig
 from .types import OptionError, non_finite_fields, renamed_option
 
@@ -171,7 +171,9 @@ def load_config(
     model_preset: str | None = None,
 ) -> GeCoConfig:
     """Schema defaults <- the model's preset <- preset <- YAML file <- ``key=value`` overrides <-
-    ``changes`` (``{dotted key: Python value}``, what command flags set), validated.
+    ``changes`` (``{dotted key: Python value}``, what command flags set), validated. With the
+    tiny random stand-in (``model.id=tiny-random``) the presets' sizes are fitted to the model
+    (``_fit_tiny_call``): the tiny preset runs every model.
 
     Raises:
         ValueError: unknown key, wrong type or invalid value, naming the key; ``path`` is a
@@ -179,6 +181,7 @@ def load_config(
         FileNotFoundError: ``path`` does not exist.
     """
     cfg = OmegaConf.structured(GeCoConfig)
+    user_keys: set[str] = set()
     if model_preset is not None:
         p = preset_path(model_preset)
         cfg = _merge(cfg, _load_yaml(p), str(p))
@@ -191,16 +194,47 @@ def load_config(
             raise ValueError(f"config file {str(p)!r} is a folder, not a config file")
         if not p.is_file():
             raise FileNotFoundError(f"config file {str(p)!r} does not exist")
-        cfg = _merge(cfg, _load_yaml(p), str(p))
+        layer = _load_yaml(p)
+        cfg = _merge(cfg, layer, str(p))
+        user_keys |= _dotted_keys(layer)
     if overrides:
         bad = [o for o in overrides if "=" not in o]
         if bad:
             raise ValueError(f"overrides must be key=value, got {bad}")
         for item in overrides:
-            cfg = _merge(cfg, _parse_override(cfg, item), "command line")
+            layer = _parse_override(cfg, item)
+            cfg = _merge(cfg, layer, "command line")
+            user_keys |= _dotted_keys(layer)
     for key, value in (changes or {}).items():
         cfg = _merge(cfg, _nest(key.split("."), value), "command line")
-    return to_config(cfg)
+        user_keys.add(key)
+    return to_config(_fit_tiny_call(cfg, user_keys))
+
+
+def _fit_tiny_call(cfg: DictConfig, kept: set[str]) -> DictConfig:
+    """``cfg`` whose call is fitted to its model (:func:`~geco_guide.sampler.sampling.fit_to_model`:
+    the size multiple, the text length) where it runs the tiny random stand-in, which the tiny
+    preset's 32x48 call, made for every model, drives; the keys of ``kept`` (what the user set
+    in a file, an override or a flag) are left as set, and refused if they do not fit."""
+    name = cfg.model.name
+    if cfg.model.id != TINY_RANDOM or name not in MODELS or not MODELS[name].generates:
+        return cfg
+    s = cfg.sampling
+    fitted = fit_to_model(SamplingConfig(height=s.height, width=s.width, max_sequence_length=s.max_sequence_length),
+                          MODELS[name])
+    changes = {key: getattr(fitted, key) for key in ("height", "width", "max_sequence_length")
+               if f"sampling.{key}" not in kept and getattr(fitted, key) != s[key]}
+    return _merge(cfg, {"sampling": changes}, "the tiny call fitted to the model") if changes else cfg
+
+
+def _dotted_keys(layer: DictConfig | dict, prefix: str = "") -> set[str]:
+    """Every dotted key a config layer sets (``sampling.width``), its sections' too."""
+    keys: set[str] = set()
+    for key, value in layer.items():
+        keys.add(f"{prefix}{key}")
+        if isinstance(value, (DictConfig, dict)):
+            keys |= _dotted_keys(value, f"{prefix}{key}.")
+    return keys
 
 
 def _load_yaml(path: Path) -> DictConfig:

@@ -58,7 +58,7 @@ from ..loss.geco import CUES
 from ..metric.evaluate import PAPER_NAMES, evaluate_video
 from ..sampler.loading import check_guidance_before_loading, check_tiny_decoder, quiet_hub_logs
 from ..sampler.memory_plan import plan_before_loading
-from ..sampler.sampling import SamplingConfig
+from ..sampler.sampling import SamplingConfig, fit_to_model
 from ..types import plural
 from . import report
 from .report import fmt
@@ -141,7 +141,8 @@ def job_config(cfg: GeCoConfig, name: str, *, guided: bool = False, weights: str
     model = MODELS[name]
     tiny = cfg.model.id == TINY_RANDOM
     # the scheduler is the model's (the config filled CogVideoX's ddim for the tiny preset's model)
-    sampling = replace(cfg.sampling, **tiny_sampling(model), scheduler=None) if tiny else SamplingConfig()
+    sampling = (fit_to_model(replace(cfg.sampling, **tiny_sampling(model), scheduler=None), model) if tiny
+                else SamplingConfig())
     guidance = replace(cfg.guidance, enabled=guided, anchors=None, dynamic=subjects if guided else None)
     return to_config(replace(cfg, model=replace(cfg.model, name=name, id=TINY_RANDOM if tiny else weights),
                              sampling=sampling, guidance=guidance))

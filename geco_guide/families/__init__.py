@@ -69,6 +69,8 @@ class VideoModel:
         scheduler: the ``sampling.scheduler`` it samples with by default (``ddim``: the paper's
             DDIM for CogVideoX), ``None``: the checkpoint's own.
         image_to_video: the pipeline conditions on an image (``--image``).
+        text_length: its pipeline's call takes ``max_sequence_length`` (HunyuanVideo 1.5's pads
+            its prompts to lengths of its own).
         source: where the call defaults and compressions come from.
     """
 
@@ -89,6 +91,7 @@ class VideoModel:
     guided_by: str = "hooks"
     scheduler: str | None = None
     image_to_video: bool = False
+    text_length: bool = True
     source: str = ""
     hub_aliases: tuple[str, ...] = ()
 
@@ -187,12 +190,12 @@ MODELS: dict[str, VideoModel] = {m.name: m for m in (
     VideoModel("hunyuanvideo-1.5", family="hunyuan1.5", hub_id="hunyuanvideo-community/HunyuanVideo-1.5-480p_t2v",
                pipeline="HunyuanVideo15Pipeline", call=_call(121, 480, 848, 50, 6.0), fps=24, eval_fps=24.0,
                spatial_compression=16, latent_channels=32, tiny_decoder="hunyuanvideo1.5",
-               tiny="tiny_hunyuan15_pipeline", source="diffusers HunyuanVideo15Pipeline docs and conversion script "
-               "(480p)"),
+               tiny="tiny_hunyuan15_pipeline", text_length=False,
+               source="diffusers HunyuanVideo15Pipeline docs and conversion script (480p)"),
     VideoModel("hunyuanvideo-1.5-i2v", family="hunyuan1.5", hub_id="hunyuanvideo-community/HunyuanVideo-1.5-480p_i2v",
                pipeline="HunyuanVideo15ImageToVideoPipeline", call=_call(121, 480, 848, 50, 6.0), fps=24,
                eval_fps=24.0, spatial_compression=16, latent_channels=32, tiny_decoder="hunyuanvideo1.5",
-               tiny="tiny_hunyuan15_i2v_pipeline", image_to_video=True,
+               tiny="tiny_hunyuan15_i2v_pipeline", image_to_video=True, text_length=False,
                source="diffusers HunyuanVideo15ImageToVideoPipeline docs and conversion script (480p)"),
     VideoModel("ltx-video", family="ltx", hub_id="Lightricks/LTX-Video", pipeline="LTXPipeline",
                call=_call(161, 480, 704, 50, 3.0), fps=24, eval_fps=30.0, spatial_compression=32,

@@ -15,7 +15,7 @@ from typing import Any, Optional
 
 from ..families import VideoModel, frames_problem
 
-__all__ = ["SamplingConfig", "call_arguments", "sampling_problem", "with_model_defaults"]
+__all__ = ["SamplingConfig", "call_arguments", "fit_to_model", "sampling_problem", "with_model_defaults"]
 
 
 @dataclass
@@ -62,6 +62,20 @@ def with_model_defaults(sampling: SamplingConfig, model: VideoModel) -> Sampling
     return replace(sampling, **changes)
 
 
+def fit_to_model(sampling: SamplingConfig, model: VideoModel) -> SamplingConfig:
+    """``sampling`` made for any model (the tiny preset's short call) fitted to ``model``: height
+    and width rounded up to its size multiple (48 -> 64 for a model of multiples of 32), no text
+    length where its pipeline takes none."""
+    changes: dict[str, Any] = {}
+    for key in ("height", "width"):
+        value = getattr(sampling, key)
+        if isinstance(value, int) and not isinstance(value, bool) and value > 0 and value % model.size_multiple:
+            changes[key] = -(-value // model.size_multiple) * model.size_multiple
+    if not model.text_length:
+        changes["max_sequence_length"] = None
+    return replace(sampling, **changes)
+
+
 def sampling_problem(sampling: SamplingConfig, model: VideoModel) -> tuple[str, str] | None:
     """``(key, why)`` of the first option of ``sampling`` (filled, :func:`with_model_defaults`)
     that ``model`` cannot make a video with, or ``None``: the VAE's frame-count rule, the size
@@ -76,6 +90,8 @@ def sampling_problem(sampling: SamplingConfig, model: VideoModel) -> tuple[str, 
                          f"size), got {value!r}")
     if sampling.guidance_scale_2 is not None and "guidance_scale_2" not in model.call:
         return "guidance_scale_2", f"is the second expert's CFG; {model.name} has one expert (use null)"
+    if sampling.max_sequence_length is not None and not model.text_length:
+        return "max_sequence_length", f"is not an argument of {model.pipeline}; {model.name} takes none (use null)"
     return None
 
 

@@ -17,6 +17,7 @@ from typing import Any
 
 from ..estimators import tiny_estimators, tiny_random_decoder
 from ..families import VideoModel
+from ..sampler.sampling import SamplingConfig, fit_to_model
 from .components import (
     TINY_ANCHORS,
     TINY_HEIGHT,
@@ -74,11 +75,11 @@ def tiny_video_components(model: VideoModel, seed: int = 0) -> dict[str, Any]:
 
 
 def tiny_sampling(model: VideoModel) -> dict[str, int]:
-    """The ``sampling`` of a tiny stand-in of ``model``'s family: 17 frames of 32x48 pixels (the
-    width of 64 where the model wants sizes in multiples of 32)."""
-    width = TINY_WIDTH if TINY_WIDTH % model.size_multiple == 0 else -(-TINY_WIDTH // model.size_multiple) * model.size_multiple
-    height = TINY_HEIGHT if TINY_HEIGHT % model.size_multiple == 0 else -(-TINY_HEIGHT // model.size_multiple) * model.size_multiple
-    return {"num_frames": TINY_NUM_FRAMES, "height": height, "width": width}
+    """The ``sampling`` of a tiny stand-in of ``model``'s family: 17 frames of 32x48 pixels, fitted
+    to the model (:func:`~geco_guide.sampler.sampling.fit_to_model`: the width of 64 where it wants
+    sizes in multiples of 32)."""
+    fitted = fit_to_model(SamplingConfig(num_frames=TINY_NUM_FRAMES, height=TINY_HEIGHT, width=TINY_WIDTH), model)
+    return {"num_frames": fitted.num_frames, "height": fitted.height, "width": fitted.width}
 
 
 def tiny_guidance_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int = TinySizes.latent_channels):
