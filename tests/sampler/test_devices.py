@@ -165,9 +165,23 @@ def test_the_cfg_halves_on_two_devices_give_the_frames_of_one(denoiser_grad):
     assert pipe._cfg_halves is None  # the replicas are the call's only
 
 
-def test_the_cfg_halves_give_the_one_call_output_to_float_rounding():
-    """One denoiser output, split in two calls or not: equal to float rounding (a whole guided run
-    then follows another path, since normalised updates of tiny random models amplify it)."""
+#: Units in the last place of the halves' largest output that two batch sizes of the tiny denoiser
+#: may differ by: a GEMM blocks its sums by the batch's rows and by the CPU's vector width (AVX2 or
+#: AVX-512 lanes, the BLAS's kernels), so each of its few layers may round otherwise; 64 is ample
+#: for its two blocks (8 are seen on an AVX2 machine) and far below what a wrong split changes.
+HALF_ULPS = 64
+
+
+def test_the_cfg_halves_are_the_two_half_calls_and_the_one_call_to_float_rounding():
+    """One denoiser output, split in two calls or not.
+
+    Exact on any CPU: the split output is, bit for bit, the unconditional and the conditional
+    calls made one by one here and guided (the same calls of one batch run the same kernels).
+
+    To float rounding: the stock call of batch 2 against those of batch 1 (see :data:`HALF_ULPS`);
+    guidance ``u + s (c - u)`` multiplies a rounding of the halves by up to ``1 + 2 s``. (A whole
+    guided run then follows another path, since normalised updates of tiny random models amplify
+    it.)"""
     from geco_guide.sampler.multi_device import CfgHalves
 
     pipe = tiny_pipeline(seed=0)
@@ -175,12 +189,19 @@ def test_the_cfg_halves_give_the_one_call_output_to_float_rounding():
     embeds = torch.randn(2, 16, pipe.transformer.config.text_embed_dim, generator=torch.Generator().manual_seed(1))
     pipe._guidance_scale = 6.0
     pipe.scheduler.set_timesteps(4)
-    kwargs = dict(t=pipe.scheduler.timesteps[1], prompt_embeds=embeds, image_rotary_emb=None, attention_kwargs=None,
-                  do_classifier_free_guidance=True)
-    stock = pipe.model_output(z, **kwargs)
+    kwargs = dict(t=pipe.scheduler.timesteps[1], image_rotary_emb=None, attention_kwargs=None)
+    stock = pipe.model_output(z, prompt_embeds=embeds, do_classifier_free_guidance=True, **kwargs)
+    uncond, text = (pipe.model_output(z, prompt_embeds=half, do_classifier_free_guidance=False, **kwargs)
+                    for half in embeds.chunk(2))
     pipe._cfg_halves = CfgHalves(pipe.transformer, [torch.device("cpu"), torch.device("cpu")], torch.device("cpu"))
-    split = pipe.model_output(z, **kwargs)
-    torch.testing.assert_close(split, stock, rtol=1e-5, atol=1e-6)
+    split = pipe.model_output(z, prompt_embeds=embeds, do_classifier_free_guidance=True, **kwargs)
+
+    assert torch.equal(split, uncond + pipe.guidance_scale * (text - uncond))
+    scale = torch.maximum(uncond.abs().max(), text.abs().max())
+    tolerance = (1 + 2 * pipe.guidance_scale) * HALF_ULPS * torch.finfo(torch.float32).eps * scale
+    assert (split - stock).abs().max() <= tolerance
+    swapped = text + pipe.guidance_scale * (uncond - text)  # what a split that mixed up the halves would give
+    assert (swapped - stock).abs().max() > 100 * tolerance
 
 
 def test_the_cfg_halves_split_every_batched_input_and_share_the_rest():
