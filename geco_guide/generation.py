@@ -34,7 +34,7 @@ import re
 import shutil
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     from .sampler.context import GuidanceObserver, GuidanceReport
     from .sampler.loading import LoadedPipeline
 
-__all__ = ["KEYLESS_SECTIONS", "SCORES_NOTE", "SELECTION_SCORE", "GenerationResult", "Models", "Sample",
+__all__ = ["KEYLESS_SECTIONS", "SCORES_NOTE", "SELECTION_SCORE", "GenerationResult", "Models", "Sample", "acting_config",
            "best_candidate", "check_conditioning", "check_generation", "check_prompt", "default_name", "generate", "generate_best_of",
            "load_models", "loading_line", "output_paths", "sample", "sample_search", "selection_masks", "slugify", "versions",
            "video_key"]
@@ -189,6 +189,49 @@ def check_conditioning(cfg: GeCoConfig, image: bool) -> None:
                          "--image")
 
 
+#: The options that act on some runs only: ``(what they need, whether a run lacks it, the keys)``.
+#: Without guidance and without a search nothing decodes the anchors: no mask, no mover, no
+#: device to deal the decode over; ``run.split_cfg`` splits a guided call's CFG batch.
+IDLE_WITHOUT: tuple[tuple[str, Callable[[GeCoConfig], bool], tuple[str, ...]], ...] = (
+    ("guidance or a search (--no-guidance)", lambda cfg: not (cfg.guidance.enabled or cfg.search.enabled),
+     (*(f"guidance.{key}" for key in DYNAMIC_KEYS), "run.devices")),
+    ("guidance (--no-guidance)", lambda cfg: not cfg.guidance.enabled, ("run.split_cfg",)),
+    ("CFG (sampling.guidance_scale <= 1)", lambda cfg: (cfg.sampling.guidance_scale or 0) <= 1.0, ("run.split_cfg",)),
+    ("a search (search.particles)", lambda cfg: not cfg.search.enabled, ("run.particle_batch",)),
+)
+
+
+def acting_config(cfg: GeCoConfig) -> GeCoConfig:
+    """``cfg`` as it runs, the one rule of what an option does on a run it cannot act on
+    (:data:`IDLE_WITHOUT`): each one set off its default is one warning and is reset to its
+    default, so that the sidecar records what ran (neither the frames nor the video's name change).
+    What an option names is checked first, acting or not: ``run.devices`` must be this machine's.
+
+    Raises:
+        ValueError: (one line) a device of ``run.devices`` this machine lacks.
+    """
+    from .io.devices import resolve_devices
+
+    resolve_devices(cfg.run.devices)
+    for needed, lacking, keys in IDLE_WITHOUT:
+        values = {key: _value_and_default(cfg, key) for key in keys}
+        idle = {key: value for key, (value, default) in values.items() if value != default} if lacking(cfg) else {}
+        if idle:
+            shown = ", ".join(key if value is True else f"{key}={value!r}" for key, value in idle.items())
+            logger.warning("%s %s nothing without %s: left at the default, as the sidecar records", shown,
+                           "does" if len(idle) == 1 else "do", needed)
+            for section in dict.fromkeys(key.split(".")[0] for key in idle):  # a section's at once: dynamic and movers
+                reset = {key.split(".")[1]: values[key][1] for key in idle if key.startswith(f"{section}.")}
+                cfg = replace(cfg, **{section: replace(getattr(cfg, section), **reset)})
+    return cfg
+
+
+def _value_and_default(cfg: GeCoConfig, key: str) -> tuple[Any, Any]:
+    """The value of the dotted ``key`` (``section.name``) in ``cfg`` and its default."""
+    section, name = key.split(".")
+    return getattr(getattr(cfg, section), name), next(f.default for f in fields(getattr(cfg, section)) if f.name == name)
+
+
 def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (), *, overwrite: bool = False,
                      loaded: bool = False, image: bool = False) -> GeCoConfig:
     """Every check a generation can make before anything loads, in one pass; returns ``cfg`` with
@@ -196,9 +239,10 @@ def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (),
     planner, the loaders and the sidecar all see the same real device.
 
     Checks the prompt, the conditioning ``image`` (whether one is given) against the model
-    (:func:`check_conditioning`), the run's config (:func:`~geco_guide.sampler.loading.check_before_loading`:
-    every model's weights unless the models are ``loaded``, the devices and their memory, a
-    warning for each option that cannot act, the memory plan, a search's particles, the guidance
+    (:func:`check_conditioning`), the options that cannot act on the run (:func:`acting_config`:
+    a warning each, and left at their defaults in the ``cfg`` returned), the run's config (:func:`~geco_guide.sampler.loading.check_before_loading`:
+    every model's weights unless the models are ``loaded``, the devices and their memory, the
+    memory plan, a search's particles, the guidance
     against the model, the size against the device's memory), the output ``paths`` (refused if
     present without ``overwrite``) and the frame rate for their format.
 
@@ -215,6 +259,7 @@ def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (),
         raise ValueError(f"search.particles={cfg.search.particles} from seed {cfg.seed} needs seeds up to "
                          f"{cfg.seed + cfg.search.particles - 1}, over the 64-bit limit {SEED_RANGE[1]}: choose a "
                          "smaller seed")
+    cfg = acting_config(cfg)
     device = check_before_loading(cfg.model, cfg.sampling, cfg.guidance, cfg.run, cfg.estimators, weights=not loaded,
                                   search=cfg.search)
     check_output_paths(paths, overwrite)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import re
 import shlex
 import sys
@@ -21,7 +22,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from ..config import GeCoConfig
 
-__all__ = ["ESTIMATOR_KEYS", "Parser", "add_config_flags", "add_model_flag", "check_choice", "command_main", "config_from_args",
+__all__ = ["ESTIMATOR_KEYS", "Parser", "add_config_flags", "add_model_flag", "check_choice", "check_flags_agree",
+           "command_main", "config_from_args",
            "interruptible", "is_config_key", "one_line_warnings", "parse_command", "parse_count", "print_error",
            "split_overrides"]
 
@@ -133,8 +135,8 @@ def config_from_args(args: argparse.Namespace, overrides: Sequence[str] = (),
     """The validated config of ``--preset`` / ``--model`` / ``--config``, the ``key=value``
     ``overrides``, the estimator flags and ``options`` (``{config key: value}`` as Python values,
     ``None`` values skipped), the flags last so that they win over a stray override of the same
-    key. ``--model NAME`` sets ``model.name`` and applies the preset of that name where
-    configs/ has one."""
+    key; an override and a flag that set one key to two values are refused (:func:`check_flags_agree`).
+    ``--model NAME`` sets ``model.name`` and applies the preset of that name where configs/ has one."""
     from ..config import load_config, model_preset
 
     flags = {key: getattr(args, dest, None) for dest, key in ESTIMATOR_KEYS.items()}
@@ -142,8 +144,37 @@ def config_from_args(args: argparse.Namespace, overrides: Sequence[str] = (),
     changes = {key: value for key, value in {**flags, **(options or {})}.items() if value is not None}
     if model is not None:
         changes["model.name"] = model
+    check_flags_agree(overrides, changes)
     return load_config(getattr(args, "config", None), getattr(args, "preset", None), list(overrides),
                        changes=changes, model_preset=model_preset(model) if model is not None else None)
+
+
+def check_flags_agree(overrides: Sequence[str], changes: dict[str, Any]) -> None:
+    """ValueError (one line) for a ``key=value`` override of a key that a flag of the same command
+    line sets to another value (``--model wan2.1-t2v-1.3b`` with ``model.name=cogvideox-5b``):
+    which one was meant cannot be told, so neither wins in silence. ``changes``: ``{config key:
+    value}`` of the flags given. An override that agrees with its flag passes."""
+    import yaml
+
+    for item in overrides:
+        key, _, text = item.partition("=")
+        key = key.strip()
+        if key not in changes:
+            continue
+        value = changes[key]
+        try:
+            same = text.strip() == value if isinstance(value, str) else yaml.safe_load(text) == value
+        except yaml.YAMLError:
+            same = False
+        if not same:
+            raise ValueError(f"{key}={text.strip()} disagrees with the flag that sets {key} to {_shown(key, value)}: "
+                             f"give {key} once")
+
+
+def _shown(key: str, value: Any) -> str:
+    """A flag's value as a command line gives it, with the flag where the kit knows it."""
+    flag = {"model.name": "--model", **{k: f"--{d.replace('_', '-')}" for d, k in ESTIMATOR_KEYS.items()}}.get(key)
+    return (f"{value!r}" if isinstance(value, str) else json.dumps(value)) + (f" ({flag} {value})" if flag else "")
 
 
 def one_line_warnings() -> Callable[..., None]:

@@ -41,7 +41,7 @@ from .search import SearchConfig, check_search_before_loading
 __all__ = ["CHECKPOINT_SCHEDULER", "PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
            "check_guidance_before_loading", "check_tiny_decoder", "load_tiny_decoder",
            "load_video_pipeline", "missing_weights", "pipeline_from_pretrained", "quiet_hub_logs",
-           "scheduler_class", "uses_tiny_decoder", "warn_idle_options"]
+           "scheduler_class", "uses_tiny_decoder"]
 
 logger = logging.getLogger(__name__)
 
@@ -349,26 +349,6 @@ def check_guidance_before_loading(guidance: GuidanceConfig, run: RunOptions, mod
     guidance.anchor_chunks(num_frames, model.temporal_compression)
 
 
-def warn_idle_options(model: VideoModel, sampling: Any, guidance: GuidanceConfig, run: RunOptions,
-                      search: SearchConfig | None = None) -> None:
-    """One warning line for each option set that cannot act on the run (it changes neither the
-    frames nor the video's name): ``guidance.dynamic`` without guidance or search, ``run.split_cfg``
-    without guidance or without CFG (on a model the hooks guide, a guided call refuses it before
-    loading), ``run.particle_batch`` without a search."""
-    searching = search is not None and search.enabled
-    if guidance.dynamic is not None and not guidance.enabled and not searching:
-        logger.warning("guidance.dynamic=%r does nothing without guidance (--no-guidance): nothing is masked",
-                       guidance.dynamic)
-    if run.particle_batch is not None and not searching:
-        logger.warning("run.particle_batch=%d does nothing without a search (search.particles): one video is one "
-                       "batch", run.particle_batch)
-    if run.split_cfg and guidance.enabled and sampling.guidance_scale <= 1.0:
-        logger.warning("run.split_cfg does nothing without CFG (sampling.guidance_scale <= 1): the frames are those "
-                       "of one call")
-    elif run.split_cfg and not guidance.enabled:
-        logger.warning("run.split_cfg does nothing without guidance: the frames are those of one call")
-
-
 def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceConfig, run: RunOptions,
                          estimators: EstimatorsConfig, *, weights: bool = True,
                          search: SearchConfig | None = None) -> torch.device:
@@ -378,7 +358,7 @@ def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceCo
     1. with ``weights`` (the models are not loaded yet), every model's weights, the tiny decoder's
        where the guidance decodes with it (all missing ones named at once);
     2. the devices (``model.device``, ``run.devices``) and the memory a plan budgets for;
-    3. options that cannot act (a warning each), the memory plan that fits
+    3. the memory plan that fits
        (:func:`~.memory_plan.plan_before_loading`), a ``search``'s particles beside it
        (:func:`~.search.check_search_before_loading`), and what the guidance computes
        (:func:`check_guidance_before_loading`: loss, schedule, decode options, anchors);
@@ -405,7 +385,6 @@ def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceCo
     devices = resolve_devices(run.devices) if anchored else None
     device = check_device(model.device)
     device_gb = planning_memory_gb(device, devices)
-    warn_idle_options(entry, sampling, guidance, run, search)
     frames, height, width = sampling.num_frames, sampling.height, sampling.width
     plan = plan_before_loading(guidance, run, model.source, frames, height, width, device_gb)
     if searching:

@@ -50,9 +50,11 @@ def test_overrides_are_told_from_inputs(tmp_path: Path):
 
 def test_the_config_takes_preset_overrides_and_flags_in_that_order():
     args = parser().parse_args(["--preset", "tiny", "--geometry-estimator", "tiny-random"])
-    cfg = config_from_args(args, ["seed=5", "estimators.geometry=elsewhere"], {"evaluation.loss.pairs": "center",
-                                                                            "seed": None})
+    cfg = config_from_args(args, ["seed=5", "estimators.geometry=tiny-random"], {"evaluation.loss.pairs": "center",
+                                                                              "seed": None})
     assert cfg.seed == 5 and cfg.estimators.geometry == "tiny-random" and cfg.evaluation.loss.pairs == "center"
+    with pytest.raises(ValueError, match="^evaluation.loss.pairs=all disagrees with the flag that sets"):
+        config_from_args(args, ["evaluation.loss.pairs=all"], {"evaluation.loss.pairs": "center"})
     with pytest.raises(ValueError):
         config_from_args(args, ["guidance.step_sizea=1"])
 
