@@ -59,7 +59,8 @@ def add_config_flags(parser: argparse.ArgumentParser, *, estimators: bool = True
     parser.add_argument("--config", default=None, help="YAML config file (applied after --preset)")
     if estimators:
         parser.add_argument("--geometry-estimator", dest="geometry_estimator", default=None,
-                            metavar="ID_OR_DIR", help="geometry estimator: hub id or local folder (estimators.geometry)")
+                            metavar="NAME_ID_OR_DIR", help="geometry estimator: vggt-1b (default), da3-small, da3-base, "
+                            "a hub id or a local folder (estimators.geometry)")
         parser.add_argument("--flow-estimator", dest="flow_estimator", default=None,
                             metavar="ID_OR_DIR", help="flow estimator: hub id or local folder (estimators.flow)")
         parser.add_argument("--vggt", action=RenamedFlag, new="--geometry-estimator")

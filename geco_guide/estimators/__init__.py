@@ -14,6 +14,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Optional
 
+import json
+from pathlib import Path
+
 import torch
 
 from ..io.devices import resolve_device
@@ -21,17 +24,28 @@ from . import dynamic_masks  # noqa: F401  (names the mask sources the loss take
 from .bundle import Estimators, estimator_id
 from .loading import WeightsNotFoundError, WeightsSource, check_weight_sources
 
-__all__ = ["TINY_RANDOM", "Estimators", "EstimatorsConfig", "check_weights", "estimator_id", "estimator_ids",
-           "estimator_weight_sources", "load_estimators", "load_segmenter", "tiny_estimators", "tiny_random_decoder",
-           "with_config_key"]
+__all__ = ["GEOMETRY_BACKBONES", "TINY_RANDOM", "TINY_RANDOM_DA3", "Estimators", "EstimatorsConfig", "check_weights",
+           "estimator_id", "estimator_ids", "estimator_weight_sources", "geometry_architecture", "geometry_source",
+           "load_estimators", "load_segmenter", "tiny_estimators", "tiny_random_decoder", "with_config_key"]
 
 TINY_RANDOM = "tiny-random"
+#: The tiny random Depth Anything 3 (``estimators.geometry``); ``tiny-random`` is the tiny VGGT.
+TINY_RANDOM_DA3 = "tiny-random-da3"
+
+#: The published geometry backbones ``estimators.geometry`` names, with their hub ids. VGGT-1B's
+#: weights are CC-BY-NC-4.0; DA3-SMALL's and DA3-BASE's are Apache-2.0 (docs/metric.md).
+GEOMETRY_BACKBONES = {"vggt-1b": "facebook/VGGT-1B", "da3-small": "depth-anything/DA3-SMALL",
+                      "da3-base": "depth-anything/DA3-BASE"}
 
 
 @dataclass
 class EstimatorsConfig:
     """The frozen GeCo backbones: hub ids or local folders, or ``tiny-random``.
 
+    ``geometry`` is a backbone of :data:`GEOMETRY_BACKBONES` by name (``vggt-1b``, ``da3-small``,
+    ``da3-base``: their hub ids), a hub id, a local folder (VGGT, or Depth Anything 3 when its
+    ``config.json`` is one: :func:`geometry_architecture`), ``tiny-random`` (a tiny random VGGT)
+    or ``tiny-random-da3`` (a tiny random Depth Anything 3); the default is VGGT-1B.
     ``dtype`` is the storage dtype of their ViT trunks (``trunk_to``): bfloat16 halves their
     memory and speeds them up on a GPU; the heads, outputs and the GeCo loss stay float32.
     ``gradient_checkpointing`` recomputes their trunks' blocks in the guidance backward: less
@@ -55,14 +69,59 @@ class EstimatorsConfig:
     segmenter: str = "facebook/sam3"
 
 
-def tiny_estimators(seed: int = 0, **more: Any) -> Estimators:
-    """Tiny random VGGT and UFM of the real architectures, seeded, as one :class:`Estimators`
-    (with ``more`` of its fields: ``segmenter``, ``tiny_decoder``): what the ``tiny-random`` ids
-    load (offline, CPU, seconds)."""
+def tiny_estimators(seed: int = 0, geometry: str = "vggt", **more: Any) -> Estimators:
+    """Tiny random geometry (``geometry``: ``"vggt"`` or ``"da3"``, Depth Anything 3) and UFM of
+    the real architectures, seeded, as one :class:`Estimators` (with ``more`` of its fields:
+    ``segmenter``, ``tiny_decoder``): what the ``tiny-random`` ids load (offline, CPU, seconds)."""
     from .ufm import UFM, UFMConfig
-    from .vggt import VGGT, VGGTConfig
 
-    return Estimators(VGGT.random(VGGTConfig.tiny(), seed=seed), UFM.random(UFMConfig.tiny(), seed=seed), **more)
+    if geometry == "da3":
+        from .da3 import DA3, DA3Config
+
+        geometry_model = DA3.random(DA3Config.tiny(), seed=seed)
+    elif geometry == "vggt":
+        from .vggt import VGGT, VGGTConfig
+
+        geometry_model = VGGT.random(VGGTConfig.tiny(), seed=seed)
+    else:
+        raise ValueError(f"tiny geometry estimator {geometry!r}: one of 'vggt', 'da3'")
+    return Estimators(geometry_model, UFM.random(UFMConfig.tiny(), seed=seed), **more)
+
+
+def geometry_source(geometry: str) -> str:
+    """What ``estimators.geometry`` loads: a backbone name's hub id (:data:`GEOMETRY_BACKBONES`),
+    else the value itself (a hub id, a folder, a tiny id)."""
+    return GEOMETRY_BACKBONES.get(geometry.lower(), geometry)
+
+
+def geometry_architecture(geometry: str) -> str:
+    """``"da3"`` or ``"vggt"``: the architecture ``estimators.geometry`` loads, known without
+    loading it: a Depth Anything 3 name, tiny id or hub id (``depth-anything/DA3...``), or a local
+    folder (or a file in one) whose ``config.json`` is a Depth Anything 3 one; anything else is
+    VGGT."""
+    source = geometry_source(geometry)
+    if source == TINY_RANDOM_DA3 or source.lower().startswith("depth-anything/da3"):
+        return "da3"
+    path = Path(source).expanduser()
+    config = (path.parent if path.is_file() else path) / "config.json"
+    if not config.is_file():
+        return "vggt"
+    try:
+        raw = json.loads(config.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return "vggt"  # the VGGT loader names the unreadable file
+    # the published files' ``model_name`` / ``config``, or our own save's ``alt_start``
+    return "da3" if isinstance(raw, dict) and ({"model_name", "config", "alt_start"} & set(raw)) else "vggt"
+
+
+def _geometry_class(geometry: str) -> Any:
+    if geometry_architecture(geometry) == "da3":
+        from .da3 import DA3
+
+        return DA3
+    from .vggt import VGGT
+
+    return VGGT
 
 
 def tiny_random_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int | None = None) -> Any:
@@ -89,7 +148,7 @@ def estimator_ids(estimators_cfg: EstimatorsConfig, segmenter: bool = False) -> 
     """The ids :func:`load_estimators` gives the models of ``estimators_cfg`` (``segmenter``: also
     the text segmenter's), without loading them: a report written without the models names them
     as a loaded :class:`Estimators` does (:meth:`Estimators.ids`)."""
-    names = {"geometry": estimators_cfg.geometry, "flow": estimators_cfg.flow}
+    names = {"geometry": geometry_source(estimators_cfg.geometry), "flow": estimators_cfg.flow}
     if segmenter:
         names["segmenter"] = estimators_cfg.segmenter
     # tiny random models are only reproducible with their seed
@@ -102,11 +161,12 @@ def estimator_weight_sources(estimators_cfg: EstimatorsConfig, segmenter: bool =
     and, with ``segmenter``, the text segmenter's one or two; ``tiny-random`` models have none."""
     from .segmenters import segmenter_weight_sources
     from .ufm import UFM
-    from .vggt import VGGT
 
-    rows = [WeightsSource("estimators.geometry", estimators_cfg.geometry, VGGT.model_name, tuple(VGGT.checkpoint_files)),
+    geometry = _geometry_class(estimators_cfg.geometry)
+    rows = [WeightsSource("estimators.geometry", geometry_source(estimators_cfg.geometry), geometry.model_name,
+                          tuple(geometry.checkpoint_files)),
             WeightsSource("estimators.flow", estimators_cfg.flow, UFM.model_name)]
-    rows = [row for row in rows if row.source != TINY_RANDOM]
+    rows = [row for row in rows if row.source not in (TINY_RANDOM, TINY_RANDOM_DA3)]
     return rows + (segmenter_weight_sources(estimators_cfg.segmenter) if segmenter else [])
 
 
@@ -165,20 +225,19 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
     dtype = getattr(torch, estimators_cfg.dtype)
     ids = estimator_ids(estimators_cfg)
     tiny = None
-    if TINY_RANDOM in (estimators_cfg.geometry, estimators_cfg.flow):
-        tiny = tiny_estimators(estimators_cfg.init_seed)
+    if estimators_cfg.geometry in (TINY_RANDOM, TINY_RANDOM_DA3) or estimators_cfg.flow == TINY_RANDOM:
+        tiny = tiny_estimators(estimators_cfg.init_seed, geometry_architecture(estimators_cfg.geometry))
     # the segmenter before the larger models: its missing weights end the run before they load
     segment = load_segmenter(estimators_cfg, device) if segmenter else None
     device = resolve_device(device)
-    if estimators_cfg.geometry == TINY_RANDOM:
+    if estimators_cfg.geometry in (TINY_RANDOM, TINY_RANDOM_DA3):
         geometry = tiny.geometry.to(device).trunk_to(dtype)
     else:
-        from .vggt import VGGT
-
+        source = geometry_source(estimators_cfg.geometry)
         try:
-            geometry = VGGT.from_pretrained(estimators_cfg.geometry, dtype=dtype, device=device)
+            geometry = _geometry_class(source).from_pretrained(source, dtype=dtype, device=device)
         except WeightsNotFoundError as err:
-            raise with_config_key(err, "estimators.geometry", "/path/to/VGGT-1B") from None
+            raise with_config_key(err, "estimators.geometry", f"/path/to/{Path(source).name}") from None
     if estimators_cfg.flow == TINY_RANDOM:
         flow = tiny.flow.to(device).trunk_to(dtype)
     else:
