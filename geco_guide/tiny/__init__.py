@@ -5,7 +5,8 @@
 built here from a seed: a word-level T5-style tokenizer made with the ``tokenizers`` library, a
 tiny ``T5EncoderModel``, ``CogVideoXTransformer3DModel`` and ``AutoencoderKLCogVideoX`` (temporal
 compression 4, spatial 8, so the real frame <-> latent mapping is exercised), the DDIM scheduler
-with the CogVideoX-5b scheduler settings; :func:`tiny_estimators` the tiny random VGGT / UFM.
+with the CogVideoX-5b scheduler settings; :func:`tiny_estimators` the tiny random VGGT (or, with
+``geometry="da3"``, Depth Anything 3: the ``tiny-random-da3`` id) and UFM.
 Every family of the model registry (:mod:`geco_guide.families`) has its builder here, which the
 registry names (:func:`tiny_video_components`). Nothing is downloaded. The outputs are noise-like
 videos; only the mechanics are real.
