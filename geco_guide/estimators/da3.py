@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..geometry import quaternion_to_matrix, resize_intrinsics
+from ..geometry import invert_rigid, pose_encoding_to_cameras, resize_intrinsics
 from ..types import SceneGeometry, check_frames
 from .base import FrozenEstimator
 from .da3_config import DA3Config
@@ -308,16 +308,15 @@ class CameraDecoder(nn.Module):
 def decode_pose(pose_enc: Tensor, image_hw: tuple[int, int]) -> tuple[Tensor, Tensor]:
     """DA3's pose encoding ``[B, S, 9]`` -> camera-from-world extrinsics ``[B, S, 3, 4]`` (the
     inverse of the encoded camera-to-world pose) and K ``[B, S, 3, 3]`` in pixels of the
-    ``image_hw`` network input, principal point ``(W/2, H/2)`` (continuous pixel convention)."""
-    height, width = image_hw
-    rotation = quaternion_to_matrix(pose_enc[..., 3:7]).transpose(-1, -2)  # world-from-camera, inverted
-    translation = -(rotation @ pose_enc[..., :3, None])
-    fy = (height / 2.0) / torch.tan(pose_enc[..., 7] / 2.0).clamp(min=1e-6)
-    fx = (width / 2.0) / torch.tan(pose_enc[..., 8] / 2.0).clamp(min=1e-6)
-    zero, one = torch.zeros_like(fx), torch.ones_like(fx)
-    intrinsics = torch.stack([fx, zero, zero + width / 2.0, zero, fy, zero + height / 2.0, zero, zero, one],
-                             dim=-1).unflatten(-1, (3, 3))
-    return torch.cat([rotation, translation], dim=-1), intrinsics
+    ``image_hw`` network input, principal point ``(W/2, H/2)`` (continuous pixel convention).
+
+    The encoding is VGGT's (:func:`~geco_guide.geometry.pose_encoding_to_cameras`) of the other
+    direction; fields of view below ``2e-6`` rad are raised to it, as the reference keeps
+    ``tan(fov / 2) >= 1e-6``.
+    """
+    fov = pose_enc[..., 7:].clamp(min=2e-6)
+    camera_to_world, intrinsics = pose_encoding_to_cameras(torch.cat([pose_enc[..., :7], fov], dim=-1), image_hw)
+    return invert_rigid(camera_to_world)[..., :3, :], intrinsics
 
 
 class DA3Network(nn.Module):

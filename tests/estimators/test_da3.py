@@ -194,3 +194,11 @@ def test_gradient_checkpointing_keeps_the_gradient() -> None:
         (grad,) = torch.autograd.grad(model.estimate_geometry(x).depth.mean(), x)
         grads.append(grad)
     torch.testing.assert_close(grads[0], grads[1])
+
+
+def test_lifecycle_is_the_shared_one() -> None:
+    from geco_guide.estimators.base import FrozenEstimator
+
+    assert issubclass(DA3, FrozenEstimator)
+    for name in ("random", "from_state_dict", "from_pretrained", "trunk_to", "gradient_checkpointing"):
+        assert name not in vars(DA3), f"DA3 redefines {name}"
