@@ -63,7 +63,7 @@ class DA3Config:
 
     @classmethod
     def tiny(cls) -> "DA3Config":
-        """The parity fixture's sizes: 0.1 M parameters, a 56-pixel position table."""
+        """The parity fixture's sizes: 0.2 M parameters, a 56-pixel position table."""
         return cls(img_size=56, embed_dim=32, depth=6, num_heads=2, out_layers=(2, 3, 4, 5), alt_start=2,
                    qknorm_start=2, rope_start=3, head_features=16, head_out_channels=(8, 16, 24, 32),
                    process_res=70)
