@@ -34,10 +34,10 @@ from .runs import config_fingerprint, read_finished
 __all__ = ["AGREEMENT_FILE", "ARMS", "BEST_OF", "MATCHED_SEARCH_FILE", "MAX_SEED", "METRICS", "MOTION_DROP",
            "PAIR_OUTPUTS", "SEARCH", "TINY_GUIDANCE_NOTE", "UNIT_STEMS", "WARM_UP", "BestOf", "InputError", "Pair",
            "SearchArm", "arm_config", "arm_label", "arm_title", "best_of_problem", "bootstrap_ci", "candidate_paths",
-           "expected_search_s", "has_maps", "lowered_fused", "matched_particles", "motion_change",
-           "non_finite_scores", "paired_difference", "pair_dir", "parse_seeds", "plan_pairs", "read_agreement",
-           "read_candidate", "read_matched_search", "read_result", "read_run_result", "run_arms", "search_problem",
-           "summarize", "warm_up_pairs"]
+           "expected_search_s", "has_maps", "least_spacing", "lowered_fused", "matched_best_of", "matched_particles",
+           "motion_change", "non_finite_scores", "paired_difference", "pair_dir", "parse_seeds", "plan_pairs",
+           "read_agreement", "read_candidate", "read_matched_search", "read_result", "read_run_result", "run_arms",
+           "search_problem", "shared_candidates", "summarize", "warm_up_pairs"]
 
 logger = logging.getLogger(__name__)
 
@@ -104,11 +104,13 @@ class Pair:
 @dataclass(frozen=True)
 class BestOf:
     """The best-of-N arm: ``n`` unguided seeds per pair; ``gpu`` and ``predicted_ratio`` say how
-    ``n`` was matched to the guided arm's cost (both None when ``n`` was given)."""
+    ``n`` was matched to the guided arm's cost (both None when ``n`` was given); ``matched_n``:
+    the N the ratio gave where it was capped at the seeds' spacing (:func:`matched_best_of`)."""
 
     n: int
     gpu: str | None = None
     predicted_ratio: float | None = None
+    matched_n: int | None = None
 
     @property
     def label(self) -> str:
@@ -118,15 +120,48 @@ class BestOf:
     def how(self) -> str:
         if self.predicted_ratio is None:
             return "given (--best-of)"
+        capped = "" if self.matched_n is None else (
+            f", {self.matched_n} capped at {self.n}, the least spacing of the seeds (at least 2), so that the pairs "
+            "share as few candidates as they can")
         return (f"matched: round({self.predicted_ratio:.3g}), the guided / unguided sampling time ratio the cost "
-                f"model predicts for this config on the {self.gpu}")
+                f"model predicts for this config on the {self.gpu}{capped}")
 
     def seeds(self, pair: Pair) -> list[int]:
         return [pair.seed + k for k in range(self.n)]
 
     def to_dict(self) -> dict[str, Any]:
         return {"n": self.n, "chosen": "given" if self.predicted_ratio is None else "matched", "gpu": self.gpu,
-                "predicted_ratio": self.predicted_ratio}
+                "predicted_ratio": self.predicted_ratio, "matched_n": self.matched_n}
+
+
+def matched_best_of(ratio: float, gpu: str, seeds: Sequence[int]) -> BestOf:
+    """The best-of arm of ``--best-of matched``: N = round(``ratio``) (at least 2), the guided /
+    unguided time ratio predicted on ``gpu``, capped at the least spacing of ``seeds`` (at least
+    2): each pair's candidates are the seeds ``seed .. seed + N - 1``, so a larger N would make
+    the candidates of one pair the videos of the next, pairs the run asked for apart."""
+    n = max(2, round(ratio))
+    spacing = least_spacing(seeds)
+    if spacing is None or n <= max(2, spacing):
+        return BestOf(n, gpu, ratio)
+    return BestOf(max(2, spacing), gpu, ratio, matched_n=n)
+
+
+def least_spacing(seeds: Sequence[int]) -> int | None:
+    """The least distance between two of ``seeds``; None for one seed."""
+    ordered = sorted(seeds)
+    return min((b - a for a, b in zip(ordered, ordered[1:])), default=None)
+
+
+def shared_candidates(seeds: Sequence[int], n: int) -> str | None:
+    """The sentence on the best-of-``n`` candidates that pairs of ``seeds`` share (seeds less than
+    ``n`` apart), or None where they share none: what the report says and a run warns of first."""
+    ordered = sorted(seeds)
+    close = next(((a, b) for a, b in zip(ordered, ordered[1:]) if b - a < n), None)
+    if close is None:
+        return None
+    a, b = close
+    return (f"seeds less than {n} apart share best-of-{n} candidates (seed {b} is a candidate of seed {a}'s pair and "
+            f"the unguided video of its own): for independent pairs give seeds at least {n} apart")
 
 
 @dataclass(frozen=True)

@@ -38,6 +38,7 @@ from .ab import (
     read_agreement,
     read_run_result,
     run_arms,
+    shared_candidates,
     summarize,
 )
 from .report import TINY_NOTE, fmt, interval_text, markdown_table
@@ -94,7 +95,8 @@ def _share(lowered: dict[str, Any]) -> str:
 
 def _best_of_of(summary: dict[str, Any]) -> BestOf | None:
     chosen = summary.get(BEST_OF)
-    return None if chosen is None else BestOf(chosen["n"], chosen["gpu"], chosen["predicted_ratio"])
+    return None if chosen is None else BestOf(chosen["n"], chosen["gpu"], chosen["predicted_ratio"],
+                                              chosen.get("matched_n"))
 
 
 def _search_of(summary: dict[str, Any]) -> SearchArm | None:
@@ -215,10 +217,8 @@ def _best_of_lines(summary: dict[str, Any], best_of: BestOf | None) -> list[str]
                 f"{fmt(arms[BEST_OF]['generation_s_mean'] / unguided, 3)}x (its {best_of.n} candidates; the first is "
                 f"the unguided arm's video), and scoring its candidates took "
                 f"{fmt(arms[BEST_OF]['evaluation_s_mean'], 3)} s per pair") if unguided > 0 else "nothing measured"
-    seeds = summary["seeds"]
-    shared = (f" Seeds less than {best_of.n} apart share candidates (pair s0's seed 1 is pair s1's unguided video): "
-              f"for independent pairs give seeds at least {best_of.n} apart."
-              if any(b - a < best_of.n for a, b in zip(seeds, seeds[1:])) else "")
+    shared = shared_candidates(summary["seeds"], best_of.n)
+    shared = f" {shared[0].upper()}{shared[1:]}." if shared else ""
     return [
         (f"**{best_of.label}** (selection among unguided seeds): per pair the unguided seeds seed .. seed+{best_of.n - 1}"
          f", each scored with the GeCo protocol, the least fused kept. N = {best_of.n}, {best_of.how}"

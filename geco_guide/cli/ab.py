@@ -27,7 +27,9 @@ unguided arm's video; the others in ``candidates/``), each scored with the same 
 :func:`geco_guide.generation.best_candidate` picks copied to ``best_of.mp4`` (its sidecar lists
 every candidate). ``--best-of matched`` takes N = round of the guided / unguided sampling time
 ratio the cost model predicts for the run's config on ``--gpu`` (default: the local GPU, when it is
-a card the model knows).
+a card the model knows), capped at the least spacing of ``--seeds`` (at least 2), so that one
+pair's candidates are not the next pair's videos; the cap, and seeds closer than N, are said
+before anything is generated.
 
 ``--search K`` adds particle search with GeCo as the verifier (the config's ``search.*``): ``K``
 particles of the seeds ``seed .. seed + K - 1`` (particle 0 from the pair's own noise), unguided
@@ -95,7 +97,7 @@ def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
     parser.add_argument("--best-of", default=None, metavar="N|matched",
                         help="an arm of selection: per pair N unguided seeds (seed .. seed+N-1), each scored with the "
                              "GeCo protocol, the least fused kept; 'matched': N = the guided / unguided time ratio the "
-                             "cost model predicts for this config on --gpu")
+                             "cost model predicts for this config on --gpu, at most the least spacing of --seeds")
     parser.add_argument("--gpu", default=None, metavar="CARD",
                         help="the card --best-of matched predicts for (H200, H100, L40S, A6000, RTX4090, L4; default: "
                              "the local GPU when it is one of them)")

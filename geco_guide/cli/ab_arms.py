@@ -43,6 +43,7 @@ from ..bench.ab import (
     candidate_paths,
     expected_search_s,
     has_maps,
+    matched_best_of,
     matched_particles,
     pair_dir,
     parse_seeds,
@@ -53,6 +54,7 @@ from ..bench.ab import (
     read_result,
     run_arms,
     search_problem,
+    shared_candidates,
 )
 from ..bench.ab_report import write_report
 from ..bench.report import fmt, interval_text
@@ -230,8 +232,11 @@ def choose_best_of(value: str | None, gpu: str | None, cfg: GeCoConfig, seeds: S
             raise InputError(f"--best-of matched needs a card the cost model knows ({', '.join(GPU_SPECS)}) and "
                              f"the device here ({resolve_device(cfg.model.device)}) is none: pass --gpu NAME or an "
                              "integer --best-of N")
-        ratio = predicted_ratio(cfg, card)
-        best_of = BestOf(max(2, round(ratio)), card, ratio)
+        best_of = matched_best_of(predicted_ratio(cfg, card), card, seeds)
+        if best_of.matched_n is not None:
+            print(f"note: --best-of matched: N = {best_of.matched_n} predicted on the {card}, capped at {best_of.n}, the "
+                  f"least spacing of --seeds: give seeds at least {best_of.matched_n} apart for N = "
+                  f"{best_of.matched_n}", file=sys.stderr)
     else:
         if gpu is not None:
             raise InputError("--gpu is for --best-of matched; an integer --best-of N needs no card")
@@ -239,6 +244,9 @@ def choose_best_of(value: str | None, gpu: str | None, cfg: GeCoConfig, seeds: S
         best_of = BestOf(n)
     if max(seeds) + best_of.n - 1 > MAX_SEED:
         raise InputError(f"--best-of {best_of.n} from seed {max(seeds)} runs past the last seed, 2**63 - 1")
+    shared = shared_candidates(seeds, best_of.n)
+    if shared is not None:  # said before the run, not only in its report
+        print(f"warning: --best-of {best_of.n}: {shared}", file=sys.stderr)
     return best_of
 
 

@@ -740,7 +740,7 @@ def test_matched_best_of_takes_n_from_the_cost_model_on_the_named_card():
     from geco_guide.perf.plans import card_plan
 
     cfg = load_config(preset="tiny", overrides=FAST[2:])
-    chosen = ab_arms.choose_best_of("matched", "L40S", cfg, [0, 1])
+    chosen = ab_arms.choose_best_of("matched", "L40S", cfg, [0, 100])  # seeds far apart: N uncapped
     s = cfg.sampling
     plan = card_plan("L40S", "faithful", "vae", s.num_frames, s.height, s.width)["plan"]
     settings = cost_settings(preset="tiny", steps=2, frames=9, height=s.height, width=s.width, dtype=None, plan=plan)
