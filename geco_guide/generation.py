@@ -47,6 +47,7 @@ if TYPE_CHECKING:
     import torch
 
     from .estimators import Estimators
+    from .io.video import SoundTrack
     from .sampler.context import GuidanceObserver, GuidanceReport
     from .sampler.loading import LoadedPipeline
 
@@ -372,12 +373,14 @@ class Sample:
         report: what the call decided (:class:`~geco_guide.sampler.context.GuidanceReport`).
         seconds: the call's wall time (a search's: with the selection's scoring).
         search: what a search did and chose (:func:`sample_search`), ``None`` without one.
+        audio: the sound the model made with the video (LTX-2), ``None`` without.
     """
 
     frames: torch.Tensor
     report: GuidanceReport
     seconds: float
     search: dict[str, Any] | None = None
+    audio: SoundTrack | None = None
 
 
 def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = None, image: Any = None,
@@ -400,7 +403,7 @@ def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = N
     import torch
 
     from .sampler.context import GuidanceReport
-    from .sampler.sampling import call_arguments
+    from .sampler.sampling import call_arguments, sound_track
 
     pipe, entry = models.pipe, models.video.model
     generator = torch.Generator(device="cpu").manual_seed(cfg.seed if seed is None else seed)
@@ -428,7 +431,7 @@ def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = N
     seconds = time.perf_counter() - start
     frames = output.frames[:1].float().cpu()  # [1, F, 3, H, W] in [0, 1]
     _check_sampled(frames)
-    return Sample(frames, report, seconds)
+    return Sample(frames, report, seconds, audio=sound_track(pipe, output))
 
 
 def _check_sampled(frames: torch.Tensor) -> None:
@@ -629,7 +632,7 @@ def _load_sample_and_write(cfg: GeCoConfig, prompt: str, video_path: Path, sidec
         scores = score_anchors(made, cfg, models)
         timings["scoring_s"] = time.perf_counter() - start
     start = time.perf_counter()
-    write_video(video_path, made.frames[0], fps=cfg.sampling.fps)
+    write_video(video_path, made.frames[0], fps=cfg.sampling.fps, audio=made.audio)
     timings["write_video_s"] = time.perf_counter() - start
     with removed_on_failure(video_path, sidecar_path):
         sidecar = sidecar_of(cfg, prompt, models, made, video_path.name, timings, scores)
@@ -688,6 +691,7 @@ def sidecar_of(cfg: GeCoConfig, prompt: str, models: Models, made: Sample, video
         "geco_scores": {"anchors": anchors_of(cfg), **scores} if scores is not None else None,
         "guidance_log": log,
         **({"search": made.search} if made.search is not None else {}),
+        **({"audio": made.audio.record(Path(video_name))} if made.audio is not None else {}),
     }
 
 

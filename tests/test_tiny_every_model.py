@@ -1,7 +1,8 @@
 """The tiny preset runs every registry model: ``geco generate --preset tiny --model NAME`` (and
 ``geco ab``, ``geco geco-eval``) fit the preset's 17 x 32 x 48 call to the model: the size
 multiple (48 -> 64 for LTX, LTX-2 and the Wan 2.2 16x VAE), no text length for HunyuanVideo 1.5's
-pipeline, which takes none. What the user sets stays as set, and is refused if it does not fit."""
+pipeline, which takes none. What the user sets stays as set, and is refused if it does not fit.
+LTX-2's sound, which its pipeline makes with the video, is the mp4's sound stream."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from geco_guide.bench.geco_eval import job_config
 from geco_guide.cli import generate
 from geco_guide.config import load_config
 from geco_guide.families import model_named, video_models
+from geco_guide.io.video import audio_stream
 from geco_guide.sampler.sampling import sampling_problem
 
 GENERATING = video_models()
@@ -80,3 +82,9 @@ def test_geco_generate_preset_tiny_runs_every_model(name, image, tmp_path, capsy
     sidecar = json.loads(out.with_suffix(".json").read_text())
     assert sidecar["model"] == name and sidecar["config"]["model"]["id"] == "tiny-random"
     assert sidecar["num_frames"] == 17 and out.stat().st_size > 0
+    if name == "ltx-2":  # its vocoder's 16 kHz stereo, as long as the video at the call's 24 fps
+        assert audio_stream(out) == {"codec": "aac", "sample_rate": 16000, "channels": "stereo"}
+        assert sidecar["audio"] == {"file": "video.mp4", "sample_rate": 16000, "channels": 2,
+                                    "seconds": pytest.approx(17 / 24, abs=0.05)}
+    else:
+        assert audio_stream(out) is None and "audio" not in sidecar

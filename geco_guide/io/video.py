@@ -1,4 +1,5 @@
-"""Video files: :func:`write_video` / :func:`read_video` (mp4 through imageio-ffmpeg, GIFs through
+"""Video files: :func:`write_video` / :func:`read_video` (mp4 through imageio-ffmpeg, with a
+:class:`SoundTrack` muxed in where the model made one; GIFs, which hold no sound, through
 Pillow) and :func:`read_frames` (mp4 and other ffmpeg formats, gif, folders of png/jpg frames,
 subsampled while decoding by a frame selector, e.g. the protocol's of
 :mod:`geco_guide.metric.protocol`). A GIF is written frame for frame and read by its frame delays
@@ -12,9 +13,13 @@ frame there) and moved into place with ``os.replace``, so a reader never sees a 
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import re
+import subprocess
+import tempfile
+import wave
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -26,9 +31,11 @@ from torch import Tensor
 
 from .files import WriteError, atomic_path
 
-__all__ = ["FPS_RANGE", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "VideoFrames", "VideoReadError", "check_fps",
-           "frame_files", "gif_frame_repeats", "gif_rate", "input_stem", "read_frames", "read_image", "read_video",
-           "write_video"]
+__all__ = ["FPS_RANGE", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "SoundTrack", "VideoFrames", "VideoReadError",
+           "audio_stream", "check_fps", "frame_files", "gif_frame_repeats", "gif_rate", "input_stem", "read_frames",
+           "read_image", "read_video", "write_video"]
+
+logger = logging.getLogger(__name__)
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".gif")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -91,10 +98,42 @@ def _to_uint8_hwc(frames, even: bool = True) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
-def write_video(path: str | os.PathLike, frames, fps: float = 8) -> Path:
+@dataclass(frozen=True)
+class SoundTrack:
+    """The sound a model made with its video (LTX-2's vocoder): ``samples`` float ``[C, N]`` in
+    ``[-1, 1]`` (``C`` channels of ``N`` samples; louder is clipped when written), ``rate``
+    samples per second."""
+
+    samples: Tensor
+    rate: int
+
+    def __post_init__(self) -> None:
+        shape = list(self.samples.shape)
+        if self.samples.ndim != 2 or 0 in shape:
+            raise ValueError(f"a sound track must be [channels, samples] with both >= 1, got shape {shape}")
+        if isinstance(self.rate, bool) or not isinstance(self.rate, int) or self.rate < 1:
+            raise ValueError(f"a sound track's rate must be whole samples per second >= 1, got {self.rate!r}")
+        if not torch.isfinite(self.samples).all():
+            raise ValueError("a sound track must be finite: its samples hold NaN or inf values")
+
+    @property
+    def seconds(self) -> float:
+        return self.samples.shape[1] / self.rate
+
+    def record(self, video: Path) -> dict[str, Any]:
+        """What a sidecar says of it once written with ``video``: the file that holds it (the mp4;
+        ``None`` for a GIF, which holds no sound), its rate, channels and length."""
+        held = video.suffix.lower() != ".gif"
+        return {"file": video.name if held else None, "sample_rate": self.rate,
+                "channels": int(self.samples.shape[0]), "seconds": round(self.seconds, 6),
+                **({} if held else {"not_written": "a GIF holds no sound: write an .mp4 to keep it"})}
+
+
+def write_video(path: str | os.PathLike, frames, fps: float = 8, audio: SoundTrack | None = None) -> Path:
     """Write ``frames`` (``[S, 3, H, W]`` or ``[S, H, W, 3]``, float in [0, 1] or uint8) as an
-    H.264 mp4 (yuv420p; an odd height/width is padded by one repeated row/column), or as a
-    looping GIF when ``path`` ends in ``.gif``, atomically. Returns the path.
+    H.264 mp4 (yuv420p; an odd height/width is padded by one repeated row/column) with ``audio``
+    as its AAC sound stream, or as a looping GIF when ``path`` ends in ``.gif`` (a GIF holds no
+    sound: ``audio`` is left out, with a warning), atomically. Returns the path.
 
     The written file is checked before it takes its name: ffmpeg can fail while writing the
     trailer (a full disk) without the writer raising, which leaves an unreadable file.
@@ -103,29 +142,85 @@ def write_video(path: str | os.PathLike, frames, fps: float = 8) -> Path:
         ValueError: ``fps`` outside :data:`FPS_RANGE`, frames of a wrong shape or holding NaN or
             inf; before anything is written.
         WriteError: one line naming ``path`` (disk full, ffmpeg failed, the file does not hold
-            ``S`` readable frames); nothing is left under its name or as a temporary file.
+            ``S`` readable frames, or lacks the sound stream); nothing is left under its name or
+            as a temporary file.
     """
-    import imageio.v2 as imageio
-
     path = Path(path)
     check_fps(fps, path.suffix)
     if path.suffix.lower() == ".gif":
+        if audio is not None:
+            logger.warning("warning: %s: a GIF holds no sound; the %.2f s sound track is not written (write an .mp4 "
+                           "to keep it)", path, audio.seconds)
         return _write_gif(path, _to_uint8_hwc(frames, even=False), fps)
     data = _to_uint8_hwc(frames)
     with atomic_path(path) as tmp:
-        writer = imageio.get_writer(
-            tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
-            macro_block_size=1, quality=8, ffmpeg_log_level="error",
-        )
-        try:
-            for frame in data:
-                writer.append_data(frame)
-        finally:
-            writer.close()
+        if audio is None:
+            _write_frames(tmp, data, fps)
+        else:
+            with tempfile.TemporaryDirectory(prefix="geco-sound-") as work:
+                silent, sound = Path(work) / "video.mp4", Path(work) / "sound.wav"
+                _write_frames(silent, data, fps)
+                _write_wav(sound, audio)
+                _mux(silent, sound, tmp, path)
         problem = _written_video_problem(tmp, len(data))
+        if problem is None and audio is not None and audio_stream(tmp) is None:
+            problem = "the written file holds no sound stream"
         if problem:
             raise WriteError(f"cannot write {str(path)!r}: {problem}")
     return path
+
+
+def _write_frames(path: Path, data: np.ndarray, fps: float) -> None:
+    """``data [S, H, W, 3]`` uint8 as an H.264 mp4 at ``path`` (no sound)."""
+    import imageio.v2 as imageio
+
+    writer = imageio.get_writer(
+        path, format="FFMPEG", mode="I", fps=fps, codec="libx264", pixelformat="yuv420p",
+        macro_block_size=1, quality=8, ffmpeg_log_level="error",
+    )
+    try:
+        for frame in data:
+            writer.append_data(frame)
+    finally:
+        writer.close()
+
+
+def _write_wav(path: Path, audio: SoundTrack) -> None:
+    """``audio`` as 16-bit PCM WAV (clipped to [-1, 1]): what ffmpeg reads to encode the sound."""
+    pcm = (audio.samples.detach().float().cpu().clamp(-1.0, 1.0) * 32767.0).round().to(torch.int16)
+    with wave.open(str(path), "wb") as file:
+        file.setnchannels(pcm.shape[0])
+        file.setsampwidth(2)
+        file.setframerate(audio.rate)
+        file.writeframes(pcm.T.contiguous().numpy().tobytes())  # interleaved: one sample of each channel in turn
+
+
+def _mux(video: Path, sound: Path, out: Path, named: Path) -> None:
+    """``video``'s stream copied and ``sound`` encoded as AAC into the mp4 ``out``; WriteError
+    naming ``named`` (the path the caller asked for) when ffmpeg fails."""
+    import imageio_ffmpeg
+
+    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-v", "error", "-y", "-i", str(video), "-i", str(sound),
+               "-map", "0:v:0", "-map", "1:a:0", "-c:v", "copy", "-c:a", "aac", "-b:a", "192k", str(out)]
+    proc = subprocess.run(command, check=False, capture_output=True, text=True, errors="replace")
+    if proc.returncode != 0:
+        lines = [line.strip() for line in proc.stderr.splitlines() if line.strip()]
+        raise WriteError(f"cannot write {str(named)!r}: muxing the sound failed "
+                         f"({lines[-1] if lines else f'ffmpeg exit {proc.returncode}'})")
+
+
+def audio_stream(path: str | os.PathLike) -> dict[str, Any] | None:
+    """The first sound stream of the video at ``path``, as ffmpeg describes it: ``{"codec",
+    "sample_rate", "channels"}`` (channels as ffmpeg names the layout: ``mono``, ``stereo``, ...),
+    or ``None`` where it has none."""
+    import imageio_ffmpeg
+
+    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-hide_banner", "-i", str(path)]
+    proc = subprocess.run(command, check=False, capture_output=True, text=True, errors="replace")
+    found = re.search(r"Stream #\d+:\d+.*?: Audio: (\w+).*?, (\d+) Hz, ([^,]+),", proc.stderr)
+    if found is None:
+        return None
+    return {"codec": found.group(1), "sample_rate": int(found.group(2)), "channels": found.group(3).strip()}
 
 
 def _write_gif(path: Path, data: np.ndarray, fps: float) -> Path:
@@ -173,8 +268,6 @@ def _written_video_problem(path: Path, expected_frames: int) -> str | None:
     ffmpeg counts its packets without decoding (``-c copy``), cheap whatever the video's size,
     and fails on a file without its index (``moov atom not found``), as a truncated one is.
     """
-    import subprocess
-
     import imageio_ffmpeg
 
     command = [imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-v", "error", "-i", str(path), "-map", "0:v:0",

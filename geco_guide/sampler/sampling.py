@@ -11,11 +11,14 @@ from __future__ import annotations
 
 import inspect
 from dataclasses import dataclass, fields, replace
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 from ..families import VideoModel, frames_problem
 
-__all__ = ["SamplingConfig", "call_arguments", "fit_to_model", "sampling_problem", "with_model_defaults"]
+if TYPE_CHECKING:
+    from ..io.video import SoundTrack
+
+__all__ = ["SamplingConfig", "call_arguments", "fit_to_model", "sampling_problem", "sound_track", "with_model_defaults"]
 
 
 @dataclass
@@ -128,3 +131,16 @@ def call_arguments(pipe: Any, sampling: SamplingConfig, *, prompt: str, generato
             raise ValueError(f"{option} is not an argument of {type(pipe).__name__}: leave it unset for this model")
         arguments[name] = value
     return arguments
+
+
+def sound_track(pipe: Any, output: Any) -> SoundTrack | None:
+    """The first video's sound where ``pipe``'s call made one (LTX-2: ``output.audio``
+    ``[B, C, N]``, its vocoder's waveform at the vocoder's ``output_sampling_rate``), else ``None``."""
+    audio = getattr(output, "audio", None)
+    if audio is None:
+        return None
+    import torch
+
+    from ..io.video import SoundTrack
+
+    return SoundTrack(torch.as_tensor(audio[0]).float().cpu(), int(pipe.vocoder.config.output_sampling_rate))

@@ -536,9 +536,10 @@ def tiny_ltx2_pipeline(seed: int = 0):
         vae.latents_std.copy_(torch.linspace(0.8, 1.5, channels))
         audio_vae = AutoencoderKLLTX2Audio(base_channels=4, ch_mult=(1,), num_res_blocks=1, resolution=32,
                                            latent_channels=2, mel_bins=8)
+        # 160x upsampling, the mel hop: a waveform as long as the video at 16 kHz, as LTX-2's (240x to 24 kHz)
         vocoder = LTX2Vocoder(in_channels=audio_vae.config.output_channels * audio_vae.config.mel_bins, hidden_channels=8,
-                              upsample_kernel_sizes=[4, 4], upsample_factors=[2, 2], resnet_kernel_sizes=[3],
-                              resnet_dilations=[[1, 3, 5]], output_sampling_rate=16000)
+                              upsample_kernel_sizes=[8, 8, 20], upsample_factors=[4, 4, 10], resnet_kernel_sizes=[3],
+                              resnet_dilations=[[1, 3, 5]], output_sampling_rate=audio_vae.config.sample_rate)
     finally:
         torch.random.set_rng_state(state)
     scheduler = FlowMatchEulerDiscreteScheduler(base_image_seq_len=1024, base_shift=0.95, max_image_seq_len=4096,
