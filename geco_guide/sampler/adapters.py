@@ -32,8 +32,8 @@ from torch import Tensor, nn
 from .levels import FlowLevels, NoiseLevels, VPLevels
 from .slicing import decode_chunk
 
-__all__ = ["CallGeometry", "CogVideoXAdapter", "HunyuanVideo15Adapter", "HunyuanVideoAdapter", "LTX2Adapter",
-           "LTXAdapter", "PipelineAdapter", "WanAdapter", "adapter_for", "check_no_denoiser_cache",
+__all__ = ["CallGeometry", "CogVideoXAdapter", "CogVideoXContextParallelAttention", "HunyuanVideo15Adapter",
+           "HunyuanVideoAdapter", "LTX2Adapter", "LTXAdapter", "PipelineAdapter", "WanAdapter", "adapter_for", "adapter_for_class", "check_no_denoiser_cache",
            "check_requested_frames", "check_scheduler", "fit_combination", "keep_update", "noise_levels",
            "register_adapter"]
 
@@ -127,6 +127,19 @@ class PipelineAdapter:
             out = out + w.item() * p.float()
         return out
 
+    #: why the family's denoiser cannot run under ``run.context_parallel`` (one line), or None
+    context_parallel_refusal: str | None = None
+
+    def context_parallel_plan(self, denoiser: nn.Module) -> dict[str, Any] | None:
+        """How ``run.context_parallel`` splits ``denoiser``'s token sequence over the processes and
+        gathers it back (a diffusers ``ContextParallelModelPlan``): the denoiser's own ``_cp_plan``
+        (diffusers writes one for Wan, LTX-Video and LTX-2), None where it has none."""
+        return getattr(denoiser, "_cp_plan", None)
+
+    def prepare_context_parallel(self, denoiser: nn.Module) -> None:
+        """What ``denoiser`` needs before diffusers' context parallelism is enabled on it: nothing
+        where its attention processors dispatch through diffusers' attention already."""
+
 
 class CogVideoXAdapter(PipelineAdapter):
     """``CogVideoXPipeline`` and ``CogVideoXImageToVideoPipeline`` (1.0 and 1.5).
@@ -179,6 +192,66 @@ class CogVideoXAdapter(PipelineAdapter):
         # as CogVideoXPipeline.decode_latents: divide by the scaling factor, decode (also for
         # the 1.5 I2V models with invert_scale_latents, whose decode path is the same)
         return decode_chunk(pipe.vae, latents, pipe.vae_scaling_factor_image)
+
+    def context_parallel_plan(self, denoiser):
+        """CogVideoX's plan, written as diffusers writes ``_cp_plan``: the rotary tables of the
+        video tokens (``[S, D]`` each) split at the model's input, the video and text tokens split
+        where the first block takes them (after the patch embedding, which sees the whole video),
+        and the video tokens gathered after ``proj_out`` (the unpatchify needs all of them). The
+        attention is :class:`CogVideoXContextParallelAttention`."""
+        from diffusers.models._modeling_parallel import ContextParallelInput, ContextParallelOutput
+
+        tokens = ContextParallelInput(split_dim=1, expected_dims=3)
+        rotary = ContextParallelInput(split_dim=0, expected_dims=2)
+        return {
+            "": {"image_rotary_emb": (rotary, rotary)},
+            "transformer_blocks.0": {"hidden_states": tokens, "encoder_hidden_states": tokens},
+            "proj_out": ContextParallelOutput(gather_dim=1, expected_dims=3),
+        }
+
+    def prepare_context_parallel(self, denoiser):
+        denoiser.set_attn_processor(CogVideoXContextParallelAttention())
+
+
+class CogVideoXContextParallelAttention:
+    """CogVideoX's joint text-video self-attention, computed as diffusers' ``CogVideoXAttnProcessor2_0``
+    computes it but through diffusers' attention dispatch, where context parallelism runs its
+    Ulysses all-to-all (the stock processor calls ``scaled_dot_product_attention`` itself, and so
+    cannot be split). Under the split each process holds a shard of the text tokens and a shard
+    of the video tokens; the all-to-all lines up every process's ``[text, video]`` shards one after
+    the other, an order of the keys that the attention (no mask, every token sees every token)
+    does not depend on but for the order of its sums."""
+
+    _attention_backend = None
+    _parallel_config = None  # set by diffusers' enable_parallelism
+
+    def __call__(self, attn, hidden_states: Tensor, encoder_hidden_states: Tensor, attention_mask: Tensor | None = None,
+                 image_rotary_emb: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+        """``hidden_states [B, S, C]`` (video), ``encoder_hidden_states [B, T, C]`` (text) -> both
+        after attention and the output projection."""
+        from diffusers.models.attention_dispatch import dispatch_attention_fn
+        from diffusers.models.embeddings import apply_rotary_emb
+
+        if attention_mask is not None:
+            raise ValueError("CogVideoX's attention under context parallelism takes no attention mask")
+        text = encoder_hidden_states.shape[1]
+        tokens = torch.cat([encoder_hidden_states, hidden_states], dim=1)
+        # [B, T + S, heads, head_dim]: the layout diffusers' dispatch takes
+        query, key, value = (proj(tokens).unflatten(2, (attn.heads, -1)) for proj in (attn.to_q, attn.to_k, attn.to_v))
+        if attn.norm_q is not None:
+            query = attn.norm_q(query)
+        if attn.norm_k is not None:
+            key = attn.norm_k(key)
+        if image_rotary_emb is not None:
+            def rotate(x: Tensor) -> Tensor:
+                return torch.cat([x[:, :text], apply_rotary_emb(x[:, text:], image_rotary_emb, sequence_dim=1)], dim=1)
+
+            query = rotate(query)
+            key = key if attn.is_cross_attention else rotate(key)
+        out = dispatch_attention_fn(query, key, value, backend=self._attention_backend,
+                                    parallel_config=self._parallel_config)
+        out = attn.to_out[1](attn.to_out[0](out.flatten(2, 3).to(query.dtype)))
+        return out[:, text:], out[:, :text]
 
 
 def _channels_first_shape(pipe, args: dict[str, Any], temporal_compression: int) -> tuple[int, ...]:
@@ -292,6 +365,9 @@ class HunyuanVideo15Adapter(PipelineAdapter):
     linear combination, checked against the pipeline's output."""
 
     name = "HunyuanVideo 1.5"
+    context_parallel_refusal = ("HunyuanVideo 1.5's denoiser has no context-parallel plan (diffusers writes none, "
+                                "and its attention masks the text by a mask of the whole sequence, which a split "
+                                "reorders)")
 
     def call_geometry(self, pipe, args, latents):
         return replace(super().call_geometry(pipe, args, latents), requested_frames=int(args["num_frames"]))
@@ -530,12 +606,17 @@ def supported_pipelines() -> list[str]:
 def adapter_for(pipe) -> PipelineAdapter:
     """The adapter of ``pipe``'s class (the most derived registered base); ValueError listing the
     supported pipelines and how to register one otherwise."""
+    return adapter_for_class(type(pipe))
+
+
+def adapter_for_class(pipeline_class: type) -> PipelineAdapter:
+    """:func:`adapter_for` of a pipeline class (before any pipeline is built)."""
     _register_defaults()
-    for cls in type(pipe).__mro__:
+    for cls in pipeline_class.__mro__:
         if cls in _REGISTRY:
             return _REGISTRY[cls]
     raise ValueError(
-        f"GeCo guidance has no adapter for {type(pipe).__name__}. Supported: {', '.join(supported_pipelines())}. "
+        f"GeCo guidance has no adapter for {pipeline_class.__name__}. Supported: {', '.join(supported_pipelines())}. "
         "To add one, subclass geco_guide.sampler.adapters.PipelineAdapter (latent layout, de-normalisation, "
         "chunk decode) and call geco_guide.sampler.adapters.register_adapter(YourPipeline, YourAdapter())."
     )

@@ -70,6 +70,7 @@ from ..types import check_estimator_bundle, refuses_earlier_keywords
 from .adapters import CallGeometry, PipelineAdapter, adapter_for, check_scheduler, fit_combination, noise_levels
 from .config import GuidanceConfig
 from .context import GuidanceContext, GuidanceObserver, GuidanceReport
+from .context_parallel import start_context_parallel
 from .module_hooks import register_hook
 from .multi_device import module_replicas
 from .particles import (
@@ -350,6 +351,9 @@ class GeCoGuidanceHandle:
 
     def _attach(self) -> None:
         pipe = self.pipe
+        # the split first (run.context_parallel), so that the hooks registered below wrap it
+        start_context_parallel(pipe, self.adapter, self.run_options,
+                               differentiates=self.config.enabled and self.config.denoiser_grad)
         self._saved_prepare = pipe.__dict__.get("prepare_latents", _MISSING)
         original_prepare = pipe.prepare_latents
         signature = inspect.signature(original_prepare)

@@ -45,10 +45,11 @@ from torch import Tensor
 from ..io.devices import planning_memory_gb, resolve_devices
 from ..loss.geco import GeCoLoss
 from ..types import check_estimator_bundle, refuses_earlier_keywords
-from .adapters import check_no_denoiser_cache, check_scheduler, noise_levels
+from .adapters import adapter_for, check_no_denoiser_cache, check_scheduler, noise_levels
 from .anchor_decode import anchor_decoder
 from .config import GuidanceConfig, resolve_guidance_config
 from .context import GuidanceContext, GuidanceObserver, GuidanceReport
+from .context_parallel import start_context_parallel
 from .multi_device import CfgHalves
 from .dynamic import guidance_mask_source
 from .anchor_decode import plan_anchor_decode
@@ -383,6 +384,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             check_search_call(search, run, generator, search_generator, num_steps=num_steps, videos=prompts)
         schedule, chunks, decode = self.check_geco_inputs(height, width, num_frames, num_steps, config, run, estimators,
                                                           searching=search is not None)
+        # the denoiser split over the launch's processes, once (run.context_parallel)
+        start_context_parallel(self, adapter_for(self), run, differentiates=config.enabled and config.denoiser_grad)
         working = config.enabled or search is not None
         devices = resolve_devices(run.devices) if working else None
         memory_plan = self.choose_memory_plan(config, run, num_frames, height, width, devices) if config.enabled else None

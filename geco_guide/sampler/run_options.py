@@ -83,6 +83,13 @@ class RunOptions:
             in :data:`FRAME_ROUNDING_KEYS`), of one particle each particle's frames as its own
             call, bit for bit. With ``devices`` the sub-batches of the sampling's denoiser calls are
             dealt over them, each device with a replica of the denoiser.
+        context_parallel: ``None`` (default: one process) or the number of processes ``N >= 2``
+            the call runs over, launched with ``torchrun --nproc-per-node N`` (or ``accelerate
+            launch``): every process runs the whole call, and each denoiser's token sequence is
+            split over them with diffusers' context parallelism (Ulysses attention), forward and
+            backward (:mod:`.context_parallel`, docs/context_parallel.md). The attention of the
+            split sequence sums in another order, so the frames equal one process's to float
+            rounding (hence in :data:`FRAME_ROUNDING_KEYS`).
     """
 
     memory_plan: str = "auto"
@@ -95,6 +102,7 @@ class RunOptions:
     devices: Optional[list[str]] = None
     split_cfg: bool = False
     particle_batch: Optional[int] = None
+    context_parallel: Optional[int] = None
 
     def __post_init__(self) -> None:
         for key in ("gradient_checkpointing", "vae_checkpointing", "compile", "split_cfg"):
@@ -115,6 +123,9 @@ class RunOptions:
         if self.particle_batch is not None and (not is_integer(self.particle_batch) or self.particle_batch < 1):
             raise OptionError("particle_batch", f"must be a whole number of particles >= 1 (or null: the memory plan's "
                                                 f"choice), got {self.particle_batch!r}")
+        if self.context_parallel is not None and (not is_integer(self.context_parallel) or self.context_parallel < 2):
+            raise OptionError("context_parallel", f"must be a whole number of processes >= 2 (or null: one process), "
+                                                  f"got {self.context_parallel!r}")
         if self.decode_layout not in DECODE_LAYOUTS:
             raise OptionError("decode_layout", f"must be one of {', '.join(DECODE_LAYOUTS)}, got {self.decode_layout!r}")
         if self.devices is not None and (not isinstance(self.devices, (list, tuple)) or not self.devices
@@ -127,7 +138,7 @@ class RunOptions:
 RUN_KEYS = tuple(f.name for f in fields(RunOptions))
 #: The run options that can change the frames to float rounding, and so stay in the video key
 #: (the memory plans and devices give the same frames bit for bit on one kind of device).
-FRAME_ROUNDING_KEYS = ("decode_layout", "compile", "split_cfg", "particle_batch")
+FRAME_ROUNDING_KEYS = ("decode_layout", "compile", "split_cfg", "particle_batch", "context_parallel")
 
 
 def resolve_run_options(base: RunOptions | None, override: RunOptions | Mapping[str, Any] | None) -> RunOptions:

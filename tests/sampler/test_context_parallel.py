@@ -1,0 +1,141 @@
+"""``run.context_parallel``: the guided call split over two processes with diffusers' context
+parallelism gives one process's video and gradients.
+
+Two processes on the ``gloo`` backend (CPU), spawned here, run the same tiny call as one process:
+the paper's pipeline (CogVideoX, our plan and attention processor) and the hooks on a stock
+``WanPipeline`` (diffusers' own ``_cp_plan``). Compared with one process:
+
+- the denoiser's output and the gradient of a fixed linear read-out of it with respect to the
+  latents (a CFG batch of two): the gradient faithful guidance takes through the denoiser;
+- a faithful guided call: the norms of its updates' gradients (through the GeCo loss, the anchor
+  decode and the denoiser) and its video.
+
+The split changes the order of sums only: the attention of the split sequence (CogVideoX's joint
+text-video sequence comes out of the all-to-all in another order) and matrix products over fewer
+rows per process. So the gradients and the denoiser's output agree to float32 rounding, checked
+at 1e-5 relative to their largest entry (measured: about 2e-7; the updates' gradient norms 3e-6).
+The video is checked at 5e-4 absolute (measured: 5e-5 for CogVideoX, 5e-6 for Wan): a guided
+update is normalised, so its direction carries the rounding into the latents, and a guided call
+amplifies it; the call here guides the first step only (two updates), since the tiny models'
+full schedule turns a 1e-6 change of the initial latents into 0.18 of a frame in one process
+alone.
+
+The collectives are diffusers' own (its functional all-to-all and all-gather) on gloo; the one
+line of diffusers replaced on a CPU is the choice of the rank's accelerator
+(``_resolve_parallel_config``, see ``geco_guide.sampler.context_parallel``). Not covered on a CPU:
+ring attention (the native backend returns no log-sum-exp, which ring attention merges with),
+NCCL and the GPU attention kernels (flash, cuDNN); ``scripts/check_context_parallel.py`` checks a
+GPU run against one GPU.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+
+import pytest
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+
+import geco_guide.tiny as T
+from geco_guide.estimators import tiny_estimators
+from geco_guide.sampler.hooks import attach_geco_guidance
+from geco_guide.sampler.run_options import RunOptions
+
+PROCESSES = 2
+FAMILIES = ("cogvideox", "wan")
+#: the guided call's updates: two at the first step, none after (see the module's docstring)
+UPDATES = "2x1,0x3"
+GRADIENT_TOLERANCE = 1e-5  # relative to the largest entry (of the gradient; of the denoiser's output)
+FRAME_TOLERANCE = 5e-4  # absolute, frames in [0, 1]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _pipeline(family: str):
+    return T.tiny_pipeline(0) if family == "cogvideox" else T.tiny_wan_pipeline(0, scheduler="euler")
+
+
+def _denoiser_gradient(pipe, family: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The denoiser's output at random latents (a CFG batch of 2) and the gradient of a fixed
+    linear read-out of it with respect to the latents."""
+    g = torch.Generator().manual_seed(1)
+    shape = (1, 5, 4, 4, 6) if family == "cogvideox" else (1, 4, 5, 4, 6)
+    z = torch.randn(shape, generator=g).requires_grad_(True)
+    text = torch.randn(2, T.TINY_MAX_SEQUENCE_LENGTH, 16, generator=g)
+    inputs = dict(hidden_states=torch.cat([z, z]), encoder_hidden_states=text, timestep=torch.tensor([500, 500]),
+                  return_dict=False)
+    if family == "cogvideox":
+        inputs["image_rotary_emb"] = pipe._prepare_rotary_positional_embeddings(T.TINY_HEIGHT, T.TINY_WIDTH, 5, "cpu")
+    out = pipe.transformer(**inputs)[0]
+    weights = torch.randn(out.shape, generator=g)
+    (grad,) = torch.autograd.grad((out * weights).sum(), z)
+    return out.detach(), grad
+
+
+def _guided_call(pipe, family: str, run: RunOptions) -> tuple[torch.Tensor, torch.Tensor]:
+    """A faithful guided call: its frames and its updates' gradient norms."""
+    estimators = tiny_estimators(0)
+    config = T.tiny_guidance_config(denoiser_grad=True, repeats=UPDATES, time_travel=None)
+    kwargs = T.tiny_call_kwargs(pipe, prompt="a marble bust", output_type="pt",
+                                generator=torch.Generator().manual_seed(0))
+    if family == "cogvideox":
+        out = pipe(**kwargs, guidance=config, estimators=estimators, run_options=run)
+        log = out.report.log
+    else:
+        with attach_geco_guidance(pipe, config, estimators, run_options=run) as handle:
+            out = pipe(**kwargs)
+            log = handle.last.log
+    norms = torch.tensor([record["grad_norm"] for record in log])
+    return out.frames.float(), norms
+
+
+def _run(family: str, run: RunOptions) -> dict[str, torch.Tensor]:
+    pipe = _pipeline(family)
+    if run.context_parallel:  # the split as the guided call makes it, before the gradient check
+        from geco_guide.sampler.adapters import adapter_for
+        from geco_guide.sampler.context_parallel import start_context_parallel
+
+        start_context_parallel(pipe, adapter_for(pipe), run, differentiates=True)
+    out, grad = _denoiser_gradient(pipe, family)
+    frames, norms = _guided_call(pipe, family, run)
+    return {"out": out, "grad": grad, "frames": frames, "norms": norms}
+
+
+def _worker(rank: int, port: int, folder: str) -> None:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), OMP_NUM_THREADS="1")
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", rank=rank, world_size=PROCESSES)
+    try:
+        run = T.tiny_run_options(context_parallel=PROCESSES)
+        torch.save({family: _run(family, run) for family in FAMILIES}, os.path.join(folder, f"rank{rank}.pt"))
+    finally:
+        dist.destroy_process_group()
+
+
+@pytest.fixture(scope="module")
+def split_runs(tmp_path_factory) -> list[dict]:
+    """Every process's results of the split runs (one spawn for both families: the imports are
+    most of a process's time)."""
+    folder = tmp_path_factory.mktemp("context_parallel")
+    mp.spawn(_worker, args=(_free_port(), str(folder)), nprocs=PROCESSES)
+    return [torch.load(folder / f"rank{rank}.pt") for rank in range(PROCESSES)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", FAMILIES)
+def test_two_processes_give_one_process_video_and_gradient(family, split_runs):
+    torch.set_num_threads(1)
+    one = _run(family, T.tiny_run_options())
+    for rank, runs in enumerate(split_runs):
+        split = runs[family]
+        for key in ("out", "grad"):
+            error = (split[key] - one[key]).abs().max() / one[key].abs().max()
+            assert error <= GRADIENT_TOLERANCE, (rank, key, float(error))
+        assert (split["frames"] - one["frames"]).abs().max() <= FRAME_TOLERANCE, rank
+        torch.testing.assert_close(split["norms"], one["norms"], rtol=GRADIENT_TOLERANCE, atol=0)
