@@ -506,7 +506,9 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         ):
             if geco:
                 geco.on_record = lambda record: progress_bar.set_postfix(loss=f"{record.loss:.4f}", refresh=False)
-                progress_bar.set_description(f"memory plan {geco.memory_plan.plan.name}", refresh=False)
+                # what the bar counts and how guidance keeps to memory (docs/performance.md: memory plans)
+                progress_bar.set_description(f"GeCo-guided denoising steps (memory plan: {geco.memory_plan.plan.name})",
+                                             refresh=False)
             old_pred_original_sample = None  # for DPM-solver++
             for i, t in enumerate(timesteps):
                 if self.interrupt:
