@@ -20,22 +20,32 @@ from pathlib import Path
 import torch
 
 from ..io.devices import resolve_device
+from ..types import OptionError
 from . import dynamic_masks  # noqa: F401  (names the mask sources the loss takes by name: "auto")
 from .bundle import Estimators, estimator_id
 from .loading import WeightsNotFoundError, WeightsSource, check_weight_sources
+from .waft_config import DEFAULT_REPO_ID as WAFT_REPO_ID
 
-__all__ = ["GEOMETRY_BACKBONES", "TINY_RANDOM", "TINY_RANDOM_DA3", "Estimators", "EstimatorsConfig", "check_weights",
-           "estimator_id", "estimator_ids", "estimator_weight_sources", "geometry_architecture", "geometry_source",
-           "load_estimators", "load_segmenter", "tiny_estimators", "tiny_random_decoder", "with_config_key"]
+__all__ = ["FLOW_ESTIMATORS", "GEOMETRY_BACKBONES", "TINY_RANDOM", "TINY_RANDOM_DA3", "TINY_RANDOM_WAFT", "Estimators",
+           "EstimatorsConfig", "check_weights", "estimator_id", "estimator_ids", "estimator_weight_sources",
+           "flow_architecture", "flow_source", "geometry_architecture", "geometry_source", "load_estimators",
+           "load_segmenter", "tiny_estimators", "tiny_random_decoder", "with_config_key"]
 
 TINY_RANDOM = "tiny-random"
 #: The tiny random Depth Anything 3 (``estimators.geometry``); ``tiny-random`` is the tiny VGGT.
 TINY_RANDOM_DA3 = "tiny-random-da3"
+#: The tiny random WAFT (``estimators.flow``); ``tiny-random`` is the tiny UFM.
+TINY_RANDOM_WAFT = "tiny-random-waft"
 
 #: The published geometry backbones ``estimators.geometry`` names, with their hub ids. VGGT-1B's
 #: weights are CC-BY-NC-4.0; DA3-SMALL's and DA3-BASE's are Apache-2.0 (docs/metric.md).
 GEOMETRY_BACKBONES = {"vggt-1b": "facebook/VGGT-1B", "da3-small": "depth-anything/DA3-SMALL",
                       "da3-base": "depth-anything/DA3-BASE"}
+#: The flow estimators ``estimators.flow`` names, with their hub ids. UFM-Base's weights are
+#: CC-BY-NC-4.0; WAFT's are BSD-3-Clause (its Depth Anything V2 Small part Apache-2.0).
+FLOW_ESTIMATORS = {"ufm-base": "infinity1096/UFM-Base", "waft": WAFT_REPO_ID}
+#: ``estimators.flow=waft:ID_OR_PATH``: WAFT weights that carry no config.json (the authors' ``.pth`` files).
+WAFT_PREFIX = "waft:"
 
 
 @dataclass
@@ -46,6 +56,11 @@ class EstimatorsConfig:
     ``da3-base``: their hub ids), a hub id, a local folder (VGGT, or Depth Anything 3 when its
     ``config.json`` is one: :func:`geometry_architecture`), ``tiny-random`` (a tiny random VGGT)
     or ``tiny-random-da3`` (a tiny random Depth Anything 3); the default is VGGT-1B.
+    ``flow`` is a flow estimator of :data:`FLOW_ESTIMATORS` by name (``ufm-base``, ``waft``), a hub
+    id, a local folder (UFM, or WAFT when its ``config.json`` is one: :func:`flow_architecture`),
+    ``waft:ID_OR_PATH`` (WAFT weights without a ``config.json``, e.g. the authors' ``.pth``),
+    ``tiny-random`` (a tiny random UFM) or ``tiny-random-waft`` (a tiny random WAFT); the default
+    is UFM-Base.
     ``dtype`` is the storage dtype of their ViT trunks (``trunk_to``): bfloat16 halves their
     memory and speeds them up on a GPU; the heads, outputs and the GeCo loss stay float32.
     ``gradient_checkpointing`` recomputes their trunks' blocks in the guidance backward: less
@@ -114,6 +129,61 @@ def geometry_architecture(geometry: str) -> str:
     return "da3" if isinstance(raw, dict) and ({"model_name", "config", "alt_start"} & set(raw)) else "vggt"
 
 
+def flow_source(flow: str) -> str:
+    """What ``estimators.flow`` loads: a flow estimator name's hub id (:data:`FLOW_ESTIMATORS`),
+    the weights after ``waft:``, else the value itself (a hub id, a folder, a tiny id).
+
+    Raises:
+        OptionError: ``waft:`` with nothing after it.
+    """
+    if flow.startswith(WAFT_PREFIX):
+        if not flow[len(WAFT_PREFIX):].strip():
+            raise OptionError("estimators.flow", "'waft:' needs a hub id or a local path after it")
+        return flow[len(WAFT_PREFIX):]
+    return FLOW_ESTIMATORS.get(flow.lower(), flow)
+
+
+def flow_architecture(flow: str) -> str:
+    """``"waft"`` or ``"ufm"``: the architecture ``estimators.flow`` loads, known without loading
+    it: ``waft`` names, ``waft:...``, the tiny WAFT, the WAFT hub id, or a local folder (or a file
+    in one) whose ``config.json`` says ``"architecture": "waft"``; anything else is UFM."""
+    source = flow_source(flow)
+    if flow.startswith(WAFT_PREFIX) or source in (TINY_RANDOM_WAFT, FLOW_ESTIMATORS["waft"]):
+        return "waft"
+    path = Path(source).expanduser()
+    config = (path.parent if path.is_file() else path) / "config.json"
+    try:
+        raw = json.loads(config.read_text(encoding="utf-8")) if config.is_file() else None
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return "ufm"  # the UFM loader names the unreadable file
+    return "waft" if isinstance(raw, dict) and raw.get("architecture") == "waft" else "ufm"
+
+
+def _flow_class(flow: str) -> Any:
+    if flow_architecture(flow) == "waft":
+        from .waft import WAFT
+
+        return WAFT
+    from .ufm import UFM
+
+    return UFM
+
+
+def _load_flow(estimators_cfg: EstimatorsConfig, dtype: torch.dtype, device: torch.device) -> Any:
+    """The flow estimator of ``estimators.flow`` (not ``tiny-random``), its trunk in ``dtype``."""
+    if estimators_cfg.flow == TINY_RANDOM_WAFT:
+        from .waft import WAFT, WAFTConfig
+
+        return WAFT.random(WAFTConfig.tiny(), seed=estimators_cfg.init_seed).to(device).trunk_to(dtype)
+    source = flow_source(estimators_cfg.flow)
+    flow_class = _flow_class(estimators_cfg.flow)
+    try:
+        return flow_class.from_pretrained(source, dtype=dtype, device=device)
+    except WeightsNotFoundError as err:
+        example = "waft:/path/to/WAFT" if flow_class.model_name == "WAFT" else "/path/to/UFM-Base"
+        raise with_config_key(err, "estimators.flow", example) from None
+
+
 def _geometry_class(geometry: str) -> Any:
     if geometry_architecture(geometry) == "da3":
         from .da3 import DA3
@@ -148,7 +218,7 @@ def estimator_ids(estimators_cfg: EstimatorsConfig, segmenter: bool = False) -> 
     """The ids :func:`load_estimators` gives the models of ``estimators_cfg`` (``segmenter``: also
     the text segmenter's), without loading them: a report written without the models names them
     as a loaded :class:`Estimators` does (:meth:`Estimators.ids`)."""
-    names = {"geometry": geometry_source(estimators_cfg.geometry), "flow": estimators_cfg.flow}
+    names = {"geometry": geometry_source(estimators_cfg.geometry), "flow": flow_source(estimators_cfg.flow)}
     if segmenter:
         names["segmenter"] = estimators_cfg.segmenter
     # tiny random models are only reproducible with their seed
@@ -160,13 +230,15 @@ def estimator_weight_sources(estimators_cfg: EstimatorsConfig, segmenter: bool =
     """The :class:`~.loading.WeightsSource` of every model ``estimators_cfg`` names: geometry, flow
     and, with ``segmenter``, the text segmenter's one or two; ``tiny-random`` models have none."""
     from .segmenters import segmenter_weight_sources
-    from .ufm import UFM
 
-    geometry = _geometry_class(estimators_cfg.geometry)
+    geometry, flow = _geometry_class(estimators_cfg.geometry), _flow_class(estimators_cfg.flow)
+    # WAFT weights may come without a config.json (the authors' .pth files): its weights files say it
+    flow_files = tuple(flow.checkpoint_files) if flow.model_name == "WAFT" else ("config.json",)
     rows = [WeightsSource("estimators.geometry", geometry_source(estimators_cfg.geometry), geometry.model_name,
                           tuple(geometry.checkpoint_files)),
-            WeightsSource("estimators.flow", estimators_cfg.flow, UFM.model_name)]
-    rows = [row for row in rows if row.source not in (TINY_RANDOM, TINY_RANDOM_DA3)]
+            WeightsSource("estimators.flow", flow_source(estimators_cfg.flow), flow.model_name, flow_files,
+                          example="waft:/path/to/WAFT" if flow.model_name == "WAFT" else None)]
+    rows = [row for row in rows if row.source not in (TINY_RANDOM, TINY_RANDOM_DA3, TINY_RANDOM_WAFT)]
     return rows + (segmenter_weight_sources(estimators_cfg.segmenter) if segmenter else [])
 
 
@@ -241,12 +313,7 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
     if estimators_cfg.flow == TINY_RANDOM:
         flow = tiny.flow.to(device).trunk_to(dtype)
     else:
-        from .ufm import UFM
-
-        try:
-            flow = UFM.from_pretrained(estimators_cfg.flow, dtype=dtype, device=device)
-        except WeightsNotFoundError as err:
-            raise with_config_key(err, "estimators.flow", "/path/to/UFM-Base") from None
+        flow = _load_flow(estimators_cfg, dtype, device)
     for model in (geometry, flow):
         model.eval().requires_grad_(False)
         model.gradient_checkpointing = estimators_cfg.gradient_checkpointing

@@ -88,7 +88,7 @@ class WAFTConfig:
     @classmethod
     def tiny(cls) -> WAFTConfig:
         """A ~0.6 M-parameter model of the same structure for tests and the CPU demo (with
-        :meth:`WAFT.random` weights: flow of a pixel or so)."""
+        :meth:`WAFT.random` weights: flows of a tenth of a pixel or so, most pixels covisible)."""
         small = {"embed_dim": 32, "num_heads": 2, "feature_dim": 16, "out_channels": (8, 16, 24, 32)}
         return cls.from_dict({"depth_encoder": small, "refine": small, "context_channels": (8, 16, 24, 32),
                               "context_dim": 8, "iters": 3})

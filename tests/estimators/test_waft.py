@@ -63,6 +63,7 @@ def test_parity_with_reference(fx: dict) -> None:
     assert fx["flow"].abs().mean() > 1.0
 
 
+@pytest.mark.slow
 def test_checkpoint_keys_are_the_reference_keys(fx: dict) -> None:
     model = WAFT.random(WAFTConfig.tiny())
     assert set(model.state_dict()) == set(fx["state_dict"])
@@ -136,3 +137,53 @@ def test_forward_backward_covisibility() -> None:
     assert forward_backward_covisibility(forward, forward, 0.01, 0.5).eq(0).all()  # backward does not cancel
     small = forward_backward_covisibility(forward, -forward + 0.3, 0.01, 0.5)  # residual |(0.3, 0.3)|^2 = 0.18 < 0.5
     assert small[0, :, :6].eq(1).all()
+
+
+# ---------------------------------------------------------------------------------------------
+# Selection through estimators.flow
+# ---------------------------------------------------------------------------------------------
+
+
+def test_flow_architecture_and_source(tmp_path, tiny: WAFT) -> None:
+    from geco_guide.estimators import flow_architecture, flow_source
+
+    assert flow_architecture("infinity1096/UFM-Base") == flow_architecture("ufm-base") == "ufm"
+    assert flow_source("ufm-base") == "infinity1096/UFM-Base" and flow_source("waft") == WAFT.default_repo_id
+    assert flow_architecture("waft") == flow_architecture("tiny-random-waft") == "waft"
+    assert flow_architecture("waft:/weights/tar-c-t.pth") == "waft" and flow_source("waft:/w/a.pth") == "/w/a.pth"
+    assert flow_architecture(str(tiny.save_pretrained(tmp_path / "saved"))) == "waft"  # its config.json says so
+    assert flow_architecture(str(tmp_path / "missing")) == "ufm"
+    with pytest.raises(OptionError, match="estimators.flow"):
+        flow_source("waft:")
+
+
+@pytest.mark.slow
+def test_tiny_random_waft_loads_as_the_flow_estimator() -> None:
+    from geco_guide.estimators import EstimatorsConfig, estimator_weight_sources, load_estimators
+
+    config = EstimatorsConfig(geometry="tiny-random", flow="tiny-random-waft", dtype="float32", init_seed=2)
+    assert estimator_weight_sources(config) == []
+    estimators = load_estimators(config, "cpu")
+    assert isinstance(estimators.flow, WAFT) and estimators.ids()["flow"] == "tiny-random-waft(seed=2)"
+    frames = torch.rand(2, 3, 40, 56, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        corr = estimators.flow.estimate_flow(frames[:1], frames[1:])
+    # small random flows: most pixels pass the forward-backward test, as with the tiny UFM
+    assert 0.5 < corr.covisibility.mean().item() < 1.0
+
+
+def test_waft_offline_without_weights_is_one_line(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import huggingface_hub.constants
+
+    from geco_guide.estimators import EstimatorsConfig, check_weights, load_estimators
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(tmp_path))
+    config = EstimatorsConfig(geometry="tiny-random", flow="waft", dtype="float32")
+    for call in (lambda: check_weights(config), lambda: load_estimators(config, "cpu")):
+        with pytest.raises(WeightsNotFoundError) as err:
+            call()
+        message = str(err.value)
+        assert "\n" not in message and WAFT.default_repo_id in message
+        assert "estimators.flow=waft:/path/to/WAFT" in message
