@@ -62,7 +62,8 @@ def add_config_flags(parser: argparse.ArgumentParser, *, estimators: bool = True
                             metavar="NAME_ID_OR_DIR", help="geometry estimator: vggt-1b (default), da3-small, da3-base, "
                             "a hub id or a local folder (estimators.geometry)")
         parser.add_argument("--flow-estimator", dest="flow_estimator", default=None,
-                            metavar="ID_OR_DIR", help="flow estimator: hub id or local folder (estimators.flow)")
+                            metavar="NAME_ID_OR_DIR", help="flow estimator: ufm-base (default), waft, waft:ID_OR_PATH "
+                            "(WAFT weights without a config.json), a hub id or a local folder (estimators.flow)")
         parser.add_argument("--vggt", action=RenamedFlag, new="--geometry-estimator")
         parser.add_argument("--ufm", action=RenamedFlag, new="--flow-estimator")
 
