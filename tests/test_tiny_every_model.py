@@ -80,7 +80,7 @@ def test_geco_generate_preset_tiny_runs_every_model(name, image, tmp_path, capsy
     rc = generate.main(argv)
     assert rc == 0, capsys.readouterr().err
     sidecar = json.loads(out.with_suffix(".json").read_text())
-    assert sidecar["model"] == name and sidecar["config"]["model"]["id"] == "tiny-random"
+    assert sidecar["model"] == f"{name} (tiny random stand-in)" and sidecar["config"]["model"]["id"] == "tiny-random"
     assert sidecar["num_frames"] == 17 and out.stat().st_size > 0
     if name == "ltx-2":  # its vocoder's 16 kHz stereo, as long as the video at the call's 24 fps
         assert audio_stream(out) == {"codec": "aac", "sample_rate": 16000, "channels": "stereo"}

@@ -108,3 +108,12 @@ def test_no_guidance_with_masks_and_movers_runs_and_records_what_ran(best_of, tm
     (sidecar,) = tmp_path.glob("*.json")
     guidance = json.loads(sidecar.read_text())["config"]["guidance"]
     assert (guidance["enabled"], guidance["dynamic"], guidance["movers"]) == (False, None, "drop")
+
+
+@pytest.mark.slow
+def test_the_sidecar_of_the_tiny_preset_names_the_tiny_stand_in(tmp_path):
+    out = tmp_path / "video.mp4"
+    assert main([*TINY, "sampling.num_inference_steps=2", "--out", str(out)]) == 0
+    sidecar = json.loads(out.with_suffix(".json").read_text())
+    assert sidecar["model"] == "cogvideox-5b (tiny random stand-in)"
+    assert sidecar["config"]["model"]["name"] == "cogvideox-5b"  # the config as given: it runs again as it is
