@@ -21,3 +21,41 @@ def test_the_lines_follow_stderr_when_it_is_swapped():
     with contextlib.redirect_stderr(swapped):
         logging.getLogger("geco_guide.perf.measure").warning("warning: result.json is damaged")
     assert swapped.getvalue() == "warning: result.json is damaged\n"
+
+
+class _Kept(logging.Handler):
+    """The records that reach a logger's own handlers (its filters ran before)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+def test_the_known_third_party_notices_are_dropped_and_their_loggers_other_records_kept():
+    from geco_guide.io.logs import KNOWN_NOTICES, quiet_known_notices
+
+    log_to_stderr()
+    quiet_known_notices()  # again: one filter per logger
+    kept = {}
+    for name in KNOWN_NOTICES:
+        logger = logging.getLogger(name)
+        assert len(logger.filters) == 1
+        kept[name] = _Kept()
+        logger.addHandler(kept[name])
+    try:
+        logging.getLogger("transformers.utils.import_utils").warning(
+            "`CLIPImageProcessor` requires torchvision (not installed); falling back to `CLIPImageProcessorPil` for "
+            "backward compatibility.")
+        logging.getLogger("transformers.utils.import_utils").warning("Could not load PIL fallback")
+        from diffusers import ClassifierFreeGuidance
+
+        ClassifierFreeGuidance(guidance_scale=5.0)  # diffusers' own notice, as a modular Wan pipeline makes it
+        logging.getLogger("diffusers.guiders.guider_utils").warning("another guider warning")
+    finally:
+        for name, handler in kept.items():
+            logging.getLogger(name).removeHandler(handler)
+    assert kept["transformers.utils.import_utils"].messages == ["Could not load PIL fallback"]
+    assert kept["diffusers.guiders.guider_utils"].messages == ["another guider warning"]
