@@ -62,6 +62,10 @@ def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
                         help="particle search: K videos (seeds --seed .. --seed+K-1) in one batch, scored by GeCo on their "
                              "clean estimates and resampled at search.resample_steps, then the one of least fused score "
                              "under the GeCo protocol kept (guided too unless --no-guidance); sets search.particles")
+    parser.add_argument("--context-parallel", type=parse_count, default=None, metavar="N",
+                        help="split each denoiser's tokens over the N processes of a launch (torchrun --nproc-per-node N "
+                             "-m geco_guide.generate ...): diffusers' context parallelism, forward and backward; rank 0 "
+                             "writes the outputs (docs/context_parallel.md); sets run.context_parallel")
     parser.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. guidance.step_size=2.0")
     return parser
 
@@ -84,13 +88,17 @@ def run(args: argparse.Namespace) -> int:
     from ..generation import SCORES_NOTE, generate, generate_best_of
     from ..io.files import WriteError
     from ..io.video import read_image
+    from ..sampler.context_parallel import is_writing_process
 
     options = {"seed": args.seed, "guidance.enabled": False if args.no_guidance else None,
                "guidance.dynamic": args.dynamic, "guidance.movers": args.movers, "run.devices": args.devices,
-               "search.particles": args.search}
+               "search.particles": args.search, "run.context_parallel": args.context_parallel}
     try:
         cfg = config_from_args(args, args.overrides, options)
         image = read_image(args.image) if args.image is not None else None
+        if args.best_of is not None and cfg.run.context_parallel:
+            raise ValueError("--best-of writes each candidate from one process; under run.context_parallel use "
+                             "--search K (the candidates as one call's particles) or one launch per seed")
         if args.best_of is None:
             result = generate(cfg, args.prompt, out=args.out, overwrite=args.overwrite, image=image, announce=_announce)
         else:
@@ -98,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
                                       image=image, on_candidate=_print_candidate(args.best_of), announce=_announce)
     except (ValueError, WeightsNotFoundError, FileNotFoundError, WriteError) as err:
         return print_error(err)
+    if not is_writing_process(cfg.run):  # rank 0 of the launch writes and says so
+        return 0
     sidecar = result.sidecar
     print(f"wrote video:   {result.video_path}")
     print(f"wrote sidecar: {result.sidecar_path}")

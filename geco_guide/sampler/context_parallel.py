@@ -30,10 +30,11 @@ import torch.distributed as dist
 from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
-from .adapters import PipelineAdapter
+from .adapters import PipelineAdapter, adapter_for_class
 from .module_hooks import register_hook
 
-__all__ = ["GRADIENT_SUM_HOOK", "GradientSum", "check_context_parallel_before_loading", "context_parallel_degree",
+__all__ = ["GRADIENT_SUM_HOOK", "GradientSum", "check_context_parallel_before_loading", "check_model_context_parallel",
+           "context_parallel_degree",
            "enable_context_parallel", "init_context_parallel", "is_writing_process", "start_context_parallel"]
 
 logger = logging.getLogger(__name__)
@@ -51,9 +52,22 @@ def context_parallel_degree(run: Any) -> int:
     return run.context_parallel or 1
 
 
-def is_writing_process() -> bool:
-    """Whether this process writes a run's outputs: the only one, or rank 0 of a launch."""
-    return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
+def is_writing_process(run: Any) -> bool:
+    """Whether this process writes the outputs of a run of ``run`` (:class:`~.run_options.RunOptions`):
+    the only one, or rank 0 of a ``run.context_parallel`` launch (known before its process group starts)."""
+    return context_parallel_degree(run) == 1 or int(os.environ.get("RANK", "0")) == 0
+
+
+def check_model_context_parallel(run: Any, model: Any, *, model_device: str, differentiates: bool) -> None:
+    """:func:`check_context_parallel_before_loading` for the registry's ``model``
+    (:class:`~geco_guide.families.VideoModel`), from its pipeline class alone."""
+    if context_parallel_degree(run) == 1:
+        return
+    import diffusers
+
+    pipeline_class = getattr(diffusers, model.pipeline)
+    check_context_parallel_before_loading(run, adapter_for_class(pipeline_class), model_device=model_device,
+                                          differentiates=differentiates)
 
 
 def start_context_parallel(pipe: Any, adapter: PipelineAdapter, run: Any, *, differentiates: bool) -> None:

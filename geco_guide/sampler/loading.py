@@ -34,6 +34,7 @@ from ..estimators.loading import (
 )
 from ..io.devices import resolve_device
 from .config import GuidanceConfig
+from .context_parallel import check_model_context_parallel
 from .memory_plan import plan_before_loading
 from .run_options import RunOptions
 from .search import SearchConfig, check_search_before_loading
@@ -384,6 +385,8 @@ def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceCo
         missing_weights(model, estimators, tiny_decoder=tiny_decoder, segmenter=segmenter)
     devices = resolve_devices(run.devices) if anchored else None
     device = check_device(model.device)
+    check_model_context_parallel(run, entry, model_device=model.device,
+                                 differentiates=guidance.enabled and guidance.denoiser_grad)
     device_gb = planning_memory_gb(device, devices)
     frames, height, width = sampling.num_frames, sampling.height, sampling.width
     plan = plan_before_loading(guidance, run, model.source, frames, height, width, device_gb)

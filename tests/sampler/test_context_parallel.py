@@ -139,3 +139,84 @@ def test_two_processes_give_one_process_video_and_gradient(family, split_runs):
             assert error <= GRADIENT_TOLERANCE, (rank, key, float(error))
         assert (split["frames"] - one["frames"]).abs().max() <= FRAME_TOLERANCE, rank
         torch.testing.assert_close(split["norms"], one["norms"], rtol=GRADIENT_TOLERANCE, atol=0)
+
+
+# --------------------------------------------------------------------------------------------
+# what cannot run split is refused in one line, before anything loads
+
+
+def _one_error(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err and err.startswith("error: "), err
+    return err
+
+
+@pytest.fixture
+def no_loading(monkeypatch):
+    from geco_guide import generation
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the models loaded")
+
+    monkeypatch.setattr(generation, "load_models", refuse)
+
+
+@pytest.mark.parametrize("value", [1, 0, 2.5, True, "2"])
+def test_a_number_of_processes_below_two_or_not_whole_is_refused(value):
+    from geco_guide.types import OptionError
+
+    with pytest.raises(OptionError, match="context_parallel must be a whole number of processes >= 2"):
+        RunOptions(context_parallel=value)
+
+
+@pytest.mark.parametrize("argv, world, expected", [
+    (["--context-parallel", "2"], None,
+     "run.context_parallel=2 runs the call over 2 processes, but this launch has 1: start it with torchrun "
+     "--nproc-per-node 2"),
+    (["run.context_parallel=1"], None, "'run.context_parallel': context_parallel must be a whole number of processes >= 2"),
+    (["--context-parallel", "2", "--devices", "cpu", "cpu"], "2", "run.devices deals the anchor decode over this "
+     "process's GPUs, and under run.context_parallel each process owns one GPU"),
+    (["--context-parallel", "2", "--model", "hunyuanvideo-1.5", "model.id=tiny-random"], "2",
+     "run.context_parallel cannot split HunyuanVideo 1.5: HunyuanVideo 1.5's denoiser has no context-parallel plan"),
+    (["--context-parallel", "2", "--best-of", "2"], "2", "--best-of writes each candidate from one process"),
+])
+def test_what_cannot_run_split_is_one_line_before_loading(argv, world, expected, monkeypatch, capsys, no_loading):
+    from geco_guide.cli.generate import main
+
+    if world is not None:
+        monkeypatch.setenv("WORLD_SIZE", world)
+    else:
+        monkeypatch.delenv("WORLD_SIZE", raising=False)
+    assert main(["--preset", "tiny", "--prompt", "a marble bust", *argv]) == 2
+    assert expected in _one_error(capsys)
+
+
+@pytest.mark.parametrize("backend, differentiates, expected", [
+    ("sage", True, "the attention backend 'sage' has no backward under context parallelism"),
+    ("_native_math", False, "the attention backend '_native_math' has no context parallelism in diffusers"),
+])
+def test_an_attention_backend_that_cannot_split_or_differentiate_is_refused(backend, differentiates, expected,
+                                                                            monkeypatch):
+    from diffusers.models.attention_dispatch import AttentionBackendName, _AttentionBackendRegistry
+
+    from geco_guide.sampler.adapters import WanAdapter
+    from geco_guide.sampler.context_parallel import check_context_parallel_before_loading
+
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setattr(_AttentionBackendRegistry, "_active_backend", AttentionBackendName(backend))
+    with pytest.raises(ValueError, match=expected):
+        check_context_parallel_before_loading(RunOptions(context_parallel=2), WanAdapter(),
+                                              differentiates=differentiates)
+    # a search or fast guidance runs no backward through the denoiser: sage splits it then
+    monkeypatch.setattr(_AttentionBackendRegistry, "_active_backend", AttentionBackendName.SAGE)
+    check_context_parallel_before_loading(RunOptions(context_parallel=2), WanAdapter(), differentiates=False)
+
+
+def test_one_gpu_named_for_every_process_is_refused(monkeypatch):
+    from geco_guide.sampler.adapters import WanAdapter
+    from geco_guide.sampler.context_parallel import check_context_parallel_before_loading
+
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    with pytest.raises(ValueError, match="model.device=cuda:1 would put every process on one GPU"):
+        check_context_parallel_before_loading(RunOptions(context_parallel=2), WanAdapter(), model_device="cuda:1",
+                                              differentiates=True)
