@@ -11,8 +11,9 @@ noise is added to one input at a time, as the paper does on TartanAir with groun
 
 At each level it reports every cue's ranking AP on a WarpBench-style clip (Task 2: every frame
 warped) and an OccluBench-style clip (Task 3: re-revealed frames), and the fused score of the
-clean rigid clip (the noise floor). Output: ``robustness.json`` and ``robustness.png`` (AP
-against sigma, one panel per input and task), written atomically. Deterministic from ``--seed``.
+clean rigid clip (the noise floor). Output: ``robustness.json``, its tables ``robustness.md``
+(:func:`markdown_report`) and ``robustness.png`` (AP against sigma, one panel per input and
+task), written together, atomically. Deterministic from ``--seed``.
 A level so large that the noisy input is not finite (depth ``exp(sigma n)`` overflowing to inf
 or 0, flow to inf) is scored NaN (null in the JSON) and left out of the plot.
 """
@@ -35,6 +36,7 @@ from ..types import Correspondences, SceneGeometry
 from .datasets import scene_track
 from .occlusion import OcclusionParams, composite_occlusion, default_region
 from .ranking import average_precision
+from .report import fmt, markdown_table
 from .synthetic import SyntheticClip, rigid_clip, with_overlay, with_warp
 from .warp import WarpParams, warp_clip
 
@@ -151,6 +153,26 @@ def run_sweep(num_frames: int = 9, height: int = 48, width: int = 64, seed: int 
                 progress(level_line(noisy_input, rows, len(rows["rigid_fused"]) - 1))
         report[noisy_input] = rows
     return report
+
+
+def markdown_report(report: dict[str, Any]) -> str:
+    """The sweep's tables (:func:`run_sweep`'s ``report``), one per noisy input: a row per noise
+    level, each cue's detection AP of the warp (Task 2) and the occlusion (Task 3), and the rigid
+    clip's fused score; ``-`` where the level overflowed (no score)."""
+    scene = report["scene"]
+    lines = ["# GeCo robustness: detection AP under noisy depth and flow", "",
+             f"A synthetic scene of {scene['num_frames']} frames of {scene['height']}x{scene['width']} (seed "
+             f"{scene['seed']}), frame pairs {report['loss']['pairs']}; sigma: "
+             f"{ROBUSTNESS_X_LABELS['depth'].removeprefix('noise sigma: ')} for depth, "
+             f"{ROBUSTNESS_X_LABELS['flow'].removeprefix('noise sigma: ')} for flow.", ""]
+    header = ["sigma", *(f"{task} AP {cue}" for task in ("Task 2 (warp)", "Task 3 (occlusion)") for cue in CUES),
+              "rigid clip fused"]
+    for noisy_input in ("depth", "flow"):
+        rows = report[noisy_input]
+        table = [[f"{sigma:g}", *(fmt(rows[task][cue][k], 3) for task in ("warp", "occlusion") for cue in CUES),
+                  fmt(rows["rigid_fused"][k])] for k, sigma in enumerate(rows["sigmas"])]
+        lines += [f"## {noisy_input} noise", "", *markdown_table(header, table), ""]
+    return "\n".join(lines)
 
 
 #: The x axis of each row of the robustness plot, in a reader's words: sigma is the typical

@@ -53,7 +53,7 @@ def register_subcommand(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """The sweep ``args`` ask for; 0, 1 (its files could not be written), or 2 after one line on
     stderr before the sweep runs."""
-    from ..bench.robustness import DEPTH_SIGMAS, FLOW_SIGMAS, plot, run_sweep, sweep_memory_bytes
+    from ..bench.robustness import DEPTH_SIGMAS, FLOW_SIGMAS, markdown_report, plot, run_sweep, sweep_memory_bytes
     from ..config import SEED_RANGE
     from ..io.devices import check_memory_fits
     from ..loss.geco import PAIR_MODES
@@ -80,12 +80,13 @@ def run(args: argparse.Namespace) -> int:
     report = run_sweep(frames, height, width, args.seed, depth_sigmas, flow_sigmas,
                        replace(defaults, pairs=args.pairs, depth_edge_tau=None if args.no_depth_edges else defaults.depth_edge_tau),
                        progress=lambda line: print(line, flush=True))
-    try:
-        write_texts_atomic({out / "robustness.json": json_text(report), out / "robustness.png": plot(report)})
+    try:  # the table and the plot describe the JSON: all or none
+        write_texts_atomic({out / "robustness.json": json_text(report), out / "robustness.md": markdown_report(report),
+                            out / "robustness.png": plot(report)})
     except WriteError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
-    print(f"wrote {out / 'robustness.json'} and {out / 'robustness.png'}")
+    print(f"wrote {out / 'robustness.json'}, {out / 'robustness.md'} and {out / 'robustness.png'}")
     return 0
 
 
