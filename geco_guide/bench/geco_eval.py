@@ -416,8 +416,9 @@ def run_jobs(jobs: Sequence[Job], out: Path, cfg: GeCoConfig, weights: dict[str,
             # this video only: unreadable, too short, non-finite, or an option its pipeline refuses (TypeError)
             except (ValueError, TypeError, FileNotFoundError) as err:
                 outcome = f"failed: {record_failure(out, job, err)}"
-            logger.info("%s[%d/%d] %s %s seed %s: %.1f s, %s", tag, done, len(todo), job.arm, job.prompt["id"],
-                        job.seed, time.perf_counter() - start, outcome)
+            logger.info("%s[%d/%d] %s %s seed %s: %s in %.1f s, %s", tag, done, len(todo), job.arm, job.prompt["id"],
+                        job.seed, "scored" if job.video is not None else "generated and scored",
+                        time.perf_counter() - start, outcome)
         del models
 
 

@@ -217,7 +217,7 @@ def test_progress_names_each_job_and_the_models_loading(tmp_path: Path, capsys):
     lines = capsys.readouterr().err.splitlines()
     assert lines[:2] == ["0 of 2 videos already done", "loading models: geometry tiny-random, flow tiny-random"]
     assert [line.split(":")[0] for line in lines[2:]] == ["[1/2] sora-2 a1 seed 0", "[2/2] sora-2 a2 seed 0"]
-    assert all(" s, fused " in line and line.endswith(" %") for line in lines[2:])
+    assert all(": scored in " in line and " s, fused " in line and line.endswith(" %") for line in lines[2:])
 
 
 def test_ctrl_c_is_one_line_and_exit_code_130(tmp_path: Path, monkeypatch, capsys):
