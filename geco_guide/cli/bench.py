@@ -4,6 +4,7 @@
     geco bench sampling --preset tiny --mode fast --steps 2 --warmup 0
     geco bench cost --model wan2.1-t2v-14b --mode faithful --gpu H200
     geco bench cost --all-models
+    geco bench cost --model wan2.2-t2v-a14b --context-parallel 4
     geco bench plans --threads 1 --json geco_guide/sampler/data/memory_plans.json
 
 Subcommands (docs/performance.md says what each measures and how to read it):
@@ -15,9 +16,12 @@ Subcommands (docs/performance.md says what each measures and how to read it):
   (``--preset tiny``, or ``--full-size``: CogVideoX-5B with random weights), wall time, a
   per-stage breakdown and peak memory.
 * ``cost``: FLOPs, memory and a roofline GPU time of a registry model's sampling on fake tensors
-  (no weights, no GPU); ``--all-models``: the per-family table from the shipped estimates.
+  (no weights, no GPU); ``--all-models``: the per-family table from the shipped estimates;
+  ``--context-parallel N``: one model over N GPUs of each card (context parallelism, split CFG,
+  ``run.devices``), from the shipped estimates and attention shapes.
 * ``plans``: the memory plans' estimates of every traced model (the package data
-  ``run.memory_plan=auto`` reads).
+  ``run.memory_plan=auto`` reads); ``attention-shapes``: the denoisers' traced attention calls (the
+  package data the several-GPU costs read).
 * ``decoder-agreement``: one guided generation with both decoders at every update.
 * ``geco-eval``: the estimator calls and time of scoring one video under each pair mode.
 
@@ -45,7 +49,8 @@ DESCRIPTION = ("Time and memory of geco_guide: micro-benchmarks and sampling mea
 #: The prompt of ``decoder-agreement`` unless ``--prompt`` says otherwise.
 AGREEMENT_PROMPT = "a marble bust on a wooden table, the camera orbiting it slowly"
 #: The public subcommands, in ``--help``'s order (``worker`` is internal: it runs one case).
-SUBCOMMANDS = ("loss", "estimators", "vae", "sampling", "cost", "plans", "decoder-agreement", "geco-eval")
+SUBCOMMANDS = ("loss", "estimators", "vae", "sampling", "cost", "plans", "attention-shapes", "decoder-agreement",
+               "geco-eval")
 #: Named memory plans and anchor decoders, checked in :func:`run` (their lists live with torch).
 CHECKED_LATER = "checked before any work"
 #: faithful: backpropagate through the denoiser (the paper); fast: its output held constant;
@@ -253,6 +258,10 @@ def _cost(sub: Any) -> None:
                            "(the anchor chunks decoded on different GPUs at once)")
     cost.add_argument("--split-cfg", action="store_true",
                       help="with --num-gpus 2 or more: also the denoiser's CFG halves on two GPUs (run.split_cfg)")
+    cost.add_argument("--context-parallel", type=int_at_least(2), default=None, metavar="N",
+                      help="predict --model over N GPUs of each card with the denoiser's tokens split over them "
+                           "(run.context_parallel), beside run.devices and one GPU, from the shipped estimates and "
+                           "attention shapes; traces nothing (with --mode and --json only)")
     cost.add_argument("--dynamic-masks", action="store_true",
                       help="add the overhead of guidance.dynamic masks refreshed at each guided step: SAM 3 "
                            "(predicted, its vision encoder), the automatic masks and guidance.movers=rigid "
@@ -269,6 +278,12 @@ def _plans(sub: Any) -> None:
     plans.add_argument("--models", nargs="+", choices=models, default=models, help="the models to trace (default: all)")
     _threads(plans)
     _json(plans, "write the estimates as JSON to PATH")
+    shapes = sub.add_parser("attention-shapes", help="the attention calls of every traced model's denoiser (the "
+                                                     "package data of the several-GPU costs), traced on fake tensors")
+    shapes.add_argument("--models", nargs="+", choices=traced_models(), default=traced_models(),
+                        help="the models to trace (default: all)")
+    _threads(shapes)
+    _json(shapes, "write the attention shapes as JSON to PATH")
 
 
 def _others(sub: Any) -> None:
@@ -378,6 +393,15 @@ def _check_all_models(args: argparse.Namespace, parser_defaults: dict[str, Any])
     reason = unwritable_reason(args.json) if args.json else None
     if reason:
         raise BadOption(f"--json: {reason}")
+
+
+def _check_context_parallel(args: argparse.Namespace, parser_defaults: dict[str, Any]) -> None:
+    given = [f"--{name.replace('_', '-')}" for name in TRACE_OPTIONS
+             if name not in ("model", "mode") and getattr(args, name) != parser_defaults[name]]
+    if args.all_models or given:
+        raise BadOption(f"--context-parallel predicts from the shipped estimates and traces nothing: leave out "
+                        f"{', '.join(given or ['--all-models'])} (the table of --all-models has its 4-GPU columns)")
+    _check_all_models(args, {**parser_defaults, "model": args.model, "mode": args.mode})  # and --json's path
 
 
 def _check_cost(args: argparse.Namespace) -> None:
@@ -573,6 +597,24 @@ def _family_table(args: argparse.Namespace) -> None:
                   "estimates (geco_guide/sampler/data/memory_plans.json)", "rows": family_rows()})
 
 
+def _parallel_table(args: argparse.Namespace) -> None:
+    from ..perf.parallel_cost import parallel_report, parallel_table
+
+    report = parallel_report(args.model, args.mode, args.context_parallel)
+    print(parallel_table(report))
+    _write(args, {**report, "argv": sys.argv[1:]})
+
+
+def _attention_shapes(args: argparse.Namespace) -> None:
+    import torch
+
+    from ..perf.attention_shapes import attention_file
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    _write(args, attention_file(args.models, sys.argv[1:], on_model=print))
+
+
 def _plan_estimates(args: argparse.Namespace) -> None:
     import torch
 
@@ -677,6 +719,7 @@ def _worker(args: argparse.Namespace) -> None:
 
 WORK = {"loss": _micro_benchmark, "estimators": _micro_benchmark, "vae": _micro_benchmark,
         "sampling": _sampling_benchmark, "cost": _cost_report, "plans": _plan_estimates,
+        "attention-shapes": _attention_shapes,
         "decoder-agreement": _decoder_agreement, "geco-eval": _geco_eval_cost}
 
 
@@ -690,6 +733,10 @@ def run(args: argparse.Namespace) -> int:
         _worker(args)
         return 0
     try:
+        if args.command == "cost" and args.context_parallel is not None:
+            _check_context_parallel(args, COST_DEFAULTS)
+            _parallel_table(args)
+            return 0
         if args.command == "cost" and args.all_models:
             _check_all_models(args, COST_DEFAULTS)
             _family_table(args)

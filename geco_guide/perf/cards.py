@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-__all__ = ["GPU_SPECS", "H200_UNGUIDED_STEP_S", "INTERCONNECT_BYTES_PER_S", "card_memory_gib"]
+__all__ = ["GPU_SPECS", "H200_MEASURED_ESTIMATORS_S", "H200_MEASURED_UPDATES", "H200_UNGUIDED_STEP_S",
+           "HOST_BYTES_PER_S", "INTERCONNECT_BYTES_PER_S", "MEASURED_MEMORY_MIB", "MEASURED_RUNS", "card_memory_gib"]
 
 #: The cards the cost model predicts for: memory (GB = 1e9 bytes), dense (no sparsity) bf16
 #: tensor-core peak with fp32 accumulation, and memory bandwidth, from the vendor's data sheets:
@@ -22,12 +23,31 @@ GPU_SPECS: dict[str, dict[str, float]] = {
 #: CogVideoX-5B transformer at 49x480x720, steady state (steps 2-4 of the three unguided arms).
 H200_UNGUIDED_STEP_S = 1.78
 
-#: One direction's bandwidth between two GPUs of one node (bytes/s), from the data sheets: NVLink 4 on
-#: the H200 and H100 SXM (900 GB/s both ways), PCIe 4.0 x16 for the PCIe cards (32 GB/s; an A6000
-#: pair's NVLink bridge is faster, the common node has none).
+#: Measured on the H200 (docs/benchmarks/sampling_full_h200_fast.json and _faithful.json): VGGT's
+#: and UFM's forward seconds over the 111 updates of the paper's schedule in each guided run (what a
+#: search's scoring runs, without the backward; the loss's measured seconds hold its backward too).
+H200_MEASURED_ESTIMATORS_S = {"fast": {"vggt": 19.3, "ufm": 8.4}, "faithful": {"vggt": 10.9, "ufm": 6.4}}
+H200_MEASURED_UPDATES = 111
+MEASURED_RUNS = tuple(H200_MEASURED_ESTIMATORS_S)
+
+#: One direction's bandwidth from one GPU to the others of its node (bytes/s), from the data
+#: sheets: NVLink 4 on the H200 and H100 SXM (18 links, 900 GB/s both ways, through the NVSwitch
+#: to every other GPU of an HGX board), PCIe 4.0 x16 for the PCIe cards (32 GB/s; an A6000 pair's
+#: NVLink bridge is faster, the common node has none). The collectives of several GPUs are
+#: predicted at this rate: an upper bound on what NCCL reaches.
 INTERCONNECT_BYTES_PER_S = {"H200": 450e9, "H100": 450e9, "L40S": 32e9, "A6000": 32e9, "RTX4090": 32e9, "L4": 32e9}
+#: One direction's bandwidth between a card and the host (bytes/s), from the data sheets: PCIe 5.0
+#: x16 on the H200 and H100 SXM (128 GB/s both ways), PCIe 4.0 x16 on the others (64 GB/s both
+#: ways). What model CPU offload moves its models over.
+HOST_BYTES_PER_S = {"H200": 64e9, "H100": 64e9, "L40S": 32e9, "A6000": 32e9, "RTX4090": 32e9, "L4": 32e9}
+#: The memory a card reported where one was measured (MiB): the H200 of the GPU runs
+#: (docs/performance_records.md, GPU), 143771 MiB = 140.4 GiB, more than its data sheet's 141 GB.
+MEASURED_MEMORY_MIB = {"H200": 143771}
 
 
 def card_memory_gib(gpu: str) -> float:
-    """The memory of card ``gpu`` (:data:`GPU_SPECS`) in GiB: its data sheet's GB are 10^9 bytes."""
+    """The memory of card ``gpu`` (:data:`GPU_SPECS`) in GiB: what the measured card reported
+    (:data:`MEASURED_MEMORY_MIB`) where one was measured, else its data sheet's (GB of 10^9 bytes)."""
+    if gpu in MEASURED_MEMORY_MIB:
+        return MEASURED_MEMORY_MIB[gpu] / 1024
     return GPU_SPECS[gpu]["memory_gb"] * 1e9 / 2**30

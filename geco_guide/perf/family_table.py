@@ -1,7 +1,8 @@
 """The per-family cost table (``geco bench cost --all-models``): every traced registry model on an
 H200 and on a 24 GB card, unguided, guided (fast, faithful, the tiny decoder), searched at the
-particles that match guidance's time, and on 4 GPUs, from the shipped estimates (predicted; the
-cost model's traces, ``geco bench plans``)."""
+particles that match guidance's time, and on 4 GPUs (faithful with ``run.devices`` and split CFG,
+faithful with context parallelism, a search), from the shipped estimates (predicted;
+the cost model's traces, ``geco bench plans`` and ``geco bench attention-shapes``)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ from typing import Any
 
 from ..families.published import LEFT_OUT, traced_models
 from ..sampler.memory_plan import DEVICE_HEADROOM, load_estimates
-from .cards import card_memory_gib
+from .cards import MEASURED_RUNS, card_memory_gib
+from .parallel_cost import parallel_guidance
 from .search_cost import guidance_cost, matched_particles, search_cost
 
 __all__ = ["SEARCH_GPUS", "SEARCH_PARTICLES", "TABLE_CARDS", "family_rows", "family_table"]
@@ -44,17 +46,34 @@ def _unguided(entry: dict[str, Any], gpu: str) -> str:
     return f"does not fit ({unguided['offload_peak_gb']:.1f} GiB with offload)"
 
 
-def _search(cost: dict[str, Any], unguided_s: float) -> str:
+def _search(costs: list[dict[str, Any]], unguided_s: float) -> str:
+    """A search's cell: its time and ratio, a range over ``costs`` (the H200's measured estimator rates of each run)."""
+    cost = costs[-1]
     if cost["peak_gb"] is None:
         return f"K={cost['particles']}: does not fit"
     offload = " + offload" if cost["offload"] else ""
-    return (f"K={cost['particles']}: {_seconds(cost['time_s'])} ({cost['time_s'] / unguided_s:.2f}x), "
-            f"{cost['peak_gb']:.1f} GiB{offload}")
+    low, high = min(c["time_s"] for c in costs), max(c["time_s"] for c in costs)
+    seconds = _seconds(high) if f"{low:.0f}" == f"{high:.0f}" else f"{low:.0f}-{_seconds(high)}"
+    ratios = f"{low / unguided_s:.2f}" if f"{low / unguided_s:.2f}" == f"{high / unguided_s:.2f}" else (
+        f"{low / unguided_s:.2f}-{high / unguided_s:.2f}")
+    return f"K={cost['particles']}: {seconds} ({ratios}x), {cost['peak_gb']:.1f} GiB{offload}"
+
+
+def _parallel(cost: dict[str, Any], unguided_s: float) -> str:
+    """A cell of :func:`~.parallel_cost.parallel_guidance`: time, ratio to one-GPU unguided, peak per GPU, layout."""
+    if cost["plan"] is None:
+        return cost["reason"]
+    layout = [cost["plan"]] + ["offload"] * cost["offload"] + ["split CFG"] * cost["split_cfg"]
+    if cost["context_parallel"] > 1:
+        layout.append(f"{cost['backend']} over {cost['context_parallel']}")
+    return (f"{_seconds(cost['time_s'])} ({cost['time_s'] / unguided_s:.2f}x), {cost['peak_gb']:.1f} GiB "
+            f"({', '.join(layout)})")
 
 
 def family_rows(estimates: dict[str, Any] | None = None) -> list[dict[str, str]]:
     """One row per traced model and card of :data:`TABLE_CARDS`: each column's cell as the table
-    prints it (predicted time, peak memory per card, the plan; or why it does not fit)."""
+    prints it (predicted time, peak memory per card, the plan; or why it does not fit). The search
+    on 4 H200s is a range: the estimators at the rates of each measured H200 run."""
     estimates = load_estimates() if estimates is None else estimates
     rows = []
     for name in (name for name in traced_models() if name in estimates["models"]):
@@ -63,7 +82,9 @@ def family_rows(estimates: dict[str, Any] | None = None) -> list[dict[str, str]]
             unguided_s = entry["unguided"]["time_s"][gpu]
             faithful = guidance_cost(name, gpu, "faithful", estimates=estimates)
             matched = matched_particles(name, gpu, estimates=estimates)
-            several = search_cost(name, SEARCH_PARTICLES, gpu, SEARCH_GPUS, estimates=estimates)
+            runs = MEASURED_RUNS if gpu == "H200" else ("fast",)  # the measured estimator rates: the H200's
+            several = [search_cost(name, SEARCH_PARTICLES, gpu, SEARCH_GPUS, estimates=estimates, measured=run)
+                       for run in runs]
             rows.append({
                 "model": name, "card": f"{gpu} ({card_memory_gib(gpu):.0f} GiB)",
                 "unguided": _unguided(entry, gpu),
@@ -71,10 +92,11 @@ def family_rows(estimates: dict[str, Any] | None = None) -> list[dict[str, str]]
                 "faithful": _guided(faithful, entry["estimates"]["faithful/vae"]),
                 "tiny": _guided(guidance_cost(name, gpu, "faithful", "tiny", estimates=estimates),
                                 entry["estimates"].get("faithful/tiny")),
-                "search": "-" if matched is None else _search(search_cost(name, matched, gpu, estimates=estimates),
+                "search": "-" if matched is None else _search([search_cost(name, matched, gpu, estimates=estimates)],
                                                                unguided_s),
-                "gpus": _guided(guidance_cost(name, gpu, "faithful", num_gpus=SEARCH_GPUS, estimates=estimates),
-                                entry["estimates"]["faithful/vae"]),
+                "gpus": _parallel(parallel_guidance(name, gpu, SEARCH_GPUS, context_parallel=False,
+                                                    estimates=estimates), unguided_s),
+                "cp": _parallel(parallel_guidance(name, gpu, SEARCH_GPUS, estimates=estimates), unguided_s),
                 "search_gpus": _search(several, unguided_s),
             })
     return rows
@@ -83,7 +105,9 @@ def family_rows(estimates: dict[str, Any] | None = None) -> list[dict[str, str]]
 #: The table's columns: (key of :func:`family_rows`, header).
 COLUMNS = (("model", "model"), ("card", "card"), ("unguided", "unguided"), ("fast", "fast"),
            ("faithful", "faithful"), ("tiny", "faithful, tiny decoder"),
-           ("search", "search, K matched to faithful"), ("gpus", f"faithful on {SEARCH_GPUS} GPUs"),
+           ("search", "search, K matched to faithful"),
+           ("gpus", f"faithful on {SEARCH_GPUS} GPUs: run.devices (x unguided on 1)"),
+           ("cp", f"faithful on {SEARCH_GPUS} GPUs: context parallel (x unguided on 1)"),
            ("search_gpus", f"search K={SEARCH_PARTICLES} on {SEARCH_GPUS} GPUs (x unguided on 1)"))
 
 

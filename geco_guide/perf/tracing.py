@@ -64,6 +64,13 @@ def register_cpu_sdpa_flops() -> None:
         return fc.sdpa_backward_flop_count(grad_out_shape, query_shape, key_shape, value_shape)
 
 
+def _is_attention(func: Any) -> bool:
+    """Whether ATen op ``func`` is a fused attention's forward (``[B, heads, tokens, head_dim]``
+    query, key and value): the SDPA kernels of every backend, not their backwards."""
+    name = func._overloadpacket.__name__
+    return name.startswith("_scaled_dot_product_") and "backward" not in name
+
+
 def _tensor_bytes(t: Tensor) -> int:
     """Bytes of the elements of ``t`` (its view, not its storage)."""
     return t.numel() * t.element_size()
@@ -74,7 +81,8 @@ class CostTracker:
     (``kind`` = ``forward`` or ``backward``), the FLOPs of every ATen op (``torch.utils.flop_counter``
     formulas), the bytes it reads and writes (tensor arguments + outputs, views excluded) and a
     roofline time per GPU of :data:`GPU_SPECS` (``max(flops / peak, bytes / bandwidth)`` per op), and
-    follows memory: every new output storage is live from its creation until a ``weakref``
+    records the shapes of every fused attention's query and key (``attention``: what a sequence
+    split over GPUs must move, :mod:`.parallel_cost`), and follows memory: every new output storage is live from its creation until a ``weakref``
     finalizer on the storage says it is freed (autograd's saved tensors keep theirs alive, so the
     graph's activations are counted); ``static`` storages (the weights) are not counted.
 
@@ -99,6 +107,7 @@ class CostTracker:
         self.peak = 0
         self.peak_key: tuple[str, str] | None = None
         self.stage_peak: dict[tuple[str, str], int] = {}
+        self.attention: dict[tuple[str, str], dict[tuple, int]] = {}
 
     def key(self) -> tuple[str, str]:
         backward = torch._C._current_graph_task_id() != -1
@@ -139,6 +148,10 @@ class CostTracker:
             self.live[sid] = storage.nbytes()
             self.current += self.live[sid]
             weakref.finalize(storage, self._free, sid)
+        if _is_attention(func):
+            shapes = (tuple(args[0].shape), tuple(args[1].shape), args[0].element_size())
+            calls = self.attention.setdefault(key, {})
+            calls[shapes] = calls.get(shapes, 0) + 1
         if self.current > self.peak:
             self.peak, self.peak_key = self.current, key
         self.stage_peak[key] = max(self.stage_peak.get(key, 0), self.current)
@@ -196,8 +209,10 @@ class CostTracker:
             entry[kind] = {"flops": self.flops[k], "bytes": self.bytes[k], "ops": self.ops[k],
                            "peak_live_bytes": self.stage_peak[k],
                            "roofline_s": {gpu: self.roofline_s[gpu][k] for gpu in GPU_SPECS}}
+        attention = {"/".join(key): [{"query": list(q), "key": list(k), "element_bytes": size, "calls": n}
+                                     for (q, k, size), n in calls.items()] for key, calls in self.attention.items()}
         return {"stages": stages, "peak_live_bytes": self.peak,
-                "peak_at": "/".join(self.peak_key) if self.peak_key else None}
+                "peak_at": "/".join(self.peak_key) if self.peak_key else None, "attention": attention}
 
 
 def settings_model(settings: dict[str, Any]) -> VideoModel:

@@ -16,7 +16,7 @@ from geco_guide.cli.kit import Parser
 
 ROOT = Path(__file__).resolve().parents[2]
 HEAVY = ("torch", "diffusers", "transformers")
-PUBLIC = "{loss,estimators,vae,sampling,cost,plans,decoder-agreement,geco-eval}"
+PUBLIC = "{loss,estimators,vae,sampling,cost,plans,attention-shapes,decoder-agreement,geco-eval}"
 
 
 def test_help_answers_without_torch():

@@ -317,6 +317,12 @@ def test_cost_tiny_denoiser_step_equals_independent_count() -> None:
 
     pipe = tiny_pipeline(0)
     config = pipe.transformer.config
+    # every block's joint attention recorded once, both CFG halves over the text and video tokens
+    tokens = TINY_MAX_SEQUENCE_LENGTH + ((TINY_NUM_FRAMES - 1) // 4 + 1) * (TINY_HEIGHT // 16) * (TINY_WIDTH // 16)
+    heads, head_dim = config.num_attention_heads, config.attention_head_dim
+    assert trace["attention"]["denoiser_cfg/forward"] == [{"query": [2, heads, tokens, head_dim],
+                                                           "key": [2, heads, tokens, head_dim],
+                                                           "element_bytes": 4, "calls": config.num_layers}]
     latents = torch.randn(2, (TINY_NUM_FRAMES - 1) // 4 + 1, config.in_channels, TINY_HEIGHT // 8, TINY_WIDTH // 8)
     text = torch.randn(2, TINY_MAX_SEQUENCE_LENGTH, config.text_embed_dim)
     rotary = (pipe._prepare_rotary_positional_embeddings(TINY_HEIGHT, TINY_WIDTH, latents.shape[1], torch.device("cpu"))
