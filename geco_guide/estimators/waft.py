@@ -41,7 +41,7 @@ __all__ = ["WAFT", "WAFTConfig", "WAFTViTConfig", "forward_backward_covisibility
 HEAD_OUTPUT_STRIDE = 14
 # Random init (WAFT.reset_parameters): gain of the flow head's last layer. Flows of a tenth
 # of a pixel keep the forward-backward test passing at most pixels (sqrt(alpha2) = 0.7 pixel).
-FLOW_INIT_GAIN = 0.015
+FLOW_INIT_GAIN = 0.01
 
 
 class DPTHead(nn.Module):
@@ -277,7 +277,7 @@ class WAFT(FrozenEstimator):
     Parameters are frozen and the module is in eval mode; gradients flow to the frames.
     ``WAFT(config)`` draws a random initialisation from the global RNG (:meth:`random` for a
     seeded one) whose flows are a tenth of a pixel or so and depend on both images, so that most
-    pixels are covisible (0.8-0.96), as with the tiny random UFM.
+    pixels are covisible (about 0.9), as with the tiny random UFM.
     """
 
     config_class = WAFTConfig

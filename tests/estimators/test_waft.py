@@ -4,7 +4,7 @@ protocol with forward-backward covisibility, differentiability.
 The fixture ``tests/fixtures/waft_tiny.pt`` was made by running the authors' code (``ViTWarpV8``
 of ``princeton-vl/WAFT``, commit 8dd4172, with timm 1.0.31 and torch 2.13 on CPU) outside this
 repository, at a tiny size of the same structure (:meth:`WAFTConfig.tiny`: DINOv2 and refinement
-ViTs of width 32, depth 12 and 2 heads, DPT heads of width 16, ResNet-18 stages of widths 8-32,
+ViTs of width 32, depth 12 and 2 heads, DPT heads of widths 16 and 32, ResNet-18 stages of widths 8-32,
 3 iterations), with every parameter and batch-norm statistic drawn at random (seeded), on two
 random 64 x 80 image pairs (given to it as 0-255 values). It holds the state dict, the frames,
 the final flow and uncertainty (``info``) upsampled to full resolution, and the gradient of
@@ -187,3 +187,15 @@ def test_waft_offline_without_weights_is_one_line(tmp_path, monkeypatch: pytest.
         message = str(err.value)
         assert "\n" not in message and WAFT.default_repo_id in message
         assert "estimators.flow=waft:/path/to/WAFT" in message
+
+
+@pytest.mark.slow
+def test_bfloat16_trunk_and_autocast_stay_close(tiny: WAFT) -> None:
+    frames = torch.rand(2, 3, 40, 56, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        plain = tiny(frames[:1], frames[1:])["flow"]
+        stored = WAFT.random(WAFTConfig.tiny(), seed=0).trunk_to(torch.bfloat16)(frames[:1], frames[1:])["flow"]
+        autocast = WAFT.random(WAFTConfig.tiny(), seed=0, autocast_dtype=torch.bfloat16)(frames[:1], frames[1:])["flow"]
+    assert stored.dtype == autocast.dtype == torch.float32
+    for low in (stored, autocast):
+        torch.testing.assert_close(low, plain, atol=0.05 * plain.abs().max().item(), rtol=0.05)
