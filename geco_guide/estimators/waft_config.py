@@ -87,7 +87,7 @@ class WAFTConfig:
 
     @classmethod
     def tiny(cls) -> WAFTConfig:
-        """A ~0.6 M-parameter model of the same structure for tests and the CPU demo (with
+        """A ~0.8 M-parameter model of the same structure for tests and the CPU demo (with
         :meth:`WAFT.random` weights: flows of a tenth of a pixel or so, most pixels covisible)."""
         small = {"embed_dim": 32, "num_heads": 2, "feature_dim": 16, "out_channels": (8, 16, 24, 32)}
         # a 32-channel state: CPU bfloat16 convolutions with 8-pixel patches go wrong on 16 channels
