@@ -21,7 +21,6 @@ autocast; ``trunk_to(dtype)`` stores them in that dtype; the flow heads stay flo
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from contextlib import nullcontext
 from typing import Any
 
 import torch
