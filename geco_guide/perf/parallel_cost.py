@@ -139,6 +139,7 @@ def _traffic_s(facts: dict[str, Any], gpu: str, cp: int, split: bool, calls: dic
 
 def _layout_cost(name: str, entry: dict[str, Any], counts: dict[str, int], gpu: str, num_gpus: int,
                  layout: tuple[int, bool], plan: Any, offload: bool, mode: str, decoder: str) -> dict[str, Any]:
+    """One ``layout`` (:func:`_layouts`) under one plan, with or without offload: :func:`parallel_guidance`'s keys."""
     cp, split = layout
     ranks = cp * (2 if split else 1)
     estimate = entry["estimates"][f"{mode}/{decoder}"][plan.name]

@@ -154,3 +154,18 @@ def test_context_parallel_on_the_command_line_traces_nothing_and_refuses_tracing
     assert bench.main(["cost", "--context-parallel", "4", "--mode", "unguided", "--model", "ltx-video"]) == 0
     out = capsys.readouterr().out
     assert "unguided, context parallel over 4" in out and "faithful" not in out
+
+
+@pytest.mark.slow
+def test_the_shipped_attention_shapes_are_what_a_trace_gives_now():
+    """CogVideoX-2B's step traced again (its published configs, fake tensors) gives the shipped
+    attention calls and weights (regenerate the file with `geco bench attention-shapes` when this
+    fails)."""
+    import torch
+
+    from geco_guide.perf.attention_shapes import denoiser_attention
+
+    torch.set_num_threads(1)
+    fresh, shipped = denoiser_attention("cogvideox-2b"), load_attention()["models"]["cogvideox-2b"]
+    assert fresh["attention"] == shipped["attention"] and fresh["video"] == shipped["video"]
+    assert fresh["weights_gb"] == pytest.approx(shipped["weights_gb"])

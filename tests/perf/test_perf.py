@@ -557,6 +557,9 @@ def _refused(cli, monkeypatch, capsys, argv: list[str]) -> str:
     (["sampling", "--devices", "cpu", "tpu"], "invalid device 'tpu' (--devices)"),
     (["sampling", "--devices", "cuda:99"], "device 'cuda:99' is not available"),
     (["cost", "--num-gpus", "0"], "--num-gpus: must be >= 1"),
+    (["cost", "--context-parallel", "1"], "--context-parallel: must be >= 2, got 1"),
+    (["cost", "--context-parallel", "4", "--num-gpus", "4"], "traces nothing: leave out --num-gpus"),
+    (["attention-shapes", "--models", "sora"], "--models: invalid choice"),
     (["vae", "--height", "30"], "--height must be a multiple of 8, got 30"),
 ])
 def test_bad_option_is_one_error_line_before_any_work(cli, monkeypatch, capsys, argv, expected):
