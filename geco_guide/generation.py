@@ -339,7 +339,6 @@ def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True,
     import torch
 
     from .estimators import Estimators, load_estimators
-    from .sampler.context_parallel import context_parallel_degree, init_context_parallel
     from .sampler.loading import load_tiny_decoder, load_video_pipeline, uses_tiny_decoder
     from .tiny import tiny_call_extras, tiny_video_components
 
@@ -348,7 +347,6 @@ def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True,
         extras = tiny_call_extras(cfg.model.video_model.pipeline)
         if components is None:
             components = tiny_video_components(cfg.model.video_model, cfg.model.init_seed)
-    init_context_parallel(context_parallel_degree(cfg.run))  # each process on its own GPU, before loading
     video = replace(load_video_pipeline(cfg.model, cfg.sampling.scheduler, components), call_extras=extras)
     decoder = None
     if estimators is not False and uses_tiny_decoder(cfg.guidance, cfg.search.enabled):
@@ -606,12 +604,6 @@ def generate(cfg: GeCoConfig, prompt: str, out: str | os.PathLike | None = None,
     video_path, sidecar_path = output_paths(cfg, prompt, out)
     cfg = check_generation(cfg, prompt, (video_path, sidecar_path), overwrite=overwrite, loaded=models is not None,
                            image=image is not None)
-    from .sampler.context_parallel import is_writing_process
-
-    if not is_writing_process(cfg.run):  # another process of run.context_parallel samples along; rank 0 writes
-        models = models or load_models(cfg, estimators=cfg.guidance.enabled or cfg.search.enabled)
-        sample(models, cfg, prompt, image=image, progress=False)
-        return GenerationResult(video_path=video_path, sidecar_path=sidecar_path, scores=None, sidecar={}, models=models)
     with output_lock(video_path):  # every check passed: from here on the name is this run's
         check_output_paths((video_path, sidecar_path), overwrite)  # again: a run that ended meanwhile wrote it
         return _load_sample_and_write(cfg, prompt, video_path, sidecar_path, models, image, announce, progress)

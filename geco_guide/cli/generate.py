@@ -85,7 +85,7 @@ def _announce(line: str) -> None:
 def run(args: argparse.Namespace) -> int:
     """Generate the video ``args`` ask for; 0, or 2 after one line on stderr."""
     from ..estimators.loading import WeightsNotFoundError
-    from ..generation import SCORES_NOTE, generate, generate_best_of
+    from ..generation import SCORES_NOTE, check_generation, generate, generate_best_of, load_models, sample
     from ..io.files import WriteError
     from ..io.video import read_image
     from ..sampler.context_parallel import is_writing_process
@@ -99,6 +99,11 @@ def run(args: argparse.Namespace) -> int:
         if args.best_of is not None and cfg.run.context_parallel:
             raise ValueError("--best-of writes each candidate from one process; under run.context_parallel use "
                              "--search K (the candidates as one call's particles) or one launch per seed")
+        if not is_writing_process(cfg.run):  # rank 0 of the launch writes and says so; the others sample along
+            cfg = check_generation(cfg, args.prompt, image=image is not None)
+            sample(load_models(cfg, estimators=cfg.guidance.enabled or cfg.search.enabled), cfg, args.prompt,
+                   image=image, progress=False)
+            return 0
         if args.best_of is None:
             result = generate(cfg, args.prompt, out=args.out, overwrite=args.overwrite, image=image, announce=_announce)
         else:
@@ -106,8 +111,6 @@ def run(args: argparse.Namespace) -> int:
                                       image=image, on_candidate=_print_candidate(args.best_of), announce=_announce)
     except (ValueError, WeightsNotFoundError, FileNotFoundError, WriteError) as err:
         return print_error(err)
-    if not is_writing_process(cfg.run):  # rank 0 of the launch writes and says so
-        return 0
     sidecar = result.sidecar
     print(f"wrote video:   {result.video_path}")
     print(f"wrote sidecar: {result.sidecar_path}")

@@ -27,13 +27,16 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
+from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
 from .levels import FlowLevels, NoiseLevels, VPLevels
+from .module_hooks import register_hook
 from .slicing import decode_chunk
 
-__all__ = ["CallGeometry", "CogVideoXAdapter", "CogVideoXContextParallelAttention", "HunyuanVideo15Adapter",
-           "HunyuanVideoAdapter", "LTX2Adapter", "LTXAdapter", "PipelineAdapter", "WanAdapter", "adapter_for", "adapter_for_class", "check_no_denoiser_cache",
+__all__ = ["SHARDED_MASK_HOOK", "CallGeometry", "CogVideoXAdapter", "CogVideoXContextParallelAttention",
+           "HunyuanVideo15Adapter", "HunyuanVideoAdapter", "LTX2Adapter", "LTXAdapter", "PipelineAdapter",
+           "ShardedJointMask", "WanAdapter", "adapter_for", "adapter_for_class", "check_no_denoiser_cache",
            "check_requested_frames", "check_scheduler", "fit_combination", "keep_update", "noise_levels",
            "register_adapter"]
 
@@ -286,6 +289,60 @@ class HunyuanVideoAdapter(PipelineAdapter):
 
     def latents_shape(self, pipe, args):
         return _channels_first_shape(pipe, args, self.temporal_compression(pipe))
+
+    def context_parallel_plan(self, denoiser):
+        """HunyuanVideo's plan, written as diffusers writes ``_cp_plan``: the rotary tables of the
+        video tokens split as ``rope`` makes them, the video and text tokens split where the first
+        dual-stream block takes them (after the embedders and the token refiner, which see the whole
+        sequence), the video tokens gathered after ``proj_out``. The text mask of the whole
+        sequence that every block takes is made the process's own by :class:`ShardedJointMask`."""
+        from diffusers.models._modeling_parallel import ContextParallelInput, ContextParallelOutput
+
+        tokens = ContextParallelInput(split_dim=1, expected_dims=3)
+        rotary = ContextParallelInput(split_dim=0, expected_dims=2, split_output=True)
+        return {
+            "rope": {0: rotary, 1: rotary},
+            "transformer_blocks.0": {"hidden_states": tokens, "encoder_hidden_states": tokens},
+            "proj_out": ContextParallelOutput(gather_dim=1, expected_dims=3),
+        }
+
+    def prepare_context_parallel(self, denoiser):
+        # registered before diffusers' split hooks, which then wrap them: the blocks' tokens are
+        # the process's shards when the mask is cut to them
+        for block in [*denoiser.transformer_blocks, *denoiser.single_transformer_blocks]:
+            register_hook(block, ShardedJointMask(), SHARDED_MASK_HOOK)
+
+
+#: the name of :class:`ShardedJointMask` in a block's ``HookRegistry``
+SHARDED_MASK_HOOK = "geco_sharded_joint_mask"
+
+
+class ShardedJointMask(ModelHook):
+    """A HunyuanVideo block's ``attention_mask`` ``[B, 1, 1, V + T]`` (the video tokens, then the
+    text tokens, padding masked) cut to this process's tokens under context parallelism: its shard
+    of the video part, then its shard of the text part, the order of the block's local
+    ``[video, text]`` sequence. The Ulysses attention gathers the processes' masks in the order
+    it gathers their tokens, so every key keeps its own mask entry."""
+
+    def pre_forward(self, module, *args, **kwargs):
+        import torch.distributed as dist
+
+        args = list(args)
+        hidden, text = (kwargs["hidden_states"] if "hidden_states" in kwargs else args[0],
+                        kwargs["encoder_hidden_states"] if "encoder_hidden_states" in kwargs else args[1])
+        positional = "attention_mask" not in kwargs
+        mask = args[3] if positional else kwargs["attention_mask"]
+        processes, rank = dist.get_world_size(), dist.get_rank()
+        if mask is None or mask.shape[-1] != (hidden.shape[1] + text.shape[1]) * processes:
+            return tuple(args), kwargs  # not the whole sequence's mask: nothing to cut
+        video = hidden.shape[1] * processes
+        local = torch.cat([mask[..., :video].chunk(processes, dim=-1)[rank],
+                           mask[..., video:].chunk(processes, dim=-1)[rank]], dim=-1)
+        if positional:
+            args[3] = local
+        else:
+            kwargs["attention_mask"] = local
+        return tuple(args), kwargs
 
 
 class LTXAdapter(PipelineAdapter):

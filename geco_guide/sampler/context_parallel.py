@@ -60,7 +60,8 @@ def is_writing_process(run: Any) -> bool:
 
 def check_model_context_parallel(run: Any, model: Any, *, model_device: str, differentiates: bool) -> None:
     """:func:`check_context_parallel_before_loading` for the registry's ``model``
-    (:class:`~geco_guide.families.VideoModel`), from its pipeline class alone."""
+    (:class:`~geco_guide.families.VideoModel`), from its pipeline class alone; then this process
+    takes the GPU of its ``LOCAL_RANK``, the one ``model.device=auto`` (or ``cuda``) loads on."""
     if context_parallel_degree(run) == 1:
         return
     import diffusers
@@ -68,6 +69,8 @@ def check_model_context_parallel(run: Any, model: Any, *, model_device: str, dif
     pipeline_class = getattr(diffusers, model.pipeline)
     check_context_parallel_before_loading(run, adapter_for_class(pipeline_class), model_device=model_device,
                                           differentiates=differentiates)
+    if torch.cuda.is_available():
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
 
 
 def start_context_parallel(pipe: Any, adapter: PipelineAdapter, run: Any, *, differentiates: bool) -> None:

@@ -2,8 +2,10 @@
 parallelism gives one process's video and gradients.
 
 Two processes on the ``gloo`` backend (CPU), spawned here, run the same tiny call as one process:
-the paper's pipeline (CogVideoX, our plan and attention processor) and the hooks on a stock
-``WanPipeline`` (diffusers' own ``_cp_plan``). Compared with one process:
+the paper's pipeline (CogVideoX: our plan and attention processor), the hooks on a stock
+``WanPipeline`` (diffusers' own ``_cp_plan``) and on a stock ``HunyuanVideoPipeline`` (our plan
+and the text mask cut to each process's tokens; the denoiser check pads the two prompts to 6
+and 10 of 16 tokens, so the mask matters). Compared with one process:
 
 - the denoiser's output and the gradient of a fixed linear read-out of it with respect to the
   latents (a CFG batch of two): the gradient faithful guidance takes through the denoiser;
@@ -13,8 +15,8 @@ the paper's pipeline (CogVideoX, our plan and attention processor) and the hooks
 The split changes the order of sums only: the attention of the split sequence (CogVideoX's joint
 text-video sequence comes out of the all-to-all in another order) and matrix products over fewer
 rows per process. So the gradients and the denoiser's output agree to float32 rounding, checked
-at 1e-5 relative to their largest entry (measured: about 2e-7; the updates' gradient norms 3e-6).
-The video is checked at 5e-4 absolute (measured: 5e-5 for CogVideoX, 5e-6 for Wan): a guided
+at 1e-5 relative to their largest entry (measured: at most 2.3e-7; the updates' gradient norms at most 5.4e-6).
+The video is checked at 5e-4 absolute (measured: 5.3e-5 for CogVideoX, 4.4e-6 for Wan, 1.9e-5 for HunyuanVideo): a guided
 update is normalised, so its direction carries the rounding into the latents, and a guided call
 amplifies it; the call here guides the first step only (two updates), since the tiny models'
 full schedule turns a 1e-6 change of the initial latents into 0.18 of a frame in one process
@@ -44,7 +46,7 @@ from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.run_options import RunOptions
 
 PROCESSES = 2
-FAMILIES = ("cogvideox", "wan")
+FAMILIES = ("cogvideox", "wan", "hunyuan")
 #: the guided call's updates: two at the first step, none after (see the module's docstring)
 UPDATES = "2x1,0x3"
 GRADIENT_TOLERANCE = 1e-5  # relative to the largest entry (of the gradient; of the denoiser's output)
@@ -58,20 +60,32 @@ def _free_port() -> int:
 
 
 def _pipeline(family: str):
-    return T.tiny_pipeline(0) if family == "cogvideox" else T.tiny_wan_pipeline(0, scheduler="euler")
+    if family == "cogvideox":
+        return T.tiny_pipeline(0)
+    return T.tiny_wan_pipeline(0, scheduler="euler") if family == "wan" else T.tiny_hunyuan_pipeline(0)
+
+
+def _denoiser_inputs(pipe, family: str, g: torch.Generator) -> tuple[torch.Tensor, dict]:
+    """Random latents (requiring gradients) and the denoiser's inputs for a CFG batch of 2 of them."""
+    shape = (1, 5, 4, 4, 6) if family == "cogvideox" else (1, 4, 5, 4, 6)
+    z = torch.randn(shape, generator=g).requires_grad_(True)
+    width = 16 if family != "hunyuan" else pipe.transformer.config.text_embed_dim
+    inputs = dict(hidden_states=torch.cat([z, z]), encoder_hidden_states=torch.randn(2, 16, width, generator=g),
+                  timestep=torch.tensor([500, 500]), return_dict=False)
+    if family == "cogvideox":
+        inputs["image_rotary_emb"] = pipe._prepare_rotary_positional_embeddings(T.TINY_HEIGHT, T.TINY_WIDTH, 5, "cpu")
+    if family == "hunyuan":  # the text padding the mask hides: 6 and 10 tokens of 16
+        mask = torch.arange(16) < torch.tensor([[6], [10]])
+        inputs.update(encoder_attention_mask=mask.long(), guidance=torch.tensor([6000.0, 6000.0]),
+                      pooled_projections=torch.randn(2, pipe.transformer.config.pooled_projection_dim, generator=g))
+    return z, inputs
 
 
 def _denoiser_gradient(pipe, family: str) -> tuple[torch.Tensor, torch.Tensor]:
     """The denoiser's output at random latents (a CFG batch of 2) and the gradient of a fixed
     linear read-out of it with respect to the latents."""
     g = torch.Generator().manual_seed(1)
-    shape = (1, 5, 4, 4, 6) if family == "cogvideox" else (1, 4, 5, 4, 6)
-    z = torch.randn(shape, generator=g).requires_grad_(True)
-    text = torch.randn(2, T.TINY_MAX_SEQUENCE_LENGTH, 16, generator=g)
-    inputs = dict(hidden_states=torch.cat([z, z]), encoder_hidden_states=text, timestep=torch.tensor([500, 500]),
-                  return_dict=False)
-    if family == "cogvideox":
-        inputs["image_rotary_emb"] = pipe._prepare_rotary_positional_embeddings(T.TINY_HEIGHT, T.TINY_WIDTH, 5, "cpu")
+    z, inputs = _denoiser_inputs(pipe, family, g)
     out = pipe.transformer(**inputs)[0]
     weights = torch.randn(out.shape, generator=g)
     (grad,) = torch.autograd.grad((out * weights).sum(), z)
