@@ -23,7 +23,7 @@ import torch
 
 from ..families import default_anchors
 from ..sampler.schedule import PAPER_STEPS
-from .cards import GPU_SPECS, H200_UNGUIDED_STEP_S, INTERCONNECT_BYTES_PER_S
+from .cards import GPU_SPECS, H200_UNGUIDED_STEP_S, INTERCONNECT_BYTES_PER_S, card_memory_gib
 from .full_size import CALIBRATION_MODEL, model_video, text_embed_shape
 from .measure import GIB, environment_info
 from .tracing import count_schedule_calls, settings_model, trace_cost
@@ -395,8 +395,9 @@ def compare_with_measured(report: dict[str, Any], measured: dict[str, Any], meas
 
 def cost_table(report: dict[str, Any]) -> str:
     """Markdown: per stage FLOPs and predicted seconds on the GPUs, then the run's totals."""
+    fits = {g: report["peak_memory_gb"] <= card_memory_gib(g) for g in GPU_SPECS}  # the guided run's peak
     lines = ["| stage | count | TFLOP forward | TFLOP backward | TFLOP total | share | "
-             + " | ".join(f"{g} (s)" for g in GPU_SPECS) + " |",
+             + " | ".join(f"{g} (s)" if fits[g] else f"{g} (s; the peak does not fit)" for g in GPU_SPECS) + " |",
              "|---|---|---|---|---|---|" + "---|" * len(GPU_SPECS)]
     total = sum(s["flops"] for s in report["per_stage"].values()) or 1
     for name, s in report["per_stage"].items():
@@ -430,9 +431,18 @@ def cost_table(report: dict[str, Any]) -> str:
                      f"{v['peak_memory_gb']['predicted']:.1f} / {v['peak_memory_gb']['measured']:.1f} GiB; "
                      + ", ".join(f"{k} {x['predicted_s']:.0f} / {x['measured_s']:.0f} s" for k, x in v["stages"].items()))
     for gpu in GPU_SPECS:
-        g = wall[gpu]["guided"]
-        lines.append(f"{gpu}: unguided {wall[gpu]['unguided']:.0f} s" + (f", guided {g:.0f} s" if g else "")
-                     + f" (efficiency {report['roofline']['efficiency']:.2f})")
+        arms = [("unguided", report["peak_memory_gb_unguided"])] + ([("guided", report["peak_memory_gb"])]
+                                                                     if wall[gpu]["guided"] else [])
+        lines.append(f"{gpu}: " + ", ".join(_card_time(arm, wall[gpu][arm], peak, card_memory_gib(gpu))
+                                            for arm, peak in arms) + f" (efficiency {report['roofline']['efficiency']:.2f})")
     return "\n".join(lines)
+
+
+def _card_time(arm: str, seconds: float, peak_gb: float, memory_gib: float) -> str:
+    """An arm's predicted time on a card, or, where its peak exceeds the card's memory, that it
+    does not fit there (no time: the run cannot run there as traced)."""
+    if peak_gb <= memory_gib:
+        return f"{arm} {seconds:.0f} s"
+    return f"{arm} does not fit ({peak_gb:.1f} GiB peak > {memory_gib:.1f} GiB)"
 
 
