@@ -72,11 +72,12 @@ def _peak_gb() -> float | None:
 
 
 def main(argv: list[str]) -> int:
-    from geco_guide.generation import load_models, sample
+    from geco_guide.generation import check_generation, load_models, sample
 
     args = _parse(argv)
     processes = int(os.environ.get("WORLD_SIZE", "1"))
-    cfg = _config(args, processes)
+    # the generation path's checks, which also put each process on the GPU of its LOCAL_RANK
+    cfg = check_generation(_config(args, processes), args.prompt)
     models = load_models(cfg)
     rank = dist.get_rank() if dist.is_initialized() else 0
     if torch.cuda.is_available():
