@@ -22,7 +22,15 @@ from typing import TYPE_CHECKING
 
 from .. import __version__
 from ..io.files import WriteError
-from .kit import add_config_flags, command_main, config_from_args, interruptible, output_folder, print_error
+from .kit import (
+    add_config_flags,
+    check_flags_agree,
+    command_main,
+    config_from_args,
+    interruptible,
+    output_folder,
+    print_error,
+)
 
 if TYPE_CHECKING:
     from ..bench.geco_eval import Job
@@ -104,8 +112,13 @@ def plan(args: argparse.Namespace) -> Plan:
     """Every check that needs no model: config, selection, model names, folders."""
     from ..bench.geco_eval import Job, existing_video_jobs, load_prompts, prompts_without_video
     from ..families import generating_model
+    from ..io.devices import resolve_devices
 
+    if args.models:  # each job's model.name is one of --models
+        check_flags_agree(args.overrides, {"model.name": args.models[0] if len(args.models) == 1 else args.models},
+                          {"model.name": "--models"})
     cfg = config_from_args(args, args.overrides)
+    resolve_devices(cfg.run.devices)  # what it names must be here, whether a job uses it or not (as generate)
     conditioned = [m for m in args.models if generating_model(m).image_to_video]
     if conditioned:
         raise ValueError(f"--models {conditioned[0]} is an image-to-video model and GeCo-Eval's prompts are text only: "

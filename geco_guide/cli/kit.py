@@ -151,13 +151,16 @@ def config_from_args(args: argparse.Namespace, overrides: Sequence[str] = (),
                        changes=changes, model_preset=model_preset(model) if model is not None else None)
 
 
-def check_flags_agree(overrides: Sequence[str], changes: dict[str, Any]) -> None:
+def check_flags_agree(overrides: Sequence[str], changes: dict[str, Any], flags: dict[str, str] | None = None) -> None:
     """ValueError (one line) for a ``key=value`` override of a key that a flag of the same command
     line sets to another value (``--model wan2.1-t2v-1.3b`` with ``model.name=cogvideox-5b``):
     which one was meant cannot be told, so neither wins in silence. ``changes``: ``{config key:
-    value}`` of the flags given. An override that agrees with its flag passes."""
+    value}`` of the flags given; ``flags``: the flag of a key, where it is not the kit's own
+    (``--model``, the estimator flags). An override that agrees with its flag passes."""
     import yaml
 
+    flags = {"model.name": "--model", **{k: f"--{d.replace('_', '-')}" for d, k in ESTIMATOR_KEYS.items()},
+             **(flags or {})}
     for item in overrides:
         key, _, text = item.partition("=")
         key = key.strip()
@@ -169,14 +172,10 @@ def check_flags_agree(overrides: Sequence[str], changes: dict[str, Any]) -> None
         except yaml.YAMLError:
             same = False
         if not same:
-            raise ValueError(f"{key}={text.strip()} disagrees with the flag that sets {key} to {_shown(key, value)}: "
-                             f"give {key} once")
-
-
-def _shown(key: str, value: Any) -> str:
-    """A flag's value as a command line gives it, with the flag where the kit knows it."""
-    flag = {"model.name": "--model", **{k: f"--{d.replace('_', '-')}" for d, k in ESTIMATOR_KEYS.items()}}.get(key)
-    return (f"{value!r}" if isinstance(value, str) else json.dumps(value)) + (f" ({flag} {value})" if flag else "")
+            shown = f"{value!r}" if isinstance(value, str) else json.dumps(value)
+            if key in flags:
+                shown += f" ({flags[key]} {' '.join(value) if isinstance(value, list) else value})"
+            raise ValueError(f"{key}={text.strip()} disagrees with the flag that sets {key} to {shown}: give {key} once")
 
 
 def one_line_warnings() -> Callable[..., None]:

@@ -117,3 +117,39 @@ def test_the_sidecar_of_the_tiny_preset_names_the_tiny_stand_in(tmp_path):
     sidecar = json.loads(out.with_suffix(".json").read_text())
     assert sidecar["model"] == "cogvideox-5b (tiny random stand-in)"
     assert sidecar["config"]["model"]["name"] == "cogvideox-5b"  # the config as given: it runs again as it is
+
+
+@pytest.fixture
+def no_runs(monkeypatch):
+    from geco_guide.cli import ab_arms, geco_eval
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the run started")
+
+    monkeypatch.setattr(geco_eval, "execute", refuse)
+    monkeypatch.setattr(ab_arms, "execute", refuse)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+
+
+@pytest.mark.parametrize("command, argv, line", [
+    ("geco-eval", ["--models", "cogvideox-5b", "model.name=wan2.1-t2v-1.3b"],
+     "error: model.name=wan2.1-t2v-1.3b disagrees with the flag that sets model.name to 'cogvideox-5b' (--models "
+     "cogvideox-5b): give model.name once"),
+    ("geco-eval", ["--models", "cogvideox-5b", "run.devices=[cuda:0]"], "error: device 'cuda:0' is not available"),
+    ("ab", ["--model", "wan2.1-t2v-1.3b", "model.name=cogvideox-5b"],
+     "error: model.name=cogvideox-5b disagrees with the flag that sets model.name to 'wan2.1-t2v-1.3b' (--model "
+     "wan2.1-t2v-1.3b): give model.name once"),
+    ("ab", ["run.devices=[cuda:0]"], "error: device 'cuda:0' is not available"),
+])
+def test_every_command_applies_the_same_rules(command, argv, line, tmp_path, capsys, no_runs):
+    from geco_guide.cli import ab, geco_eval
+
+    prompts = tmp_path / "prompts.txt"
+    prompts.write_text("a marble bust\n")
+    out = tmp_path / "out"
+    common = {"geco-eval": ["--limit", "1"], "ab": ["--prompts", str(prompts)]}[command]
+    main_of = {"geco-eval": geco_eval.main, "ab": ab.main}[command]
+    assert main_of(["--preset", "tiny", "--seeds", "0", "--out", str(out), *common, *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith(line), err
+    assert not out.exists()
