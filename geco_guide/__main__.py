@@ -24,6 +24,7 @@ COMMANDS = {
     "generate": "generate",
     "evaluate": "evaluate",
     "geco-eval": "geco_eval",
+    "compare": "compare",
     "ab": "ab",
     "detection": "detection",
     "benchmarks": "benchmarks",
