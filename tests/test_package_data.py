@@ -70,6 +70,7 @@ def test_a_missing_or_damaged_published_file_is_one_line_naming_it(content, prob
     assert "\n" not in message and str(path) in message and problem in message, message
 
 
+@pytest.mark.slow  # imports the cost model
 def test_bench_cost_on_a_damaged_published_file_is_one_line(tmp_path, monkeypatch, capsys, fresh_tables):
     path = tmp_path / "published_configs.json"
     path.write_text("")

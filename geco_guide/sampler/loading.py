@@ -31,16 +31,18 @@ from ..estimators.loading import (
     WeightsNotFoundError,
     pretrained_or_one_line,
     quiet_hub_retries,
+    short_reason,
 )
 from ..io.devices import resolve_device
 from .config import GuidanceConfig
 from .context_parallel import check_model_context_parallel
 from .memory_plan import plan_before_loading
+from .model_folder import PIPELINE_INDEX, ModelFolderError, check_model_folder
 from .run_options import RunOptions
 from .search import SearchConfig, check_search_before_loading
 
 __all__ = ["CHECKPOINT_SCHEDULER", "PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
-           "check_guidance_before_loading", "check_tiny_decoder", "load_tiny_decoder",
+           "check_guidance_before_loading", "check_tiny_decoder", "load_tiny_decoder", "local_folder",
            "load_video_pipeline", "missing_weights", "pipeline_from_pretrained", "quiet_hub_logs",
            "scheduler_class", "uses_tiny_decoder"]
 
@@ -123,15 +125,25 @@ def pipeline_from_pretrained(cls, model_id: str, name: str, folder_hint: str, *,
         WeightsNotFoundError: one line naming ``model_id``, the ``hf download`` command and
             ``folder_hint`` (how to pass a local folder), when the folder does not exist or the
             weights are neither in the hub cache nor reachable.
+        ModelFolderError: one line naming the folder and the reader's error, where a local folder
+            does not load (what is wrong is the folder's, not the hub's).
     """
+    folder = local_folder(model_id)
     with quiet_hub_logs():
+        if folder is not None:
+            try:
+                return cls.from_pretrained(str(folder), **{_dtype_kwarg(): dtype}, **kwargs)
+            except OSError as err:
+                raise ModelFolderError(f"{name}: the folder {folder} does not load: {short_reason(err)}") from None
         return pretrained_or_one_line(
             lambda source: cls.from_pretrained(source, revision=revision, **{_dtype_kwarg(): dtype}, **kwargs),
             model_id, model_name=name, folder_hint=folder_hint)
 
 
-#: The file whose presence says a diffusers pipeline folder or repo is there.
-PIPELINE_INDEX = "model_index.json"
+def local_folder(source: str) -> Path | None:
+    """``source`` as a local folder, ``None`` for a hub id (or a path that is not there)."""
+    path = Path(source).expanduser()
+    return path if path.is_dir() else None
 
 
 def missing_weights(model: ModelConfig, estimators: EstimatorsConfig, *, tiny_decoder: bool = False,
@@ -139,13 +151,15 @@ def missing_weights(model: ModelConfig, estimators: EstimatorsConfig, *, tiny_de
     """Every model's weights a run needs, looked up before any model loads (a cache look-up or one
     metadata request each, instead of minutes of loading first): the video model, the geometry and
     flow estimators, and where they are used the segmenter and the tiny decoder. All that are
-    missing are named in one line, each with its config key.
+    missing are named in one line, each with its config key. A local folder of the video model is
+    then checked whole and the registry model's (:func:`~.model_folder.check_model_folder`).
 
     Raises:
         WeightsNotFoundError: one line naming every missing model: its repo id, the config key and
             how to pass a local path.
         ValueError: the tiny decoder is asked for but the model has none, it is not named, or its
             file is another model's (:func:`check_tiny_decoder`).
+        ModelFolderError: the video model's local folder is damaged or another model's.
     """
     from ..estimators import check_weights
     from ..estimators.loading import WeightsSource
@@ -155,6 +169,9 @@ def missing_weights(model: ModelConfig, estimators: EstimatorsConfig, *, tiny_de
     if tiny_decoder:
         check_tiny_decoder(estimators, model.video_model)
     check_weights(estimators, segmenter=segmenter, extra=rows)
+    folder = local_folder(model.source) if model.source != TINY_RANDOM else None
+    if folder is not None:
+        check_model_folder(model.video_model, folder)
 
 
 @dataclass
@@ -190,6 +207,8 @@ def load_video_pipeline(model: ModelConfig, scheduler: str | None = None,
         ValueError: (one line, before anything loads) a ``scheduler`` the model has not.
         WeightsNotFoundError: one line naming the model id, ``model.id`` and how to pass a local
             folder, when the weights are neither in a local folder nor in the hub cache / reachable.
+        ModelFolderError: a local folder that is damaged or another model's, before it loads
+            (:func:`~.model_folder.check_model_folder`).
     """
     import diffusers
 
@@ -209,9 +228,11 @@ def load_video_pipeline(model: ModelConfig, scheduler: str | None = None,
     elif model.source == TINY_RANDOM:
         raise ValueError(f"model.id={TINY_RANDOM} needs its components (geco_guide.tiny.tiny_video_components)")
     else:
-        folder = model.source.rstrip("/").split("/")[-1]
-        pipe = pipeline_from_pretrained(cls, model.source, entry.name, f"model.id=/path/to/{folder}", dtype=dtype,
-                                        revision=model.revision)
+        folder = local_folder(model.source)
+        if folder is not None:
+            check_model_folder(entry, folder)
+        hint = f"model.id=/path/to/{model.source.rstrip('/').split('/')[-1]}"
+        pipe = pipeline_from_pretrained(cls, model.source, entry.name, hint, dtype=dtype, revision=model.revision)
     shipped = type(pipe.scheduler).__name__
     if scheduler_cls is None:
         note = f"{shipped} (the checkpoint's)"
@@ -357,7 +378,8 @@ def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceCo
     what a fresh machine lacks to what the run asks of the machine it has:
 
     1. with ``weights`` (the models are not loaded yet), every model's weights, the tiny decoder's
-       where the guidance decodes with it (all missing ones named at once);
+       where the guidance decodes with it (all missing ones named at once), then a local folder
+       of the video model: whole, and the registry model's (:mod:`.model_folder`);
     2. the devices (``model.device``, ``run.devices``) and the memory a plan budgets for;
     3. the memory plan that fits
        (:func:`~.memory_plan.plan_before_loading`), a ``search``'s particles beside it

@@ -141,14 +141,17 @@ def test_the_paper_preset_without_guidance_from_local_folders(local_weights, tmp
 
 
 def test_the_planner_knows_a_local_folder_by_its_denoiser_config(tmp_path, capsys):
-    # a folder holding only the CogVideoX-5b denoiser's config: the refusal comes before any weights
-    # would be read, with the 5B model's own estimates
+    # a folder holding only the CogVideoX-5b configs: the refusal comes before any weights would be
+    # read, with the 5B model's own estimates
     folder = tmp_path / "CogVideoX-5b"
     (folder / "transformer").mkdir(parents=True)
-    (folder / "model_index.json").write_text("{}")
+    (folder / "vae").mkdir()
+    (folder / "model_index.json").write_text(json.dumps({"_class_name": "CogVideoXPipeline"}))
     (folder / "transformer" / "config.json").write_text(json.dumps(
-        {"num_layers": 42, "num_attention_heads": 48, "attention_head_dim": 64, "in_channels": 16, "patch_size": 2,
-         "patch_size_t": None}))
+        {"_class_name": "CogVideoXTransformer3DModel", "num_layers": 42, "num_attention_heads": 48,
+         "attention_head_dim": 64, "in_channels": 16, "patch_size": 2, "patch_size_t": None}))
+    (folder / "vae" / "config.json").write_text(json.dumps({"_class_name": "AutoencoderKLCogVideoX",
+                                                            "latent_channels": 16}))
     rc = generate_module.main(["--preset", "cogvideox-5b", "--prompt", PROMPT, "--out", str(tmp_path),
                                f"model.id={folder}", "estimators.geometry=tiny-random", "estimators.flow=tiny-random",
                                "run.memory_budget_gb=1"])
