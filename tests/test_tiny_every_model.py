@@ -82,9 +82,9 @@ def test_geco_generate_preset_tiny_runs_every_model(name, image, tmp_path, capsy
     sidecar = json.loads(out.with_suffix(".json").read_text())
     assert sidecar["model"] == f"{name} (tiny random stand-in)" and sidecar["config"]["model"]["id"] == "tiny-random"
     assert sidecar["num_frames"] == 17 and out.stat().st_size > 0
-    if name == "ltx-2":  # its vocoder's 16 kHz stereo, as long as the video at the call's 24 fps
+    if name == "ltx-2":  # its vocoder's 16 kHz stereo, as long as the video at the tiny preset's 8 fps
         assert audio_stream(out) == {"codec": "aac", "sample_rate": 16000, "channels": "stereo"}
-        assert sidecar["audio"] == {"file": "video.mp4", "sample_rate": 16000, "channels": 2,
-                                    "seconds": pytest.approx(17 / 24, abs=0.05)}
+        assert sidecar["fps"] == 8 and sidecar["audio"] == {"file": "video.mp4", "sample_rate": 16000, "channels": 2,
+                                                            "seconds": pytest.approx(17 / 8, abs=0.05)}
     else:
         assert audio_stream(out) is None and "audio" not in sidecar

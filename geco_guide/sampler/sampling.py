@@ -103,6 +103,9 @@ def call_arguments(pipe: Any, sampling: SamplingConfig, *, prompt: str, generato
     """The keyword arguments of ``pipe``'s call for ``sampling`` (filled): the core ones, and each
     other option that is set, where the pipeline takes it; ``extra`` (e.g. ``image``) likewise.
 
+    A pipeline that makes sound with the video (LTX-2: its ``vocoder``) gets ``sampling.fps`` as its
+    ``frame_rate``, so that the sound lasts as long as the written video.
+
     Two families take what the others take as arguments elsewhere: a pipeline whose CFG is a
     ``guider`` component (HunyuanVideo 1.5) gets ``sampling.guidance_scale`` as its guider's scale
     (the component is replaced by a copy of that scale); an image-to-video pipeline that sizes its
@@ -119,6 +122,10 @@ def call_arguments(pipe: Any, sampling: SamplingConfig, *, prompt: str, generato
         arguments.update(height=sampling.height, width=sampling.width)
     if "guidance_scale" in accepted:
         arguments["guidance_scale"] = sampling.guidance_scale
+    if "frame_rate" in accepted and getattr(pipe, "vocoder", None) is not None and sampling.fps is not None:
+        # a pipeline that makes sound with the video (LTX-2) makes as much of it as the frames last at
+        # frame_rate: the video is written at sampling.fps, so the sound lasts as long as the video
+        arguments["frame_rate"] = float(sampling.fps)
     elif getattr(pipe, "guider", None) is not None and pipe.guider.guidance_scale != sampling.guidance_scale:
         pipe.guider = pipe.guider.new(guidance_scale=sampling.guidance_scale)
     optional = {f"sampling.{f.name}": (f.name, getattr(sampling, f.name)) for f in fields(sampling)
