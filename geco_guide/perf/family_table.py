@@ -59,15 +59,21 @@ def _search(costs: list[dict[str, Any]], unguided_s: float) -> str:
     return f"K={cost['particles']}: {seconds} ({ratios}x), {cost['peak_gb']:.1f} GiB{offload}"
 
 
-def _parallel(cost: dict[str, Any], unguided_s: float) -> str:
-    """A cell of :func:`~.parallel_cost.parallel_guidance`: time, ratio to one-GPU unguided, peak per GPU, layout."""
+def _parallel(cost: dict[str, Any], unguided_s: float, dealt: dict[str, Any] | None = None) -> str:
+    """A cell of :func:`~.parallel_cost.parallel_guidance`: time, ratio to one-GPU unguided, peak per
+    GPU, layout; then, if given, the time of the composition with the anchor decode ``dealt``."""
     if cost["plan"] is None:
-        return cost["reason"]
-    layout = [cost["plan"]] + ["offload"] * cost["offload"] + ["split CFG"] * cost["split_cfg"]
-    if cost["context_parallel"] > 1:
-        layout.append(f"{cost['backend']} over {cost['context_parallel']}")
-    return (f"{_seconds(cost['time_s'])} ({cost['time_s'] / unguided_s:.2f}x), {cost['peak_gb']:.1f} GiB "
-            f"({', '.join(layout)})")
+        text = cost["reason"]
+    else:
+        layout = [cost["plan"]] + ["offload"] * cost["offload"] + ["split CFG"] * cost["split_cfg"]
+        if cost["context_parallel"] > 1:
+            layout.append(f"{cost['backend']} over {cost['context_parallel']}")
+        text = (f"{_seconds(cost['time_s'])} ({cost['time_s'] / unguided_s:.2f}x), {cost['peak_gb']:.1f} GiB "
+                f"({', '.join(layout)})")
+    if dealt is None or dealt["plan"] is None:
+        return text
+    split = f", split CFG, {dealt['backend']} over {dealt['context_parallel']}" if dealt["split_cfg"] else ""
+    return f"{text}; dealt: {_seconds(dealt['time_s'])} ({dealt['time_s'] / unguided_s:.2f}x{split})"
 
 
 def family_rows(estimates: dict[str, Any] | None = None) -> list[dict[str, str]]:
@@ -96,7 +102,8 @@ def family_rows(estimates: dict[str, Any] | None = None) -> list[dict[str, str]]
                                                                unguided_s),
                 "gpus": _parallel(parallel_guidance(name, gpu, SEARCH_GPUS, context_parallel=False,
                                                     estimates=estimates), unguided_s),
-                "cp": _parallel(parallel_guidance(name, gpu, SEARCH_GPUS, estimates=estimates), unguided_s),
+                "cp": _parallel(parallel_guidance(name, gpu, SEARCH_GPUS, estimates=estimates), unguided_s,
+                                parallel_guidance(name, gpu, SEARCH_GPUS, deal_decode=True, estimates=estimates)),
                 "search_gpus": _search(several, unguided_s),
             })
     return rows
@@ -107,7 +114,7 @@ COLUMNS = (("model", "model"), ("card", "card"), ("unguided", "unguided"), ("fas
            ("faithful", "faithful"), ("tiny", "faithful, tiny decoder"),
            ("search", "search, K matched to faithful"),
            ("gpus", f"faithful on {SEARCH_GPUS} GPUs: run.devices (x unguided on 1)"),
-           ("cp", f"faithful on {SEARCH_GPUS} GPUs: context parallel (x unguided on 1)"),
+           ("cp", f"faithful on {SEARCH_GPUS} GPUs: context parallel; dealt: with the anchor decode dealt (not run yet)"),
            ("search_gpus", f"search K={SEARCH_PARTICLES} on {SEARCH_GPUS} GPUs (x unguided on 1)"))
 
 

@@ -7,9 +7,12 @@ backward (linear layers, norms and attention all scale with the tokens; each ran
 reads all the weights, milliseconds a call at these sizes, left out), and the self-attentions
 exchange what they read (:func:`attention_traffic`, from the traced attention shapes of
 :mod:`.attention_shapes`) over the card's interconnect (:data:`~.cards.INTERCONNECT_BYTES_PER_S`),
-not overlapped with compute. Split CFG (``run.split_cfg``, the GeCo pipeline's) runs the two CFG
-halves on two groups of ranks. The anchor chunks are dealt over every GPU as ``run.devices``
-deals them (:func:`~.cost.decode_over_gpus`); the estimators and the loss stay on the first GPU.
+not overlapped with compute. As ``run.context_parallel`` runs it, every process runs the rest of
+the call whole (the anchor decode, the estimators, the loss) and the attention is Ulysses.
+``deal_decode`` predicts the composition it does not make yet: the anchor chunks dealt over the
+ranks as ``run.devices`` deals them (:func:`~.cost.decode_over_gpus`), ring attention where the
+heads do not divide, and split CFG (``run.split_cfg``, the GeCo pipeline's: the two CFG halves on
+two groups of ranks) where that is faster. The estimators and the loss stay whole.
 
 The estimates keep no denoiser time per plan: :func:`denoiser_seconds` gets it from one plan's
 fast and faithful estimates, which differ by the differentiated calls alone (the same decode,
@@ -73,10 +76,9 @@ def _split_attention(attention: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [call for call in attention if call["query"][2] == call["key"][2] == tokens]
 
 
-def _backend(attention: list[dict[str, Any]], ranks: int) -> str:
-    """Ulysses (the less traffic) where every split self-attention's heads divide over the ranks, else ring."""
-    heads = {call["query"][1] for call in _split_attention(attention)}
-    return "ulysses" if all(h % ranks == 0 for h in heads) else "ring"
+def _heads_divide(attention: list[dict[str, Any]], ranks: int) -> bool:
+    """Whether every split self-attention's heads divide over the ranks (what Ulysses needs)."""
+    return all(call["query"][1] % ranks == 0 for call in _split_attention(attention))
 
 
 def schedule_counts(name: str, entry: dict[str, Any]) -> dict[str, int]:
@@ -115,21 +117,24 @@ def cfg_half_bytes(name: str, entry: dict[str, Any]) -> int:
     return 2 * (2 * latents) + 2 * tokens * dim
 
 
-def _layouts(name: str, num_gpus: int, context_parallel: bool) -> list[tuple[int, bool]]:
+def _layouts(name: str, num_gpus: int, context_parallel: bool, deal_decode: bool) -> list[tuple[int, bool]]:
     """``(ranks splitting each call's tokens, split CFG)`` to weigh on ``num_gpus`` GPUs: split CFG
-    where the GeCo pipeline runs the model, on two GPUs or two groups of ranks."""
+    where the GeCo pipeline runs the model, on two GPUs (``run.devices``) or, composed with context
+    parallelism (``deal_decode``), two groups of ranks."""
     split = model_named(name).guided_by == "pipeline" and num_gpus >= 2
     if not context_parallel:
         return [(1, False)] + [(1, True)] * split
-    return [(num_gpus, False)] + [(num_gpus // 2, True)] * (split and num_gpus % 2 == 0 and num_gpus >= 4)
+    composed = deal_decode and split and num_gpus % 2 == 0 and num_gpus >= 4
+    return [(num_gpus, False)] + [(num_gpus // 2, True)] * composed
 
 
 def _traffic_s(facts: dict[str, Any], gpu: str, cp: int, split: bool, calls: dict[str, float],
                recompute: bool) -> tuple[float, str | None]:
-    """Seconds of the collectives of ``calls`` (``cfg_calls``, ``grad_calls``) on one rank, and the backend."""
+    """Seconds of the collectives of ``calls`` (``cfg_calls``, ``grad_calls``) on one rank, and the
+    backend: Ulysses (the less traffic) where the heads divide over the ranks, else ring."""
     if cp == 1:
         return 0.0, None
-    backend = _backend(facts["attention"], cp)
+    backend = "ulysses" if _heads_divide(facts["attention"], cp) else "ring"
     traffic = attention_traffic(facts["attention"], cp, backend)
     share = 0.5 if split else 1.0  # a group of ranks runs one CFG half
     grad = traffic["forward"] * (1 + recompute) + traffic["backward"]
@@ -139,7 +144,8 @@ def _traffic_s(facts: dict[str, Any], gpu: str, cp: int, split: bool, calls: dic
 
 def _layout_cost(name: str, entry: dict[str, Any], counts: dict[str, int], gpu: str, num_gpus: int,
                  layout: tuple[int, bool], plan: Any, offload: bool, mode: str, decoder: str) -> dict[str, Any]:
-    """One ``layout`` (:func:`_layouts`) under one plan, with or without offload: :func:`parallel_guidance`'s keys."""
+    """One ``layout`` (:func:`_layouts`) under one plan, with or without offload, the anchor chunks
+    dealt over ``num_gpus``: :func:`parallel_guidance`'s keys."""
     cp, split = layout
     ranks = cp * (2 if split else 1)
     estimate = entry["estimates"][f"{mode}/{decoder}"][plan.name]
@@ -168,12 +174,14 @@ def _layout_cost(name: str, entry: dict[str, Any], counts: dict[str, int], gpu: 
 
 
 def parallel_guidance(name: str, gpu: str, num_gpus: int, mode: str = "faithful", decoder: str = "vae",
-                      context_parallel: bool = True, estimates: dict[str, Any] | None = None) -> dict[str, Any]:
+                      context_parallel: bool = True, deal_decode: bool = False,
+                      estimates: dict[str, Any] | None = None) -> dict[str, Any]:
     """The guided run of registry model ``name``'s traced video on ``num_gpus`` cards ``gpu``: with
-    ``context_parallel`` every call's tokens split over the GPUs (or, for the GeCo pipeline, over
-    two groups of half of them, one per CFG half, where that is faster), else ``run.devices`` with
-    split CFG where the pipeline has it and it is faster; the anchor chunks dealt over the GPUs.
-    The plan of least time whose peak on the first GPU fits the card (94 % of its memory), without
+    ``context_parallel`` every call's tokens split over the GPUs as ``run.context_parallel`` splits
+    them (the rest of the call whole on every GPU), or with ``deal_decode`` composed with the anchor
+    chunks dealt over them and split CFG where faster (see the module docstring); else
+    ``run.devices``, the anchor chunks dealt over the GPUs and split CFG where the pipeline has it
+    and it is faster. The plan of least time whose peak on the first GPU fits the card (94 % of its memory), without
     model CPU offload if one does. Returns ``plan``, ``offload``, ``time_s``, ``peak_gb``,
     ``context_parallel`` (ranks per call), ``split_cfg``, ``backend``, ``traffic_s`` (the
     collectives and split CFG's transfers) and ``denoiser_s`` (per rank, with them); ``plan``
@@ -184,12 +192,17 @@ def parallel_guidance(name: str, gpu: str, num_gpus: int, mode: str = "faithful"
     entry = estimates_entry(name, estimates)
     if f"{mode}/{decoder}" not in entry["estimates"]:
         return {"plan": None, "reason": f"no estimates with decoder {decoder} ({name} has no tiny decoder)"}
+    attention = load_attention()["models"][name]["attention"]
+    if context_parallel and not deal_decode and not _heads_divide(attention, num_gpus):
+        heads = sorted({call["query"][1] for call in _split_attention(attention)})
+        return {"plan": None, "reason": f"Ulysses needs the heads ({', '.join(map(str, heads))}) divisible by {num_gpus}"}
     counts, budget = schedule_counts(name, entry), DEVICE_HEADROOM * card_memory_gib(gpu)
+    decode_gpus = 1 if context_parallel and not deal_decode else num_gpus
     least = None
     for offload in (False, True):
         # the more saving plan first: a tie in time goes to it, as the planner's
-        costs = [_layout_cost(name, entry, counts, gpu, num_gpus, layout, plan, offload, mode, decoder)
-                 for layout in _layouts(name, num_gpus, context_parallel) for plan in reversed(PLANS)]
+        costs = [_layout_cost(name, entry, counts, gpu, decode_gpus, layout, plan, offload, mode, decoder)
+                 for layout in _layouts(name, num_gpus, context_parallel, deal_decode) for plan in reversed(PLANS)]
         least = min(costs, key=lambda cost: cost["peak_gb"])
         fitting = [cost for cost in costs if cost["peak_gb"] <= budget]
         if fitting:
@@ -200,10 +213,14 @@ def parallel_guidance(name: str, gpu: str, num_gpus: int, mode: str = "faithful"
 
 def parallel_unguided(name: str, gpu: str, num_gpus: int, estimates: dict[str, Any] | None = None) -> dict[str, Any]:
     """The unguided run (the stock pipeline's) of registry model ``name``'s traced video with its
-    denoiser's tokens split over ``num_gpus`` cards ``gpu``: ``time_s`` (its predictions at
-    ``1 / N`` plus the collectives), ``traffic_s``, ``backend``; ``peak_gb`` per GPU is the one-GPU
-    peak (its final decode, not split, is the larger part)."""
+    denoiser's tokens split over ``num_gpus`` cards ``gpu`` as ``run.context_parallel`` splits
+    them: ``time_s`` (its predictions at ``1 / N`` plus the collectives), ``traffic_s``,
+    ``backend``; ``peak_gb`` per GPU is the one-GPU peak (its final decode, not split, is the larger
+    part). ``time_s`` ``None`` and ``reason`` where Ulysses cannot split the heads."""
     entry = estimates_entry(name, estimates)
+    attention = load_attention()["models"][name]["attention"]
+    if not _heads_divide(attention, num_gpus):
+        return {"time_s": None, "reason": f"Ulysses needs the heads divisible by {num_gpus}"}
     steps = entry["schedule"]["steps"]
     cfg_s = entry["search_units"]["prediction_s"][gpu]
     traffic_s, backend = _traffic_s(load_attention()["models"][name], gpu, num_gpus, False,
@@ -215,7 +232,8 @@ def parallel_unguided(name: str, gpu: str, num_gpus: int, estimates: dict[str, A
 def parallel_report(name: str, mode: str, num_gpus: int, estimates: dict[str, Any] | None = None) -> dict[str, Any]:
     """``geco bench cost --context-parallel N``: registry model ``name``'s run in ``mode`` on every
     card of :data:`~.cards.GPU_SPECS`, on one GPU and on ``num_gpus`` (``run.devices`` with split
-    CFG where it helps; context parallelism), beside the unguided run on one GPU and split over
+    CFG where it helps; context parallelism as ``run.context_parallel`` runs it, and composed with
+    the anchor decode dealt over the GPUs, which it does not do yet), beside the unguided run on one GPU and split over
     ``num_gpus``, and the bytes one rank sends per prediction with each attention backend."""
     estimates = load_estimates() if estimates is None else estimates
     entry = estimates_entry(name, estimates)
@@ -231,7 +249,9 @@ def parallel_report(name: str, mode: str, num_gpus: int, estimates: dict[str, An
                 one["reason"] = f"does not fit ({least:.1f} GiB at least, with offload)"
             row.update(one_gpu=one,
                        devices=parallel_guidance(name, gpu, num_gpus, mode, context_parallel=False, estimates=estimates),
-                       context_parallel=parallel_guidance(name, gpu, num_gpus, mode, estimates=estimates))
+                       context_parallel=parallel_guidance(name, gpu, num_gpus, mode, estimates=estimates),
+                       decode_dealt=parallel_guidance(name, gpu, num_gpus, mode, deal_decode=True,
+                                                      estimates=estimates))
         cards[gpu] = row
     traffic = {backend: attention_traffic(attention, num_gpus, backend) for backend in ("ulysses", "ring")}
     return {"subcommand": "cost --context-parallel", "model": name, "mode": mode, "num_gpus": num_gpus,
@@ -257,12 +277,14 @@ def parallel_table(report: dict[str, Any]) -> str:
              + ", ".join(f"{t['forward'] / 1e9:.2f} GB per rank forward with {b}" for b, t in traffic.items()) + ":"]
     header = ["card", "unguided, 1 GPU", f"unguided, context parallel over {n}"]
     if mode != "unguided":
-        header += [f"{mode}, 1 GPU", f"{mode}, run.devices over {n}", f"{mode}, context parallel over {n}"]
+        header += [f"{mode}, 1 GPU", f"{mode}, run.devices over {n}", f"{mode}, context parallel over {n}",
+                   f"{mode}, context parallel over {n}, the anchor decode dealt (not run yet)"]
     lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for gpu, row in report["cards"].items():
         unguided, split = row["unguided_s"], row["unguided_parallel"]
-        cells = [gpu, f"{unguided:.0f} s", f"{split['time_s']:.0f} s ({split['time_s'] / unguided:.2f}x)"]
+        cells = [gpu, f"{unguided:.0f} s", split["reason"] if split["time_s"] is None else
+                 f"{split['time_s']:.0f} s ({split['time_s'] / unguided:.2f}x)"]
         if mode != "unguided":
-            cells += [_cell(row[key], unguided) for key in ("one_gpu", "devices", "context_parallel")]
+            cells += [_cell(row[key], unguided) for key in ("one_gpu", "devices", "context_parallel", "decode_dealt")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)

@@ -70,15 +70,23 @@ def test_the_denoisers_share_of_a_plan_is_what_separates_faithful_from_fast():
     assert rest["fast"] == pytest.approx(rest["faithful"])  # the same decode, estimators and loss
 
 
-def test_context_parallel_faithful_cogvideox_5b_on_four_h200s_within_four_and_a_half_unguided():
+def test_context_parallel_faithful_cogvideox_5b_on_four_h200s_within_four_and_a_half_unguided_with_the_decode_dealt():
+    unguided = _unguided("cogvideox-5b")
     one = search_cost.guidance_cost("cogvideox-5b", "H200", "faithful")
     devices = parallel_cost.parallel_guidance("cogvideox-5b", "H200", 4, context_parallel=False)
     split = parallel_cost.parallel_guidance("cogvideox-5b", "H200", 4)
-    assert split["time_s"] / _unguided("cogvideox-5b") <= 4.5 < devices["time_s"] / _unguided("cogvideox-5b")
-    assert split["time_s"] < devices["time_s"] < one["time_s"]
-    assert split["peak_gb"] < one["peak_gb"] == devices["peak_gb"]  # run.devices: the one-GPU peak
-    assert devices["split_cfg"] and split["split_cfg"] and split["context_parallel"] == 2
-    assert 0 < split["traffic_s"] < 0.05 * split["time_s"]  # NVLink: the collectives are small
+    dealt = parallel_cost.parallel_guidance("cogvideox-5b", "H200", 4, deal_decode=True)
+    # as run.context_parallel runs it, every GPU decodes every anchor chunk: 7.8x, not 4.5x
+    assert dealt["time_s"] / unguided <= 4.5 < devices["time_s"] / unguided < split["time_s"] / unguided
+    assert split["time_s"] < one["time_s"] and not split["split_cfg"] and split["context_parallel"] == 4
+    assert split["time_s"] - dealt["time_s"] == pytest.approx(0.75 * 441, rel=0.05)  # 3 of 4 chunks elsewhere
+    assert split["peak_gb"] == dealt["peak_gb"] < one["peak_gb"] == devices["peak_gb"]  # run.devices: one GPU's
+    assert devices["split_cfg"] and dealt["split_cfg"] and dealt["context_parallel"] == 2
+    assert 0 < dealt["traffic_s"] < split["traffic_s"] < 0.05 * split["time_s"]  # NVLink: the collectives are small
+    # Ulysses needs the heads divisible: CogVideoX-2B's 30 over 4 are not; the composition takes ring or split CFG
+    refused = parallel_cost.parallel_guidance("cogvideox-2b", "H200", 4)
+    assert refused["plan"] is None and "Ulysses needs the heads (30) divisible by 4" in refused["reason"]
+    assert parallel_cost.parallel_guidance("cogvideox-2b", "H200", 4, deal_decode=True)["plan"] is not None
 
 
 def test_wan_22_a14b_faithful_fits_four_h200s_with_context_parallelism_and_not_without():
@@ -87,6 +95,7 @@ def test_wan_22_a14b_faithful_fits_four_h200s_with_context_parallelism_and_not_w
     assert parallel_cost.parallel_guidance(name, "H200", 4, context_parallel=False)["plan"] is None
     split = parallel_cost.parallel_guidance(name, "H200", 4)
     assert split["plan"] is not None and split["offload"] and split["context_parallel"] == 4
+    assert parallel_cost.parallel_guidance(name, "H200", 4, deal_decode=True)["time_s"] < split["time_s"]
     assert split["peak_gb"] <= 0.94 * cards.card_memory_gib("H200") and split["time_s"] > _unguided(name)
     assert split["time_s"] > search_cost.offload_transfer_s(name, "H200", 90) > 0
     assert parallel_cost.parallel_guidance(name, "RTX4090", 4)["plan"] is None
@@ -99,6 +108,7 @@ def test_the_memory_per_gpu_falls_and_the_time_with_it_as_the_gpus_grow():
     assert runs[0]["time_s"] > runs[1]["time_s"] > runs[2]["time_s"]
     unguided = [parallel_cost.parallel_unguided("hunyuanvideo", "H200", n)["time_s"] for n in (2, 4)]
     assert _unguided("hunyuanvideo") > unguided[0] > unguided[1]
+    assert parallel_cost.parallel_unguided("cogvideox-2b", "H200", 4)["time_s"] is None  # 30 heads
     with pytest.raises(ValueError, match="must be >= 1"):
         parallel_cost.parallel_guidance("cogvideox-5b", "H200", 0)
 
