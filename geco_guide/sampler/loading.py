@@ -37,12 +37,13 @@ from ..io.devices import resolve_device
 from .config import GuidanceConfig
 from .context_parallel import check_model_context_parallel
 from .memory_plan import plan_before_loading
-from .model_folder import PIPELINE_INDEX, ModelFolderError, check_model_folder
+from .model_folder import PIPELINE_INDEX, ModelFolderError, check_cached_model, check_model_folder
 from .run_options import RunOptions
 from .search import SearchConfig, check_search_before_loading
 
 __all__ = ["CHECKPOINT_SCHEDULER", "PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
-           "check_guidance_before_loading", "check_tiny_decoder", "load_tiny_decoder", "local_folder",
+           "check_guidance_before_loading", "check_tiny_decoder", "load_tiny_decoder", "check_model_source",
+           "local_folder",
            "load_video_pipeline", "missing_weights", "pipeline_from_pretrained", "quiet_hub_logs",
            "scheduler_class", "uses_tiny_decoder"]
 
@@ -140,6 +141,24 @@ def pipeline_from_pretrained(cls, model_id: str, name: str, folder_hint: str, *,
             model_id, model_name=name, folder_hint=folder_hint)
 
 
+def check_model_source(model: ModelConfig) -> None:
+    """``model.id``, where it is not the registry's hub id, checked to be the registry model's before
+    it loads: a local folder whole and the model's (:func:`~.model_folder.check_model_folder`), a
+    hub id by its configs in the hub cache, where they are there (nothing is downloaded).
+
+    Raises:
+        ModelFolderError: one line naming the file, or both models.
+    """
+    entry = model.video_model
+    if model.source in (TINY_RANDOM, entry.hub_id, *entry.hub_aliases):
+        return
+    folder = local_folder(model.source)
+    if folder is not None:
+        check_model_folder(entry, folder)
+        return
+    check_cached_model(entry, model.source, model.revision)
+
+
 def local_folder(source: str) -> Path | None:
     """``source`` as a local folder, ``None`` for a hub id (or a path that is not there)."""
     path = Path(source).expanduser()
@@ -169,9 +188,7 @@ def missing_weights(model: ModelConfig, estimators: EstimatorsConfig, *, tiny_de
     if tiny_decoder:
         check_tiny_decoder(estimators, model.video_model)
     check_weights(estimators, segmenter=segmenter, extra=rows)
-    folder = local_folder(model.source) if model.source != TINY_RANDOM else None
-    if folder is not None:
-        check_model_folder(model.video_model, folder)
+    check_model_source(model)
 
 
 @dataclass

@@ -25,7 +25,8 @@ from typing import Any
 from ..families import MODELS, VideoModel
 from ..families.published import published_configs, traced_models
 
-__all__ = ["PIPELINE_INDEX", "ModelFolderError", "check_folder_files", "check_folder_model", "check_model_folder"]
+__all__ = ["PIPELINE_INDEX", "ModelFolderError", "cached_pipeline_configs", "check_cached_model", "check_folder_files",
+           "check_folder_model", "check_model_folder"]
 
 #: The file whose presence says a folder is a diffusers pipeline.
 PIPELINE_INDEX = "model_index.json"
@@ -160,14 +161,50 @@ def _looks_like(model: VideoModel, fits: Callable[[VideoModel], bool]) -> str:
     return f" (the layout of {_names(others)})" if others else ""
 
 
-def check_folder_model(model: VideoModel, folder: Path, index: dict[str, Any]) -> None:
-    """That the pipeline folder ``folder`` (its ``model_index.json``: ``index``) is ``model``'s.
+#: The small files :func:`check_folder_model` reads.
+MODEL_CONFIGS = (PIPELINE_INDEX, "transformer/config.json", "vae/config.json")
+
+
+def check_cached_model(model: VideoModel, repo_id: str, revision: str | None = None) -> None:
+    """:func:`check_folder_model` of hub repo ``repo_id``'s configs in the hub cache, where they are
+    there (:func:`cached_pipeline_configs`); nothing otherwise.
 
     Raises:
-        ModelFolderError: one line naming the folder, ``model`` and what the folder holds instead.
+        ModelFolderError: one line naming ``repo_id``, ``model`` and what the repo holds instead.
+    """
+    snapshot = cached_pipeline_configs(repo_id, revision)
+    if snapshot is not None:
+        check_folder_model(model, snapshot, _read_json(snapshot / PIPELINE_INDEX), source=repo_id)
+
+
+def cached_pipeline_configs(repo_id: str, revision: str | None = None) -> Path | None:
+    """The hub cache's snapshot folder of ``repo_id`` where it holds :data:`MODEL_CONFIGS` (what
+    :func:`check_folder_model` compares, no weights), ``None`` otherwise (not cached: nothing to
+    compare before the download)."""
+    from huggingface_hub import try_to_load_from_cache
+
+    paths = []
+    for name in MODEL_CONFIGS:
+        try:
+            cached = try_to_load_from_cache(repo_id, name, revision=revision)
+        except (ValueError, OSError):  # not a repo id
+            return None
+        if not isinstance(cached, str):
+            return None
+        paths.append(Path(cached))
+    return paths[0].parent
+
+
+def check_folder_model(model: VideoModel, folder: Path, index: dict[str, Any], source: str | None = None) -> None:
+    """That the pipeline folder ``folder`` (its ``model_index.json``: ``index``; a hub cache's
+    snapshot of ``source``) is ``model``'s.
+
+    Raises:
+        ModelFolderError: one line naming the folder (``source``), ``model`` and what the folder
+            holds instead.
     """
     def refuse(what: str, likely: str = "") -> ModelFolderError:
-        return ModelFolderError(f"model.id={folder} is not a folder of {model.name}: {what}{likely}")
+        return ModelFolderError(f"model.id={source or folder} is not a folder of {model.name}: {what}{likely}")
 
     found = index.get("_class_name")
     if found not in (model.pipeline, f"GeCo{model.pipeline}"):

@@ -183,3 +183,24 @@ def test_a_folder_that_does_not_load_is_the_folders_line_not_the_hubs(tmp_path):
     message = str(err.value)
     assert message.startswith(f"wan2.1-t2v-1.3b: the folder {tmp_path} does not load: OSError: Error no file named")
     assert "hf download" not in message and "\n" not in message
+
+
+def test_a_hub_id_of_another_model_is_refused_by_its_cached_configs(tmp_path, monkeypatch, capsys, no_loading):
+    """``model.id`` naming another model's hub repo whose configs are in the hub cache (no weights
+    needed): one line naming the repo and the model, before anything loads or downloads."""
+    import huggingface_hub.constants
+
+    commit = "0" * 40
+    repo = tmp_path / "hub" / "models--Wan-AI--Wan2.2-T2V-A14B-Diffusers"
+    FOLDERS["wan2.2-a14b"](repo / "snapshots" / commit)
+    (repo / "refs").mkdir()
+    (repo / "refs" / "main").write_text(commit)
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(tmp_path / "hub"))
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
+    out = tmp_path / "out"
+    assert main(["generate", "--model", "wan2.1-t2v-1.3b", *TINY, "--out", str(out),
+                 "model.id=Wan-AI/Wan2.2-T2V-A14B-Diffusers"]) == 2
+    err = _one_error(capsys)
+    assert ("error: model.id=Wan-AI/Wan2.2-T2V-A14B-Diffusers is not a folder of wan2.1-t2v-1.3b: it holds 2 "
+            "denoisers") in err, err
+    assert not out.exists()
