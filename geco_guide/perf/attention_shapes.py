@@ -12,20 +12,16 @@ at a call). Predicted facts of the published configs, no weights, nothing measur
 from __future__ import annotations
 
 import functools
-import json
-import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from ..families.published import traced_models
+from ..families.published import read_package_json, traced_models
 from .cost import cost_settings
 from .measure import GIB
 from .tracing import trace_cost
 
 __all__ = ["ATTENTION_PATH", "REGENERATE_ATTENTION", "attention_file", "denoiser_attention", "load_attention"]
-
-logger = logging.getLogger(__name__)
 
 ATTENTION_PATH = Path(__file__).resolve().parent / "data" / "denoiser_attention.json"
 REGENERATE_ATTENTION = "geco bench attention-shapes --threads 1 --json geco_guide/perf/data/denoiser_attention.json"
@@ -63,5 +59,9 @@ def attention_file(models: Sequence[str] = (), argv: Sequence[str] = (),
 
 @functools.cache
 def load_attention() -> dict[str, Any]:
-    """The shipped attention file (:data:`ATTENTION_PATH`)."""
-    return json.loads(ATTENTION_PATH.read_text())
+    """The shipped attention file (:data:`ATTENTION_PATH`).
+
+    Raises:
+        PackageDataError: (one line naming the file) missing, unreadable or damaged.
+    """
+    return read_package_json(ATTENTION_PATH, f"regenerate it with {REGENERATE_ATTENTION}, or reinstall geco_guide")

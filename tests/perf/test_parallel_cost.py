@@ -179,3 +179,18 @@ def test_the_shipped_attention_shapes_are_what_a_trace_gives_now():
     fresh, shipped = denoiser_attention("cogvideox-2b"), load_attention()["models"]["cogvideox-2b"]
     assert fresh["attention"] == shipped["attention"] and fresh["video"] == shipped["video"]
     assert fresh["weights_gb"] == pytest.approx(shipped["weights_gb"])
+
+
+def test_a_damaged_attention_file_is_one_line_naming_it(tmp_path, monkeypatch, capsys):
+    from geco_guide.perf import attention_shapes
+
+    damaged = tmp_path / "denoiser_attention.json"
+    damaged.write_text("{")
+    monkeypatch.setattr(attention_shapes, "ATTENTION_PATH", damaged)
+    attention_shapes.load_attention.cache_clear()
+    try:
+        assert bench.main(["cost", "--context-parallel", "4"]) == 2
+    finally:
+        attention_shapes.load_attention.cache_clear()
+    err = capsys.readouterr().err.strip()
+    assert str(damaged) in err and "geco bench attention-shapes" in err and "\n" not in err
