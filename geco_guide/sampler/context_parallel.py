@@ -96,7 +96,8 @@ def check_context_parallel_before_loading(run: Any, adapter: PipelineAdapter, *,
     n = context_parallel_degree(run)
     if n == 1:
         return
-    launched = dist.get_world_size() if dist.is_available() and dist.is_initialized() else int(os.environ.get("WORLD_SIZE", "1"))
+    started = dist.is_available() and dist.is_initialized()
+    launched = dist.get_world_size() if started else int(os.environ.get("WORLD_SIZE", "1"))
     if launched != n:
         raise ValueError(f"run.context_parallel={n} runs the call over {n} processes, but this launch has {launched}: "
                          f"start it with {LAUNCH.format(n=n)}")
@@ -158,10 +159,20 @@ class _SumOverProcesses(torch.autograd.Function):
 class GradientSum(ModelHook):
     """A hook around a split denoiser: every tensor input that carries a gradient goes through
     :class:`_SumOverProcesses`, so its gradient is the sum of the processes' shards, the whole
-    gradient on every process. Registered after diffusers' own hooks, it wraps them."""
+    gradient on every process. Registered after diffusers' own hooks, it wraps them, and turns
+    their assertion of a sequence that does not split into equal shards into one line."""
 
-    def pre_forward(self, module: nn.Module, *args: Any, **kwargs: Any) -> tuple[tuple, dict]:
-        return tuple(_summed(a) for a in args), {k: _summed(v) for k, v in kwargs.items()}
+    def new_forward(self, module: nn.Module, *args: Any, **kwargs: Any) -> Any:
+        args, kwargs = tuple(_summed(a) for a in args), {k: _summed(v) for k, v in kwargs.items()}
+        try:
+            return self.fn_ref.original_forward(*args, **kwargs)
+        except AssertionError as err:  # diffusers asserts equal shards where its plan splits
+            if "divisible by mesh size" not in str(err):
+                raise
+            raise ValueError(f"run.context_parallel={dist.get_world_size()}: the {type(module).__name__}'s token "
+                             "sequence of this call does not divide into equal shards among the processes (video "
+                             "tokens, and text tokens where the plan splits them): choose a size, frame count or "
+                             "prompt length whose tokens do, or another number of processes") from None
 
 
 def _summed(value: Any) -> Any:

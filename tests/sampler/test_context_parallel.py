@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import os
 import socket
+from pathlib import Path
 
 import pytest
 import torch
@@ -234,3 +235,39 @@ def test_one_gpu_named_for_every_process_is_refused(monkeypatch):
     with pytest.raises(ValueError, match="model.device=cuda:1 would put every process on one GPU"):
         check_context_parallel_before_loading(RunOptions(context_parallel=2), WanAdapter(), model_device="cuda:1",
                                               differentiates=True)
+
+
+def _uneven_worker(rank: int, port: int, folder: str) -> None:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), OMP_NUM_THREADS="1")
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", rank=rank, world_size=PROCESSES)
+    try:
+        from geco_guide.sampler.adapters import adapter_for
+        from geco_guide.sampler.context_parallel import start_context_parallel
+
+        pipe = T.tiny_wan_pipeline(0)
+        start_context_parallel(pipe, adapter_for(pipe), T.tiny_run_options(context_parallel=PROCESSES),
+                               differentiates=True)
+        def denoise(latents: torch.Tensor) -> None:
+            pipe.transformer(hidden_states=latents, encoder_hidden_states=torch.randn(1, 16, 16),
+                             timestep=torch.tensor([500]), return_dict=False)
+
+        denoise(torch.randn(1, 4, 3, 4, 6))  # 3 latent frames of 2x3 tokens: 18 tokens, 9 each
+        try:
+            denoise(torch.randn(1, 4, 3, 2, 6))  # 9 tokens: no equal shards
+            message = "no error"
+        except ValueError as err:
+            message = str(err)
+        (Path(folder) / f"rank{rank}.txt").write_text(message)
+    finally:
+        dist.destroy_process_group()
+
+
+@pytest.mark.slow
+def test_a_sequence_that_does_not_split_evenly_is_one_line(tmp_path):
+    mp.spawn(_uneven_worker, args=(_free_port(), str(tmp_path)), nprocs=PROCESSES)
+    for rank in range(PROCESSES):
+        message = (tmp_path / f"rank{rank}.txt").read_text()
+        assert message.startswith("run.context_parallel=2: the WanTransformer3DModel's token sequence of this call does "
+                                  "not divide into equal shards"), message
+        assert "\n" not in message
