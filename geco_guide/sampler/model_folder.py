@@ -2,16 +2,19 @@
 before anything loads, from its small files alone:
 
 * that it is whole (:func:`check_folder_files`): its ``model_index.json``, a subfolder for each
-  component it lists, each component's config and, for the denoiser(s) and the VAE, weights
-  whose safetensors header and size agree (a download cut short, a file of other bytes);
+  component it lists, each component's config, and weights (the denoiser(s) and the VAE must
+  have some) whose safetensors header and size agree (a download cut short, a file of other
+  bytes);
 * that it is the registry model's (:func:`check_folder_model`): the pipeline class, one denoiser
   or two experts (Wan 2.2 A14B), the denoiser class and temporal patch and the pipeline's
   ``expand_timesteps`` of the published configs (:mod:`geco_guide.families.published`), and the
   VAE's latent channels. A smaller stand-in of the model's own layout (the tiny random models,
   saved) passes: a latent width no registry model of that pipeline has tells no other model.
 
-Each problem is one line naming the file (:class:`ModelFolderError`), instead of a traceback or a
-shape error after minutes of loading, or a run of one model recorded as another.
+A hub id is checked the same way by its configs in the hub cache, where they are there
+(:func:`check_cached_model`). Each problem is one line naming the file (:class:`ModelFolderError`),
+instead of a traceback or a shape error after minutes of loading, or a run of one model recorded
+as another.
 """
 
 from __future__ import annotations
@@ -75,8 +78,8 @@ def _listed(index: dict[str, Any], name: str) -> bool:
 
 
 def check_folder_files(folder: Path) -> dict[str, Any]:
-    """The folder's ``model_index.json``, once every component it lists is there: a subfolder, a
-    config that is JSON, and for :data:`WEIGHTED` components weights that are whole.
+    """The folder's ``model_index.json``, once every component it lists is there: a subfolder,
+    configs that are JSON, weights that are whole (and some for the :data:`WEIGHTED` ones).
 
     Raises:
         ModelFolderError: one line naming the missing or damaged file.
