@@ -45,6 +45,7 @@ from .config import GuidanceConfig
 from .context import GuidanceContext, GuidanceObserver
 from .dynamic import RefreshedMasks, guidance_mask_source
 from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
+from .context_parallel import start_context_parallel
 from .run_options import RunOptions, check_call_options
 from .search import ParticleBatch, ParticleScorer, ParticleSearch, SearchConfig, choose_particle_batch
 from .slicing import AnchorChunk
@@ -174,6 +175,8 @@ def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, conf
     adapter.check(pipe, geometry)
     config.check_loss()
     check_call_options(config, run)
+    # the split of the denoisers (run.context_parallel), once: the hooks made it on attaching
+    start_context_parallel(pipe, adapter, run, differentiates=config.enabled and config.denoiser_grad)
     denoisers = adapter.denoisers(pipe)
     check_no_denoiser_cache(denoisers)
     chunks = config.anchor_chunks(geometry.num_frames, geometry.temporal_compression)

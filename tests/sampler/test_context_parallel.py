@@ -3,7 +3,7 @@ parallelism gives one process's video and gradients.
 
 Two processes on the ``gloo`` backend (CPU), spawned here, run the same tiny call as one process:
 the paper's pipeline (CogVideoX: our plan and attention processor), the hooks on a stock
-``WanPipeline`` (diffusers' own ``_cp_plan``) and on a stock ``HunyuanVideoPipeline`` (our plan
+``WanPipeline`` (diffusers' own ``_cp_plan``; Wan 2.1, and Wan 2.2 with both experts) and on a stock ``HunyuanVideoPipeline`` (our plan
 and the text mask cut to each process's tokens; the denoiser check pads the two prompts to 6
 and 10 of 16 tokens, so the mask matters). Compared with one process:
 
@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import os
 import socket
-from pathlib import Path
 
 import pytest
 import torch
@@ -47,9 +46,10 @@ from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.run_options import RunOptions
 
 PROCESSES = 2
-FAMILIES = ("cogvideox", "wan", "hunyuan")
-#: the guided call's updates: two at the first step, none after (see the module's docstring)
-UPDATES = "2x1,0x3"
+FAMILIES = ("cogvideox", "wan", "wan2.2", "hunyuan")
+#: the guided call's updates: two at the first step, none after (see the module's docstring); Wan
+#: 2.2 one at the first step and one at the last, so that both experts are differentiated
+UPDATES = {"wan2.2": "1x1,0x2,1x1"}
 GRADIENT_TOLERANCE = 1e-5  # relative to the largest entry (of the gradient; of the denoiser's output)
 FRAME_TOLERANCE = 5e-4  # absolute, frames in [0, 1]
 
@@ -63,7 +63,9 @@ def _free_port() -> int:
 def _pipeline(family: str):
     if family == "cogvideox":
         return T.tiny_pipeline(0)
-    return T.tiny_wan_pipeline(0, scheduler="euler") if family == "wan" else T.tiny_hunyuan_pipeline(0)
+    if family == "hunyuan":
+        return T.tiny_hunyuan_pipeline(0)
+    return T.tiny_wan_pipeline(0, scheduler="euler", version="2.2" if family == "wan2.2" else "2.1")
 
 
 def _denoiser_inputs(pipe, family: str, g: torch.Generator) -> tuple[torch.Tensor, dict]:
@@ -96,7 +98,7 @@ def _denoiser_gradient(pipe, family: str) -> tuple[torch.Tensor, torch.Tensor]:
 def _guided_call(pipe, family: str, run: RunOptions) -> tuple[torch.Tensor, torch.Tensor]:
     """A faithful guided call: its frames and its updates' gradient norms."""
     estimators = tiny_estimators(0)
-    config = T.tiny_guidance_config(denoiser_grad=True, repeats=UPDATES, time_travel=None)
+    config = T.tiny_guidance_config(denoiser_grad=True, repeats=UPDATES.get(family, "2x1,0x3"), time_travel=None)
     kwargs = T.tiny_call_kwargs(pipe, prompt="a marble bust", output_type="pt",
                                 generator=torch.Generator().manual_seed(0))
     if family == "cogvideox":
@@ -122,13 +124,35 @@ def _run(family: str, run: RunOptions) -> dict[str, torch.Tensor]:
     return {"out": out, "grad": grad, "frames": frames, "norms": norms}
 
 
+def _uneven_message() -> str:
+    """What a split Wan denoiser says to a sequence of 9 tokens (after one of 18, which splits)."""
+    from geco_guide.sampler.adapters import adapter_for
+    from geco_guide.sampler.context_parallel import start_context_parallel
+
+    pipe = T.tiny_wan_pipeline(0)
+    start_context_parallel(pipe, adapter_for(pipe), T.tiny_run_options(context_parallel=PROCESSES), differentiates=True)
+
+    def denoise(latents: torch.Tensor) -> None:
+        pipe.transformer(hidden_states=latents, encoder_hidden_states=torch.randn(1, 16, 16),
+                         timestep=torch.tensor([500]), return_dict=False)
+
+    denoise(torch.randn(1, 4, 3, 4, 6))  # 3 latent frames of 2x3 tokens: 18 tokens, 9 each
+    try:
+        denoise(torch.randn(1, 4, 3, 2, 6))  # 9 tokens: no equal shards
+    except ValueError as err:
+        return str(err)
+    return "no error"
+
+
 def _worker(rank: int, port: int, folder: str) -> None:
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), OMP_NUM_THREADS="1")
     torch.set_num_threads(1)
     dist.init_process_group("gloo", rank=rank, world_size=PROCESSES)
     try:
         run = T.tiny_run_options(context_parallel=PROCESSES)
-        torch.save({family: _run(family, run) for family in FAMILIES}, os.path.join(folder, f"rank{rank}.pt"))
+        results = {family: _run(family, run) for family in FAMILIES}
+        results["uneven"] = _uneven_message()
+        torch.save(results, os.path.join(folder, f"rank{rank}.pt"))
     finally:
         dist.destroy_process_group()
 
@@ -237,37 +261,10 @@ def test_one_gpu_named_for_every_process_is_refused(monkeypatch):
                                               differentiates=True)
 
 
-def _uneven_worker(rank: int, port: int, folder: str) -> None:
-    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), OMP_NUM_THREADS="1")
-    torch.set_num_threads(1)
-    dist.init_process_group("gloo", rank=rank, world_size=PROCESSES)
-    try:
-        from geco_guide.sampler.adapters import adapter_for
-        from geco_guide.sampler.context_parallel import start_context_parallel
-
-        pipe = T.tiny_wan_pipeline(0)
-        start_context_parallel(pipe, adapter_for(pipe), T.tiny_run_options(context_parallel=PROCESSES),
-                               differentiates=True)
-        def denoise(latents: torch.Tensor) -> None:
-            pipe.transformer(hidden_states=latents, encoder_hidden_states=torch.randn(1, 16, 16),
-                             timestep=torch.tensor([500]), return_dict=False)
-
-        denoise(torch.randn(1, 4, 3, 4, 6))  # 3 latent frames of 2x3 tokens: 18 tokens, 9 each
-        try:
-            denoise(torch.randn(1, 4, 3, 2, 6))  # 9 tokens: no equal shards
-            message = "no error"
-        except ValueError as err:
-            message = str(err)
-        (Path(folder) / f"rank{rank}.txt").write_text(message)
-    finally:
-        dist.destroy_process_group()
-
-
 @pytest.mark.slow
-def test_a_sequence_that_does_not_split_evenly_is_one_line(tmp_path):
-    mp.spawn(_uneven_worker, args=(_free_port(), str(tmp_path)), nprocs=PROCESSES)
-    for rank in range(PROCESSES):
-        message = (tmp_path / f"rank{rank}.txt").read_text()
+def test_a_sequence_that_does_not_split_evenly_is_one_line(split_runs):
+    for runs in split_runs:
+        message = runs["uneven"]
         assert message.startswith("run.context_parallel=2: the WanTransformer3DModel's token sequence of this call does "
                                   "not divide into equal shards"), message
         assert "\n" not in message
