@@ -353,6 +353,9 @@ class LTXAdapter(PipelineAdapter):
     ``guidance_rescale`` applied as the pipeline does."""
 
     name = "LTX-Video"
+    context_parallel_refusal = ("diffusers' plan for it fails on the pipeline's call (diffusers 0.42: its attention "
+                                "repeats the text mask for every head, and Ulysses attention gives each process a "
+                                "share of the heads)")
 
     def temporal_compression(self, pipe):
         return int(pipe.vae_temporal_compression_ratio)
@@ -476,6 +479,8 @@ class LTX2Adapter(LTXAdapter):
     """
 
     name = "LTX-2"
+    context_parallel_refusal = ("diffusers' plan for it fails on the pipeline's call (diffusers 0.42: it splits the "
+                                "tokens but leaves the split rotary tables, four-dimensional, whole)")
 
     def call_geometry(self, pipe, args, latents):
         return replace(super().call_geometry(pipe, args, latents), requested_frames=int(args["num_frames"]))

@@ -218,6 +218,10 @@ def test_a_number_of_processes_below_two_or_not_whole_is_refused(value):
     (["--context-parallel", "2", "--model", "hunyuanvideo-1.5", "model.id=tiny-random"], "2",
      "run.context_parallel cannot split HunyuanVideo 1.5: HunyuanVideo 1.5's denoiser has no context-parallel plan"),
     (["--context-parallel", "2", "--best-of", "2"], "2", "--best-of writes each candidate from one process"),
+    (["--context-parallel", "2", "--model", "ltx-video", "model.id=tiny-random"], "2",
+     "run.context_parallel cannot split LTX-Video: diffusers' plan for it fails on the pipeline's call"),
+    (["--context-parallel", "2", "--model", "ltx-2", "model.id=tiny-random"], "2",
+     "run.context_parallel cannot split LTX-2: diffusers' plan for it fails on the pipeline's call"),
 ])
 def test_what_cannot_run_split_is_one_line_before_loading(argv, world, expected, monkeypatch, capsys, no_loading):
     from geco_guide.cli.generate import main
