@@ -213,6 +213,7 @@ def enable_context_parallel(pipe: Any, adapter: PipelineAdapter, degree: int) ->
         if torch._C._get_accelerator().type == "cpu":
             denoiser._resolve_parallel_config = _cpu_resolver(denoiser)
         denoiser.enable_parallelism(config=ContextParallelConfig(ulysses_degree=degree), cp_plan=plan)
+        adapter.finish_context_parallel(denoiser)
         register_hook(denoiser, GradientSum(), GRADIENT_SUM_HOOK)
         logger.info("%s: context parallel over %d processes", type(denoiser).__name__, degree)
 

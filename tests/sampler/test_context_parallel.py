@@ -5,7 +5,8 @@ Two processes on the ``gloo`` backend (CPU), spawned here, run the same tiny cal
 the paper's pipeline (CogVideoX: our plan and attention processor), the hooks on a stock
 ``WanPipeline`` (diffusers' own ``_cp_plan``; Wan 2.1, and Wan 2.2 with both experts) and on a stock ``HunyuanVideoPipeline`` (our plan
 and the text mask cut to each process's tokens; the denoiser check pads the two prompts to 6
-and 10 of 16 tokens, so the mask matters). Compared with one process:
+and 10 of 16 tokens, so the mask matters); and a CogVideoX denoiser call whose 45 video and 15
+text tokens do not split evenly, padded to equal shards. Compared with one process:
 
 - the denoiser's output and the gradient of a fixed linear read-out of it with respect to the
   latents (a CFG batch of two): the gradient faithful guidance takes through the denoiser;
@@ -46,7 +47,11 @@ from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.run_options import RunOptions
 
 PROCESSES = 2
-FAMILIES = ("cogvideox", "wan", "wan2.2", "hunyuan")
+FAMILIES = ("cogvideox", "cogvideox-padded", "wan", "wan2.2", "hunyuan")
+#: the families whose guided call is compared too; the padded CogVideoX call's denoiser only: at
+#: 48x48 the tiny models' guided call is far more sensitive to rounding (in one process, a 1e-7
+#: relative change of its initial latents moves its frames by 2.7e-3, against 4e-5 at 32x48)
+GUIDED = ("cogvideox", "wan", "wan2.2", "hunyuan")
 #: the guided call's updates: two at the first step, none after (see the module's docstring); Wan
 #: 2.2 one at the first step and one at the last, so that both experts are differentiated
 UPDATES = {"wan2.2": "1x1,0x2,1x1"}
@@ -60,8 +65,13 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+#: a CogVideoX call whose tokens do not split evenly over two processes: 48x48 pixels (5 latent
+#: frames of 3x3 tokens: 45) and 15 text tokens, padded to 46 and 16
+PADDED = dict(height=48, width=48, max_sequence_length=15)
+
+
 def _pipeline(family: str):
-    if family == "cogvideox":
+    if family.startswith("cogvideox"):
         return T.tiny_pipeline(0)
     if family == "hunyuan":
         return T.tiny_hunyuan_pipeline(0)
@@ -70,13 +80,16 @@ def _pipeline(family: str):
 
 def _denoiser_inputs(pipe, family: str, g: torch.Generator) -> tuple[torch.Tensor, dict]:
     """Random latents (requiring gradients) and the denoiser's inputs for a CFG batch of 2 of them."""
-    shape = (1, 5, 4, 4, 6) if family == "cogvideox" else (1, 4, 5, 4, 6)
+    padded = family == "cogvideox-padded"
+    shape = (1, 5, 4, *((6, 6) if padded else (4, 6))) if family.startswith("cogvideox") else (1, 4, 5, 4, 6)
     z = torch.randn(shape, generator=g).requires_grad_(True)
     width = 16 if family != "hunyuan" else pipe.transformer.config.text_embed_dim
-    inputs = dict(hidden_states=torch.cat([z, z]), encoder_hidden_states=torch.randn(2, 16, width, generator=g),
-                  timestep=torch.tensor([500, 500]), return_dict=False)
-    if family == "cogvideox":
-        inputs["image_rotary_emb"] = pipe._prepare_rotary_positional_embeddings(T.TINY_HEIGHT, T.TINY_WIDTH, 5, "cpu")
+    text = torch.randn(2, 15 if padded else 16, width, generator=g)
+    inputs = dict(hidden_states=torch.cat([z, z]), encoder_hidden_states=text, timestep=torch.tensor([500, 500]),
+                  return_dict=False)
+    if family.startswith("cogvideox"):
+        size = (48, 48) if padded else (T.TINY_HEIGHT, T.TINY_WIDTH)
+        inputs["image_rotary_emb"] = pipe._prepare_rotary_positional_embeddings(*size, 5, "cpu")
     if family == "hunyuan":  # the text padding the mask hides: 6 and 10 tokens of 16
         mask = torch.arange(16) < torch.tensor([[6], [10]])
         inputs.update(encoder_attention_mask=mask.long(), guidance=torch.tensor([6000.0, 6000.0]),
@@ -100,8 +113,8 @@ def _guided_call(pipe, family: str, run: RunOptions) -> tuple[torch.Tensor, torc
     estimators = tiny_estimators(0)
     config = T.tiny_guidance_config(denoiser_grad=True, repeats=UPDATES.get(family, "2x1,0x3"), time_travel=None)
     kwargs = T.tiny_call_kwargs(pipe, prompt="a marble bust", output_type="pt",
-                                generator=torch.Generator().manual_seed(0))
-    if family == "cogvideox":
+                                generator=torch.Generator().manual_seed(0), **(PADDED if "padded" in family else {}))
+    if family.startswith("cogvideox"):
         out = pipe(**kwargs, guidance=config, estimators=estimators, run_options=run)
         log = out.report.log
     else:
@@ -120,6 +133,8 @@ def _run(family: str, run: RunOptions) -> dict[str, torch.Tensor]:
 
         start_context_parallel(pipe, adapter_for(pipe), run, differentiates=True)
     out, grad = _denoiser_gradient(pipe, family)
+    if family not in GUIDED:
+        return {"out": out, "grad": grad}
     frames, norms = _guided_call(pipe, family, run)
     return {"out": out, "grad": grad, "frames": frames, "norms": norms}
 
@@ -176,8 +191,9 @@ def test_two_processes_give_one_process_video_and_gradient(family, split_runs):
         for key in ("out", "grad"):
             error = (split[key] - one[key]).abs().max() / one[key].abs().max()
             assert error <= GRADIENT_TOLERANCE, (rank, key, float(error))
-        assert (split["frames"] - one["frames"]).abs().max() <= FRAME_TOLERANCE, rank
-        torch.testing.assert_close(split["norms"], one["norms"], rtol=GRADIENT_TOLERANCE, atol=0)
+        if family in GUIDED:
+            assert (split["frames"] - one["frames"]).abs().max() <= FRAME_TOLERANCE, rank
+            torch.testing.assert_close(split["norms"], one["norms"], rtol=GRADIENT_TOLERANCE, atol=0)
 
 
 # --------------------------------------------------------------------------------------------
