@@ -1,7 +1,9 @@
 """Every number GeCo computes on fixed inputs with ``movers="drop"`` (the default), for the
 before/after check of tests/loss/test_movers_drop.py: ``python tests/drop_reference.py``
 rewrote ``tests/fixtures/drop_reference.pt`` with the code before
-``movers`` existed."""
+``movers`` existed. The automatic masks' cases (``auto``) were rewritten when those masks changed
+(the target's depth read on one surface, movers followed into their unmatched pixels); the
+others are still the first run's."""
 
 from __future__ import annotations
 

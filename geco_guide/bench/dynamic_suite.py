@@ -16,7 +16,8 @@ with no mask, the true mask of the moving boxes, and the automatic mask
   deformation's pixels it hides.
 
 And with ``movers="rigid"`` (:func:`movers_validation`), on one box (the first of
-:func:`~geco_guide.bench.synthetic.moving_boxes`) in the same gallery:
+:func:`~geco_guide.bench.synthetic.moving_boxes` at seed 0, else the seed's
+:func:`~geco_guide.bench.synthetic.drawn_mover`) in the same gallery:
 
 * **a rigid mover**: with automatic masks, how much of what the moving box adds to the score with
   nothing masked ``rigid`` removes; with the true mask, its score over the still box's;
@@ -25,6 +26,11 @@ And with ``movers="rigid"`` (:func:`movers_validation`), on one box (the first o
   over the same warp's on the still box (no mask), and with ``drop`` (near chance);
 * **a non-rigid mover** (the box stretching, its parts moving apart) under its true mask: judged
   non-rigid and left out, so its score is ``drop``'s.
+
+And on :data:`MOVER_SEEDS` scenes of one box drawn at random (size, place, velocity;
+:func:`~geco_guide.bench.synthetic.drawn_mover`, :func:`drawn_movers_validation`), the two measures of
+``rigid`` with automatic masks on every seed: the false positive it removes and the share of a
+deformation's score on the box it recovers (:func:`mover_measures`).
 """
 
 from __future__ import annotations
@@ -46,11 +52,12 @@ from ..loss.presets import evaluation_loss
 from ..metric.evaluate import mean_or_nan, score_frames
 from .datasets import scene_track
 from .occlusion import OcclusionParams, composite_occlusion
-from .synthetic import MovingBox, SyntheticClip, deform_mover, moving_boxes, moving_clip, with_overlay, with_warp
+from .synthetic import MovingBox, SyntheticClip, deform_mover, drawn_mover, moving_boxes, moving_clip, with_overlay, with_warp
 from .validate import cue_map, localisation
 from .warp import WarpParams, warp_clip
 
-__all__ = ["DynamicScenes", "dynamic_validation", "edited_clips", "markdown_report", "mover_clips", "movers_validation"]
+__all__ = ["MOVER_SEEDS", "DynamicScenes", "dynamic_validation", "edited_clips", "markdown_report", "mover_clips",
+           "drawn_movers_validation", "mover_measures", "movers_validation"]
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +72,13 @@ TARGETS = {
     "movers_removed": 0.8,  # share of the moving box's added score that rigid + auto removes, at least
     "movers_score_ratio": 2.0,  # rigid + true mask score over the still box's, at most
     "movers_ap_ratio": 0.9,  # AP of a deformation on the moving box (rigid + auto) over the still box's, at least
+    "movers_false_positive_removed": 0.9,  # on every drawn scene: share of the box's added score rigid + auto removes
+    "movers_deformation_recovered": 0.5,  # on every drawn scene: the deformation's added score (rigid + auto) over the still box's
 }
+
+#: How many drawn mover scenes (:func:`~geco_guide.bench.synthetic.drawn_mover`, seeds ``seed`` to
+#: ``seed + MOVER_SEEDS - 1``) the two measures of :func:`mover_measures` are checked on.
+MOVER_SEEDS = 8
 
 #: How the box of :func:`mover_clips` stretches (per frame, along x) when it is the non-rigid mover.
 STRETCH = (0.1, 0.0, 0.0)
@@ -150,8 +163,8 @@ def _scores(result: GeCoResult) -> dict[str, float]:
 
 def dynamic_validation(scenes: DynamicScenes = DynamicScenes()) -> dict[str, Any]:
     """Every number of the report (JSON-ready): ``false_positives``, ``detection``,
-    ``auto_mask``, ``movers`` (:func:`movers_validation`) and ``targets`` (each target's value and
-    whether it is met)."""
+    ``auto_mask``, ``movers`` (:func:`movers_validation`), ``drawn_movers``
+    (:func:`drawn_movers_validation`) and ``targets`` (each target's value and whether it is met)."""
     clips = edited_clips(scenes)
     # each (kind, key) scored in turn, with a log line as it finishes: the whole takes minutes
     planned = [(kind, key) for kind in clips for key in ("still", *(f"moving/{m}" for m in MASKS))]
@@ -185,6 +198,7 @@ def dynamic_validation(scenes: DynamicScenes = DynamicScenes()) -> dict[str, Any
            for kind, value in ap_ratio.items()},
     }
     movers = movers_validation(scenes)
+    drawn = drawn_movers_validation(scenes)
     return {
         "scenes": {"num_frames": scenes.num_frames, "height": scenes.height, "width": scenes.width, "seed": scenes.seed,
                    "true_masked_fraction": float(moving.dynamic_mask.float().mean()),
@@ -194,16 +208,37 @@ def dynamic_validation(scenes: DynamicScenes = DynamicScenes()) -> dict[str, Any
         "auto_mask": {"iou": auto_iou, "hidden_deformation": hidden,
                       "masked_fraction": float(results["clean"]["moving/auto"].dynamic_masks.float().mean())},
         "movers": {key: value for key, value in movers.items() if key != "targets"},
-        "targets": {**targets, **movers["targets"]},
+        "drawn_movers": drawn["seeds"],
+        "targets": {**targets, **movers["targets"], **drawn["targets"]},
     }
 
 
+def drawn_movers_validation(scenes: DynamicScenes = DynamicScenes()) -> dict[str, Any]:
+    """:func:`mover_measures` on the :data:`MOVER_SEEDS` drawn scenes from ``scenes.seed`` on
+    (JSON-ready): ``seeds`` (each seed's measures) and ``targets`` (each measure's worst seed
+    against its target)."""
+    seeds = {}
+    for k, seed in enumerate(range(scenes.seed, scenes.seed + MOVER_SEEDS), start=1):
+        started = time.perf_counter()
+        seeds[str(seed)] = mover_measures(replace(scenes, seed=seed))
+        logger.info("[%d/%d] scored the drawn mover scene of seed %d (%.1f s)", k, MOVER_SEEDS, seed,
+                    time.perf_counter() - started)
+    targets = {}
+    for measure in ("false_positive_removed", "deformation_recovered"):
+        values = [row[measure] for row in seeds.values()]
+        worst = min(values) if all(math.isfinite(v) for v in values) else math.nan  # NaN: not met
+        wanted = TARGETS[f"movers_{measure}"]
+        targets[f"movers_{measure}"] = {"value": worst, "target": f">= {wanted} on every seed", "met": worst >= wanted}
+    return {"seeds": seeds, "targets": targets}
+
+
 def mover_clips(scenes: DynamicScenes) -> dict[str, SyntheticClip]:
-    """The movers' scenes: one box in the gallery, ``still`` / ``moving`` (sliding sideways),
-    ``deformed_still`` / ``deformed_moving`` (the same warp on it, :func:`deform_mover` with the
-    scenes' seed) and ``stretching`` (standing, its size growing along x: non-rigid)."""
+    """The movers' scenes: one box in the gallery (:func:`drawn_mover` of the scenes' seed; seed
+    0: the sliding box of :func:`moving_boxes`), ``still`` / ``moving``, ``deformed_still`` /
+    ``deformed_moving`` (the same warp on it, :func:`deform_mover` with the scenes' seed) and
+    ``stretching`` (the sliding box standing, its size growing along x: non-rigid)."""
     size = (scenes.num_frames, scenes.height, scenes.width)
-    box = moving_boxes()[0]
+    box = drawn_mover(scenes.seed)
     still, moving = moving_clip(*size, movers=[box], still=True), moving_clip(*size, movers=[box])
     amplitude = MOVER_WARP_AMPLITUDE * scenes.width / 128
 
@@ -211,7 +246,38 @@ def mover_clips(scenes: DynamicScenes) -> dict[str, SyntheticClip]:
         return deform_mover(clip, amplitude=amplitude, seed=scenes.seed)
 
     return {"still": still, "moving": moving, "deformed_still": deformed(still), "deformed_moving": deformed(moving),
-            "stretching": moving_clip(*size, movers=[MovingBox(box.box, (0.0, 0.0, 0.0), stretch=STRETCH)])}
+            "stretching": moving_clip(*size, movers=[MovingBox(moving_boxes()[0].box, (0.0, 0.0, 0.0), stretch=STRETCH)])}
+
+
+def mover_measures(scenes: DynamicScenes) -> dict[str, float]:
+    """The two measures of ``movers="rigid"`` with automatic masks on the drawn scene of
+    ``scenes.seed`` (M_geo of five runs, and):
+
+    * ``false_positive_removed``: the share of what the moving box adds to M_geo with nothing
+      masked that rigid + auto removes (1: the still scene's score);
+    * ``deformation_recovered``: what the warp on the box adds to M_geo with rigid + auto, over what
+      the same warp adds to the still box with nothing masked (1: found as on a still object);
+    * ``still_ratio``: rigid + auto on the moving box over the still box;
+    * ``auto_recall``: the share of the box's true pixels the automatic masks cover (moving box).
+    """
+    clips = mover_clips(scenes)
+    runs = {"still": ("still", "none", "drop"), "moving": ("moving", "none", "drop"),
+            "moving/rigid": ("moving", "auto", "rigid"), "deformed_still": ("deformed_still", "none", "drop"),
+            "deformed_moving/rigid": ("deformed_moving", "auto", "rigid")}
+    results = {key: score_clip(clips[clip], masks, movers) for key, (clip, masks, movers) in runs.items()}
+    fused = {key: float(result.fused) for key, result in results.items()}
+    truth = clips["moving"].dynamic_mask
+    covered = int((results["moving/rigid"].dynamic_masks[0].cpu() & truth).sum()) / max(int(truth.sum()), 1)
+    return {**fused,
+            "false_positive_removed": _ratio(fused["moving"] - fused["moving/rigid"], fused["moving"] - fused["still"]),
+            "deformation_recovered": _ratio(fused["deformed_moving/rigid"] - fused["moving/rigid"],
+                                            fused["deformed_still"] - fused["still"]),
+            "still_ratio": _ratio(fused["moving/rigid"], fused["still"]), "auto_recall": covered}
+
+
+def _ratio(numerator: float, denominator: float) -> float:
+    """``numerator / denominator``, NaN over 0 (a box that never shows adds nothing to divide by)."""
+    return numerator / denominator if denominator != 0 else math.nan
 
 
 def _mover_rows(result: GeCoResult) -> list[dict[str, Any]]:
@@ -295,7 +361,7 @@ def markdown_report(report: dict[str, Any]) -> str:
     lines += ["", "Automatic mask: IoU with the true mask of the moving boxes "
               + ", ".join(f"{kind} {value:.3f}" for kind, value in auto["iou"].items())
               + f"; hides {100 * auto['hidden_deformation']:.2f} % of the deformation's pixels.", "",
-              *_movers_markdown(report["movers"]), "",
+              *_movers_markdown(report["movers"]), "", *_drawn_movers_markdown(report["drawn_movers"]), "",
               "| Target | Value | Wanted | Met |", "|---|---|---|---|"]
     for name, t in report["targets"].items():
         lines.append(f"| {name} | {_number(t['value'])} | {t['target']} | {'yes' if t['met'] else 'no'} |")
@@ -323,4 +389,15 @@ def _movers_markdown(movers: dict[str, Any]) -> list[str]:
              "", "Verdicts: " + "; ".join(f"{key}: " + (", ".join(f"{row['verdict']} (inliers {_number(row['inlier_fraction'] or math.nan)})"
                                                              for row in rows) or "no mover")
                                         for key, rows in movers["movers"].items()) + "."]
+    return lines
+
+
+def _drawn_movers_markdown(seeds: dict[str, dict[str, float]]) -> list[str]:
+    """The drawn scenes' table: per seed, the two measures of :func:`mover_measures` and more."""
+    lines = [f"Drawn mover scenes (rigid + automatic masks, {len(seeds)} seeds):", "",
+             "| seed | false positive removed | deformation recovered | rigid / still | automatic mask recall |",
+             "|---|---|---|---|---|"]
+    for seed, row in seeds.items():
+        lines.append(f"| {seed} | {_number(row['false_positive_removed'])} | {_number(row['deformation_recovered'])} | "
+                     f"{_number(row['still_ratio'])} | {_number(row['auto_recall'])} |")
     return lines

@@ -54,7 +54,8 @@ from .warp import (
     warp_fields,
 )
 
-__all__ = ["MovingBox", "SyntheticClip", "default_intrinsics", "deform_mover", "inject_deformation", "look_at",
+__all__ = ["MovingBox", "SyntheticClip", "default_intrinsics", "deform_mover", "drawn_mover", "inject_deformation",
+           "look_at",
            "moving_boxes", "moving_clip",
            "occlusion_swap_clip", "orbit_cameras", "rigid_clip", "thin_plate_spline", "with_overlay",
            "with_warp"]
@@ -482,6 +483,29 @@ def moving_boxes() -> list[MovingBox]:
         MovingBox(Box(lo=(-1.3, 0.1, 3.6), hi=(-0.4, 1.0, 4.4), color=(0.85, 0.3, 0.25), frequency=4.0), (0.15, 0.0, 0.0)),
         MovingBox(Box(lo=(0.6, -0.3, 4.0), hi=(1.2, 0.3, 4.6), color=(0.25, 0.35, 0.85), frequency=5.0), (0.0, -0.1, -0.08)),
     ]
+
+
+def drawn_mover(seed: int) -> MovingBox:
+    """A box moving on its own through :func:`gallery_scene`, drawn from ``seed``: seed 0 is the
+    sliding box of :func:`moving_boxes`; any other draws each side (0.3-1.4), the centre (x in
+    -1.8..1.8, y in -0.9..0.9, depth 2.2-4.8: in front of the walls, at the view's edges too) and
+    a velocity of 0.06-0.35 per frame in any direction (up to 45 degrees in or out of the view), so
+    it may leave the view. Slower boxes move less than the automatic masks' 1 px a frame."""
+    if seed == 0:
+        return moving_boxes()[0]
+    generator = torch.Generator().manual_seed(seed)
+
+    def uniform(low: float, high: float) -> float:
+        return low + (high - low) * float(torch.rand((), generator=generator, dtype=torch.float64))
+
+    size = [uniform(0.3, 1.4) for _ in range(3)]
+    centre = (uniform(-1.8, 1.8), uniform(-0.9, 0.9), uniform(2.2, 4.8))
+    speed, heading, elevation = uniform(0.06, 0.35), uniform(-math.pi, math.pi), uniform(-math.pi / 4, math.pi / 4)
+    velocity = (speed * math.cos(elevation) * math.cos(heading), speed * math.cos(elevation) * math.sin(heading),
+                speed * math.sin(elevation))
+    box = Box(lo=tuple(c - d / 2 for c, d in zip(centre, size)), hi=tuple(c + d / 2 for c, d in zip(centre, size)),
+              color=(0.85, 0.3, 0.25), frequency=4.0)
+    return MovingBox(box, velocity)
 
 
 def moving_clip(num_frames: int = 5, height: int = 48, width: int = 64, *, still: bool = False,

@@ -14,8 +14,10 @@ For each frame, the pairs to its nearest frame before and after it are read
 whose residual flow exceeds ``min_residual_px`` are grouped into connected regions; a region of
 at least ``min_region_px`` pixels whose matches one rigid motion fits (a fraction
 ``min_inliers`` of them within ``rigid_tolerance``) is a mover, grown to the connected pixels
-that the same motion explains better than the camera alone. A mover masks its source
-pixels and, through the flow, the pixels it lands on in the target. Regions are unioned per frame
+that the same motion explains better than the camera alone, and then to the pixels without a
+match in the pair (leaving the image, hidden in the target) that continue its surfaces (no depth
+step between neighbours). A mover masks its source pixels and, through the flow, the pixels its
+matches land on in the target. Regions are unioned per frame
 over pairs and dilated by ``dilation`` pixels. RANSAC draws from a seeded ``torch.Generator``, so
 the masks are deterministic.
 
@@ -50,23 +52,42 @@ from ..geometry import (
 from ..io.masks import connected_regions
 from ..types import Correspondences, OptionError, SceneGeometry, is_integer, is_number
 
-__all__ = ["MotionMasks", "dilate", "splat"]
+__all__ = ["MotionMasks", "depth_at", "dilate", "splat"]
+
+#: Relative depth difference of two neighbouring pixels above which they lie on different surfaces
+#: (an object's silhouette against what is behind it); a face seen at a grazing angle stays under it.
+SURFACE_STEP = 0.1
 
 
 def world_matches(geometry: SceneGeometry, flow: Tensor, source: int, target: int) -> tuple[Tensor, Tensor, Tensor]:
     """3-D matches of one pair: ``(X_src [H, W, 3], X_tgt [H, W, 3], valid [H, W])`` in world
     coordinates: each source pixel's point, and the target point at the pixel its ``flow
-    [2, H, W]`` lands on (target depth sampled there, nearest so no blend of two surfaces)."""
+    [2, H, W]`` lands on (:func:`depth_at`)."""
     depth, K, extr = geometry.depth[0].double(), geometry.intrinsics[0].double(), geometry.extrinsics[0].double()
     height, width = depth.shape[-2:]
     to_world_src, to_world_tgt = invert_rigid(extr[source][None]), invert_rigid(extr[target][None])
     x_src = transform_points(unproject(depth[source][None], K[source][None]), to_world_src)[0]
     landing = pixel_grid(height, width, device=depth.device, dtype=depth.dtype) + flow.double().permute(1, 2, 0)
-    nearest = landing.round()
-    depth_tgt = sample_bilinear(depth[target][None, None], nearest[None])[0, 0]
+    depth_tgt = depth_at(depth[target], landing)
     x_tgt = transform_points(unproject_at(depth_tgt, landing, K[target])[None], to_world_tgt)[0]
     valid = (depth[source] > MIN_DEPTH) & (depth_tgt > MIN_DEPTH) & inside_image(landing, height, width)
     return x_src, x_tgt, valid
+
+
+def depth_at(depth: Tensor, uv: Tensor, step: float = SURFACE_STEP) -> Tensor:
+    """``depth [H, W]`` at positions ``uv [H, W, 2]``: the inverse depth interpolated bilinearly
+    where the four pixels around a position lie on one surface (depths within ``step`` of each
+    other; exact on a plane, so the matches of a face seen at a grazing angle keep the object's
+    motion), the nearest pixel's depth across a silhouette (no blend of two surfaces)."""
+    inverse = torch.where(depth > MIN_DEPTH, 1.0 / depth.clamp_min(MIN_DEPTH), torch.zeros_like(depth))
+    smooth = sample_bilinear(inverse[None, None], uv[None])[0, 0]
+    nearest = sample_bilinear(depth[None, None], uv.round()[None])[0, 0]
+    padded = F.pad(depth[None, None], (0, 1, 0, 1), mode="replicate")
+    highest, lowest = F.max_pool2d(padded, 2, stride=1), -F.max_pool2d(-padded, 2, stride=1)  # over each 2x2 block
+    corner = uv.floor()[None]
+    high, low = sample_bilinear(highest, corner)[0, 0], sample_bilinear(lowest, corner)[0, 0]
+    one_surface = (low > MIN_DEPTH) & (high - low <= step * low)
+    return torch.where(one_surface, 1.0 / smooth.clamp_min(1e-30), nearest)
 
 
 def unproject_at(depth: Tensor, uv: Tensor, K: Tensor) -> Tensor:
@@ -148,14 +169,16 @@ class MotionMasks:
         generator = torch.Generator().manual_seed(self.seed)
         for p in nearest_pairs(pairs):
             i, j = pairs[p]
-            movers = self.pair_movers(geometry, flow.flow[p], flow.covisibility[p], i, j, generator)
-            masks[i] |= movers.to(masks.device)
-            masks[j] |= splat(movers, flow.flow[p]).to(masks.device)
+            movers, continued = self.pair_movers(geometry, flow.flow[p], flow.covisibility[p], i, j, generator)
+            masks[i] |= continued.to(masks.device)
+            masks[j] |= splat(movers, flow.flow[p]).to(masks.device)  # the unmatched pixels land nowhere known
         return dilate(masks, self.dilation)
 
     def pair_movers(self, geometry: SceneGeometry, flow: Tensor, covisibility: Tensor, source: int, target: int,
-                    generator: torch.Generator) -> Tensor:
-        """``[H, W]`` bool: source pixels of the pair that move rigidly on their own."""
+                    generator: torch.Generator) -> tuple[Tensor, Tensor]:
+        """``([H, W], [H, W])`` bool: the source pixels of the pair whose matches move rigidly on
+        their own, and those with the unmatched pixels that continue their surfaces
+        (:func:`continue_surface`)."""
         depth, K, extr = geometry.depth[0].double(), geometry.intrinsics[0].double(), geometry.extrinsics[0].double()
         flow = torch.where(torch.isfinite(flow), flow, torch.zeros_like(flow)).double().cpu()
         rel = relative_pose(extr[source][None], extr[target][None])
@@ -165,9 +188,9 @@ class MotionMasks:
         valid = valid & camera_valid & (covisibility.cpu() > self.covisibility_threshold)
         residual = (flow - camera_flow).norm(dim=0)
         candidates = valid & (residual > self.min_residual_px)
-        movers = torch.zeros_like(candidates)
+        movers, continued = torch.zeros_like(candidates), torch.zeros_like(candidates)
         if int(candidates.sum()) < self.min_region_px:
-            return movers
+            return movers, continued
         labels = connected_regions(candidates)
         ids, counts = labels[candidates].unique(return_counts=True)
         static_error = (x_tgt - x_src).norm(dim=-1)
@@ -187,8 +210,10 @@ class MotionMasks:
             explained = valid[box] & (error <= self.rigid_tolerance * static_error[box]) & (error < static_error[box])
             seed = inside[box]
             grown = connected_regions(explained | seed)
-            movers[box] |= torch.isin(grown, grown[seed].unique()) & (explained | seed)
-        return movers
+            grown = torch.isin(grown, grown[seed].unique()) & (explained | seed)
+            movers[box] |= grown
+            continued[box] |= continue_surface(grown, ~valid[box], depth[source][box].cpu())
+        return movers, continued
 
     def fit_rigid(self, source: Tensor, target: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor] | None:
         """RANSAC + Kabsch on matches ``[N, 3]`` (:func:`~geco_guide.geometry.ransac_rigid`): the
@@ -199,6 +224,34 @@ class MotionMasks:
         if sampled < self.min_inliers:
             return None
         return (rotation, translation) if float(refit.float().mean()) >= self.min_inliers else None
+
+
+def continue_surface(mover: Tensor, unmatched: Tensor, depth: Tensor, step: float = SURFACE_STEP) -> Tensor:
+    """``mover [H, W]`` bool grown into the ``unmatched [H, W]`` pixels (no match in the pair: their
+    landing leaves the image or is hidden) that continue its surfaces: reached from it through
+    8-neighbours whose ``depth [H, W]`` differs by at most ``step`` of theirs.
+
+    Such pixels of a mover carry no evidence of its motion in this pair (at the frame's border as
+    it leaves the view, on a face that turns away), and in the first and last frame no other pair
+    reads them: left unmasked, GeCo scores them against the camera's motion."""
+    grown = mover.clone()
+    height, width = mover.shape
+    padded_depth = F.pad(depth[None, None], (1, 1, 1, 1), value=float("nan"))[0, 0]
+    while True:
+        frontier = unmatched & ~grown & dilate(grown, 1)
+        if not bool(frontier.any()):
+            return grown
+        padded = F.pad(grown[None, None].float(), (1, 1, 1, 1))[0, 0] > 0
+        reached = torch.zeros_like(grown)
+        for dv in (0, 1, 2):
+            for du in (0, 1, 2):
+                near = padded[dv:dv + height, du:du + width]
+                close = (padded_depth[dv:dv + height, du:du + width] - depth).abs() <= step * depth
+                reached |= near & close
+        added = frontier & reached
+        if not bool(added.any()):
+            return grown
+        grown |= added
 
 
 def nearest_pairs(pairs: Sequence[tuple[int, int]]) -> list[int]:

@@ -55,7 +55,8 @@ def test_dynamic_validation_command_end_to_end(tmp_path: Path, capsys, monkeypat
     code = validate_main(["--dynamic", "--dynamic-size", "4", "24", "32", "--out", str(tmp_path / "out")])
     assert code == 0
     progress = [line for line in capsys.readouterr().err.splitlines() if " scored the " in line]
-    assert [line.split("]")[0] for line in progress] == [f"[{k}/13" for k in range(1, 14)] + [f"[{k}/14" for k in range(1, 15)]
+    assert [line.split("]")[0] for line in progress] == ([f"[{k}/13" for k in range(1, 14)] + [f"[{k}/14" for k in range(1, 15)]
+                                                         + [f"[{k}/8" for k in range(1, 9)])
     assert progress[0].startswith("[1/13] scored the still clean clip with no mask (")
     # an earlier run's report is not replaced without --overwrite
     earlier = (tmp_path / "out" / "dynamic.json").read_text()
@@ -71,7 +72,10 @@ def test_dynamic_validation_command_end_to_end(tmp_path: Path, capsys, monkeypat
     assert fp["moving/true"]["fused"] < 2 * fp["still"]["fused"]
     assert set(report["detection"]) == {"deformation", "occlusion"}
     assert set(report["targets"]) == {"auto_iou", "hidden_deformation", "score_ratio", "ap_ratio_deformation", "ap_ratio_occlusion",
-                                      "movers_removed", "movers_score_ratio", "movers_ap_ratio", "movers_non_rigid_left_out"}
+                                      "movers_removed", "movers_score_ratio", "movers_ap_ratio", "movers_non_rigid_left_out",
+                                      "movers_false_positive_removed", "movers_deformation_recovered"}
+    assert list(report["drawn_movers"]) == [str(seed) for seed in range(8)]
+    assert "| seed | false positive removed | deformation recovered |" in (tmp_path / "out" / "dynamic.md").read_text()
     assert set(report["movers"]) == {"box_fraction", "rigid", "deformed", "non_rigid", "movers"}
     assert report == json.loads(json.dumps(dynamic_validation(DynamicScenes(4, 24, 32))))  # deterministic
     assert validate_main(["--dynamic", "somewhere"]) == 2
@@ -104,7 +108,10 @@ def test_dynamic_validation_logs_each_scored_clip_as_it_finishes(monkeypatch):
         dynamic_suite.dynamic_validation(DynamicScenes(4, 24, 32))
     finally:
         logger.removeHandler(handler)
-    # the k-th clip starts once k - 1 lines were logged: 13 clips of the masks, then 14 of the movers
-    assert seen_at_call == list(range(27)) and len(lines) == 27
+    # the k-th clip starts once k - 1 lines were logged: 13 clips of the masks, then 14 of the movers,
+    # then a line per drawn mover scene (five clips each)
+    assert seen_at_call[:27] == list(range(27)) and len(lines) == 27 + 8
+    assert seen_at_call[27:] == [27 + k for k in range(8) for _ in range(5)]
     assert lines[12].startswith("[13/13] scored the still clean clip with true mask (")
-    assert lines[-1].startswith("[14/14] scored the movers' stretching clip with auto mask, movers rigid (")
+    assert lines[26].startswith("[14/14] scored the movers' stretching clip with auto mask, movers rigid (")
+    assert lines[-1].startswith("[8/8] scored the drawn mover scene of seed 7 (")

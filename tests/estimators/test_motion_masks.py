@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from geco_guide.bench.synthetic import inject_deformation, moving_clip, rigid_clip
-from geco_guide.estimators.motion_masks import MotionMasks, dilate, splat
+from geco_guide.estimators.motion_masks import MotionMasks, continue_surface, depth_at, dilate, splat
 from geco_guide.geometry import kabsch
 from geco_guide.io.masks import connected_regions
 from geco_guide.loss.geco import frame_pairs
@@ -104,3 +104,30 @@ def test_the_mask_source_factory_refuses_options_a_source_does_not_take():
         mask_source("auto", bogus=1)
     with pytest.raises(ValueError, match=r"^a text segmenter takes no option\(s\) \['dilation'\]; its options: model, "):
         mask_source("a dog", dilation=2)  # refused before any segmenter loads
+
+
+def test_a_mover_continues_into_its_unmatched_pixels_up_to_its_silhouette():
+    """A box's pixels that leave the view in the pair have no match: the mask follows the box's
+    surface into them, and stops at the depth step to the wall behind it."""
+    depth = torch.full((8, 12), 6.0, dtype=torch.float64)
+    depth[2:6, 3:10] = 3.0 + 0.05 * torch.arange(7, dtype=torch.float64)  # a slanted face, in front of the wall
+    mover = torch.zeros(8, 12, dtype=torch.bool)
+    mover[2:6, 3:6] = True  # the pixels whose matches fit
+    unmatched = torch.zeros(8, 12, dtype=torch.bool)
+    unmatched[:, 6:] = True  # leaving the view: the rest of the face and the wall beside it
+    grown = continue_surface(mover, unmatched, depth)
+    box = torch.zeros(8, 12, dtype=torch.bool)
+    box[2:6, 3:10] = True
+    assert torch.equal(grown, box)
+    assert torch.equal(continue_surface(mover, torch.zeros_like(unmatched), depth), mover)  # every pixel matched: as it was
+
+
+def test_depth_at_interpolates_on_a_surface_and_never_across_a_silhouette():
+    rows, cols = torch.meshgrid(torch.arange(6, dtype=torch.float64), torch.arange(8, dtype=torch.float64), indexing="ij")
+    plane = 1.0 / (0.2 + 0.004 * cols + 0.006 * rows)  # a plane: its inverse depth is affine in the pixel
+    uv = torch.stack((cols + 0.3, rows + 0.4), -1)[:4, :6]
+    exact = 1.0 / (0.2 + 0.004 * uv[..., 0] + 0.006 * uv[..., 1])
+    assert torch.allclose(depth_at(plane, uv), exact, rtol=1e-12)  # nearest would be off by a pixel's slope
+    step = torch.where(cols < 4, torch.full_like(cols, 3.0), torch.full_like(cols, 6.0))
+    across = depth_at(step, torch.tensor([[[3.4, 2.0], [3.6, 2.0]]], dtype=torch.float64))
+    assert across.tolist() == [[3.0, 6.0]]  # the nearest pixel's surface, no depth between the two
