@@ -5,10 +5,10 @@ Every process (one per GPU, started by ``torchrun --nproc-per-node N`` or ``acce
 runs the whole call: the same seed, text encoding, schedule, anchor decode, GeCo loss and update,
 so their latents stay equal. Only the denoisers are split: diffusers' ``enable_parallelism`` with
 a ``ContextParallelConfig(ulysses_degree=N)`` and the family's plan
-(:meth:`~.adapters.PipelineAdapter.context_parallel_plan`: diffusers' ``_cp_plan`` for Wan, ours
-for CogVideoX and HunyuanVideo; LTX-Video, LTX-2 and HunyuanVideo 1.5 are refused) shards the tokens where the plan says, runs each
-attention as Ulysses (an all-to-all from token shards to head shards and back) and gathers the
-output, so each process holds ``1/N`` of the activations a backward through the denoiser keeps.
+(:meth:`~.adapters.PipelineAdapter.context_parallel_plan`: diffusers' ``_cp_plan`` for Wan,
+ours for CogVideoX and HunyuanVideo; LTX-Video, LTX-2 and HunyuanVideo 1.5 are refused) shards
+the tokens where the plan says, runs each attention as Ulysses (an all-to-all from token shards
+to head shards and back) and gathers the output, so each process holds ``1/N`` of the activations a backward through the denoiser keeps.
 
 The backward goes through diffusers' autograd functions (the all-to-all's backward is the
 reverse all-to-all; the gather's backward keeps the process's own shard). What they give the
@@ -34,16 +34,18 @@ from .adapters import PipelineAdapter, adapter_for_class
 from .module_hooks import register_hook
 
 __all__ = ["GRADIENT_SUM_HOOK", "GradientSum", "check_context_parallel_before_loading", "check_model_context_parallel",
-           "context_parallel_degree",
-           "enable_context_parallel", "init_context_parallel", "is_writing_process", "start_context_parallel"]
+           "context_parallel_degree", "enable_context_parallel", "init_context_parallel", "is_writing_process",
+           "start_context_parallel"]
 
 logger = logging.getLogger(__name__)
 
 #: the name of :class:`GradientSum` in a denoiser's ``HookRegistry``
 GRADIENT_SUM_HOOK = "geco_context_parallel_gradient_sum"
-#: diffusers' attention backends that split a sequence and differentiate through the split
+#: diffusers' attention backends that split a sequence and differentiate through the split (the
+#: others that split it, sage and the NPU kernel, have no backward there)
 BACKWARD_BACKENDS = ("flash", "flash_hub", "flash_varlen_hub", "_flash_3_hub", "_flash_3_varlen_hub", "native",
                      "_native_cudnn", "_native_flash")
+#: how to start a launch of ``n`` processes, as a refusal says it
 LAUNCH = "torchrun --nproc-per-node {n} -m geco_guide.generate ... (or accelerate launch --num-processes {n})"
 
 
