@@ -56,8 +56,8 @@ from .synthetic import MovingBox, SyntheticClip, deform_mover, drawn_mover, movi
 from .validate import cue_map, localisation
 from .warp import WarpParams, warp_clip
 
-__all__ = ["MOVER_SEEDS", "DynamicScenes", "dynamic_validation", "edited_clips", "markdown_report", "mover_clips",
-           "drawn_movers_validation", "mover_measures", "movers_validation"]
+__all__ = ["MOVER_SEEDS", "DynamicScenes", "drawn_movers_markdown", "drawn_movers_validation", "dynamic_validation",
+           "edited_clips", "markdown_report", "mover_clips", "mover_measures", "movers_validation"]
 
 logger = logging.getLogger(__name__)
 
@@ -361,7 +361,7 @@ def markdown_report(report: dict[str, Any]) -> str:
     lines += ["", "Automatic mask: IoU with the true mask of the moving boxes "
               + ", ".join(f"{kind} {value:.3f}" for kind, value in auto["iou"].items())
               + f"; hides {100 * auto['hidden_deformation']:.2f} % of the deformation's pixels.", "",
-              *_movers_markdown(report["movers"]), "", *_drawn_movers_markdown(report["drawn_movers"]), "",
+              *_movers_markdown(report["movers"]), "", *drawn_movers_markdown(report["drawn_movers"]), "",
               "| Target | Value | Wanted | Met |", "|---|---|---|---|"]
     for name, t in report["targets"].items():
         lines.append(f"| {name} | {_number(t['value'])} | {t['target']} | {'yes' if t['met'] else 'no'} |")
@@ -392,7 +392,7 @@ def _movers_markdown(movers: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _drawn_movers_markdown(seeds: dict[str, dict[str, float]]) -> list[str]:
+def drawn_movers_markdown(seeds: dict[str, dict[str, float]]) -> list[str]:
     """The drawn scenes' table: per seed, the two measures of :func:`mover_measures` and more."""
     lines = [f"Drawn mover scenes (rigid + automatic masks, {len(seeds)} seeds):", "",
              "| seed | false positive removed | deformation recovered | rigid / still | automatic mask recall |",

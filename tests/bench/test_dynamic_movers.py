@@ -1,8 +1,10 @@
-"""Movers with exact ground truth (a box that changes shape while it moves, a box that stretches)
-and the three checks of ``movers="rigid"`` on a fixed seed (``validate --dynamic`` prints them on
-any seed; docs/validation.md gives several)."""
+"""Movers with exact ground truth (a box that changes shape while it moves, a box that stretches):
+the three checks of ``movers="rigid"`` on a fixed seed, and its two measures with automatic masks
+on the eight drawn scenes ``geco validate --dynamic`` checks (docs/validation.md quotes them)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 from photometric import photometric_error
@@ -11,11 +13,15 @@ from geco_guide.bench.dynamic_suite import (
     MOVER_SEEDS,
     TARGETS,
     DynamicScenes,
+    drawn_movers_markdown,
     drawn_movers_validation,
     mover_clips,
     movers_validation,
 )
 from geco_guide.bench.synthetic import drawn_mover, moving_boxes
+
+VALIDATION_PAGE = Path(__file__).resolve().parents[2] / "docs" / "validation.md"
+DRAWN_TABLE = ("<!-- drawn mover scenes: geco validate --dynamic -->", "<!-- end of the table -->")
 
 
 @pytest.fixture(scope="module")
@@ -91,3 +97,7 @@ def test_rigid_with_automatic_masks_holds_on_every_drawn_scene():
         assert row["deformation_recovered"] >= TARGETS["movers_deformation_recovered"], seed
         assert row["moving"] > 100 * row["still"], seed  # the box dominates when nothing is masked: the test has teeth
     assert all(target["met"] for target in report["targets"].values()), report["targets"]
+    # docs/validation.md quotes the command's table of these scenes
+    begin, end = DRAWN_TABLE
+    quoted = VALIDATION_PAGE.read_text().split(begin, 1)[1].split(end, 1)[0].strip()
+    assert quoted == "\n".join(line for line in drawn_movers_markdown(report["seeds"]) if line.startswith("|"))
