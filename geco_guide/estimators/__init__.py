@@ -309,7 +309,8 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
         try:
             geometry = _geometry_class(source).from_pretrained(source, dtype=dtype, device=device)
         except WeightsNotFoundError as err:
-            raise with_config_key(err, "estimators.geometry", f"/path/to/{Path(source).name}") from None
+            example = "/path/to/DA3-BASE" if geometry_architecture(source) == "da3" else "/path/to/VGGT-1B"
+            raise with_config_key(err, "estimators.geometry", example) from None
     if estimators_cfg.flow == TINY_RANDOM:
         flow = tiny.flow.to(device).trunk_to(dtype)
     else:
