@@ -205,9 +205,10 @@ IDLE_WITHOUT: tuple[tuple[str, Callable[[GeCoConfig], bool], tuple[str, ...]], .
 )
 
 
-def acting_config(cfg: GeCoConfig) -> GeCoConfig:
+def acting_config(cfg: GeCoConfig, *, quiet: bool = False) -> GeCoConfig:
     """``cfg`` as it runs, the one rule of what an option does on a run it cannot act on
-    (:data:`IDLE_WITHOUT`): each one set off its default is one warning and is reset to its
+    (:data:`IDLE_WITHOUT`): each one set off its default is one warning (none when ``quiet``: a
+    caller that made the run unguided itself, as the A/B's unguided arm) and is reset to its
     default, so that the sidecar records what ran (neither the frames nor the video's name change).
     What an option names is checked first, acting or not: ``run.devices`` must be this machine's.
 
@@ -220,10 +221,11 @@ def acting_config(cfg: GeCoConfig) -> GeCoConfig:
     for needed, lacking, keys in IDLE_WITHOUT:
         values = {key: _value_and_default(cfg, key) for key in keys}
         idle = {key: value for key, (value, default) in values.items() if value != default} if lacking(cfg) else {}
-        if idle:
+        if idle and not quiet:
             shown = ", ".join(key if value is True else f"{key}={value!r}" for key, value in idle.items())
             logger.warning("%s %s nothing without %s: left at the default, as the sidecar records", shown,
                            "does" if len(idle) == 1 else "do", needed)
+        if idle:
             for section in dict.fromkeys(key.split(".")[0] for key in idle):  # a section's at once: dynamic and movers
                 reset = {key.split(".")[1]: values[key][1] for key in idle if key.startswith(f"{section}.")}
                 cfg = replace(cfg, **{section: replace(getattr(cfg, section), **reset)})

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..config import GeCoConfig, config_to_dict
 from ..estimators import estimator_ids
+from ..generation import acting_config
 from ..io.video import read_frames
 from ..loss.geco import CUES
 from ..sampler.search import MAX_PARTICLES
@@ -247,7 +248,11 @@ def arm_config(cfg: GeCoConfig, pair: Pair, arm: str, search: SearchArm | None =
     masked = (guided or searched) and pair.prompt.subjects is not None
     cfg = replace(cfg, seed=pair.seed, guidance=replace(cfg.guidance, enabled=guided,
                                                         dynamic=pair.prompt.subjects if masked else cfg.guidance.dynamic))
-    return replace(cfg, search=replace(cfg.search, particles=search.particles)) if searched else cfg
+    if searched:
+        cfg = replace(cfg, search=replace(cfg.search, particles=search.particles))
+    # the run's options that this arm cannot act on (masks, devices without guidance) left at their
+    # defaults without a word: the run asked for them for the arms that use them
+    return acting_config(cfg, quiet=True)
 
 
 # ----------------------------------------------------------------------------------------------

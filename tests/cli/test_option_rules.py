@@ -153,3 +153,17 @@ def test_every_command_applies_the_same_rules(command, argv, line, tmp_path, cap
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and err.startswith(line), err
     assert not out.exists()
+
+
+def test_the_ab_arms_leave_out_what_they_cannot_act_on_without_a_word(caplog):
+    from geco_guide.bench.ab import Pair, arm_config
+    from geco_guide.cli.prompt_files import Prompt
+
+    cfg = tiny("guidance.dynamic=auto", "guidance.movers=rigid", "run.devices=[cpu]")
+    pair = Pair(Prompt("bust", PROMPT), 3)
+    with caplog.at_level(logging.WARNING, logger="geco_guide.generation"):
+        unguided, guided = (arm_config(cfg, pair, arm) for arm in ("unguided", "guided"))
+    assert caplog.records == []
+    assert (unguided.guidance.dynamic, unguided.guidance.movers, unguided.run.devices) == (None, "drop", None)
+    assert (guided.guidance.dynamic, guided.guidance.movers, guided.run.devices) == ("auto", "rigid", ["cpu"])
+    assert unguided.seed == guided.seed == 3
