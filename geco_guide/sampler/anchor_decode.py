@@ -12,6 +12,9 @@ out-of-memory fallback (:func:`plan_anchor_decode`), so that no update passes fl
   regions).
 * :class:`AcrossDevicesDecode`: :class:`ChunkedDecode`'s calls dealt round-robin over several
   devices (``run.devices``), each with a replica of the decoder.
+* :class:`AcrossProcessesDecode`: under ``run.context_parallel``, the chunks dealt round-robin
+  over the processes, each decoding its share as the plan decodes, the anchor frames gathered to
+  every process.
 
 Each strategy is ``latents -> frames`` over the pure functions of :mod:`.slicing`.
 """
@@ -23,16 +26,18 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
+import torch.distributed as dist
 from torch import Tensor, nn
 
 from .config import GuidanceConfig
+from .context_parallel import gather_from_processes, sum_gradient_over_processes
 from .multi_device import module_replicas
 from .fast_decode import check_channels_last_vae
 from .memory_plan import MemoryPlan
 from .run_options import RunOptions
-from .slicing import AnchorChunk, decode_anchor_frames, decode_anchor_frames_across
+from .slicing import AnchorChunk, chunk_spans, deal_spans, decode_anchor_frames, decode_anchor_frames_across
 
-__all__ = ["AcrossDevicesDecode", "AnchorDecode", "BatchedDecode", "ChunkedDecode", "anchor_decoder",
+__all__ = ["AcrossDevicesDecode", "AcrossProcessesDecode", "AnchorDecode", "BatchedDecode", "ChunkedDecode", "anchor_decoder",
            "plan_anchor_decode"]
 
 
@@ -163,12 +168,54 @@ class AcrossDevicesDecode:
                                            batch_chunks=self.batched)
 
 
+@dataclass(frozen=True)
+class AcrossProcessesDecode:
+    """The anchor decode of a ``run.context_parallel`` call, whose processes all hold the same
+    latents: chunk span ``k`` is decoded by process ``k mod P`` (:func:`~.slicing.deal_spans`, the
+    rule of :class:`AcrossDevicesDecode`), a process's spans decoded as ``plan`` decodes them
+    (:class:`BatchedDecode` or :class:`ChunkedDecode`, checkpointed regions and all, so the
+    backward decodes again only the process's own spans); the anchor frames are gathered to every
+    process (:func:`~.context_parallel.gather_from_processes`), and the gradient with respect to
+    the latents is summed over the processes
+    (:func:`~.context_parallel.sum_gradient_over_processes`): one process's frames and gradient.
+
+    Attributes:
+        share: the plan's decode of this process's chunks, ``chunks -> (latents -> frames)``.
+        chunks: the anchors' causal latent chunks.
+    """
+
+    share: Callable[[Sequence[AnchorChunk]], Callable[[Tensor], Tensor]]
+    chunks: Sequence[AnchorChunk]
+
+    def __call__(self, latents: Tensor) -> Tensor:
+        """``latents [B, F, C, h, w]`` (equal on every process) -> ``[B, S, 3, H, W]`` fp32 in ``[0, 1]``."""
+        rank, processes = dist.get_rank(), dist.get_world_size()
+        owner = deal_spans(chunk_spans(latents, self.chunks), processes)
+        owners = [owner[(chunk.start, chunk.stop)] for chunk in self.chunks]
+        mine = [chunk for chunk, r in zip(self.chunks, owners) if r == rank]
+        latents = sum_gradient_over_processes(latents)
+        frames = self.share(mine)(latents) if mine else None  # [B, len(mine), 3, H, W]
+        if len(set(owners)) < processes:  # some process decodes nothing: it learns the frames' size from rank 0
+            size = torch.tensor(frames.shape[2:] if rank == 0 else [0, 0, 0], device=latents.device)
+            dist.broadcast(size, 0)
+            if frames is None:  # no frames, yet on the latents' graph: every process's backward runs the all-reduce
+                frames = latents[:, :0].float().reshape(latents.shape[0], 0, *size.tolist())
+        width = max(owners.count(r) for r in range(processes))  # the gather takes parts of one shape
+        padded = torch.cat([frames, frames.new_zeros(frames.shape[0], width - frames.shape[1], *frames.shape[2:])], 1)
+        gathered = gather_from_processes(padded)  # [P, B, width, 3, H, W]
+        columns = [owners[:k].count(r) for k, r in enumerate(owners)]
+        return torch.stack([gathered[r, :, c] for r, c in zip(owners, columns)], dim=1)
+
+
 def plan_anchor_decode(plan: MemoryPlan, decode: AnchorDecode, chunks: Sequence[AnchorChunk],
-                       devices: Sequence[torch.device] | None = None
-                       ) -> BatchedDecode | ChunkedDecode | AcrossDevicesDecode:
-    """The anchor decode strategy of ``plan``: dealt over ``devices`` when given (``None`` or
-    empty: one device), else batched where the plan batches and checkpoints no chunk, else one
-    call per chunk, checkpointed as the plan says."""
+                       devices: Sequence[torch.device] | None = None, processes: int = 1
+                       ) -> BatchedDecode | ChunkedDecode | AcrossDevicesDecode | AcrossProcessesDecode:
+    """The anchor decode strategy of ``plan``: dealt over the ``processes`` of a
+    ``run.context_parallel`` call when there are several (:class:`AcrossProcessesDecode`), else
+    over ``devices`` when given (``None`` or empty: one device), else batched where the plan
+    batches and checkpoints no chunk, else one call per chunk, checkpointed as the plan says."""
+    if processes > 1:
+        return AcrossProcessesDecode(lambda mine: plan_anchor_decode(plan, decode, mine, devices), list(chunks))
     if devices:
         return AcrossDevicesDecode(decode, devices, chunks, checkpointed=plan.chunk_checkpointing,
                                    batched=plan.batch_chunks and not plan.chunk_checkpointing)

@@ -421,7 +421,8 @@ class GuidanceContext:
         return self.execution.models(denoisers, vae, [*others, *extra])
 
     def _anchor_decode(self, plan: MemoryPlan) -> Callable[[Tensor], Tensor]:
-        return plan_anchor_decode(plan, self._decode_chunk, self._chunks, self._devices)
+        return plan_anchor_decode(plan, self._decode_chunk, self._chunks, self._devices,
+                                  processes=self.execution.run.context_parallel or 1)
 
     def _use_plan(self, plan: MemoryPlan) -> None:
         """After a fallback: the new plan's anchor decode (the replicas copied again, with its switches)."""

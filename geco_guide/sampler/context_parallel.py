@@ -17,6 +17,14 @@ the replicated tokens apart. :class:`GradientSum`, a hook around each denoiser, 
 processes (an all-reduce of the input's gradient), so that every process holds the whole
 gradient with respect to the latents, as one process would: each latent element belongs to one
 token, so the sum adds zeros to one process's value and is exact.
+
+The guidance's anchor decode is dealt over the processes too
+(:class:`~.anchor_decode.AcrossProcessesDecode`): each decodes its share of the anchor chunks,
+forward and backward, and :func:`gather_from_processes` brings every process the others' anchor
+frames, so that all compute the same loss. Its backward keeps the gradient of the process's own
+frames: the ``N`` losses are one loss computed ``N`` times, so summing their gradients would count
+it ``N`` times. :func:`sum_gradient_over_processes` at the decode's input then adds the
+processes' shares into the whole gradient with respect to the latents, as one process's.
 """
 
 from __future__ import annotations
@@ -34,8 +42,8 @@ from .adapters import PipelineAdapter, adapter_for_class
 from .module_hooks import register_hook
 
 __all__ = ["GRADIENT_SUM_HOOK", "GradientSum", "check_context_parallel_before_loading", "check_model_context_parallel",
-           "context_parallel_degree", "enable_context_parallel", "init_context_parallel", "is_writing_process",
-           "start_context_parallel"]
+           "context_parallel_degree", "enable_context_parallel", "gather_from_processes", "init_context_parallel",
+           "is_writing_process", "start_context_parallel", "sum_gradient_over_processes"]
 
 logger = logging.getLogger(__name__)
 
@@ -156,6 +164,35 @@ class _SumOverProcesses(torch.autograd.Function):
         grad = grad.contiguous().clone()
         dist.all_reduce(grad)
         return grad
+
+
+def sum_gradient_over_processes(x: Tensor) -> Tensor:
+    """``x`` itself, whose gradient is summed over the processes in the backward (an all-reduce):
+    each process's gradient there is its share of the whole."""
+    return _SumOverProcesses.apply(x)
+
+
+class _GatherKeepOwnGradient(torch.autograd.Function):
+    """Forward: every process's ``part`` (of one shape), stacked ``[P, ...]``; backward: the
+    gradient of this process's own part, with nothing added from the others."""
+
+    @staticmethod
+    def forward(ctx, part: Tensor) -> Tensor:
+        ctx.rank = dist.get_rank()
+        parts = [torch.empty_like(part) for _ in range(dist.get_world_size())]
+        dist.all_gather(parts, part.contiguous())
+        return torch.stack(parts)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> Tensor:
+        return grad[ctx.rank]
+
+
+def gather_from_processes(part: Tensor) -> Tensor:
+    """Every process's ``part`` (all of one shape) on every process: ``[P, *part.shape]`` in rank
+    order. The backward gives ``part`` the gradient of its own slot only: every process computes
+    the same loss from the gathered tensor, and one process's gradient is that of one loss."""
+    return _GatherKeepOwnGradient.apply(part)
 
 
 class GradientSum(ModelHook):

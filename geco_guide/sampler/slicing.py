@@ -25,7 +25,7 @@ from torch.utils.checkpoint import checkpoint
 
 
 __all__ = ["AnchorChunk", "anchor_latent_chunks", "check_latents", "check_num_frames",
-           "check_paired_latent_frames", "decode_anchor_frames", "decode_anchor_frames_across",
+           "check_paired_latent_frames", "deal_spans", "decode_anchor_frames", "decode_anchor_frames_across",
            "decode_chunk", "latent_to_pixels", "pixel_to_latent"]
 
 
@@ -196,6 +196,12 @@ def chunk_spans(latents: Tensor, chunks: Sequence[AnchorChunk]) -> list[tuple[in
     return sorted({(chunk.start, chunk.stop) for chunk in chunks})
 
 
+def deal_spans(spans: Sequence[tuple[int, int]], decoders: int) -> dict[tuple[int, int], int]:
+    """Who decodes each of ``spans`` (in order) among ``decoders`` devices or processes: span
+    ``k`` goes to ``k mod decoders``, round-robin."""
+    return {span: k % decoders for k, span in enumerate(spans)}
+
+
 def decode_anchor_frames(
     decode: Callable[[Tensor], Tensor],
     latents: Tensor,
@@ -298,7 +304,7 @@ def decode_anchor_frames_across(
         calls = [(k % len(placed), [span for span in spans if span[1] - span[0] == length])
                  for k, length in enumerate(lengths)]
     else:
-        calls = [(k % len(placed), [span]) for k, span in enumerate(spans)]
+        calls = [(d, [span]) for span, d in deal_spans(spans, len(placed)).items()]
     picked: dict[tuple[tuple[int, int], int], Tensor] = {}
     for d, group in calls:
         device, decode = placed[d]
