@@ -25,6 +25,13 @@ budget, from the cost model's per-plan estimates shipped in ``data/memory_plans.
 nothing is traced at start-up). A model or video the estimates do not know gets ``leanest``.
 The budget is ``run.memory_budget_gb`` (GiB) if given, else :data:`DEVICE_HEADROOM` of the
 device's memory (a CUDA device's total, a CPU's physical RAM).
+
+Under ``run.context_parallel: N`` the plan is a process's (:func:`process_peak`): the
+differentiated denoiser's activations (a plan's faithful peak minus its fast peak) divided over
+the ``N`` processes, the rest whole. The anchor decode's activations are not divided: the
+estimates keep them in the peak with the rest; a process of a plan that checkpoints the chunks
+holds one chunk's decode at a time, as one process does, and under ``fastest`` the whole
+decode is an upper bound of its share.
 """
 
 from __future__ import annotations
@@ -46,8 +53,8 @@ if TYPE_CHECKING:
 
 __all__ = ["DEVICE_HEADROOM", "ESTIMATES_PATH", "GIB", "PLANS", "PLAN_NAMES", "SAFE_PLAN", "MemoryPlan",
            "PlanChoice", "choose_plan", "explicit_plan", "known_model", "load_estimates",
-           "model_signature", "plan_before_loading", "plan_named", "predicted_parts",
-           "stored_signature"]
+           "model_signature", "plan_before_loading", "plan_named", "predicted_parts", "process_peak",
+           "search_parts", "stored_signature"]
 
 logger = logging.getLogger(__name__)
 
@@ -263,6 +270,41 @@ def predicted_parts(entry: Mapping[str, Any], mode: str, decoder: str, frames: i
     return {name: (e[prefix + "weights_gb"], scale * e[prefix + "activations_gb"]) for name, e in table.items()}
 
 
+def process_peak(faithful_gb: float, fast_gb: float, processes: int) -> float:
+    """A faithful plan's peak (GiB) on one of the ``processes`` a denoiser's tokens are split over
+    (``run.context_parallel``): its fast peak, plus the differentiated denoiser's activations
+    (the faithful peak minus the fast peak) divided over the processes; the faithful peak where
+    it is not over the fast one (nothing of the denoiser's to divide)."""
+    return faithful_gb if faithful_gb <= fast_gb else fast_gb + (faithful_gb - fast_gb) / processes
+
+
+def search_parts(entry: Mapping[str, Any], frames: int, height: int, width: int,
+                 offload: bool) -> tuple[float, float]:
+    """``(weights, activations)`` (GiB) of an unguided search's particle in a known model's
+    ``entry``, a work that runs no backward: the activations are the unguided call's (its
+    prediction's and its whole video's decode, more than a scoring's chunk decode), its peak less
+    the video models' weights (all the weights less the estimators', those that stay on the
+    device under offload), scaled as :func:`predicted_parts` scales; the weights all the models'
+    (``offload``: the estimators' and the model at work at the unguided peak)."""
+    leanest, unguided = entry["estimates"]["fast/vae"][SAFE_PLAN.name], entry["unguided"]
+    work = unguided["peak_gb"] - (leanest["weights_gb"] - leanest["offload_weights_gb"])
+    video = entry["video"]
+    scale = (frames * height * width) / (video["frames"] * video["height"] * video["width"])
+    if offload:
+        return leanest["offload_weights_gb"] + max(0.0, unguided["offload_peak_gb"] - work), scale * work
+    return leanest["weights_gb"], scale * work
+
+
+def _process_peaks(entry: Mapping[str, Any], mode: str, decoder: str, frames: int, height: int, width: int,
+                   offload: bool, processes: int) -> dict[str, float] | None:
+    """:func:`predicted_peaks` on one of ``processes`` (:func:`process_peak` in faithful mode)."""
+    peaks = predicted_peaks(entry, mode, decoder, frames, height, width, offload)
+    if peaks is None or mode != "faithful" or processes == 1:
+        return peaks
+    fast = predicted_peaks(entry, "fast", decoder, frames, height, width, offload) or {}
+    return {name: process_peak(peak, fast[name], processes) if name in fast else peak for name, peak in peaks.items()}
+
+
 def choose_plan(config: GuidanceConfig, run: RunOptions, *, signature: Mapping[str, Any] | None = None, model_id: str | None = None,
                 frames: int, height: int, width: int, device_gb: float | None, offload: bool = False,
                 estimates: Mapping[str, Any] | None = None) -> PlanChoice:
@@ -274,7 +316,8 @@ def choose_plan(config: GuidanceConfig, run: RunOptions, *, signature: Mapping[s
     (:func:`predicted_peaks`) fits the budget: ``memory_budget_gb`` as given, else
     :data:`DEVICE_HEADROOM` x ``device_gb``; the more memory-saving on a tie. A model (``signature`` of its
     denoiser, or ``model_id``) or mode the estimates do not know, or no budget at all, gets
-    :data:`SAFE_PLAN`.
+    :data:`SAFE_PLAN`. Under ``run.context_parallel`` the peaks are one process's
+    (:func:`process_peak`).
 
     Raises:
         ValueError: (one line) ``auto`` where no plan fits the budget, naming the smallest plan's
@@ -284,7 +327,9 @@ def choose_plan(config: GuidanceConfig, run: RunOptions, *, signature: Mapping[s
     mode = "faithful" if config.denoiser_grad else "fast"
     key = known_model(estimates, signature=signature, model_id=model_id)
     entry = estimates["models"][key] if key is not None else None
-    peaks = predicted_peaks(entry, mode, config.decoder, frames, height, width, offload) if entry else None
+    processes = run.context_parallel or 1
+    per = f" per process of {processes}" if processes > 1 else ""
+    peaks = _process_peaks(entry, mode, config.decoder, frames, height, width, offload, processes) if entry else None
     if run.memory_plan != AUTO:
         plan = explicit_plan(run) if run.memory_plan == EXPLICIT else plan_named(run.memory_plan)
         peak = peaks.get(plan.name) if peaks and plan.name != EXPLICIT else None
@@ -304,13 +349,13 @@ def choose_plan(config: GuidanceConfig, run: RunOptions, *, signature: Mapping[s
         smallest = min(estimated, key=lambda p: peaks[p.name])
         hint = ""
         if not offload:
-            offloaded = predicted_peaks(entry, mode, config.decoder, frames, height, width, True)
+            offloaded = _process_peaks(entry, mode, config.decoder, frames, height, width, True, processes)
             if offloaded[smallest.name] <= budget:
                 hint = (f"; with the pipeline's enable_model_cpu_offload() it is predicted at "
                         f"{offloaded[smallest.name]:.1f} GiB")
         raise ValueError(
             f"no memory plan fits {budget:.1f} GiB: the smallest, {smallest.name!r}, is predicted to peak at "
-            f"{peaks[smallest.name]:.1f} GiB{' with model CPU offload' if offload else ''} ({key}, {mode} mode, "
+            f"{peaks[smallest.name]:.1f} GiB{per}{' with model CPU offload' if offload else ''} ({key}, {mode} mode, "
             f"{frames}x{height}x{width}){hint}; set "
             "run.memory_budget_gb to insist, or pick a plan with run.memory_plan")
     # a tie (a plan whose extra saving costs nothing here) goes to the one that saves more
@@ -321,7 +366,7 @@ def choose_plan(config: GuidanceConfig, run: RunOptions, *, signature: Mapping[s
         if peaks[other.name] < floor:
             later.append(other)
             floor = peaks[other.name]
-    return PlanChoice(plan, f"auto: least recomputation predicted to fit {budget:.1f} GiB ({key})",
+    return PlanChoice(plan, f"auto: least recomputation predicted to fit {budget:.1f} GiB{per} ({key})",
                       predicted_peak_gb=peaks[plan.name], budget_gb=budget, fallbacks=tuple(later))
 
 

@@ -53,6 +53,7 @@ from .memory_plan import (
     known_model,
     load_estimates,
     predicted_parts,
+    search_parts,
 )
 from .particles import particle_batches, reorder_scheduler_state
 from .run_options import RunOptions
@@ -472,6 +473,10 @@ def particle_gb(frames: int, height: int, width: int) -> float:
     return PARTICLE_VIDEO_COPIES * frames * 3 * height * width * 4 / GIB
 
 
+#: the name of an unguided search's work among the parts :func:`choose_particle_batch` weighs
+SEARCH_WORK = "search"
+
+
 def choose_particle_batch(guidance: GuidanceConfig, run: RunOptions, particles: int, plan: PlanChoice | None, *,
                           signature: Mapping[str, Any] | None = None, model_id: str | None = None, frames: int,
                           height: int, width: int, device_gb: float | None, offload: bool = False, devices: int = 1,
@@ -480,8 +485,8 @@ def choose_particle_batch(guidance: GuidanceConfig, run: RunOptions, particles: 
     else, for a model the estimates know (:mod:`.memory_plan`) and a known budget, the most
     particles whose work fits beside every particle's latents and video: ``weights + K x``
     :func:`particle_gb` ``+ m x activations <= budget``, the activations of one video under the
-    guidance's ``plan`` (without guidance: a fast update's under ``leanest``, an upper bound of a
-    forward and a scoring without gradients), and no more than a ``devices``-th of them (each of
+    guidance's ``plan`` (without guidance, a work that runs no backward: the unguided call's,
+    :func:`~.memory_plan.search_parts`), and no more than a ``devices``-th of them (each of
     the ``devices`` of ``run.devices`` then gets a sub-batch); else one particle per call (as an
     unknown model gets the most memory-saving plan).
 
@@ -495,8 +500,13 @@ def choose_particle_batch(guidance: GuidanceConfig, run: RunOptions, particles: 
     key = known_model(estimates, signature=signature, model_id=model_id)
     guided = guidance.enabled
     mode = "faithful" if guided and guidance.denoiser_grad else "fast"
-    parts = predicted_parts(estimates["models"][key], mode, guidance.decoder, frames, height, width,
-                            offload) if key is not None else None
+    entry = estimates["models"][key] if key is not None else None
+    if entry is None:
+        parts = None
+    elif guided:
+        parts = predicted_parts(entry, mode, guidance.decoder, frames, height, width, offload)
+    else:  # a search's particles run no backward
+        parts = {SEARCH_WORK: search_parts(entry, frames, height, width, offload)} if "unguided" in entry else None
     budget = run.memory_budget_gb
     if budget is None and device_gb is not None:
         budget = DEVICE_HEADROOM * device_gb
@@ -504,9 +514,9 @@ def choose_particle_batch(guidance: GuidanceConfig, run: RunOptions, particles: 
         why = "no memory budget known" if parts is not None else "no estimates for this model"
         return ParticleBatch(1, f"{why}: one particle per call (run.particle_batch sets more)")
     name = plan.plan.name if guided and plan is not None and plan.plan.name in parts else (
-        "fastest" if guided else "leanest")  # an explicit plan: the one that keeps everything
+        "fastest" if guided else SEARCH_WORK)  # an explicit plan: the one that keeps everything
     weights, activations = parts[name]
-    work = f"{mode} mode, plan {name}" if guided else f"unguided, bounded by a fast update under plan {name}"
+    work = f"{mode} mode, plan {name}" if guided else "unguided, no backward: bounded by the unguided call's activations"
     held = particles * particle_gb(frames, height, width)
     free = budget - weights - held
     if free < activations:

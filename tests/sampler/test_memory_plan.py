@@ -25,6 +25,7 @@ from geco_guide.sampler.memory_plan import (
     explicit_plan,
     load_estimates,
     plan_named,
+    process_peak,
 )
 from geco_guide.sampler.slicing import (
     anchor_latent_chunks,
@@ -206,6 +207,26 @@ def test_unknown_model_or_budget_gets_the_safe_plan_and_named_plans_are_kept():
     assert faithful.plan == SAFE_PLAN  # the table has no faithful estimates
     named = choose(budget=1, memory_plan="chunked")
     assert named.plan == plan_named("chunked") and named.fallbacks == () and named.predicted_peak_gb == 80
+
+
+def test_under_context_parallel_a_plan_fits_one_process_share_of_the_denoiser():
+    """Faithful peaks 60 GiB over the fast ones (the differentiated denoiser's activations): over
+    4 processes each holds 15 of them, so ``fastest`` (300 + 60 / 4) fits 320 GiB per process."""
+    fast = {"fastest": 300, "partial": 120, "chunked": 80, "checkpointed": 30, "leanest": 28}
+    faithful = estimates({name: peak + 60 for name, peak in fast.items()},
+                         {"fastest": 900, "partial": 960, "chunked": 1000, "checkpointed": 1200, "leanest": 1210})
+    model = faithful["models"]["cogvideox-5b"]["estimates"]
+    model["faithful/vae"], model["fast/vae"] = model["fast/vae"], TABLE["models"]["cogvideox-5b"]["estimates"]["fast/vae"]
+
+    def plan(**run):
+        return choose_plan(GuidanceConfig(), RunOptions(memory_budget_gb=320, **run), model_id="THUDM/CogVideoX-5b",
+                           frames=49, height=480, width=720, device_gb=None, estimates=faithful)
+
+    one, split = plan(), plan(context_parallel=4)
+    assert one.plan.name == "partial" and one.predicted_peak_gb == 180
+    assert split.plan.name == "fastest" and split.predicted_peak_gb == 315
+    assert split.reason.startswith("auto: least recomputation predicted to fit 320.0 GiB per process of 4")
+    assert process_peak(360, 300, 4) == 315 and process_peak(300, 310, 4) == 300  # nothing divided below the fast peak
 
 
 def test_no_plan_fits_is_one_line_naming_the_smallest_peak_and_offload():

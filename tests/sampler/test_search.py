@@ -197,16 +197,21 @@ def test_clip_scores_are_each_clips_own_score(estimators):
 
 
 def test_the_particle_batch_is_the_memory_plans_choice():
+    # an unguided search runs no backward: its work is the unguided call's 14 GiB (its 20 GiB peak
+    # less the 6 GiB of video models), not a fast update's 20
     entry = {"signature": {"num_layers": 1}, "model_ids": ["m"], "video": {"frames": 1, "height": 1, "width": 1},
-             "estimates": {f"{mode}/vae": {name: {"weights_gb": 10.0, "activations_gb": 20.0}
+             "unguided": {"peak_gb": 20.0, "offload_peak_gb": 17.0},
+             "estimates": {f"{mode}/vae": {name: {"weights_gb": 10.0, "activations_gb": 20.0, "offload_weights_gb": 4.0}
                                            for name in ("fastest", "leanest")} for mode in ("fast", "faithful")}}
     estimates = {"models": {"m": entry}}
     args = dict(model_id="m", frames=1, height=1, width=1, device_gb=None, estimates=estimates)
     run = T.tiny_run_options(memory_plan="auto", memory_budget_gb=100.0)
     plan = PlanChoice(plan_named("leanest"), "test")
     unguided = S.choose_particle_batch(UNGUIDED, run, 8, None, **args)
-    assert unguided.size == 4  # (100 - 10) // 20
-    assert unguided.reason.endswith("(m, unguided, bounded by a fast update under plan leanest)")
+    assert unguided.size == 6  # (100 - 10 - the particles' latents) // 14
+    assert unguided.reason.endswith("(m, unguided, no backward: bounded by the unguided call's activations)")
+    offloaded = S.choose_particle_batch(UNGUIDED, run, 8, None, offload=True, **args)
+    assert offloaded.size == 6  # the estimators' 4 GiB and the model at work's 3: (100 - 7) // 14
     guided = S.choose_particle_batch(GUIDED, run, 3, plan, **args)
     assert re.search(r"\(m, (fast|faithful) mode, plan leanest\)$", guided.reason)
     assert S.choose_particle_batch(UNGUIDED, run, 8, None, devices=4, **args).size == 2  # a sub-batch per device
