@@ -117,10 +117,13 @@ def validate_inputs(args: argparse.Namespace) -> Inputs:
     if cfg.search.particles is not None:
         raise InputError(f"search.particles={cfg.search.particles} would make every arm a search: leave it unset and "
                          f"pass --search {cfg.search.particles} for a search arm (search.* sets its other options)")
-    # what generate checks before loading, here before run.json is pinned or any video written
-    cfg = generation.check_generation(cfg, prompts[0].text)
-    best_of = choose_best_of(args.best_of, args.gpu, cfg, seeds)
     search = choose_search(args.search, args.search_guided, seeds)
+    # what generate checks before loading, here before run.json is pinned or any video written: the
+    # guided arm (run.particle_batch is the search arm's, checked below); each arm then runs what it
+    # can act on (arm_config), and the run keeps its config as given, the device resolved
+    guided = cfg if search is None else replace(cfg, run=replace(cfg.run, particle_batch=None))
+    cfg = replace(cfg, model=generation.check_generation(guided, prompts[0].text).model)
+    best_of = choose_best_of(args.best_of, args.gpu, cfg, seeds)
     if search is not None:  # K particles of the first pair, checked as generate checks them (K >= 2 if matched)
         cfg.search.steps(cfg.sampling.num_inference_steps)  # else found when the search starts, after the pairs
         first = SearchArm(search.particles or 2, search.guided)
