@@ -59,9 +59,9 @@ def _search(costs: list[dict[str, Any]], unguided_s: float) -> str:
     return f"K={cost['particles']}: {seconds} ({ratios}x), {cost['peak_gb']:.1f} GiB{offload}"
 
 
-def _parallel(cost: dict[str, Any], unguided_s: float, dealt: dict[str, Any] | None = None) -> str:
+def _parallel(cost: dict[str, Any], unguided_s: float, composed: dict[str, Any] | None = None) -> str:
     """A cell of :func:`~.parallel_cost.parallel_guidance`: time, ratio to one-GPU unguided, peak per
-    GPU, layout; then, if given, the time of the composition with the anchor decode ``dealt``."""
+    GPU, layout; then, if given and other, the time of the ``composed`` run (ring or split CFG, not run)."""
     if cost["plan"] is None:
         text = cost["reason"]
     else:
@@ -70,10 +70,10 @@ def _parallel(cost: dict[str, Any], unguided_s: float, dealt: dict[str, Any] | N
             layout.append(f"{cost['backend']} over {cost['context_parallel']}")
         text = (f"{_seconds(cost['time_s'])} ({cost['time_s'] / unguided_s:.2f}x), {cost['peak_gb']:.1f} GiB "
                 f"({', '.join(layout)})")
-    if dealt is None or dealt["plan"] is None:
+    if composed is None or composed["plan"] is None or composed["time_s"] == cost.get("time_s"):
         return text
-    split = f", split CFG, {dealt['backend']} over {dealt['context_parallel']}" if dealt["split_cfg"] else ""
-    return f"{text}; dealt: {_seconds(dealt['time_s'])} ({dealt['time_s'] / unguided_s:.2f}x{split})"
+    layout = f", {'split CFG, ' * composed['split_cfg']}{composed['backend']} over {composed['context_parallel']}"
+    return f"{text}; composed: {_seconds(composed['time_s'])} ({composed['time_s'] / unguided_s:.2f}x{layout})"
 
 
 def family_rows(estimates: dict[str, Any] | None = None) -> list[dict[str, str]]:
@@ -103,7 +103,7 @@ def family_rows(estimates: dict[str, Any] | None = None) -> list[dict[str, str]]
                 "gpus": _parallel(parallel_guidance(name, gpu, SEARCH_GPUS, context_parallel=False,
                                                     estimates=estimates), unguided_s),
                 "cp": _parallel(parallel_guidance(name, gpu, SEARCH_GPUS, estimates=estimates), unguided_s,
-                                parallel_guidance(name, gpu, SEARCH_GPUS, deal_decode=True, estimates=estimates)),
+                                parallel_guidance(name, gpu, SEARCH_GPUS, compose=True, estimates=estimates)),
                 "search_gpus": _search(several, unguided_s),
             })
     return rows
@@ -114,7 +114,8 @@ COLUMNS = (("model", "model"), ("card", "card"), ("unguided", "unguided"), ("fas
            ("faithful", "faithful"), ("tiny", "faithful, tiny decoder"),
            ("search", "search, K matched to faithful"),
            ("gpus", f"faithful on {SEARCH_GPUS} GPUs: run.devices (x unguided on 1)"),
-           ("cp", f"faithful on {SEARCH_GPUS} GPUs: context parallel; dealt: with the anchor decode dealt (not run yet)"),
+           ("cp", f"faithful on {SEARCH_GPUS} GPUs: context parallel, the anchor decode dealt; composed: with ring "
+                  "or split CFG (not run)"),
            ("search_gpus", f"search K={SEARCH_PARTICLES} on {SEARCH_GPUS} GPUs (x unguided on 1)"))
 
 

@@ -7,17 +7,19 @@ backward (linear layers, norms and attention all scale with the tokens; each ran
 reads all the weights, milliseconds a call at these sizes, left out), and the self-attentions
 exchange what they read (:func:`attention_traffic`, from the traced attention shapes of
 :mod:`.attention_shapes`) over the card's interconnect (:data:`~.cards.INTERCONNECT_BYTES_PER_S`),
-not overlapped with compute. As ``run.context_parallel`` runs it, every process runs the rest of
-the call whole (the anchor decode, the estimators, the loss) and the attention is Ulysses.
-``deal_decode`` predicts the composition it does not make yet: the anchor chunks dealt over the
-ranks as ``run.devices`` deals them (:func:`~.cost.decode_over_gpus`), ring attention where the
-heads do not divide, and split CFG (``run.split_cfg``, the GeCo pipeline's: the two CFG halves on
-two groups of ranks) where that is faster. The estimators and the loss stay whole.
+not overlapped with compute. As ``run.context_parallel`` runs it, the attention is Ulysses (heads
+that do not divide over the ranks are refused) and the anchor chunks are dealt over the ranks as
+``run.devices`` deals them over GPUs (:func:`~.cost.decode_over_gpus`: each rank decodes its
+chunks, forward and backward, and only the anchor frames travel); every rank runs the estimators,
+the loss and the final decode whole. ``compose`` predicts what the runtime does not run: ring
+attention where the heads do not divide, and split CFG (``run.split_cfg``, the GeCo pipeline's:
+the two CFG halves on two groups of ranks) where that is faster.
 
 The estimates keep no denoiser time per plan: :func:`denoiser_seconds` gets it from one plan's
 fast and faithful estimates, which differ by the differentiated calls alone (the same decode,
 estimators and loss; fast mode predicts once more after each time-travel update). Memory per rank
-(the first GPU, which also holds the estimators): the weights replicated, the differentiated
+(the first GPU, which also holds the estimators): the planner's rule
+(:func:`~geco_guide.sampler.memory_plan.process_peak`): the weights replicated, the differentiated
 denoiser's activations (the plan's faithful peak minus its fast peak) divided over the ranks that
 share a call, everything else whole (an upper bound: the fast peak's own denoiser activations are
 not divided). Without context parallelism the first GPU's peak is the one-GPU peak (the planner's
@@ -30,7 +32,7 @@ from __future__ import annotations
 from typing import Any
 
 from ..families import model_named
-from ..sampler.memory_plan import DEVICE_HEADROOM, PLANS, load_estimates
+from ..sampler.memory_plan import DEVICE_HEADROOM, PLANS, load_estimates, process_peak
 from .attention_shapes import load_attention
 from .cards import GPU_SPECS, INTERCONNECT_BYTES_PER_S, card_memory_gib
 from .cost import decode_over_gpus
@@ -117,14 +119,14 @@ def cfg_half_bytes(name: str, entry: dict[str, Any]) -> int:
     return 2 * (2 * latents) + 2 * tokens * dim
 
 
-def _layouts(name: str, num_gpus: int, context_parallel: bool, deal_decode: bool) -> list[tuple[int, bool]]:
+def _layouts(name: str, num_gpus: int, context_parallel: bool, compose: bool) -> list[tuple[int, bool]]:
     """``(ranks splitting each call's tokens, split CFG)`` to weigh on ``num_gpus`` GPUs: split CFG
     where the GeCo pipeline runs the model, on two GPUs (``run.devices``) or, composed with context
-    parallelism (``deal_decode``), two groups of ranks."""
+    parallelism (``compose``, not run), two groups of ranks."""
     split = model_named(name).guided_by == "pipeline" and num_gpus >= 2
     if not context_parallel:
         return [(1, False)] + [(1, True)] * split
-    composed = deal_decode and split and num_gpus % 2 == 0 and num_gpus >= 4
+    composed = compose and split and num_gpus % 2 == 0 and num_gpus >= 4
     return [(num_gpus, False)] + [(num_gpus // 2, True)] * composed
 
 
@@ -168,20 +170,19 @@ def _layout_cost(name: str, entry: dict[str, Any], counts: dict[str, int], gpu: 
     key = "offload_peak_gb" if offload else "peak_gb"
     fast_peak = entry["estimates"][f"fast/{decoder}"][plan.name][key]
     sharing = ranks if cp > 1 else 1  # run.devices plans for the one-GPU peak
-    peak = fast_peak + max(0.0, estimate[key] - fast_peak) / sharing if mode == "faithful" else estimate[key]
+    peak = process_peak(estimate[key], fast_peak, sharing) if mode == "faithful" else estimate[key]
     return {"plan": plan.name, "offload": offload, "time_s": seconds, "peak_gb": peak, "context_parallel": cp,
             "split_cfg": split, "backend": backend, "traffic_s": traffic_s, "denoiser_s": denoiser / ranks + traffic_s}
 
 
 def parallel_guidance(name: str, gpu: str, num_gpus: int, mode: str = "faithful", decoder: str = "vae",
-                      context_parallel: bool = True, deal_decode: bool = False,
+                      context_parallel: bool = True, compose: bool = False,
                       estimates: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The guided run of registry model ``name``'s traced video on ``num_gpus`` cards ``gpu``: with
-    ``context_parallel`` every call's tokens split over the GPUs as ``run.context_parallel`` splits
-    them (the rest of the call whole on every GPU), or with ``deal_decode`` composed with the anchor
-    chunks dealt over them and split CFG where faster (see the module docstring); else
-    ``run.devices``, the anchor chunks dealt over the GPUs and split CFG where the pipeline has it
-    and it is faster. The plan of least time whose peak on the first GPU fits the card (94 % of its memory), without
+    """The guided run of registry model ``name``'s traced video on ``num_gpus`` cards ``gpu``, the
+    anchor chunks dealt over the GPUs: with ``context_parallel`` every call's tokens split over the
+    GPUs as ``run.context_parallel`` splits them (Ulysses), or with ``compose`` composed with what
+    it does not run (ring attention where the heads do not divide, split CFG where faster; see the
+    module docstring); else ``run.devices``, split CFG where the pipeline has it and it is faster. The plan of least time whose peak on the first GPU fits the card (94 % of its memory), without
     model CPU offload if one does. Returns ``plan``, ``offload``, ``time_s``, ``peak_gb``,
     ``context_parallel`` (ranks per call), ``split_cfg``, ``backend``, ``traffic_s`` (the
     collectives and split CFG's transfers) and ``denoiser_s`` (per rank, with them); ``plan``
@@ -193,16 +194,15 @@ def parallel_guidance(name: str, gpu: str, num_gpus: int, mode: str = "faithful"
     if f"{mode}/{decoder}" not in entry["estimates"]:
         return {"plan": None, "reason": f"no estimates with decoder {decoder} ({name} has no tiny decoder)"}
     attention = load_attention()["models"][name]["attention"]
-    if context_parallel and not deal_decode and not _heads_divide(attention, num_gpus):
+    if context_parallel and not compose and not _heads_divide(attention, num_gpus):
         heads = sorted({call["query"][1] for call in _split_attention(attention)})
         return {"plan": None, "reason": f"Ulysses needs the heads ({', '.join(map(str, heads))}) divisible by {num_gpus}"}
     counts, budget = schedule_counts(name, entry), DEVICE_HEADROOM * card_memory_gib(gpu)
-    decode_gpus = 1 if context_parallel and not deal_decode else num_gpus
     least = None
     for offload in (False, True):
         # the more saving plan first: a tie in time goes to it, as the planner's
-        costs = [_layout_cost(name, entry, counts, gpu, decode_gpus, layout, plan, offload, mode, decoder)
-                 for layout in _layouts(name, num_gpus, context_parallel, deal_decode) for plan in reversed(PLANS)]
+        costs = [_layout_cost(name, entry, counts, gpu, num_gpus, layout, plan, offload, mode, decoder)
+                 for layout in _layouts(name, num_gpus, context_parallel, compose) for plan in reversed(PLANS)]
         least = min(costs, key=lambda cost: cost["peak_gb"])
         fitting = [cost for cost in costs if cost["peak_gb"] <= budget]
         if fitting:
@@ -232,9 +232,10 @@ def parallel_unguided(name: str, gpu: str, num_gpus: int, estimates: dict[str, A
 def parallel_report(name: str, mode: str, num_gpus: int, estimates: dict[str, Any] | None = None) -> dict[str, Any]:
     """``geco bench cost --context-parallel N``: registry model ``name``'s run in ``mode`` on every
     card of :data:`~.cards.GPU_SPECS`, on one GPU and on ``num_gpus`` (``run.devices`` with split
-    CFG where it helps; context parallelism as ``run.context_parallel`` runs it, and composed with
-    the anchor decode dealt over the GPUs, which it does not do yet), beside the unguided run on one GPU and split over
-    ``num_gpus``, and the bytes one rank sends per prediction with each attention backend."""
+    CFG where it helps; context parallelism as ``run.context_parallel`` runs it, the anchor decode
+    dealt over the GPUs; and composed with ring attention or split CFG, which it does not run),
+    beside the unguided run on one GPU and split over ``num_gpus``, and the bytes one rank sends
+    per prediction with each attention backend."""
     estimates = load_estimates() if estimates is None else estimates
     entry = estimates_entry(name, estimates)
     attention = load_attention()["models"][name]["attention"]
@@ -250,8 +251,7 @@ def parallel_report(name: str, mode: str, num_gpus: int, estimates: dict[str, An
             row.update(one_gpu=one,
                        devices=parallel_guidance(name, gpu, num_gpus, mode, context_parallel=False, estimates=estimates),
                        context_parallel=parallel_guidance(name, gpu, num_gpus, mode, estimates=estimates),
-                       decode_dealt=parallel_guidance(name, gpu, num_gpus, mode, deal_decode=True,
-                                                      estimates=estimates))
+                       composed=parallel_guidance(name, gpu, num_gpus, mode, compose=True, estimates=estimates))
         cards[gpu] = row
     traffic = {backend: attention_traffic(attention, num_gpus, backend) for backend in ("ulysses", "ring")}
     return {"subcommand": "cost --context-parallel", "model": name, "mode": mode, "num_gpus": num_gpus,
@@ -278,13 +278,13 @@ def parallel_table(report: dict[str, Any]) -> str:
     header = ["card", "unguided, 1 GPU", f"unguided, context parallel over {n}"]
     if mode != "unguided":
         header += [f"{mode}, 1 GPU", f"{mode}, run.devices over {n}", f"{mode}, context parallel over {n}",
-                   f"{mode}, context parallel over {n}, the anchor decode dealt (not run yet)"]
+                   f"{mode}, context parallel over {n} with ring or split CFG (not run)"]
     lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for gpu, row in report["cards"].items():
         unguided, split = row["unguided_s"], row["unguided_parallel"]
         cells = [gpu, f"{unguided:.0f} s", split["reason"] if split["time_s"] is None else
                  f"{split['time_s']:.0f} s ({split['time_s'] / unguided:.2f}x)"]
         if mode != "unguided":
-            cells += [_cell(row[key], unguided) for key in ("one_gpu", "devices", "context_parallel", "decode_dealt")]
+            cells += [_cell(row[key], unguided) for key in ("one_gpu", "devices", "context_parallel", "composed")]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
