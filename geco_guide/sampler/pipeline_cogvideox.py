@@ -489,7 +489,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         searcher = batches = None
         if search is not None:
             scorer = ParticleScorer(
-                geco.anchor_objective.decode if geco else plan_anchor_decode(SAFE_PLAN, decode, chunks, devices),
+                geco.anchor_objective.decode if geco else plan_anchor_decode(
+                    SAFE_PLAN, decode, chunks, devices, processes=run.context_parallel or 1),
                 lambda x0: x0[:, additional_frames:], GeCoLoss(estimators, config.loss, check_values=False), masks,
                 particle_batch.size)
             searcher = ParticleSearch(search, len(timesteps), scorer, generator=search_generator, noise=generator,

@@ -133,7 +133,7 @@ class StockCall:
         call without guidance), ``batch`` at a time; ``generator``: the particles' own;
         ``search_generator``: the resamplings'."""
         decode = context.anchor_objective.decode if context is not None else plan_anchor_decode(
-            SAFE_PLAN, self.decode_chunk, self.chunks, self.devices)
+            SAFE_PLAN, self.decode_chunk, self.chunks, self.devices, processes=self.run.context_parallel or 1)
         latent_frames = functools.partial(self.adapter.frames_first, self.pipe, geometry=self.geometry)
         scorer = ParticleScorer(decode, latent_frames, GeCoLoss(self.estimators, self.config.loss, check_values=False),
                                 self.masks, batch)
