@@ -87,7 +87,8 @@ class RunOptions:
             the call runs over, launched with ``torchrun --nproc-per-node N`` (or ``accelerate
             launch``): every process runs the whole call, and each denoiser's token sequence is
             split over them with diffusers' context parallelism (Ulysses attention), forward and
-            backward (:mod:`.context_parallel`, docs/context_parallel.md). The attention of the
+            backward, and the anchor decode's chunks dealt over them (:mod:`.context_parallel`,
+            docs/context_parallel.md). The attention of the
             split sequence sums in another order, so the frames equal one process's to float
             rounding (hence in :data:`FRAME_ROUNDING_KEYS`).
     """
