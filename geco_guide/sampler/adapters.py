@@ -33,6 +33,8 @@ from torch import Tensor, nn
 from .levels import FlowLevels, NoiseLevels, VPLevels
 from .module_hooks import register_hook
 from .slicing import decode_chunk
+from .split_attention import (GATHERED_KEYS_HOOK, SHARDED_MASK_HOOK, GatheredVideoKeys,
+                              HunyuanVideo15ContextParallelAttention, ShardedJointMask, attend_within_process)
 
 __all__ = ["PADDED_TOKENS_HOOK", "SHARDED_MASK_HOOK", "CallGeometry", "CogVideoXAdapter", "CogVideoXContextParallelAttention",
            "HunyuanVideo15Adapter", "HunyuanVideoAdapter", "LTX2Adapter", "LTXAdapter", "PaddedTokens", "PipelineAdapter",
@@ -375,7 +377,7 @@ class HunyuanVideoAdapter(PipelineAdapter):
         video tokens split as ``rope`` makes them, the video and text tokens split where the first
         dual-stream block takes them (after the embedders and the token refiner, which see the whole
         sequence), the video tokens gathered after ``proj_out``. The text mask of the whole
-        sequence that every block takes is made the process's own by :class:`ShardedJointMask`."""
+        sequence that every block takes is made the process's own by :class:`~.split_attention.ShardedJointMask`."""
         from diffusers.models._modeling_parallel import ContextParallelInput, ContextParallelOutput
 
         tokens = ContextParallelInput(split_dim=1, expected_dims=3)
@@ -393,38 +395,6 @@ class HunyuanVideoAdapter(PipelineAdapter):
             register_hook(block, ShardedJointMask(), SHARDED_MASK_HOOK)
 
 
-#: the name of :class:`ShardedJointMask` in a block's ``HookRegistry``
-SHARDED_MASK_HOOK = "geco_sharded_joint_mask"
-
-
-class ShardedJointMask(ModelHook):
-    """A HunyuanVideo block's ``attention_mask`` ``[B, 1, 1, V + T]`` (the video tokens, then the
-    text tokens, padding masked) cut to this process's tokens under context parallelism: its shard
-    of the video part, then its shard of the text part, the order of the block's local
-    ``[video, text]`` sequence. The Ulysses attention gathers the processes' masks in the order
-    it gathers their tokens, so every key keeps its own mask entry."""
-
-    def pre_forward(self, module, *args, **kwargs):
-        import torch.distributed as dist
-
-        args = list(args)
-        hidden, text = (kwargs["hidden_states"] if "hidden_states" in kwargs else args[0],
-                        kwargs["encoder_hidden_states"] if "encoder_hidden_states" in kwargs else args[1])
-        positional = "attention_mask" not in kwargs
-        mask = args[3] if positional else kwargs["attention_mask"]
-        processes, rank = dist.get_world_size(), dist.get_rank()
-        if mask is None or mask.shape[-1] != (hidden.shape[1] + text.shape[1]) * processes:
-            return tuple(args), kwargs  # not the whole sequence's mask: nothing to cut
-        video = hidden.shape[1] * processes
-        local = torch.cat([mask[..., :video].chunk(processes, dim=-1)[rank],
-                           mask[..., video:].chunk(processes, dim=-1)[rank]], dim=-1)
-        if positional:
-            args[3] = local
-        else:
-            kwargs["attention_mask"] = local
-        return tuple(args), kwargs
-
-
 class LTXAdapter(PipelineAdapter):
     """``LTXPipeline``: packed latent tokens ``[B, S, C]``, flow matching with dynamic shifting,
     per-channel ``latents_mean/std``; the VAE has ``r = 8`` and a non-causal decoder (the anchor's
@@ -433,9 +403,25 @@ class LTXAdapter(PipelineAdapter):
     ``guidance_rescale`` applied as the pipeline does."""
 
     name = "LTX-Video"
-    context_parallel_refusal = ("diffusers' plan for it fails on the pipeline's call (diffusers 0.42: its attention "
-                                "repeats the text mask for every head, and Ulysses attention gives each process a "
-                                "share of the heads)")
+
+    def context_parallel_plan(self, denoiser):
+        """LTX-Video's plan, written as diffusers writes ``_cp_plan``: the video tokens split at the
+        denoiser's input, their rotary tables as ``rope`` makes them, the video tokens gathered after
+        ``proj_out``. The text stays whole on every process, as Wan's: the cross-attention of each
+        process's video tokens to the whole text is its own (:func:`attend_within_process`), so
+        neither the text's length nor its mask (repeated for every head by the stock attention)
+        meets the split. (diffusers' own plan splits the text, which its attention cannot take.)"""
+        from diffusers.models._modeling_parallel import ContextParallelInput, ContextParallelOutput
+
+        rotary = ContextParallelInput(split_dim=1, expected_dims=3, split_output=True)
+        return {
+            "": {"hidden_states": ContextParallelInput(split_dim=1, expected_dims=3, split_output=False)},
+            "rope": {0: rotary, 1: rotary},
+            "proj_out": ContextParallelOutput(gather_dim=1, expected_dims=3),
+        }
+
+    def finish_context_parallel(self, denoiser):
+        attend_within_process(denoiser, lambda name: not name.endswith(".attn1"))
 
     def temporal_compression(self, pipe):
         return int(pipe.vae_temporal_compression_ratio)
@@ -505,9 +491,28 @@ class HunyuanVideo15Adapter(PipelineAdapter):
     linear combination, checked against the pipeline's output."""
 
     name = "HunyuanVideo 1.5"
-    context_parallel_refusal = ("HunyuanVideo 1.5's denoiser has no context-parallel plan (diffusers writes none, "
-                                "and its attention masks the text by a mask of the whole sequence, which a split "
-                                "reorders)")
+
+    def context_parallel_plan(self, denoiser):
+        """HunyuanVideo 1.5's plan (diffusers writes none), as diffusers writes ``_cp_plan``: the
+        video's rotary tables split as ``rope`` makes them, its tokens where the first block takes
+        them (after the embedders, which see the whole video), gathered after ``proj_out``. The text
+        stays whole on every process (its length varies with the prompt), seen as keys once
+        (:class:`~.split_attention.HunyuanVideo15ContextParallelAttention`)."""
+        from diffusers.models._modeling_parallel import ContextParallelInput, ContextParallelOutput
+
+        rotary = ContextParallelInput(split_dim=0, expected_dims=2, split_output=True)
+        return {
+            "rope": {0: rotary, 1: rotary},
+            "transformer_blocks.0": {"hidden_states": ContextParallelInput(split_dim=1, expected_dims=3)},
+            "proj_out": ContextParallelOutput(gather_dim=1, expected_dims=3),
+        }
+
+    def prepare_context_parallel(self, denoiser):
+        for block in denoiser.transformer_blocks:
+            block.attn.set_processor(HunyuanVideo15ContextParallelAttention())
+
+    def finish_context_parallel(self, denoiser):  # the token refiner's attention: the whole text
+        attend_within_process(denoiser, lambda name: not name.startswith("transformer_blocks."))
 
     def call_geometry(self, pipe, args, latents):
         return replace(super().call_geometry(pipe, args, latents), requested_frames=int(args["num_frames"]))
@@ -559,8 +564,32 @@ class LTX2Adapter(LTXAdapter):
     """
 
     name = "LTX-2"
-    context_parallel_refusal = ("diffusers' plan for it fails on the pipeline's call (diffusers 0.42: it splits the "
-                                "tokens but leaves the split rotary tables, four-dimensional, whole)")
+
+    def context_parallel_plan(self, denoiser):
+        """LTX-2's plan, written as diffusers writes ``_cp_plan``: the video tokens split at the
+        denoiser's input, their rotary tables as ``rope`` makes them (``[B, S, D]``, or ``[B, heads,
+        S, D]`` for the split rotary type, which diffusers' own plan leaves whole), the video tokens
+        gathered after ``proj_out``; the video's tables of its cross-attention with the audio, as
+        ``cross_attn_rope`` makes them, likewise. The text and the audio stay whole on every process: only
+        the video self-attention is split; the cross-attentions to the text, the audio's attentions
+        and the audio-to-video attention are each process's own (:func:`attend_within_process`);
+        the video-to-audio attention takes the whole video, gathered by :class:`GatheredVideoKeys`."""
+        from diffusers.models._modeling_parallel import ContextParallelInput, ContextParallelOutput
+
+        split = denoiser.config.rope_type == "split"
+        rotary = ContextParallelInput(split_dim=2 if split else 1, expected_dims=4 if split else 3, split_output=True)
+        return {
+            "": {"hidden_states": ContextParallelInput(split_dim=1, expected_dims=3, split_output=False)},
+            "rope": {0: rotary, 1: rotary},
+            "cross_attn_rope": {0: rotary, 1: rotary},
+            "proj_out": ContextParallelOutput(gather_dim=1, expected_dims=3),
+        }
+
+    def finish_context_parallel(self, denoiser):
+        attend_within_process(denoiser, lambda name: not name.endswith(".attn1"))  # all but the video's self-attention
+        for block in denoiser.transformer_blocks:
+            register_hook(block.video_to_audio_attn, GatheredVideoKeys(denoiser.config.rope_type == "split"),
+                          GATHERED_KEYS_HOOK)
 
     def call_geometry(self, pipe, args, latents):
         return replace(super().call_geometry(pipe, args, latents), requested_frames=int(args["num_frames"]))

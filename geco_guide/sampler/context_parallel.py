@@ -6,7 +6,7 @@ runs the whole call: the same seed, text encoding, schedule, anchor decode, GeCo
 so their latents stay equal. Only the denoisers are split: diffusers' ``enable_parallelism`` with
 a ``ContextParallelConfig(ulysses_degree=N)`` and the family's plan
 (:meth:`~.adapters.PipelineAdapter.context_parallel_plan`: diffusers' ``_cp_plan`` for Wan,
-ours for CogVideoX and HunyuanVideo; LTX-Video, LTX-2 and HunyuanVideo 1.5 are refused) shards
+ours for CogVideoX, HunyuanVideo 1 and 1.5, LTX-Video and LTX-2) shards
 the tokens where the plan says, runs each attention as Ulysses (an all-to-all from token shards
 to head shards and back) and gathers the output, so each process holds ``1/N`` of the activations a backward through the denoiser keeps.
 

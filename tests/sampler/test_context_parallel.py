@@ -5,8 +5,10 @@ Two processes on the ``gloo`` backend (CPU), spawned here, run the same tiny cal
 the paper's pipeline (CogVideoX: our plan and attention processor), the hooks on a stock
 ``WanPipeline`` (diffusers' own ``_cp_plan``; Wan 2.1, and Wan 2.2 with both experts) and on a stock ``HunyuanVideoPipeline`` (our plan
 and the text mask cut to each process's tokens; the denoiser check pads the two prompts to 6
-and 10 of 16 tokens, so the mask matters); and a CogVideoX denoiser call whose 45 video and 15
-text tokens do not split evenly, padded to equal shards. Compared with one process:
+and 10 of 16 tokens, so the mask matters); a CogVideoX denoiser call whose 45 video and 15
+text tokens do not split evenly, padded to equal shards; and the denoisers of LTX-Video, LTX-2
+(its audio stream whole on every process) and HunyuanVideo 1.5 (their text whole on every
+process, padded prompts), output and gradient only. Compared with one process:
 
 - the denoiser's output and the gradient of a fixed linear read-out of it with respect to the
   latents (a CFG batch of two): the gradient faithful guidance takes through the denoiser;
@@ -57,7 +59,7 @@ from geco_guide.sampler.hooks import attach_geco_guidance
 from geco_guide.sampler.run_options import RunOptions
 
 PROCESSES = 2
-FAMILIES = ("cogvideox", "cogvideox-padded", "wan", "wan2.2", "hunyuan")
+FAMILIES = ("cogvideox", "cogvideox-padded", "wan", "wan2.2", "hunyuan", "ltx", "ltx2", "hunyuan1.5")
 #: the families whose guided call is compared too; the padded CogVideoX call's denoiser only: at
 #: 48x48 the tiny models' guided call is far more sensitive to rounding (in one process, a 1e-7
 #: relative change of its initial latents moves its frames by 2.7e-3, against 4e-5 at 32x48)
@@ -88,11 +90,19 @@ def _pipeline(family: str):
         return T.tiny_pipeline(0)
     if family == "hunyuan":
         return T.tiny_hunyuan_pipeline(0)
+    if family in LTX_FAMILIES:
+        return LTX_FAMILIES[family](0)
+    if family == "hunyuan1.5":
+        return T.tiny_hunyuan15_pipeline(0)
     return T.tiny_wan_pipeline(0, scheduler="euler", version="2.2" if family == "wan2.2" else "2.1")
 
 
 def _denoiser_inputs(pipe, family: str, g: torch.Generator) -> tuple[torch.Tensor, dict]:
     """Random latents (requiring gradients) and the denoiser's inputs for a CFG batch of 2 of them."""
+    if family in LTX_FAMILIES:
+        return _ltx_inputs(pipe, family, g)
+    if family == "hunyuan1.5":
+        return _hunyuan15_inputs(pipe, g)
     padded = family == "cogvideox-padded"
     shape = (1, 5, 4, *((6, 6) if padded else (4, 6))) if family.startswith("cogvideox") else (1, 4, 5, 4, 6)
     z = torch.randn(shape, generator=g).requires_grad_(True)
@@ -107,6 +117,45 @@ def _denoiser_inputs(pipe, family: str, g: torch.Generator) -> tuple[torch.Tenso
         mask = torch.arange(16) < torch.tensor([[6], [10]])
         inputs.update(encoder_attention_mask=mask.long(), guidance=torch.tensor([6000.0, 6000.0]),
                       pooled_projections=torch.randn(2, pipe.transformer.config.pooled_projection_dim, generator=g))
+    return z, inputs
+
+
+#: LTX-Video and LTX-2: their denoiser only (its output and gradient), on packed tokens of 3 latent
+#: frames of 4x6, with text masks of 6 and 10 of 16 tokens (so that the mask matters); LTX-2's audio
+#: stream (5 tokens) stays whole on every process
+LTX_FAMILIES = {"ltx": T.tiny_ltx_pipeline, "ltx2": T.tiny_ltx2_pipeline}
+
+
+def _ltx_inputs(pipe, family: str, g: torch.Generator) -> tuple[torch.Tensor, dict]:
+    denoiser = pipe.transformer
+    z = torch.randn(1, 3 * 4 * 6, denoiser.config.in_channels, generator=g).requires_grad_(True)
+    mask = (torch.arange(16) < torch.tensor([[6], [10]])).long()
+    inputs = dict(hidden_states=torch.cat([z, z]), encoder_hidden_states=torch.randn(2, 16, 16, generator=g),
+                  encoder_attention_mask=mask, timestep=torch.tensor([500.0, 500.0]), num_frames=3, height=4, width=6,
+                  return_dict=False)
+    if family == "ltx":
+        inputs["rope_interpolation_scale"] = (8 / 25, 8, 8)
+    else:
+        audio = torch.randn(2, 5, denoiser.audio_proj_in.in_features, generator=g)
+        inputs.update(audio_hidden_states=audio, audio_encoder_hidden_states=torch.randn(2, 16, 16, generator=g),
+                      audio_encoder_attention_mask=mask, sigma=torch.tensor([0.5, 0.5]), audio_num_frames=5)
+    return z, inputs
+
+
+def _hunyuan15_inputs(pipe, g: torch.Generator) -> tuple[torch.Tensor, dict]:
+    """HunyuanVideo 1.5's denoiser: 3 latent frames of 4x6 (text-to-video: the condition channels
+    zero), its two texts padded (6 and 10 of 16 tokens; 3 and 5 of 8), the image tokens zero (and
+    masked, as the pipeline's text-to-video call)."""
+    config = pipe.transformer.config
+    z = torch.randn(1, config.out_channels, 3, 4, 6, generator=g).requires_grad_(True)
+    condition = torch.zeros(1, config.in_channels - config.out_channels, 3, 4, 6)
+    inputs = dict(hidden_states=torch.cat([z, condition], dim=1).expand(2, -1, -1, -1, -1),
+                  timestep=torch.tensor([500.0, 500.0]), return_dict=False,
+                  encoder_hidden_states=torch.randn(2, 16, config.text_embed_dim, generator=g),
+                  encoder_attention_mask=(torch.arange(16) < torch.tensor([[6], [10]])).long(),
+                  encoder_hidden_states_2=torch.randn(2, 8, config.text_embed_2_dim, generator=g),
+                  encoder_attention_mask_2=(torch.arange(8) < torch.tensor([[3], [5]])).long(),
+                  image_embeds=torch.zeros(2, pipe.vision_num_semantic_tokens, config.image_embed_dim))
     return z, inputs
 
 
@@ -314,13 +363,7 @@ def test_a_number_of_processes_below_two_or_not_whole_is_refused(value):
     (["run.context_parallel=1"], None, "'run.context_parallel': context_parallel must be a whole number of processes >= 2"),
     (["--context-parallel", "2", "--devices", "cpu", "cpu"], "2", "run.devices deals the anchor decode over this "
      "process's GPUs, and under run.context_parallel each process owns one GPU"),
-    (["--context-parallel", "2", "--model", "hunyuanvideo-1.5", "model.id=tiny-random"], "2",
-     "run.context_parallel cannot split HunyuanVideo 1.5: HunyuanVideo 1.5's denoiser has no context-parallel plan"),
     (["--context-parallel", "2", "--best-of", "2"], "2", "--best-of writes each candidate from one process"),
-    (["--context-parallel", "2", "--model", "ltx-video", "model.id=tiny-random"], "2",
-     "run.context_parallel cannot split LTX-Video: diffusers' plan for it fails on the pipeline's call"),
-    (["--context-parallel", "2", "--model", "ltx-2", "model.id=tiny-random"], "2",
-     "run.context_parallel cannot split LTX-2: diffusers' plan for it fails on the pipeline's call"),
 ])
 def test_what_cannot_run_split_is_one_line_before_loading(argv, world, expected, monkeypatch, capsys, no_loading):
     from geco_guide.cli.generate import main

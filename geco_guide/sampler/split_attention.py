@@ -1,0 +1,131 @@
+"""What a denoiser's attention needs under ``run.context_parallel`` beyond diffusers' split
+(docs/context_parallel.md): attentions run on each process alone where their keys are whole on
+every process, HunyuanVideo's mask cut to each process's tokens, LTX-2's video keys gathered for
+its whole audio stream, and HunyuanVideo 1.5's joint attention with its text whole on every
+process."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from diffusers.hooks import ModelHook
+from torch import Tensor, nn
+
+__all__ = ["GATHERED_KEYS_HOOK", "SHARDED_MASK_HOOK", "GatheredVideoKeys", "HunyuanVideo15ContextParallelAttention",
+           "ShardedJointMask", "attend_within_process"]
+
+
+def attend_within_process(denoiser: nn.Module, within: Any) -> None:
+    """Run the attentions of ``denoiser`` whose name ``within(name)`` picks on each process alone,
+    without diffusers' Ulysses all-to-all: those whose queries are the process's own tokens and
+    whose keys are whole on every process (the text; LTX-2's audio). Each gets a processor of its
+    own (a fresh one of its class) with no parallel config, after ``enable_parallelism`` gave one
+    to all; exact, as one process's attention of those queries."""
+    from diffusers.models.attention import AttentionModuleMixin
+
+    for name, module in denoiser.named_modules():
+        if isinstance(module, AttentionModuleMixin) and within(name):
+            module.set_processor(type(module.processor)())
+            module.processor._parallel_config = None
+
+
+#: the name of :class:`GatheredVideoKeys` in a module's ``HookRegistry``
+GATHERED_KEYS_HOOK = "geco_gathered_video_keys"
+
+
+class GatheredVideoKeys(ModelHook):
+    """On LTX-2's video-to-audio attention under context parallelism: the process's video tokens
+    (its keys, ``encoder_hidden_states [B, S/N, C]``) and their rotary tables (``key_rotary_emb``,
+    split on the token dimension: 2 for the split rotary type, else 1) gathered over the processes
+    into the whole video, which the whole audio stream of every process attends to. The tokens'
+    gather sums the gradient over the processes in the backward: each process's audio copy carries
+    the gradient of its own share of the loss (the video shard it is attended by)."""
+
+    def __init__(self, split_rotary: bool):
+        super().__init__()
+        self.token_dim = 2 if split_rotary else 1
+
+    def pre_forward(self, module, *args, **kwargs):
+        from torch.distributed import group
+        from torch.distributed._functional_collectives import all_gather_single
+
+        kwargs["encoder_hidden_states"] = all_gather_single(kwargs["encoder_hidden_states"].contiguous(), 1, group.WORLD)
+        kwargs["key_rotary_emb"] = tuple(all_gather_single(t.contiguous(), self.token_dim, group.WORLD)
+                                         for t in kwargs["key_rotary_emb"])
+        return args, kwargs
+
+
+class HunyuanVideo15ContextParallelAttention:
+    """HunyuanVideo 1.5's joint video-text attention, computed as diffusers'
+    ``HunyuanVideo15AttnProcessor2_0`` computes it, for a process holding a shard of the video tokens
+    and the whole text. The Ulysses all-to-all lines up every process's ``[video, text]``: the keys
+    hold ``N`` copies of the text, of which the mask lets only rank 0's be seen (with the text
+    padding masked), so each query sees the keys one process's attention sees, once. The mask is
+    of keys only, ``[B, 1, 1, S + T]``: the stock one also masks the padding text tokens' queries,
+    whose outputs no real token ever reads (they are masked as keys everywhere)."""
+
+    _attention_backend = None
+    _parallel_config = None  # set by diffusers' enable_parallelism
+
+    def __call__(self, attn, hidden_states: Tensor, encoder_hidden_states: Tensor, attention_mask: Tensor,
+                 image_rotary_emb: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+        """``hidden_states [B, S, C]`` (this process's video tokens), ``encoder_hidden_states [B, T,
+        C]`` (the whole text), ``attention_mask [B, T]`` (the text's, True: a real token) -> both
+        after attention and the output projections."""
+        import torch.distributed as dist
+        from diffusers.models.attention_dispatch import dispatch_attention_fn
+        from diffusers.models.embeddings import apply_rotary_emb
+
+        def heads(x: Tensor) -> Tensor:
+            return x.unflatten(2, (attn.heads, -1))
+
+        query, key = attn.norm_q(heads(attn.to_q(hidden_states))), attn.norm_k(heads(attn.to_k(hidden_states)))
+        if image_rotary_emb is not None:
+            query = apply_rotary_emb(query, image_rotary_emb, sequence_dim=1)
+            key = apply_rotary_emb(key, image_rotary_emb, sequence_dim=1)
+        text_query, text_key = heads(attn.add_q_proj(encoder_hidden_states)), heads(attn.add_k_proj(encoder_hidden_states))
+        if attn.norm_added_q is not None:
+            text_query = attn.norm_added_q(text_query)
+        if attn.norm_added_k is not None:
+            text_key = attn.norm_added_k(text_key)
+        query, key = torch.cat([query, text_query], dim=1), torch.cat([key, text_key], dim=1)
+        value = torch.cat([heads(attn.to_v(hidden_states)), heads(attn.add_v_proj(encoder_hidden_states))], dim=1)
+        text_seen = attention_mask.bool() & (dist.get_rank() == 0)
+        mask = torch.cat([text_seen.new_ones(text_seen.shape[0], hidden_states.shape[1]), text_seen], dim=1)
+        out = dispatch_attention_fn(query, key, value, attn_mask=mask[:, None, None], backend=self._attention_backend,
+                                    parallel_config=self._parallel_config).flatten(2, 3).to(query.dtype)
+        video, text = out[:, : hidden_states.shape[1]], out[:, hidden_states.shape[1] :]
+        return attn.to_out[1](attn.to_out[0](video)), attn.to_add_out(text)
+
+
+#: the name of :class:`ShardedJointMask` in a block's ``HookRegistry``
+SHARDED_MASK_HOOK = "geco_sharded_joint_mask"
+
+
+class ShardedJointMask(ModelHook):
+    """A HunyuanVideo block's ``attention_mask`` ``[B, 1, 1, V + T]`` (the video tokens, then the
+    text tokens, padding masked) cut to this process's tokens under context parallelism: its shard
+    of the video part, then its shard of the text part, the order of the block's local
+    ``[video, text]`` sequence. The Ulysses attention gathers the processes' masks in the order
+    it gathers their tokens, so every key keeps its own mask entry."""
+
+    def pre_forward(self, module, *args, **kwargs):
+        import torch.distributed as dist
+
+        args = list(args)
+        hidden, text = (kwargs["hidden_states"] if "hidden_states" in kwargs else args[0],
+                        kwargs["encoder_hidden_states"] if "encoder_hidden_states" in kwargs else args[1])
+        positional = "attention_mask" not in kwargs
+        mask = args[3] if positional else kwargs["attention_mask"]
+        processes, rank = dist.get_world_size(), dist.get_rank()
+        if mask is None or mask.shape[-1] != (hidden.shape[1] + text.shape[1]) * processes:
+            return tuple(args), kwargs  # not the whole sequence's mask: nothing to cut
+        video = hidden.shape[1] * processes
+        local = torch.cat([mask[..., :video].chunk(processes, dim=-1)[rank],
+                           mask[..., video:].chunk(processes, dim=-1)[rank]], dim=-1)
+        if positional:
+            args[3] = local
+        else:
+            kwargs["attention_mask"] = local
+        return tuple(args), kwargs
