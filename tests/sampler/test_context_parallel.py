@@ -6,9 +6,10 @@ the paper's pipeline (CogVideoX: our plan and attention processor), the hooks on
 ``WanPipeline`` (diffusers' own ``_cp_plan``; Wan 2.1, and Wan 2.2 with both experts) and on a stock ``HunyuanVideoPipeline`` (our plan
 and the text mask cut to each process's tokens; the denoiser check pads the two prompts to 6
 and 10 of 16 tokens, so the mask matters); a CogVideoX denoiser call whose 45 video and 15
-text tokens do not split evenly, padded to equal shards; and the denoisers of LTX-Video, LTX-2
-(its audio stream whole on every process) and HunyuanVideo 1.5 (their text whole on every
-process, padded prompts), output and gradient only. Compared with one process:
+text tokens do not split evenly, padded to equal shards; and the hooks on stock ``LTXPipeline``,
+``LTX2Pipeline`` (its audio stream whole on every process) and ``HunyuanVideo15Pipeline`` (our
+plans; their text whole on every process; the denoiser check pads the prompts). Compared with
+one process:
 
 - the denoiser's output and the gradient of a fixed linear read-out of it with respect to the
   latents (a CFG batch of two): the gradient faithful guidance takes through the denoiser;
@@ -63,7 +64,7 @@ FAMILIES = ("cogvideox", "cogvideox-padded", "wan", "wan2.2", "hunyuan", "ltx", 
 #: the families whose guided call is compared too; the padded CogVideoX call's denoiser only: at
 #: 48x48 the tiny models' guided call is far more sensitive to rounding (in one process, a 1e-7
 #: relative change of its initial latents moves its frames by 2.7e-3, against 4e-5 at 32x48)
-GUIDED = ("cogvideox", "wan", "wan2.2", "hunyuan")
+GUIDED = ("cogvideox", "wan", "wan2.2", "hunyuan", "ltx", "ltx2", "hunyuan1.5")
 #: the guided call's updates: two at the first step, none after (see the module's docstring); Wan
 #: 2.2 one at the first step and one at the last, so that both experts are differentiated
 UPDATES = {"wan2.2": "1x1,0x2,1x1"}
@@ -120,9 +121,9 @@ def _denoiser_inputs(pipe, family: str, g: torch.Generator) -> tuple[torch.Tenso
     return z, inputs
 
 
-#: LTX-Video and LTX-2: their denoiser only (its output and gradient), on packed tokens of 3 latent
-#: frames of 4x6, with text masks of 6 and 10 of 16 tokens (so that the mask matters); LTX-2's audio
-#: stream (5 tokens) stays whole on every process
+#: LTX-Video and LTX-2: the denoiser check on packed tokens of 3 latent frames of 4x6, with text
+#: masks of 6 and 10 of 16 tokens (so that the mask matters); LTX-2's audio stream (5 tokens) stays
+#: whole on every process
 LTX_FAMILIES = {"ltx": T.tiny_ltx_pipeline, "ltx2": T.tiny_ltx2_pipeline}
 
 
