@@ -398,6 +398,20 @@ def test_an_attention_backend_that_cannot_split_or_differentiate_is_refused(back
     check_context_parallel_before_loading(RunOptions(context_parallel=2), WanAdapter(), differentiates=False)
 
 
+def test_a_family_that_declares_it_cannot_be_split_is_refused(monkeypatch):
+    """Every family shipped has a plan; a registered one may say why it cannot be split."""
+    from geco_guide.sampler.adapters import WanAdapter
+    from geco_guide.sampler.context_parallel import check_context_parallel_before_loading
+
+    class Unsplittable(WanAdapter):
+        name = "Unsplittable"
+        context_parallel_refusal = "its attention takes a mask of the whole sequence"
+
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    with pytest.raises(ValueError, match="run.context_parallel cannot split Unsplittable: its attention takes a mask"):
+        check_context_parallel_before_loading(RunOptions(context_parallel=2), Unsplittable(), differentiates=True)
+
+
 def test_one_gpu_named_for_every_process_is_refused(monkeypatch):
     from geco_guide.sampler.adapters import WanAdapter
     from geco_guide.sampler.context_parallel import check_context_parallel_before_loading
