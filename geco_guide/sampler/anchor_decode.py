@@ -30,7 +30,7 @@ import torch.distributed as dist
 from torch import Tensor, nn
 
 from .config import GuidanceConfig
-from .context_parallel import gather_from_processes, sum_gradient_over_processes
+from .process_collectives import gather_from_processes, sum_gradient_over_processes
 from .multi_device import module_replicas
 from .fast_decode import check_channels_last_vae
 from .memory_plan import MemoryPlan
@@ -175,9 +175,9 @@ class AcrossProcessesDecode:
     rule of :class:`AcrossDevicesDecode`), a process's spans decoded as ``plan`` decodes them
     (:class:`BatchedDecode` or :class:`ChunkedDecode`, checkpointed regions and all, so the
     backward decodes again only the process's own spans); the anchor frames are gathered to every
-    process (:func:`~.context_parallel.gather_from_processes`), and the gradient with respect to
+    process (:func:`~.process_collectives.gather_from_processes`), and the gradient with respect to
     the latents is summed over the processes
-    (:func:`~.context_parallel.sum_gradient_over_processes`): one process's frames and gradient.
+    (:func:`~.process_collectives.sum_gradient_over_processes`): one process's frames and gradient.
 
     Attributes:
         share: the plan's decode of this process's chunks, ``chunks -> (latents -> frames)``.

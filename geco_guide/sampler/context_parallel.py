@@ -20,10 +20,10 @@ token, so the sum adds zeros to one process's value and is exact.
 
 The guidance's anchor decode is dealt over the processes too
 (:class:`~.anchor_decode.AcrossProcessesDecode`): each decodes its share of the anchor chunks,
-forward and backward, and :func:`gather_from_processes` brings every process the others' anchor
+forward and backward, and :func:`~.process_collectives.gather_from_processes` brings every process the others' anchor
 frames, so that all compute the same loss. Its backward keeps the gradient of the process's own
 frames: the ``N`` losses are one loss computed ``N`` times, so summing their gradients would count
-it ``N`` times. :func:`sum_gradient_over_processes` at the decode's input then adds the
+it ``N`` times. :func:`~.process_collectives.sum_gradient_over_processes` at the decode's input then adds the
 processes' shares into the whole gradient with respect to the latents, as one process's.
 """
 
@@ -40,10 +40,11 @@ from torch import Tensor, nn
 
 from .adapters import PipelineAdapter, adapter_for_class
 from .module_hooks import register_hook
+from .process_collectives import SumOverProcesses
 
 __all__ = ["GRADIENT_SUM_HOOK", "GradientSum", "check_context_parallel_before_loading", "check_model_context_parallel",
-           "context_parallel_degree", "enable_context_parallel", "gather_from_processes", "init_context_parallel",
-           "is_writing_process", "start_context_parallel", "sum_gradient_over_processes"]
+           "context_parallel_degree", "enable_context_parallel", "init_context_parallel", "is_writing_process",
+           "start_context_parallel"]
 
 logger = logging.getLogger(__name__)
 
@@ -152,52 +153,9 @@ def init_context_parallel(degree: int) -> None:
         raise ValueError(f"run.context_parallel={degree}, but the process group has {dist.get_world_size()} processes")
 
 
-class _SumOverProcesses(torch.autograd.Function):
-    """The identity forward; the backward sums the gradient over the processes (all-reduce)."""
-
-    @staticmethod
-    def forward(ctx, x: Tensor) -> Tensor:
-        return x.view_as(x)
-
-    @staticmethod
-    def backward(ctx, grad: Tensor) -> Tensor:
-        grad = grad.contiguous().clone()
-        dist.all_reduce(grad)
-        return grad
-
-
-def sum_gradient_over_processes(x: Tensor) -> Tensor:
-    """``x`` itself, whose gradient is summed over the processes in the backward (an all-reduce):
-    each process's gradient there is its share of the whole."""
-    return _SumOverProcesses.apply(x)
-
-
-class _GatherKeepOwnGradient(torch.autograd.Function):
-    """Forward: every process's ``part`` (of one shape), stacked ``[P, ...]``; backward: the
-    gradient of this process's own part, with nothing added from the others."""
-
-    @staticmethod
-    def forward(ctx, part: Tensor) -> Tensor:
-        ctx.rank = dist.get_rank()
-        parts = [torch.empty_like(part) for _ in range(dist.get_world_size())]
-        dist.all_gather(parts, part.contiguous())
-        return torch.stack(parts)
-
-    @staticmethod
-    def backward(ctx, grad: Tensor) -> Tensor:
-        return grad[ctx.rank]
-
-
-def gather_from_processes(part: Tensor) -> Tensor:
-    """Every process's ``part`` (all of one shape) on every process: ``[P, *part.shape]`` in rank
-    order. The backward gives ``part`` the gradient of its own slot only: every process computes
-    the same loss from the gathered tensor, and one process's gradient is that of one loss."""
-    return _GatherKeepOwnGradient.apply(part)
-
-
 class GradientSum(ModelHook):
     """A hook around a split denoiser: every tensor input that carries a gradient goes through
-    :class:`_SumOverProcesses`, so its gradient is the sum of the processes' shards, the whole
+    :class:`SumOverProcesses`, so its gradient is the sum of the processes' shards, the whole
     gradient on every process. Registered after diffusers' own hooks, it wraps them, and turns
     their assertion of a sequence that does not split into equal shards into one line."""
 
@@ -216,7 +174,7 @@ class GradientSum(ModelHook):
 
 def _summed(value: Any) -> Any:
     if isinstance(value, Tensor) and value.requires_grad:
-        return _SumOverProcesses.apply(value)
+        return SumOverProcesses.apply(value)
     return value
 
 

@@ -12,8 +12,9 @@ import torch
 from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
-__all__ = ["GATHERED_KEYS_HOOK", "SHARDED_MASK_HOOK", "GatheredVideoKeys", "HunyuanVideo15ContextParallelAttention",
-           "ShardedJointMask", "attend_within_process"]
+__all__ = ["GATHERED_KEYS_HOOK", "PADDED_TOKENS_HOOK", "SHARDED_MASK_HOOK", "CogVideoXContextParallelAttention",
+           "GatheredVideoKeys", "HunyuanVideo15ContextParallelAttention", "PaddedTokens", "ShardedJointMask",
+           "attend_within_process"]
 
 
 def attend_within_process(denoiser: nn.Module, within: Any) -> None:
@@ -129,3 +130,114 @@ class ShardedJointMask(ModelHook):
         else:
             kwargs["attention_mask"] = local
         return tuple(args), kwargs
+
+
+class CogVideoXContextParallelAttention:
+    """CogVideoX's joint text-video self-attention, computed as diffusers' ``CogVideoXAttnProcessor2_0``
+    computes it but through diffusers' attention dispatch, where context parallelism runs its
+    Ulysses all-to-all (the stock processor calls ``scaled_dot_product_attention`` itself, and so
+    cannot be split). Under the split each process holds a shard of the text tokens and a shard
+    of the video tokens; the all-to-all lines up every process's ``[text, video]`` shards one after
+    the other, an order of the keys that the attention does not depend on but for the order of its
+    sums. Padding tokens (:class:`PaddedTokens`) are masked as keys.
+
+    Attributes:
+        tokens: ``(text, video)``, the unpadded token counts of the current call (set by
+            :class:`PaddedTokens`); the call pads where either does not divide among the processes.
+    """
+
+    _attention_backend = None
+    _parallel_config = None  # set by diffusers' enable_parallelism
+
+    def __init__(self):
+        self.tokens: tuple[int, int] | None = None
+
+    def __call__(self, attn, hidden_states: Tensor, encoder_hidden_states: Tensor, attention_mask: Tensor | None = None,
+                 image_rotary_emb: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+        """``hidden_states [B, S, C]`` (this process's video tokens), ``encoder_hidden_states [B, T, C]``
+        (its text tokens) -> both after attention and the output projection."""
+        import torch.distributed as dist
+        from diffusers.models.attention_dispatch import dispatch_attention_fn
+        from diffusers.models.embeddings import apply_rotary_emb
+
+        if attention_mask is not None:
+            raise ValueError("CogVideoX's attention under context parallelism takes no attention mask")
+        processes, rank = dist.get_world_size(), dist.get_rank()
+        text, video = encoder_hidden_states.shape[1], hidden_states.shape[1]
+        tokens = torch.cat([encoder_hidden_states, hidden_states], dim=1)
+        # [B, T + S, heads, head_dim]: the layout diffusers' dispatch takes
+        query, key, value = (proj(tokens).unflatten(2, (attn.heads, -1)) for proj in (attn.to_q, attn.to_k, attn.to_v))
+        if attn.norm_q is not None:
+            query = attn.norm_q(query)
+        if attn.norm_k is not None:
+            key = attn.norm_k(key)
+        if image_rotary_emb is not None:  # this process's rows of the tables [S, D] (padded: any rows)
+            rows = video * processes - image_rotary_emb[0].shape[0]
+            shard = tuple(torch.nn.functional.pad(t, (0, 0, 0, rows)).chunk(processes)[rank] for t in image_rotary_emb)
+
+            def rotate(x: Tensor) -> Tensor:
+                return torch.cat([x[:, :text], apply_rotary_emb(x[:, text:], shard, sequence_dim=1)], dim=1)
+
+            query = rotate(query)
+            key = key if attn.is_cross_attention else rotate(key)
+        out = dispatch_attention_fn(query, key, value, attn_mask=self.key_mask(text, video, tokens),
+                                    backend=self._attention_backend, parallel_config=self._parallel_config)
+        out = attn.to_out[1](attn.to_out[0](out.flatten(2, 3).to(query.dtype)))
+        return out[:, text:], out[:, :text]
+
+    def key_mask(self, text: int, video: int, tokens: Tensor) -> Tensor | None:
+        """``[B, T + S]`` (True: a real token) for this process's ``text`` + ``video`` tokens where
+        the call is padded, None where it is not (the same on every process: the mask is gathered)."""
+        import torch.distributed as dist
+
+        processes, rank = dist.get_world_size(), dist.get_rank()
+        if self.tokens is None or self.tokens == (text * processes, video * processes):
+            return None
+        index = torch.arange(text + video, device=tokens.device)
+        real = torch.where(index < text, index + rank * text < self.tokens[0],
+                           index - text + rank * video < self.tokens[1])
+        return real.expand(tokens.shape[0], -1)
+
+
+#: the name of :class:`PaddedTokens` (and its cut) in a module's ``HookRegistry``
+PADDED_TOKENS_HOOK = "geco_padded_tokens"
+
+
+class PaddedTokens(ModelHook):
+    """On CogVideoX's first block under context parallelism: the video and text tokens padded
+    (zeros at the end) to a multiple of the processes, so that diffusers' plan splits them into
+    equal shards; the attention masks the padding as keys (:class:`CogVideoXContextParallelAttention`),
+    and :attr:`cut`, on ``proj_out``, drops it from the gathered video tokens. Real tokens never
+    see a padding token, so the padding changes no value but the order of sums."""
+
+    def __init__(self, attention: CogVideoXContextParallelAttention):
+        super().__init__()
+        self.attention = attention
+        self.cut = _CutPadding(attention)
+
+    def pre_forward(self, module, *args, **kwargs):
+        import torch.distributed as dist
+
+        names = ("hidden_states", "encoder_hidden_states")
+        args = list(args)
+        values = [kwargs[name] if name in kwargs else args[i] for i, name in enumerate(names)]
+        self.attention.tokens = (values[1].shape[1], values[0].shape[1])
+        processes = dist.get_world_size()
+        for i, (name, value) in enumerate(zip(names, values)):
+            padded = torch.nn.functional.pad(value, (0, 0, 0, -value.shape[1] % processes))
+            if name in kwargs:
+                kwargs[name] = padded
+            else:
+                args[i] = padded
+        return tuple(args), kwargs
+
+
+class _CutPadding(ModelHook):
+    """The gathered video tokens of ``proj_out`` without the padding."""
+
+    def __init__(self, attention: CogVideoXContextParallelAttention):
+        super().__init__()
+        self.attention = attention
+
+    def post_forward(self, module, output):
+        return output[:, : self.attention.tokens[1]]
