@@ -132,9 +132,13 @@ def _micro(sub: Any) -> None:
                       help=f"frame pairs: adjacent (default), center or all ({CHECKED_LATER})")
     _common(loss, repeats=3)
 
-    est = sub.add_parser("estimators", help="VGGT and UFM forward / forward+backward w.r.t. the frames")
+    est = sub.add_parser("estimators", help="the geometry backbone (VGGT-1B or DA3) and UFM forward / "
+                                            "forward+backward w.r.t. the frames")
+    est.add_argument("--geometry-estimator", choices=("vggt-1b", "da3-small", "da3-base"), default="vggt-1b",
+                     help="the geometry backbone timed (default: vggt-1b)")
     est.add_argument("--size", choices=("tiny", "full", "both"), default="tiny",
-                     help="tiny configs, the VGGT-1B / UFM-Base architectures (random weights), or both")
+                     help="tiny configs, the full architectures (the geometry backbone's and UFM-Base's; random "
+                          "weights), or both")
     est.add_argument("--frames", type=frame_count, default=2,
                      help="frames S; UFM gets the S - 1 adjacent pairs (default: 2)")
     est.add_argument("--height", type=positive_int, default=140, help="input frame height (default: 140)")

@@ -36,6 +36,7 @@ from .measure import (
     time_callable,
 )
 from .full_size import full_size_vae
+from .geometry_backbones import geometry_model, network_hw
 
 __all__ = ["WORKLOADS", "Workload", "estimator_specs", "loss_specs", "make_step", "run_worker", "vae_specs"]
 
@@ -94,6 +95,23 @@ def vggt_workload(spec: dict[str, Any], device: torch.device) -> Workload:
 
     plan = plan_preprocess(spec["height"], spec["width"], config.img_size, config.patch_size)
     info = {"input": "x".join(map(str, frames.shape)), "network": "{}x{}".format(*plan.network_hw),
+            "params_m": num_params(model), "dtype": spec["dtype"]}
+    return Workload(make_step(spec["mode"], scalar, [frames]), info)
+
+
+def da3_workload(spec: dict[str, Any], device: torch.device) -> Workload:
+    """``DA3.estimate_geometry`` of ``spec["geometry"]`` (DA3-SMALL or DA3-BASE; ``tiny``: the
+    tiny DA3) on ``[1, S, 3, H, W]``; the scalar as VGGT's."""
+    model = geometry_model(spec["geometry"], spec["size"], spec["seed"]).trunk_to(getattr(torch, spec["dtype"]))
+    model = model.to(device)
+    frames = random_frames(spec, device)
+
+    def scalar() -> Tensor:
+        geometry = model.estimate_geometry(frames)
+        return sum(t.mean() for t in (geometry.depth, geometry.confidence, geometry.intrinsics, geometry.extrinsics))
+
+    info = {"input": "x".join(map(str, frames.shape)),
+            "network": "{}x{}".format(*network_hw(model, spec["height"], spec["width"])),
             "params_m": num_params(model), "dtype": spec["dtype"]}
     return Workload(make_step(spec["mode"], scalar, [frames]), info)
 
@@ -169,6 +187,7 @@ WorkloadBuilder = Callable[[dict[str, Any], torch.device], Workload]
 #: The package's workloads by ``spec["workload"]``; the benchmark CLI adds its own.
 WORKLOADS: dict[str, WorkloadBuilder] = {
     "vggt": vggt_workload,
+    "da3": da3_workload,
     "ufm": ufm_workload,
     "vae": vae_workload,
 }
@@ -237,11 +256,15 @@ def vae_specs(args: Any) -> list[dict[str, Any]]:
 
 
 def estimator_specs(args: Any) -> list[dict[str, Any]]:
-    """Cases of ``estimators``: VGGT and UFM per size, forward and forward+backward."""
+    """Cases of ``estimators``: the geometry backbone (``args.geometry_estimator``: VGGT-1B,
+    cases ``vggt-<size>``, or DA3, cases ``da3-small-<size>`` / ``da3-base-<size>``) and UFM per
+    size, forward and forward+backward."""
     sizes = ("tiny", "full") if args.size == "both" else (args.size,)
     base = {**common_spec(args), "frames": args.frames, "height": args.height, "width": args.width,
             "dtype": args.dtype}
+    geometry = args.geometry_estimator
+    models = {"vggt": {}} if geometry == "vggt-1b" else {geometry: {"workload": "da3", "geometry": geometry}}
     return [
-        {**base, "workload": model, "case": f"{model}-{size}", "size": size, "mode": mode}
-        for size in sizes for model in ("vggt", "ufm") for mode in MODES
+        {**base, "workload": model, **models.get(model, {}), "case": f"{model}-{size}", "size": size, "mode": mode}
+        for size in sizes for model in (*models, "ufm") for mode in MODES
     ]
