@@ -86,6 +86,7 @@ REFUSED_BY_ARGPARSE = {
     "robustness": [[], ["--out", ""]],
     "benchmarks": [["warp"], ["warp", "synthetic", "--out", ""]],
     "ab": [["--seeds", "0"], ["--prompts", "p.txt", "--seeds", "0", "--out", ""]],
+    "compare": [["run-a", "run-b"], ["run-a", "--out", "cmp"], ["run-a", "run-b", "--out", ""]],
 }
 #: Per command, values the command refuses in one line before any work (their choices live with
 #: the code that reads them, which imports torch).

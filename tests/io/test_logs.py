@@ -42,7 +42,8 @@ def test_the_known_third_party_notices_are_dropped_and_their_loggers_other_recor
     kept = {}
     for name in KNOWN_NOTICES:
         logger = logging.getLogger(name)
-        assert len(logger.filters) == 1
+        # ours, once (diffusers adds a filter of its own to its loggers once it is imported)
+        assert sum(type(f).__name__ == "_KnownNotice" for f in logger.filters) == 1
         kept[name] = _Kept()
         logger.addHandler(kept[name])
     try:
