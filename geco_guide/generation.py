@@ -480,7 +480,7 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
     import torch
 
     from .io.devices import resolve_devices
-    from .metric.evaluate import evaluate_video, finite_or_none
+    from .metric.evaluate import cue_scores, evaluate_video
     from .sampler.multi_device import dealt_work
     from .sampler.sampling import call_arguments
     from .sampler.search import search_seed
@@ -518,11 +518,10 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
 
     def protocol_scores(k: int, place: int) -> dict[str, float | None]:
         try:
-            scored = evaluate_video(frames[k], bundles[place], cfg.evaluation, fps=cfg.sampling.fps,
-                                    dynamic_masks=masks)
-            return {key: finite_or_none(getattr(scored, key)) for key in ("fused", "motion", "structure")}
+            return cue_scores(evaluate_video(frames[k], bundles[place], cfg.evaluation, fps=cfg.sampling.fps,
+                                             dynamic_masks=masks))
         except ValueError:  # NaN frames: the particle ranks last
-            return dict.fromkeys(("fused", "motion", "structure"))
+            return cue_scores(None)
 
     scores = []
     for k, values in enumerate(dealt_work(particles, len(bundles), protocol_scores)):  # each device its share
@@ -750,7 +749,7 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
         ValueError: (one line, before anything loads) a ``count`` out of range, and what
             :func:`generate` refuses.
     """
-    from .metric.evaluate import evaluate_video, finite_or_none
+    from .metric.evaluate import cue_scores, evaluate_video
 
     check_best_of(count, cfg.seed)
     if cfg.search.enabled:
@@ -787,9 +786,7 @@ def generate_best_of(cfg: GeCoConfig, prompt: str, count: int, out: str | os.Pat
             kept, _ = candidates[best]
             sidecar = {**kept.sidecar, "video": video_path.name, "best_of": {
                 "n": count, "kept_seed": kept.sidecar["seed"], "score": f"{SELECTION_SCORE} (the GeCo protocol, evaluation.*)",
-                "candidates": [{"seed": result.sidecar["seed"], **{key: finite_or_none(getattr(scored, key))
-                                                                   for key in ("fused", "motion", "structure")}}
-                               for result, scored in candidates]}}
+                "candidates": [{"seed": result.sidecar["seed"], **cue_scores(scored)} for result, scored in candidates]}}
             os.replace(kept.video_path, video_path)
             with removed_on_failure(video_path, sidecar_path):
                 write_json_atomic(sidecar_path, sidecar)

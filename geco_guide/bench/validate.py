@@ -34,6 +34,7 @@ from PIL import Image
 from torch import Tensor
 
 from ..io.files import write_bytes_atomic
+from ..loss.geco import CUES as LOSS_CUES
 from ..loss.geco import GeCoResult
 from ..metric.render import colorbar, colorize, enlarge, side_by_side, text_scale, text_strip
 from .datasets import Benchmark
@@ -42,7 +43,7 @@ from .ranking import average_precision, best_threshold_iou_f1, spearman
 __all__ = ["GRID_ROWS", "cue_map", "grid_caption", "grid_frames", "grid_image", "localisation", "markdown_table",
            "summarise", "validate_clip", "write_png"]
 
-CUES = ("structure", "motion", "fused")  # the paper's row order
+CUES = tuple(reversed(LOSS_CUES))  # the paper's row order: structure, motion, fused
 CUE_NAMES = {"structure": "Structure M_struct", "motion": "Motion M_motion", "fused": "Fused M_geo"}
 GRID_ROWS = 4
 

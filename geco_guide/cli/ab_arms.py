@@ -64,6 +64,7 @@ from ..estimators import Estimators, load_estimators, load_segmenter
 from ..io.devices import resolve_device
 from ..io.files import WriteError, remove_temp_files, write_bytes_atomic, write_json_atomic
 from ..io.video import read_video, write_video
+from ..loss.geco import CUES
 from ..metric.evaluate import evaluate_video, finite_or_none, write_maps_video
 from ..metric.render import enlarge, side_by_side
 from ..perf.decoder_agreement import agreement_rows, agreement_summary
@@ -419,7 +420,7 @@ def add_best_of(models: Any, cfg: GeCoConfig, pair: Pair, out: Path, result: dic
     chosen = {"n": best_of.n, "kept_seed": seeds[kept],
               "score": f"{generation.SELECTION_SCORE} (the GeCo protocol, evaluation.*)",
               "candidates": [{"seed": seed, "video": str(candidate_paths(out, pair, seed)[0].relative_to(folder)),
-                              **{key: finite_or_none(record[key]) for key in ("fused", "motion", "structure")}}
+                              **{key: finite_or_none(record[key]) for key in CUES}}
                              for seed, record in zip(seeds, records)]}
     if result["arms"].pop(BEST_OF, None) is not None:  # an earlier arm, of another N: no longer complete
         write_json_atomic(folder / "result.json", result)

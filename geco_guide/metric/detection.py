@@ -32,7 +32,7 @@ from ..io.files import write_bytes_atomic
 from ..io.masks import fit_masks
 from ..io.video import check_fps, write_video
 from ..loss.cues import fuse_cues, masked_mean, structure_residual
-from ..loss.geco import MIN_UNMASKED_FRACTION, GeCoLossConfig, GeCoMaps
+from ..loss.geco import CUES, MIN_UNMASKED_FRACTION, GeCoLossConfig, GeCoMaps
 from ..types import SceneGeometry, check_estimator_bundle, check_frame_values
 from .evaluate import MASKED_FRAME_NOTE, EvaluationMaps, score_frames
 from .render import colorize, hatch, map_frames, text_scale
@@ -156,7 +156,7 @@ def render_detection(maps: EvaluationMaps, scores: list[dict[str, float | None]]
     def text(value: float | None) -> str:
         return "N/A" if value is None else f"{value:.3f}"
 
-    captions = [f"frame {k}   " + "   ".join(f"{n} {text(row[n])}" for n in ("fused", "motion", "structure"))
+    captions = [f"frame {k}   " + "   ".join(f"{n} {text(row[n])}" for n in CUES)
                 for k, row in enumerate(scores)]
     return map_frames(maps.frames, heat, ["SOURCE", *(name.upper() for name in PANELS)], captions)
 

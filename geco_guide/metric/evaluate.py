@@ -60,7 +60,7 @@ from .protocol import (
 from .render import colorize, hatch, map_frames, outline, text_scale
 
 __all__ = ["MAP_PANELS", "MASKED_FRAME_NOTE", "PAPER_NAMES", "EvaluationMaps", "EvaluationResult", "clip_mask_source",
-           "evaluate_video", "finite_or_none", "map_caption", "mean_or_nan", "render_maps", "score_frames",
+           "cue_scores", "evaluate_video", "finite_or_none", "map_caption", "mean_or_nan", "render_maps", "score_frames",
            "write_maps_video"]
 
 MAP_PANELS = ("source", "motion", "structure", "fused")
@@ -184,6 +184,12 @@ class EvaluationResult:
 def finite_or_none(value: float) -> float | None:
     """``value``, or None (JSON ``null``) where it is not finite."""
     return value if math.isfinite(value) else None
+
+
+def cue_scores(result: EvaluationResult | None) -> dict[str, float | None]:
+    """The clip's score of each cue (:data:`~geco_guide.loss.geco.CUES`), None where it is not
+    finite, all None where there is no ``result`` (a clip that could not be scored)."""
+    return {name: None if result is None else finite_or_none(getattr(result, name)) for name in CUES}
 
 
 def mean_or_nan(values: list[float]) -> float:
