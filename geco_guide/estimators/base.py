@@ -36,9 +36,20 @@ from .loading import (
     load_weights,
 )
 
-__all__ = ["FrozenEstimator"]
+__all__ = ["FrozenEstimator", "check_frame_pairs"]
 
 E = TypeVar("E", bound="FrozenEstimator")
+
+
+def check_frame_pairs(source: Tensor, target: Tensor) -> None:
+    """ValueError (one line) unless ``source`` and ``target`` are floating ``[N, 3, H, W]`` frames
+    of one shape: what every flow estimator takes."""
+    for name, x in (("source", source), ("target", target)):
+        if not isinstance(x, Tensor) or x.ndim != 4 or x.shape[1] != 3 or not x.is_floating_point():
+            raise ValueError(f"{name} must be a floating [N, 3, H, W] tensor in [0, 1], got "
+                             f"{getattr(x, 'dtype', type(x).__name__)} {list(getattr(x, 'shape', []))}")
+    if source.shape != target.shape:
+        raise ValueError(f"source and target shapes differ: {list(source.shape)} vs {list(target.shape)}")
 
 
 class FrozenEstimator(nn.Module):

@@ -32,7 +32,7 @@ from torch import Tensor, nn
 
 from ..geometry import pixel_grid
 from ..types import Correspondences
-from .base import FrozenEstimator
+from .base import FrozenEstimator, check_frame_pairs
 from .dpt import FusionBlock, resample_layer
 from .loading import CheckpointMismatchError, load_state_dict_checked
 from .ufm_config import (
@@ -663,13 +663,6 @@ class UFM(FrozenEstimator):
     def estimate_flow(self, source: Tensor, target: Tensor) -> Correspondences:
         """:class:`FlowEstimator` protocol: pairs ``[N, 3, H, W]`` in [0, 1] -> flow ``[N, 2, H, W]``
         in pixels and covisibility ``[N, H, W]``, all pairs in one forward pass."""
-        for name, x in (("source", source), ("target", target)):
-            if not isinstance(x, Tensor) or x.ndim != 4 or x.shape[1] != 3 or not x.is_floating_point():
-                raise ValueError(
-                    f"{name} must be a floating [N, 3, H, W] tensor in [0, 1], got "
-                    f"{getattr(x, 'dtype', type(x).__name__)} {list(getattr(x, 'shape', []))}"
-                )
-        if source.shape != target.shape:
-            raise ValueError(f"source and target shapes differ: {list(source.shape)} vs {list(target.shape)}")
+        check_frame_pairs(source, target)
         out = self.predict_correspondences(source, target, "identity")
         return Correspondences(flow=out["flow"], covisibility=out["covisibility"])

@@ -29,7 +29,7 @@ from torch import Tensor, nn
 
 from ..geometry import inside_image, pixel_grid, sample_bilinear
 from ..types import Correspondences
-from .base import FrozenEstimator
+from .base import FrozenEstimator, check_frame_pairs
 from .dpt import FusionBlock, resample_layer
 from .vit import Block, DinoV2, imagenet_normalise, init_weights_, resize_pos_embed, run_block
 from .waft_config import ARCHITECTURE, DEFAULT_REPO_ID, WAFTConfig, WAFTViTConfig
@@ -375,14 +375,7 @@ class WAFT(FrozenEstimator):
         """:class:`FlowEstimator` protocol: pairs ``[N, 3, H, W]`` in [0, 1] -> flow ``[N, 2, H, W]``
         in pixels and covisibility ``[N, H, W]`` (forward-backward consistency); both directions
         run as one batch of ``2N`` pairs."""
-        for name, x in (("source", source), ("target", target)):
-            if not isinstance(x, Tensor) or x.ndim != 4 or x.shape[1] != 3 or not x.is_floating_point():
-                raise ValueError(
-                    f"{name} must be a floating [N, 3, H, W] tensor in [0, 1], got "
-                    f"{getattr(x, 'dtype', type(x).__name__)} {list(getattr(x, 'shape', []))}"
-                )
-        if source.shape != target.shape:
-            raise ValueError(f"source and target shapes differ: {list(source.shape)} vs {list(target.shape)}")
+        check_frame_pairs(source, target)
         flows = self(torch.cat([source, target]), torch.cat([target, source]))["flow"]
         forward, backward = flows.chunk(2)
         covisibility = forward_backward_covisibility(forward, backward.detach(), *self.config.consistency)
