@@ -49,6 +49,8 @@ DESCRIPTION = ("Time and memory of geco_guide: micro-benchmarks and sampling mea
 #: The prompt of ``decoder-agreement`` unless ``--prompt`` says otherwise.
 AGREEMENT_PROMPT = "a marble bust on a wooden table, the camera orbiting it slowly"
 #: The public subcommands, in ``--help``'s order (``worker`` is internal: it runs one case).
+#: the geometry backbones ``estimators.geometry`` names (written here: the parser imports no torch)
+GEOMETRY_CHOICES = ("vggt-1b", "da3-small", "da3-base")
 SUBCOMMANDS = ("loss", "estimators", "vae", "sampling", "cost", "plans", "attention-shapes", "decoder-agreement",
                "geco-eval")
 #: Named memory plans and anchor decoders, checked in :func:`run` (their lists live with torch).
@@ -134,7 +136,7 @@ def _micro(sub: Any) -> None:
 
     est = sub.add_parser("estimators", help="the geometry backbone (VGGT-1B or DA3) and UFM forward / "
                                             "forward+backward w.r.t. the frames")
-    est.add_argument("--geometry-estimator", choices=("vggt-1b", "da3-small", "da3-base"), default="vggt-1b",
+    est.add_argument("--geometry-estimator", choices=GEOMETRY_CHOICES, default="vggt-1b",
                      help="the geometry backbone timed (default: vggt-1b)")
     est.add_argument("--size", choices=("tiny", "full", "both"), default="tiny",
                      help="tiny configs, the full architectures (the geometry backbone's and UFM-Base's; random "
@@ -312,6 +314,9 @@ def _others(sub: Any) -> None:
                        help="the frame pairs of each window to estimate, one row each (default: all center adjacent)")
     geval.add_argument("--videos", type=positive_int, default=320,
                        help="videos per model (default: 320 = 80 prompts x 4 seeds)")
+    geval.add_argument("--geometry-estimator", choices=GEOMETRY_CHOICES, default="vggt-1b",
+                       help="the geometry backbone of the estimate (default: vggt-1b; a DA3 backbone's time is "
+                            "VGGT-1B's scaled by their FLOPs: predicted)")
     _threads(geval)
     geval.add_argument("--seed", type=int, default=0, help="seed of the random clip (default: 0)")
     _json(geval)
@@ -656,7 +661,8 @@ def _geco_eval_cost(args: argparse.Namespace) -> None:
     # the H200 sampling run whose estimator calls give the per-call times of the estimate
     h200_run = Path(__file__).resolve().parents[2] / "docs" / "benchmarks" / "sampling_full_h200_fast.json"
     report = geco_eval_cost(frames=args.frames, fps=args.fps, height=args.height, width=args.width, pairs=args.pairs,
-                            videos=args.videos, seed=args.seed, h200_run=h200_run, argv=sys.argv[1:])
+                            videos=args.videos, seed=args.seed, h200_run=h200_run, argv=sys.argv[1:],
+                            geometry=args.geometry_estimator)
     print(geco_eval_table(report))
     _write(args, report)
 

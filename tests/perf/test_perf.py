@@ -476,6 +476,25 @@ def test_geco_eval_cost_counts_the_estimator_calls_of_each_pair_mode(tmp_path: P
     assert modes["all"]["h200_estimate_s"] > modes["adjacent"]["h200_estimate_s"] > 0
 
 
+@pytest.mark.slow
+def test_geco_eval_cost_of_another_geometry_backbone_scales_its_time_by_their_flops():
+    """The same calls, counted once; DA3-BASE's per-frame time is VGGT-1B's measured one times
+    their forward FLOPs' ratio (about 1/9.5), so the estimate falls by the geometry's share only."""
+    from geco_guide.perf.scoring_cost import geco_eval_cost, geco_eval_table
+
+    h200_run = REPO / "docs" / "benchmarks" / "sampling_full_h200_fast.json"
+    kwargs = dict(frames=9, fps=8.0, height=32, width=48, pairs=["adjacent"], videos=320, seed=0, h200_run=h200_run)
+    vggt, da3 = geco_eval_cost(**kwargs), geco_eval_cost(**kwargs, geometry="da3-base")
+    ratio = da3["h200_per_call"]["geometry_flop_ratio"]
+    assert vggt["h200_per_call"]["geometry_flop_ratio"] == 1.0 and 0.05 < ratio < 0.2
+    assert da3["h200_per_call"]["geometry_frame_s"] == pytest.approx(vggt["h200_per_call"]["vggt_frame_s"] * ratio)
+    same, fewer = vggt["modes"]["adjacent"], da3["modes"]["adjacent"]
+    assert fewer["vggt_frames"] == same["vggt_frames"] == 9 and fewer["ufm_pairs"] == same["ufm_pairs"]
+    saved = same["vggt_frames"] * vggt["h200_per_call"]["vggt_frame_s"] * (1 - ratio)
+    assert fewer["h200_estimate_s"] == pytest.approx(same["h200_estimate_s"] - saved)
+    assert "| da3-base calls (frames) |" in geco_eval_table(da3)
+
+
 @pytest.mark.parametrize("command", [["sampling", "--steps", "0"], ["cost", "--preset", "tiny", "--steps", "0"]])
 @pytest.mark.slow
 def test_zero_steps_is_one_error_line(command):
