@@ -48,6 +48,18 @@ def estimators():
 
 
 @pytest.fixture
+def no_loading(monkeypatch):
+    """A run that gets as far as loading its models fails the test: for refusals that must come
+    before anything loads."""
+    from geco_guide import generation
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the models loaded")
+
+    monkeypatch.setattr(generation, "load_models", refuse)
+
+
+@pytest.fixture
 def stub_generation(monkeypatch):
     """Stands in for loading and sampling in :mod:`geco_guide.generation`: call it with the
     ``[1, F, 3, H, W]`` frames the run's video is made of; the rest of the path (checks, sidecar,

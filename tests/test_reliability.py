@@ -256,14 +256,6 @@ def test_absurd_values_are_refused_naming_the_key(override, key):
 # CLI: one line, before any model loads
 
 
-@pytest.fixture
-def no_loading(monkeypatch):
-    """Fail loudly if generate gets as far as loading models."""
-    def refuse(cfg):
-        raise AssertionError("models were loaded")
-    monkeypatch.setattr(generation, "load_models", refuse)
-
-
 def _one_error_line(capsys) -> str:
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "\n" not in err and "Traceback" not in err, err

@@ -127,14 +127,6 @@ def test_the_video_key_is_the_same_in_another_process():
 
 
 @pytest.fixture
-def no_loading(monkeypatch):
-    def refuse(cfg, estimators=True):
-        raise AssertionError("models were loaded")
-
-    monkeypatch.setattr(generation, "load_models", refuse)
-
-
-@pytest.fixture
 def stub_loading(stub_generation):
     stub_generation(torch.rand(1, 9, 3, 32, 48))
 

@@ -13,7 +13,6 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from geco_guide import generation
 from geco_guide.__main__ import main
 from geco_guide.sampler.loading import ModelConfig, load_video_pipeline, pipeline_from_pretrained
 from geco_guide.sampler.model_folder import ModelFolderError, check_model_folder
@@ -63,14 +62,6 @@ FOLDERS = {
     "ltx-with-ltx2-denoiser": lambda root: pipeline_folder(root, "LTXPipeline", "LTX2VideoTransformer3DModel",
                                                            "AutoencoderKLLTXVideo", 128, patch=1, patch_t=1),
 }
-
-
-@pytest.fixture
-def no_loading(monkeypatch):
-    def refuse(*args, **kwargs):
-        raise AssertionError("the models loaded")
-
-    monkeypatch.setattr(generation, "load_models", refuse)
 
 
 def _one_error(capsys) -> str:

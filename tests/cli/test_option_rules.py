@@ -11,7 +11,6 @@ import logging
 import pytest
 import torch
 
-from geco_guide import generation
 from geco_guide.cli.generate import main
 from geco_guide.config import config_to_dict, load_config
 from geco_guide.generation import acting_config, check_generation, video_key
@@ -22,14 +21,6 @@ PROMPT = "a marble bust"
 
 def tiny(*overrides: str):
     return load_config(preset="tiny", overrides=list(overrides))
-
-
-@pytest.fixture
-def no_loading(monkeypatch):
-    def refuse(*args, **kwargs):
-        raise AssertionError("the models loaded")
-
-    monkeypatch.setattr(generation, "load_models", refuse)
 
 
 def test_without_guidance_every_moving_subject_option_and_the_devices_are_left_at_their_defaults(caplog):

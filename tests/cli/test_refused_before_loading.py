@@ -5,18 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from geco_guide import generation
 from geco_guide.cli.generate import main
 
 TINY = ["--preset", "tiny", "--prompt", "a marble bust"]
-
-
-@pytest.fixture
-def no_loading(monkeypatch):
-    def refuse(*args, **kwargs):
-        raise AssertionError("the models loaded")
-
-    monkeypatch.setattr(generation, "load_models", refuse)
 
 
 def _one_error(capsys) -> str:

@@ -339,16 +339,6 @@ def _one_error(capsys) -> str:
     return err
 
 
-@pytest.fixture
-def no_loading(monkeypatch):
-    from geco_guide import generation
-
-    def refuse(*args, **kwargs):
-        raise AssertionError("the models loaded")
-
-    monkeypatch.setattr(generation, "load_models", refuse)
-
-
 @pytest.mark.parametrize("value", [1, 0, 2.5, True, "2"])
 def test_a_number_of_processes_below_two_or_not_whole_is_refused(value):
     from geco_guide.types import OptionError
