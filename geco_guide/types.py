@@ -152,7 +152,7 @@ def refuses_earlier_keywords(where: str, **hints: str) -> Callable[[_F], _F]:
     return decorate
 
 
-def check_estimator_bundle(estimators: Any, where: str, argument: str | None = None) -> Any:
+def check_estimator_bundle(estimators: object, where: str, argument: str | None = None) -> Any:
     """``estimators`` if it is an estimator bundle (``.geometry`` a :class:`GeometryEstimator`,
     ``.flow`` a :class:`FlowEstimator`: :class:`geco_guide.estimators.Estimators`); refused
     otherwise in one line naming ``where`` (e.g. ``"GeCoLoss"``). Where guidance was passed its

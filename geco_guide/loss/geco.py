@@ -17,7 +17,7 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.nn.functional as F
@@ -47,6 +47,9 @@ from ..types import (
 )
 from .cues import fuse_cues, lands_on_mask, masked_mean, motion_residual, structure_residual
 from .movers import MOVER_MODES, MoverFit, MoverScores, RefreshedMovers, mover_scores, solve_motions
+
+if TYPE_CHECKING:  # the bundle's room is beside the loss', on its floor
+    from ..estimators.bundle import Estimators
 
 __all__ = ["CUES", "MIN_UNMASKED_FRACTION", "MOVER_MODES", "PAIR_MODES", "GeCoLoss", "GeCoLossConfig", "GeCoMaps",
            "GeCoResult", "check_movers", "frame_pairs", "geco_from_geometry", "no_valid_pixels_reason",
@@ -594,7 +597,7 @@ class GeCoLoss(nn.Module):
     @refuses_earlier_keywords("GeCoLoss")
     def __init__(
         self,
-        estimators: Any = None,
+        estimators: Estimators | None = None,
         config: GeCoLossConfig | dict | None = None,
         *,
         check_values: bool = True,

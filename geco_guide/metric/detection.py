@@ -27,6 +27,7 @@ from PIL import Image
 from torch import Tensor
 
 from ..geometry import relative_pose, sample_at_projection
+from ..estimators.bundle import Estimators
 from ..estimators.dynamic_masks import GivenMasks, mask_source
 from ..io.files import write_bytes_atomic
 from ..io.masks import fit_masks
@@ -76,7 +77,7 @@ def seen_back(geometry: SceneGeometry, pairs: list[tuple[int, int]], config: GeC
     return (back[:, 0] > 0.5)[None]
 
 
-def frame_maps(frames: Tensor, window: list[int], estimators: Any, config: GeCoLossConfig,
+def frame_maps(frames: Tensor, window: list[int], estimators: Estimators, config: GeCoLossConfig,
                two_way: bool = True, flow_batch_size: int = 16, dynamic_masks: Any = None) -> GeCoMaps:
     """Maps ``[1, H, W]`` of frame ``window[0]`` of ``frames [S, 3, H, W]`` against the other
     frames of ``window``: the pixel-wise mean over the pairs ``window[0] -> window[k]``
@@ -98,7 +99,7 @@ def frame_maps(frames: Tensor, window: list[int], estimators: Any, config: GeCoL
 
 
 @torch.no_grad()
-def detection_maps(frames: Tensor, estimators: Any, config: GeCoLossConfig | None = None, *,
+def detection_maps(frames: Tensor, estimators: Estimators, config: GeCoLossConfig | None = None, *,
                    window: int = 20, anchor: str = "center", two_way: bool = True,
                    flow_batch_size: int = 16, dynamic_masks: Any = None) -> EvaluationMaps:
     """Every frame's own maps: ``frames [S, 3, H, W]`` in ``[0, 1]`` -> :class:`EvaluationMaps`

@@ -24,6 +24,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..estimators.bundle import Estimators
 from ..families import VideoModel, default_anchors, model_named
 from ..sampler.config import GuidanceConfig, fused_guidance_config
 from ..sampler.context import GuidanceObserver
@@ -266,7 +267,7 @@ class CountingObserver(GuidanceObserver):
             self.tracker.in_update -= 1
 
 
-def _traced_models(pipe: Any, estimators: Any) -> dict[str, Any]:
+def _traced_models(pipe: Any, estimators: Estimators) -> dict[str, Any]:
     """The models of a traced call by the names the reports give their weights."""
     return {"transformer": pipe.transformer, "transformer_2": getattr(pipe, "transformer_2", None), "vae": pipe.vae,
             "geometry_estimator": estimators.geometry, "flow_estimator": estimators.flow,
@@ -305,7 +306,7 @@ def trace_cost(settings: dict[str, Any], mode: str) -> dict[str, Any]:
     return summary
 
 
-def _trace_pipeline_call(settings: dict[str, Any], pipe: Any, call: dict[str, Any], estimators: Any,
+def _trace_pipeline_call(settings: dict[str, Any], pipe: Any, call: dict[str, Any], estimators: Estimators,
                          tracker: CostTracker, fake_mode: Any, guidance: GuidanceConfig | bool) -> list[int]:
     """The real ``GeCoCogVideoXPipeline.__call__`` of one step on fake tensors; its output's shape.
     Fake tensors have no values, so the scheduler's timestep table is built outside the fake mode
@@ -349,7 +350,7 @@ class _Step:
         self.predict, self.final_decode = predict, decode
 
 
-def _trace_stock_step(settings: dict[str, Any], pipe: Any, call: dict[str, Any], estimators: Any,
+def _trace_stock_step(settings: dict[str, Any], pipe: Any, call: dict[str, Any], estimators: Estimators,
                       tracker: CostTracker, fake_mode: Any, guidance: GuidanceConfig | bool) -> list[int]:
     """One step of a stock pipeline on fake tensors (:func:`~.denoiser_calls.denoiser_step`): its
     prediction, or with ``guidance`` the update the hooks make at a guided step

@@ -32,6 +32,7 @@ from typing import Any, TypeVar
 import torch
 from torch import Tensor, nn
 
+from ..estimators.bundle import Estimators
 from ..estimators.tiny_decoder import TinyDecoder
 from ..loss.geco import GeCoLoss
 from .anchor_decode import AnchorDecode, plan_anchor_decode
@@ -367,7 +368,7 @@ class GuidanceContext:
         chunks: Sequence[AnchorChunk],
         decode_chunk: AnchorDecode,
         latent_frames: Callable[[Tensor], Tensor],
-        estimators: Any,
+        estimators: Estimators,
         *,
         generator: torch.Generator | list[torch.Generator] | None = None,
         on_record: Callable[[GuidanceRecord], None] | None = None,

@@ -18,6 +18,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..estimators.bundle import Estimators
 from ..estimators.dynamic_masks import AUTO, mask_source
 from ..estimators.motion_masks import dilate
 from ..loss.movers import RefreshedMovers
@@ -94,7 +95,7 @@ class RefreshedMasks:
         self._masks = [self._masks[a] if a < len(self._masks) else None for a in ancestors]
 
 
-def guidance_mask_source(config: GuidanceConfig, estimators: Any,
+def guidance_mask_source(config: GuidanceConfig, estimators: Estimators,
                          device: torch.device | str = "cpu") -> RefreshedMasks | None:
     """The masks of a guided call: ``None`` without ``config.dynamic``; for ``"auto"`` the
     automatic detector, for subjects the mask source the estimators' segmenter makes of them

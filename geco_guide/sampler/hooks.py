@@ -66,6 +66,7 @@ import torch
 from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
+from ..estimators.bundle import Estimators
 from ..types import check_estimator_bundle, refuses_earlier_keywords
 from .adapters import CallGeometry, PipelineAdapter, adapter_for, check_scheduler, fit_combination, noise_levels
 from .config import GuidanceConfig
@@ -283,7 +284,7 @@ class GeCoGuidanceHandle:
         geometry: the :class:`~geco_guide.sampler.adapters.CallGeometry` of the last call.
     """
 
-    def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, estimators: Any,
+    def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, estimators: Estimators,
                  run_options: RunOptions | None = None):
         self.pipe = pipe
         self.search: SearchConfig | None = None
@@ -638,7 +639,7 @@ def check_hook_run_options(run: RunOptions) -> None:
 def attach_geco_guidance(
     pipe,
     config: GuidanceConfig | Mapping[str, Any] | None = None,
-    estimators: Any = None,
+    estimators: Estimators | None = None,
     run_options: RunOptions | Mapping[str, Any] | None = None,
 ) -> GeCoGuidanceHandle:
     """Guide every following call of a stock diffusers video pipeline with GeCo.

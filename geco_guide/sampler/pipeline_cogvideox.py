@@ -42,6 +42,7 @@ from diffusers.pipelines.cogvideo.pipeline_output import CogVideoXPipelineOutput
 from diffusers.utils import logging
 from torch import Tensor
 
+from ..estimators.bundle import Estimators
 from ..io.devices import planning_memory_gb, resolve_devices
 from ..loss.geco import GeCoLoss
 from ..types import check_estimator_bundle, refuses_earlier_keywords
@@ -188,7 +189,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         num_steps: int,
         guidance: GuidanceConfig,
         run: RunOptions,
-        estimators: Any,
+        estimators: Estimators | None,
         searching: bool = False,
     ):
         """Validate what guidance (or a search, ``searching``: it decodes and scores the same
@@ -324,7 +325,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         max_sequence_length: int = 226,
         guidance: GuidanceConfig | Mapping[str, Any] | bool | None = None,
         run_options: RunOptions | Mapping[str, Any] | None = None,
-        estimators: Any = None,
+        estimators: Estimators | None = None,
         observer: GuidanceObserver | None = None,
         search: SearchConfig | Mapping[str, Any] | None = None,
         search_generator: torch.Generator | None = None,
