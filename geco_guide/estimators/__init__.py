@@ -29,7 +29,7 @@ from .waft_config import DEFAULT_REPO_ID as WAFT_REPO_ID
 __all__ = ["FLOW_ESTIMATORS", "GEOMETRY_BACKBONES", "TINY_RANDOM", "TINY_RANDOM_DA3", "TINY_RANDOM_WAFT", "Estimators",
            "EstimatorsConfig", "check_weights", "estimator_id", "estimator_ids", "estimator_weight_sources",
            "flow_architecture", "flow_source", "geometry_architecture", "geometry_source", "load_estimators",
-           "load_segmenter", "tiny_estimators", "tiny_random_decoder", "with_config_key"]
+           "load_segmenter", "segmenter_id", "tiny_estimators", "tiny_random_decoder", "with_config_key"]
 
 TINY_RANDOM = "tiny-random"
 #: The tiny random Depth Anything 3 (``estimators.geometry``); ``tiny-random`` is the tiny VGGT.
@@ -194,16 +194,17 @@ def _geometry_class(geometry: str) -> Any:
     return VGGT
 
 
-def tiny_random_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int | None = None) -> Any:
-    """A tiny random :class:`~.tiny_decoder.TinyDecoder` of ``variant`` (frozen, float32): what
+def tiny_random_decoder(variant: str | None = None, seed: int = 0, latent_channels: int | None = None) -> Any:
+    """A tiny random :class:`~.tiny_decoder.TinyDecoder` of ``variant`` (default: the default
+    model's, :data:`~.tiny_decoder.DEFAULT_VARIANT`) (frozen, float32): what
     ``estimators.tiny_decoder=tiny-random`` loads. ``latent_channels``: the latents it takes when
     they are not the variant's (the tiny models' VAE makes 4; the published variants take 16 or
     more)."""
     from dataclasses import replace
 
-    from .tiny_decoder import TinyDecoder, resolve_variant
+    from .tiny_decoder import DEFAULT_VARIANT, TinyDecoder, resolve_variant
 
-    spec = resolve_variant(variant)
+    spec = resolve_variant(DEFAULT_VARIANT if variant is None else variant)
     if latent_channels is not None:
         spec = replace(spec, latent_channels=latent_channels)
     return TinyDecoder.tiny(spec, seed)
@@ -258,8 +259,8 @@ def check_weights(estimators_cfg: EstimatorsConfig, *, segmenter: bool = False,
 
 def load_segmenter(estimators_cfg: EstimatorsConfig, device: str | torch.device = "auto") -> Any:
     """The text segmenter of ``estimators.segmenter`` in ``estimators.dtype`` on ``device``, loaded
-    once for any subject text (:func:`~geco_guide.estimators.segmenters.segmenters_from_spec`),
-    with its ``geco_estimator_id``: what :meth:`Estimators.with_segmenter` takes.
+    once for any subject text (:func:`~geco_guide.estimators.segmenters.segmenters_from_spec`):
+    what :meth:`Estimators.with_segmenter` takes, with its id (:func:`segmenter_id`).
 
     Raises:
         WeightsNotFoundError: one line naming the repo id, ``estimators.segmenter`` and how to
@@ -267,11 +268,13 @@ def load_segmenter(estimators_cfg: EstimatorsConfig, device: str | torch.device 
     """
     from .segmenters import segmenters_from_spec
 
-    segment_id = estimator_ids(estimators_cfg, segmenter=True)["segmenter"]
-    segment = segmenters_from_spec(estimators_cfg.segmenter, device=resolve_device(device),
-                                   dtype=getattr(torch, estimators_cfg.dtype), seed=estimators_cfg.init_seed)
-    segment.geco_estimator_id = segment_id
-    return segment
+    return segmenters_from_spec(estimators_cfg.segmenter, device=resolve_device(device),
+                                dtype=getattr(torch, estimators_cfg.dtype), seed=estimators_cfg.init_seed)
+
+
+def segmenter_id(estimators_cfg: EstimatorsConfig) -> str:
+    """The id of the text segmenter :func:`load_segmenter` loads (:func:`estimator_ids`)."""
+    return estimator_ids(estimators_cfg, segmenter=True)["segmenter"]
 
 
 def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device = "auto", *,
@@ -287,15 +290,15 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
         segmenter: also load the text segmenter of ``estimators.segmenter`` (:func:`load_segmenter`)
             as the bundle's ``segmenter``; without it the bundle has none.
 
-    Each model gets a ``geco_estimator_id`` attribute (the id it came from, :func:`estimator_ids`)
-    so results can name their models (:meth:`Estimators.ids`).
+    The bundle keeps the id each model came from (:func:`estimator_ids`) so results can name
+    their models (:meth:`Estimators.ids`).
 
     Raises:
         WeightsNotFoundError: one line naming the repo id and the config key to point at a local
             folder instead, when the weights are unavailable.
     """
     dtype = getattr(torch, estimators_cfg.dtype)
-    ids = estimator_ids(estimators_cfg)
+    ids = estimator_ids(estimators_cfg, segmenter=segmenter)
     tiny = None
     if estimators_cfg.geometry in (TINY_RANDOM, TINY_RANDOM_DA3) or estimators_cfg.flow == TINY_RANDOM:
         tiny = tiny_estimators(estimators_cfg.init_seed, geometry_architecture(estimators_cfg.geometry))
@@ -318,5 +321,4 @@ def load_estimators(estimators_cfg: EstimatorsConfig, device: str | torch.device
     for model in (geometry, flow):
         model.eval().requires_grad_(False)
         model.gradient_checkpointing = estimators_cfg.gradient_checkpointing
-    geometry.geco_estimator_id, flow.geco_estimator_id = ids["geometry"], ids["flow"]
-    return Estimators(geometry, flow, segment)
+    return Estimators(geometry, flow, segment, sources=ids)

@@ -37,7 +37,6 @@ import math
 import os
 import zlib
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +44,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..families import (
+    DEFAULT_MODEL,
+    MODELS,
+    TINY_DECODER_ALIASES,
+    TINY_DECODERS,
+    UNSUPPORTED_TINY_DECODERS,
+    TinyDecoderVariant,
+)
 from ..types import check_frames
 from .loading import (
     WeightsNotFoundError,
@@ -56,6 +63,7 @@ from .loading import (
 __all__ = [
     "CONTEXT_LATENTS",
     "DEFAULT_DECODER_WIDTHS",
+    "DEFAULT_VARIANT",
     "DEFAULT_ENCODER_WIDTH",
     "TINY_DECODER_WIDTHS",
     "TINY_ENCODER_WIDTH",
@@ -84,52 +92,12 @@ TINY_DECODER_WIDTHS = (32, 16, 8, 8)
 TINY_ENCODER_WIDTH = 8
 
 
-@dataclass(frozen=True)
-class TinyDecoderVariant:
-    """One published checkpoint family.
-
-    Attributes:
-        name: our variant name (``TinyDecoder(variant=name)``).
-        checkpoint: the published file stem (``<checkpoint>.pth``,
-            ``safetensors/<checkpoint>.safetensors``).
-        latent_channels: channels ``C`` of the latents.
-        patch_size: pixel-(un)shuffle factor of the frames.
-        even_count_untrimmed: keep all ``4 T`` frames when the latent count ``T`` is even (the
-            published CogVideoX rule).
-        scale_by_vae_scaling_factor: the decoder takes the pipeline's latents divided by
-            ``vae.config.scaling_factor`` (CogVideoX), else the pipeline's latents as they are.
-        pipeline_layout: how the variant's diffusers pipeline holds its latents.
-        models: the video models whose latents it decodes.
-    """
-
-    name: str
-    checkpoint: str
-    latent_channels: int
-    patch_size: int
-    even_count_untrimmed: bool
-    scale_by_vae_scaling_factor: bool
-    pipeline_layout: str
-    models: str
-
-
-VARIANTS: dict[str, TinyDecoderVariant] = {
-    v.name: v
-    for v in (
-        TinyDecoderVariant("cogvideox", "taecvx", 16, 1, True, True, "NTCHW", "CogVideoX 2b / 5b / 1.5"),
-        TinyDecoderVariant("wan2.1", "taew2_1", 16, 1, False, False, "NCTHW", "Wan 2.1, Wan 2.2 14B"),
-        TinyDecoderVariant("hunyuanvideo", "taehv", 16, 1, False, False, "NCTHW", "HunyuanVideo"),
-        TinyDecoderVariant("wan2.2-5b", "taew2_2", 48, 2, False, False, "NCTHW", "Wan 2.2 TI2V 5B"),
-        TinyDecoderVariant("hunyuanvideo1.5", "taehv1_5", 32, 2, False, False, "NCTHW", "HunyuanVideo 1.5"),
-    )
-}
+#: The published variants (the registry's table, :data:`geco_guide.families.TINY_DECODERS`).
+VARIANTS = TINY_DECODERS
+#: The variant of the default model's latents: what a decoder built without a variant decodes.
+DEFAULT_VARIANT = MODELS[DEFAULT_MODEL].tiny_decoder
 # Other spellings users reach for; the checkpoint stems themselves are accepted too.
-_ALIASES = {
-    "wan2.2-14b": "wan2.1",
-    "wan2.2-ti2v-5b": "wan2.2-5b",
-    "hunyuan": "hunyuanvideo",
-    "hunyuanvideo-1.5": "hunyuanvideo1.5",
-    **{v.checkpoint: v.name for v in VARIANTS.values()},
-}
+_ALIASES = {**TINY_DECODER_ALIASES, **{v.checkpoint: v.name for v in VARIANTS.values()}}
 # Checked in this order because ``taehv`` is a prefix of ``taehv1_5``.
 _FILENAME_ORDER = ("taehv1_5", "taew2_2", "taew2_1", "taecvx", "taehv")
 
@@ -137,9 +105,9 @@ _FILENAME_ORDER = ("taehv1_5", "taew2_2", "taew2_1", "taecvx", "taehv")
 def _refusal(name: str) -> str | None:
     """The reason a checkpoint / variant name is refused, or None."""
     lowered = name.lower()
-    if "ltx" in lowered:
-        return ("taeltx checkpoints (LTX-Video: 128 latent channels, patch 4, time strides (2, 2, 2)) "
-                "are not supported")
+    for word, reason in UNSUPPORTED_TINY_DECODERS.items():
+        if word in lowered:
+            return reason
     if "_super" in lowered or "-super" in lowered or lowered == "super":
         return "the '*_super' checkpoints use a different decoder block and are not supported"
     return None
@@ -291,9 +259,8 @@ class TinyDecoder(nn.Module):
     """TAEHV tiny video autoencoder (encoder and decoder) of one published variant.
 
     Args:
-        variant: ``"cogvideox"`` (taecvx), ``"wan2.1"`` (taew2_1, also Wan 2.2 14B),
-            ``"hunyuanvideo"`` (taehv), ``"wan2.2-5b"`` (taew2_2), ``"hunyuanvideo1.5"``
-            (taehv1_5); a checkpoint stem such as ``"taecvx"`` works too.
+        variant: a name of :data:`VARIANTS` (the registry's published tiny decoders), an alias or
+            a checkpoint stem such as ``"taecvx"``; default: the default model's.
         decoder_widths: channels of the three decoder stages and of the last conv; the published
             checkpoints use ``(256, 128, 64, 64)``.
         encoder_width: channels of the encoder; the published checkpoints use 64.
@@ -305,7 +272,7 @@ class TinyDecoder(nn.Module):
     models, whose :meth:`decode` still passes gradients to the latents.
 
     Example:
-        >>> vae = TinyDecoder.random("cogvideox", seed=0)
+        >>> vae = TinyDecoder.random(seed=0)  # the default model's variant (taecvx)
         >>> vae.decode(torch.randn(1, 3, 16, 4, 6)).shape
         torch.Size([1, 9, 3, 32, 48])
     """
@@ -314,7 +281,7 @@ class TinyDecoder(nn.Module):
 
     def __init__(
         self,
-        variant: str | TinyDecoderVariant = "cogvideox",
+        variant: str | TinyDecoderVariant = DEFAULT_VARIANT,
         *,
         decoder_widths: tuple[int, int, int, int] = DEFAULT_DECODER_WIDTHS,
         encoder_width: int = DEFAULT_ENCODER_WIDTH,
@@ -499,7 +466,7 @@ class TinyDecoder(nn.Module):
     @classmethod
     def random(
         cls,
-        variant: str | TinyDecoderVariant = "cogvideox",
+        variant: str | TinyDecoderVariant = DEFAULT_VARIANT,
         seed: int = 0,
         *,
         decoder_widths: tuple[int, int, int, int] = DEFAULT_DECODER_WIDTHS,
@@ -515,7 +482,7 @@ class TinyDecoder(nn.Module):
         return model._frozen()
 
     @classmethod
-    def tiny(cls, variant: str | TinyDecoderVariant = "cogvideox", seed: int = 0) -> TinyDecoder:
+    def tiny(cls, variant: str | TinyDecoderVariant = DEFAULT_VARIANT, seed: int = 0) -> TinyDecoder:
         """:meth:`random` with :data:`TINY_DECODER_WIDTHS` / :data:`TINY_ENCODER_WIDTH`: the real
         block graph, time alignment and key names in under 0.2 M parameters (offline tests)."""
         return cls.random(variant, seed, decoder_widths=TINY_DECODER_WIDTHS, encoder_width=TINY_ENCODER_WIDTH)

@@ -21,9 +21,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["DEFAULT_MODEL", "FAMILIES", "MODELS", "PAPER_ANCHOR_COUNT", "SCORED_ONLY", "VideoModel",
-           "default_anchors", "did_you_mean", "frames_problem", "generating_model", "model_named", "paper_fps",
-           "video_models"]
+__all__ = ["DEFAULT_MODEL", "FAMILIES", "MODELS", "PAPER_ANCHOR_COUNT", "SCORED_ONLY", "TINY_DECODERS",
+           "TINY_DECODER_ALIASES", "UNSUPPORTED_TINY_DECODERS", "TinyDecoderVariant", "VideoModel",
+           "default_anchors", "did_you_mean", "frames_problem", "generating_model", "model_named", "models_of_pipeline",
+           "paper_fps", "scheduler_names", "video_models"]
 
 #: The model the config's defaults are: the paper's guidance experiment.
 DEFAULT_MODEL = "cogvideox-5b"
@@ -63,9 +64,17 @@ class VideoModel:
         latent_channels: channels of the latents the denoiser and the VAE share.
         tiny_decoder: the tiny decoder variant that decodes its latents
             (:mod:`geco_guide.estimators.tiny_decoder`), ``None`` where there is none.
-        tiny: the builder of its family's tiny random stand-in in :mod:`geco_guide.tiny` (the
-            real diffusers classes at a few pixels: tests, ``model.id=tiny-random``).
+        tiny: the builder of its family's tiny random stand-in in :mod:`geco_guide.tiny.pipelines`
+            (the real diffusers classes at a few pixels: tests, ``model.id=tiny-random``).
+        tiny_call: what the calls of its tiny stand-in need beyond the config's sampling
+            (HunyuanVideo's bare prompt template: the tiny tokenizer cannot crop the real one's
+            system text).
+        adapter: the name of the :class:`~geco_guide.sampler.adapters.PipelineAdapter` that knows
+            its pipeline's latents (:data:`geco_guide.sampler.adapters.ADAPTERS`).
         guided_by: ``pipeline`` or ``hooks`` (:data:`GUIDED_BY`).
+        schedulers: the ``sampling.scheduler`` names it can sample with besides its checkpoint's
+            own, each with the diffusers scheduler class it builds from the checkpoint's
+            scheduler config.
         scheduler: the ``sampling.scheduler`` it samples with by default (``ddim``: the paper's
             DDIM for CogVideoX), ``None``: the checkpoint's own.
         image_to_video: the pipeline conditions on an image (``--image``).
@@ -88,7 +97,10 @@ class VideoModel:
     latent_channels: int = 16
     tiny_decoder: str | None = None
     tiny: str | None = None
+    tiny_call: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
+    adapter: str | None = None
     guided_by: str = "hooks"
+    schedulers: dict[str, str] = field(default_factory=dict, hash=False, compare=False)
     scheduler: str | None = None
     image_to_video: bool = False
     text_length: bool = True
@@ -140,15 +152,62 @@ def default_anchors(num_frames: int, temporal_compression: int) -> list[int]:
                    for j in range(1, PAPER_ANCHOR_COUNT + 1)})
 
 
+@dataclass(frozen=True)
+class TinyDecoderVariant:
+    """One published tiny decoder (a TAEHV checkpoint) of a family's latents.
+
+    Attributes:
+        name: our variant name (a registry entry's ``tiny_decoder``, ``TinyDecoder(variant=name)``).
+        checkpoint: the published file stem (``<checkpoint>.pth``,
+            ``safetensors/<checkpoint>.safetensors``).
+        latent_channels: channels ``C`` of the latents.
+        patch_size: pixel-(un)shuffle factor of the frames.
+        even_count_untrimmed: keep all ``4 T`` frames when the latent count ``T`` is even (the
+            published CogVideoX rule).
+        scale_by_vae_scaling_factor: the decoder takes the pipeline's latents divided by
+            ``vae.config.scaling_factor`` (CogVideoX), else the pipeline's latents as they are.
+        pipeline_layout: how the variant's diffusers pipeline holds its latents.
+        models: the video models whose latents it decodes.
+    """
+
+    name: str
+    checkpoint: str
+    latent_channels: int
+    patch_size: int
+    even_count_untrimmed: bool
+    scale_by_vae_scaling_factor: bool
+    pipeline_layout: str
+    models: str
+
+
+#: The published tiny decoders (github.com/madebyollin/taehv) by variant name.
+TINY_DECODERS: dict[str, TinyDecoderVariant] = {v.name: v for v in (
+    TinyDecoderVariant("cogvideox", "taecvx", 16, 1, True, True, "NTCHW", "CogVideoX 2b / 5b / 1.5"),
+    TinyDecoderVariant("wan2.1", "taew2_1", 16, 1, False, False, "NCTHW", "Wan 2.1, Wan 2.2 14B"),
+    TinyDecoderVariant("hunyuanvideo", "taehv", 16, 1, False, False, "NCTHW", "HunyuanVideo"),
+    TinyDecoderVariant("wan2.2-5b", "taew2_2", 48, 2, False, False, "NCTHW", "Wan 2.2 TI2V 5B"),
+    TinyDecoderVariant("hunyuanvideo1.5", "taehv1_5", 32, 2, False, False, "NCTHW", "HunyuanVideo 1.5"),
+)}
+#: Other spellings of the variants users reach for (the checkpoint stems are accepted too).
+TINY_DECODER_ALIASES = {"wan2.2-14b": "wan2.1", "wan2.2-ti2v-5b": "wan2.2-5b", "hunyuan": "hunyuanvideo",
+                        "hunyuanvideo-1.5": "hunyuanvideo1.5"}
+#: Published tiny decoders the package cannot load, by a word of their names, and why.
+UNSUPPORTED_TINY_DECODERS = {"ltx": "taeltx checkpoints (LTX-Video: 128 latent channels, patch 4, time strides "
+                                    "(2, 2, 2)) are not supported"}
+
+
 def _call(frames: int, height: int, width: int, steps: int, cfg: float, **more: Any) -> dict[str, Any]:
     return {"num_frames": frames, "height": height, "width": width, "num_inference_steps": steps,
             "guidance_scale": cfg, **more}
 
 
+#: CogVideoX's schedulers: the paper samples with deterministic DDIM, and CogVideoX-5B ships DPM.
+_COGVIDEOX_SCHEDULERS = {"ddim": "CogVideoXDDIMScheduler", "dpm": "CogVideoXDPMScheduler"}
 _COGVIDEOX = dict(family="cogvideox", pipeline="CogVideoXPipeline", frame_multiple=8, tiny_decoder="cogvideox",
-                  guided_by="pipeline", scheduler="ddim", fps=8, eval_fps=16.0, tiny="tiny_cogvideox_pipeline")
+                  guided_by="pipeline", scheduler="ddim", fps=8, eval_fps=16.0, tiny="tiny_cogvideox_pipeline",
+                  adapter="CogVideoXAdapter", schedulers=_COGVIDEOX_SCHEDULERS)
 _WAN21 = dict(family="wan", pipeline="WanPipeline", tiny_decoder="wan2.1", fps=16, eval_fps=16.0,
-              tiny="tiny_wan_pipeline")
+              tiny="tiny_wan_pipeline", adapter="WanAdapter")
 
 #: Every model, by name. Call defaults: each model card / diffusers' pipeline documentation (the
 #: ``source`` of each); native rates: the GeCo paper's supplement ("Frame rate of evaluated
@@ -164,6 +223,7 @@ MODELS: dict[str, VideoModel] = {m.name: m for m in (
                hub_aliases=("zai-org/CogVideoX1.5-5B",), pipeline="CogVideoXPipeline",
                call=_call(81, 768, 1360, 50, 6.0), fps=16, eval_fps=16.0, frame_multiple=8,
                tiny_decoder="cogvideox", tiny="tiny_cogvideox15_pipeline", guided_by="pipeline", scheduler="ddim",
+               adapter="CogVideoXAdapter", schedulers=_COGVIDEOX_SCHEDULERS,
                source="CogVideoX1.5-5B model card"),
     VideoModel("wan2.1-t2v-1.3b", hub_id="Wan-AI/Wan2.1-T2V-1.3B-Diffusers", call=_call(81, 480, 832, 50, 5.0),
                source="Wan2.1-T2V-1.3B-Diffusers model card", **_WAN21),
@@ -171,39 +231,44 @@ MODELS: dict[str, VideoModel] = {m.name: m for m in (
                source="Wan2.1-T2V-14B-Diffusers model card", **_WAN21),
     VideoModel("wan2.2-t2v-a14b", family="wan2.2", hub_id="Wan-AI/Wan2.2-T2V-A14B-Diffusers", pipeline="WanPipeline",
                call=_call(81, 720, 1280, 40, 4.0, guidance_scale_2=3.0), fps=16, eval_fps=16.0,
-               tiny_decoder="wan2.1", tiny="tiny_wan22_a14b_pipeline",
+               tiny_decoder="wan2.1", tiny="tiny_wan22_a14b_pipeline", adapter="WanAdapter",
                source="Wan2.2-T2V-A14B-Diffusers model card (two experts)"),
     VideoModel("cogvideox-5b-i2v", family="cogvideox", hub_id="THUDM/CogVideoX-5b-I2V",
                hub_aliases=("zai-org/CogVideoX-5b-I2V",),
                pipeline="CogVideoXImageToVideoPipeline", call=_call(49, 480, 720, 50, 6.0), fps=8, eval_fps=16.0,
                frame_multiple=8, tiny_decoder="cogvideox", tiny="tiny_cogvideox_i2v_pipeline", scheduler="ddim",
+               adapter="CogVideoXAdapter", schedulers=_COGVIDEOX_SCHEDULERS,
                image_to_video=True, source="CogVideoX-5b-I2V model card (guided by the hooks: the paper's loop is "
                "text-to-video)"),
     VideoModel("wan2.2-ti2v-5b", family="wan2.2-ti2v", hub_id="Wan-AI/Wan2.2-TI2V-5B-Diffusers", pipeline="WanPipeline",
                call=_call(121, 704, 1280, 50, 5.0), fps=24, eval_fps=24.0, spatial_compression=16,
-               size_multiple=32, latent_channels=48, tiny_decoder="wan2.2-5b", tiny="tiny_wan22_ti2v_pipeline",
+               size_multiple=32, latent_channels=48, tiny_decoder="wan2.2-5b", tiny="tiny_wan22_ti2v_pipeline", adapter="WanAdapter",
                source="Wan2.2 TI2V-5B configs of the official repository (wan_ti2v_5B.py); text-to-video here: "
                "its image-to-video mode runs through WanImageToVideoPipeline, which the hooks cannot guide yet"),
     VideoModel("hunyuanvideo", family="hunyuan", hub_id="hunyuanvideo-community/HunyuanVideo",
                pipeline="HunyuanVideoPipeline", call=_call(129, 720, 1280, 50, 6.0), fps=15, eval_fps=24.0,
-               tiny_decoder="hunyuanvideo", tiny="tiny_hunyuan_pipeline", source="diffusers HunyuanVideoPipeline docs"),
+               tiny_decoder="hunyuanvideo", tiny="tiny_hunyuan_pipeline", adapter="HunyuanVideoAdapter",
+               tiny_call={"prompt_template": {"template": "{}", "crop_start": 0}},
+               source="diffusers HunyuanVideoPipeline docs"),
     VideoModel("hunyuanvideo-1.5", family="hunyuan1.5", hub_id="hunyuanvideo-community/HunyuanVideo-1.5-480p_t2v",
                pipeline="HunyuanVideo15Pipeline", call=_call(121, 480, 848, 50, 6.0), fps=24, eval_fps=24.0,
                spatial_compression=16, latent_channels=32, tiny_decoder="hunyuanvideo1.5",
-               tiny="tiny_hunyuan15_pipeline", text_length=False,
+               tiny="tiny_hunyuan15_pipeline", adapter="HunyuanVideo15Adapter", text_length=False,
                source="diffusers HunyuanVideo15Pipeline docs and conversion script (480p)"),
     VideoModel("hunyuanvideo-1.5-i2v", family="hunyuan1.5", hub_id="hunyuanvideo-community/HunyuanVideo-1.5-480p_i2v",
                pipeline="HunyuanVideo15ImageToVideoPipeline", call=_call(121, 480, 848, 50, 6.0), fps=24,
                eval_fps=24.0, spatial_compression=16, latent_channels=32, tiny_decoder="hunyuanvideo1.5",
-               tiny="tiny_hunyuan15_i2v_pipeline", image_to_video=True, text_length=False,
+               tiny="tiny_hunyuan15_i2v_pipeline", adapter="HunyuanVideo15Adapter", image_to_video=True,
+               text_length=False,
                source="diffusers HunyuanVideo15ImageToVideoPipeline docs and conversion script (480p)"),
     VideoModel("ltx-video", family="ltx", hub_id="Lightricks/LTX-Video", pipeline="LTXPipeline",
                call=_call(161, 480, 704, 50, 3.0), fps=24, eval_fps=30.0, spatial_compression=32,
                temporal_compression=8, frame_multiple=8, size_multiple=32, latent_channels=128, tiny="tiny_ltx_pipeline",
-               source="diffusers LTXPipeline docs"),
+               adapter="LTXAdapter", source="diffusers LTXPipeline docs"),
     VideoModel("ltx-2", family="ltx2", hub_id="Lightricks/LTX-2", pipeline="LTX2Pipeline",
                call=_call(121, 512, 768, 30, 3.0), fps=24, eval_fps=24.0, spatial_compression=32,
                temporal_compression=8, frame_multiple=8, size_multiple=32, latent_channels=128, tiny="tiny_ltx2_pipeline",
+               adapter="LTX2Adapter",
                source="diffusers LTX2Pipeline docs and call defaults (video only: the audio stream passes through)"),
     VideoModel("sora-2", family="", hub_id=None, pipeline=None, call=_call(1, 0, 0, 0, 0.0), fps=30, eval_fps=30.0,
                source="the GeCo paper (scored only: no open weights)"),
@@ -251,6 +316,18 @@ def generating_model(name: str) -> VideoModel:
         raise ValueError(f"{name} has no open weights to generate with: its videos can only be scored (geco evaluate; "
                          f"geco geco-eval --videos {name}=DIR)")
     return model
+
+
+def models_of_pipeline(pipeline_classes: Iterable[str]) -> list[VideoModel]:
+    """The models whose pipeline class is one of ``pipeline_classes`` (names: a pipeline's class
+    and its bases), in the registry's order."""
+    names = set(pipeline_classes)
+    return [model for model in MODELS.values() if model.pipeline in names]
+
+
+def scheduler_names() -> tuple[str, ...]:
+    """Every ``sampling.scheduler`` name some model can sample with besides its checkpoint's own."""
+    return tuple(dict.fromkeys(name for model in MODELS.values() for name in model.schedulers))
 
 
 def paper_fps() -> dict[str, float]:
