@@ -419,12 +419,7 @@ def evaluate_video(
         TypeError: estimators that are not a bundle, or passed by an earlier keyword
             (``geometry=``, ``flow_estimator=``, ...).
     """
-    if isinstance(estimators, Estimators) or not (estimators is None or isinstance(estimators, EstimatorsConfig)):
-        check_estimator_bundle(estimators, "evaluate_video")
-    if config is not None and not isinstance(config, EvaluationConfig):
-        raise TypeError(f"evaluate_video: config must be an EvaluationConfig (a config's evaluation section), "
-                        f"got {type(config).__name__}")
-    cfg = config if config is not None else EvaluationConfig()
+    cfg = _evaluation_config(estimators, config)
     if isinstance(estimators, Estimators) and estimators.segmenter is not None and _is_subject_text(dynamic_masks):
         dynamic_masks = estimators.masks_for(dynamic_masks)
     rate, fps_source = protocol_fps(fps, model, cfg)
@@ -438,20 +433,88 @@ def evaluate_video(
     masks = clip_mask_source(dynamic_masks, clip, source_frames)
     if not isinstance(estimators, Estimators):
         estimators = load_estimators(estimators or EstimatorsConfig(), cfg.device)
-    device = estimator_device(estimators.geometry, estimators.flow)
     metric = GeCoLoss(estimators, loss_config)
+    scored = _score_windows(clip, estimators, cfg, loss_config, masks, maps=maps, progress=progress)
+    stats = _motion_statistics(clip, metric, cfg, progress)
+    scores = {name: _clip_score(scored.windows, name) for name in CUES}
+    nan_reason = None if all(map(math.isfinite, scores.values())) else no_valid_pixels_reason(masks is not None)
+    return EvaluationResult(
+        **scores, total_motion=stats.total_motion, mean_motion=stats.mean_motion, frame_scores=scored.frame_scores,
+        windows=scored.windows, num_frames=clip.num_frames, fps=clip.fps, fps_source=fps_source,
+        sampled_fps=sampled_rate(clip.fps, cfg.max_fps), estimators=Estimators(estimators.geometry, estimators.flow).ids(),
+        config=asdict(cfg), source=source, maps=None if scored.maps is None else scored.maps.stacked(),
+        dynamic_masks=_mask_record(masks, scored.frame_scores, nan_reason),
+        movers=None if loss_config.movers == "drop" else _movers_record(scored.movers, scored.windows, scores["fused"]),
+        nan_reason=nan_reason,
+    )
+
+
+def _evaluation_config(estimators: Any, config: EvaluationConfig | None) -> EvaluationConfig:
+    """The protocol of a call (``config``, or the paper's for ``None``) once its ``estimators`` and
+    ``config`` are of the types :func:`evaluate_video` takes (TypeError, one line, otherwise)."""
+    if isinstance(estimators, Estimators) or not (estimators is None or isinstance(estimators, EstimatorsConfig)):
+        check_estimator_bundle(estimators, "evaluate_video")
+    if config is not None and not isinstance(config, EvaluationConfig):
+        raise TypeError(f"evaluate_video: config must be an EvaluationConfig (a config's evaluation section), "
+                        f"got {type(config).__name__}")
+    return config if config is not None else EvaluationConfig()
+
+
+def _positions(clip: VideoFrames, indices: list[int]) -> list[int]:
+    """Where the source frames ``indices`` lie among the clip's read frames (``clip.indices``)."""
     position = {index: k for k, index in enumerate(clip.indices)}
+    return [position[i] for i in indices]
 
-    def frames_of(indices: list[int]) -> Tensor:
-        return clip.frames[[position[i] for i in indices]]
 
-    frame_scores: list[dict[str, Any]] = []
-    windows: list[dict[str, Any]] = []
-    kept_maps: list[list[Tensor]] = []
-    kept_frames: list[Tensor] = []
-    kept_masks: list[Tensor] = []
-    kept_movers: list[Tensor] = []
-    movers: list[dict[str, Any]] = []
+@dataclass
+class _KeptMaps:
+    """The windows' maps kept for :class:`EvaluationMaps`, window after window, on the CPU: each
+    window's frame maps ``[S, H, W]``, frames ``[S, 3, H, W]``, dropped masks ``[S, H, W]`` and
+    mover labels ``[S, H, W]`` (made distinct over the windows)."""
+
+    maps: list[list[Tensor]] = field(default_factory=list)
+    frames: list[Tensor] = field(default_factory=list)
+    masks: list[Tensor] = field(default_factory=list)
+    movers: list[Tensor] = field(default_factory=list)
+
+    def add(self, result: GeCoResult, frames: Tensor, masked: bool) -> None:
+        """Keep a window's ``result`` and ``frames``; ``masked``: the clip has dynamic masks."""
+        self.maps.append([getattr(result.frame_maps, name)[0].cpu() for name in _MAP_FIELDS])
+        self.frames.append(frames)
+        if result.movers is not None:  # the pixels a mover leaves out, and its labels after the earlier windows'
+            self.masks.append(result.movers.dropped[0].cpu())
+            offset = max((int(m.max()) for m in self.movers), default=0)
+            labels = result.movers.fit.labels[0].cpu()
+            self.movers.append(torch.where(labels > 0, labels + offset, labels))
+        elif masked:
+            self.masks.append(result.dynamic_masks[0].cpu())
+
+    def stacked(self) -> EvaluationMaps:
+        """Every kept window's maps as one :class:`EvaluationMaps`, in window order."""
+        stacked = [torch.cat(parts) if parts[0].dtype == torch.bool else torch.cat(parts).float() for parts in zip(*self.maps)]
+        return EvaluationMaps(*stacked, frames=torch.cat(self.frames),
+                              dynamic_masks=torch.cat(self.masks) if self.masks else None,
+                              movers=torch.cat(self.movers) if self.movers else None)
+
+
+@dataclass
+class _ScoredWindows:
+    """What scoring a clip's windows gives: every frame's row (window after window), every
+    window's record, the movers' rows (with ``evaluation.loss.movers="rigid"``) and, when asked for,
+    the maps."""
+
+    frame_scores: list[dict[str, Any]] = field(default_factory=list)
+    windows: list[dict[str, Any]] = field(default_factory=list)
+    movers: list[dict[str, Any]] = field(default_factory=list)
+    maps: _KeptMaps | None = None
+
+
+def _score_windows(clip: VideoFrames, estimators: Estimators, cfg: EvaluationConfig, loss_config: GeCoLossConfig,
+                   masks: Any, *, maps: bool, progress: Callable[[str], None] | None) -> _ScoredWindows:
+    """GeCo (``loss_config``) on each window of the protocol (:func:`~.protocol.evaluation_windows`)
+    of ``clip``, with the clip's dynamic-mask source ``masks`` (cut to each window where given); ``progress``
+    is told the plan, each window and, after the first, the time left."""
+    scored = _ScoredWindows(maps=_KeptMaps() if maps else None)
     planned = evaluation_windows(clip.num_frames, clip.fps, cfg.window_seconds, cfg.max_windows, cfg.max_fps)
     plan = scoring_plan(clip.num_frames, clip.fps, cfg)
     if progress is not None:  # before the work: a long clip's motion statistics alone take long
@@ -463,79 +526,76 @@ def evaluate_video(
         if progress is not None:
             progress(f"window {w + 1}/{len(planned)}: {len(window.indices)} frames from "
                      f"{window.indices[0] / clip.fps:.2f} s to {window.indices[-1] / clip.fps:.2f} s")
-        window_frames = frames_of(window.indices)
-        window_masks = masks
-        if isinstance(masks, GivenMasks):
-            window_masks = GivenMasks(masks.masks[[position[i] for i in window.indices]], masks.source_name, masks.path)
+        window_frames = clip.frames[_positions(clip, window.indices)]
         _, result = score_frames(window_frames, estimators, loss_config, flow_batch_size=cfg.flow_batch_size,
-                                 dynamic_masks=window_masks)
-        rows = []
-        for k, index in enumerate(window.indices):
-            scores = {
-                name: float(result.frame_scores[name][0, k]) if bool(result.frame_has_valid[name][0, k]) else None
-                for name in CUES
-            }
-            rows.append({"index": index, "time_s": index / clip.fps, "window": w, **scores})
+                                 dynamic_masks=_window_masks(masks, clip, window.indices))
+        rows = _frame_rows(result, window, w, clip.fps)
         if masks is not None:
             _mask_notes(rows, result)
-        frame_scores.extend(rows)
-        windows.append(_window_record(window, rows))
-        if result.movers is not None:
-            movers.extend({"window": w, **record, "contribution": float(result.movers.contribution[0, record["id"] - 1])}
-                          for record in result.movers.records(0, window.indices))
-        if maps:
-            kept_maps.append([getattr(result.frame_maps, name)[0].cpu() for name in _MAP_FIELDS])
-            kept_frames.append(window_frames)
-            if result.movers is not None:
-                kept_masks.append(result.movers.dropped[0].cpu())
-                offset = max((int(m.max()) for m in kept_movers), default=0)
-                labels = result.movers.fit.labels[0].cpu()
-                kept_movers.append(torch.where(labels > 0, labels + offset, labels))
-            elif masks is not None:
-                kept_masks.append(result.dynamic_masks[0].cpu())
+        scored.frame_scores.extend(rows)
+        scored.windows.append(_window_record(window, rows))
+        scored.movers.extend(_window_movers(result, window, w))
+        if scored.maps is not None:
+            scored.maps.add(result, window_frames, masks is not None)
+    return scored
 
+
+def _window_masks(masks: Any, clip: VideoFrames, indices: list[int]) -> Any:
+    """A window's dynamic-mask source: given masks cut to its frames ``indices``, any other
+    source (or ``None``) as it is."""
+    if not isinstance(masks, GivenMasks):
+        return masks
+    return GivenMasks(masks.masks[_positions(clip, indices)], masks.source_name, masks.path)
+
+
+def _frame_rows(result: GeCoResult, window: Window, w: int, fps: float) -> list[dict[str, Any]]:
+    """The rows of window ``w``'s frames: source index, time and each cue's score (``None`` where
+    the frame has no valid pixel)."""
+    rows = []
+    for k, index in enumerate(window.indices):
+        scores = {
+            name: float(result.frame_scores[name][0, k]) if bool(result.frame_has_valid[name][0, k]) else None
+            for name in CUES
+        }
+        rows.append({"index": index, "time_s": index / fps, "window": w, **scores})
+    return rows
+
+
+def _window_movers(result: GeCoResult, window: Window, w: int) -> list[dict[str, Any]]:
+    """The movers of window ``w`` (none without ``movers="rigid"``), each with its contribution to
+    the window's fused score."""
+    if result.movers is None:
+        return []
+    return [{"window": w, **record, "contribution": float(result.movers.contribution[0, record["id"] - 1])}
+            for record in result.movers.records(0, window.indices)]
+
+
+def _motion_statistics(clip: VideoFrames, metric: GeCoLoss, cfg: EvaluationConfig,
+                       progress: Callable[[str], None] | None) -> Any:
+    """Total / Mean Motion of ``clip``: the flow between consecutive frames of its time grid
+    (:func:`~.protocol.motion_grid`), unmasked."""
     if progress is not None:
         progress("motion statistics (consecutive frames)")
     grid = motion_grid(clip.num_frames, clip.fps, cfg.max_fps)
     steps = [(k, k + 1) for k in range(len(grid) - 1)]
-    consecutive = pair_correspondences(metric, frames_of(grid), steps, cfg.flow_batch_size, device)
-    stats = motion_statistics(
+    device = estimator_device(metric.geometry_estimator, metric.flow_estimator)
+    consecutive = pair_correspondences(metric, clip.frames[_positions(clip, grid)], steps, cfg.flow_batch_size, device)
+    return motion_statistics(
         consecutive.flow.float(), consecutive.covisibility > cfg.loss.covisibility_threshold,
         duration_s=clip.num_frames / clip.fps,
     )
-    evaluation_maps = None
-    if maps:
-        stacked = [torch.cat(parts) if parts[0].dtype == torch.bool else torch.cat(parts).float() for parts in zip(*kept_maps)]
-        evaluation_maps = EvaluationMaps(*stacked, frames=torch.cat(kept_frames),
-                                         dynamic_masks=torch.cat(kept_masks) if kept_masks else None,
-                                         movers=torch.cat(kept_movers) if kept_movers else None)
-    scores = {name: _clip_score(windows, name) for name in CUES}
-    nan_reason = None if all(map(math.isfinite, scores.values())) else no_valid_pixels_reason(masks is not None)
-    mask_record = None
-    if masks is not None:
-        fractions = [row["masked_fraction"] for row in frame_scores]
-        mask_record = {"source": masks.source_name, "masked_fraction": mean_or_nan(fractions),
-                       "min_unmasked_fraction": MIN_UNMASKED_FRACTION}
-        if nan_reason is not None:
-            mask_record["nan_reason"] = nan_reason
-    return EvaluationResult(
-        **scores,
-        total_motion=stats.total_motion,
-        mean_motion=stats.mean_motion,
-        frame_scores=frame_scores,
-        windows=windows,
-        num_frames=clip.num_frames,
-        fps=clip.fps,
-        fps_source=fps_source,
-        sampled_fps=sampled_rate(clip.fps, cfg.max_fps),
-        estimators=Estimators(estimators.geometry, estimators.flow).ids(),
-        config=asdict(cfg),
-        source=source,
-        maps=evaluation_maps,
-        dynamic_masks=mask_record,
-        movers=None if loss_config.movers == "drop" else _movers_record(movers, windows, scores["fused"]),
-        nan_reason=nan_reason,
-    )
+
+
+def _mask_record(masks: Any, frame_scores: list[dict[str, Any]], nan_reason: str | None) -> dict[str, Any] | None:
+    """The report's ``dynamic_masks``: the masks' source and the evaluated frames' mean masked
+    fraction (with the ``nan_reason`` of a clip the masks left unscored); ``None`` without masks."""
+    if masks is None:
+        return None
+    record = {"source": masks.source_name, "masked_fraction": mean_or_nan([row["masked_fraction"] for row in frame_scores]),
+              "min_unmasked_fraction": MIN_UNMASKED_FRACTION}
+    if nan_reason is not None:
+        record["nan_reason"] = nan_reason
+    return record
 
 
 def _movers_record(movers: list[dict[str, Any]], windows: list[dict[str, Any]], fused: float) -> dict[str, Any]:
