@@ -341,7 +341,7 @@ def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True,
     import torch
 
     from .estimators import Estimators, load_estimators
-    from .sampler.loading import load_tiny_decoder, load_video_pipeline, uses_tiny_decoder
+    from .sampler.loading import load_tiny_decoder, load_video_pipeline, tiny_decoder_id, uses_tiny_decoder
     from .tiny import tiny_call_extras, tiny_video_components
 
     extras = {}
@@ -361,7 +361,7 @@ def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True,
         segmenter = (cfg.guidance.enabled or cfg.search.enabled) and cfg.guidance.subjects is not None
         bundle = load_estimators(cfg.estimators, cfg.model.device, segmenter=segmenter)
     if bundle is not None and decoder is not None:
-        bundle = bundle.with_tiny_decoder(decoder)
+        bundle = bundle.with_tiny_decoder(decoder, tiny_decoder_id(cfg.estimators))
     return Models(video, bundle)
 
 

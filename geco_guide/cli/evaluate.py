@@ -343,7 +343,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
-    from ..estimators import check_weights, load_estimators, load_segmenter
+    from ..estimators import check_weights, load_estimators, load_segmenter, segmenter_id
     from ..io.devices import check_device
     from ..metric.evaluate import finite_or_none
 
@@ -380,7 +380,7 @@ def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
             _progress(f"loading segmenter: {cfg.estimators.segmenter} for {dynamic!r} ...")
             segment = load_segmenter(cfg.estimators, device)
         _progress(f"loading models: {cfg.estimators.geometry} + {cfg.estimators.flow} on {device}")
-        estimators = load_estimators(cfg.estimators, device).with_segmenter(segment)
+        estimators = load_estimators(cfg.estimators, device).with_segmenter(segment, segmenter_id(cfg.estimators))
     except (ValueError, FileNotFoundError, WriteError) as err:  # WeightsNotFoundError is a FileNotFoundError
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -10,7 +10,8 @@ reports one place to read the models' ids from.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 from ..types import DynamicMaskSource
@@ -19,10 +20,9 @@ __all__ = ["Estimators", "estimator_id"]
 
 
 def estimator_id(model: Any) -> str:
-    """What produced a model's numbers: the id it was loaded from, a mask source's name, else its
-    class name."""
-    return (getattr(model, "geco_estimator_id", None) or getattr(model, "source_name", None)
-            or type(model).__name__)
+    """What produced the numbers of a model the bundle knows no source of: a mask source's name,
+    else its class name."""
+    return getattr(model, "source_name", None) or type(model).__name__
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,6 +40,9 @@ class Estimators:
         tiny_decoder: the :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` that decodes
             the loss' anchor frames with ``guidance.decoder="tiny"`` (an approximation of the
             VAE; the video is always the VAE's), or ``None``.
+        sources: the id each model was loaded from, by field name (``{"geometry":
+            "facebook/VGGT-1B", "flow": "tiny-random(seed=0)"}``): what :meth:`ids` names them
+            by; a model without one is named by :func:`estimator_id`. The loaders fill it.
 
     The bundle is not a pair: ``geometry, flow = estimators`` is refused (it was the return value
     of ``load_estimators`` once).
@@ -49,26 +52,42 @@ class Estimators:
     flow: Any
     segmenter: Any = None
     tiny_decoder: Any = None
+    sources: Mapping[str, str] = field(default_factory=dict)
 
-    def ids(self) -> dict[str, str]:
-        """The id of every model present (:func:`estimator_id`), by field name: what reports and
+    def ids(self, *names: str) -> dict[str, str]:
+        """The id of every model present (of the fields ``names`` alone where given), by field
+        name: its source where the bundle has one, else :func:`estimator_id`. What reports and
         sidecars name the models with."""
-        return {f.name: estimator_id(getattr(self, f.name)) for f in fields(self) if getattr(self, f.name) is not None}
+        return {name: self.sources.get(name) or estimator_id(model) for name, model in self._models().items()
+                if not names or name in names}
+
+    def _models(self) -> dict[str, Any]:
+        """Every model present, by field name, in field order."""
+        models = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "sources"}
+        return {name: model for name, model in models.items() if model is not None}
+
+    def _with(self, name: str, model: Any, source: str | None) -> Estimators:
+        sources = {key: value for key, value in self.sources.items() if key != name}
+        if model is not None and source is not None:
+            sources[name] = source
+        return replace(self, **{name: model}, sources=sources)
 
     def __repr__(self) -> str:
         return f"Estimators({', '.join(f'{name}={value}' for name, value in self.ids().items())})"
 
-    def with_segmenter(self, segmenter: Any) -> Estimators:
-        """The same estimators with ``segmenter`` (``None``: without one)."""
-        return replace(self, segmenter=segmenter)
+    def with_segmenter(self, segmenter: Any, source: str | None = None) -> Estimators:
+        """The same estimators with ``segmenter`` (``None``: without one), loaded from ``source``
+        (its id; ``None``: none known)."""
+        return self._with("segmenter", segmenter, source)
 
-    def with_tiny_decoder(self, tiny_decoder: Any) -> Estimators:
-        """The same estimators with ``tiny_decoder`` (``None``: without one)."""
-        return replace(self, tiny_decoder=tiny_decoder)
+    def with_tiny_decoder(self, tiny_decoder: Any, source: str | None = None) -> Estimators:
+        """The same estimators with ``tiny_decoder`` (``None``: without one), loaded from
+        ``source`` (its id; ``None``: none known)."""
+        return self._with("tiny_decoder", tiny_decoder, source)
 
     def modules(self) -> list[Any]:
         """Every model present, in field order: what a guided call freezes and moves."""
-        return [getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None]
+        return list(self._models().values())
 
     def masks_for(self, subjects: str | None) -> DynamicMaskSource | None:
         """The mask source of ``subjects`` (``"a dog, a person"``), made by the segmenter: ``None``

@@ -441,7 +441,7 @@ def evaluate_video(
     return EvaluationResult(
         **scores, total_motion=stats.total_motion, mean_motion=stats.mean_motion, frame_scores=scored.frame_scores,
         windows=scored.windows, num_frames=clip.num_frames, fps=clip.fps, fps_source=fps_source,
-        sampled_fps=sampled_rate(clip.fps, cfg.max_fps), estimators=Estimators(estimators.geometry, estimators.flow).ids(),
+        sampled_fps=sampled_rate(clip.fps, cfg.max_fps), estimators=estimators.ids("geometry", "flow"),
         config=asdict(cfg), source=source, maps=None if scored.maps is None else scored.maps.stacked(),
         dynamic_masks=_mask_record(masks, scored.frame_scores, nan_reason),
         movers=None if loss_config.movers == "drop" else _movers_record(scored.movers, scored.windows, scores["fused"]),

@@ -187,7 +187,7 @@ def decoder_agreement(cfg: GeCoConfig, prompt: str, argv: Sequence[str] = ()) ->
         "argv": list(argv),
         "prompt": prompt,
         "guided_by": cfg.guidance.decoder,
-        "tiny_decoder": decoder_note("tiny", models.estimators.tiny_decoder),
+        "tiny_decoder": decoder_note("tiny", models.estimators),
         "summary": agreement_summary(rows),
         "rows": rows,
         "note": ("tiny random models: these numbers exercise the measurement only and say nothing about the "

@@ -147,12 +147,14 @@ class GuidanceObserver:
         """After each update, with its record (read from the device once, see :func:`~.step.read_scalars`)."""
 
 
-def decoder_note(decoder: str, tiny_decoder: Any) -> str:
-    """What decoded the loss' anchor frames, for the record: the VAE, or the tiny decoder of its
-    variant and the file it came from (``tiny-random`` for the stand-in)."""
+def decoder_note(decoder: str, estimators: Estimators) -> str:
+    """What decoded the loss' anchor frames, for the record: the VAE, or the estimators' tiny
+    decoder of its variant and the file it came from (else its id in the bundle, ``tiny-random``
+    for the stand-in)."""
+    tiny_decoder = estimators.tiny_decoder
     if decoder != "tiny" or tiny_decoder is None:
         return "vae (the model's own)"
-    origin = getattr(tiny_decoder, "checkpoint_file", None) or getattr(tiny_decoder, "geco_estimator_id", None) or "random"
+    origin = tiny_decoder.checkpoint_file or estimators.sources.get("tiny_decoder") or "random"
     return f"TinyDecoder({tiny_decoder.variant.name}) from {origin}"
 
 
@@ -492,7 +494,7 @@ class GuidanceContext:
             memory_plan=self.memory_plan.to_dict(),
             devices=[str(device) for device in self._devices] if self._devices else None,
             scheduler=type(scheduler).__name__,
-            decoder=decoder_note(self.config.decoder, self.estimators.tiny_decoder),
+            decoder=decoder_note(self.config.decoder, self.estimators),
             mask_source=None if self.dynamic_masks is None else self.dynamic_masks.source_name,
             masked_fraction=sum(fractions) / len(fractions) if fractions else None,
         )

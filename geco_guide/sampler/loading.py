@@ -42,7 +42,7 @@ from .run_options import RunOptions
 from .search import SearchConfig, check_search_before_loading
 
 __all__ = ["CHECKPOINT_SCHEDULER", "PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
-           "check_guidance_before_loading", "check_tiny_decoder", "load_tiny_decoder", "check_model_source",
+           "check_guidance_before_loading", "check_tiny_decoder", "load_tiny_decoder", "tiny_decoder_id", "check_model_source",
            "local_folder",
            "load_video_pipeline", "missing_weights", "pipeline_from_pretrained", "quiet_hub_logs",
            "scheduler_class", "uses_tiny_decoder"]
@@ -341,12 +341,20 @@ def check_tiny_decoder(estimators: EstimatorsConfig, model: VideoModel) -> Any:
     return variant
 
 
+def tiny_decoder_id(estimators: EstimatorsConfig) -> str:
+    """The id of the tiny decoder :func:`load_tiny_decoder` loads: its source (a random one's
+    with its seed: only then is it reproducible)."""
+    source = estimators.tiny_decoder
+    return f"{TINY_RANDOM}(seed={estimators.init_seed})" if source == TINY_RANDOM else source
+
+
 def load_tiny_decoder(estimators: EstimatorsConfig, model: VideoModel, latent_channels: int,
                       dtype: torch.dtype) -> Any:
     """The tiny decoder of ``estimators.tiny_decoder`` for ``model``'s latents (a file, a folder or
     a hub id; ``tiny-random``: a random one of ``latent_channels``, the VAE's, seeded with
-    ``estimators.init_seed``), frozen, in ``dtype`` on the CPU (the caller moves it), with the
-    ``geco_estimator_id`` its records name it by.
+    ``estimators.init_seed``), frozen, in ``dtype`` on the CPU (the caller moves it): what
+    :meth:`~geco_guide.estimators.Estimators.with_tiny_decoder` takes, with its id
+    (:func:`tiny_decoder_id`).
 
     Raises:
         WeightsNotFoundError: one line naming the source and the config key.
@@ -357,9 +365,7 @@ def load_tiny_decoder(estimators: EstimatorsConfig, model: VideoModel, latent_ch
     variant = check_tiny_decoder(estimators, model)
     source = estimators.tiny_decoder
     if source == TINY_RANDOM:
-        decoder = tiny_random_decoder(variant.name, estimators.init_seed, latent_channels).to(dtype=dtype)
-        decoder.geco_estimator_id = f"{TINY_RANDOM}(seed={estimators.init_seed})"
-        return decoder
+        return tiny_random_decoder(variant.name, estimators.init_seed, latent_channels).to(dtype=dtype)
     try:
         return TinyDecoder.from_pretrained(source, variant.name, dtype=dtype)
     except WeightsNotFoundError as err:

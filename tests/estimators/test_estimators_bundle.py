@@ -14,7 +14,14 @@ import geco_guide
 from geco_guide import tiny as T
 from geco_guide.bench.synthetic import rigid_clip
 from geco_guide.config import load_config
-from geco_guide.estimators import Estimators, EstimatorsConfig, estimator_ids, load_estimators, load_segmenter
+from geco_guide.estimators import (
+    Estimators,
+    EstimatorsConfig,
+    estimator_ids,
+    load_estimators,
+    load_segmenter,
+    segmenter_id,
+)
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
 from geco_guide.metric.evaluate import evaluate_video
 
@@ -65,10 +72,19 @@ def test_the_segmenter_makes_the_mask_source_of_any_subjects(loaded):
         one_text.masks_for("a cat")
 
 
-def test_load_segmenter_alone_names_itself(clip):
+def test_the_bundle_keeps_the_ids_its_models_were_loaded_from(clip, loaded):
     segment = load_segmenter(TINY, "cpu")
-    assert segment("a dog").source_name == "sam3: a dog"
-    assert Estimators(OracleGeometry(clip), OracleFlow(clip), segment).ids()["segmenter"] == "tiny-random(seed=0)"
+    assert segment("a dog").source_name == "sam3: a dog" and not hasattr(segment, "geco_estimator_id")
+    oracles = Estimators(OracleGeometry(clip), OracleFlow(clip))
+    with_segment = oracles.with_segmenter(segment, segmenter_id(TINY))
+    assert with_segment.ids() == {"geometry": "OracleGeometry", "flow": "OracleFlow", "segmenter": "tiny-random(seed=0)"}
+    assert with_segment.ids("flow", "segmenter") == {"flow": "OracleFlow", "segmenter": "tiny-random(seed=0)"}
+    # a model replaced or removed takes its id along; one given without an id is named by itself
+    assert with_segment.with_segmenter(None).sources == {} and with_segment.sources == {"segmenter": "tiny-random(seed=0)"}
+    assert "segmenter" not in loaded.with_segmenter(None).ids() and loaded.with_segmenter(None).sources.keys() == {
+        "geometry", "flow"}
+    assert oracles.with_segmenter(segment).ids()["segmenter"] == "function"
+    assert not any(hasattr(model, "geco_estimator_id") for model in loaded.modules())
 
 
 def test_evaluate_video_takes_the_bundle(clip):

@@ -226,7 +226,8 @@ def test_invalid_evaluation_keys_are_named(override, key):
 def test_shared_estimator_loader_builds_tiny_models():
     estimators = load_estimators(EstimatorsConfig(geometry="tiny-random", flow="tiny-random"), "cpu")
     geometry, flow = estimators.geometry, estimators.flow
-    assert geometry.geco_estimator_id == "tiny-random(seed=0)" and flow.geco_estimator_id == "tiny-random(seed=0)"
+    assert estimators.ids() == {"geometry": "tiny-random(seed=0)", "flow": "tiny-random(seed=0)"}
+    assert not hasattr(geometry, "geco_estimator_id")  # the bundle keeps the ids, the modules carry none
     assert not any(p.requires_grad for p in geometry.parameters()) and not geometry.training
     assert not geometry.gradient_checkpointing and not flow.gradient_checkpointing
     assert estimators.segmenter is None  # loaded only when asked for

@@ -163,10 +163,11 @@ def test_the_tiny_preset_loads_the_tiny_random_decoder_for_its_vae():
     decoder = models.estimators.tiny_decoder
     assert isinstance(decoder, TinyDecoder)
     assert decoder.latent_channels == models.pipe.vae.config.latent_channels == 4
-    assert decoder_note(cfg.guidance.decoder, decoder) == "TinyDecoder(cogvideox) from tiny-random(seed=0)"
+    assert models.estimators.ids()["tiny_decoder"] == "tiny-random(seed=0)"  # the bundle names it, not the module
+    assert decoder_note(cfg.guidance.decoder, models.estimators) == "TinyDecoder(cogvideox) from tiny-random(seed=0)"
     # the VAE guides by default: no tiny decoder is loaded, even though the preset names one
     exact = load_models(tiny_config())
-    assert exact.estimators.tiny_decoder is None and decoder_note("vae", None) == "vae (the model's own)"
+    assert exact.estimators.tiny_decoder is None and decoder_note("vae", exact.estimators) == "vae (the model's own)"
 
 
 def test_tiny_without_weights_is_one_line_with_the_url_and_the_key_before_any_model_loads(monkeypatch, tmp_path):
@@ -206,7 +207,7 @@ def test_a_missing_tiny_decoder_file_is_one_line_naming_it_and_the_key(monkeypat
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_checkpoint_file_loads_with_its_path_recorded(tmp_path):
+def test_a_checkpoint_file_loads_with_its_path_recorded(tmp_path, estimators):
     from geco_guide.sampler.context import decoder_note
 
     saved = T.tiny_guidance_decoder("cogvideox", seed=3, latent_channels=16)  # the published variant's channels
@@ -216,7 +217,8 @@ def test_a_checkpoint_file_loads_with_its_path_recorded(tmp_path):
     loaded = load_tiny_decoder_of(cfg)
     assert loaded.checkpoint_file == str(path) and loaded.decoder_widths == saved.decoder_widths
     assert all(torch.equal(a, b) for a, b in zip(loaded.state_dict().values(), saved.state_dict().values()))
-    assert decoder_note(cfg.guidance.decoder, loaded) == f"TinyDecoder(cogvideox) from {path}"
+    bundle = estimators.with_tiny_decoder(loaded)
+    assert decoder_note(cfg.guidance.decoder, bundle) == f"TinyDecoder(cogvideox) from {path}"
     # the decoder of another model is refused by its name
     torch.save(saved.state_dict(), tmp_path / "taew2_1.pth")
     with pytest.raises(ValueError, match="Wan 2.1.*cogvideox-5b needs taecvx.pth"):
