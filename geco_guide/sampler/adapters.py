@@ -18,24 +18,30 @@ The noise parametrisation is a property of the scheduler, not the family: see
 Wan, HunyuanVideo and LTX-Video), and :func:`keep_update` for multistep schedulers whose history
 would otherwise discard a change of the sample (UniPC's corrector).
 
-New families: subclass :class:`PipelineAdapter` and ``register_adapter(PipelineClass, adapter)``.
+The cost model traces a step of a stock pipeline through its adapter too (:meth:`PipelineAdapter.traced_prediction`).
+
+Each registry entry (:mod:`geco_guide.families`) names its adapter (:data:`ADAPTERS`), registered for
+its pipeline class. New families: a :class:`PipelineAdapter` subclass in :data:`ADAPTERS`, named by
+the entry; out of tree, ``register_adapter(PipelineClass, adapter)``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
+from ..families import MODELS, VideoModel
 from .levels import FlowLevels, NoiseLevels, VPLevels
 from .slicing import decode_chunk
 
-__all__ = ["CallGeometry", "CogVideoXAdapter", "HunyuanVideo15Adapter", "HunyuanVideoAdapter", "LTX2Adapter", "LTXAdapter",
+__all__ = ["ADAPTERS", "TRACED_TIMESTEP", "CallGeometry", "CogVideoXAdapter", "HunyuanVideo15Adapter", "HunyuanVideoAdapter", "LTX2Adapter", "LTXAdapter",
            "PipelineAdapter", "WanAdapter", "adapter_for", "adapter_for_class", "check_no_denoiser_cache",
            "check_requested_frames", "check_scheduler", "fit_combination", "keep_update", "noise_levels",
-           "register_adapter"]
+           "register_adapter", "vae_latent_channels"]
 
 
 @dataclass(frozen=True)
@@ -73,6 +79,21 @@ def _module_dtype(module: nn.Module, fallback: torch.dtype) -> torch.dtype:
     return param.dtype if param is not None else fallback
 
 
+def vae_latent_channels(vae: nn.Module) -> int | None:
+    """Channels of the latents ``vae`` decodes (its config's ``z_dim`` for Wan's), or None."""
+    config = vae.config
+    return getattr(config, "latent_channels", None) or getattr(config, "z_dim", None)
+
+
+TRACED_TIMESTEP = 1000.0  # of a traced step (the first of a flow-matching schedule): no cost depends on it
+
+
+def _cfg(uncond: Tensor, cond: Tensor, scale: float) -> Tensor:
+    """The CFG combination in fp32: ``uncond + scale (cond - uncond)``."""
+    uncond = uncond.float()
+    return uncond + scale * (cond.float() - uncond)
+
+
 class PipelineAdapter:
     """Base adapter: latents ``[B, C, F, h, w]`` (channels first), no padding, plain VAE decode."""
 
@@ -89,6 +110,10 @@ class PipelineAdapter:
 
     def temporal_compression(self, pipe) -> int:
         return int(pipe.vae_scale_factor_temporal)
+
+    def spatial_compression(self, pipe) -> int:
+        """Pixels per latent of ``pipe``'s VAE, each way."""
+        return int(pipe.vae_scale_factor_spatial)
 
     def call_geometry(self, pipe, args: dict[str, Any], latents: Tensor) -> CallGeometry:
         """Geometry of a call from ``prepare_latents``' bound arguments and the latents it returned."""
@@ -143,6 +168,18 @@ class PipelineAdapter:
     def finish_context_parallel(self, denoiser: nn.Module) -> None:
         """What ``denoiser`` needs after diffusers' context parallelism is enabled on it (hooks that
         wrap diffusers' own): nothing by default."""
+
+    def traced_prediction(self, pipe, model: VideoModel, latents: Tensor, text_shape: tuple[int, ...],
+                          dtype: torch.dtype) -> Callable[[Tensor, bool], Tensor]:
+        """``(z, differentiate) -> model output`` (fp32) of the first step of a call of ``model``'s
+        stock ``pipe`` on ``latents`` ``[1, C, F, h, w]`` (fake or real weights): the step's denoiser
+        calls as the pipeline makes them (text embeddings ``text_shape``, in ``dtype``), combined
+        with its CFG, for the cost model's trace. ValueError (one line) where the family has none."""
+        raise ValueError(f"the cost model has no denoiser step for {model.pipeline} ({model.name})")
+
+    def traced_sample(self, latents: Tensor) -> Tensor:
+        """``[B, C, F, h, w]`` latents as the pipeline's scheduler steps them."""
+        return latents
 
 
 class CogVideoXAdapter(PipelineAdapter):
@@ -251,6 +288,26 @@ class WanAdapter(PipelineAdapter):
         std = torch.tensor(cfg.latents_std, dtype=z.dtype, device=z.device).view(1, -1, 1, 1, 1)
         return z * std + mean
 
+    def traced_prediction(self, pipe, model, latents, text_shape, dtype):
+        """Two calls a step (text, then empty prompt), timesteps per token with ``expand_timesteps``
+        (Wan 2.2 TI2V-5B). Wan 2.2 A14B steps its high-noise expert first: the two experts share
+        one config, so the trace's calls are either's."""
+        embeds = [torch.empty(text_shape, dtype=dtype) for _ in range(2)]
+        patch = pipe.transformer.config.patch_size
+        tokens = latents.shape[2] // patch[0] * (latents.shape[3] // patch[1]) * (latents.shape[4] // patch[2])
+        expand = pipe.config.get("expand_timesteps", False)
+        timestep = torch.full((1, tokens) if expand else (1,), TRACED_TIMESTEP)
+        scale = model.call["guidance_scale"]
+
+        def predict(z: Tensor, differentiate: bool) -> Tensor:
+            with torch.set_grad_enabled(differentiate and torch.is_grad_enabled()):
+                x = z.to(dtype)
+                cond, uncond = (pipe.transformer(hidden_states=x, timestep=timestep, encoder_hidden_states=e,
+                                                 return_dict=False)[0] for e in embeds)
+                return _cfg(uncond, cond, scale)
+
+        return predict
+
 
 class HunyuanVideoAdapter(PipelineAdapter):
     """``HunyuanVideoPipeline``: latents ``[B, C, F, h, w]``, flow matching, the distilled guidance
@@ -260,6 +317,23 @@ class HunyuanVideoAdapter(PipelineAdapter):
 
     def latents_shape(self, pipe, args):
         return _channels_first_shape(pipe, args, self.temporal_compression(pipe))
+
+    def traced_prediction(self, pipe, model, latents, text_shape, dtype):
+        """Guidance-distilled: one call a step with the guidance scale as an input (``true_cfg_scale``
+        1 by default: no negative call), a pooled text embedding and a text mask."""
+        embeds = torch.empty(text_shape, dtype=dtype)
+        mask = torch.ones(text_shape[:2], dtype=torch.long)
+        pooled = torch.empty(1, pipe.transformer.config.pooled_projection_dim, dtype=dtype)
+        guidance = torch.full((1,), model.call["guidance_scale"] * 1000.0, dtype=dtype)
+        timestep = torch.full((1,), TRACED_TIMESTEP)
+
+        def predict(z: Tensor, differentiate: bool) -> Tensor:
+            with torch.set_grad_enabled(differentiate and torch.is_grad_enabled()):
+                return pipe.transformer(hidden_states=z.to(dtype), timestep=timestep.to(z.dtype),
+                                        encoder_hidden_states=embeds, encoder_attention_mask=mask,
+                                        pooled_projections=pooled, guidance=guidance, return_dict=False)[0].float()
+
+        return predict
 
     def context_parallel_plan(self, denoiser):
         """HunyuanVideo's plan, written as diffusers writes ``_cp_plan``: the rotary tables of the
@@ -319,6 +393,35 @@ class LTXAdapter(PipelineAdapter):
 
     def temporal_compression(self, pipe):
         return int(pipe.vae_temporal_compression_ratio)
+
+    def spatial_compression(self, pipe):
+        return int(pipe.vae_spatial_compression_ratio)
+
+    def traced_prediction(self, pipe, model, latents, text_shape, dtype):
+        """One call of the unconditional and conditional halves as a batch of two, on the packed
+        latent tokens, with the latent grid's size and the rope scale of the frame rate."""
+        embeds = torch.empty(2, *text_shape[1:], dtype=dtype)
+        mask = torch.ones(2, text_shape[1], dtype=torch.long)
+        timestep = torch.full((2,), TRACED_TIMESTEP)
+        frames, height, width = latents.shape[2:]
+        r, s = model.temporal_compression, model.spatial_compression
+        rope_scale = (r / model.fps, s, s)
+        scale = model.call["guidance_scale"]
+
+        def predict(z: Tensor, differentiate: bool) -> Tensor:
+            with torch.set_grad_enabled(differentiate and torch.is_grad_enabled()):
+                x = torch.cat([z] * 2).to(dtype)
+                out = pipe.transformer(hidden_states=x, encoder_hidden_states=embeds, timestep=timestep,
+                                       encoder_attention_mask=mask, num_frames=frames, height=height, width=width,
+                                       rope_interpolation_scale=rope_scale, return_dict=False)[0]
+                uncond, cond = out.chunk(2)
+                return _cfg(uncond, cond, scale)
+
+        return predict
+
+    def traced_sample(self, latents):
+        """The tokens of ``[B, C, F, h, w]`` latents with patch size 1: ``[B, F h w, C]``."""
+        return latents.flatten(2).transpose(1, 2)
 
     def call_geometry(self, pipe, args, latents):
         r = self.temporal_compression(pipe)
@@ -462,6 +565,8 @@ class LTX2Adapter(LTXAdapter):
     """
 
     name = "LTX-2"
+    # none: its denoiser's call carries the audio stream, which the cost model does not trace
+    traced_prediction = PipelineAdapter.traced_prediction
 
     def context_parallel_plan(self, denoiser):
         """LTX-2's plan, written as diffusers writes ``_cp_plan``: the video tokens split at the
@@ -652,22 +757,22 @@ def register_adapter(pipeline_class: type, adapter: PipelineAdapter) -> None:
     _REGISTRY[pipeline_class] = adapter
 
 
+#: The adapters by class name: what a registry entry's ``adapter`` names.
+ADAPTERS: dict[str, type[PipelineAdapter]] = {cls.__name__: cls for cls in (
+    CogVideoXAdapter, WanAdapter, HunyuanVideoAdapter, LTXAdapter, HunyuanVideo15Adapter, LTX2Adapter)}
+
+
 def _register_defaults() -> None:
+    """Each registry entry's adapter (one of a kind) for its pipeline class, where diffusers has it."""
     import diffusers
 
-    for cls_name, adapter in (
-        ("CogVideoXPipeline", CogVideoXAdapter()),
-        ("CogVideoXImageToVideoPipeline", CogVideoXAdapter()),
-        ("WanPipeline", WanAdapter()),
-        ("LTXPipeline", LTXAdapter()),
-        ("HunyuanVideoPipeline", HunyuanVideoAdapter()),
-        ("HunyuanVideo15Pipeline", HunyuanVideo15Adapter()),
-        ("HunyuanVideo15ImageToVideoPipeline", HunyuanVideo15Adapter()),
-        ("LTX2Pipeline", LTX2Adapter()),
-    ):
-        cls = getattr(diffusers, cls_name, None)
+    adapters: dict[str, PipelineAdapter] = {}
+    for model in MODELS.values():
+        if model.adapter is None:
+            continue
+        cls = getattr(diffusers, model.pipeline, None)
         if cls is not None and cls not in _REGISTRY:
-            _REGISTRY[cls] = adapter
+            _REGISTRY[cls] = adapters.setdefault(model.adapter, ADAPTERS[model.adapter]())
 
 
 def supported_pipelines() -> list[str]:
