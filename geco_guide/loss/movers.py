@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -266,6 +266,67 @@ def _floor(depth: Tensor, K: Tensor) -> Tensor:
     return FLOOR_PX * depth / (0.5 * (K[:, 0, 0] + K[:, 1, 1]))
 
 
+@dataclass
+class _FitRule:
+    """How the movers' rigid motions are fitted: RANSAC's ``rigid_tolerance``, ``min_inliers`` and
+    ``iterations`` (:func:`~geco_guide.geometry.ransac_rigid`), drawing from ``generator``."""
+
+    rigid_tolerance: float
+    min_inliers: float
+    iterations: int
+    generator: torch.Generator
+
+
+@dataclass
+class _Clip:
+    """One clip's inputs to the fit, detached on the CPU: its ``index`` in the batch, ``flow [P, 2,
+    H, W]`` (float64, non-finite values 0), ``covisible [P, H, W]``, ``masks [S, H, W]``, its
+    movers' ``labels [S, H, W]`` (:func:`link_movers`) and ``depth [S, H, W]``, ``K [S, 3, 3]``,
+    ``extrinsics [S, 3, 4]`` in float64."""
+
+    index: int
+    flow: Tensor
+    covisible: Tensor
+    masks: Tensor
+    labels: Tensor
+    depth: Tensor
+    K: Tensor
+    extrinsics: Tensor
+
+
+@dataclass
+class _Matches:
+    """The masked source pixels of every pair of a clip, ``N`` of them, and their 3-D matches:
+    ``pixels`` (flat over ``[P, H, W]``), ``pair``, ``grid [N, 2]`` (x, y), ``flow [N, 2]``,
+    ``x_src`` / ``x_tgt [N, 3]``, ``valid`` (a covisible match landing wholly on a mask), ``limit``
+    (the inlier distance), ``camera_flow [N, 2]`` (the flow the camera's motion alone gives) and
+    ``mover`` (each pixel's mover)."""
+
+    pixels: Tensor
+    pair: Tensor
+    grid: Tensor
+    flow: Tensor
+    x_src: Tensor
+    x_tgt: Tensor
+    valid: Tensor
+    limit: Tensor
+    camera_flow: Tensor
+    mover: Tensor
+
+
+@dataclass
+class _Solved:
+    """What the rigid movers leave to :func:`solve_motions`, clip after clip: the ``entries`` ``(b,
+    p, k)``, their source ``boxes`` and ``target_boxes``, the ``pixels`` each is solved on (flat
+    over ``[B, P, H, W]``) and the ``entry`` of each of those pixels."""
+
+    entries: list[tuple[int, int, int]] = field(default_factory=list)
+    boxes: list[tuple[int, int, int, int]] = field(default_factory=list)
+    target_boxes: list[tuple[int, int, int, int] | None] = field(default_factory=list)
+    pixels: list[Tensor] = field(default_factory=list)
+    entry: list[Tensor] = field(default_factory=list)
+
+
 def fit_movers(masks: Tensor, geometry: SceneGeometry, correspondences: Correspondences, pairs: Sequence[tuple[int, int]],
                *, covisibility_threshold: float = 0.5, rigid_tolerance: float = RIGID_TOLERANCE,
                min_inliers: float = MIN_INLIERS, iterations: int = RANSAC_ITERATIONS, seed: int = 0) -> MoverFit:
@@ -284,96 +345,12 @@ def fit_movers(masks: Tensor, geometry: SceneGeometry, correspondences: Correspo
         :class:`MoverFit` (on the masks' device), computed without gradient.
     """
     pairs = list(pairs)
-    batch, _, height, width = masks.shape
-    num_pairs = len(pairs)
-    generator = torch.Generator().manual_seed(seed)
-    src = [i for i, _ in pairs]
-    tgt = [j for _, j in pairs]
-    labels, assignments, verdicts, fractions = [], [], [], []
-    entries: list[tuple[int, int, int]] = []
-    boxes: list[tuple[int, int, int, int]] = []
-    target_boxes: list[tuple[int, int, int, int] | None] = []
-    solve_pixels, solve_entry = [], []
-    with torch.no_grad():
-        for b in range(batch):
-            part = slice(b * num_pairs, (b + 1) * num_pairs)
-            flow = correspondences.flow[part].detach().double().cpu()
-            flow = torch.where(torch.isfinite(flow), flow, torch.zeros_like(flow))
-            covisible = correspondences.covisibility[part].detach().cpu() > covisibility_threshold
-            clip_masks = masks[b].cpu()
-            clip_labels = link_movers(clip_masks, flow, pairs)
-            num_movers = int(clip_labels.max())
-            depth = geometry.depth[b].detach().double().cpu()
-            K = geometry.intrinsics[b].detach().double().cpu()
-            extr = geometry.extrinsics[b].detach().double().cpu()
-            source_labels = clip_labels[src]  # [P, H, W]
-            pixels = (source_labels > 0).flatten().nonzero()[:, 0]  # the masked source pixels of every pair
-            assignment = torch.where(clip_masks[src], -1, 0).long()
-            if len(pixels) == 0:  # no mover is any pair's source
-                labels.append(clip_labels)
-                assignments.append(assignment)
-                verdicts.append(torch.zeros(num_movers, dtype=torch.bool))
-                fractions.append(torch.full((num_movers,), math.nan, dtype=torch.float64))
-                continue
-            pair = pixels // (height * width)
-            x_src, x_tgt, valid = point_matches(depth[src], depth[tgt], K[src], K[tgt], extr[src], extr[tgt], flow, pixels)
-            flow_px = torch.stack((flow[:, 0].flatten()[pixels], flow[:, 1].flatten()[pixels]), -1)
-            rest = pixels % (height * width)
-            grid = torch.stack((rest % width, rest // width), -1).double()
-            landing = grid + flow_px
-            # landing wholly on a mask (no tap off it, as lands_on_mask tests): no blend with the background
-            on_mask = _bilinear_at(clip_masks[tgt].double(), pair, landing[:, 0], landing[:, 1]) >= 1.0 - MASK_TOUCH_WEIGHT
-            valid &= covisible.flatten()[pixels] & on_mask
-            displacement = (x_tgt - x_src).norm(dim=-1)
-            limit = torch.maximum(rigid_tolerance * displacement, _floor(depth[src].flatten()[pixels], K[src][pair]))
-            camera_flow = _to_pixels(x_src, K[tgt][pair], extr[tgt][pair]) - grid
-            mover_of = source_labels.flatten()[pixels]
-            explained = torch.zeros(num_movers + 1, dtype=torch.float64)
-            matched = torch.zeros(num_movers + 1, dtype=torch.float64)
-            passed = []
-            for p in range(num_pairs):
-                for k in range(1, num_movers + 1):
-                    mine = (pair == p) & (mover_of == k)
-                    usable = valid & mine
-                    count = int(usable.sum())
-                    if count < MIN_MATCHES:
-                        continue
-                    rotation, translation, inliers, sampled = ransac_rigid(
-                        x_src[usable], x_tgt[usable], limit[usable], iterations, generator)
-                    explained[k] += float(inliers.sum())
-                    matched[k] += count
-                    if sampled < min_inliers or float(inliers.float().mean()) < min_inliers:
-                        continue
-                    moved = x_src[mine] @ rotation.T + translation
-                    error = (moved - x_tgt[mine]).norm(dim=-1)[usable[mine]]
-                    best = torch.zeros_like(usable)
-                    best[usable] = inliers & (error <= TIGHT_MEDIANS * error[inliers].median())
-                    # a masked pixel whose flow the camera explains better is background caught by the mask
-                    own_flow = _to_pixels(moved, K[tgt[p]].expand(len(moved), 3, 3), extr[tgt[p]].expand(len(moved), 3, 4)) - grid[mine]
-                    camera = covisible.flatten()[pixels[mine]] & (
-                        (flow_px[mine] - camera_flow[mine]).norm(dim=-1) < (flow_px[mine] - own_flow).norm(dim=-1))
-                    passed.append((p, k, pixels[mine], camera, pixels[best]))
-            fraction = torch.where(matched > 0, explained / matched.clamp_min(1), torch.full_like(matched, math.nan))[1:]
-            rigid = (matched[1:] > 0) & (fraction >= min_inliers)
-            flat_assignment = assignment.flatten()
-            for p, k, mine, camera, solved_on in passed:
-                if not bool(rigid[k - 1]):
-                    continue
-                own = mine[~camera]
-                flat_assignment[own] = k
-                flat_assignment[mine[camera]] = 0
-                if len(own) == 0 or len(solved_on) < 3:
-                    continue  # the camera scores all its pixels
-                rows, cols = (own % (height * width)) // width, own % width
-                boxes.append((int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1))
-                target_boxes.append(_box(clip_labels[tgt[p]] == k, TARGET_MARGIN))
-                solve_pixels.append(solved_on + b * num_pairs * height * width)
-                solve_entry.append(torch.full((len(solved_on),), len(entries)))
-                entries.append((b, p, k))
-            labels.append(clip_labels)
-            assignments.append(assignment)
-            verdicts.append(rigid)
-            fractions.append(fraction)
+    rule = _FitRule(rigid_tolerance, min_inliers, iterations, torch.Generator().manual_seed(seed))
+    solved = _Solved()
+    with torch.no_grad():  # the clips in order: RANSAC draws from one generator
+        clips = [_fit_clip(_clip_inputs(b, masks, geometry, correspondences, pairs, covisibility_threshold), pairs,
+                           rule, solved) for b in range(masks.shape[0])]
+    labels, assignments, verdicts, fractions = zip(*clips)
     width_k = max((len(v) for v in verdicts), default=0)
 
     def padded(rows: list[Tensor], fill: Any) -> Tensor:
@@ -385,8 +362,124 @@ def fit_movers(masks: Tensor, geometry: SceneGeometry, correspondences: Correspo
     device = masks.device
     return MoverFit(labels=torch.stack(labels).to(device), assignment=torch.stack(assignments).to(device),
                     rigid=padded(verdicts, False), inlier_fraction=padded(fractions, math.nan), pairs=pairs,
-                    entries=entries, boxes=boxes, target_boxes=target_boxes, solve_pixels=joined(solve_pixels).to(device),
-                    solve_entry=joined(solve_entry).to(device))
+                    entries=solved.entries, boxes=solved.boxes, target_boxes=solved.target_boxes,
+                    solve_pixels=joined(solved.pixels).to(device), solve_entry=joined(solved.entry).to(device))
+
+
+def _clip_inputs(b: int, masks: Tensor, geometry: SceneGeometry, correspondences: Correspondences,
+                 pairs: list[tuple[int, int]], covisibility_threshold: float) -> _Clip:
+    """Clip ``b``'s inputs to the fit (:class:`_Clip`), its movers linked over its pairs."""
+    num_pairs = len(pairs)
+    part = slice(b * num_pairs, (b + 1) * num_pairs)
+    flow = correspondences.flow[part].detach().double().cpu()
+    flow = torch.where(torch.isfinite(flow), flow, torch.zeros_like(flow))
+    covisible = correspondences.covisibility[part].detach().cpu() > covisibility_threshold
+    clip_masks = masks[b].cpu()
+    return _Clip(b, flow, covisible, clip_masks, link_movers(clip_masks, flow, pairs),
+                 geometry.depth[b].detach().double().cpu(), geometry.intrinsics[b].detach().double().cpu(),
+                 geometry.extrinsics[b].detach().double().cpu())
+
+
+def _fit_clip(clip: _Clip, pairs: list[tuple[int, int]], rule: _FitRule,
+              solved: _Solved) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One clip's fit: its mover ``labels [S, H, W]``, the ``assignment [P, H, W]`` of its pairs'
+    source pixels (-1 left out, 0 the camera, ``k`` mover ``k``), each mover's ``rigid`` verdict and
+    inlier ``fraction`` ``[movers]``; its rigid movers' solves are added to ``solved``."""
+    num_movers = int(clip.labels.max())
+    assignment = torch.where(clip.masks[[i for i, _ in pairs]], -1, 0).long()
+    matches = _matches(clip, pairs, rule.rigid_tolerance)
+    if matches is None:  # no mover is any pair's source
+        return (clip.labels, assignment, torch.zeros(num_movers, dtype=torch.bool),
+                torch.full((num_movers,), math.nan, dtype=torch.float64))
+    explained, matched, passed = _rigid_motions(clip, matches, pairs, num_movers, rule)
+    fraction = torch.where(matched > 0, explained / matched.clamp_min(1), torch.full_like(matched, math.nan))[1:]
+    rigid = (matched[1:] > 0) & (fraction >= rule.min_inliers)
+    _assign_rigid(clip, [entry for entry in passed if bool(rigid[entry[1] - 1])], pairs, assignment, solved)
+    return clip.labels, assignment, rigid, fraction
+
+
+def _matches(clip: _Clip, pairs: list[tuple[int, int]], rigid_tolerance: float) -> _Matches | None:
+    """The masked source pixels of the clip's pairs and their 3-D matches (:class:`_Matches`),
+    ``None`` where no pair's source holds a mover."""
+    src = [i for i, _ in pairs]
+    tgt = [j for _, j in pairs]
+    height, width = clip.masks.shape[-2:]
+    depth, K, extr, flow = clip.depth, clip.K, clip.extrinsics, clip.flow
+    source_labels = clip.labels[src]  # [P, H, W]
+    pixels = (source_labels > 0).flatten().nonzero()[:, 0]  # the masked source pixels of every pair
+    if len(pixels) == 0:
+        return None
+    pair = pixels // (height * width)
+    x_src, x_tgt, valid = point_matches(depth[src], depth[tgt], K[src], K[tgt], extr[src], extr[tgt], flow, pixels)
+    flow_px = torch.stack((flow[:, 0].flatten()[pixels], flow[:, 1].flatten()[pixels]), -1)
+    rest = pixels % (height * width)
+    grid = torch.stack((rest % width, rest // width), -1).double()
+    landing = grid + flow_px
+    # landing wholly on a mask (no tap off it, as lands_on_mask tests): no blend with the background
+    on_mask = _bilinear_at(clip.masks[tgt].double(), pair, landing[:, 0], landing[:, 1]) >= 1.0 - MASK_TOUCH_WEIGHT
+    valid &= clip.covisible.flatten()[pixels] & on_mask
+    displacement = (x_tgt - x_src).norm(dim=-1)
+    limit = torch.maximum(rigid_tolerance * displacement, _floor(depth[src].flatten()[pixels], K[src][pair]))
+    camera_flow = _to_pixels(x_src, K[tgt][pair], extr[tgt][pair]) - grid
+    return _Matches(pixels, pair, grid, flow_px, x_src, x_tgt, valid, limit, camera_flow,
+                    source_labels.flatten()[pixels])
+
+
+def _rigid_motions(clip: _Clip, m: _Matches, pairs: list[tuple[int, int]], num_movers: int,
+                   rule: _FitRule) -> tuple[Tensor, Tensor, list[tuple[int, int, Tensor, Tensor, Tensor]]]:
+    """Each mover's rigid motion in each pair (RANSAC over its valid matches): the inliers each
+    mover's fits ``explained`` and the matches they ``matched`` (``[movers + 1]``, 0 unused), and
+    per fit that passed ``(p, k, its pixels, whether the camera explains each better, the pixels
+    it is solved on)``."""
+    tgt = [j for _, j in pairs]
+    explained = torch.zeros(num_movers + 1, dtype=torch.float64)
+    matched = torch.zeros(num_movers + 1, dtype=torch.float64)
+    passed = []
+    for p in range(len(pairs)):
+        for k in range(1, num_movers + 1):
+            mine = (m.pair == p) & (m.mover == k)
+            usable = m.valid & mine
+            count = int(usable.sum())
+            if count < MIN_MATCHES:
+                continue
+            rotation, translation, inliers, sampled = ransac_rigid(
+                m.x_src[usable], m.x_tgt[usable], m.limit[usable], rule.iterations, rule.generator)
+            explained[k] += float(inliers.sum())
+            matched[k] += count
+            if sampled < rule.min_inliers or float(inliers.float().mean()) < rule.min_inliers:
+                continue
+            moved = m.x_src[mine] @ rotation.T + translation
+            error = (moved - m.x_tgt[mine]).norm(dim=-1)[usable[mine]]
+            best = torch.zeros_like(usable)
+            best[usable] = inliers & (error <= TIGHT_MEDIANS * error[inliers].median())
+            # a masked pixel whose flow the camera explains better is background caught by the mask
+            own_flow = _to_pixels(moved, clip.K[tgt[p]].expand(len(moved), 3, 3),
+                                  clip.extrinsics[tgt[p]].expand(len(moved), 3, 4)) - m.grid[mine]
+            camera = clip.covisible.flatten()[m.pixels[mine]] & (
+                (m.flow[mine] - m.camera_flow[mine]).norm(dim=-1) < (m.flow[mine] - own_flow).norm(dim=-1))
+            passed.append((p, k, m.pixels[mine], camera, m.pixels[best]))
+    return explained, matched, passed
+
+
+def _assign_rigid(clip: _Clip, fits: list[tuple[int, int, Tensor, Tensor, Tensor]], pairs: list[tuple[int, int]],
+                  assignment: Tensor, solved: _Solved) -> None:
+    """Give the pixels of the rigid movers' ``fits`` to them in ``assignment`` (those the camera
+    explains better to the camera) and add each fit with pixels of its own to ``solved``."""
+    num_pairs = len(pairs)
+    height, width = clip.masks.shape[-2:]
+    flat_assignment = assignment.flatten()
+    for p, k, mine, camera, solved_on in fits:
+        own = mine[~camera]
+        flat_assignment[own] = k
+        flat_assignment[mine[camera]] = 0
+        if len(own) == 0 or len(solved_on) < 3:
+            continue  # the camera scores all its pixels
+        rows, cols = (own % (height * width)) // width, own % width
+        solved.boxes.append((int(rows.min()), int(rows.max()) + 1, int(cols.min()), int(cols.max()) + 1))
+        solved.target_boxes.append(_box(clip.labels[pairs[p][1]] == k, TARGET_MARGIN))
+        solved.pixels.append(solved_on + clip.index * num_pairs * height * width)
+        solved.entry.append(torch.full((len(solved_on),), len(solved.entries)))
+        solved.entries.append((clip.index, p, k))
 
 
 def solve_motions(fit: MoverFit, depth_src: Tensor, depth_tgt: Tensor, K_src: Tensor, K_tgt: Tensor, extr_src: Tensor,
