@@ -25,7 +25,7 @@ from ..estimators import (
     tiny_random_decoder,
     with_config_key,
 )
-from ..families import DEFAULT_MODEL, VideoModel, model_named
+from ..families import DEFAULT_MODEL, VideoModel, model_named, scheduler_names
 from ..estimators.loading import (
     CHECKPOINT_SUFFIXES,
     WeightsNotFoundError,
@@ -267,9 +267,9 @@ def load_video_pipeline(model: ModelConfig, scheduler: str | None = None,
     return LoadedPipeline(pipe.to(resolve_device(model.device)), entry, note)
 
 
-#: ``sampling.scheduler`` -> the scheduler class it builds from the checkpoint's scheduler config
-#: (CogVideoX's: the paper samples with deterministic DDIM, and CogVideoX-5B ships DPM).
-SCHEDULERS = {"ddim": "CogVideoXDDIMScheduler", "dpm": "CogVideoXDPMScheduler"}
+#: The ``sampling.scheduler`` names some model samples with besides its checkpoint's own (each
+#: registry entry's ``schedulers`` names the classes they build for it).
+SCHEDULERS = scheduler_names()
 #: ``sampling.scheduler`` that keeps the checkpoint's own scheduler (the default of every family
 #: but CogVideoX's, whose default is the paper's DDIM)
 CHECKPOINT_SCHEDULER = "checkpoint"
@@ -277,25 +277,25 @@ CHECKPOINT_SCHEDULER = "checkpoint"
 
 def scheduler_class(name: str | None, model: VideoModel) -> type | None:
     """The scheduler class ``sampling.scheduler`` names for ``model``, checked before its pipeline
-    loads: ``ddim`` / ``dpm`` (CogVideoX models only) CogVideoX's DDIM / DPM scheduler, built from
-    the checkpoint's scheduler config once the pipeline is loaded; ``checkpoint`` or ``None``:
+    loads: a name of the model's registry ``schedulers`` (CogVideoX's ``ddim`` / ``dpm``), its class
+    built from the checkpoint's scheduler config once the pipeline is loaded; ``checkpoint`` or ``None``:
     ``None``, the checkpoint's own scheduler, untouched. The pipeline itself never replaces a
     scheduler.
 
     Raises:
-        ValueError: (one line) an unknown name, or CogVideoX's scheduler for another family.
+        ValueError: (one line) an unknown name, or another family's scheduler.
     """
     if name in (None, CHECKPOINT_SCHEDULER):
         return None
     if name not in SCHEDULERS:
         raise ValueError(f"sampling.scheduler must be one of {sorted(SCHEDULERS)}, {CHECKPOINT_SCHEDULER} or null, "
                          f"got {name!r}")
-    if not model.cogvideox_vae:
-        raise ValueError(f"sampling.scheduler={name} is CogVideoX's; {model.name} samples with its own scheduler: "
+    if name not in model.schedulers:
+        raise ValueError(f"sampling.scheduler={name} is another family's; {model.name} samples with its own scheduler: "
                          f"use sampling.scheduler={CHECKPOINT_SCHEDULER}")
     import diffusers
 
-    return getattr(diffusers, SCHEDULERS[name])
+    return getattr(diffusers, model.schedulers[name])
 
 
 def uses_tiny_decoder(guidance: GuidanceConfig, searching: bool = False) -> bool:
