@@ -2,23 +2,28 @@
 ``tiny-random`` ids, GeCo-Eval's ``--preset tiny``, the tests and the runnable examples.
 
 :func:`tiny_pipeline` returns a ready :class:`GeCoCogVideoXPipeline` whose every component is
-built here from a seed: a word-level T5-style tokenizer made with the ``tokenizers`` library, a
-tiny ``T5EncoderModel``, ``CogVideoXTransformer3DModel`` and ``AutoencoderKLCogVideoX`` (temporal
-compression 4, spatial 8, so the real frame <-> latent mapping is exercised), the DDIM scheduler
-with the CogVideoX-5b scheduler settings; :func:`tiny_estimators` the tiny random VGGT (or, with
-``geometry="da3"``, Depth Anything 3: the ``tiny-random-da3`` id) and UFM.
-Every family of the model registry (:mod:`geco_guide.families`) has its builder here, which the
-registry names (:func:`tiny_video_components`). Nothing is downloaded. The outputs are noise-like
+built here from a seed (:func:`tiny_cogvideox_components`: a word-level T5-style tokenizer made
+with the ``tokenizers`` library, a tiny T5 encoder, the default model's transformer and VAE at a
+few pixels, with its temporal compression 4 and spatial 8, so the real frame <-> latent mapping
+is exercised, and the paper's DDIM scheduler); :func:`tiny_estimators` the tiny random VGGT (or,
+with ``geometry="da3"``, Depth Anything 3: the ``tiny-random-da3`` id) and UFM.
+Every family of the model registry (:mod:`geco_guide.families`) has its builder in
+:mod:`.pipelines`, which its entry names (:func:`tiny_video_components`), and its entry says what
+its tiny calls need (:func:`tiny_call_kwargs`). Nothing is downloaded. The outputs are noise-like
 videos; only the mechanics are real.
 """
 
 from __future__ import annotations
 
+import copy
+import inspect
 from typing import Any
 
 from ..estimators import tiny_estimators, tiny_random_decoder
-from ..families import VideoModel
+from ..families import VideoModel, models_of_pipeline
+from ..sampler.adapters import adapter_for
 from ..sampler.sampling import SamplingConfig, fit_to_model
+from . import pipelines
 from .components import (
     TINY_ANCHORS,
     TINY_HEIGHT,
@@ -65,11 +70,9 @@ def tiny_video_components(model: VideoModel, seed: int = 0) -> dict[str, Any]:
     """What ``model``'s tiny random stand-in (the builder its registry entry names), seeded with
     ``seed``, is built from: its components and the settings of its config that its class takes
     (Wan 2.2's ``boundary_ratio``, ``expand_timesteps``): what ``model.id=tiny-random`` loads."""
-    import inspect
-
     if model.tiny is None:
         raise ValueError(f"{model.name} has no tiny random stand-in")
-    pipe = globals()[model.tiny](seed)
+    pipe = getattr(pipelines, model.tiny)(seed)
     accepted = inspect.signature(type(pipe).__init__).parameters
     settings = {key: value for key, value in pipe.config.items() if key in accepted and key not in pipe.components}
     return {**pipe.components, **settings}
@@ -83,9 +86,10 @@ def tiny_sampling(model: VideoModel) -> dict[str, int]:
     return {"num_frames": fitted.num_frames, "height": fitted.height, "width": fitted.width}
 
 
-def tiny_guidance_decoder(variant: str = "cogvideox", seed: int = 0, latent_channels: int = TinySizes.latent_channels):
-    """A tiny random :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` of ``variant`` for the
-    tiny models' latents (their channel count; the published variants take 16 or more)."""
+def tiny_guidance_decoder(variant: str | None = None, seed: int = 0, latent_channels: int = TinySizes.latent_channels):
+    """A tiny random :class:`~geco_guide.estimators.tiny_decoder.TinyDecoder` of ``variant`` (default:
+    the default model's) for the tiny models' latents (their channel count; the published variants
+    take 16 or more)."""
     return tiny_random_decoder(variant, seed, latent_channels)
 
 
@@ -147,20 +151,34 @@ TINY_CALL_KWARGS = dict(
 
 def tiny_call_extras(pipeline: str) -> dict[str, Any]:
     """What the calls of the tiny stand-in of the pipeline class named ``pipeline`` need beyond the
-    config's sampling: HunyuanVideo's prompt template, bare (``"{}"``: the tiny tokenizer cannot
-    crop the real template's system text)."""
-    if pipeline.startswith("HunyuanVideo") and not pipeline.startswith("HunyuanVideo15"):
-        return {"prompt_template": {"template": "{}", "crop_start": 0}}
-    return {}
+    config's sampling: its registry entry's ``tiny_call`` (HunyuanVideo's bare ``"{}"`` prompt
+    template: the tiny tokenizer cannot crop the real template's system text)."""
+    models = models_of_pipeline([pipeline])
+    return copy.deepcopy(models[0].tiny_call) if models else {}
+
+
+def _stood_for(pipe) -> VideoModel | None:
+    """The registry entry the tiny stand-in ``pipe`` stands for: one of its pipeline class (or a
+    base class); where that class's models want different sizes, the one of its VAE's compression
+    (a Wan with the Wan 2.2 16x VAE)."""
+    models = models_of_pipeline(cls.__name__ for cls in type(pipe).__mro__)
+    if len({model.size_multiple for model in models}) > 1:
+        scale = adapter_for(pipe).spatial_compression(pipe)
+        models = [model for model in models if model.spatial_compression == scale] or models
+    return models[0] if models else None
 
 
 def tiny_call_kwargs(pipe, **changes: Any) -> dict[str, Any]:
-    """Call arguments that fit the tiny pipelines: 17 frames of 32x48, 4 steps, short prompts
-    (32x64 for LTX and LTX-2, which want multiples of 32, and for a Wan with the Wan 2.2 16x VAE;
-    plus the conditioning image for image-to-video, the bare ``"{}"`` prompt template for Hunyuan,
-    HunyuanVideo 1.5's calls without ``max_sequence_length`` (and without a size for its
-    image-to-video pipeline, which takes it from the image), and spatio-temporal guidance on the
-    tiny LTX-2 transformer's last block, which its default block list does not name)."""
+    """Call arguments that fit the tiny pipelines: 17 frames of 32x48, 4 steps, short prompts, of
+    them those its call takes (HunyuanVideo 1.5's takes no ``max_sequence_length``, its
+    image-to-video pipeline no size: it comes from the image); the size fitted to the registry
+    entry it stands for (:func:`tiny_sampling`: 32x64 where the model wants multiples of 32), with
+    that entry's ``tiny_call`` (:func:`tiny_call_extras`); plus the conditioning image where its
+    call takes one, and spatio-temporal guidance on the tiny transformer's last block where its
+    call takes a block list (LTX-2's default list does not name the tiny one's blocks)."""
+    accepted = inspect.signature(pipe.__call__).parameters
+    takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in accepted.values())
+    model = _stood_for(pipe)
     kwargs: dict[str, Any] = dict(
         num_frames=TINY_NUM_FRAMES,
         height=TINY_HEIGHT,
@@ -168,19 +186,14 @@ def tiny_call_kwargs(pipe, **changes: Any) -> dict[str, Any]:
         num_inference_steps=4,
         max_sequence_length=TINY_MAX_SEQUENCE_LENGTH,
     )
-    name = type(pipe).__name__
-    if "ImageToVideo" in name:
+    if model is not None:
+        kwargs.update(tiny_sampling(model))
+    if "image" in accepted:
         kwargs["image"] = tiny_image(0)
-    if name.startswith("HunyuanVideo15"):
-        del kwargs["max_sequence_length"]  # it pads its prompts to its own lengths
-        if "ImageToVideo" in name:  # the size comes from the image
-            del kwargs["height"], kwargs["width"]
-    kwargs.update(tiny_call_extras(type(pipe).__name__))
-    if name.startswith("LTX"):
-        kwargs["width"] = 64  # LTXPipeline wants multiples of 32
-    if name.startswith("LTX2"):
+    if "spatio_temporal_guidance_blocks" in accepted:
         kwargs["spatio_temporal_guidance_blocks"] = [pipe.transformer.config.num_layers - 1]
-    if name.startswith("Wan") and pipe.vae_scale_factor_spatial == 16:
-        kwargs["width"] = 64  # 16x VAE and 2x2 patches: multiples of 32
+    kwargs = {key: value for key, value in kwargs.items() if takes_any or key in accepted}
+    if model is not None:
+        kwargs.update(copy.deepcopy(model.tiny_call))
     kwargs.update(changes)
     return kwargs
