@@ -17,6 +17,7 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields, replace
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -353,71 +354,156 @@ def geco_from_geometry(
     if dynamic_masks is not None:
         masks, name = _given_masks(dynamic_masks, batch, num_frames, (height, width))
         masks, mask_source = masks.to(geometry.depth.device), mask_source or name
-
-    device = geometry.depth.device
-    src = torch.tensor([i for i, _ in pairs], device=device)
-    tgt = torch.tensor([j for _, j in pairs], device=device)
-
-    def gather(x: Tensor, index: Tensor) -> Tensor:
-        return x[:, index].reshape(batch * num_pairs, *x.shape[2:])
-
-    # Estimator outputs may hold NaN/inf (e.g. an overflow): such pixels and cameras count as
-    # invalid, so they neither turn the scores into NaN nor reach grid_sample or the gradient.
-    depth = _without_non_finite(geometry.depth)  # 0: no depth, never valid
-    intrinsics, extrinsics, usable = _usable_cameras(geometry.intrinsics, geometry.extrinsics)
-    depth_src, depth_tgt = gather(depth, src), gather(depth, tgt)
-    K_src, K_tgt = gather(intrinsics, src), gather(intrinsics, tgt)
-    src_to_tgt = relative_pose(gather(extrinsics, src), gather(extrinsics, tgt))
-    pair_usable = (gather(usable, src) & gather(usable, tgt))[:, None, None]  # [B*P, 1, 1]
-    flow = correspondences.flow.to(depth_src.dtype)
-    flow_finite = torch.isfinite(flow).all(dim=1)
-
-    rigid, rigid_valid = rigid_flow(depth_src, K_src, K_tgt, src_to_tgt)
-    motion = motion_residual(_without_non_finite(flow), rigid, K_src)
-    covisible = _without_non_finite(correspondences.covisibility) > config.covisibility_threshold
-    structure, structure_valid = structure_residual(
-        depth_src, depth_tgt, K_src, K_tgt, src_to_tgt, tau=config.occlusion_tau, edge_tau=config.depth_edge_tau,
-        keep_occluded=covisible if config.structure_occlusion == "covisibility" else None,
-    )
-    motion_valid = rigid_valid & covisible & flow_finite & pair_usable
-    structure_valid = structure_valid & pair_usable
-    if geometry.confidence is not None and config.confidence_percentile is not None:
-        confidence = _without_non_finite(geometry.confidence)  # 0: no prediction, never trusted
-        trusted = gather(confidence_mask(confidence, config.confidence_percentile), src)
-        motion_valid = motion_valid & trusted
-        structure_valid = structure_valid & trusted
+    view = _PairView.of(geometry, correspondences, pairs, config)
+    cues = _camera_cues(view, config)
     fit = None
-    if masks is not None and config.movers == "rigid":
-        clean = SceneGeometry(depth=depth, intrinsics=intrinsics, extrinsics=extrinsics)
-        clean_flow = Correspondences(_without_non_finite(flow), _without_non_finite(correspondences.covisibility))
-        fit = movers if isinstance(movers, MoverFit) else (movers or RefreshedMovers()).fit(
-            masks, clean, clean_flow, pairs, config.covisibility_threshold)
-        fit = fit.to(device)
-        # a pixel scored by a mover's motion is left to it; the camera scores the others
-        scored_by_camera = fit.assignment.flatten(0, 1) == 0
     if masks is not None:
-        masked_source, masked_target = gather(masks, src), gather(masks, tgt)
-        if fit is not None:
-            masked_source = ~scored_by_camera
-        motion_valid = motion_valid & ~masked_source & ~lands_on_mask(masked_target, _without_non_finite(flow))
-        structure_valid = structure_valid & ~masked_source & ~lands_on_mask(masked_target, rigid)
-    if fit is not None and fit.entries:
-        motion_ok, structure_ok = covisible & flow_finite & pair_usable, pair_usable.expand_as(covisible)
+        fit, cues = _masked_cues(view, cues, masks, movers, config)
+    return _result(view, cues, config, masks, mask_source, fit)
+
+
+@dataclass
+class _PairView:
+    """The clips' geometry and correspondences as the cues see them, per pair: ``B*P`` rows,
+    batch-major. Estimator outputs may hold NaN/inf (e.g. an overflow): such pixels and cameras
+    count as invalid (depth, flow and covisibility 0, cameras unusable), so they neither turn the
+    scores into NaN nor reach grid_sample or the gradient.
+
+    Attributes:
+        pairs, num_frames: the ``P`` pairs and the clips' ``S`` frames; src, tgt: ``[P]`` their
+            source and target frames (on the depth's device).
+        depth: ``[B, S, H, W]``; intrinsics, extrinsics: ``[B, S, 3, 3]`` / ``[B, S, 3, 4]``
+            (finite); usable: ``[B, S]`` the finite cameras.
+        depth_src, depth_tgt: ``[B*P, H, W]``; K_src, K_tgt: ``[B*P, 3, 3]``; extr_src,
+            extr_tgt: ``[B*P, 3, 4]``; src_to_tgt: ``[B*P, 4, 4]`` the relative pose.
+        pair_usable: ``[B*P, 1, 1]`` both cameras usable.
+        flow: ``[B*P, 2, H, W]`` (in the depth's dtype); flow_finite: ``[B*P, H, W]``;
+            covisibility: ``[B*P, H, W]``; covisible: above ``covisibility_threshold``.
+        rigid, rigid_valid: ``[B*P, 2, H, W]`` / ``[B*P, H, W]`` where the source pixels land
+            with the camera's motion alone.
+        trusted: ``[B*P, H, W]`` the source depth confidence passes ``confidence_percentile``;
+            ``None`` without confidence or percentile.
+    """
+
+    pairs: list[tuple[int, int]]
+    num_frames: int
+    src: Tensor
+    tgt: Tensor
+    depth: Tensor
+    intrinsics: Tensor
+    extrinsics: Tensor
+    depth_src: Tensor
+    depth_tgt: Tensor
+    K_src: Tensor
+    K_tgt: Tensor
+    extr_src: Tensor
+    extr_tgt: Tensor
+    src_to_tgt: Tensor
+    pair_usable: Tensor
+    flow: Tensor
+    flow_finite: Tensor
+    covisibility: Tensor
+    covisible: Tensor
+    rigid: Tensor
+    rigid_valid: Tensor
+    trusted: Tensor | None
+
+    @classmethod
+    def of(cls, geometry: SceneGeometry, correspondences: Correspondences, pairs: Sequence[tuple[int, int]],
+           config: GeCoLossConfig) -> _PairView:
+        device = geometry.depth.device
+        src = torch.tensor([i for i, _ in pairs], device=device)
+        tgt = torch.tensor([j for _, j in pairs], device=device)
+        gather = partial(_gather_pairs, num_pairs=len(pairs))
+        depth = _without_non_finite(geometry.depth)  # 0: no depth, never valid
+        intrinsics, extrinsics, usable = _usable_cameras(geometry.intrinsics, geometry.extrinsics)
+        depth_src, K_src, K_tgt = gather(depth, src), gather(intrinsics, src), gather(intrinsics, tgt)
+        extr_src, extr_tgt = gather(extrinsics, src), gather(extrinsics, tgt)
+        src_to_tgt = relative_pose(extr_src, extr_tgt)
+        flow = correspondences.flow.to(depth_src.dtype)
+        covisibility = _without_non_finite(correspondences.covisibility)
+        trusted = None
         if geometry.confidence is not None and config.confidence_percentile is not None:
-            motion_ok, structure_ok = motion_ok & trusted, structure_ok & trusted
-        motion, motion_valid, structure, structure_valid = _with_mover_cues(
-            fit, (motion, motion_valid, structure, structure_valid), (motion_ok, structure_ok), config,
-            depth_src, depth_tgt, K_src, K_tgt, gather(extrinsics, src), gather(extrinsics, tgt),
-            _without_non_finite(flow), covisible, gather(fit.labels, tgt))
-    fused, fused_valid = fuse_cues(motion, motion_valid, structure, structure_valid)
+            confidence = _without_non_finite(geometry.confidence)  # 0: no prediction, never trusted
+            trusted = gather(confidence_mask(confidence, config.confidence_percentile), src)
+        return cls(list(pairs), geometry.depth.shape[1], src, tgt, depth, intrinsics, extrinsics, depth_src,
+                   gather(depth, tgt), K_src, K_tgt, extr_src, extr_tgt, src_to_tgt,
+                   (gather(usable, src) & gather(usable, tgt))[:, None, None], _without_non_finite(flow),
+                   torch.isfinite(flow).all(dim=1), covisibility, covisibility > config.covisibility_threshold,
+                   *rigid_flow(depth_src, K_src, K_tgt, src_to_tgt), trusted)
+
+    def gather(self, x: Tensor, index: Tensor) -> Tensor:
+        """``x [B, S, ...]`` at the frames ``index [P]``: ``[B*P, ...]``."""
+        return _gather_pairs(x, index, num_pairs=len(self.pairs))
+
+
+def _gather_pairs(x: Tensor, index: Tensor, *, num_pairs: int) -> Tensor:
+    """``x [B, S, ...]`` at the frames ``index [P]``: ``[B*P, ...]``, batch-major."""
+    return x[:, index].reshape(x.shape[0] * num_pairs, *x.shape[2:])
+
+
+def _camera_cues(view: _PairView, config: GeCoLossConfig) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The pair maps ``(motion, motion_valid, structure, structure_valid)`` ``[B*P, H, W]`` of the
+    camera's motion alone: every pixel scored as static."""
+    motion = motion_residual(view.flow, view.rigid, view.K_src)
+    structure, structure_valid = structure_residual(
+        view.depth_src, view.depth_tgt, view.K_src, view.K_tgt, view.src_to_tgt, tau=config.occlusion_tau,
+        edge_tau=config.depth_edge_tau,
+        keep_occluded=view.covisible if config.structure_occlusion == "covisibility" else None,
+    )
+    motion_valid = view.rigid_valid & view.covisible & view.flow_finite & view.pair_usable
+    structure_valid = structure_valid & view.pair_usable
+    if view.trusted is not None:
+        motion_valid = motion_valid & view.trusted
+        structure_valid = structure_valid & view.trusted
+    return motion, motion_valid, structure, structure_valid
+
+
+def _masked_cues(view: _PairView, cues: tuple[Tensor, Tensor, Tensor, Tensor], masks: Tensor,
+                 movers: MoverFit | RefreshedMovers | None,
+                 config: GeCoLossConfig) -> tuple[MoverFit | None, tuple[Tensor, Tensor, Tensor, Tensor]]:
+    """The camera's ``cues`` with the dynamic ``masks [B, S, H, W]``: a masked source pixel, or
+    one whose flow or reprojection lands on a masked target pixel, left out; with
+    ``movers="rigid"``, the movers' fit (``movers``: reused or refreshed, fitted otherwise) and each
+    rigid mover's pixels scored against its own motion. Returns the fit (``None`` with ``drop``)
+    and the cues."""
+    motion, motion_valid, structure, structure_valid = cues
+    masked_source, masked_target = view.gather(masks, view.src), view.gather(masks, view.tgt)
+    fit = None
+    if config.movers == "rigid":
+        clean = SceneGeometry(depth=view.depth, intrinsics=view.intrinsics, extrinsics=view.extrinsics)
+        fit = movers if isinstance(movers, MoverFit) else (movers or RefreshedMovers()).fit(
+            masks, clean, Correspondences(view.flow, view.covisibility), view.pairs, config.covisibility_threshold)
+        fit = fit.to(view.depth.device)
+        # a pixel scored by a mover's motion is left to it; the camera scores the others
+        masked_source = fit.assignment.flatten(0, 1) != 0
+    motion_valid = motion_valid & ~masked_source & ~lands_on_mask(masked_target, view.flow)
+    structure_valid = structure_valid & ~masked_source & ~lands_on_mask(masked_target, view.rigid)
+    cues = (motion, motion_valid, structure, structure_valid)
+    if fit is not None and fit.entries:
+        motion_ok, structure_ok = view.covisible & view.flow_finite & view.pair_usable, view.pair_usable.expand_as(view.covisible)
+        if view.trusted is not None:
+            motion_ok, structure_ok = motion_ok & view.trusted, structure_ok & view.trusted
+        cues = _with_mover_cues(fit, cues, (motion_ok, structure_ok), config, view)
+    return fit, cues
+
+
+def _result(view: _PairView, cues: tuple[Tensor, Tensor, Tensor, Tensor], config: GeCoLossConfig, masks: Tensor | None,
+            mask_source: str | None, fit: MoverFit | None) -> GeCoResult:
+    """The :class:`GeCoResult` of the pair maps ``cues``: fused, averaged per frame, scored per
+    frame (a frame counts where :data:`MIN_UNMASKED_FRACTION` of it stays valid under ``masks``)
+    and over the clips, with the movers' scores of ``fit``."""
+    fused, fused_valid = fuse_cues(*cues)
+    batch, num_pairs = view.depth.shape[0], len(view.pairs)
+    height, width = view.depth.shape[-2:]
 
     def per_pair(x: Tensor) -> Tensor:
         return x.reshape(batch, num_pairs, height, width)
 
-    pair_maps = GeCoMaps(*(per_pair(x) for x in (motion, motion_valid, structure, structure_valid, fused, fused_valid)))
+    pair_maps = GeCoMaps(*(per_pair(x) for x in (*cues, fused, fused_valid)))
     frame_fields = []
     for name in CUES[1:] + CUES[:1]:  # motion, structure, fused: GeCoMaps field order
-        frame_fields.extend(_frame_average(*pair_maps.cue(name), src, num_frames))
+        frame_fields.extend(_frame_average(*pair_maps.cue(name), view.src, view.num_frames))
     frame_maps = GeCoMaps(*frame_fields)
 
     frame_scores, frame_has_valid, scalars = {}, {}, {}
@@ -437,7 +523,7 @@ def geco_from_geometry(
         motion=scalars["motion"],
         structure=scalars["structure"],
         fused=scalars["fused"],
-        pairs=list(pairs),
+        pairs=list(view.pairs),
         pair_maps=pair_maps,
         frame_maps=frame_maps,
         frame_scores=frame_scores,
@@ -463,18 +549,19 @@ def check_movers(config: GeCoLossConfig, has_masks: bool, movers: Any = None) ->
 
 
 def _with_mover_cues(fit: MoverFit, cues: tuple[Tensor, Tensor, Tensor, Tensor], usable: tuple[Tensor, Tensor],
-                     config: GeCoLossConfig, depth_src: Tensor, depth_tgt: Tensor, K_src: Tensor, K_tgt: Tensor,
-                     extr_src: Tensor, extr_tgt: Tensor, flow: Tensor, covisible: Tensor,
-                     target_labels: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                     config: GeCoLossConfig, view: _PairView) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The pair maps ``(motion, motion_valid, structure, structure_valid)`` ``[B*P, H, W]`` with
     each rigid mover's pixels scored against its own motion (:mod:`geco_guide.loss.movers`),
     computed in the mover's box of each pair alone.
 
     ``usable``: ``[B*P, H, W]`` where the motion cue may count (co-visible, finite flow, usable
     pair, trusted depth) and where the structure cue may (usable pair, trusted depth), as for the
-    static part; ``target_labels`` ``[B*P, H, W]``: the target frame's mover labels.
+    static part; ``view``: the pairs' geometry and flow (:class:`_PairView`).
     """
     motion_ok, structure_ok = usable
+    depth_src, depth_tgt, K_src, K_tgt = view.depth_src, view.depth_tgt, view.K_src, view.K_tgt
+    extr_src, extr_tgt, flow, covisible = view.extr_src, view.extr_tgt, view.flow, view.covisible
+    target_labels = view.gather(fit.labels, view.tgt)  # [B*P, H, W] the target frame's mover labels
     motion, motion_valid, structure, structure_valid = (x.clone() for x in cues)
     world = solve_motions(fit, depth_src, depth_tgt, K_src, K_tgt, extr_src, extr_tgt, flow).to(depth_src.dtype)
     num_pairs = len(fit.pairs)
