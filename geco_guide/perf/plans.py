@@ -22,7 +22,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from ..estimators import TINY_RANDOM
-from ..families import model_named
+from ..families import DEFAULT_MODEL, model_named
 from ..families.published import traced_models
 from ..loss.geco import frame_pairs
 from ..sampler.config import GuidanceConfig
@@ -208,7 +208,7 @@ def plan_estimates(models: Sequence[str] = tuple(KNOWN_MODELS), argv: Sequence[s
 
 
 def card_plan(gpu: str, mode: str, decoder: str, frames: int, height: int, width: int,
-              estimates: dict[str, Any] | None = None, model: str = "cogvideox-5b") -> dict[str, Any]:
+              estimates: dict[str, Any] | None = None, model: str = DEFAULT_MODEL) -> dict[str, Any]:
     """The plan ``memory_plan=auto`` picks for registry ``model`` on ``gpu`` (its memory from
     :data:`~.cards.GPU_SPECS`): without offload if one fits, else with model CPU offload; ``plan``
     ``None`` and the planner's line in ``reason`` where none fits either."""
