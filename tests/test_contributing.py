@@ -24,15 +24,16 @@ def test_every_path_the_guide_names_exists():
 
 
 def test_the_adapter_methods_and_registries_it_names_exist():
-    from geco_guide.estimators.tiny_decoder import VARIANTS  # noqa: F401
-    from geco_guide.families import FAMILIES, MODELS, VideoModel  # noqa: F401
+    from geco_guide.families import FAMILIES, MODELS, TINY_DECODERS, VideoModel  # noqa: F401
     from geco_guide.families.published import LEFT_OUT  # noqa: F401
     from geco_guide.sampler import adapters, register_adapter  # noqa: F401
     from geco_guide.sampler.sampling import fit_to_model  # noqa: F401
-    from geco_guide.tiny import tiny_call_extras, tiny_call_kwargs  # noqa: F401
+    from geco_guide.tiny import tiny_call_kwargs  # noqa: F401
 
-    for method in ("frames_first", "denormalize", "denoisers", "combine"):
+    for method in ("frames_first", "denormalize", "denoisers", "combine", "traced_prediction"):
         assert callable(getattr(adapters.PipelineAdapter, method))
-    assert callable(adapters._register_defaults)
-    for field in ("text_length", "image_to_video", "size_multiple", "frame_multiple", "tiny", "tiny_decoder"):
+    for name in ("WanAdapter", "LTXAdapter", "HunyuanVideo15Adapter", "LTX2Adapter"):
+        assert adapters.ADAPTERS[name].__name__ == name
+    for field in ("text_length", "image_to_video", "size_multiple", "frame_multiple", "tiny", "tiny_decoder",
+                  "adapter", "schedulers", "tiny_call"):
         assert field in VideoModel.__dataclass_fields__

@@ -21,6 +21,7 @@ from ..estimators.ufm import UFM, UFMConfig
 from ..estimators.vggt import VGGT, VGGTConfig
 from ..families import model_named
 from ..families.published import published_configs
+from ..sampler.diffusers_private import keeps_in_fp32
 from ..sampler.loading import cast_model
 
 __all__ = ["CALIBRATION_MODEL", "build_cost_pipeline", "build_full_size_components", "cast_as_loaded",
@@ -82,7 +83,7 @@ def cast_as_loaded(model: torch.nn.Module, dtype: torch.dtype) -> torch.nn.Modul
     its class keeps in float32 (``_keep_in_fp32_modules``: Wan's norms and time embedding, ...) stay
     float32. Returns ``model``."""
     torch.nn.Module.to(model, dtype)
-    keep = getattr(model, "_keep_in_fp32_modules", None) or ()
+    keep = keeps_in_fp32(model)
     for name, module in model.named_modules():
         if any(part in keep for part in name.split(".")):
             torch.nn.Module.to(module, torch.float32)

@@ -37,6 +37,7 @@ from ..estimators.tiny_decoder import TinyDecoder
 from ..loss.geco import GeCoLoss
 from .anchor_decode import AnchorDecode, plan_anchor_decode
 from .config import GuidanceConfig
+from .diffusers_private import supports_gradient_checkpointing
 from .dynamic import RefreshedMasks
 from .fast_decode import guidance_decode
 from .levels import NoiseLevels
@@ -73,7 +74,7 @@ def frozen(*modules: Any):
 @contextlib.contextmanager
 def gradient_checkpointing(model: Any, enable: bool):
     """Turn on the model's diffusers gradient checkpointing for the duration; restore on exit."""
-    if not enable or not getattr(model, "_supports_gradient_checkpointing", False) or model.is_gradient_checkpointing:
+    if not enable or not supports_gradient_checkpointing(model) or model.is_gradient_checkpointing:
         yield
         return
     model.enable_gradient_checkpointing()

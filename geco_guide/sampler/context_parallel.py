@@ -39,6 +39,14 @@ from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
 from .adapters import PipelineAdapter, adapter_for_class
+from .diffusers_private import (
+    active_attention_backend,
+    context_parallel_backends,
+    context_parallel_processes,
+    parallel_config,
+    set_parallel_config,
+    set_parallel_resolver,
+)
 from .module_hooks import register_hook
 from .process_collectives import SumOverProcesses
 
@@ -127,10 +135,8 @@ def check_attention_backend(differentiates: bool) -> None:
     """ValueError (one line) unless diffusers' active attention backend (``DIFFUSERS_ATTN_BACKEND``)
     splits a sequence, and, where the guidance ``differentiates`` the denoiser, has a backward
     through the split (the sage and NPU kernels have none)."""
-    from diffusers.models.attention_dispatch import _AttentionBackendRegistry
-
-    backend = _AttentionBackendRegistry.get_active_backend()[0].value
-    if backend not in _AttentionBackendRegistry._supports_context_parallel:
+    backend = active_attention_backend()
+    if backend not in context_parallel_backends():
         raise ValueError(f"the attention backend {backend!r} has no context parallelism in diffusers: set "
                          f"DIFFUSERS_ATTN_BACKEND to one of {', '.join(BACKWARD_BACKENDS)}")
     if differentiates and backend not in BACKWARD_BACKENDS:
@@ -191,10 +197,10 @@ def enable_context_parallel(pipe: Any, adapter: PipelineAdapter, degree: int) ->
     from diffusers import ContextParallelConfig
 
     for denoiser in adapter.denoisers(pipe):
-        current = getattr(denoiser, "_parallel_config", None)
+        current = parallel_config(denoiser)
         if current is not None:
             split = current.context_parallel_config
-            if split is None or split._world_size != degree:
+            if split is None or context_parallel_processes(split) != degree:
                 raise ValueError(f"the {type(denoiser).__name__} is parallelised otherwise already; run.context_parallel"
                                  f"={degree} needs it split over {degree} processes")
             continue
@@ -208,7 +214,7 @@ def enable_context_parallel(pipe: Any, adapter: PipelineAdapter, degree: int) ->
                              f"not divide among {degree} processes (Ulysses attention gives each a share of the heads)")
         adapter.prepare_context_parallel(denoiser)
         if torch._C._get_accelerator().type == "cpu":
-            denoiser._resolve_parallel_config = _cpu_resolver(denoiser)
+            set_parallel_resolver(denoiser, _cpu_resolver(denoiser))
         denoiser.enable_parallelism(config=ContextParallelConfig(ulysses_degree=degree), cp_plan=plan)
         adapter.finish_context_parallel(denoiser)
         register_hook(denoiser, GradientSum(), GRADIENT_SUM_HOOK)
@@ -227,7 +233,7 @@ def _cpu_resolver(denoiser: nn.Module):
         split = parallel.context_parallel_config
         mesh = init_device_mesh("cpu", split.mesh_shape, mesh_dim_names=split.mesh_dim_names)
         parallel.setup(dist.get_rank(), dist.get_world_size(), torch.device("cpu"), mesh=mesh)
-        denoiser._parallel_config = parallel
+        set_parallel_config(denoiser, parallel)
         return parallel
 
     return resolve

@@ -72,6 +72,7 @@ from .adapters import CallGeometry, PipelineAdapter, adapter_for, check_schedule
 from .config import GuidanceConfig
 from .context import GuidanceContext, GuidanceObserver, GuidanceReport
 from .context_parallel import start_context_parallel
+from .diffusers_private import hook_registry
 from .module_hooks import register_hook
 from .multi_device import module_replicas
 from .particles import (
@@ -400,7 +401,7 @@ class GeCoGuidanceHandle:
         hooks (a copied registry would still call the original's forward)."""
         self._remove_hooks(module)
         try:
-            if "forward" in module.__dict__ or getattr(module, "_diffusers_hook", None) is not None:
+            if "forward" in module.__dict__ or hook_registry(module) is not None:
                 raise ValueError(f"run.devices deals a search's particles over copies of the {type(module).__name__}, "
                                  "which cannot carry the hooks it has (offloading, caches, ...): remove them, or leave "
                                  "run.devices unset")

@@ -36,6 +36,7 @@ from ..estimators.loading import (
 from ..io.devices import resolve_device
 from .config import GuidanceConfig
 from .context_parallel import check_model_context_parallel
+from .diffusers_private import dtype_keyword, keeps_in_fp32
 from .memory_plan import plan_before_loading
 from .model_folder import PIPELINE_INDEX, ModelFolderError, check_cached_model, check_model_folder
 from .run_options import RunOptions
@@ -106,16 +107,9 @@ def cast_model(model: torch.nn.Module, dtype: torch.dtype) -> torch.nn.Module:
     """``model`` cast to ``dtype`` in place (and returned). diffusers' ``ModelMixin.to(dtype)``
     warns about the modules it should keep in float32 even when the model names none (an empty
     list, at every cast); such a model is cast without the warning, one that names some keeps it."""
-    if getattr(model, "_keep_in_fp32_modules", None):
+    if keeps_in_fp32(model):
         return model.to(dtype)
     return torch.nn.Module.to(model, dtype)
-
-
-def _dtype_kwarg() -> str:
-    """diffusers renamed ``torch_dtype`` to ``dtype``; use whichever this version reads."""
-    from diffusers.pipelines import pipeline_utils
-
-    return "dtype" if hasattr(pipeline_utils, "_resolve_dtype") else "torch_dtype"
 
 
 def pipeline_from_pretrained(cls, model_id: str, name: str, folder_hint: str, *, dtype: torch.dtype,
@@ -133,11 +127,11 @@ def pipeline_from_pretrained(cls, model_id: str, name: str, folder_hint: str, *,
     with quiet_hub_logs():
         if folder is not None:
             try:
-                return cls.from_pretrained(str(folder), **{_dtype_kwarg(): dtype}, **kwargs)
+                return cls.from_pretrained(str(folder), **{dtype_keyword(): dtype}, **kwargs)
             except OSError as err:
                 raise ModelFolderError(f"{name}: the folder {folder} does not load: {short_reason(err)}") from None
         return pretrained_or_one_line(
-            lambda source: cls.from_pretrained(source, revision=revision, **{_dtype_kwarg(): dtype}, **kwargs),
+            lambda source: cls.from_pretrained(source, revision=revision, **{dtype_keyword(): dtype}, **kwargs),
             model_id, model_name=name, folder_hint=folder_hint)
 
 

@@ -18,6 +18,8 @@ from diffusers.hooks import HookRegistry, ModelHook
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
+from .diffusers_private import hook_registry, remove_hook_registry
+
 __all__ = ["CHECKPOINT_HOOK", "CheckpointedForward", "hooked", "register_hook"]
 
 #: The name of :class:`CheckpointedForward` in a module's registry.
@@ -28,7 +30,7 @@ def register_hook(module: nn.Module, hook: ModelHook, name: str) -> Callable[[],
     """Register ``hook`` on ``module`` as ``name``; returns the function that removes it again and
     leaves the module as found: no registry where it had none, no instance ``forward`` where it had
     none (removing a registry's last hook leaves the module's bound ``forward`` behind as one)."""
-    had_registry = hasattr(module, "_diffusers_hook")  # the attribute check_if_exists_or_initialize keeps it in
+    had_registry = hook_registry(module) is not None
     had_forward = "forward" in module.__dict__
     registry = HookRegistry.check_if_exists_or_initialize(module)
     try:
@@ -61,7 +63,7 @@ def _leave_as_found(module: nn.Module, registry: HookRegistry, had_registry: boo
     if not had_forward:
         module.__dict__.pop("forward", None)
     if not had_registry:
-        del module._diffusers_hook
+        remove_hook_registry(module)
 
 
 class CheckpointedForward(ModelHook):

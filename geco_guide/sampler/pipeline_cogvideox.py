@@ -51,6 +51,7 @@ from .anchor_decode import anchor_decoder
 from .config import GuidanceConfig, resolve_guidance_config
 from .context import GuidanceContext, GuidanceObserver, GuidanceReport
 from .context_parallel import start_context_parallel
+from .diffusers_private import execution_device, offloads_models, rotary_embeddings
 from .multi_device import CfgHalves
 from .dynamic import guidance_mask_source
 from .anchor_decode import plan_anchor_decode
@@ -233,8 +234,8 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         this transformer, video size and execution device, or the smallest of it and ``devices``
         (model CPU offload counted); ValueError (one line) where ``auto`` finds no plan that fits."""
         return choose_plan(guidance, run, signature=model_signature(self.transformer.config), frames=num_frames,
-                           height=height, width=width, device_gb=planning_memory_gb(self._execution_device, devices),
-                           offload=bool(getattr(self, "_all_hooks", None)))
+                           height=height, width=width, device_gb=planning_memory_gb(execution_device(self), devices),
+                           offload=offloads_models(self))
 
     def latents_shape(self, batch_size: int, num_frames: int, height: int, width: int) -> tuple[tuple[int, ...], int]:
         """The shape ``[B, F, C, h, w]`` of the latents a call makes, and the latent frames
@@ -390,19 +391,19 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         working = config.enabled or search is not None
         devices = resolve_devices(run.devices) if working else None
         memory_plan = self.choose_memory_plan(config, run, num_frames, height, width, devices) if config.enabled else None
-        masks = guidance_mask_source(config, estimators, self._execution_device) if working else None
+        masks = guidance_mask_source(config, estimators, execution_device(self)) if working else None
         particles = search.particles if search is not None else None
         particle_batch = choose_particle_batch(
             config, run, particles, memory_plan, signature=model_signature(self.transformer.config), frames=num_frames,
-            height=height, width=width, device_gb=planning_memory_gb(self._execution_device, devices),
-            offload=bool(getattr(self, "_all_hooks", None)), devices=len(devices) if devices else 1,
+            height=height, width=width, device_gb=planning_memory_gb(execution_device(self), devices),
+            offload=offloads_models(self), devices=len(devices) if devices else 1,
         ) if search is not None else None
         self._guidance_scale = guidance_scale
         self._attention_kwargs = attention_kwargs
         self._current_timestep = None
         self._interrupt = False
         # replicas before any checkpointing switch or hook of the memory plan, which then covers them too
-        self._cfg_halves = (CfgHalves(self.transformer, devices, self._execution_device)
+        self._cfg_halves = (CfgHalves(self.transformer, devices, execution_device(self))
                             if config.enabled and run.split_cfg and guidance_scale > 1.0 else None)
         replicas = [m for m in self._cfg_halves.replicas if m is not self.transformer] if self._cfg_halves else []
         denoisers = [self.transformer, *replicas]
@@ -422,7 +423,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         latents_shape, additional_frames = self.latents_shape(videos, num_frames, height, width)
         check_latents(latents, latents_shape, f"a call with num_frames={num_frames}, height={height}, width={width}, "
                                                "as [batch, frames, channels, height, width]")
-        device = self._execution_device
+        device = execution_device(self)
         do_classifier_free_guidance = guidance_scale > 1.0
 
         # 3. Encode input prompt
@@ -470,7 +471,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
         # 7. Rotary embeddings
         image_rotary_emb = (
-            self._prepare_rotary_positional_embeddings(height, width, latents.size(1), device)
+            rotary_embeddings(self, height, width, latents.size(1), device)
             if self.transformer.config.use_rotary_positional_embeddings
             else None
         )

@@ -12,6 +12,8 @@ import torch
 from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
+from .diffusers_private import without_parallel_config
+
 __all__ = ["GATHERED_KEYS_HOOK", "PADDED_TOKENS_HOOK", "SHARDED_MASK_HOOK", "CogVideoXContextParallelAttention",
            "GatheredVideoKeys", "HunyuanVideo15ContextParallelAttention", "PaddedTokens", "ShardedJointMask",
            "attend_within_process"]
@@ -28,7 +30,7 @@ def attend_within_process(denoiser: nn.Module, within: Any) -> None:
     for name, module in denoiser.named_modules():
         if isinstance(module, AttentionModuleMixin) and within(name):
             module.set_processor(type(module.processor)())
-            module.processor._parallel_config = None
+            without_parallel_config(module.processor)
 
 
 #: the name of :class:`GatheredVideoKeys` in a module's ``HookRegistry``

@@ -43,6 +43,7 @@ from .adapters import (
 from .anchor_decode import AnchorDecode, anchor_decoder, plan_anchor_decode
 from .config import GuidanceConfig
 from .context import GuidanceContext, GuidanceObserver
+from .diffusers_private import execution_device, offloads_models
 from .dynamic import RefreshedMasks, guidance_mask_source
 from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
 from .context_parallel import start_context_parallel
@@ -122,7 +123,7 @@ class StockCall:
             self.config, self.run, particles, self.memory_plan,
             signature=denoiser_signature(self.adapter.denoisers(pipe)), frames=geometry.num_frames,
             height=geometry.latent_height * scale, width=geometry.latent_width * scale,
-            device_gb=self.device_gb, offload=bool(getattr(pipe, "_all_hooks", None)),
+            device_gb=self.device_gb, offload=offloads_models(pipe),
             devices=len(self.devices) if self.devices else 1)
 
     def searcher(self, search: SearchConfig, num_steps: int, context: GuidanceContext | None, batch: int,
@@ -159,7 +160,7 @@ def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, conf
 
     Args:
         pipe: the pipeline (or a Modular pipeline's components): its ``scheduler``, ``vae``,
-            ``_execution_device`` and the denoisers ``adapter`` finds on it.
+            execution device and the denoisers ``adapter`` finds on it.
         adapter: its family's :class:`~.adapters.PipelineAdapter`.
         geometry: the call's frame geometry (:meth:`~.adapters.PipelineAdapter.call_geometry`).
         config, run: what guidance computes and how it runs (``config.enabled``).
@@ -183,7 +184,7 @@ def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, conf
     check_scheduler(pipe.scheduler)
     decode_chunk = anchor_decoder(config, run, functools.partial(_vae_decode_with, pipe, adapter),
                                   estimators.tiny_decoder, pipe.vae)
-    home = pipe._execution_device
+    home = execution_device(pipe)
     masks = guidance_mask_source(config, estimators, home)
     scale = spatial_compression(pipe)
     devices = resolve_devices(run.devices)
@@ -191,7 +192,7 @@ def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, conf
     memory_plan = choose_plan(
         config, run, signature=denoiser_signature(denoisers), frames=geometry.num_frames,
         height=geometry.latent_height * scale, width=geometry.latent_width * scale, device_gb=device_gb,
-        offload=bool(getattr(pipe, "_all_hooks", None))
+        offload=offloads_models(pipe)
     ) if config.enabled else None
     return StockCall(pipe, adapter, geometry, config, run, estimators, chunks, decode_chunk, masks, devices,
                      device_gb, memory_plan)
