@@ -443,7 +443,7 @@ class LTXAdapter(PipelineAdapter):
         return z.permute(0, 2, 1, 3, 4)
 
     def denormalize(self, pipe, z):
-        return private.denormalize_ltx_latents(pipe, z) pipe.vae.latents_std, pipe.vae.config.scaling_factor)
+        return private.denormalize_ltx_latents(pipe, z)
 
     def decode(self, pipe, latents):
         z = self.denormalize(pipe, latents.permute(0, 2, 1, 3, 4).float())
