@@ -7,7 +7,8 @@ and, with best-of-N, the unguided seeds ``seed .. seed + N - 1`` (the seeds ``ge
 N`` takes; the first is the unguided arm's own video), each scored with the GeCo protocol, the
 least fused kept; with a search, ``K`` particles of the seeds ``seed .. seed + K - 1`` (particle 0
 from the pair's own noise, as ``generate --search K`` seeds them) resampled by their GeCo scores.
-The generation itself is :mod:`geco_guide.cli.ab_arms`'.
+The generation itself is :mod:`geco_guide.bench.ab_arms` (a pair's arms) and
+:mod:`geco_guide.bench.ab_run` (the run).
 """
 
 from __future__ import annotations

@@ -62,10 +62,20 @@ with a different config is refused (unless ``--overwrite``).
 from __future__ import annotations
 
 import argparse
+import sys
+from collections.abc import Sequence
+from functools import partial
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .kit import add_config_flags, add_model_flag, command_main, interruptible, output_folder, print_error
 
-__all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
+if TYPE_CHECKING:
+    from ..bench.ab import BestOf
+    from ..bench.ab_run import Inputs
+    from ..config import GeCoConfig
+
+__all__ = ["DESCRIPTION", "SUMMARY", "choose_best_of", "main", "register_subcommand", "run", "validate_inputs"]
 
 SUMMARY = "A/B test on your prompts: unguided vs guided video from the same noise, with best-of-N and search arms"
 DESCRIPTION = """\
@@ -118,15 +128,98 @@ def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
                "resume")
 def run(args: argparse.Namespace) -> int:
     """The A/B run ``args`` ask for; 0, 1 (pairs missing), or 2 after one line on stderr."""
+    from ..bench.ab_run import execute
     from ..bench.runs import run_lock
-    from . import ab_arms
+    from ..io.files import WriteError
+    from ..perf.decoder_agreement import agreement_record
 
     try:
-        inputs = ab_arms.validate_inputs(args)
+        inputs = validate_inputs(args)
         with run_lock(inputs.out, "A/B"):
-            return ab_arms.execute(inputs, args.maps, args.overwrite, args.command_line)
-    except (ValueError, FileNotFoundError) as err:
+            finished = execute(inputs, args.maps, args.overwrite, args.command_line, agreement=agreement_record,
+                               say=partial(print, flush=True))
+    except (ValueError, FileNotFoundError, WriteError) as err:  # diverged sampling, weights not there, disk full
         return print_error(err)
+    if finished is None:  # not the main process: the main one reports
+        return 0
+    print(finished.last_line(inputs.out, inputs.best_of))
+    return 0 if not finished.summary["missing_pairs"] else 1
+
+
+def validate_inputs(args: argparse.Namespace) -> Inputs:
+    """Every check that needs no model: prompts, seeds, config (what generate checks before loading,
+    for the search arm too), the best-of and search arms, output folder."""
+    from dataclasses import replace
+
+    from .. import generation
+    from ..bench.ab import SEARCH, InputError, Pair, SearchArm, arm_config, parse_seeds, plan_pairs
+    from ..bench.ab_run import Inputs, check_output_folder, choose_search
+    from .kit import config_from_args
+    from .prompt_files import read_prompts
+
+    prompts = read_prompts(args.prompts)
+    seeds = parse_seeds(args.seeds)
+    cfg = config_from_args(args, args.overrides)
+    if not cfg.guidance.enabled:
+        raise InputError("guidance.enabled=false leaves nothing to compare: the guided arm needs guidance")
+    if cfg.search.particles is not None:
+        raise InputError(f"search.particles={cfg.search.particles} would make every arm a search: leave it unset and "
+                         f"pass --search {cfg.search.particles} for a search arm (search.* sets its other options)")
+    search = choose_search(args.search, args.search_guided, seeds)
+    # what generate checks before loading, here before run.json is pinned or any video written: the
+    # guided arm (run.particle_batch is the search arm's, checked below); each arm then runs what it
+    # can act on (arm_config), and the run keeps its config as given, the device resolved
+    guided = cfg if search is None else replace(cfg, run=replace(cfg.run, particle_batch=None))
+    cfg = replace(cfg, model=generation.check_generation(guided, prompts[0].text).model)
+    best_of = choose_best_of(args.best_of, args.gpu, cfg, seeds)
+    if search is not None:  # K particles of the first pair, checked as generate checks them (K >= 2 if matched)
+        cfg.search.steps(cfg.sampling.num_inference_steps)  # else found when the search starts, after the pairs
+        first = SearchArm(search.particles or 2, search.guided)
+        generation.check_generation(arm_config(cfg, Pair(prompts[0], seeds[0]), SEARCH, first), prompts[0].text,
+                                    loaded=True)
+    pairs = plan_pairs(prompts, seeds)
+    out = Path(args.out)
+    check_output_folder(out, cfg, pairs, args.overwrite, best_of, search)
+    return Inputs(cfg, pairs, out, best_of, search)
+
+
+def choose_best_of(value: str | None, gpu: str | None, cfg: GeCoConfig, seeds: Sequence[int]) -> BestOf | None:
+    """The best-of arm ``--best-of`` and ``--gpu`` ask for (None: no best-of arm); one
+    :class:`~geco_guide.bench.ab.InputError` line for a bad value, before anything is generated; a
+    cap of ``matched`` (the spacing of the seeds) and candidates pairs share said on stderr."""
+    from ..bench.ab import MAX_SEED, BestOf, InputError, matched_best_of, shared_candidates
+    from ..bench.ab_run import count_arm
+    from ..io.devices import resolve_device
+    from ..perf.cards import GPU_SPECS
+    from ..perf.guided_ratio import local_card, predicted_ratio
+
+    if gpu is not None and gpu not in GPU_SPECS:
+        raise InputError(f"--gpu must be one of {', '.join(GPU_SPECS)}, got {gpu!r}")
+    if value is None:
+        if gpu is not None:
+            raise InputError("--gpu names the card --best-of matched predicts for; pass --best-of matched too")
+        return None
+    if value == "matched":
+        card = gpu or local_card(cfg)
+        if card is None:
+            raise InputError(f"--best-of matched needs a card the cost model knows ({', '.join(GPU_SPECS)}) and "
+                             f"the device here ({resolve_device(cfg.model.device)}) is none: pass --gpu NAME or an "
+                             "integer --best-of N")
+        best_of = matched_best_of(predicted_ratio(cfg, card), card, seeds)
+        if best_of.matched_n is not None:
+            print(f"note: --best-of matched: N = {best_of.matched_n} predicted on the {card}, capped at {best_of.n}, the "
+                  f"least spacing of --seeds: give seeds at least {best_of.matched_n} apart for N = "
+                  f"{best_of.matched_n}", file=sys.stderr)
+    else:
+        if gpu is not None:
+            raise InputError("--gpu is for --best-of matched; an integer --best-of N needs no card")
+        best_of = BestOf(count_arm(value, "--best-of", "best-of-1 is the unguided arm"))
+    if max(seeds) + best_of.n - 1 > MAX_SEED:
+        raise InputError(f"--best-of {best_of.n} from seed {max(seeds)} runs past the last seed, 2**63 - 1")
+    shared = shared_candidates(seeds, best_of.n)
+    if shared is not None:  # said before the run, not only in its report
+        print(f"warning: --best-of {best_of.n}: {shared}", file=sys.stderr)
+    return best_of
 
 
 main = command_main("geco ab", DESCRIPTION, register_subcommand, run)

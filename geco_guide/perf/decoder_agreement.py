@@ -44,8 +44,8 @@ from ..sampler.objective import AnchorObjective
 from ..sampler.step import GuidanceRecord, loss_terms
 from .measure import environment_info
 
-__all__ = ["DecoderAgreement", "agreement_rows", "agreement_summary", "agreement_table", "check_agreement_config",
-           "decoder_agreement", "gradient_cosine", "psnr_db"]
+__all__ = ["DecoderAgreement", "agreement_record", "agreement_rows", "agreement_summary", "agreement_table",
+           "check_agreement_config", "decoder_agreement", "gradient_cosine", "psnr_db"]
 
 #: The PSNR's MSE floor: identical frames read 10 * log10(1 / 1e-10) = 100 dB.
 MSE_FLOOR = 1e-10
@@ -167,6 +167,13 @@ def agreement_rows(models: Models, cfg: GeCoConfig, prompt: str) -> list[dict[st
     rows: list[dict[str, Any]] = []
     sample(models, cfg, prompt, observer=DecoderAgreement(models.pipe, models, cfg, rows), progress=False)
     return rows
+
+
+def agreement_record(models: Models, cfg: GeCoConfig, prompt: str) -> dict[str, Any]:
+    """:func:`agreement_rows` of one guided call and their :func:`agreement_summary`, as an A/B run
+    records them: ``{"summary": ..., "updates": rows}``."""
+    rows = agreement_rows(models, cfg, prompt)
+    return {"summary": agreement_summary(rows), "updates": rows}
 
 
 def decoder_agreement(cfg: GeCoConfig, prompt: str, argv: Sequence[str] = ()) -> dict[str, Any]:

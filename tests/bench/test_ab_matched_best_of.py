@@ -6,7 +6,9 @@ from __future__ import annotations
 import pytest
 
 from geco_guide.bench import ab as core
-from geco_guide.cli import ab, ab_arms
+from geco_guide.bench import ab_run
+from geco_guide.cli import ab
+from geco_guide.perf import guided_ratio
 
 
 @pytest.mark.parametrize("seeds, n, matched_n", [
@@ -32,8 +34,8 @@ def test_shared_candidates_name_the_closest_seeds_and_the_spacing_to_give():
 
 def test_the_cap_and_the_shared_candidates_are_said_before_anything_is_generated(tmp_path, capsys, monkeypatch):
     chosen = []
-    monkeypatch.setattr(ab_arms, "predicted_ratio", lambda cfg, gpu: 48.2)  # the tiny models on an H100
-    monkeypatch.setattr(ab_arms, "execute", lambda inputs, *args: chosen.append(inputs.best_of) or 0)
+    monkeypatch.setattr(guided_ratio, "predicted_ratio", lambda cfg, gpu: 48.2)  # the tiny models on an H100
+    monkeypatch.setattr(ab_run, "execute", lambda inputs, *args, **kwargs: chosen.append(inputs.best_of))
     prompts = tmp_path / "p.txt"
     prompts.write_text("a cat\n")
     argv = ["--prompts", str(prompts), "--out", str(tmp_path / "out"), "--preset", "tiny", "--seeds", "0", "1",

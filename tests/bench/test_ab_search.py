@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 
 from geco_guide.bench import ab as core
-from geco_guide.bench import ab_report
+from geco_guide.bench import ab_report, ab_run
 from geco_guide.bench.report import MIN_INTERVAL_N
-from geco_guide.cli import ab, ab_arms
+from geco_guide.cli import ab
 from geco_guide.cli.prompt_files import Prompt
 from geco_guide.config import load_config
 from geco_guide.io.video import read_video
@@ -192,7 +192,7 @@ def test_bad_search_values_are_one_line_before_any_work(extra, message, tmp_path
     def fail(*args, **kwargs):
         raise AssertionError("nothing must run for bad inputs")
 
-    monkeypatch.setattr(ab_arms, "execute", fail)
+    monkeypatch.setattr(ab_run, "execute", fail)
     (tmp_path / "p.txt").write_text("a cat\n")
     out = tmp_path / "out"
     assert ab.main(["--prompts", str(tmp_path / "p.txt"), "--out", str(out), *FAST, "--seeds", "0", *extra]) == 2
@@ -248,13 +248,13 @@ def test_a_run_stopped_after_a_pair_resumes_with_nothing_redone(searched: Path, 
         made.append(real(*args, **kwargs))
         return made[-1]
 
-    real = ab_arms.add_search
-    monkeypatch.setattr(ab_arms, "add_search", stopped_after_one)
+    real = ab_run.add_search
+    monkeypatch.setattr(ab_run, "add_search", stopped_after_one)
     assert ab.main(_argv(prompts_file, out, "--search", "2")) == 130
     first = out / "pairs" / PAIRS[0]
     kept = {path: path.read_bytes() for path in (first / "search.mp4", first / "search.json", first / "result.json")}
     assert "search" not in json.loads((out / "pairs" / PAIRS[1] / "result.json").read_text())["arms"]
-    monkeypatch.setattr(ab_arms, "add_search", real)
+    monkeypatch.setattr(ab_run, "add_search", real)
     capsys.readouterr()
 
     assert ab.main(_argv(prompts_file, out, "--search", "2")) == 0

@@ -112,13 +112,14 @@ def test_the_sidecar_of_the_tiny_preset_names_the_tiny_stand_in(tmp_path):
 
 @pytest.fixture
 def no_runs(monkeypatch):
-    from geco_guide.cli import ab_arms, geco_eval
+    from geco_guide.bench import ab_run
+    from geco_guide.cli import geco_eval
 
     def refuse(*args, **kwargs):
         raise AssertionError("the run started")
 
     monkeypatch.setattr(geco_eval, "execute", refuse)
-    monkeypatch.setattr(ab_arms, "execute", refuse)
+    monkeypatch.setattr(ab_run, "execute", refuse)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
 
 
