@@ -12,7 +12,7 @@ geco_guide evaluate`` samples a video, with the metric's own ``evaluation.loss``
 Defaults are the GeCo paper's CogVideoX-5b setting; the presets are the checkout's
 ``configs/<name>.yaml``, installed as the package data ``geco_guide/configs`` (so ``--preset``
 works after a plain ``pip install``). Earlier spellings of keys (``guidance.eta``,
-``guidance.memory_plan``, ...) are refused in one line naming the new key.
+``guidance.memory_plan``, ``guidance.movers``, ...) are refused in one line naming the new key.
 
 ``load_config(path, preset, overrides)`` merges schema <- YAML <- ``key=value`` overrides and
 validates: an unknown key or an invalid value raises a ValueError naming the key.
@@ -49,8 +49,8 @@ from .types import OptionError, non_finite_fields, renamed_option
 
 __all__ = ["CONFIG_DIR", "DTYPES", "SEED_RANGE", "GeCoConfig", "ModelConfig", "OutputConfig", "SamplingConfig",
            "SearchConfig",
-           "config_to_dict", "config_to_yaml", "load_config", "model_preset", "preset_path", "to_config",
-           "validate_config"]
+           "config_to_dict", "config_to_yaml", "load_config", "model_preset", "movers_as_first_spelt", "nested",
+           "preset_path", "to_config", "validate_config"]
 
 DTYPES = ("float32", "float16", "bfloat16")
 # CFG scales in use are 1-20 (CogVideoX: 6); absurd ones only overflow the latents to NaN/inf
@@ -98,11 +98,11 @@ def preset_path(name: str) -> Path:
 
 def _key_error(err: OmegaConfBaseException, source: str) -> ValueError:
     """The one line of a merge's key error: an unknown key, the new spelling of a renamed one
-    (:attr:`GuidanceConfig.RENAMED`), or a value its field cannot take."""
+    (its section's ``RENAMED``, e.g. :attr:`GuidanceConfig.RENAMED`), or a value its field cannot take."""
     key = getattr(err, "full_key", None) or getattr(err, "key", None) or "?"
     if isinstance(err, (ConfigKeyError, ConfigAttributeError)):
         section, _, leaf = str(key).partition(".")
-        renamed = renamed_option(GuidanceConfig, leaf, "guidance") if section == "guidance" else None
+        renamed = renamed_option(type(getattr(GeCoConfig(), section, None)), leaf, section)
         return ValueError(f"{renamed or f'unknown config key {key!r}{_close_keys(str(key))}'} ({source})")
     msg = str(err).split("\n")[0]
     return ValueError(f"invalid value for config key {key!r} ({source}): {msg}")
@@ -206,7 +206,7 @@ def load_config(
             cfg = _merge(cfg, layer, "command line")
             user_keys |= _dotted_keys(layer)
     for key, value in (changes or {}).items():
-        cfg = _merge(cfg, _nest(key.split("."), value), "command line")
+        cfg = _merge(cfg, nested({key: value}), "command line")
         user_keys.add(key)
     return to_config(_fit_tiny_call(cfg, user_keys))
 
@@ -270,15 +270,41 @@ def _parse_override(cfg: DictConfig, item: str) -> DictConfig:
     except OmegaConfBaseException:
         node = None
     if isinstance(node, StringNode) and raw.strip().lower() not in ("null", "~"):
-        return OmegaConf.create(_nest(key.split("."), raw))
+        return OmegaConf.create(nested({key: raw}))
     try:
         return OmegaConf.from_dotlist([f"{key}={raw}"])
     except OmegaConfBaseException as err:
         raise ValueError(f"cannot parse override {item!r}: {err}") from None
 
 
-def _nest(parts: list[str], value: Any) -> dict:
-    return {parts[0]: value} if len(parts) == 1 else {parts[0]: _nest(parts[1:], value)}
+def movers_as_first_spelt(guidance: dict[str, Any], masked: bool) -> dict[str, Any]:
+    """A config dict's ``guidance`` section (``masked``: its masks act) with movers where the video
+    key of the first videos with movers held it, so that the video of a sidecar of either spelling
+    keeps its name (:func:`geco_guide.generation.video_key`): an acting ``loss.movers`` (off its
+    default ``drop``, with masks) as the earlier ``guidance.movers``, which is left out where it
+    does not act, and ``loss.movers`` left out at ``drop``."""
+    kept = dict(guidance)
+    loss = kept.get("loss")
+    if isinstance(loss, dict) and masked and loss.get("movers", "drop") != "drop":
+        kept["movers"], kept["loss"] = loss["movers"], {**loss, "movers": "drop"}
+    if kept.get("movers") == "drop" or not masked:
+        kept.pop("movers", None)
+    loss = kept.get("loss")
+    if isinstance(loss, dict) and loss.get("movers") == "drop":
+        kept["loss"] = {key: value for key, value in loss.items() if key != "movers"}
+    return kept
+
+
+def nested(changes: Mapping[str, Any]) -> dict[str, Any]:
+    """Dotted keys as sections: ``{"guidance.loss.movers": v}`` -> ``{"guidance": {"loss": {"movers": v}}}``."""
+    tree: dict[str, Any] = {}
+    for key, value in changes.items():
+        *sections, name = key.split(".")
+        node = tree
+        for section in sections:
+            node = node.setdefault(section, {})
+        node[name] = value
+    return tree
 
 
 def to_config(cfg: DictConfig | dict | GeCoConfig) -> GeCoConfig:

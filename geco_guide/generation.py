@@ -34,14 +34,16 @@ import re
 import shutil
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field, fields, replace
+from operator import attrgetter
+from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .config import GeCoConfig, config_to_dict
+from .config import GeCoConfig, config_to_dict, movers_as_first_spelt, nested
 from .estimators import TINY_RANDOM
 from .io.files import check_output_paths, output_lock, write_json_atomic
+from .types import merge_dataclass
 
 if TYPE_CHECKING:
     import torch
@@ -66,7 +68,7 @@ OUT_SUFFIXES = (".mp4", ".gif")
 KEYLESS_SECTIONS = ("output", "evaluation")
 #: The moving-subject options, which make no frame while ``guidance.dynamic`` is null: left out of
 #: :func:`video_key` then, so that every video made before they existed keeps its name.
-DYNAMIC_KEYS = ("dynamic", "dynamic_dilation", "dynamic_refresh", "movers")
+DYNAMIC_KEYS = ("dynamic", "dynamic_dilation", "dynamic_refresh", "loss.movers")
 SCORES_NOTE = ("These are the anchor frames' scores with the guidance loss' settings; "
                "geco evaluate scores the whole video with the paper's protocol (a different number).")
 #: The score best-of-N selection keeps the lowest of: the fused map under the GeCo protocol.
@@ -124,11 +126,8 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
     dynamic = guidance.get("dynamic") if guided or searched else None
     if dynamic is None and "guidance" in kept:
         kept["guidance"] = {key: value for key, value in kept["guidance"].items() if key not in DYNAMIC_KEYS}
-    if kept.get("guidance", {}).get("movers") == "drop":  # the default (no mover scored) renames no video
-        kept["guidance"] = {key: value for key, value in kept["guidance"].items() if key != "movers"}
-    loss = kept.get("guidance", {}).get("loss")
-    if isinstance(loss, dict) and loss.get("movers") == "drop":
-        kept["guidance"] = {**kept["guidance"], "loss": {key: value for key, value in loss.items() if key != "movers"}}
+    if "guidance" in kept:
+        kept["guidance"] = movers_as_first_spelt(kept["guidance"], dynamic is not None)
     if dynamic in (None, "auto") and "estimators" in kept:
         kept["estimators"] = {key: value for key, value in kept["estimators"].items() if key != "segmenter"}
     text = json.dumps({"prompt": prompt, "config": kept}, sort_keys=True, separators=(",", ":"))
@@ -219,23 +218,15 @@ def acting_config(cfg: GeCoConfig, *, quiet: bool = False) -> GeCoConfig:
 
     resolve_devices(cfg.run.devices)
     for needed, lacking, keys in IDLE_WITHOUT:
-        values = {key: _value_and_default(cfg, key) for key in keys}
+        values = {key: (attrgetter(key)(cfg), attrgetter(key)(GeCoConfig())) for key in keys}  # value, default
         idle = {key: value for key, (value, default) in values.items() if value != default} if lacking(cfg) else {}
         if idle and not quiet:
             shown = ", ".join(key if value is True else f"{key}={value!r}" for key, value in idle.items())
             logger.warning("%s %s nothing without %s: left at the default, as the sidecar records", shown,
                            "does" if len(idle) == 1 else "do", needed)
-        if idle:
-            for section in dict.fromkeys(key.split(".")[0] for key in idle):  # a section's at once: dynamic and movers
-                reset = {key.split(".")[1]: values[key][1] for key in idle if key.startswith(f"{section}.")}
-                cfg = replace(cfg, **{section: replace(getattr(cfg, section), **reset)})
+        if idle:  # merged at once: guidance checks dynamic and loss.movers together
+            cfg = merge_dataclass(cfg, nested({key: values[key][1] for key in idle}))
     return cfg
-
-
-def _value_and_default(cfg: GeCoConfig, key: str) -> tuple[Any, Any]:
-    """The value of the dotted ``key`` (``section.name``) in ``cfg`` and its default."""
-    section, name = key.split(".")
-    return getattr(getattr(cfg, section), name), next(f.default for f in fields(getattr(cfg, section)) if f.name == name)
 
 
 def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (), *, overwrite: bool = False,
@@ -653,7 +644,7 @@ def score_anchors(made: Sample, cfg: GeCoConfig, models: Models) -> dict[str, fl
     from .sampler.dynamic import RefreshedMasks, guidance_mask_source
     from .sampler.step import score_anchor_frames
 
-    loss = GeCoLoss(models.estimators, cfg.guidance.scoring_loss())
+    loss = GeCoLoss(models.estimators, cfg.guidance.loss)
     masked = cfg.guidance.enabled or cfg.search.enabled
     masks = guidance_mask_source(cfg.guidance, models.estimators, cfg.model.device) if masked else None
     if masks is not None:  # the anchors scored as guidance scored them: without what moves, or its movers rigid

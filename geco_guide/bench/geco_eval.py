@@ -459,7 +459,7 @@ CSV_COLUMNS = ("model", "guided", "prompt_id", "scenario", "camera", "seed", *ME
 
 def csv_text(results: Sequence[dict[str, Any]]) -> str:
     """``results.csv``; the dynamic suite's rows add their ``subjects``, and with
-    ``evaluation.movers=rigid`` their ``movers`` (:func:`movers_cell`)."""
+    ``evaluation.loss.movers=rigid`` their ``movers`` (:func:`movers_cell`)."""
     extra = tuple(column for column in ("subjects", "movers") if any(column in r for r in results))
     return report.csv_text(results, (*CSV_COLUMNS, *extra))
 

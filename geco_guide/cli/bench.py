@@ -270,7 +270,7 @@ def _cost(sub: Any) -> None:
                            "attention shapes; traces nothing (with --mode and --json only)")
     cost.add_argument("--dynamic-masks", action="store_true",
                       help="add the overhead of guidance.dynamic masks refreshed at each guided step: SAM 3 "
-                           "(predicted, its vision encoder), the automatic masks and guidance.movers=rigid "
+                           "(predicted, its vision encoder), the automatic masks and guidance.loss.movers=rigid "
                            "(measured on a CPU thread)")
     _threads(cost)
     cost.add_argument("--seed", type=int, default=0, help="seed (shapes only; default: 0)")

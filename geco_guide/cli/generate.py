@@ -21,6 +21,7 @@ import sys
 from typing import Any
 
 from .. import __version__
+from ..loss.modes import MOVER_MODES
 from .kit import add_config_flags, add_model_flag, command_main, config_from_args, interruptible, parse_count, print_error
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
@@ -43,10 +44,10 @@ def register_subcommand(parser: argparse.ArgumentParser) -> argparse.ArgumentPar
                         help="leave what moves on its own out of the guidance loss: 'auto' (detected from depth and "
                              "flow) or the moving subjects, e.g. 'a dog, a person' (segmented by estimators.segmenter, "
                              "SAM 3); sets guidance.dynamic")
-    parser.add_argument("--movers", default=None, choices=("drop", "rigid"),
+    parser.add_argument("--movers", default=None, choices=MOVER_MODES,
                         help="with --dynamic: leave the movers out of the guidance loss (drop, the default) or score "
                              "each mover that one rigid motion explains against that motion (rigid: guidance keeps "
-                             "its shape); sets guidance.movers")
+                             "its shape); sets guidance.loss.movers")
     parser.add_argument("--out", default=None,
                         help="output path ending in .mp4 or .gif (the sidecar: the same path with .json), or a folder "
                              "(no suffix) for the default name <prompt slug>-<8 hex of prompt and config>-seed<N>"
@@ -91,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     from ..sampler.context_parallel import is_writing_process
 
     options = {"seed": args.seed, "guidance.enabled": False if args.no_guidance else None,
-               "guidance.dynamic": args.dynamic, "guidance.movers": args.movers, "run.devices": args.devices,
+               "guidance.dynamic": args.dynamic, "guidance.loss.movers": args.movers, "run.devices": args.devices,
                "search.particles": args.search, "run.context_parallel": args.context_parallel}
     try:
         cfg = config_from_args(args, args.overrides, options)

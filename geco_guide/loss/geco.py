@@ -53,8 +53,8 @@ if TYPE_CHECKING:  # the bundle's room is beside the loss', on its floor
     from ..estimators.bundle import Estimators
 
 __all__ = ["CUES", "MIN_UNMASKED_FRACTION", "MOVER_MODES", "PAIR_MODES", "GeCoLoss", "GeCoLossConfig", "GeCoMaps",
-           "GeCoResult", "check_movers", "frame_pairs", "geco_from_geometry", "no_valid_pixels_reason",
-           "resolve_dynamic_masks"]
+           "GeCoResult", "check_movers", "frame_pairs", "geco_from_geometry", "movers_problem",
+           "no_valid_pixels_reason", "resolve_dynamic_masks"]
 
 #: adjacent: (i, i+1), n-1 pairs; center: every frame with the middle one, 2(n-1); all: every
 #: ordered pair, n(n-1) (the paper's evaluation script).
@@ -536,12 +536,22 @@ def _result(view: _PairView, cues: tuple[Tensor, Tensor, Tensor, Tensor], config
     )
 
 
+def movers_problem(movers: str, has_masks: bool,
+                   masks: str = "dynamic masks (a file, 'auto' or subjects)") -> str | None:
+    """Why ``movers`` cannot act, the value first (``'rigid' scores ...``: it scores the movers of
+    dynamic masks, and there are none; ``masks`` says how to give them), or ``None``: the one
+    check of this rule, wherever ``loss.movers`` is set."""
+    if movers == "rigid" and not has_masks:
+        return f"{movers!r} scores the movers of dynamic masks: give {masks}, or leave movers at 'drop'"
+    return None
+
+
 def check_movers(config: GeCoLossConfig, has_masks: bool, movers: Any = None) -> None:
     """One-line ValueError for movers options that would do nothing: ``movers="rigid"`` without
     dynamic masks, or a fit given with ``movers="drop"``."""
-    if config.movers == "rigid" and not has_masks:
-        raise ValueError("movers='rigid' scores the movers of dynamic masks: give dynamic masks (a file, 'auto' or "
-                         "subjects), or leave movers at 'drop'")
+    problem = movers_problem(config.movers, has_masks)
+    if problem is not None:
+        raise ValueError(f"movers={problem}")
     if movers is not None and config.movers != "rigid":
         raise ValueError(f"a movers fit was given but movers={config.movers!r}: set movers='rigid' to score with it")
     if movers is not None and not isinstance(movers, (MoverFit, RefreshedMovers)):

@@ -58,11 +58,11 @@ from ..geometry import (
 from ..io.masks import connected_regions
 from ..types import Correspondences, SceneGeometry
 from .cues import MASK_TOUCH_WEIGHT
+from .modes import MOVER_MODES
 
 __all__ = ["FLOOR_PX", "MIN_MATCHES", "MOVER_MODES", "TARGET_MARGIN", "MoverFit", "MoverScores", "RefreshedMovers", "fit_movers",
            "link_movers", "mover_scores", "point_matches", "solve_motions"]
 
-MOVER_MODES = ("drop", "rigid")
 
 #: Fewest valid matches a mover needs in a pair for a rigid fit there (fewer: left out in that pair).
 MIN_MATCHES = 16

@@ -131,7 +131,7 @@ class EvaluationResult:
             (the mean masked fraction of the evaluated frames; each frame row then has its own
             ``masked_fraction`` and, where a score is ``None`` because of the mask, a ``note``),
             plus ``nan_reason`` when no frame kept enough unmasked pixels; ``None`` without.
-        movers: with ``evaluation.movers="rigid"``, ``{mode, rigid, non_rigid, share, movers}``:
+        movers: with ``evaluation.loss.movers="rigid"``, ``{mode, rigid, non_rigid, share, movers}``:
             per mover (of each window) its ``window``, ``id``, ``frames`` (source indices),
             ``pixels``, ``inlier_fraction``, ``residual``, ``verdict`` (rigid / non-rigid) and
             ``share`` of the clip's fused score; ``rigid`` / ``non_rigid`` count them and ``share``
@@ -428,7 +428,7 @@ def evaluate_video(
         fps_source = clip.fps_source  # the file's rate, or default_fps for inputs without one
     # NaN pixels would score NaN (or 0.0 once masked), 0-255 frames garbage: refuse them, by index.
     check_frame_values(clip.frames, "video" if source is None else source, indices=clip.indices)
-    loss_config = cfg.scoring_loss()
+    loss_config = cfg.loss
     check_movers(loss_config, dynamic_masks is not None)
     masks = clip_mask_source(dynamic_masks, clip, source_frames)
     if not isinstance(estimators, Estimators):

@@ -7,13 +7,13 @@ clip (:func:`evaluation_windows`, at most ``max_windows``), each sampled on a ti
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
-from typing import Optional
+from dataclasses import dataclass, field
+from typing import ClassVar, Optional
 
 from ..families import paper_fps
-from ..loss.geco import MOVER_MODES, GeCoLossConfig, frame_pairs
+from ..loss.geco import GeCoLossConfig, frame_pairs
 from ..loss.presets import evaluation_loss
-from ..types import OptionError
+from ..types import OptionError, refuse_renamed_arguments
 
 __all__ = ["PAPER_MODEL_FPS", "EvaluationConfig", "Window", "evaluation_windows", "motion_grid",
            "sampled_rate", "scoring_plan", "time_grid_indices"]
@@ -101,6 +101,7 @@ def motion_grid(num_frames: int, fps: float, max_fps: float) -> list[int]:
     return time_grid_indices(num_frames, fps, 0.0, num_frames / fps, sampled_rate(fps, max_fps))
 
 
+@refuse_renamed_arguments
 @dataclass
 class EvaluationConfig:
     """How a video is scored: the GeCo-Eval protocol (paper, section "Evaluation protocol", and
@@ -120,15 +121,18 @@ class EvaluationConfig:
         device: where the estimators run (``auto`` = cuda if available, else cpu).
         loss: the metric's :class:`GeCoLossConfig`: frame pairs within a window (``all``, the
             script's; ``center``; ``adjacent``), covisibility threshold, occlusion tau,
-            confidence percentile, ...; full-resolution flow input (``flow_downscale=1.0``).
+            confidence percentile, ``loss.movers`` (what dynamic masks do to what they cover), ...;
+            full-resolution flow input (``flow_downscale=1.0``).
         max_frames: score only the first ``max_frames`` frames of a clip (``None``: all, the
             protocol). Total / Mean Motion cover the whole clip, so a long clip costs time in
             proportion to its length (:func:`scoring_plan`); this bounds it.
-        movers: what dynamic masks do to what they cover: ``drop`` (left out, the default) or
-            ``rigid`` (each mover scored against its own rigid motion, a non-rigid one left out;
-            :mod:`geco_guide.loss.movers`). It sets the metric's ``loss.movers``
-            (:meth:`scoring_loss`); needs dynamic masks.
     """
+
+    #: Earlier spellings, refused in one line naming the new one: ``movers`` is the loss' own
+    #: option, spelt once (``evaluation.loss.movers``).
+    RENAMED: ClassVar[dict[str, tuple[str, str]]] = {
+        "movers": ("evaluation.loss.movers", "EvaluationConfig(loss=GeCoLossConfig(movers=...))"),
+    }
 
     window_seconds: float = 3.0
     max_windows: int = 4
@@ -139,13 +143,8 @@ class EvaluationConfig:
     device: str = "auto"
     loss: GeCoLossConfig = field(default_factory=evaluation_loss)
     max_frames: Optional[int] = None
-    movers: str = "drop"
 
     def __post_init__(self) -> None:
-        if self.movers not in MOVER_MODES:
-            raise OptionError("movers", f"must be one of {MOVER_MODES}, got {self.movers!r}")
-        if self.loss.movers != "drop":
-            raise OptionError("loss.movers", f"is set by evaluation.movers; set that instead of loss.movers={self.loss.movers!r}")
         if self.max_frames is not None and self.max_frames < 2:
             raise OptionError("max_frames", f"must be >= 2 (GeCo compares frames), got {self.max_frames}")
         if not self.window_seconds > 0:
@@ -163,10 +162,6 @@ class EvaluationConfig:
             raise OptionError("flow_batch_size", f"must be >= 1, got {self.flow_batch_size}")
         if not (self.device in ("auto", "cpu", "mps") or self.device.startswith("cuda")):
             raise OptionError("device", f"must be auto, cpu, mps or cuda[:N], got {self.device!r}")
-
-    def scoring_loss(self) -> GeCoLossConfig:
-        """The metric's loss options with :attr:`movers`: what every window is scored with."""
-        return self.loss if self.movers == "drop" else replace(self.loss, movers=self.movers)
 
     def fps_of_model(self, name: str) -> float:
         """The native frame rate of model ``name``; ValueError listing the known names."""

@@ -55,7 +55,7 @@ def sam3_refresh_cost(num_frames: int = 4, dtype: torch.dtype = torch.bfloat16) 
 #: on 2 threads). It runs on what GeCo already estimated: no model of its own.
 AUTO_MASK_REFRESH_S = 0.68
 #: Measured (docs/performance_records.md, "Movers scored against their own motion"): with
-#: ``guidance.movers=rigid``, the movers' fit at each refresh (``fit_movers``: RANSAC + Kabsch per
+#: ``guidance.loss.movers=rigid``, the movers' fit at each refresh (``fit_movers``: RANSAC + Kabsch per
 #: pair and mover, on the host whatever the device), and what scoring them adds to an update's
 #: forward and backward (the fit reused), by the minima of run 1, one thread of this project's CPU
 #: machine, 4 frames of 480x720 with two movers. The update part runs on the loss's device: on a
@@ -83,8 +83,8 @@ def dynamic_mask_costs(num_steps: int = PAPER_STEPS, refresh: int = 1) -> dict[s
     return {"steps": num_steps, "refreshes": refreshes, "updates": updates,
             "sam3": {"counted": sam3["counted"], **{gpu: overhead(t) for gpu, t in sam3["time_s"].items()}},
             "auto": {"counted": "measured on one CPU thread (AUTO_MASK_REFRESH_S)", **overhead(AUTO_MASK_REFRESH_S)},
-            "movers": {"counted": "guidance.movers=rigid beside either masks: the fit at each refresh on the host and "
-                                  "the movers' cues at each update, from one CPU thread's measurements "
+            "movers": {"counted": "guidance.loss.movers=rigid beside either masks: the fit at each refresh on the host "
+                                  "and the movers' cues at each update, from one CPU thread's measurements "
                                   "(MOVERS_FIT_S, MOVERS_UPDATE_S; the update part an upper bound for a GPU)",
                        "refresh_s": MOVERS_FIT_S, "update_s": MOVERS_UPDATE_S,
                        "run_s": MOVERS_FIT_S * refreshes + MOVERS_UPDATE_S * updates,

@@ -15,7 +15,7 @@ from typing import Any, ClassVar, Optional
 
 from ..estimators.tiny_decoder import CONTEXT_LATENTS
 from ..families import default_anchors
-from ..loss.geco import MOVER_MODES, GeCoLossConfig
+from ..loss.geco import GeCoLossConfig, movers_problem
 from ..loss.presets import fused_guidance_loss, guidance_loss
 from ..types import OptionError, is_integer, is_number, merge_dataclass, non_finite_fields, refuse_renamed_arguments
 from .schedule import (
@@ -84,18 +84,17 @@ class GuidanceConfig:
             blurred edges.
         dynamic_refresh: the masks are computed at the first update of every
             ``dynamic_refresh``-th guided step and reused until then (1: each step's own, shared
-            by its repeats).
-        movers: what the dynamic masks do to what they cover in the loss: ``drop`` (left out, the
-            default) or ``rigid`` (a mover that one rigid motion of its own explains is scored
-            against that motion, so guidance steadies its shape; one that none explains stays out:
-            :mod:`geco_guide.loss.movers`). The motions are fitted without gradients, at each
-            refresh of the masks. It sets the loss' ``loss.movers``; needs ``dynamic``.
+            by its repeats). With ``loss.movers="rigid"`` a mover that one rigid motion of its
+            own explains is scored against that motion instead (so guidance steadies its shape;
+            :mod:`geco_guide.loss.movers`), its motion fitted without gradients at each refresh.
     """
 
     #: Earlier spellings, refused in one line naming the new one: ``eta`` was also the scheduler's
-    #: name, and how one machine runs guidance moved to :class:`~.run_options.RunOptions`.
+    #: name, how one machine runs guidance moved to :class:`~.run_options.RunOptions`, and
+    #: ``movers`` is the loss' own option, spelt once (``guidance.loss.movers``).
     RENAMED: ClassVar[dict[str, tuple[str, str]]] = {
         "eta": ("guidance.step_size", "GuidanceConfig(step_size=...)"),
+        "movers": ("guidance.loss.movers", "GuidanceConfig(loss=GeCoLossConfig(movers=...))"),
         **{key: (f"run.{key}", f"RunOptions({key}=...)") for key in (
             "memory_plan", "memory_budget_gb", "gradient_checkpointing", "vae_checkpointing",
             "vae_block_checkpointing", "decode_layout", "compile", "devices")},
@@ -114,7 +113,6 @@ class GuidanceConfig:
     dynamic: Optional[str] = None
     dynamic_dilation: int = 0
     dynamic_refresh: int = 1
-    movers: str = "drop"
 
     def __post_init__(self) -> None:
         check_option_types(self)
@@ -129,10 +127,6 @@ class GuidanceConfig:
         if self.decoder not in DECODERS:
             raise OptionError("decoder", f"must be one of {DECODERS}, got {self.decoder!r}")
         check_dynamic_options(self)
-
-    def scoring_loss(self) -> GeCoLossConfig:
-        """The loss options the updates score with: :attr:`loss` with :attr:`movers`."""
-        return self.loss if self.movers == "drop" else replace(self.loss, movers=self.movers)
 
     @property
     def subjects(self) -> str | None:
@@ -187,13 +181,10 @@ def check_dynamic_options(config: GuidanceConfig) -> None:
         raise OptionError("dynamic_dilation", f"must be a whole number of pixels >= 0, got {config.dynamic_dilation!r}")
     if not is_integer(config.dynamic_refresh) or config.dynamic_refresh < 1:
         raise OptionError("dynamic_refresh", f"must be a whole number of steps >= 1, got {config.dynamic_refresh!r}")
-    if config.movers not in MOVER_MODES:
-        raise OptionError("movers", f"must be one of {MOVER_MODES}, got {config.movers!r}")
-    if isinstance(config.loss, GeCoLossConfig) and config.loss.movers != "drop":
-        raise OptionError("loss.movers", f"is set by guidance.movers; set that instead of loss.movers={config.loss.movers!r}")
-    if config.movers != "drop" and config.dynamic is None:
-        raise OptionError("movers", f"{config.movers!r} scores the movers of the dynamic masks: set guidance.dynamic "
-                                    "('auto' or the subjects that move), or leave movers at 'drop'")
+    problem = movers_problem(config.loss.movers, config.dynamic is not None, "guidance.dynamic ('auto' or the subjects "
+                             "that move)")
+    if problem is not None:
+        raise OptionError("loss.movers", problem)
 
 
 def dynamic_spec_problem(spec: Any) -> str | None:

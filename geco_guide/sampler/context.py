@@ -392,7 +392,7 @@ class GuidanceContext:
         self._devices = list(devices) if devices else None
         # No frame check: it would make each update wait for the device; a NaN decode gives NaN
         # scalars and no update instead (see guided_step).
-        loss_fn = GeCoLoss(estimators, config.scoring_loss(), check_values=False)
+        loss_fn = GeCoLoss(estimators, config.loss, check_values=False)
         self.anchor_objective = AnchorObjective(self._anchor_decode(self.memory_plan.plan), latent_frames, loss_fn,
                                                 dynamic_masks)
         self.update_objective = self.observer.objective(self.anchor_objective, self.memory_plan.plan)

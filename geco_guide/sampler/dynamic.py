@@ -42,7 +42,7 @@ class RefreshedMasks:
         source: the masks' source.
         refresh: recompute at every ``refresh``-th guided step (1: every step).
         dilation: pixels by which the masks grow.
-        movers: the movers' fit of ``guidance.movers="rigid"``
+        movers: the movers' fit of ``guidance.loss.movers="rigid"``
             (:class:`~geco_guide.loss.movers.RefreshedMovers`), refitted whenever the masks are
             recomputed; ``None``: the masks only leave their content out.
     """
@@ -119,7 +119,7 @@ def guidance_mask_source(config: GuidanceConfig, estimators: Estimators,
     if not isinstance(source, DynamicMaskSource):
         raise ValueError(f"the segmenter must make a DynamicMaskSource (source_name and dynamic_masks(frames, ...)), "
                          f"got {type(source).__name__}")
-    movers = RefreshedMovers() if config.movers == "rigid" else None
+    movers = RefreshedMovers() if config.loss.movers == "rigid" else None
     return RefreshedMasks(source, refresh=config.dynamic_refresh, dilation=config.dynamic_dilation, movers=movers)
 
 

@@ -84,7 +84,7 @@ def test_geco_eval_dynamic_scores_and_guides_with_the_subjects_masks(tmp_path: P
 def test_geco_eval_dynamic_scores_the_subjects_as_movers(tmp_path: Path):
     out = tmp_path / "run"
     argv = ["--preset", "tiny", "--suite", "dynamic", "--models", "cogvideox-5b", "--limit", "1", "--seeds", "0",
-            "--out", str(out), SEGMENTER, "evaluation.movers=rigid"]
+            "--out", str(out), SEGMENTER, "evaluation.loss.movers=rigid"]
     assert main(argv) == 0
     result = json.loads((out / "videos" / "cogvideox-5b" / "m1-s0.json").read_text())
     movers = result["evaluation"]["movers"]

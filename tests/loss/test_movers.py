@@ -101,10 +101,11 @@ def test_movers_options_are_checked_in_one_line(moving):
     fit = _score(moving, moving.dynamic_mask).movers.fit
     with pytest.raises(ValueError, match="a movers fit was given but movers='drop'"):
         _score(moving, moving.dynamic_mask, movers="drop", fit=fit)
-    with pytest.raises(OptionError, match="loss.movers is set by evaluation.movers"):
-        EvaluationConfig(loss=GeCoLossConfig(movers="rigid"))
-    assert EvaluationConfig(movers="rigid").scoring_loss().movers == "rigid"
-    assert EvaluationConfig().scoring_loss() == evaluation_loss()
+    # one spelling, the loss' own: the evaluation's earlier one is refused naming it
+    assert EvaluationConfig(loss=GeCoLossConfig(movers="rigid")).loss.movers == "rigid"
+    with pytest.raises(TypeError, match=r"EvaluationConfig\(movers=...\) is the earlier spelling"):
+        EvaluationConfig(movers="rigid")
+    assert EvaluationConfig().loss == evaluation_loss()
 
 
 class CarriedFlow:

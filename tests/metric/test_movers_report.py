@@ -1,10 +1,11 @@
-"""evaluate_video with ``evaluation.movers="rigid"``: the movers named in the result and its JSON,
+"""evaluate_video with ``evaluation.loss.movers="rigid"``: the movers named in the result and its JSON,
 their share of the fused score, the maps outlining them, and the option checked before any model
 loads."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 import torch
@@ -13,6 +14,7 @@ from geco_guide.estimators.bundle import Estimators
 from geco_guide.bench.synthetic import moving_clip
 from geco_guide.config import to_config
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
+from geco_guide.loss.presets import evaluation_loss
 from geco_guide.metric.evaluate import evaluate_video, render_maps
 from geco_guide.metric.protocol import EvaluationConfig
 from geco_guide.metric.render import OUTLINE_COLOR, outline
@@ -25,7 +27,7 @@ def clip():
 
 def _evaluate(clip, movers, masks, **kwargs):
     return evaluate_video(clip.frames.float(), Estimators(OracleGeometry(clip), OracleFlow(clip)),
-                          EvaluationConfig(movers=movers), fps=8.0, dynamic_masks=masks, **kwargs)
+                          EvaluationConfig(loss=replace(evaluation_loss(), movers=movers)), fps=8.0, dynamic_masks=masks, **kwargs)
 
 
 def test_the_report_names_every_mover(clip):
@@ -38,7 +40,7 @@ def test_the_report_names_every_mover(clip):
         assert row["window"] == 0 and row["frames"] == [0, 1, 2, 3, 4] and row["pixels"] > 50
         assert row["verdict"] == "rigid" and row["inlier_fraction"] >= 0.8 and 0 <= row["share"] < 1
     assert movers["share"] == pytest.approx(sum(row["share"] for row in movers["movers"]))
-    assert data["config"]["movers"] == "rigid" and data["config"]["loss"]["movers"] == "drop"
+    assert data["config"]["loss"]["movers"] == "rigid" and "movers" not in data["config"]
     # scored against their own motion, the boxes are as consistent as the background
     dropped = _evaluate(clip, "drop", "auto")
     assert "movers" not in dropped.to_dict()
@@ -62,7 +64,14 @@ def test_the_maps_outline_each_mover_on_the_static_colour_scale(clip):
 
 def test_rigid_movers_need_masks_and_a_known_mode(clip):
     with pytest.raises(ValueError, match="movers='rigid' scores the movers of dynamic masks"):
-        evaluate_video(clip.frames.float(), fps=8.0, config=EvaluationConfig(movers="rigid"))  # before any model loads
-    assert to_config({"evaluation": {"movers": "rigid"}}).evaluation.scoring_loss().movers == "rigid"
-    with pytest.raises(ValueError, match=r"invalid value for config key 'evaluation.movers': .*must be one of \('drop', 'rigid'\)"):
-        to_config({"evaluation": {"movers": "score"}})
+        evaluate_video(clip.frames.float(), fps=8.0, config=EvaluationConfig(loss=replace(evaluation_loss(), movers="rigid")))  # before any model loads
+    assert to_config({"evaluation": {"loss": {"movers": "rigid"}}}).evaluation.loss.movers == "rigid"
+    with pytest.raises(ValueError, match=r"invalid value for config key 'evaluation.loss.movers': .*must be one of \('drop', 'rigid'\)"):
+        to_config({"evaluation": {"loss": {"movers": "score"}}})
+    # the earlier spelling, refused in one line naming the one key
+    with pytest.raises(ValueError, match=r"^evaluation.movers is the earlier name of evaluation.loss.movers: use "
+                                         r"evaluation.loss.movers instead \(config\)$"):
+        to_config({"evaluation": {"movers": "rigid"}})
+    with pytest.raises(TypeError, match=r"EvaluationConfig\(movers=...\) is the earlier spelling of "
+                                        r"EvaluationConfig\(loss=GeCoLossConfig\(movers=...\)\)"):
+        EvaluationConfig(movers="rigid")

@@ -10,6 +10,7 @@ import torch
 
 from geco_guide import tiny as T
 from geco_guide.bench.synthetic import moving_clip
+from geco_guide.config import load_config
 from geco_guide.estimators.bundle import Estimators
 from geco_guide.estimators.dynamic_masks import GivenMasks
 from geco_guide.estimators.oracle import OracleGeometry
@@ -61,7 +62,8 @@ def test_guided_updates_with_rigid_movers_lower_a_deforming_movers_residual():
 @pytest.mark.parametrize("front_door", ["pipeline", "hooks"])
 @pytest.mark.slow
 def test_rigid_movers_guide_in_the_pipeline_and_under_the_hooks(front_door, estimators):
-    config = T.tiny_guidance_config(repeats="0x2,1x2", time_travel=[], dynamic="auto", movers="rigid")
+    loss = replace(T.tiny_guidance_config().loss, movers="rigid")
+    config = T.tiny_guidance_config(repeats="0x2,1x2", time_travel=[], dynamic="auto", loss=loss)
     if front_door == "pipeline":
         pipe = T.tiny_pipeline(0)
         out = pipe(PROMPT, generator=torch.Generator().manual_seed(0), guidance=config, estimators=estimators,
@@ -73,15 +75,21 @@ def test_rigid_movers_guide_in_the_pipeline_and_under_the_hooks(front_door, esti
             pipe(PROMPT, generator=torch.Generator().manual_seed(0), output_type="latent", **T.tiny_call_kwargs(pipe))
         report = handle.last
     assert len(report.log) == 2 and report.mask_source == "auto"
-    assert report.guidance["movers"] == "rigid" and all(r["mask_source"] == "auto" for r in report.log)
+    assert report.guidance["loss"]["movers"] == "rigid" and all(r["mask_source"] == "auto" for r in report.log)
 
 
 def test_movers_options_are_one_line_before_any_work():
-    with pytest.raises(OptionError, match="movers 'rigid' scores the movers of the dynamic masks: set guidance.dynamic"):
-        GuidanceConfig(movers="rigid")
+    rigid = replace(guidance_loss(), movers="rigid")
+    with pytest.raises(OptionError, match=r"^loss.movers 'rigid' scores the movers of dynamic masks: give "
+                                          r"guidance.dynamic \('auto' or the subjects that move\)"):
+        GuidanceConfig(loss=rigid)
     with pytest.raises(OptionError, match="movers must be one of"):
-        GuidanceConfig(dynamic="auto", movers="melt")
-    with pytest.raises(OptionError, match="loss.movers is set by guidance.movers"):
-        GuidanceConfig(loss=GeCoLossConfig(movers="rigid"))
-    assert GuidanceConfig(dynamic="auto", movers="rigid").scoring_loss().movers == "rigid"
-    assert GuidanceConfig().scoring_loss() == GuidanceConfig().loss
+        GuidanceConfig(dynamic="auto", loss=GeCoLossConfig(movers="melt"))
+    assert GuidanceConfig(dynamic="auto", loss=rigid).loss.movers == "rigid"
+    # one spelling, the loss' own: the earlier one is refused in one line naming it
+    with pytest.raises(TypeError, match=r"^GuidanceConfig\(movers=...\) is the earlier spelling of "
+                                        r"GuidanceConfig\(loss=GeCoLossConfig\(movers=...\)\): use that instead$"):
+        GuidanceConfig(movers="rigid")
+    with pytest.raises(ValueError, match=r"^guidance.movers is the earlier name of guidance.loss.movers: use "
+                                         r"guidance.loss.movers instead \(command line\)$"):
+        load_config(preset="tiny", overrides=["guidance.movers=rigid"])
