@@ -24,15 +24,15 @@ def tiny(*overrides: str):
 
 
 def test_without_guidance_every_moving_subject_option_and_the_devices_are_left_at_their_defaults(caplog):
-    cfg = tiny("guidance.enabled=false", "guidance.dynamic=auto", "guidance.movers=rigid",
+    cfg = tiny("guidance.enabled=false", "guidance.dynamic=auto", "guidance.loss.movers=rigid",
                "guidance.dynamic_dilation=2", "run.devices=[cpu]", "run.particle_batch=2")
     with caplog.at_level(logging.WARNING, logger="geco_guide.generation"):
         ran = check_generation(cfg, PROMPT)
 
-    assert (ran.guidance.dynamic, ran.guidance.movers, ran.guidance.dynamic_dilation) == (None, "drop", 0)
+    assert (ran.guidance.dynamic, ran.guidance.loss.movers, ran.guidance.dynamic_dilation) == (None, "drop", 0)
     assert ran.run.devices is None and ran.run.particle_batch is None
     assert [record.getMessage() for record in caplog.records] == [
-        "guidance.dynamic='auto', guidance.dynamic_dilation=2, guidance.movers='rigid', run.devices=['cpu'] do nothing "
+        "guidance.dynamic='auto', guidance.dynamic_dilation=2, guidance.loss.movers='rigid', run.devices=['cpu'] do nothing "
         "without guidance or a search (--no-guidance): left at the default, as the sidecar records",
         "run.particle_batch=2 does nothing without a search (search.particles): left at the default, as the sidecar "
         "records"]
@@ -42,8 +42,8 @@ def test_without_guidance_every_moving_subject_option_and_the_devices_are_left_a
 
 
 @pytest.mark.parametrize("overrides", [
-    ("guidance.dynamic=auto", "guidance.movers=rigid", "run.devices=[cpu]"),  # guided
-    ("guidance.enabled=false", "search.particles=2", "guidance.dynamic=auto", "guidance.movers=rigid"),  # a search
+    ("guidance.dynamic=auto", "guidance.loss.movers=rigid", "run.devices=[cpu]"),  # guided
+    ("guidance.enabled=false", "search.particles=2", "guidance.dynamic=auto", "guidance.loss.movers=rigid"),  # a search
 ])
 def test_an_option_that_acts_is_kept_without_a_word(overrides, caplog):
     cfg = tiny(*overrides)
@@ -98,7 +98,7 @@ def test_no_guidance_with_masks_and_movers_runs_and_records_what_ran(best_of, tm
     assert err.index("do nothing without guidance") < err.index("loading models")
     (sidecar,) = tmp_path.glob("*.json")
     guidance = json.loads(sidecar.read_text())["config"]["guidance"]
-    assert (guidance["enabled"], guidance["dynamic"], guidance["movers"]) == (False, None, "drop")
+    assert (guidance["enabled"], guidance["dynamic"], guidance["loss"]["movers"]) == (False, None, "drop")
 
 
 @pytest.mark.slow
@@ -151,11 +151,11 @@ def test_the_ab_arms_leave_out_what_they_cannot_act_on_without_a_word(caplog):
     from geco_guide.bench.ab import Pair, arm_config
     from geco_guide.cli.prompt_files import Prompt
 
-    cfg = tiny("guidance.dynamic=auto", "guidance.movers=rigid", "run.devices=[cpu]")
+    cfg = tiny("guidance.dynamic=auto", "guidance.loss.movers=rigid", "run.devices=[cpu]")
     pair = Pair(Prompt("bust", PROMPT), 3)
     with caplog.at_level(logging.WARNING, logger="geco_guide.generation"):
         unguided, guided = (arm_config(cfg, pair, arm) for arm in ("unguided", "guided"))
     assert caplog.records == []
-    assert (unguided.guidance.dynamic, unguided.guidance.movers, unguided.run.devices) == (None, "drop", None)
-    assert (guided.guidance.dynamic, guided.guidance.movers, guided.run.devices) == ("auto", "rigid", ["cpu"])
+    assert (unguided.guidance.dynamic, unguided.guidance.loss.movers, unguided.run.devices) == (None, "drop", None)
+    assert (guided.guidance.dynamic, guided.guidance.loss.movers, guided.run.devices) == ("auto", "rigid", ["cpu"])
     assert unguided.seed == guided.seed == 3
