@@ -38,6 +38,58 @@ def test_the_registry_is_the_one_table_of_family_facts():
     assert set(SCORED_ONLY) == {"sora-2", "veo-3.1"} and not set(SCORED_ONLY) & set(GENERATING)
 
 
+def _family_words() -> set[str]:
+    """What names a family: the registry's model, family and pipeline class names, its adapters',
+    tiny builders' and tiny decoders' names."""
+    from geco_guide.families import FAMILIES, TINY_DECODER_ALIASES, TINY_DECODERS
+
+    words = {*MODELS, *FAMILIES, *TINY_DECODERS, *TINY_DECODER_ALIASES}
+    for model in MODELS.values():
+        words.update(word for word in (model.pipeline, model.adapter, model.tiny) if word)
+    return {word.lower() for word in words if word}
+
+
+#: A family's own code, which may name it: its adapter, its tiny builders, the CogVideoX pipeline
+#: and the Wan modular blocks.
+FAMILY_CODE = ("sampler/adapters.py", "tiny/pipelines.py", "tiny/components.py", "sampler/pipeline_cogvideox.py",
+               "sampler/modular.py")
+
+
+def test_no_string_outside_the_registry_and_the_families_code_names_a_family():
+    # a family's name as a string elsewhere is a table or a branch of its own; exports (__all__) are names
+    import ast
+
+    words = _family_words()
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        relative = path.relative_to(PACKAGE).as_posix()
+        if relative.startswith("families/") or relative in FAMILY_CODE:
+            continue
+        tree = ast.parse(path.read_text())
+        exported = {id(node) for assign in ast.walk(tree) if isinstance(assign, ast.Assign)
+                    and any(getattr(t, "id", None) == "__all__" for t in assign.targets) for node in ast.walk(assign)}
+        found += [f"{relative}:{node.lineno} {node.value!r}" for node in ast.walk(tree)
+                  if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in exported
+                  and node.value.lower() in words]
+    assert not found, f"family names outside the registry: {found}"
+
+
+@pytest.mark.parametrize("name", GENERATING)
+def test_every_entry_names_an_adapter_a_tiny_builder_a_tiny_decoder_and_schedulers_that_exist(name):
+    import diffusers
+
+    from geco_guide.families import TINY_DECODERS
+    from geco_guide.sampler.adapters import ADAPTERS, adapter_for_class
+    from geco_guide.tiny import pipelines
+
+    model = model_named(name)
+    assert isinstance(adapter_for_class(getattr(diffusers, model.pipeline)), ADAPTERS[model.adapter])
+    assert callable(getattr(pipelines, model.tiny))
+    assert model.tiny_decoder is None or model.tiny_decoder in TINY_DECODERS
+    assert model.scheduler is None or model.scheduler in model.schedulers
+    assert all(isinstance(getattr(diffusers, cls), type) for cls in model.schedulers.values())
+
+
 @pytest.mark.parametrize("name", GENERATING)
 def test_every_model_has_a_preset_its_facts_and_a_tiny_stand_in(name):
     model = model_named(name)

@@ -19,7 +19,7 @@ from ..estimators.bundle import Estimators
 from ..estimators.tiny_decoder import TinyDecoder
 from ..estimators.ufm import UFM, UFMConfig
 from ..estimators.vggt import VGGT, VGGTConfig
-from ..families import model_named
+from ..families import DEFAULT_MODEL, model_named
 from ..families.published import published_configs
 from ..sampler.diffusers_private import keeps_in_fp32
 from ..sampler.loading import cast_model
@@ -28,8 +28,8 @@ __all__ = ["CALIBRATION_MODEL", "build_cost_pipeline", "build_full_size_componen
            "cast_components", "full_size_vae", "materialise", "model_bytes", "model_video", "stock_pipeline",
            "text_embed_shape", "text_encoder_stand_in", "to_fake"]
 
-#: The model whose measured H200 step calibrates the cost model: the paper's CogVideoX-5B.
-CALIBRATION_MODEL = "cogvideox-5b"
+#: The model whose measured H200 step calibrates the cost model: the paper's CogVideoX-5B, the default.
+CALIBRATION_MODEL = DEFAULT_MODEL
 
 
 def model_video(name: str) -> dict[str, int]:
@@ -217,7 +217,7 @@ def build_cost_pipeline(settings: dict[str, Any], fake_mode: Any) -> tuple[Any, 
         pipe = tiny_pipeline(settings["seed"])
         tiny = tiny_estimators(settings["seed"])
         geometry, flow = tiny.geometry, tiny.flow
-        decoder = tiny_guidance_decoder("cogvideox", settings["seed"]) if settings.get("decoder") == "tiny" else None
+        decoder = tiny_guidance_decoder(seed=settings["seed"]) if settings.get("decoder") == "tiny" else None
         cast_components(pipe, dtype)
         call = {"prompt": "a red cube on a table", "max_sequence_length": TINY_MAX_SEQUENCE_LENGTH}
     else:
