@@ -332,6 +332,7 @@ def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True,
     import torch
 
     from .estimators import Estimators, load_estimators
+    from .sampler.adapters import vae_latent_channels
     from .sampler.loading import load_tiny_decoder, load_video_pipeline, tiny_decoder_id, uses_tiny_decoder
     from .tiny import tiny_call_extras, tiny_video_components
 
@@ -343,8 +344,7 @@ def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True,
     video = replace(load_video_pipeline(cfg.model, cfg.sampling.scheduler, components), call_extras=extras)
     decoder = None
     if estimators is not False and uses_tiny_decoder(cfg.guidance, cfg.search.enabled):
-        vae_config = video.pipe.vae.config
-        channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)
+        channels = vae_latent_channels(video.pipe.vae)
         decoder = load_tiny_decoder(cfg.estimators, video.model, channels, getattr(torch, cfg.model.dtype))
         decoder = decoder.to(device=video.pipe.device)
     bundle = estimators if isinstance(estimators, Estimators) else None

@@ -29,6 +29,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
+from .adapters import vae_latent_channels
 from .config import GuidanceConfig
 from .process_collectives import gather_from_processes, sum_gradient_over_processes
 from .multi_device import module_replicas
@@ -84,7 +85,7 @@ def anchor_decoder(config: GuidanceConfig, run: RunOptions, vae_decode_with: Cal
             "guidance.decoder=vae"
         )
     vae_config = vae.config
-    channels = getattr(vae_config, "latent_channels", None) or getattr(vae_config, "z_dim", None)  # CogVideoX, Wan
+    channels = vae_latent_channels(vae)
     if channels is not None and tiny_decoder.latent_channels != channels:
         raise ValueError(
             f"the tiny decoder ({tiny_decoder.variant.name}) takes {tiny_decoder.latent_channels} latent "
