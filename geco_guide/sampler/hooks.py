@@ -9,7 +9,7 @@ again, leaving the pipeline exactly as it was:
    geometry of the call from its arguments (and the caller's ``generator``, the source of the
    time-travel noise), checks the anchors against the video the call will make, and the latents
    the caller passed (finite, and of the call's shape where the adapter knows it), and resets its
-   per-call state. Anchors the video cannot contain and unusable latents raise ValueError here, up
+   per-call state (one :class:`GuidanceCallState`, as diffusers' stateful hooks keep theirs). Anchors the video cannot contain and unusable latents raise ValueError here, up
    front.
 2. A ``ModelHook`` in each denoiser's diffusers ``HookRegistry`` (:class:`DenoiserCapture`)
    captures each call's arguments and output: latent model input, timestep, text states, CFG
@@ -59,11 +59,12 @@ import functools
 import inspect
 import types
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import torch
 from diffusers.hooks import ModelHook
+from diffusers.hooks.hooks import BaseState
 from torch import Tensor, nn
 
 from ..estimators.bundle import Estimators
@@ -91,8 +92,8 @@ from .slicing import check_latents
 from .step import LatentsWatch
 from .stock_call import StockCall, guide_stock_step, stock_call
 
-__all__ = ["CAPTURE_HOOK", "PARTICLE_HOOK", "DenoiserCapture", "GeCoGuidanceHandle", "ParticleSplit",
-           "attach_geco_guidance"]
+__all__ = ["CAPTURE_HOOK", "PARTICLE_HOOK", "DenoiserCapture", "GeCoGuidanceHandle", "GuidanceCallState",
+           "ParticleSplit", "attach_geco_guidance"]
 
 _MISSING = object()
 #: The name of :class:`DenoiserCapture` in a denoiser's hook registry.
@@ -110,17 +111,56 @@ class _Call:
 
 
 @dataclass
-class _CallState:
-    call: StockCall
-    generator: Any
-    context: GuidanceContext | None = None  # from the first denoiser call on (it fixes the schedule)
+class GuidanceCallState(BaseState):
+    """What the hooks keep of one pipeline call, in one object (as diffusers' stateful hooks keep
+    theirs in a ``BaseState``): :meth:`reset` when the call prepares its latents, filled in by
+    its denoiser calls and scheduler steps, :meth:`close` on detach.
+
+    Attributes:
+        log: one dict per guided update of the call (``handle.log``; a new list each call, so the
+            last call's report keeps its own).
+        report: what the call decided (``handle.last``), once its denoising loop ends.
+        geometry: the call's :class:`~.adapters.CallGeometry` (``handle.geometry``).
+        call: the guided (or searched) call set up before its first step, ``None`` while the
+            hooks have nothing to do (no call yet, guidance off without a search, detached).
+        generator: the call's generator, the source of the time-travel noise.
+        context: its guidance, from the first denoiser call on (it fixes the schedule).
+        num_steps: the call's step count, from the first denoiser call on.
+        counter: the scheduler steps taken so far.
+        calls: the denoiser calls captured since the last scheduler step.
+        watch: the latents seen, from the first scheduler step on.
+        search_config, particle_batch, search: the call's particle search (``search`` from the
+            first denoiser call on), ``None`` without.
+        places: per denoiser (by id), the devices and replicas a search's particle sub-batches
+            run on (:class:`ParticleSplit`).
+        replaying: a guided step is re-running the captured denoiser calls (not the pipeline's own).
+        vae_slicing: a search call's VAE and its ``use_slicing`` before the call.
+        restore_decode: puts back a search's dealt final decode.
+    """
+
+    log: list[dict[str, Any]] = field(default_factory=list)
+    report: GuidanceReport | None = None
+    geometry: CallGeometry | None = None
+    call: StockCall | None = None
+    generator: Any = None
+    context: GuidanceContext | None = None
+    num_steps: int | None = None
     counter: int = 0
     calls: list[_Call] = field(default_factory=list)
-    watch: LatentsWatch | None = None  # from the first scheduler step on
+    watch: LatentsWatch | None = None
     search_config: SearchConfig | None = None
     particle_batch: ParticleBatch | None = None
-    search: ParticleSearch | None = None  # from the first denoiser call on (it knows the step count)
-    num_steps: int | None = None  # from the first denoiser call on
+    search: ParticleSearch | None = None
+    places: dict[int, list[tuple[torch.device | None, Any]]] = field(default_factory=dict)
+    replaying: bool = False
+    vae_slicing: tuple[Any, bool] | None = None
+    restore_decode: Callable[[], None] | None = None
+
+    @property
+    def guiding(self) -> bool:
+        """Whether the hooks act on the pipeline's denoiser calls and steps now: a call is set up
+        and its own calls run (not a replay)."""
+        return self.call is not None and not self.replaying
 
     @property
     def batches(self) -> list[list[int]] | None:
@@ -128,6 +168,23 @@ class _CallState:
         if self.search_config is None:
             return None
         return particle_batches(self.search_config.particles, self.particle_batch.size)
+
+    def close(self) -> None:
+        """End the call: what a search changed on the VAE put back (its ``use_slicing``, its
+        ``decode``), nothing more to act on; the report, log and geometry stay readable."""
+        if self.vae_slicing is not None:
+            vae, previous = self.vae_slicing
+            vae.use_slicing, self.vae_slicing = previous, None
+        if self.restore_decode is not None:
+            self.restore_decode()
+            self.restore_decode = None
+        self.call = None
+
+    def reset(self) -> None:
+        """Before a new call: the last one closed, every field back to its default."""
+        self.close()
+        for item in fields(self):
+            setattr(self, item.name, getattr(GuidanceCallState(), item.name))
 
 
 def _hidden_states(args: tuple, kwargs: dict) -> tuple[Tensor, str | int]:
@@ -248,17 +305,16 @@ class ParticleSplit(ModelHook):
     def __init__(self, handle: GeCoGuidanceHandle):
         super().__init__()
         self.handle = handle
-        #: the devices and their replicas of this call's search, ``None`` outside one
-        self.places: list[tuple[torch.device | None, Any]] | None = None
 
     def new_forward(self, module: nn.Module, *args: Any, **kwargs: Any) -> Any:
-        state, forward = self.handle._state, self.fn_ref.original_forward
-        if self.places is None or state is None or state.search_config is None or self.handle._replaying:
+        state, forward = self.handle.state, self.fn_ref.original_forward
+        call_places = state.places.get(id(module))  # the devices and replicas of this call's search
+        if call_places is None or not state.guiding or state.search_config is None:
             return forward(*args, **kwargs)
         particles = state.search_config.particles
         if hidden_states_of(args, kwargs).shape[0] % particles:
             return forward(*args, **kwargs)
-        places = [(device, forward if runner is None else runner) for device, runner in self.places]
+        places = [(device, forward if runner is None else runner) for device, runner in call_places]
         return ParticleBatches(particles, state.particle_batch.size, places)(*args, **kwargs)
 
 
@@ -280,9 +336,8 @@ class GeCoGuidanceHandle:
             :class:`~geco_guide.sampler.search.SearchConfig`; ``None``: none), set by
             :meth:`enable_search`.
         search_generator: the generator of the search's resampling draws, set with ``search``.
-        last: what the last call decided (:class:`~geco_guide.sampler.context.GuidanceReport`),
-            ``None`` before one; set when its denoising loop ends.
-        geometry: the :class:`~geco_guide.sampler.adapters.CallGeometry` of the last call.
+        state: the current or last call's :class:`GuidanceCallState` (``last``, ``log`` and
+            ``geometry`` read it).
     """
 
     def __init__(self, pipe, adapter: PipelineAdapter, config: GuidanceConfig, estimators: Estimators,
@@ -295,18 +350,12 @@ class GeCoGuidanceHandle:
         self.config = config
         self.estimators = estimators
         self.observer: GuidanceObserver | None = None
-        self.last: GuidanceReport | None = None
-        self.geometry: CallGeometry | None = None
-        self._log: list[dict[str, Any]] = []
-        self._state: _CallState | None = None
-        # per denoiser (by id): the module, its hooks' removers and its particle split
-        self._hooked: dict[int, tuple[nn.Module, list[Any], ParticleSplit]] = {}
+        self.state = GuidanceCallState()
+        # per denoiser (by id): the module and its hooks' removers
+        self._hooked: dict[int, tuple[nn.Module, list[Any]]] = {}
         self._schedulers: list[tuple[Any, Any]] = []
         self._saved_prepare: Any = _MISSING
-        self._slicing: tuple[Any, bool] | None = None  # a search call's VAE and its use_slicing before
-        self._restore_decode: Callable[[], None] | None = None  # puts back a search's dealt final decode
         self._attached = False
-        self._replaying = False
 
     def enable_search(self, search: SearchConfig | Mapping[str, Any], generator: torch.Generator) -> None:
         """Make every following call a particle search (:mod:`.search`), guided or not
@@ -342,7 +391,18 @@ class GeCoGuidanceHandle:
     def log(self) -> list[dict[str, Any]]:
         """One dict per guided update of the current or last call (``step, repeat, t, loss, motion,
         structure, fused, grad_norm, seconds, time_travel, skipped``); ``last.log`` once it ends."""
-        return self._log
+        return self.state.log
+
+    @property
+    def last(self) -> GuidanceReport | None:
+        """What the last call decided (:class:`~geco_guide.sampler.context.GuidanceReport`),
+        ``None`` before one; set when its denoising loop ends."""
+        return self.state.report
+
+    @property
+    def geometry(self) -> CallGeometry | None:
+        """The :class:`~geco_guide.sampler.adapters.CallGeometry` of the last call."""
+        return self.state.geometry
 
     # ------------------------------------------------------------------------------------------
     # install / remove
@@ -375,24 +435,14 @@ class GeCoGuidanceHandle:
         self._patch_scheduler(pipe.scheduler)
         self._attached = True
 
-    def _restore_vae(self) -> None:
-        """Put back what a search call changed on the VAE: its ``use_slicing``, its ``decode``."""
-        if self._slicing is not None:
-            vae, previous = self._slicing
-            vae.use_slicing, self._slicing = previous, None
-        if self._restore_decode is not None:
-            self._restore_decode()
-            self._restore_decode = None
-
     def _register_hooks(self, module: nn.Module) -> None:
         """The particle split (inner) and the capture (outer) in ``module``'s hook registry."""
-        split = ParticleSplit(self)
-        removers = [register_hook(module, split, PARTICLE_HOOK)]
+        removers = [register_hook(module, ParticleSplit(self), PARTICLE_HOOK)]
         removers.append(register_hook(module, DenoiserCapture(self), CAPTURE_HOOK))
-        self._hooked[id(module)] = (module, removers, split)
+        self._hooked[id(module)] = (module, removers)
 
     def _remove_hooks(self, module: nn.Module) -> None:
-        _, removers, _ = self._hooked.pop(id(module))
+        _, removers = self._hooked.pop(id(module))
         for remove in reversed(removers):
             remove()
 
@@ -437,7 +487,7 @@ class GeCoGuidanceHandle:
         """Remove every hook and wrapper; the pipeline is exactly as before :func:`attach_geco_guidance`."""
         if not self._attached:
             return
-        for module, _, _ in list(self._hooked.values()):
+        for module, _ in list(self._hooked.values()):
             self._remove_hooks(module)
         if self._saved_prepare is _MISSING:
             del self.pipe.__dict__["prepare_latents"]
@@ -449,8 +499,7 @@ class GeCoGuidanceHandle:
             else:
                 scheduler.__dict__["step"] = previous
         self._schedulers.clear()
-        self._restore_vae()
-        self._state = None
+        self.state.close()
         self._attached = False
 
     def __enter__(self) -> "GeCoGuidanceHandle":
@@ -465,16 +514,12 @@ class GeCoGuidanceHandle:
     def _begin_call(self, args: dict[str, Any], latents: Tensor) -> None:
         config, run = self.config, self.run_options
         geometry = self.adapter.call_geometry(self.pipe, args, latents)
-        self.geometry = geometry
-        self._log = []
-        self._state = None
-        self.last = None
-        for _, _, split in self._hooked.values():
-            split.places = None
-        self._restore_vae()
+        state = self.state
+        state.reset()
+        state.geometry = geometry
         search = resolve_search_config(self.search)
         if not config.enabled and search is None:
-            self.last = GuidanceReport(scheduler=type(self.pipe.scheduler).__name__)
+            state.report = GuidanceReport(scheduler=type(self.pipe.scheduler).__name__)
             return
         check_latents(args.get("latents"), self.adapter.latents_shape(self.pipe, args),
                       f"this {type(self.pipe).__name__} call")
@@ -487,25 +532,25 @@ class GeCoGuidanceHandle:
                                  f"prompt and num_videos_per_prompt={search.particles} (its batch is the particles), "
                                  f"got a batch of {latents.shape[0]}")
         call = stock_call(self.pipe, self.adapter, geometry, config, run, self.estimators)
-        state = _CallState(call, generator, search_config=search)
+        state.generator, state.search_config = generator, search
         if search is not None:
             state.particle_batch = call.particle_batch(search.particles)
             vae = getattr(self.pipe, "vae", None)
             if hasattr(vae, "use_slicing"):  # the final videos one at a time: each particle's frames its own
-                self._slicing = (vae, vae.use_slicing)
+                state.vae_slicing = (vae, vae.use_slicing)
                 vae.use_slicing = True
-            for module, _, _ in list(self._hooked.values()):
+            for module, _ in list(self._hooked.values()):
                 places: list[tuple[Any, Any]] = [(None, None)]  # the call's own device and forward
                 if call.devices:
                     replicas = self._replicas(module, call.devices)
                     places = [(device, None if replica is module else replica)
                               for device, replica in zip(call.devices, replicas)]
-                self._hooked[id(module)][2].places = places
-        self._state = state
+                state.places[id(module)] = places
+        state.call = call  # last: a call that failed its checks leaves the hooks nothing to act on
 
     def _before_denoiser_call(self) -> None:
-        state = self._state
-        if state is None or self._replaying:
+        state = self.state
+        if not state.guiding:
             return
         if state.context is None and state.search is None:  # first denoiser call of this pipeline call
             pipe = self.pipe
@@ -513,20 +558,20 @@ class GeCoGuidanceHandle:
             check_scheduler(pipe.scheduler)
             num_steps = state.num_steps = len(pipe.scheduler.timesteps)
             if state.call.config.enabled:
-                state.context = state.call.context(num_steps, state.generator, self._log, self.observer)
+                state.context = state.call.context(num_steps, state.generator, state.log, self.observer)
             if state.search_config is not None:
                 state.search = state.call.searcher(state.search_config, num_steps, state.context,
                                                    state.particle_batch.size, state.generator, self.search_generator)
 
     def _after_denoiser_call(self, module: nn.Module, args: tuple, kwargs: dict, output: Any) -> None:
-        state = self._state
-        if state is None or self._replaying:
+        state = self.state
+        if not state.guiding:
             return
         state.calls.append(_Call(module, tuple(args), dict(kwargs), output_tensor(output).detach()))
 
     def _step(self, scheduler, original, signature, args, kwargs):
-        state = self._state
-        if state is None or self._replaying or scheduler is not self.pipe.scheduler:
+        state = self.state
+        if not state.guiding or scheduler is not self.pipe.scheduler:
             return original(*args, **kwargs)
         bound = signature.bind(*args, **kwargs)
         i = state.counter
@@ -570,13 +615,13 @@ class GeCoGuidanceHandle:
                                  "particle_batch": state.particle_batch.to_dict()}
                 vae = getattr(self.pipe, "vae", None)
                 if state.call.devices and vae is not None:
-                    self._restore_decode = deal_final_decode(vae, state.call.devices)
+                    state.restore_decode = deal_final_decode(vae, state.call.devices)
                     report.search["final_decode_devices"] = [str(device) for device in state.call.devices]
-            self.last = report
+            state.report = report
         return result
 
     @staticmethod
-    def _watch_latents(state: _CallState, latents: Any, i: int, check: bool) -> None:
+    def _watch_latents(state: GuidanceCallState, latents: Any, i: int, check: bool) -> None:
         """Note the latents of step ``i`` in the call's :class:`LatentsWatch`; with ``check``, raise
         NonFiniteLatentsError if any seen so far held NaN or inf."""
         if not isinstance(latents, Tensor):
@@ -597,26 +642,26 @@ class GeCoGuidanceHandle:
             index = torch.as_tensor(rows, device=start.device)
             if not differentiate and torch.equal(z.to(start.device), start[index]):
                 return model_output[index.to(model_output.device)].float()
-            self._replaying = True
+            self.state.replaying = True
             try:
                 return replay.rows(rows)(z, differentiate)
             finally:
-                self._replaying = False
+                self.state.replaying = False
 
         return predict_rows
 
-    def _guide(self, state: _CallState, i: int, timestep, sample, model_output, replay: _Replay, predict_rows):
+    def _guide(self, state: GuidanceCallState, i: int, timestep, sample, model_output, replay: _Replay, predict_rows):
         pipe, adapter = self.pipe, self.adapter
         start = sample.detach().float()
 
         def predict(z: Tensor, differentiate: bool) -> Tensor:
             if not differentiate and torch.equal(z, start):
                 return model_output.float()  # the pipeline's own prediction at this very sample
-            self._replaying = True
+            self.state.replaying = True
             try:
                 return replay(z, differentiate)
             finally:
-                self._replaying = False
+                self.state.replaying = False
 
         denoisers = {id(item[0].module): item[0].module for item in replay.items}.values()
         return guide_stock_step(state.context, pipe, adapter, denoisers, i, timestep, sample, model_output, predict,

@@ -407,6 +407,24 @@ def test_the_handle_reports_what_the_last_call_decided(estimators):
     assert report.guidance["anchors"] == list(T.tiny_guidance_config(**LAST_STEP).anchors)
 
 
+def test_a_calls_state_is_one_diffusers_state_object_reset_by_the_next_call(estimators):
+    from diffusers.hooks.hooks import BaseState
+
+    from geco_guide.sampler.hooks import GuidanceCallState
+
+    pipe = T.tiny_wan_pipeline(0)
+    with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), estimators) as handle:
+        state = handle.state
+        assert isinstance(state, GuidanceCallState) and isinstance(state, BaseState) and state.call is None
+        run(pipe)
+        first = handle.last
+        assert handle.state is state and state.report is first and state.log is first.log and state.counter == 4
+        assert state.geometry is handle.geometry and state.geometry.num_frames == NUM_FRAMES
+        run(pipe, seed=1)
+        assert handle.last is not first and handle.log is not first.log and len(first.log) == len(handle.log) == 2
+    assert state.call is None and handle.last.log is handle.log  # detached: nothing to act on, the report kept
+
+
 def test_the_denoiser_capture_is_a_hook_of_diffusers_registry(estimators):
     from diffusers.hooks import HookRegistry
 
