@@ -35,7 +35,8 @@ import torch
 from torch import Tensor, nn
 
 from ..families import MODELS, VideoModel
-from . import diffusers_private as private
+from .diffusers_private import (cache_config, context_parallel_plan, denormalize_ltx_latents, guidance_rescale,
+                                sigma_to_alpha_sigma_t, unpack_ltx_latents)
 from .levels import FlowLevels, NoiseLevels, VPLevels
 from .slicing import decode_chunk
 
@@ -160,7 +161,7 @@ class PipelineAdapter:
         """How ``run.context_parallel`` splits ``denoiser``'s token sequence over the processes and
         gathers it back (a diffusers ``ContextParallelModelPlan``): the denoiser's own ``_cp_plan``
         (diffusers writes one for Wan, LTX-Video and LTX-2), None where it has none."""
-        return private.context_parallel_plan(denoiser)
+        return context_parallel_plan(denoiser)
 
     def prepare_context_parallel(self, denoiser: nn.Module) -> None:
         """What ``denoiser`` needs before diffusers' context parallelism is enabled on it: nothing
@@ -432,18 +433,11 @@ class LTXAdapter(PipelineAdapter):
         return CallGeometry(1 + r * (num_latents - 1), num_latents, 0, height, width, r)
 
     def frames_first(self, pipe, x0, geometry):
-        z = private.unpack_ltx_latents(
-            pipe, x0,
-            geometry.num_latents,
-            geometry.latent_height,
-            geometry.latent_width,
-            pipe.transformer_spatial_patch_size,
-            pipe.transformer_temporal_patch_size,
-        )  # [B, C, F, h, w]
+        z = unpack_ltx_latents(pipe, x0, geometry.num_latents, geometry.latent_height, geometry.latent_width)
         return z.permute(0, 2, 1, 3, 4)
 
     def denormalize(self, pipe, z):
-        return private.denormalize_ltx_latents(pipe, z)
+        return denormalize_ltx_latents(pipe, z)
 
     def decode(self, pipe, latents):
         z = self.denormalize(pipe, latents.permute(0, 2, 1, 3, 4).float())
@@ -454,7 +448,7 @@ class LTXAdapter(PipelineAdapter):
         return _to_unit(pipe.vae.decode(z, temb).sample)
 
     def combine(self, pipe, parts, weights, *, sample, step):
-        rescale = private.guidance_rescale(pipe)
+        rescale = guidance_rescale(pipe)
         if rescale > 0 and len(parts) == 2:  # not linear: CFG as the pipeline does, then the rescale
             from diffusers.pipelines.ltx.pipeline_ltx import rescale_noise_cfg
 
@@ -704,7 +698,7 @@ def check_no_denoiser_cache(modules) -> None:
     ``R_t + 1`` times per step and differentiates it, which such caches count as steps or cannot
     recompute."""
     for module in modules:
-        config = private.cache_config(module)
+        config = cache_config(module)
         if config is not None:
             name = type(config).__name__.removesuffix("Config")
             raise ValueError(
@@ -737,8 +731,8 @@ def keep_update(scheduler, old_sample: Tensor, new_sample: Tensor) -> None:
     idx = scheduler.step_index
     if idx is None or idx == 0 or scheduler.last_sample is None or (idx - 1) in scheduler.disable_corrector:
         return  # no corrector at this step
-    alpha_t, sigma_t = private.sigma_to_alpha_sigma_t(scheduler, scheduler.sigmas[idx])
-    alpha_s0, sigma_s0 = private.sigma_to_alpha_sigma_t(scheduler, scheduler.sigmas[idx - 1])
+    alpha_t, sigma_t = sigma_to_alpha_sigma_t(scheduler, scheduler.sigmas[idx])
+    alpha_s0, sigma_s0 = sigma_to_alpha_sigma_t(scheduler, scheduler.sigmas[idx - 1])
     coeff = float(sigma_t / sigma_s0) if scheduler.predict_x0 else float(alpha_t / alpha_s0)
     last = scheduler.last_sample
     delta = new_sample.float() - old_sample.float()

@@ -48,10 +48,12 @@ def guidance_rescale(pipe: Any) -> float:
     return float(getattr(pipe, "_guidance_rescale", 0.0) or 0.0)
 
 
-def unpack_ltx_latents(pipe: Any, *args: Any) -> Tensor:
-    """``pipe._unpack_latents(*args)``: an LTX pipeline's tokens ``[B, S, C]`` back into latent
-    frames ``[B, C, F, h, w]``, as its own decode does."""
-    return pipe._unpack_latents(*args)
+def unpack_ltx_latents(pipe: Any, tokens: Tensor, frames: int, height: int, width: int) -> Tensor:
+    """``pipe._unpack_latents``: an LTX pipeline's tokens ``[B, S, C]`` back into latent frames
+    ``[B, C, F, h, w]`` (``frames``, ``height``, ``width``: ``F, h, w``) by its transformer's
+    patch sizes, as its own decode does."""
+    return pipe._unpack_latents(tokens, frames, height, width, pipe.transformer_spatial_patch_size,
+                                pipe.transformer_temporal_patch_size)
 
 
 def denormalize_ltx_latents(pipe: Any, z: Tensor) -> Tensor:
