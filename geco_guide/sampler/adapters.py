@@ -83,8 +83,7 @@ def _module_dtype(module: nn.Module, fallback: torch.dtype) -> torch.dtype:
 
 def vae_latent_channels(vae: nn.Module) -> int | None:
     """Channels of the latents ``vae`` decodes (its config's ``z_dim`` for Wan's), or None."""
-    config = vae.config
-    return getattr(config, "latent_channels", None) or getattr(config, "z_dim", None)
+    return getattr(vae.config, "latent_channels", None) or getattr(vae.config, "z_dim", None)
 
 
 TRACED_TIMESTEP = 1000.0  # of a traced step (the first of a flow-matching schedule): no cost depends on it
@@ -761,13 +760,11 @@ def _register_defaults() -> None:
     """Each registry entry's adapter (one of a kind) for its pipeline class, where diffusers has it."""
     import diffusers
 
-    adapters: dict[str, PipelineAdapter] = {}
-    for model in MODELS.values():
-        if model.adapter is None:
-            continue
+    adapters = {name: adapter() for name, adapter in ADAPTERS.items()}
+    for model in (model for model in MODELS.values() if model.adapter is not None):
         cls = getattr(diffusers, model.pipeline, None)
         if cls is not None and cls not in _REGISTRY:
-            _REGISTRY[cls] = adapters.setdefault(model.adapter, ADAPTERS[model.adapter]())
+            _REGISTRY[cls] = adapters[model.adapter]
 
 
 def supported_pipelines() -> list[str]:
