@@ -47,6 +47,7 @@ from torch import Tensor
 from ..estimators.bundle import Estimators
 from ..estimators.motion_masks import MotionMasks
 from ..estimators.oracle import OracleFlow, OracleGeometry
+from ..loss.cues import CUES, MAP_ORDER
 from ..loss.geco import GeCoResult
 from ..loss.presets import evaluation_loss
 from ..metric.evaluate import mean_or_nan, score_frames
@@ -349,11 +350,12 @@ def markdown_report(report: dict[str, Any]) -> str:
     lines = [f"Scenes: {s['num_frames']} frames of {s['height']}x{s['width']}, oracle estimators, "
              f"all ordered pairs; the moving boxes cover {100 * s['true_masked_fraction']:.1f} % of a frame.", "",
              "False positives (clip without artifacts):", "",
-             "| Clip | Mask | M_motion | M_struct | M_geo |", "|---|---|---|---|---|"]
+             "| Clip | Mask | " + " | ".join(CUES[c].symbol for c in MAP_ORDER) + " |",
+             "|---|---|" + "---|" * len(MAP_ORDER)]
     rows = (("still", "still boxes / none"), ("still/true", "still boxes / true"), *((f"moving/{m}", f"moving boxes / {m}") for m in MASKS))
     for key, name in rows:
         clip, mask = name.split(" / ")
-        lines.append(f"| {clip} | {mask} | " + " | ".join(_number(fp[key][c]) for c in ("motion", "structure", "fused")) + " |")
+        lines.append(f"| {clip} | {mask} | " + " | ".join(_number(fp[key][c]) for c in MAP_ORDER) + " |")
     lines += ["", "Artifact detection on the static background (localisation AP of M_geo):", "",
               "| Artifact | still, no mask | moving, no mask | moving, true mask | moving, auto mask |", "|---|---|---|---|---|"]
     for kind, row in det.items():

@@ -30,6 +30,7 @@ import torch
 from PIL import Image, ImageDraw
 
 from ..io.plots import Panel, legend, limits, text
+from ..loss.cues import CUES as CUE_TABLE, PAPER_ORDER
 from ..loss.geco import GeCoLossConfig, frame_pairs, geco_from_geometry
 from ..metric.protocol import EvaluationConfig
 from ..types import Correspondences, SceneGeometry
@@ -48,12 +49,8 @@ DEPTH_SIGMAS = (0.0, 0.01, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0)
 #: Flow errors in pixels: ``sigma n`` is added to each flow vector.
 FLOW_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0)
 
-CUES = ("structure", "motion", "fused")
-COLORS = {"structure": (31, 119, 180), "motion": (255, 127, 14), "fused": (44, 160, 44)}
-# Drawn in this order, widest first, with their own markers: a line that coincides with another
-# (motion and fused often do) still shows as the border of the one drawn over it.
-LINE_WIDTHS = {"fused": 7, "motion": 4, "structure": 1}
-SHAPES = {"fused": "square", "motion": "circle", "structure": "triangle"}
+#: The cues in the paper's row order (their colours, markers, line widths: the loss' cue table).
+CUES = PAPER_ORDER
 
 
 def sweep_memory_bytes(num_frames: int, height: int, width: int, pairs: str) -> int:
@@ -201,15 +198,16 @@ def plot(report: dict[str, Any]) -> bytes:
             title = f"{noisy_input} noise: {'Task 2 (warp)' if task == 'warp' else 'Task 3 (occlusion)'} AP"
             panel.draw_axes(draw, title, what, "AP",
                             xticks=[(k, f"{s:.2g}") for k, s in zip(levels, sigmas)])
-            for cue in sorted(CUES, key=lambda c: -LINE_WIDTHS[c]):
+            for cue in sorted(CUES, key=lambda c: -CUE_TABLE[c].line_width):  # widest first
                 points = [(k, ap) for k, ap in zip(levels, report[noisy_input][task][cue])
                           if ap is not None and math.isfinite(ap)]
                 if len(points) > 1:
-                    draw.line([panel.to_pixel(k, ap) for k, ap in points], fill=COLORS[cue], width=LINE_WIDTHS[cue])
+                    draw.line([panel.to_pixel(k, ap) for k, ap in points], fill=CUE_TABLE[cue].color,
+                              width=CUE_TABLE[cue].line_width)
                 for k, ap in points:
-                    panel.dot(draw, k, ap, COLORS[cue], radius=3, shape=SHAPES[cue])
+                    panel.dot(draw, k, ap, CUE_TABLE[cue].color, radius=3, shape=CUE_TABLE[cue].marker)
             if row == 1 and column == 0:
-                legend(draw, panel, [(cue, COLORS[cue]) for cue in CUES], [SHAPES[cue] for cue in CUES])
+                legend(draw, panel, [(cue, CUE_TABLE[cue].color) for cue in CUES], [CUE_TABLE[cue].marker for cue in CUES])
     buffer = io.BytesIO()
     image.save(buffer, format="PNG")
     return buffer.getvalue()

@@ -34,7 +34,7 @@ from PIL import Image
 from torch import Tensor
 
 from ..io.files import write_bytes_atomic
-from ..loss.geco import CUES as LOSS_CUES
+from ..loss.cues import CUES, MAP_ORDER, PAPER_ORDER
 from ..loss.geco import GeCoResult
 from ..metric.render import colorbar, colorize, enlarge, side_by_side, text_scale, text_strip
 from .datasets import Benchmark
@@ -43,8 +43,6 @@ from .ranking import average_precision, best_threshold_iou_f1, spearman
 __all__ = ["GRID_ROWS", "cue_map", "grid_caption", "grid_frames", "grid_image", "localisation", "markdown_table",
            "summarise", "validate_clip", "write_png"]
 
-CUES = tuple(reversed(LOSS_CUES))  # the paper's row order: structure, motion, fused
-CUE_NAMES = {"structure": "Structure M_struct", "motion": "Motion M_motion", "fused": "Fused M_geo"}
 GRID_ROWS = 4
 
 
@@ -84,17 +82,17 @@ def validate_clip(bench: Benchmark, result: GeCoResult) -> dict[str, Any]:
     """The task records of one scored clip (JSON-ready)."""
     record: dict[str, Any] = {"clip": clip_name(bench.path), "path": str(bench.path), "kind": bench.kind,
                               "mode": bench.meta.get("mode")}
-    maps = {cue: cue_map(result, cue) for cue in CUES}
+    maps = {cue: cue_map(result, cue) for cue in PAPER_ORDER}
     if bench.kind == "warp" and bench.meta.get("anomalous_frame") is not None:
         truth = int(bench.meta["anomalous_frame"])
-        predicted = {cue: detected_frame(result.frame_scores[cue][0].cpu(), result.frame_has_valid[cue][0].cpu()) for cue in CUES}
+        predicted = {cue: detected_frame(result.frame_scores[cue][0].cpu(), result.frame_has_valid[cue][0].cpu()) for cue in PAPER_ORDER}
         record["task1"] = {"anomalous_frame": truth, "predicted": predicted,
-                           "correct": {cue: predicted[cue] == truth for cue in CUES}}
+                           "correct": {cue: predicted[cue] == truth for cue in PAPER_ORDER}}
     task = "task2" if bench.kind == "warp" else "task3"
     magnitude = bench.truth.get("magnitude")
     record[task] = [
         {"frame": t, **{cue: localisation(maps[cue][0][t], maps[cue][1][t], bench.truth["mask"][t],
-                                          None if magnitude is None else magnitude[t].double()) for cue in CUES}}
+                                          None if magnitude is None else magnitude[t].double()) for cue in PAPER_ORDER}}
         for t in judged_frames(bench)
     ]
     return record
@@ -110,12 +108,12 @@ def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
     summary: dict[str, Any] = {}
     task1 = [r["task1"] for r in records if "task1" in r]
     if task1:
-        summary["task1"] = {"clips": len(task1), **{cue: {"accuracy": _mean([float(t["correct"][cue]) for t in task1])} for cue in CUES}}
+        summary["task1"] = {"clips": len(task1), **{cue: {"accuracy": _mean([float(t["correct"][cue]) for t in task1])} for cue in PAPER_ORDER}}
     for task in ("task2", "task3"):
         rows = [row for r in records for row in r.get(task, [])]
         if rows:
-            keys = list(dict.fromkeys(k for row in rows for k in row[CUES[0]]))  # srcc needs a magnitude
-            summary[task] = {"frames": len(rows), **{cue: {k: _mean([row[cue].get(k) for row in rows]) for k in keys} for cue in CUES}}
+            keys = list(dict.fromkeys(k for row in rows for k in row[PAPER_ORDER[0]]))  # srcc needs a magnitude
+            summary[task] = {"frames": len(rows), **{cue: {k: _mean([row[cue].get(k) for row in rows]) for k in keys} for cue in PAPER_ORDER}}
     return summary
 
 
@@ -141,9 +139,9 @@ def markdown_table(summary: dict[str, Any]) -> str:
         head += [f"Task 3 AP (%) [{n} frames]", "Task 3 IoU (%)", "Task 3 F1 (%)"]
         columns += [("task3", "ap", True), ("task3", "iou", True), ("task3", "f1", True)]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for cue in CUES:
+    for cue in PAPER_ORDER:
         cells = [_cell(summary[task][cue][key], percent) for task, key, percent in columns]
-        lines.append("| " + " | ".join([CUE_NAMES[cue], *cells]) + " |")
+        lines.append("| " + " | ".join([f"{CUES[cue].title} {CUES[cue].symbol}", *cells]) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -166,11 +164,11 @@ def grid_image(bench: Benchmark, result: GeCoResult, frames: list[int], task1: d
     names), and the colour scale of the maps (with the grey of "no valid pixel") at the bottom."""
     truth = bench.truth["mask"][frames].float()[:, None].expand(-1, 3, -1, -1)
     panels = [bench.frames[frames], truth]
-    for cue in ("motion", "structure", "fused"):
+    for cue in MAP_ORDER:
         values, valid = result.frame_maps.cue(cue)
         panels.append(colorize(values[0, frames].cpu(), valid[0, frames].cpu()))
     panels = [enlarge(panel.float()) for panel in panels]  # legible labels at the PNG's native size
-    rows = side_by_side(panels, ["FRAME", "TRUTH (ARTIFACT)", "MOTION", "STRUCTURE", "FUSED"])
+    rows = side_by_side(panels, ["FRAME", "TRUTH (ARTIFACT)", *(cue.upper() for cue in MAP_ORDER)])
     width, scale = rows.shape[-1], text_scale(panels[0].shape[-2])
     body = []
     for t, row in zip(frames, rows):

@@ -1,4 +1,5 @@
-"""GeCo's per-pixel cues: motion residual, structure residual and their fusion.
+"""GeCo's per-pixel cues: motion residual, structure residual and their fusion, and :data:`CUES`,
+the one table of the cues that the maps, the scalars, the validation and the reports read.
 
 Both cues are scale invariant: the motion residual is measured in normalised image units
 (pixels divided by the focal length) and the structure residual is a depth difference divided
@@ -8,13 +9,43 @@ unchanged.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
 from ..geometry import MIN_DEPTH, check_tensor, local_depth_ratio, pixel_grid, sample_at_projection, sample_bilinear
 
-__all__ = ["MASK_TOUCH_WEIGHT", "fuse_cues", "lands_on_mask", "masked_mean", "motion_residual", "safe_norm",
-           "structure_residual"]
+__all__ = ["CUES", "MAP_ORDER", "MASK_TOUCH_WEIGHT", "PAPER_ORDER", "Cue", "fuse_cues", "lands_on_mask",
+           "masked_mean", "motion_residual", "safe_norm", "structure_residual"]
+
+
+@dataclass(frozen=True)
+class Cue:
+    """One cue of :data:`CUES`: how it is named and drawn, and what its map is made from (its
+    residual function is here, its map made in :func:`geco_guide.loss.geco.geco_from_geometry`,
+    which averages every cue's maps per frame and the frames' means into its scalar alike).
+
+    Attributes:
+        symbol: the paper's name of its map and score (``M_geo``).
+        title: its name at the head of a report's row (``Fused``).
+        fuses: the cues whose maps its map combines (``()``: measured from the estimates), made
+            before it (:data:`MAP_ORDER`).
+        geometry_only: its map reaches the frames only through the geometry estimator, so as a
+            guidance loss it needs ``geometry_grad`` (else there is no update).
+        color: RGB of its lines and dots in the reports' plots.
+        marker: the shape of its dots there (``square``, ``circle``, ``triangle``).
+        line_width: its lines' width there: drawn widest first, a line that coincides with
+            another still shows as the border of the one drawn over it.
+    """
+
+    symbol: str
+    title: str
+    fuses: tuple[str, ...] = ()
+    geometry_only: bool = False
+    color: tuple[int, int, int] = (0, 0, 0)
+    marker: str = "circle"
+    line_width: int = 1
 
 
 def safe_norm(x: Tensor, dim: int) -> Tensor:
@@ -153,3 +184,17 @@ def lands_on_mask(target_mask: Tensor, displacement: Tensor) -> Tensor:
     grid = pixel_grid(height, width, device=displacement.device, dtype=displacement.dtype)
     landing = grid + displacement.detach().permute(0, 2, 3, 1)
     return sample_bilinear(target_mask[:, None].to(displacement.dtype), landing)[:, 0] > MASK_TOUCH_WEIGHT
+
+
+#: The cues, name -> :class:`Cue`, in the order of the scores (``fused`` first, the default loss).
+CUES: dict[str, Cue] = {
+    "fused": Cue("M_geo", "Fused", fuses=("motion", "structure"), color=(44, 160, 44),
+                 marker="square", line_width=7),
+    "motion": Cue("M_motion", "Motion", color=(255, 127, 14), marker="circle", line_width=4),
+    "structure": Cue("M_struct", "Structure", geometry_only=True, color=(31, 119, 180),
+                     marker="triangle", line_width=1),
+}
+#: The order the maps are made and stored in: the measured cues, then those fusing them.
+MAP_ORDER = tuple(sorted(CUES, key=lambda name: bool(CUES[name].fuses)))
+#: The paper's row order of its tables: structure, motion, fused.
+PAPER_ORDER = tuple(reversed(CUES))

@@ -46,7 +46,7 @@ from ..types import (
     check_frames,
     non_finite_fields,
 )
-from .cues import fuse_cues, lands_on_mask, masked_mean, motion_residual, structure_residual
+from .cues import CUES, MAP_ORDER, fuse_cues, lands_on_mask, masked_mean, motion_residual, structure_residual
 from .movers import MOVER_MODES, MoverFit, MoverScores, RefreshedMovers, mover_scores, solve_motions
 
 if TYPE_CHECKING:  # the bundle's room is beside the loss', on its floor
@@ -60,7 +60,6 @@ __all__ = ["CUES", "MIN_UNMASKED_FRACTION", "MOVER_MODES", "PAIR_MODES", "GeCoLo
 #: ordered pair, n(n-1) (the paper's evaluation script).
 PAIR_MODES = ("adjacent", "center", "all")
 
-CUES = ("fused", "motion", "structure")
 STRUCTURE_OCCLUSION = ("depth", "covisibility")
 
 #: With dynamic masks, a frame counts in a cue only where that cue's valid (unmasked) pixels cover
@@ -122,7 +121,7 @@ class GeCoLossConfig:
         if self.pairs not in PAIR_MODES:
             raise OptionError("pairs", f"must be one of {PAIR_MODES}, got {self.pairs!r}")
         if self.cue not in CUES:
-            raise OptionError("cue", f"must be one of {CUES}, got {self.cue!r}")
+            raise OptionError("cue", f"must be one of {tuple(CUES)}, got {self.cue!r}")
         if not 0.0 <= self.covisibility_threshold < 1.0:
             raise OptionError("covisibility_threshold", f"must be in [0, 1), got {self.covisibility_threshold}")
         if self.confidence_percentile is not None and not 0.0 <= self.confidence_percentile < 100.0:
@@ -227,7 +226,7 @@ class GeCoResult:
         pixel is NaN (:meth:`empty_cues`), never the 0 the loss holds (``loss`` keeps its value)."""
         empty = set(self.empty_cues())
         return {name: math.nan if name in empty else float(getattr(self, name).detach())
-                for name in ("motion", "structure", "fused", "loss")}
+                for name in (*MAP_ORDER, "loss")}
 
     def valid_fraction(self) -> Tensor:
         """0-dim: the fraction of the frames' pixels :attr:`loss` measured (0: the loss is 0 with a
@@ -502,7 +501,7 @@ def _result(view: _PairView, cues: tuple[Tensor, Tensor, Tensor, Tensor], config
 
     pair_maps = GeCoMaps(*(per_pair(x) for x in (*cues, fused, fused_valid)))
     frame_fields = []
-    for name in CUES[1:] + CUES[:1]:  # motion, structure, fused: GeCoMaps field order
+    for name in MAP_ORDER:  # GeCoMaps field order
         frame_fields.extend(_frame_average(*pair_maps.cue(name), view.src, view.num_frames))
     frame_maps = GeCoMaps(*frame_fields)
 
@@ -520,9 +519,7 @@ def _result(view: _PairView, cues: tuple[Tensor, Tensor, Tensor, Tensor], config
         scores = mover_scores(fit, *frame_maps.cue("fused"), frame_has_valid["fused"], scalars["fused"])
     return GeCoResult(
         loss=scalars[config.cue],
-        motion=scalars["motion"],
-        structure=scalars["structure"],
-        fused=scalars["fused"],
+        **{name: scalars[name] for name in CUES},
         pairs=list(view.pairs),
         pair_maps=pair_maps,
         frame_maps=frame_maps,
@@ -773,6 +770,6 @@ def _nan_unless_finite(result: GeCoResult, frames: Tensor) -> None:
     as consistent as can be.
     """
     finite = torch.isfinite(frames.detach()).all()
-    for name in ("loss", "motion", "structure", "fused"):
+    for name in ("loss", *MAP_ORDER):
         value = getattr(result, name)
         setattr(result, name, torch.where(finite, value, torch.full_like(value, float("nan"))))

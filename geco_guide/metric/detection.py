@@ -32,8 +32,8 @@ from ..estimators.dynamic_masks import GivenMasks, mask_source
 from ..io.files import write_bytes_atomic
 from ..io.masks import fit_masks
 from ..io.video import check_fps, write_video
-from ..loss.cues import fuse_cues, masked_mean, structure_residual
-from ..loss.geco import CUES, MIN_UNMASKED_FRACTION, GeCoLossConfig, GeCoMaps
+from ..loss.cues import CUES, MAP_ORDER, fuse_cues, masked_mean, structure_residual
+from ..loss.geco import MIN_UNMASKED_FRACTION, GeCoLossConfig, GeCoMaps
 from ..types import SceneGeometry, check_estimator_bundle, check_frame_values
 from .evaluate import MASKED_FRAME_NOTE, EvaluationMaps, score_frames
 from .render import colorize, hatch, map_frames, text_scale
@@ -46,7 +46,6 @@ ANCHORS = ("start", "center", "end")
 #: What the maps are written as: an mp4, a gif, a folder of PNG frames.
 FORMATS = ("mp4", "gif", "png")
 
-PANELS = ("motion", "structure", "fused")
 
 
 def window_indices(num_frames: int, frame: int, size: int, anchor: str) -> list[int]:
@@ -92,7 +91,7 @@ def frame_maps(frames: Tensor, window: list[int], estimators: Estimators, config
         fused, fused_valid = fuse_cues(maps.motion, maps.motion_valid, maps.structure, structure_valid)
         maps = replace(maps, structure_valid=structure_valid, fused=fused, fused_valid=fused_valid)
     averaged = []
-    for name in PANELS:
+    for name in MAP_ORDER:
         values, valid = maps.cue(name)
         averaged += [masked_mean(values, valid, dims=(1,)).cpu().float(), valid.any(1).cpu()]
     return GeCoMaps(*averaged)
@@ -135,7 +134,7 @@ def frame_scores(maps: EvaluationMaps) -> list[dict[str, float | None]]:
     least = MIN_UNMASKED_FRACTION if maps.dynamic_masks is not None else 0.0
     for k in range(len(maps)):
         row: dict[str, Any] = {}
-        for name in PANELS:
+        for name in MAP_ORDER:
             values, valid = maps.cue(name)
             counts = bool(valid[k].any()) and float(valid[k].float().mean()) >= least
             row[name] = float(values[k][valid[k]].mean()) if counts else None
@@ -150,7 +149,7 @@ def render_detection(maps: EvaluationMaps, scores: list[dict[str, float | None]]
     readable size: :func:`~.render.map_frames`), the legend, and a line with the frame's index and
     scores."""
     scale = text_scale(maps.frames.shape[-2])
-    heat = [colorize(*maps.cue(name)) for name in PANELS]
+    heat = [colorize(*maps.cue(name)) for name in MAP_ORDER]
     if maps.dynamic_masks is not None:  # left out as moving on its own: striped, not "consistent"
         heat = [hatch(panel, maps.dynamic_masks, scale) for panel in heat]
 
@@ -159,7 +158,7 @@ def render_detection(maps: EvaluationMaps, scores: list[dict[str, float | None]]
 
     captions = [f"frame {k}   " + "   ".join(f"{n} {text(row[n])}" for n in CUES)
                 for k, row in enumerate(scores)]
-    return map_frames(maps.frames, heat, ["SOURCE", *(name.upper() for name in PANELS)], captions)
+    return map_frames(maps.frames, heat, ["SOURCE", *(name.upper() for name in MAP_ORDER)], captions)
 
 
 def _uint8(frames: Tensor) -> np.ndarray:

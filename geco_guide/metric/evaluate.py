@@ -46,6 +46,7 @@ from ..loss.geco import (
     no_valid_pixels_reason,
     resolve_dynamic_masks,
 )
+from ..loss.cues import MAP_ORDER
 from ..loss.motion_stats import motion_statistics
 from ..types import (Correspondences, SceneGeometry, check_estimator_bundle, check_frame_values, plural,
                      refuses_earlier_keywords)
@@ -63,14 +64,12 @@ __all__ = ["MAP_PANELS", "MASKED_FRAME_NOTE", "PAPER_NAMES", "EvaluationMaps", "
            "cue_scores", "evaluate_video", "finite_or_none", "map_caption", "mean_or_nan", "render_maps", "score_frames",
            "write_maps_video"]
 
-MAP_PANELS = ("source", "motion", "structure", "fused")
+MAP_PANELS = ("source", *MAP_ORDER)
 #: Why a frame's score is ``None`` with dynamic masks.
 MASKED_FRAME_NOTE = (f"scores are None where fewer than {MIN_UNMASKED_FRACTION:.0%} of the frame's pixels stay valid "
                      "outside the dynamic mask")
 PAPER_NAMES = {
-    "motion": "M_motion",
-    "structure": "M_struct",
-    "fused": "M_geo",
+    **{name: CUES[name].symbol for name in MAP_ORDER},
     "total_motion": "Total Motion (%)",
     "mean_motion": "Mean Motion (%/s)",
 }
@@ -160,7 +159,7 @@ class EvaluationResult:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (no tensors; NaN scores become ``None``)."""
-        data = {name: finite_or_none(getattr(self, name)) for name in ("motion", "structure", "fused", "total_motion", "mean_motion")}
+        data = {name: finite_or_none(getattr(self, name)) for name in (*MAP_ORDER, "total_motion", "mean_motion")}
         return {
             "source": self.source,
             **data,

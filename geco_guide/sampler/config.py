@@ -15,6 +15,7 @@ from typing import Any, ClassVar, Optional
 
 from ..estimators.tiny_decoder import CONTEXT_LATENTS
 from ..families import default_anchors
+from ..loss.cues import CUES, MAP_ORDER
 from ..loss.geco import GeCoLossConfig, movers_problem
 from ..loss.presets import fused_guidance_loss, guidance_loss
 from ..types import OptionError, is_integer, is_number, merge_dataclass, non_finite_fields, refuse_renamed_arguments
@@ -142,11 +143,12 @@ class GuidanceConfig:
     def check_loss(self) -> None:
         """ValueError (one line) for a loss that cannot give an update."""
         loss = self.loss
-        if self.enabled and getattr(loss, "cue", None) == "structure" and not getattr(loss, "geometry_grad", True):
+        if self.enabled and CUES[loss.cue].geometry_only and not loss.geometry_grad:
+            others = " or ".join(name for name in MAP_ORDER if not CUES[name].geometry_only)
             raise ValueError(
-                "guidance.loss.cue='structure' needs guidance.loss.geometry_grad=true: the structure cue reaches the "
+                f"guidance.loss.cue={loss.cue!r} needs guidance.loss.geometry_grad=true: the {loss.cue} cue reaches the "
                 "frames only through the geometry estimator, so without its gradient there is no update "
-                "(use cue=motion or fused, or geometry_grad=true)"
+                f"(use cue={others}, or geometry_grad=true)"
             )
 
     def anchor_chunks(self, num_frames: int, temporal_compression: int) -> list[AnchorChunk]:

@@ -24,6 +24,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..loss.cues import MAP_ORDER
 from .levels import NoiseLevels, randn_like
 
 __all__ = ["GuidanceRecord", "LatentsWatch", "NonFiniteLatentsError", "Objective", "Update", "guided_step",
@@ -100,7 +101,7 @@ def loss_terms(result: Any) -> tuple[Tensor, dict[str, Tensor]]:
     with dynamic masks, ``masked_fraction``, the mean over clips and frames."""
     if isinstance(result, Tensor):
         return result, {"loss": result}
-    terms = {name: getattr(result, name) for name in ("loss", "motion", "structure", "fused")}
+    terms = {name: getattr(result, name) for name in ("loss", *MAP_ORDER)}
     terms["valid_fraction"] = result.valid_fraction()
     if getattr(result, "masked_fraction", None) is not None:
         terms["masked_fraction"] = result.masked_fraction.mean()
