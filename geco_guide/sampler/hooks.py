@@ -691,10 +691,9 @@ def attach_geco_guidance(
     """Guide every following call of a stock diffusers video pipeline with GeCo.
 
     Args:
-        pipe: a ``CogVideoXPipeline`` (1.0, or 1.5 with ``patch_size_t=2``),
-            ``CogVideoXImageToVideoPipeline``, ``WanPipeline``, ``LTXPipeline`` or
-            ``HunyuanVideoPipeline`` (or a subclass, or a class registered with
-            :func:`geco_guide.sampler.adapters.register_adapter`).
+        pipe: a pipeline of a class the model registry names (:mod:`geco_guide.families`, each
+            entry's ``pipeline``; :func:`geco_guide.sampler.adapters.supported_pipelines`), a
+            subclass, or a class registered with :func:`geco_guide.sampler.adapters.register_adapter`.
         config: a :class:`GuidanceConfig` or a dict of fields over the default one. Its
             ``repeats`` schedule must cover the call's ``num_inference_steps``; its anchors are
             pixel frames of the output video.

@@ -1,8 +1,8 @@
 """The guidance of one call of a stock diffusers pipeline, through its family's adapter.
 
 Two front doors guide pipelines whose code is diffusers' own: the hooks of :mod:`.hooks` (a
-``DiffusionPipeline`` such as ``WanPipeline``) and the loop of :mod:`.modular` (a Modular
-Diffusers ``WanModularPipeline``). Both set a call up and take a guided step the same way, here:
+``DiffusionPipeline`` of a family of the registry) and the loop of :mod:`.modular` (a Modular
+Diffusers pipeline of Wan's). Both set a call up and take a guided step the same way, here:
 
 * :func:`stock_call`: the checks of a call before its first denoising step (anchors, loss, run
   options, denoiser caches, scheduler, decoder, devices, masks, memory plan), and
