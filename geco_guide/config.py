@@ -379,7 +379,7 @@ def validate_config(cfg: GeCoConfig) -> None:
         raise ValueError(f"invalid value for config key 'sampling.{problem[0]}': {problem[1]}")
     _require(s.scheduler in (None, CHECKPOINT_SCHEDULER, *SCHEDULERS), "sampling.scheduler",
              f"must be ddim, dpm, checkpoint or null, got {s.scheduler!r}")
-    _require(s.scheduler in (None, CHECKPOINT_SCHEDULER) or model.cogvideox_vae, "sampling.scheduler",
+    _require(s.scheduler in (None, CHECKPOINT_SCHEDULER) or s.scheduler in model.schedulers, "sampling.scheduler",
              f"ddim and dpm are CogVideoX's schedulers; {model.name} samples with its own (checkpoint or null), "
              f"got {s.scheduler!r}")
     g = cfg.guidance
