@@ -34,6 +34,7 @@ from torch import Tensor, nn
 
 from ..estimators.bundle import Estimators
 from ..estimators.tiny_decoder import TinyDecoder
+from ..loss.cues import CUES
 from ..loss.geco import GeCoLoss
 from .anchor_decode import AnchorDecode, plan_anchor_decode
 from .config import GuidanceConfig
@@ -225,9 +226,7 @@ class GuidanceLog:
                 repeat=update.repeat,
                 t=int(t),
                 loss=scalars["loss"],
-                motion=scalars.get("motion"),
-                structure=scalars.get("structure"),
-                fused=scalars.get("fused"),
+                **{cue: scalars.get(cue) for cue in CUES},
                 grad_norm=scalars["grad_norm"],
                 seconds=time.perf_counter() - update.started,
                 time_travel=update.time_travel,
