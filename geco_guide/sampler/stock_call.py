@@ -51,7 +51,7 @@ from .run_options import RunOptions, check_call_options
 from .search import ParticleBatch, ParticleScorer, ParticleSearch, SearchConfig, choose_particle_batch
 from .slicing import AnchorChunk
 
-__all__ = ["StockCall", "denoiser_signature", "guide_stock_step", "spatial_compression", "stock_call"]
+__all__ = ["StockCall", "denoiser_signature", "guide_stock_step", "stock_call"]
 
 
 class _WithVae:
@@ -118,7 +118,7 @@ class StockCall:
         """The particle batch of a search of ``particles`` particles in this call
         (:func:`~.search.choose_particle_batch`)."""
         pipe, geometry = self.pipe, self.geometry
-        scale = spatial_compression(pipe)
+        scale = self.adapter.spatial_compression(pipe)
         return choose_particle_batch(
             self.config, self.run, particles, self.memory_plan,
             signature=denoiser_signature(self.adapter.denoisers(pipe)), frames=geometry.num_frames,
@@ -140,12 +140,6 @@ class StockCall:
                                 self.masks, batch)
         return ParticleSearch(search, num_steps, scorer, generator=search_generator, noise=generator, batch=batch,
                               masks=self.masks if context is not None else None)
-
-
-def spatial_compression(pipe: Any) -> int:
-    """Pixels per latent of ``pipe``'s VAE, each way (LTX's pipelines name it otherwise): what turns
-    the latents' size back into the video's, which the memory plan's estimates scale with."""
-    return getattr(pipe, "vae_scale_factor_spatial", None) or getattr(pipe, "vae_spatial_compression_ratio", 8)
 
 
 def denoiser_signature(denoisers: Sequence[nn.Module]) -> dict[str, Any]:
@@ -186,7 +180,7 @@ def stock_call(pipe: Any, adapter: PipelineAdapter, geometry: CallGeometry, conf
                                   estimators.tiny_decoder, pipe.vae)
     home = execution_device(pipe)
     masks = guidance_mask_source(config, estimators, home)
-    scale = spatial_compression(pipe)
+    scale = adapter.spatial_compression(pipe)
     devices = resolve_devices(run.devices)
     device_gb = planning_memory_gb(home, devices)
     memory_plan = choose_plan(

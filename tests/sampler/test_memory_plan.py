@@ -366,7 +366,7 @@ def test_each_family_gets_its_own_plans_on_a_card():
     from geco_guide import tiny as T
     from geco_guide.families import model_named
     from geco_guide.families.published import traced_models
-    from geco_guide.sampler.stock_call import spatial_compression
+    from geco_guide.sampler.adapters import adapter_for
 
     for name in traced_models():
         video = model_named(name).call
@@ -377,7 +377,8 @@ def test_each_family_gets_its_own_plans_on_a_card():
     ltx = T.tiny_ltx_pipeline(0)  # LTX's pipelines name the factor otherwise than the others
     assert not hasattr(ltx, "vae_scale_factor_spatial") and ltx.vae_spatial_compression_ratio == 8
     ltx.vae_spatial_compression_ratio = 32  # the full-size VAE's
-    assert spatial_compression(ltx) == 32 and spatial_compression(T.tiny_wan_pipeline(0)) == 8
+    wan = T.tiny_wan_pipeline(0)
+    assert adapter_for(ltx).spatial_compression(ltx) == 32 and adapter_for(wan).spatial_compression(wan) == 8
 
 
 def test_the_cards_get_the_plans_of_their_memory():
