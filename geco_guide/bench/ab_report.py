@@ -18,7 +18,7 @@ import numpy as np
 from ..config import GeCoConfig, config_to_yaml
 from ..io.files import remove_temp_files
 from ..io.plots import SHAPES, Panel, legend, limits
-from ..loss.geco import CUES
+from ..loss.cues import CUES
 from ..metric.evaluate import PAPER_NAMES
 from ..types import plural
 from . import report
@@ -290,7 +290,7 @@ def report_markdown(summary: dict[str, Any], results: Sequence[dict[str, Any]], 
                     *([f"kept seed ({labels[BEST_OF]})"] if best_of is not None else []),
                     *([f"kept particle's seed ({labels[SEARCH]})"] if search is not None else []), "video"]
     lines += [
-        "## Scores (mean over pairs; lower fused/motion/structure is more consistent)",
+        f"## Scores (mean over pairs; lower {'/'.join(CUES)} is more consistent)",
         "",
         *_scores_table(summary, labels),
         "",

@@ -54,7 +54,7 @@ from ..io.files import (
 )
 from ..io.plots import Panel, legend, legend_width, limits, text
 from ..io.video import VIDEO_SUFFIXES, write_video
-from ..loss.geco import CUES
+from ..loss.cues import CUES, MAP_ORDER
 from ..metric.evaluate import PAPER_NAMES, evaluate_video
 from ..sampler.loading import check_guidance_before_loading, check_tiny_decoder, quiet_hub_logs
 from ..sampler.memory_plan import plan_before_loading
@@ -493,7 +493,7 @@ def report_markdown(summary: dict[str, Any], missing: Sequence[str], config_yaml
     if summary.get("suite") is not None:
         lines += [f"**{DYNAMIC_SUITE_NOTE}** (segmenter: {summary['suite']['segmenter']})", ""]
     lines += [*models,
-             ("Scores: mean ± standard deviation over videos (lower motion / structure / fused is more "
+             (f"Scores: mean ± standard deviation over videos (lower {' / '.join(MAP_ORDER)} is more "
              "consistent). TM = Total Motion (%), MM = Mean Motion (%/s): read the scores next to them, "
              "a static video is trivially consistent."), ""]
     if missing:
