@@ -23,7 +23,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from ..io.files import write_json_atomic
-from .evaluate import check_scorable, expand_inputs
+from ..metric.video_inputs import check_scorable, expand_inputs
 from .kit import (
     add_config_flags,
     check_choice,

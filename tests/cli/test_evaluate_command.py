@@ -17,6 +17,7 @@ import geco_guide.estimators as estimators_package
 from geco_guide.cli import evaluate as evaluate_cli
 from geco_guide.io.files import WriteError
 from geco_guide.io.video import write_video
+from geco_guide.metric import score_files
 
 FRAMES = 9
 
@@ -135,11 +136,11 @@ def test_a_second_run_into_the_same_outputs_is_refused(tmp_path, capsys, video, 
 def test_an_output_that_cannot_be_written_takes_back_the_others_and_the_score(tmp_path, capsys, video, monkeypatch):
     out = tmp_path / "out"
 
-    def full_disk(stem, estimators, cfg, **kwargs):
+    def full_disk(stem, estimators, evaluation, **kwargs):
         raise WriteError(f"cannot write '{stem}.detection.mp4': No space left on device")
 
-    monkeypatch.setattr(evaluate_cli, "write_detection_video",
-                        lambda video, stem, estimators, cfg, masks: full_disk(stem, estimators, cfg))
+    monkeypatch.setattr(score_files, "write_detection_video",
+                        lambda video, stem, estimators, evaluation, masks: full_disk(stem, estimators, evaluation))
     assert evaluate_cli.main(["--preset", "tiny", str(video), "--out", str(out), "--maps", "--detection"]) == 1
     assert "No space left on device" in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == []  # neither the maps written before, nor a score

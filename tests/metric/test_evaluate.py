@@ -15,7 +15,7 @@ from PIL import Image
 
 import geco_guide
 from geco_guide.bench.synthetic import inject_deformation, rigid_clip
-from geco_guide.cli.evaluate import expand_inputs, main
+from geco_guide.cli.evaluate import main
 from geco_guide.config import load_config
 from geco_guide.estimators import Estimators, EstimatorsConfig, load_estimators
 from geco_guide.estimators.oracle import OracleFlow, OracleGeometry
@@ -38,6 +38,7 @@ from geco_guide.metric.render import (
     panel_layout,
     text_scale,
 )
+from geco_guide.metric.video_inputs import expand_inputs
 
 H, W = 32, 48
 
