@@ -171,7 +171,8 @@ def test_the_block_saves_and_loads_as_a_diffusers_custom_block(tmp_path, modules
     assert torch.equal(frames[1], frames[0])
 
 
-def test_a_loop_block_without_autograd_is_refused_in_faithful_mode(estimators):
+@pytest.mark.slow
+def test_a_loop_block_under_no_grad_is_differentiated_all_the_same(estimators):
     from diffusers.modular_pipelines.wan.denoise import WanLoopDenoiser
 
     class NoGradDenoiser(WanLoopDenoiser):
@@ -179,13 +180,61 @@ def test_a_loop_block_without_autograd_is_refused_in_faithful_mode(estimators):
             with torch.no_grad():
                 return super().__call__(components, block_state, i, t)
 
+    stock = T.tiny_wan_pipeline(0)
+    config = T.tiny_guidance_config(**SCHEDULE, time_travel=[], denoiser_grad=True)
+    frames = []
+    for denoiser in (None, NoGradDenoiser()):
+        loop = GeCoWanDenoiseStep()
+        if denoiser is not None:
+            loop.sub_blocks["denoiser"] = denoiser  # the guidance reads the loop's sub-blocks as they are now
+        pipe = T.tiny_wan_modular_pipeline(0, denoise_loop=loop)
+        frames.append(modular_call(pipe, prompt_embeds(stock), "videos", geco_guidance=config,
+                                   geco_estimators=estimators))
+    assert torch.equal(frames[1], frames[0])
+
+
+def test_a_loop_block_predicting_without_a_denoiser_is_refused_in_faithful_mode(estimators):
+    from diffusers.modular_pipelines.wan.denoise import WanLoopDenoiser
+
+    class ZeroDenoiser(WanLoopDenoiser):
+        def __call__(self, components, block_state, i, t):
+            block_state.noise_pred = torch.zeros_like(block_state.latents)
+            return components, block_state
+
     loop = GeCoWanDenoiseStep()
-    loop.sub_blocks["denoiser"] = NoGradDenoiser()
+    loop.sub_blocks["denoiser"] = ZeroDenoiser()
     stock = T.tiny_wan_pipeline(0)
     pipe = T.tiny_wan_modular_pipeline(0, denoise_loop=loop)
     config = T.tiny_guidance_config(**SCHEDULE, time_travel=[], denoiser_grad=True)
-    with pytest.raises(RuntimeError, match="no gradient through the loop's sub-blocks .*NoGradDenoiser"):
+    with pytest.raises(RuntimeError, match="no gradient through the loop's sub-blocks .*ZeroDenoiser.*ran a denoiser"):
         modular_call(pipe, prompt_embeds(stock), geco_guidance=config, geco_estimators=estimators)
+
+
+def test_guidance_is_a_pair_of_sub_blocks_in_diffusers_loop(estimators):
+    from diffusers.modular_pipelines.wan.denoise import WanDenoiseStep
+
+    from geco_guide.sampler.context import GuidanceObserver
+    from geco_guide.sampler.modular import GeCoGuidanceStep, GeCoStartStep
+
+    loop = GeCoWanDenoiseStep()
+    assert list(loop.sub_blocks) == ["geco_start", "before_denoiser", "denoiser", "geco_guidance", "after_denoiser"]
+    assert isinstance(loop.sub_blocks["geco_start"], GeCoStartStep)
+    assert isinstance(loop.sub_blocks["geco_guidance"], GeCoGuidanceStep)
+    assert type(loop).loop_step is WanDenoiseStep.loop_step  # diffusers' own loop runs the sub-blocks
+
+    class Counting(GuidanceObserver):
+        updates: list = []
+
+        def on_update(self, record):
+            self.updates.append(record.step)
+
+    observer = Counting()
+    stock = T.tiny_wan_pipeline(0)
+    pipe = T.tiny_wan_modular_pipeline(0, denoise_loop=loop)
+    config = T.tiny_guidance_config(**SCHEDULE, time_travel=[], denoiser_grad=False)
+    report = modular_call(pipe, prompt_embeds(stock), output="geco_report", geco_guidance=config,
+                          geco_estimators=estimators, geco_observer=observer)
+    assert observer.updates == [r["step"] for r in report.log] == [1, 3, 3]
 
 
 def test_save_geco_block_refuses_other_blocks(tmp_path):
