@@ -15,7 +15,8 @@ from collections.abc import Sequence
 from importlib import import_module
 
 from . import __version__
-from .cli.kit import Parser, parse_command
+from .cli.command_line import parse_command
+from .cli.kit import Parser
 
 __all__ = ["COMMANDS", "build_parser", "main"]
 

@@ -13,7 +13,8 @@ import pytest
 
 from geco_guide import tiny
 from geco_guide.cli import generate
-from geco_guide.cli.kit import Parser, config_from_args, parse_command
+from geco_guide.cli.command_line import parse_command
+from geco_guide.cli.kit import Parser, config_from_args
 from geco_guide.config import load_config
 from geco_guide.families import MODELS
 

@@ -68,7 +68,8 @@ from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .kit import add_config_flags, add_model_flag, command_main, interruptible, output_folder, print_error
+from .command_line import command_main
+from .kit import add_config_flags, add_model_flag, interruptible, output_folder, print_error
 
 if TYPE_CHECKING:
     from ..bench.ab import BestOf

@@ -49,7 +49,8 @@ from .bench_options import (
     positive_float,
     positive_int,
 )
-from .kit import Parser, check_choice, command_main, interruptible, print_error
+from .command_line import command_main
+from .kit import Parser, check_choice, interruptible, print_error
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 

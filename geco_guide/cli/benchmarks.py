@@ -14,7 +14,8 @@ import sys
 from pathlib import Path
 
 from ..io.files import WriteError, check_output_dir, unique_names
-from .kit import check_choice, command_main, interruptible, output_folder
+from .command_line import command_main
+from .kit import check_choice, interruptible, output_folder
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 

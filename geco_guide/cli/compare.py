@@ -18,7 +18,8 @@ from pathlib import Path
 
 from .. import __version__
 from ..io.files import WriteError
-from .kit import command_main, output_folder, print_error
+from .command_line import command_main
+from .kit import output_folder, print_error
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 

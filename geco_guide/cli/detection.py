@@ -24,10 +24,10 @@ from pathlib import Path
 
 from ..io.files import write_json_atomic
 from ..metric.video_inputs import check_scorable, expand_inputs
+from .command_line import command_main
 from .kit import (
     add_config_flags,
     check_choice,
-    command_main,
     config_from_args,
     interruptible,
     output_folder,

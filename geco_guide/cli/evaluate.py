@@ -32,9 +32,9 @@ from typing import Any
 
 from .. import __version__
 from ..io.files import WriteError, check_output_dir, output_lock
+from .command_line import command_main
 from .kit import (
     add_config_flags,
-    command_main,
     config_from_args,
     interruptible,
     is_config_key,

@@ -22,10 +22,10 @@ from typing import TYPE_CHECKING
 
 from .. import __version__
 from ..io.files import WriteError
+from .command_line import command_main
 from .kit import (
     add_config_flags,
     check_flags_agree,
-    command_main,
     config_from_args,
     interruptible,
     output_folder,

@@ -22,7 +22,8 @@ from typing import Any
 
 from .. import __version__
 from ..loss.modes import MOVER_MODES
-from .kit import add_config_flags, add_model_flag, command_main, config_from_args, interruptible, parse_count, print_error
+from .command_line import command_main
+from .kit import add_config_flags, add_model_flag, config_from_args, interruptible, parse_count, print_error
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 

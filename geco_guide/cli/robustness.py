@@ -14,7 +14,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..io.files import WriteError, check_output_dir, json_text, write_texts_atomic
-from .kit import check_choice, command_main, interruptible, output_folder
+from .command_line import command_main
+from .kit import check_choice, interruptible, output_folder
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 

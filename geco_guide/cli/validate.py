@@ -29,7 +29,8 @@ from dataclasses import asdict
 from pathlib import Path
 
 from ..io.files import WriteError, check_output_dir, json_text, write_texts_atomic
-from .kit import add_config_flags, command_main, config_from_args, interruptible, output_folder, split_overrides
+from .command_line import command_main
+from .kit import add_config_flags, config_from_args, interruptible, output_folder, split_overrides
 
 __all__ = ["DESCRIPTION", "SUMMARY", "main", "register_subcommand", "run"]
 

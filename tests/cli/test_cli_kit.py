@@ -70,7 +70,7 @@ def test_ctrl_c_is_one_line_and_exit_code_130(capsys):
 
 
 def test_overrides_typed_after_a_list_option_go_back_to_the_overrides(capsys):
-    from geco_guide.cli.kit import parse_command
+    from geco_guide.cli.command_line import parse_command
 
     p = Parser(prog="test")
     p.add_argument("--devices", nargs="+", default=None)
