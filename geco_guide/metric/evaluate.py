@@ -196,11 +196,11 @@ def mean_or_nan(values: list[float]) -> float:
     return sum(values) / len(values) if values else math.nan
 
 
-def estimator_device(*estimators: Any) -> torch.device:
-    """Where the estimators' weights live (frames go there); CPU for weightless ones (oracles)."""
-    for estimator in estimators:
-        if isinstance(estimator, torch.nn.Module):
-            for tensor in estimator.parameters():
+def estimator_device(*models: Any) -> torch.device:
+    """Where the estimator models' weights live (frames go there); CPU for weightless ones (oracles)."""
+    for model in models:
+        if isinstance(model, torch.nn.Module):
+            for tensor in model.parameters():
                 return tensor.device
     return torch.device("cpu")
 
