@@ -1,4 +1,4 @@
-"""guidance.movers=rigid: the movers' rigidity residual in the guidance loss, fitted without
+"""guidance.loss.movers=rigid: the movers' rigidity residual in the guidance loss, fitted without
 gradients at each refresh of the masks, the gradient through the frames (pipeline and hooks)."""
 
 from __future__ import annotations
