@@ -30,7 +30,7 @@ import contextlib
 import math
 import os
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from functools import partial
 from typing import Any
 
@@ -59,6 +59,7 @@ from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
 from .particles import ParticleBatches, deal_final_decode, denoiser_places, output_tensor, particle_batches, particle_rows
 from .run_options import RunOptions, resolve_call_options
 from .search import (
+    ParticleBatch,
     ParticleScorer,
     ParticleSearch,
     SearchConfig,
@@ -113,6 +114,71 @@ EARLIER_COMPONENTS = {
 
 #: What ``output_type`` may be: the video processor's kinds, or the latents themselves.
 OUTPUT_TYPES = ("pil", "np", "pt", "latent")
+
+
+@dataclass
+class _GeCoCall:
+    """What one call guides and searches with, as its stages set it up
+    (:meth:`GeCoCogVideoXPipeline.__call__`).
+
+    Attributes:
+        config, run, search: the call's guidance, run options and search (``None``: none),
+            resolved; estimators: its models.
+        schedule, chunks, decode: the guidance schedule (``None`` unguided), the anchor chunks
+            and their decode (``None`` without guidance and search).
+        devices, memory_plan, masks, particle_batch: the devices guidance runs on, its memory
+            plan, the dynamic masks' source and a search's particle batch (each ``None`` where unused).
+        denoisers: the transformer and its replicas (stage 1); geco, searcher, batches: the
+            guidance, the search and its sub-batches of particles (stage 8).
+    """
+
+    config: GuidanceConfig
+    run: RunOptions
+    search: SearchConfig | None
+    estimators: Estimators | None
+    schedule: Any
+    chunks: Any
+    decode: Any
+    devices: list[torch.device] | None
+    memory_plan: PlanChoice | None
+    masks: Any
+    particle_batch: ParticleBatch | None
+    denoisers: list[Any] = field(default_factory=list)
+    geco: GuidanceContext | None = None
+    searcher: ParticleSearch | None = None
+    batches: Any = None
+
+    @property
+    def particles(self) -> int | None:
+        """A search's ``K`` particles, ``None`` without a search."""
+        return self.search.particles if self.search is not None else None
+
+
+@dataclass
+class _LoopInputs:
+    """The denoising loop's inputs as stages 2 to 7 make them (the stock pipeline's), and its
+    latents and text states after it.
+
+    Attributes:
+        latents: ``[B, F, C, h, w]`` (fp32 where ``keep_fp32``: a guided call), ``F`` with the
+            ``additional_frames`` latent frames CogVideoX 1.5 pads in front.
+        prompt_embeds: ``[2B, L, D]`` with CFG (the negative states first), ``[B, L, D]``
+            without; negative_prompt_embeds: ``[B, L, D]`` or ``None``.
+        timesteps, num_inference_steps: the scheduler's; extra_step_kwargs: its step's (eta,
+            generator); image_rotary_emb: the rotary embeddings, or ``None``.
+        do_classifier_free_guidance: ``guidance_scale > 1``.
+    """
+
+    latents: Tensor
+    prompt_embeds: Tensor
+    negative_prompt_embeds: Tensor | None
+    timesteps: Tensor
+    num_inference_steps: int
+    extra_step_kwargs: dict[str, Any]
+    image_rotary_emb: Any
+    do_classifier_free_guidance: bool
+    keep_fp32: bool
+    additional_frames: int
 
 
 class GeCoCogVideoXPipeline(CogVideoXPipeline):
@@ -338,8 +404,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 ``self.guidance_config`` (e.g. ``{"step_size": 2.0, "loss": {"cue": "motion"}}``),
                 ``False`` to sample without guidance, or ``None`` for the default.
             run_options: how this call's guidance runs: a :class:`~geco_guide.sampler.run_options.RunOptions`
-                or a dict of fields over the defaults (e.g. ``{"memory_plan": "chunked",
-                "devices": ["cuda:0", "cuda:1"]}``).
+                or a dict of fields over the defaults (e.g. ``{"memory_plan": "chunked", "devices": ["cuda:0", "cuda:1"]}``).
             estimators: the models GeCo runs with, one :class:`~geco_guide.estimators.Estimators`
                 (required with guidance): the geometry and flow estimators, the text segmenter
                 of the subjects ``guidance.dynamic`` names (``"auto"`` needs none; see
@@ -366,59 +431,110 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         """
         if isinstance(callback_on_step_end, (PipelineCallback, MultiPipelineCallbacks)):
             callback_on_step_end_tensor_inputs = callback_on_step_end.tensor_inputs
-
         height = height or self.transformer.config.sample_height * self.vae_scale_factor_spatial
         width = width or self.transformer.config.sample_width * self.vae_scale_factor_spatial
         num_frames = num_frames or self.transformer.config.sample_frames
-        num_videos_per_prompt = 1  # as the stock pipeline
+        size = (num_frames, height, width)
 
-        # 1. Check inputs, all of them, before any work
-        self.check_inputs(
-            prompt, height, width, negative_prompt, callback_on_step_end_tensor_inputs, prompt_embeds, negative_prompt_embeds
-        )
+        # 1. Check inputs, all of them, before any work; set up what guidance and a search run with
+        self.check_inputs(prompt, height, width, negative_prompt, callback_on_step_end_tensor_inputs, prompt_embeds,
+                          negative_prompt_embeds)
         if output_type not in OUTPUT_TYPES:  # the stock pipeline finds out after the whole denoising
             raise ValueError(f"output_type must be one of {list(OUTPUT_TYPES)}, got {output_type!r}")
+        batch_size = len(prompt) if isinstance(prompt, list) else 1 if prompt is not None else prompt_embeds.shape[0]
+        call = self.set_up_geco(guidance, run_options, estimators, search, batch_size=batch_size, size=size,
+                                num_steps=len(timesteps) if timesteps is not None else num_inference_steps,
+                                generators=(generator, search_generator))
+        self.start_call(call, guidance_scale, attention_kwargs)
+
+        # 2.-7. The loop's inputs, as the stock pipeline makes them
+        loop = self.prepare_denoising(
+            call, prompt, negative_prompt, prompt_embeds, negative_prompt_embeds, batch_size=batch_size, size=size,
+            latents=latents, generator=generator, eta=eta, timesteps=timesteps, num_inference_steps=num_inference_steps,
+            guidance_scale=guidance_scale, max_sequence_length=max_sequence_length)
+
+        # 8. Guidance (anchors decoded from short causal chunks, the GeCo loss, the log) and the search
+        self.set_up_guidance(call, loop, generator, search_generator, observer)
+
+        # 9. Denoising loop
+        self.denoise(call, loop, callback_on_step_end, callback_on_step_end_tensor_inputs, use_dynamic_cfg=use_dynamic_cfg,
+                     guidance_scale=guidance_scale, attention_kwargs=attention_kwargs)
+        report = self.call_report(call)
+
+        # 10. Decode the video
+        video = self.decode_video(call, loop, output_type, report)
+        self.maybe_free_model_hooks()
+        if not return_dict:
+            return (video,)
+        return GeCoCogVideoXPipelineOutput(frames=video, report=report)
+
+    # ------------------------------------------------------------------------------------------
+    # the stages of a call
+
+    def set_up_geco(self, guidance: GuidanceConfig | Mapping[str, Any] | bool | None,
+                    run_options: RunOptions | Mapping[str, Any] | None, estimators: Estimators | None,
+                    search: SearchConfig | Mapping[str, Any] | None, *, batch_size: int, size: tuple[int, int, int],
+                    num_steps: int, generators: tuple[Any, torch.Generator | None]) -> _GeCoCall:
+        """Stage 1 of a call, before any work: the call's guidance, run options and search resolved
+        and checked (the search against the ``generators``, the particles' and its own, and the
+        ``batch_size`` prompts; what guidance needs: :meth:`check_geco_inputs`), the denoiser split
+        over the launch's processes (``run.context_parallel``, once), and what guidance and a
+        search run with: the devices, the memory plan, the dynamic masks' source and a search's
+        particle batch. ``size``: ``(num_frames, height, width)`` of the video."""
+        num_frames, height, width = size
         config, run = resolve_call_options(self.guidance_config, guidance, None, run_options)
         search = resolve_search_config(search)
-        num_steps = len(timesteps) if timesteps is not None else num_inference_steps
         if search is not None:
-            prompts = len(prompt) if isinstance(prompt, list) else 1 if prompt is not None else prompt_embeds.shape[0]
-            check_search_call(search, run, generator, search_generator, num_steps=num_steps, videos=prompts)
+            check_search_call(search, run, *generators, num_steps=num_steps, videos=batch_size)
         schedule, chunks, decode = self.check_geco_inputs(height, width, num_frames, num_steps, config, run, estimators,
                                                           searching=search is not None)
-        # the denoiser split over the launch's processes, once (run.context_parallel)
         start_context_parallel(self, adapter_for(self), run, differentiates=config.enabled and config.denoiser_grad)
         working = config.enabled or search is not None
         devices = resolve_devices(run.devices) if working else None
         memory_plan = self.choose_memory_plan(config, run, num_frames, height, width, devices) if config.enabled else None
         masks = guidance_mask_source(config, estimators, execution_device(self)) if working else None
-        particles = search.particles if search is not None else None
         particle_batch = choose_particle_batch(
-            config, run, particles, memory_plan, signature=model_signature(self.transformer.config), frames=num_frames,
-            height=height, width=width, device_gb=planning_memory_gb(execution_device(self), devices),
+            config, run, search.particles, memory_plan, signature=model_signature(self.transformer.config),
+            frames=num_frames, height=height, width=width, device_gb=planning_memory_gb(execution_device(self), devices),
             offload=offloads_models(self), devices=len(devices) if devices else 1,
         ) if search is not None else None
+        return _GeCoCall(config, run, search, estimators, schedule, chunks, decode, devices, memory_plan, masks,
+                         particle_batch)
+
+    def start_call(self, call: _GeCoCall, guidance_scale: float, attention_kwargs: dict[str, Any] | None) -> None:
+        """The call's state on the pipeline, as the stock pipeline keeps it (guidance scale,
+        attention kwargs, current timestep, interrupt), and its denoisers (``call.denoisers``): the
+        transformer, with its replicas of ``run.split_cfg`` on a guided call with CFG (made before
+        any checkpointing switch or hook of the memory plan, which then covers them too); a
+        search's denoiser calls in sub-batches of particles, dealt over the devices."""
         self._guidance_scale = guidance_scale
         self._attention_kwargs = attention_kwargs
         self._current_timestep = None
         self._interrupt = False
-        # replicas before any checkpointing switch or hook of the memory plan, which then covers them too
+        config, devices = call.config, call.devices
         self._cfg_halves = (CfgHalves(self.transformer, devices, execution_device(self))
-                            if config.enabled and run.split_cfg and guidance_scale > 1.0 else None)
+                            if config.enabled and call.run.split_cfg and guidance_scale > 1.0 else None)
         replicas = [m for m in self._cfg_halves.replicas if m is not self.transformer] if self._cfg_halves else []
-        denoisers = [self.transformer, *replicas]
-        # a search: the sampling's denoiser calls in sub-batches of particles, dealt over the devices
-        self._particle_batches = (ParticleBatches(particles, particle_batch.size,
+        call.denoisers = [self.transformer, *replicas]
+        self._particle_batches = (ParticleBatches(call.particles, call.particle_batch.size,
                                                   denoiser_places(self.transformer, devices, self.transformer))
-                                  if search is not None else None)
+                                  if call.search is not None else None)
+
+    def prepare_denoising(self, call: _GeCoCall, prompt: str | list[str] | None, negative_prompt: str | list[str] | None,
+                          prompt_embeds: Tensor | None, negative_prompt_embeds: Tensor | None, *, batch_size: int,
+                          size: tuple[int, int, int], latents: Tensor | None, generator: Any, eta: float,
+                          timesteps: list[int] | None, num_inference_steps: int, guidance_scale: float,
+                          max_sequence_length: int) -> _LoopInputs:
+        """Stages 2 to 7 of a call, the stock pipeline's: the latents' shape (a search: ``K``
+        videos of the one prompt; the caller's ``latents`` checked against it), the text states
+        (repeated for each particle), the timesteps, the initial latents (fp32 with guidance),
+        the scheduler's extra step kwargs and the rotary embeddings. ``size``: ``(num_frames,
+        height, width)``."""
+        num_frames, height, width = size
+        num_videos_per_prompt = 1  # as the stock pipeline
+        particles = call.particles
 
         # 2. Default call parameters
-        if prompt is not None and isinstance(prompt, str):
-            batch_size = 1
-        elif prompt is not None and isinstance(prompt, list):
-            batch_size = len(prompt)
-        else:
-            batch_size = prompt_embeds.shape[0]
         videos = particles or batch_size  # a search: K videos of the one prompt
         latents_shape, additional_frames = self.latents_shape(videos, num_frames, height, width)
         check_latents(latents, latents_shape, f"a call with num_frames={num_frames}, height={height}, width={width}, "
@@ -462,7 +578,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
         )
         # With guidance the latents stay fp32 between steps (an update is far below bf16 resolution);
         # without, they are rounded to the model dtype after each step, as the stock pipeline does.
-        keep_fp32 = config.enabled
+        keep_fp32 = call.config.enabled
         if keep_fp32:
             latents = latents.float()
 
@@ -475,36 +591,52 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             if self.transformer.config.use_rotary_positional_embeddings
             else None
         )
+        return _LoopInputs(latents, prompt_embeds, negative_prompt_embeds, timesteps, num_inference_steps,
+                           extra_step_kwargs, image_rotary_emb, do_classifier_free_guidance, keep_fp32, additional_frames)
 
-        # 8. Guidance: anchors decoded from short causal chunks, the GeCo loss, the log
-        geco = None
+    def set_up_guidance(self, call: _GeCoCall, loop: _LoopInputs, generator: Any, search_generator: torch.Generator | None,
+                        observer: GuidanceObserver | None) -> None:
+        """Stage 8 of a call: the guidance of ``call.config`` (``call.geco``: anchors decoded from
+        short causal chunks, the GeCo loss, the log, watched by ``observer``) and the search of
+        ``call.search`` (``call.searcher``, scoring the particles with the guidance's decode or,
+        unguided, its own, and ``call.batches``, their sub-batches)."""
+        config, run, devices, masks = call.config, call.run, call.devices, call.masks
         if config.enabled:
-            geco = GuidanceContext(
-                config, schedule, chunks,
-                decode_chunk=decode,
-                latent_frames=lambda x0: x0[:, additional_frames:],
-                estimators=estimators, generator=generator,
-                run=run, memory_plan=memory_plan, dynamic_masks=masks, devices=devices, observer=observer,
+            call.geco = GuidanceContext(
+                config, call.schedule, call.chunks,
+                decode_chunk=call.decode,
+                latent_frames=lambda x0: x0[:, loop.additional_frames:],
+                estimators=call.estimators, generator=generator,
+                run=run, memory_plan=call.memory_plan, dynamic_masks=masks, devices=devices, observer=observer,
             )
             if devices:
                 logger.info("guidance: anchor chunks dealt over %s", ", ".join(map(str, devices)))
-        searcher = batches = None
-        if search is not None:
+        if call.search is not None:
+            geco, size = call.geco, call.particle_batch.size
             scorer = ParticleScorer(
                 geco.anchor_objective.decode if geco else plan_anchor_decode(
-                    SAFE_PLAN, decode, chunks, devices, processes=run.context_parallel or 1),
-                lambda x0: x0[:, additional_frames:], GeCoLoss(estimators, config.loss, check_values=False), masks,
-                particle_batch.size)
-            searcher = ParticleSearch(search, len(timesteps), scorer, generator=search_generator, noise=generator,
-                                      batch=particle_batch.size, masks=masks if geco else None)
-            batches = particle_batches(particles, particle_batch.size)
+                    SAFE_PLAN, call.decode, call.chunks, devices, processes=run.context_parallel or 1),
+                lambda x0: x0[:, loop.additional_frames:], GeCoLoss(call.estimators, config.loss, check_values=False),
+                masks, size)
+            call.searcher = ParticleSearch(call.search, len(loop.timesteps), scorer, generator=search_generator,
+                                           noise=generator, batch=size, masks=masks if geco else None)
+            call.batches = particle_batches(call.particles, size)
 
-        # 9. Denoising loop
+    def denoise(self, call: _GeCoCall, loop: _LoopInputs, callback_on_step_end: Any,
+                callback_on_step_end_tensor_inputs: list[str], *, use_dynamic_cfg: bool, guidance_scale: float,
+                attention_kwargs: dict[str, Any] | None) -> None:
+        """Stage 9 of a call: the stock denoising loop over ``loop.timesteps``, from and into
+        ``loop.latents`` (``[B, F, C, h, w]``), with ``R_t`` GeCo updates of the latents before
+        each guided step (``call.geco``) and a search's resampling at its steps (``call.searcher``);
+        NaN latents are refused after the loop, not decoded."""
+        geco, searcher, batches, schedule, particles = call.geco, call.searcher, call.batches, call.schedule, call.particles
+        latents, prompt_embeds, negative_prompt_embeds = loop.latents, loop.prompt_embeds, loop.negative_prompt_embeds
+        timesteps, num_inference_steps, keep_fp32 = loop.timesteps, loop.num_inference_steps, loop.keep_fp32
         num_warmup_steps = max(len(timesteps) - num_inference_steps * self.scheduler.order, 0)
         step_values = [int(v) for v in timesteps.tolist()]  # host copies: the guided steps add no device sync
         watch = LatentsWatch(len(timesteps))  # read once, after the loop: NaN latents are refused, not decoded
         with (
-            geco.models(denoisers, self.vae, [self.text_encoder]) if geco else contextlib.nullcontext(),
+            geco.models(call.denoisers, self.vae, [self.text_encoder]) if geco else contextlib.nullcontext(),
             self.progress_bar(total=num_inference_steps) as progress_bar,
         ):
             if geco:
@@ -524,9 +656,9 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                 model_kwargs = dict(
                     t=t,
                     prompt_embeds=prompt_embeds,
-                    image_rotary_emb=image_rotary_emb,
+                    image_rotary_emb=loop.image_rotary_emb,
                     attention_kwargs=attention_kwargs,
-                    do_classifier_free_guidance=do_classifier_free_guidance,
+                    do_classifier_free_guidance=loop.do_classifier_free_guidance,
                 )
                 predict_rows = partial(self.predict_particles, particles=particles, **model_kwargs) if particles else None
                 if geco is None or schedule.repeats_at(i) == 0:
@@ -546,7 +678,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
                 # compute the previous noisy sample x_t -> x_t-1, with the pipeline's own scheduler
                 if not isinstance(self.scheduler, CogVideoXDPMScheduler):
-                    latents = self.scheduler.step(noise_pred, t, sample, **extra_step_kwargs, return_dict=False)[0]
+                    latents = self.scheduler.step(noise_pred, t, sample, **loop.extra_step_kwargs, return_dict=False)[0]
                 else:
                     latents, old_pred_original_sample = self.scheduler.step(
                         noise_pred,
@@ -554,7 +686,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
                         t,
                         timesteps[i - 1] if i > 0 else None,
                         sample,
-                        **extra_step_kwargs,
+                        **loop.extra_step_kwargs,
                         return_dict=False,
                     )
                 latents = latents.float() if keep_fp32 else latents.to(prompt_embeds.dtype)
@@ -582,32 +714,38 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
         self._current_timestep = None
         self._cfg_halves = self._particle_batches = None
-        report = geco.report(self.scheduler) if geco else GuidanceReport(scheduler=type(self.scheduler).__name__)
-        if searcher is not None:
-            report.mask_source = None if masks is None else masks.source_name  # what its scores left out
-            report.search = {**searcher.report(particles), "particle_batch": particle_batch.to_dict()}
+        loop.latents, loop.prompt_embeds = latents, prompt_embeds
         watch.check()
 
-        if not output_type == "latent":
-            latents = latents[:, additional_frames:]
-            latents = latents.to(self.vae.dtype) if keep_fp32 else latents
-            if particles and devices:  # each device decodes its share of the particles
-                restore = deal_final_decode(self.vae, devices)
-                report.search["final_decode_devices"] = [str(device) for device in devices]
-                try:
-                    video = self.decode_latents(latents)
-                finally:
-                    restore()
-            elif particles:  # a search's videos one at a time: each particle's frames as its own decode makes them
-                video = torch.cat([self.decode_latents(latents[k:k + 1]) for k in range(particles)])
-            else:
+    def call_report(self, call: _GeCoCall) -> GuidanceReport:
+        """What the call decided: the guidance's report (only the scheduler without guidance), with a
+        search's record and the masks its scores left out."""
+        geco, searcher = call.geco, call.searcher
+        report = geco.report(self.scheduler) if geco else GuidanceReport(scheduler=type(self.scheduler).__name__)
+        if searcher is not None:
+            report.mask_source = None if call.masks is None else call.masks.source_name  # what its scores left out
+            report.search = {**searcher.report(call.particles), "particle_batch": call.particle_batch.to_dict()}
+        return report
+
+    def decode_video(self, call: _GeCoCall, loop: _LoopInputs, output_type: str, report: GuidanceReport) -> Any:
+        """Stage 10 of a call: the final latents decoded to ``output_type`` (the latents themselves
+        for ``"latent"``, in the model dtype), the padded latent frames left out; a search's
+        particles each decoded on its own or, over ``run.devices``, dealt over them (said in
+        ``report.search``)."""
+        latents, particles, devices = loop.latents, call.particles, call.devices
+        if output_type == "latent":
+            return latents.to(loop.prompt_embeds.dtype) if loop.keep_fp32 else latents
+        latents = latents[:, loop.additional_frames:]
+        latents = latents.to(self.vae.dtype) if loop.keep_fp32 else latents
+        if particles and devices:  # each device decodes its share of the particles
+            restore = deal_final_decode(self.vae, devices)
+            report.search["final_decode_devices"] = [str(device) for device in devices]
+            try:
                 video = self.decode_latents(latents)
-            video = self.video_processor.postprocess_video(video=video, output_type=output_type)
+            finally:
+                restore()
+        elif particles:  # a search's videos one at a time: each particle's frames as its own decode makes them
+            video = torch.cat([self.decode_latents(latents[k:k + 1]) for k in range(particles)])
         else:
-            video = latents.to(prompt_embeds.dtype) if keep_fp32 else latents
-
-        self.maybe_free_model_hooks()
-
-        if not return_dict:
-            return (video,)
-        return GeCoCogVideoXPipelineOutput(frames=video, report=report)
+            video = self.decode_latents(latents)
+        return self.video_processor.postprocess_video(video=video, output_type=output_type)
