@@ -39,8 +39,8 @@ from .ab import (
     read_run_result,
     run_arms,
     shared_candidates,
-    summarize,
 )
+from .ab_stats import summarize
 from .report import TINY_NOTE, fmt, interval_text, markdown_table
 
 __all__ = ["REPORT_STEMS", "csv_text", "plot_png", "report_markdown", "write_report"]

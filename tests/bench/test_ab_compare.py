@@ -24,7 +24,7 @@ import pytest
 import torch
 
 from geco_guide.bench import ab as core
-from geco_guide.bench import ab_report, ab_run
+from geco_guide.bench import ab_report, ab_run, ab_stats
 from geco_guide.bench.report import MIN_INTERVAL_N
 from geco_guide.bench.runs import LOCK_NAME, shard, take_run_lock
 from geco_guide.cli import ab
@@ -173,7 +173,7 @@ def test_the_first_pair_of_a_process_is_timed_apart_as_the_warm_up(reference: Pa
     for record in results[0]["arms"].values():
         record["warm_up"] = True
     cfg = load_config(preset="tiny")
-    summary = core.summarize(results, core.plan_pairs([Prompt("p0", "p0")], [0]), cfg, {})
+    summary = ab_stats.summarize(results, core.plan_pairs([Prompt("p0", "p0")], [0]), cfg, {})
     assert summary["arms"]["guided"]["timing_includes_warm_up"] and summary["arms"]["guided"]["generation_s_mean"] == 1.0
     assert "Every pair was made with the models' warm-up (p0-s0" in ab_report.report_markdown(summary, results, "", "cmd")
 
@@ -277,23 +277,23 @@ def _result(name: str, unguided: float, guided: float) -> dict:
 
 
 def test_bootstrap_ci():
-    assert core.bootstrap_ci(np.array([0.1])) is None
+    assert ab_stats.bootstrap_ci(np.array([0.1])) is None
     diffs = np.array([-0.02, -0.01, 0.0, -0.03, 0.01])
-    low, high = core.bootstrap_ci(diffs)
-    assert low < diffs.mean() < high and (low, high) == core.bootstrap_ci(diffs)  # seeded
-    assert core.bootstrap_ci(np.full(4, 0.5)) == (0.5, 0.5)
+    low, high = ab_stats.bootstrap_ci(diffs)
+    assert low < diffs.mean() < high and (low, high) == ab_stats.bootstrap_ci(diffs)  # seeded
+    assert ab_stats.bootstrap_ci(np.full(4, 0.5)) == (0.5, 0.5)
     # the report's interval needs MIN_INTERVAL_N finite pairs
     results = [_result(f"p{i}-s0", 0.2, 0.1 + 0.01 * i) for i in range(MIN_INTERVAL_N)]
-    assert core.paired_difference(results[:-1], "fused")["ci95"] is None
-    low, high = core.paired_difference(results, "fused")["ci95"]
-    assert low <= core.paired_difference(results, "fused")["mean_diff"] <= high
+    assert ab_stats.paired_difference(results[:-1], "fused")["ci95"] is None
+    low, high = ab_stats.paired_difference(results, "fused")["ci95"]
+    assert low <= ab_stats.paired_difference(results, "fused")["mean_diff"] <= high
 
 
 def test_single_pair_reports_an_undefined_interval():
     cfg = load_config(preset="tiny")
     pairs = core.plan_pairs([Prompt("one", "one"), Prompt("two", "two")], [0])
     results = [_result("one-s0", 0.2, 0.1)]
-    summary = core.summarize(results, pairs, cfg, {})
+    summary = ab_stats.summarize(results, pairs, cfg, {})
     assert summary["paired_differences"]["fused"] == {"n": 1, "mean_diff": pytest.approx(-0.1), "ci95": None}
     assert summary["guidance_lowered_fused"] == {"count": 1, "n": 1, "fraction": 1.0}
     assert summary["missing_pairs"] == ["two-s0"]
@@ -305,7 +305,7 @@ def test_single_pair_reports_an_undefined_interval():
 def test_a_video_without_valid_pixels_is_left_out_of_the_statistics():
     cfg = load_config(preset="tiny")
     results = [_result("nan-s0", float("nan"), 0.1)]
-    summary = core.summarize(results, core.plan_pairs([Prompt("nan", "nan")], [0]), cfg, {})
+    summary = ab_stats.summarize(results, core.plan_pairs([Prompt("nan", "nan")], [0]), cfg, {})
     assert summary["arms"]["unguided"]["fused"] is None and summary["arms"]["guided"]["fused"] == 0.1
     assert summary["paired_differences"]["fused"] == {"n": 0, "mean_diff": None, "ci95": None}
     assert summary["guidance_lowered_fused"] == {"count": 0, "n": 0, "fraction": None}
@@ -317,14 +317,14 @@ def test_non_finite_scores_are_counted_and_named():
     cfg = load_config(preset="tiny")
     results = [_result("nan-s0", float("nan"), 0.1), _result("ok-s0", 0.2, 0.1)]
     pairs = core.plan_pairs([Prompt("nan", "nan"), Prompt("ok", "ok")], [0])
-    summary = core.summarize(results, pairs, cfg, {})
+    summary = ab_stats.summarize(results, pairs, cfg, {})
     assert summary["non_finite_scores"] == {"nan-s0": ["unguided fused", "unguided motion", "unguided structure"]}
     assert summary["arms"]["unguided"]["fused"] == pytest.approx(0.2)  # the finite one: not a NaN mean
     assert summary["paired_differences"]["fused"]["n"] == 1
     report = ab_report.report_markdown(summary, results, "", "cmd")
     assert ("**Non-finite scores** in 1 pair(s), left out of the means, differences and counts (no valid pixels "
             "to measure): nan-s0 (unguided fused, unguided motion, unguided structure)") in report
-    assert "Non-finite" not in ab_report.report_markdown(core.summarize(results[1:], pairs[1:], cfg, {}), results[1:], "", "cmd")
+    assert "Non-finite" not in ab_report.report_markdown(ab_stats.summarize(results[1:], pairs[1:], cfg, {}), results[1:], "", "cmd")
 
 
 def test_a_pair_with_a_deleted_video_or_a_damaged_result_is_not_complete(tmp_path: Path, capsys):
@@ -807,7 +807,7 @@ def test_a_three_arm_report_from_hand_made_results():
         result["arms"]["best_of"] = {**result["arms"]["unguided"], "fused": 0.15, "best_of": {"kept_seed": 3}}
         results.append(result)
     pairs = core.plan_pairs([Prompt(f"p{i}", f"p{i}") for i in range(len(results))], [0])
-    summary = core.summarize(results, pairs, cfg, {}, best_of)
+    summary = ab_stats.summarize(results, pairs, cfg, {}, best_of)
     assert summary["best_of"]["chosen"] == "matched" and summary["best_of"]["predicted_ratio"] == 6.55
     assert summary["best_of"]["vs_unguided"]["paired_differences"]["fused"]["mean_diff"] == pytest.approx(-0.05)
     assert summary["best_of"]["vs_unguided"]["lowered_fused"]["count"] == len(results)

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from geco_guide.bench import ab as core
-from geco_guide.bench import ab_report, ab_run
+from geco_guide.bench import ab_report, ab_run, ab_stats
 from geco_guide.bench.report import MIN_INTERVAL_N
 from geco_guide.cli import ab
 from geco_guide.cli.prompt_files import Prompt
@@ -127,7 +127,7 @@ def test_every_arm_against_unguided_with_paired_intervals_motion_and_cost():
     best_of, search = core.BestOf(4), core.SearchArm(4, matched=matched)
     results = _results(MIN_INTERVAL_N)
     pairs = core.plan_pairs([Prompt(f"p{k}", f"p{k}") for k in range(len(results))], [0])
-    summary = core.summarize(results, pairs, cfg, {}, best_of, search)
+    summary = ab_stats.summarize(results, pairs, cfg, {}, best_of, search)
 
     vs = summary["search"]["vs_unguided"]
     assert vs["paired_differences"]["fused"]["mean_diff"] == pytest.approx(-0.03)
@@ -167,7 +167,7 @@ def test_no_flag_where_every_arm_moves_about_as_much():
     results = _results(2)
     for result in results:
         result["arms"]["search"]["total_motion"] = 4.6  # 8 % less: within the rule
-    summary = core.summarize(results, core.plan_pairs([Prompt("p0", "p0"), Prompt("p1", "p1")], [0]),
+    summary = ab_stats.summarize(results, core.plan_pairs([Prompt("p0", "p0"), Prompt("p1", "p1")], [0]),
                              load_config(preset="tiny"), {}, None, core.SearchArm(4))
     assert not summary["search"]["vs_unguided"]["total_motion_change"]["flagged"]
     report = ab_report.report_markdown(summary, results, "", "cmd")
