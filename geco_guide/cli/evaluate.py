@@ -96,7 +96,7 @@ def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
     from ..metric.evaluate import finite_or_none
     from ..metric.score_files import SUMMARY_KEYS, ScoreOptions, one_line, score_line, score_one, write_table
     from ..metric.video_inputs import (check_detection_masks, check_inputs_and_outputs, check_masks_fit,
-                                       dynamic_mask_option, expand_inputs, holds_frames, run_outputs, wants_segmenter)
+                                       dynamic_mask_option, expand_inputs, holds_frames, needs_segmenter, run_outputs)
 
     overrides, videos = split_overrides(args.inputs)
     # Neither an input nor an option (a=b.mp4): a missing file, or a mistyped key.
@@ -124,7 +124,7 @@ def _run(args: argparse.Namespace, locks: contextlib.ExitStack) -> int:
             for path in run_outputs(items, out, args.maps, args.detection, table):
                 locks.enter_context(output_lock(path, "choose another --out"))
         check_inputs_and_outputs(items, out, args.overwrite, args.maps, args.detection)  # under the locks: an output of a run that ended meanwhile counts
-        segmenter = wants_segmenter(dynamic)
+        segmenter = needs_segmenter(dynamic)
         check_weights(cfg.estimators, segmenter=segmenter)  # every missing model named at once, nothing loaded yet
         segment = None
         if segmenter:  # loaded first, each load under its own line: an error follows the line of what failed

@@ -15,7 +15,7 @@ if TYPE_CHECKING:
     from .protocol import EvaluationConfig
 
 __all__ = ["VideoInput", "check_detection_masks", "check_inputs_and_outputs", "check_masks_fit", "check_scorable",
-           "dynamic_mask_option", "expand_inputs", "holds_frames", "output_files", "run_outputs", "wants_segmenter"]
+           "dynamic_mask_option", "expand_inputs", "holds_frames", "needs_segmenter", "output_files", "run_outputs"]
 
 
 @dataclass
@@ -99,7 +99,7 @@ def dynamic_mask_option(spec: str | None, device: Any) -> Any:
     :class:`~geco_guide.estimators.dynamic_masks.GivenMasks` of the whole file, which each video
     cuts to the frames its protocol picks); ``auto`` becomes one mask source for every input; text
     stays text, after checking that it names subjects: the segmenter of ``estimators.segmenter``,
-    loaded once with the estimators (:func:`wants_segmenter`), masks them.
+    loaded once with the estimators (:func:`needs_segmenter`), masks them.
 
     Raises:
         MaskReadError: one sentence about the mask file (unreadable, not binary, wrong shape ...).
@@ -118,7 +118,7 @@ def dynamic_mask_option(spec: str | None, device: Any) -> Any:
     return spec
 
 
-def wants_segmenter(dynamic: Any) -> bool:
+def needs_segmenter(dynamic: Any) -> bool:
     """Whether the ``--dynamic-masks`` of :func:`dynamic_mask_option` is text for the segmenter."""
     return isinstance(dynamic, str)
 
