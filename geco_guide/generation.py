@@ -55,7 +55,7 @@ if TYPE_CHECKING:
 
 __all__ = ["KEYLESS_SECTIONS", "SCORES_NOTE", "SELECTION_SCORE", "GenerationResult", "Models", "Sample", "acting_config",
            "best_candidate", "check_conditioning", "check_generation", "check_prompt", "default_name", "generate", "generate_best_of",
-           "load_models", "loading_line", "output_paths", "sample", "sample_search", "selection_masks", "slugify", "versions",
+           "load_models", "loading_line", "output_paths", "particle_scores", "sample", "sample_search", "selection_masks", "slugify", "versions",
            "video_key"]
 
 logger = logging.getLogger(__name__)
@@ -393,9 +393,9 @@ def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = N
             pipeline has no argument for, or an ``image`` the model does not take (or lacks:
             :func:`check_conditioning`).
     """
+    check_conditioning(cfg, image is not None)
     if cfg.search.enabled:
         return sample_search(models, cfg, prompt, seed=seed, image=image, observer=observer, progress=progress)
-    check_conditioning(cfg, image is not None)
     import torch
 
     from .sampler.context import GuidanceReport
@@ -470,9 +470,6 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
     """
     import torch
 
-    from .io.devices import resolve_devices
-    from .metric.evaluate import cue_scores, evaluate_video
-    from .sampler.multi_device import dealt_work
     from .sampler.sampling import call_arguments
     from .sampler.search import search_seed
 
@@ -503,6 +500,29 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
         report = handle.last
     frames = output.frames.float().cpu()  # [K, F, 3, H, W] in [0, 1]
     selection_start = time.perf_counter()
+    scores, selection_devices = particle_scores(frames, cfg, models, on_particle)
+    kept = best_candidate([math.nan if s[SELECTION_SCORE] is None else s[SELECTION_SCORE] for s in scores])
+    video = frames[kept:kept + 1]
+    _check_sampled(video)
+    record = report.search
+    search = {**record, "score": f"{SELECTION_SCORE} (the GeCo protocol, evaluation.*)", "kept": kept,
+              **({"selection_devices": [str(device) for device in selection_devices]} if selection_devices else {}),
+              "kept_lineage": record["lineages"][kept], "selection_s": time.perf_counter() - selection_start,
+              "final_particles": [{"particle": k, "seed": seed + record["lineages"][k][0],
+                                   "lineage": record["lineages"][k], **scores[k]} for k in range(particles)]}
+    del search["lineages"]
+    return Sample(video, replace(report, search=search), time.perf_counter() - start, search=search)
+
+
+def particle_scores(frames: torch.Tensor, cfg: GeCoConfig, models: Models,
+                    on_particle: Callable[[int, Any], None] | None = None) -> tuple[list[dict[str, float | None]], list[Any]]:
+    """A search's selection: each final particle of ``frames [K, F, 3, H, W]`` scored as
+    :func:`sample_search` says, dealt over ``run.devices`` where it names several; its scores, and
+    the devices they were dealt over (``[]``: one). ``on_particle(k, scores)`` after each."""
+    from .io.devices import resolve_devices
+    from .metric.evaluate import cue_scores, evaluate_video
+    from .sampler.multi_device import dealt_work
+
     masks = selection_masks(cfg, models)
     devices = resolve_devices(cfg.run.devices)
     bundles = models.estimators_on(devices) if devices and len(devices) > 1 else [models.estimators]
@@ -515,21 +535,11 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
             return cue_scores(None)
 
     scores = []
-    for k, values in enumerate(dealt_work(particles, len(bundles), protocol_scores)):  # each device its share
+    for k, values in enumerate(dealt_work(cfg.search.particles, len(bundles), protocol_scores)):  # each device its share
         scores.append(values)
         if on_particle is not None:
             on_particle(k, values)
-    kept = best_candidate([math.nan if s[SELECTION_SCORE] is None else s[SELECTION_SCORE] for s in scores])
-    video = frames[kept:kept + 1]
-    _check_sampled(video)
-    record = report.search
-    search = {**record, "score": f"{SELECTION_SCORE} (the GeCo protocol, evaluation.*)", "kept": kept,
-              **({"selection_devices": [str(device) for device in devices]} if len(bundles) > 1 else {}),
-              "kept_lineage": record["lineages"][kept], "selection_s": time.perf_counter() - selection_start,
-              "final_particles": [{"particle": k, "seed": seed + record["lineages"][k][0],
-                                   "lineage": record["lineages"][k], **scores[k]} for k in range(particles)]}
-    del search["lineages"]
-    return Sample(video, replace(report, search=search), time.perf_counter() - start, search=search)
+    return scores, devices if len(bundles) > 1 else []
 
 
 # --------------------------------------------------------------------------------------------
