@@ -448,7 +448,7 @@ def evaluate_video(
     )
 
 
-def _evaluation_config(estimators: Any, config: EvaluationConfig | None) -> EvaluationConfig:
+def _evaluation_config(estimators: object, config: EvaluationConfig | None) -> EvaluationConfig:
     """The protocol of a call (``config``, or the paper's for ``None``) once its ``estimators`` and
     ``config`` are of the types :func:`evaluate_video` takes (TypeError, one line, otherwise)."""
     if isinstance(estimators, Estimators) or not (estimators is None or isinstance(estimators, EstimatorsConfig)):
