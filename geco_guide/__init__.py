@@ -26,13 +26,13 @@ _EXPORTS = {
     "UFM": "geco_guide.estimators.ufm",
     "UFMConfig": "geco_guide.estimators.ufm",
     "TinyDecoder": "geco_guide.estimators.tiny_decoder",
-    "attach_geco_guidance": "geco_guide.sampler.hooks",
-    "GeCoCogVideoXPipeline": "geco_guide.sampler.pipeline_cogvideox",
-    "GuidanceConfig": "geco_guide.sampler.config",
-    "RunOptions": "geco_guide.sampler.run_options",
-    "SearchConfig": "geco_guide.sampler.search",
+    "attach_geco_guidance": "geco_guide.sampler.pipelines.hooks",
+    "GeCoCogVideoXPipeline": "geco_guide.sampler.pipelines.pipeline_cogvideox",
+    "GuidanceConfig": "geco_guide.sampler.algorithm.config",
+    "RunOptions": "geco_guide.sampler.running.run_options",
+    "SearchConfig": "geco_guide.sampler.search.particle_search",
     "evaluate_video": "geco_guide.metric.evaluate",
-    "GuidanceReport": "geco_guide.sampler.context",
+    "GuidanceReport": "geco_guide.sampler.running.context",
     "generate": "geco_guide.generation",
     "MODELS": "geco_guide.families",
     "load_prompts": "geco_guide.bench.geco_eval",
@@ -51,12 +51,12 @@ if TYPE_CHECKING:  # pragma: no cover
     from .metric.evaluate import evaluate_video
     from .families import MODELS
     from .generation import generate
-    from .sampler.config import GuidanceConfig
-    from .sampler.context import GuidanceReport
-    from .sampler.hooks import attach_geco_guidance
-    from .sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
-    from .sampler.run_options import RunOptions
-    from .sampler.search import SearchConfig
+    from .sampler.algorithm.config import GuidanceConfig
+    from .sampler.running.context import GuidanceReport
+    from .sampler.pipelines.hooks import attach_geco_guidance
+    from .sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from .sampler.running.run_options import RunOptions
+    from .sampler.search.particle_search import SearchConfig
     from .types import Correspondences, FlowEstimator, GeometryEstimator, SceneGeometry
 
 

@@ -40,11 +40,11 @@ from .estimators import TINY_RANDOM, EstimatorsConfig
 from .families import (MODELS, default_anchors, did_you_mean, frames_problem, generating_model, model_named,
                        video_models)
 from .metric.protocol import EvaluationConfig
-from .sampler.config import GuidanceConfig, paper_guidance_config
-from .sampler.loading import CHECKPOINT_SCHEDULER, SCHEDULERS, ModelConfig
-from .sampler.run_options import RunOptions, check_run_for_guidance
-from .sampler.sampling import SamplingConfig, fit_to_model, sampling_problem, with_model_defaults
-from .sampler.search import SearchConfig
+from .sampler.algorithm.config import GuidanceConfig, paper_guidance_config
+from .sampler.pipelines.loading import CHECKPOINT_SCHEDULER, SCHEDULERS, ModelConfig
+from .sampler.running.run_options import RunOptions, check_run_for_guidance
+from .sampler.pipelines.sampling import SamplingConfig, fit_to_model, sampling_problem, with_model_defaults
+from .sampler.search.particle_search import SearchConfig
 from .types import OptionError, non_finite_fields, renamed_option
 
 __all__ = ["CONFIG_DIR", "DTYPES", "SEED_RANGE", "GeCoConfig", "ModelConfig", "OutputConfig", "SamplingConfig",
@@ -212,7 +212,7 @@ def load_config(
 
 
 def _fit_tiny_call(cfg: DictConfig, kept: set[str]) -> DictConfig:
-    """``cfg`` whose call is fitted to its model (:func:`~geco_guide.sampler.sampling.fit_to_model`:
+    """``cfg`` whose call is fitted to its model (:func:`~geco_guide.sampler.pipelines.sampling.fit_to_model`:
     the size multiple, the text length) where it runs the tiny random stand-in, which the tiny
     preset's 32x48 call, made for every model, drives; the keys of ``kept`` (what the user set
     in a file, an override or a flag) are left as set, and refused if they do not fit."""

@@ -12,8 +12,8 @@ here, for every model of the registry (:mod:`geco_guide.families`):
    paper's ``GeCoCogVideoXPipeline`` for CogVideoX, the stock diffusers pipeline otherwise) and
    the estimators (with the segmenter and the tiny decoder where the guidance uses them).
 3. :func:`sample` makes one video: the pipeline's own call, guided by its loop or through
-   :func:`~geco_guide.sampler.hooks.attach_geco_guidance`; it returns the frames and what the
-   call decided (:class:`~geco_guide.sampler.context.GuidanceReport`). With ``search.particles``
+   :func:`~geco_guide.sampler.pipelines.hooks.attach_geco_guidance`; it returns the frames and what the
+   call decided (:class:`~geco_guide.sampler.running.context.GuidanceReport`). With ``search.particles``
    set it is :func:`sample_search`: ``K`` particles in one call, resampled by their GeCo scores,
    and the final one of least score under the evaluation protocol kept.
 4. :func:`generate` writes the video and its sidecar, atomically, under an output lock;
@@ -50,8 +50,8 @@ if TYPE_CHECKING:
 
     from .estimators import Estimators
     from .io.video import SoundTrack
-    from .sampler.context import GuidanceObserver, GuidanceReport
-    from .sampler.loading import LoadedPipeline
+    from .sampler.running.context import GuidanceObserver, GuidanceReport
+    from .sampler.pipelines.loading import LoadedPipeline
 
 __all__ = ["KEYLESS_SECTIONS", "SCORES_NOTE", "SELECTION_SCORE", "GenerationResult", "Models", "Sample", "acting_config",
            "best_candidate", "check_conditioning", "check_generation", "check_prompt", "default_name", "generate", "generate_best_of",
@@ -96,7 +96,7 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
 
     Left out: :data:`KEYLESS_SECTIONS`, ``model.device``, and the ``run`` section (how this machine
     runs guidance: memory plans and devices give the same frames) except its
-    :data:`~geco_guide.sampler.run_options.FRAME_ROUNDING_KEYS` where they differ from their
+    :data:`~geco_guide.sampler.running.run_options.FRAME_ROUNDING_KEYS` where they differ from their
     defaults and act (``split_cfg`` only with guidance and CFG): those can change the frames to float
     rounding and so name another video. The device can change the bytes (CPU and GPU kernels round
     differently), but a video moved to another device is the same experiment, so it does not
@@ -106,7 +106,7 @@ def video_key(config: dict[str, Any], prompt: str) -> str:
     ``estimators.segmenter`` unless ``guidance.dynamic`` names subjects. The JSON is canonical (sorted keys), so the key is the
     same in every process and on every machine.
     """
-    from .sampler.run_options import FRAME_ROUNDING_KEYS, RunOptions
+    from .sampler.running.run_options import FRAME_ROUNDING_KEYS, RunOptions
 
     kept = {section: value for section, value in config.items() if section not in KEYLESS_SECTIONS}
     kept["model"] = {key: value for key, value in kept.get("model", {}).items() if key != "device"}
@@ -237,7 +237,7 @@ def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (),
 
     Checks the prompt, the conditioning ``image`` (whether one is given) against the model
     (:func:`check_conditioning`), the options that cannot act on the run (:func:`acting_config`:
-    a warning each, and left at their defaults in the ``cfg`` returned), the run's config (:func:`~geco_guide.sampler.loading.check_before_loading`:
+    a warning each, and left at their defaults in the ``cfg`` returned), the run's config (:func:`~geco_guide.sampler.pipelines.loading.check_before_loading`:
     every model's weights unless the models are ``loaded``, the devices and their memory, the
     memory plan, a search's particles, the guidance
     against the model, the size against the device's memory), the output ``paths`` (refused if
@@ -248,7 +248,7 @@ def check_generation(cfg: GeCoConfig, prompt: str, paths: tuple[Path, ...] = (),
         WeightsNotFoundError: one line naming every missing model and how to pass a local path.
     """
     from .io.video import check_fps
-    from .sampler.loading import check_before_loading
+    from .sampler.pipelines.loading import check_before_loading
 
     check_prompt(prompt)
     check_conditioning(cfg, image)
@@ -275,7 +275,7 @@ class Models:
 
     Attributes:
         video: the video pipeline and what its loading decided
-            (:class:`~geco_guide.sampler.loading.LoadedPipeline`).
+            (:class:`~geco_guide.sampler.pipelines.loading.LoadedPipeline`).
         estimators: the GeCo models (with the segmenter and the tiny decoder where the guidance
             uses them), ``None`` where the run neither guides nor scores.
     """
@@ -296,7 +296,7 @@ class Models:
         device."""
         from torch import nn
 
-        from .sampler.multi_device import module_replicas
+        from .sampler.running.multi_device import module_replicas
 
         key = tuple(str(device) for device in devices)
         if key not in self._replicas:
@@ -332,8 +332,8 @@ def load_models(cfg: GeCoConfig, *, estimators: bool | Estimators = True,
     import torch
 
     from .estimators import Estimators, load_estimators
-    from .sampler.adapters import vae_latent_channels
-    from .sampler.loading import load_tiny_decoder, load_video_pipeline, tiny_decoder_id, uses_tiny_decoder
+    from .sampler.algorithm.slicing import vae_latent_channels
+    from .sampler.pipelines.loading import load_tiny_decoder, load_video_pipeline, tiny_decoder_id, uses_tiny_decoder
     from .tiny import tiny_call_extras, tiny_video_components
 
     extras = {}
@@ -366,7 +366,7 @@ class Sample:
 
     Attributes:
         frames: ``[1, F, 3, H, W]`` in ``[0, 1]``, float32, on the CPU.
-        report: what the call decided (:class:`~geco_guide.sampler.context.GuidanceReport`).
+        report: what the call decided (:class:`~geco_guide.sampler.running.context.GuidanceReport`).
         seconds: the call's wall time (a search's: with the selection's scoring).
         search: what a search did and chose (:func:`sample_search`), ``None`` without one.
         audio: the sound the model made with the video (LTX-2), ``None`` without.
@@ -383,7 +383,7 @@ def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = N
            observer: GuidanceObserver | None = None, progress: bool = True) -> Sample:
     """One video of ``prompt`` with ``cfg``'s sampling and guidance, seeded with ``seed`` (default
     ``cfg.seed``): the pipeline's own call, guided by the paper's loop (``GeCoCogVideoXPipeline``)
-    or by :func:`~geco_guide.sampler.hooks.attach_geco_guidance` on the stock pipeline;
+    or by :func:`~geco_guide.sampler.pipelines.hooks.attach_geco_guidance` on the stock pipeline;
     ``image`` conditions an image-to-video pipeline.
 
     With ``search.particles`` set, the video is a search's (:func:`sample_search`).
@@ -398,8 +398,8 @@ def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = N
         return sample_search(models, cfg, prompt, seed=seed, image=image, observer=observer, progress=progress)
     import torch
 
-    from .sampler.context import GuidanceReport
-    from .sampler.sampling import call_arguments, sound_track
+    from .sampler.running.context import GuidanceReport
+    from .sampler.pipelines.sampling import call_arguments, sound_track
 
     pipe, entry = models.pipe, models.video.model
     generator = torch.Generator(device="cpu").manual_seed(cfg.seed if seed is None else seed)
@@ -415,7 +415,7 @@ def sample(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = N
                       estimators=models.estimators if guided else None, observer=observer)
         report = output.report
     elif guided:
-        from .sampler.hooks import attach_geco_guidance
+        from .sampler.pipelines.hooks import attach_geco_guidance
 
         with attach_geco_guidance(pipe, cfg.guidance, models.estimators, cfg.run) as handle:
             handle.observer = observer
@@ -446,11 +446,11 @@ def _check_sampled(frames: torch.Tensor) -> None:
 def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | None = None, image: Any = None,
                   observer: GuidanceObserver | None = None, progress: bool = True,
                   on_particle: Callable[[int, Any], None] | None = None) -> Sample:
-    """A particle search (``cfg.search``, :mod:`geco_guide.sampler.search`): ``K =
+    """A particle search (``cfg.search``, :mod:`geco_guide.sampler.search.particle_search`): ``K =
     search.particles`` videos of ``prompt`` as one call, particle ``k`` seeded with ``seed + k``
     (default ``cfg.seed``; so without a resampling each particle starts as that seed's video),
     guided as ``cfg.guidance`` says, scored by GeCo and resampled at the search's steps (the
-    draws from a generator of :func:`~geco_guide.sampler.search.search_seed` of ``seed``). Each
+    draws from a generator of :func:`~geco_guide.sampler.search.particle_search.search_seed` of ``seed``). Each
     final particle is then scored with the GeCo protocol
     (:func:`~geco_guide.metric.evaluate.evaluate_video`, the config's ``evaluation`` section, at
     ``sampling.fps``, with the run's dynamic masks (:func:`selection_masks`); its frames as
@@ -460,7 +460,7 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
 
     Returns:
         The kept video; its ``search``: the search's record (:meth:`ParticleSearch.report
-        <geco_guide.sampler.search.ParticleSearch.report>`) with ``final_particles`` (each final
+        <geco_guide.sampler.search.particle_search.ParticleSearch.report>`) with ``final_particles`` (each final
         particle's lineage, the seed it started from and its protocol scores) in place of the
         lineages, ``kept``, ``kept_lineage``, ``score`` (what selects) and ``selection_s``.
 
@@ -470,8 +470,8 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
     """
     import torch
 
-    from .sampler.sampling import call_arguments
-    from .sampler.search import search_seed
+    from .sampler.pipelines.sampling import call_arguments
+    from .sampler.search.particle_search import search_seed
 
     check_conditioning(cfg, image is not None)
     seed = cfg.seed if seed is None else seed
@@ -490,7 +490,7 @@ def sample_search(models: Models, cfg: GeCoConfig, prompt: str, *, seed: int | N
                       observer=observer, search=cfg.search, search_generator=search_generator)
         report = output.report
     else:
-        from .sampler.hooks import attach_geco_guidance
+        from .sampler.pipelines.hooks import attach_geco_guidance
 
         with attach_geco_guidance(pipe, cfg.guidance, models.estimators, cfg.run) as handle:
             handle.observer = observer
@@ -521,7 +521,7 @@ def particle_scores(frames: torch.Tensor, cfg: GeCoConfig, models: Models,
     the devices they were dealt over (``[]``: one). ``on_particle(k, scores)`` after each."""
     from .io.devices import resolve_devices
     from .metric.evaluate import cue_scores, evaluate_video
-    from .sampler.multi_device import dealt_work
+    from .sampler.running.multi_device import dealt_work
 
     masks = selection_masks(cfg, models)
     devices = resolve_devices(cfg.run.devices)
@@ -651,8 +651,8 @@ def score_anchors(made: Sample, cfg: GeCoConfig, models: Models) -> dict[str, fl
     dynamic masks as guidance used them (the sidecar's ``geco_scores``); a score over no valid
     pixel is NaN, with ``nan_reason``."""
     from .loss.geco import GeCoLoss
-    from .sampler.dynamic import RefreshedMasks, guidance_mask_source
-    from .sampler.step import score_anchor_frames
+    from .sampler.algorithm.dynamic import RefreshedMasks, guidance_mask_source
+    from .sampler.algorithm.step import score_anchor_frames
 
     loss = GeCoLoss(models.estimators, cfg.guidance.loss)
     masked = cfg.guidance.enabled or cfg.search.enabled

@@ -68,8 +68,8 @@ def stub_generation(monkeypatch):
 
     from geco_guide import generation
     from geco_guide.families import model_named
-    from geco_guide.sampler.context import GuidanceReport
-    from geco_guide.sampler.loading import LoadedPipeline
+    from geco_guide.sampler.running.context import GuidanceReport
+    from geco_guide.sampler.pipelines.loading import LoadedPipeline
 
     def stub(frames):
         pipe = SimpleNamespace(device=frames.device)

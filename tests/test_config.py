@@ -9,8 +9,8 @@ import pytest
 
 from geco_guide.config import GeCoConfig, config_to_dict, load_config, to_config
 from geco_guide.loss.geco import GeCoLossConfig
-from geco_guide.sampler.config import GuidanceConfig
-from geco_guide.sampler.run_options import RunOptions
+from geco_guide.sampler.algorithm.config import GuidanceConfig
+from geco_guide.sampler.running.run_options import RunOptions
 
 
 def test_schema_defaults_are_the_paper():
@@ -183,7 +183,7 @@ def test_config_path_that_is_a_folder_is_called_a_folder(tmp_path: Path):
 ])
 def test_options_of_the_wrong_type_are_one_line_naming_the_key(section, changes, message):
     """A float anchor would be truncated to another frame; a string step size would fail deep in a call."""
-    from geco_guide.sampler.hooks import attach_geco_guidance
+    from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
     from geco_guide.tiny import tiny_estimators, tiny_wan_pipeline
 
     options = {"guidance": GuidanceConfig, "run": RunOptions}[section]

@@ -26,8 +26,9 @@ def test_every_path_the_guide_names_exists():
 def test_the_adapter_methods_and_registries_it_names_exist():
     from geco_guide.families import FAMILIES, MODELS, TINY_DECODERS, VideoModel  # noqa: F401
     from geco_guide.families.published import LEFT_OUT  # noqa: F401
-    from geco_guide.sampler import adapters, register_adapter  # noqa: F401
-    from geco_guide.sampler.sampling import fit_to_model  # noqa: F401
+    from geco_guide.sampler.pipelines import adapters  # noqa: F401
+    from geco_guide.sampler import register_adapter  # noqa: F401
+    from geco_guide.sampler.pipelines.sampling import fit_to_model  # noqa: F401
     from geco_guide.tiny import tiny_call_kwargs  # noqa: F401
 
     for method in ("frames_first", "denormalize", "denoisers", "combine", "traced_prediction"):

@@ -51,8 +51,8 @@ def _family_words() -> set[str]:
 
 #: A family's own code, which may name it: its adapter, its tiny builders, the CogVideoX pipeline
 #: and the Wan modular blocks.
-FAMILY_CODE = ("sampler/adapters.py", "tiny/pipelines.py", "tiny/components.py", "sampler/pipeline_cogvideox.py",
-               "sampler/modular.py")
+FAMILY_CODE = ("sampler/pipelines/adapters.py", "tiny/pipelines.py", "tiny/components.py", "sampler/pipelines/pipeline_cogvideox.py",
+               "sampler/pipelines/modular.py")
 
 
 def test_no_string_outside_the_registry_and_the_families_code_names_a_family():
@@ -79,7 +79,7 @@ def test_every_entry_names_an_adapter_a_tiny_builder_a_tiny_decoder_and_schedule
     import diffusers
 
     from geco_guide.families import TINY_DECODERS
-    from geco_guide.sampler.adapters import ADAPTERS, adapter_for_class
+    from geco_guide.sampler.pipelines.adapters import ADAPTERS, adapter_for_class
     from geco_guide.tiny import pipelines
 
     model = model_named(name)

@@ -18,7 +18,11 @@ ENTRY_POINTS = ("__main__", "generate")
 FLOORS = [
     ["geco_guide", "geco_guide.geometry", "geco_guide.types", "geco_guide.io", "geco_guide.families"],
     ["geco_guide.loss", "geco_guide.estimators"],
-    ["geco_guide.metric", "geco_guide.sampler"],
+    ["geco_guide.metric", "geco_guide.sampler.diffusers_private"],
+    ["geco_guide.sampler.algorithm"],
+    ["geco_guide.sampler.running"],
+    ["geco_guide.sampler.search"],
+    ["geco_guide.sampler.pipelines", "geco_guide.sampler"],
     ["geco_guide.config", "geco_guide.tiny"],
     ["geco_guide.generation"],
     ["geco_guide.bench", "geco_guide.perf"],

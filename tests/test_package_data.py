@@ -13,9 +13,9 @@ from geco_guide.__main__ import COMMANDS, main
 from geco_guide.families import MODELS
 from geco_guide.families import published
 from geco_guide.families.published import PackageDataError, published_configs, traced_models
-from geco_guide.sampler import memory_plan
-from geco_guide.sampler.config import GuidanceConfig
-from geco_guide.sampler.run_options import RunOptions
+from geco_guide.sampler.running import memory_plan
+from geco_guide.sampler.algorithm.config import GuidanceConfig
+from geco_guide.sampler.running.run_options import RunOptions
 
 ESTIMATES_ENTRY = {"model_ids": ["x/y"], "signature": {}, "estimates": {}, "video": {}}
 

@@ -11,7 +11,7 @@ import torch
 from geco_guide.config import config_to_dict, load_config
 from geco_guide.estimators import Estimators
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig
-from geco_guide.sampler.config import (
+from geco_guide.sampler.algorithm.config import (
     GuidanceConfig,
     fused_guidance_config,
     paper_guidance_config,

@@ -19,8 +19,8 @@ MODULES = sorted(info.name for info in pkgutil.walk_packages(geco_guide.__path__
 
 def test_the_pipeline_and_its_config_are_top_level_names():
     from geco_guide import GeCoCogVideoXPipeline, GuidanceConfig
-    from geco_guide.sampler.config import GuidanceConfig as config_class
-    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline as pipeline_class
+    from geco_guide.sampler.algorithm.config import GuidanceConfig as config_class
+    from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline as pipeline_class
 
     assert GeCoCogVideoXPipeline is pipeline_class and GuidanceConfig is config_class
     assert {"GeCoCogVideoXPipeline", "GuidanceConfig"} <= set(geco_guide.__all__)

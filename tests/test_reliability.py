@@ -36,7 +36,7 @@ from geco_guide.loss.geco import (
     geco_from_geometry,
 )
 from geco_guide.metric.evaluate import evaluate_video
-from geco_guide.sampler.loading import load_video_pipeline
+from geco_guide.sampler.pipelines.loading import load_video_pipeline
 from geco_guide.tiny import tiny_estimators
 from geco_guide.types import (
     Correspondences,
@@ -177,7 +177,7 @@ def test_evaluate_video_refuses_bad_frames_naming_the_frame(clip, value, message
 
 
 def test_generate_refuses_a_diverged_video_and_writes_nothing(tmp_path: Path, monkeypatch):
-    from geco_guide.sampler.context import GuidanceReport
+    from geco_guide.sampler.running.context import GuidanceReport
 
     cfg = load_config(preset="tiny", overrides=[f"output.dir={tmp_path}", "output.score_anchors=false"])
     models = generation.load_models(cfg, estimators=False)
@@ -429,7 +429,7 @@ def test_geco_eval_cuda_without_cuda_is_one_line_before_loading(tmp_path: Path, 
 def test_guidance_config_refuses_bad_values_in_the_python_api_and_the_hook(changes, key):
     """The library path (GuidanceConfig, attach_geco_guidance with a dict) checks what the CLI checks."""
     from geco_guide.sampler import GuidanceConfig
-    from geco_guide.sampler.hooks import attach_geco_guidance
+    from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
     from geco_guide.tiny import tiny_estimators, tiny_wan_pipeline
 
     with pytest.raises(ValueError, match=key):

@@ -16,7 +16,7 @@ from geco_guide.cli import generate
 from geco_guide.config import load_config
 from geco_guide.families import model_named, video_models
 from geco_guide.io.video import audio_stream
-from geco_guide.sampler.sampling import sampling_problem
+from geco_guide.sampler.pipelines.sampling import sampling_problem
 
 GENERATING = video_models()
 

@@ -25,7 +25,7 @@ from ..config import GeCoConfig
 from ..generation import acting_config
 from ..io.video import read_frames
 from ..loss.geco import CUES
-from ..sampler.search import MAX_PARTICLES
+from ..sampler.search.particle_search import MAX_PARTICLES
 from .runs import read_finished
 
 __all__ = ["AGREEMENT_FILE", "ARMS", "BEST_OF", "MATCHED_SEARCH_FILE", "MAX_SEED", "METRICS", "MOTION_DROP",
@@ -159,7 +159,7 @@ def shared_candidates(seeds: Sequence[int], n: int) -> str | None:
 
 @dataclass(frozen=True)
 class SearchArm:
-    """The search arm: a particle search (:mod:`geco_guide.sampler.search`, the config's
+    """The search arm: a particle search (:mod:`geco_guide.sampler.search.particle_search`, the config's
     ``search.*`` options) of ``particles`` particles per pair, particle ``k`` from seed ``seed + k``
     (particle 0 from the pair's own noise); its particles unguided (the comparison with guidance at
     matched compute) unless ``guided``. ``matched``: the choice of ``--search matched`` as

@@ -56,9 +56,9 @@ from ..io.plots import Panel, legend, legend_width, limits, text
 from ..io.video import VIDEO_SUFFIXES, write_video
 from ..loss.cues import CUES, MAP_ORDER
 from ..metric.evaluate import PAPER_NAMES, evaluate_video
-from ..sampler.loading import check_guidance_before_loading, check_tiny_decoder, quiet_hub_logs
-from ..sampler.memory_plan import plan_before_loading
-from ..sampler.sampling import SamplingConfig, fit_to_model
+from ..sampler.pipelines.loading import check_guidance_before_loading, check_tiny_decoder, quiet_hub_logs
+from ..sampler.running.memory_plan import plan_before_loading
+from ..sampler.pipelines.sampling import SamplingConfig, fit_to_model
 from ..types import plural
 from . import report
 from .report import fmt
@@ -296,7 +296,7 @@ def check_model_weights(cfg: GeCoConfig, names: Sequence[str], weights: dict[str
     """
     from ..estimators import check_weights
     from ..estimators.loading import WeightsSource
-    from ..sampler.loading import PIPELINE_INDEX
+    from ..sampler.pipelines.loading import PIPELINE_INDEX
 
     rows = [] if cfg.model.id == TINY_RANDOM else [
         WeightsSource(f"--weights {name}", weights.get(name, MODELS[name].hub_id), name, (PIPELINE_INDEX,),

@@ -5,7 +5,7 @@
     geco bench cost --model wan2.1-t2v-14b --mode faithful --gpu H200
     geco bench cost --all-models
     geco bench cost --model wan2.2-t2v-a14b --context-parallel 4
-    geco bench plans --threads 1 --json geco_guide/sampler/data/memory_plans.json
+    geco bench plans --threads 1 --json geco_guide/sampler/running/data/memory_plans.json
 
 Subcommands (docs/performance.md says what each measures and how to read it):
 

@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     from ..generation import SCORES_NOTE, check_generation, generate, generate_best_of, load_models, sample
     from ..io.files import WriteError
     from ..io.video import read_image
-    from ..sampler.context_parallel import is_writing_process
+    from ..sampler.running.context_parallel import is_writing_process
 
     options = {"seed": args.seed, "guidance.enabled": False if args.no_guidance else None,
                "guidance.dynamic": args.dynamic, "guidance.loss.movers": args.movers, "run.devices": args.devices,

@@ -69,8 +69,8 @@ class VideoModel:
         tiny_call: what the calls of its tiny stand-in need beyond the config's sampling
             (HunyuanVideo's bare prompt template: the tiny tokenizer cannot crop the real one's
             system text).
-        adapter: the name of the :class:`~geco_guide.sampler.adapters.PipelineAdapter` that knows
-            its pipeline's latents (:data:`geco_guide.sampler.adapters.ADAPTERS`).
+        adapter: the name of the :class:`~geco_guide.sampler.pipelines.adapters.PipelineAdapter` that knows
+            its pipeline's latents (:data:`geco_guide.sampler.pipelines.adapters.ADAPTERS`).
         guided_by: ``pipeline`` or ``hooks`` (:data:`GUIDED_BY`).
         schedulers: the ``sampling.scheduler`` names it can sample with besides its checkpoint's
             own, each with the diffusers scheduler class it builds from the checkpoint's

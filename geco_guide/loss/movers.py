@@ -584,7 +584,7 @@ class RefreshedMovers:
 
     Pass it as ``movers=`` to :class:`~geco_guide.loss.geco.GeCoLoss` with ``movers="rigid"``;
     call :meth:`refresh` whenever the masks are refreshed (e.g. with
-    :class:`~geco_guide.sampler.dynamic.RefreshedMasks`' refresh). The motions themselves are
+    :class:`~geco_guide.sampler.algorithm.dynamic.RefreshedMasks`' refresh). The motions themselves are
     re-solved from the fit at every call (:func:`solve_motions`), so a reused fit follows the
     frames' geometry.
 

@@ -40,7 +40,7 @@ def check_frames(frames: int, guided: bool, model: str = DEFAULT_MODEL) -> None:
     """A frame count registry ``model``'s VAE makes (its ``frame_multiple k + 1``); the CogVideoX
     VAE 4k+1, and with guidance (anchors decoded in latent pairs) 8k+1."""
     from ..families import frames_problem, model_named
-    from ..sampler.slicing import check_num_frames, check_paired_latent_frames
+    from ..sampler.algorithm.slicing import check_num_frames, check_paired_latent_frames
 
     entry = model_named(model)
     if not entry.cogvideox_vae:
@@ -98,7 +98,7 @@ def check_context_parallel(args: argparse.Namespace, parser_defaults: dict[str, 
 
 def check_cost(args: argparse.Namespace, defaults: dict[str, Any]) -> None:
     from .cost import load_measured
-    from ..sampler.config import DECODERS
+    from ..sampler.algorithm.config import DECODERS
 
     if args.preset == "tiny" and args.model != defaults["model"]:
         raise BadOption(f"--model {args.model} traces a full-size model: leave out --preset tiny (the tiny models "
@@ -155,8 +155,8 @@ def check_sampling(args: argparse.Namespace) -> None:
     import torch
 
     from ..io.devices import resolve_devices
-    from ..sampler.memory_plan import PLAN_NAMES
-    from ..sampler.schedule import PAPER_STEPS
+    from ..sampler.running.memory_plan import PLAN_NAMES
+    from ..sampler.algorithm.schedule import PAPER_STEPS
 
     if args.memory_plan not in PLAN_NAMES:
         raise BadOption(f"--memory-plan must be one of {', '.join(PLAN_NAMES)}, got {args.memory_plan!r}")

@@ -22,7 +22,7 @@ from typing import Any
 import torch
 
 from ..families import default_anchors
-from ..sampler.schedule import PAPER_STEPS
+from ..sampler.algorithm.schedule import PAPER_STEPS
 from .cards import GPU_SPECS, H200_UNGUIDED_STEP_S, INTERCONNECT_BYTES_PER_S, card_memory_gib
 from .full_size import CALIBRATION_MODEL, model_video, text_embed_shape
 from .measure import GIB, environment_info
@@ -128,7 +128,7 @@ def cost_settings(*, preset: str, steps: int | None, frames: int | None, height:
     """The settings of a cost report, the presets' defaults filled in (``None``: the preset's).
     ``decoder`` decodes the anchor frames (``guidance.decoder``): the VAE, or ``tiny``: the TAEHV
     tiny decoder of the published widths (random weights on fake tensors, like every model here).
-    ``plan``: a named memory plan (:data:`~geco_guide.sampler.memory_plan.PLANS`), which sets every
+    ``plan``: a named memory plan (:data:`~geco_guide.sampler.running.memory_plan.PLANS`), which sets every
     checkpointing flag (the estimators' too) over the flags given; ``None``: the flags as given.
 
     Full size: registry model ``model`` (:func:`~geco_guide.families.published.traced_models`) at
@@ -137,7 +137,7 @@ def cost_settings(*, preset: str, steps: int | None, frames: int | None, height:
     the paper's 50-step one with ``paper_schedule``.
     """
     if preset == "tiny":
-        from ..sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
+        from ..sampler.algorithm.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
         from ..tiny import TINY_HEIGHT, TINY_NUM_FRAMES, TINY_WIDTH, tiny_guidance_config
 
         video = {"frames": TINY_NUM_FRAMES, "height": TINY_HEIGHT, "width": TINY_WIDTH}

@@ -1,10 +1,10 @@
 """One denoising step of a stock pipeline, as the cost model traces it.
 
 The hooks guide a stock pipeline by replaying the denoiser calls its loop made at a step
-(:mod:`geco_guide.sampler.hooks`); a trace without values (fake tensors) cannot run the stock
+(:mod:`geco_guide.sampler.pipelines.hooks`); a trace without values (fake tensors) cannot run the stock
 loop itself (its schedulers and the hooks' checks read values). :func:`denoiser_step` builds, for
 one model, the latents the scheduler steps and the step's prediction as the family's pipeline
-makes it (its adapter's :meth:`~geco_guide.sampler.adapters.PipelineAdapter.traced_prediction`):
+makes it (its adapter's :meth:`~geco_guide.sampler.pipelines.adapters.PipelineAdapter.traced_prediction`):
 the same denoiser calls (the conditional and unconditional branches as separate calls or one
 batch, the timestep, the text embeddings of the published prompt length, the family's extra
 inputs) combined with the pipeline's CFG. The traced cost is then the pipeline's, whatever the
@@ -21,8 +21,8 @@ import torch
 from torch import Tensor
 
 from ..families import VideoModel
-from ..sampler.adapters import ADAPTERS, CallGeometry
-from ..sampler.levels import FlowLevels, NoiseLevels
+from ..sampler.pipelines.adapters import ADAPTERS, CallGeometry
+from ..sampler.algorithm.levels import FlowLevels, NoiseLevels
 from .full_size import text_embed_shape
 
 __all__ = ["DenoiserStep", "denoiser_step"]
@@ -37,7 +37,7 @@ class DenoiserStep:
         geometry: the call's frame geometry.
         levels: the step's noise levels (flow matching: sigma 1 to 0).
         predict: ``(z, differentiate) -> model output`` at ``z``: the step's denoiser calls,
-            CFG-combined in fp32, as :func:`~geco_guide.sampler.step.guided_step` takes it.
+            CFG-combined in fp32, as :func:`~geco_guide.sampler.algorithm.step.guided_step` takes it.
     """
 
     sample: Tensor

@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import Any
 
 from ..families.published import LEFT_OUT, traced_models
-from ..sampler.memory_plan import DEVICE_HEADROOM, load_estimates
+from ..sampler.running.memory_plan import DEVICE_HEADROOM, load_estimates
 from .cards import MEASURED_RUNS, card_memory_gib
 from .parallel_cost import parallel_guidance
 from .search_cost import guidance_cost, matched_particles, search_cost

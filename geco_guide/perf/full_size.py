@@ -22,7 +22,7 @@ from ..estimators.vggt import VGGT, VGGTConfig
 from ..families import DEFAULT_MODEL, model_named
 from ..families.published import published_configs
 from ..sampler.diffusers_private import keeps_in_fp32
-from ..sampler.loading import cast_model
+from ..sampler.pipelines.loading import cast_model
 
 __all__ = ["CALIBRATION_MODEL", "build_cost_pipeline", "build_full_size_components", "cast_as_loaded",
            "cast_components", "full_size_vae", "materialise", "model_bytes", "model_video", "stock_pipeline",
@@ -232,7 +232,7 @@ def build_cost_pipeline(settings: dict[str, Any], fake_mode: Any) -> tuple[Any, 
                 decoder = TinyDecoder(model_named(name).tiny_decoder).to(dtype).requires_grad_(False)
         components = build_full_size_components(name, "meta", dtype, settings["seed"])
         if model_named(name).guided_by == "pipeline":
-            from ..sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+            from ..sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
 
             pipe = GeCoCogVideoXPipeline(tokenizer=None, text_encoder=None, **components)
         else:

@@ -7,9 +7,9 @@ from typing import Any
 
 import torch
 
-from ..sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
+from ..sampler.algorithm.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
 from .cards import GPU_SPECS, H200_UNGUIDED_STEP_S
-from ..sampler.schedule import PAPER_STEPS
+from ..sampler.algorithm.schedule import PAPER_STEPS
 from .cost import calibration_call_roofline_s
 from .tracing import CostTracker
 
@@ -69,7 +69,7 @@ def dynamic_mask_costs(num_steps: int = PAPER_STEPS, refresh: int = 1) -> dict[s
     steps with masks refreshed every ``refresh``-th guided step: per refresh, per whole run and
     per update, for SAM 3 (:func:`sam3_refresh_cost`, per card) and the automatic masks
     (:data:`AUTO_MASK_REFRESH_S`, on the CPU whatever the card)."""
-    from ..sampler.schedule import GuidanceSchedule, scale_schedule
+    from ..sampler.algorithm.schedule import GuidanceSchedule, scale_schedule
 
     repeats, time_travel = scale_schedule(PAPER_REPEATS, PAPER_TIME_TRAVEL, num_steps)
     per_step = GuidanceSchedule.build(repeats, num_steps, time_travel=time_travel).repeats

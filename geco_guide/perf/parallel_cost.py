@@ -19,7 +19,7 @@ The estimates keep no denoiser time per plan: :func:`denoiser_seconds` gets it f
 fast and faithful estimates, which differ by the differentiated calls alone (the same decode,
 estimators and loss; fast mode predicts once more after each time-travel update). Memory per rank
 (the first GPU, which also holds the estimators): the planner's rule
-(:func:`~geco_guide.sampler.memory_plan.process_peak`): the weights replicated, the differentiated
+(:func:`~geco_guide.sampler.running.memory_plan.process_peak`): the weights replicated, the differentiated
 denoiser's activations (the plan's faithful peak minus its fast peak) divided over the ranks that
 share a call, everything else whole (an upper bound: the fast peak's own denoiser activations are
 not divided). Without context parallelism the first GPU's peak is the one-GPU peak (the planner's
@@ -32,7 +32,7 @@ from __future__ import annotations
 from typing import Any
 
 from ..families import model_named
-from ..sampler.memory_plan import DEVICE_HEADROOM, PLANS, load_estimates, process_peak
+from ..sampler.running.memory_plan import DEVICE_HEADROOM, PLANS, load_estimates, process_peak
 from .attention_shapes import load_attention
 from .cards import GPU_SPECS, INTERCONNECT_BYTES_PER_S, card_memory_gib
 from .cost import decode_over_gpus

@@ -1,12 +1,12 @@
 """The memory plans' estimates (``plans``) and the plan of a card (``cost --gpu``), from the cost model.
 
-:func:`plan_estimates` traces every named plan (:data:`~geco_guide.sampler.memory_plan.PLANS`) of
+:func:`plan_estimates` traces every named plan (:data:`~geco_guide.sampler.running.memory_plan.PLANS`) of
 every traced registry model (:func:`~geco_guide.families.published.traced_models`) and the tiny
 test models, in each mode and with each anchor decoder the model has, with
 :func:`~.cost.cost_report`, and keeps what the planner needs (the peak as weights + activations,
 the peak with model CPU offload, the predicted H200 time) and what the per-family cost table needs
 (the unguided run, the units of a search, the anchor decode per card). The result is the package
-data ``geco_guide/sampler/data/memory_plans.json`` that ``run.memory_plan=auto`` reads at a call
+data ``geco_guide/sampler/running/data/memory_plans.json`` that ``run.memory_plan=auto`` reads at a call
 (no tracing at start-up) and that ``geco bench cost --all-models`` prints.
 
 With model CPU offload (``enable_model_cpu_offload()``) the pipeline keeps the estimators and the
@@ -25,9 +25,9 @@ from ..estimators import TINY_RANDOM
 from ..families import DEFAULT_MODEL, model_named
 from ..families.published import traced_models
 from ..loss.geco import frame_pairs
-from ..sampler.config import GuidanceConfig
-from ..sampler.memory_plan import PLANS, choose_plan
-from ..sampler.run_options import RunOptions
+from ..sampler.algorithm.config import GuidanceConfig
+from ..sampler.running.memory_plan import PLANS, choose_plan
+from ..sampler.running.run_options import RunOptions
 from .cards import GPU_SPECS, card_memory_gib
 from .cost import cost_report, cost_settings
 from .full_size import CALIBRATION_MODEL
@@ -60,7 +60,7 @@ RESIDENT_UNDER_OFFLOAD = ("geometry_estimator", "flow_estimator", "guidance_deco
 #: decoder decodes the anchors, and that one is resident).
 STAGE_MODEL = {"denoiser_cfg": "transformer", "denoiser": "transformer", "anchor_decode": "vae",
                "final_decode": "vae"}
-REGENERATE = "geco bench plans --threads 1 --json geco_guide/sampler/data/memory_plans.json"
+REGENERATE = "geco bench plans --threads 1 --json geco_guide/sampler/running/data/memory_plans.json"
 
 
 def anchor_decoders(key: str) -> tuple[str, ...]:

@@ -5,7 +5,7 @@ CogVideoX-5B's with random full-size weights) goes to :func:`geco_guide.generati
 and :func:`geco_guide.generation.sample`, as ``geco generate`` makes a video; the guided arm's
 stages are timed by a :class:`~.profile.StageProfiler`. With fewer than the nominal 50 steps the
 paper's schedule is scaled to the run's steps by the package's rule
-(:func:`~geco_guide.sampler.schedule.scale_schedule`: phase boundaries rounded), and the times are
+(:func:`~geco_guide.sampler.algorithm.schedule.scale_schedule`: phase boundaries rounded), and the times are
 extrapolated to 50 steps and the paper's 111 updates (``extrapolated: true``).
 """
 
@@ -25,15 +25,15 @@ from ..estimators.bundle import Estimators
 from ..estimators.ufm import UFM, UFMConfig
 from ..estimators.vggt import VGGT, VGGTConfig
 from ..families import default_anchors, model_named
-from ..sampler.config import GuidanceConfig, fused_guidance_config
-from ..sampler.run_options import RunOptions
-from ..sampler.schedule import (
+from ..sampler.algorithm.config import GuidanceConfig, fused_guidance_config
+from ..sampler.running.run_options import RunOptions
+from ..sampler.algorithm.schedule import (
     PAPER_REPEATS,
     PAPER_TIME_TRAVEL,
     parse_repeats,
     scale_schedule,
 )
-from ..sampler.schedule import PAPER_STEPS
+from ..sampler.algorithm.schedule import PAPER_STEPS
 from .full_size import CALIBRATION_MODEL, build_full_size_components, model_video, text_encoder_stand_in
 from .measure import (
     GIB,

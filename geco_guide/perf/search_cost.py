@@ -1,7 +1,7 @@
 """Guidance and particle search per card and per number of GPUs, from the shipped estimates.
 
 Everything here is arithmetic on the cost model's traces kept in the memory plans' estimates
-(``geco_guide/sampler/data/memory_plans.json``, written by ``geco bench plans``): nothing is
+(``geco_guide/sampler/running/data/memory_plans.json``, written by ``geco bench plans``): nothing is
 traced, so a caller can ask for any card, mode, number of particles and number of GPUs at once.
 
 * :func:`guidance_cost`: the guided run under the plan ``run.memory_plan=auto`` picks for the
@@ -30,10 +30,10 @@ from typing import Any
 
 from ..families import default_anchors, model_named
 from ..metric.protocol import EvaluationConfig, scoring_plan
-from ..sampler.config import GuidanceConfig
-from ..sampler.memory_plan import DEVICE_HEADROOM, choose_plan, load_estimates
-from ..sampler.run_options import RunOptions
-from ..sampler.search import MAX_PARTICLES, default_resample_steps, particle_gb
+from ..sampler.algorithm.config import GuidanceConfig
+from ..sampler.running.memory_plan import DEVICE_HEADROOM, choose_plan, load_estimates
+from ..sampler.running.run_options import RunOptions
+from ..sampler.search.particle_search import MAX_PARTICLES, default_resample_steps, particle_gb
 from .attention_shapes import load_attention
 from .cards import (H200_MEASURED_ESTIMATORS_S, H200_MEASURED_UPDATES, HOST_BYTES_PER_S, MEASURED_RUNS,
                     card_memory_gib)

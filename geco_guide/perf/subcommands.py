@@ -116,7 +116,7 @@ def family_report(args: argparse.Namespace, argv: list[str], say: Callable[[str]
     from .family_table import family_rows, family_table
 
     return ({"subcommand": "cost --all-models", "note": "predicted by the cost model, from the shipped estimates "
-             "(geco_guide/sampler/data/memory_plans.json)", "rows": family_rows()}, family_table())
+             "(geco_guide/sampler/running/data/memory_plans.json)", "rows": family_rows()}, family_table())
 
 
 def parallel_report_of(args: argparse.Namespace, argv: list[str], say: Callable[[str], None]) -> Report:

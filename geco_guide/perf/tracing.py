@@ -7,8 +7,8 @@ gradients, anchor decode, VGGT, UFM, loss, final decode; forward and backward) t
 (:func:`trace_cost`). The models the GeCo pipeline guides (CogVideoX) run its own ``__call__``;
 a model guided through the hooks runs its family's denoiser step
 (:mod:`.denoiser_calls`) under the guidance the hooks give a stock call
-(:func:`~geco_guide.sampler.stock_call.stock_call`), then the VAE's decode of the video.
-:func:`count_schedule_calls` drives the real :func:`~geco_guide.sampler.step.guided_step` with
+(:func:`~geco_guide.sampler.pipelines.stock_call.stock_call`), then the VAE's decode of the video.
+:func:`count_schedule_calls` drives the real :func:`~geco_guide.sampler.algorithm.step.guided_step` with
 counting stubs over the whole schedule.
 """
 
@@ -26,12 +26,12 @@ from torch import Tensor
 
 from ..estimators.bundle import Estimators
 from ..families import VideoModel, default_anchors, model_named
-from ..sampler.config import GuidanceConfig, fused_guidance_config
-from ..sampler.context import GuidanceObserver
-from ..sampler.levels import VPLevels
-from ..sampler.memory_plan import model_signature
-from ..sampler.run_options import RunOptions
-from ..sampler.step import Update, guided_step, loss_terms
+from ..sampler.algorithm.config import GuidanceConfig, fused_guidance_config
+from ..sampler.running.context import GuidanceObserver
+from ..sampler.algorithm.levels import VPLevels
+from ..sampler.running.memory_plan import model_signature
+from ..sampler.running.run_options import RunOptions
+from ..sampler.algorithm.step import Update, guided_step, loss_terms
 from .cards import GPU_SPECS
 from .full_size import CALIBRATION_MODEL, build_cost_pipeline, model_bytes, text_embed_shape
 from .profile import call_marking_backward
@@ -354,13 +354,13 @@ def _trace_stock_step(settings: dict[str, Any], pipe: Any, call: dict[str, Any],
                       tracker: CostTracker, fake_mode: Any, guidance: GuidanceConfig | bool) -> list[int]:
     """One step of a stock pipeline on fake tensors (:func:`~.denoiser_calls.denoiser_step`): its
     prediction, or with ``guidance`` the update the hooks make at a guided step
-    (:func:`~geco_guide.sampler.stock_call.stock_call`'s context, the models frozen and the memory
-    plan's checkpointing on, as :func:`~geco_guide.sampler.stock_call.guide_stock_step` runs it)
+    (:func:`~geco_guide.sampler.pipelines.stock_call.stock_call`'s context, the models frozen and the memory
+    plan's checkpointing on, as :func:`~geco_guide.sampler.pipelines.stock_call.guide_stock_step` runs it)
     and the prediction there; then the VAE's decode of the video through the family's adapter, as
     the pipeline decodes it. The scheduler's own step is left out (a few element-wise ops). Returns
     the decoded video's shape."""
-    from ..sampler.adapters import adapter_for
-    from ..sampler.stock_call import stock_call
+    from ..sampler.pipelines.adapters import adapter_for
+    from ..sampler.pipelines.stock_call import stock_call
     from .denoiser_calls import denoiser_step
 
     model = model_named(settings["model"])

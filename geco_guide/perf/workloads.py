@@ -21,7 +21,7 @@ from torch import Tensor
 from ..estimators.ufm import UFM, UFMConfig, choose_resolution
 from ..estimators.vggt import VGGT, VGGTConfig, plan_preprocess
 from ..families import default_anchors
-from ..sampler.slicing import (
+from ..sampler.algorithm.slicing import (
     anchor_latent_chunks,
     decode_anchor_frames,
     decode_chunk,

@@ -1,29 +1,32 @@
-"""Everything that knows about diffusion: guidance options and presets, the guidance schedule,
-anchor slicing, noise-level arithmetic, the model-agnostic guided step and the guidance context,
-particle search with GeCo as the verifier, the CogVideoX pipeline and the hooks that guide other
-diffusers video pipelines (both imported lazily: they pull in diffusers)."""
+"""Everything that knows about diffusion, in four rooms from the bottom up: ``algorithm`` (what
+guidance computes: options and presets, the schedule, noise levels, anchor slicing, the guided
+step), ``running`` (how a machine runs it: run options, memory plans, the anchor decode, devices,
+context parallelism, the guidance context of one call), ``search`` (particle search with GeCo as
+the verifier) and ``pipelines`` (the front doors: the CogVideoX pipeline, the hooks and adapters
+that guide other diffusers video pipelines, the Modular blocks, loading; imported lazily: they
+pull in diffusers)."""
 
-from .config import GuidanceConfig, fused_guidance_config, paper_guidance_config, resolve_guidance_config
-from .run_options import RunOptions, resolve_call_options
-from .context import GuidanceContext, GuidanceObserver, GuidanceReport
-from .levels import FlowLevels, NoiseLevels, VPLevels, ddim_step, renoise, v_to_x0
-from .schedule import GuidanceSchedule, paper_schedule, parse_repeats, scale_schedule
-from .slicing import (
+from .algorithm.config import GuidanceConfig, fused_guidance_config, paper_guidance_config, resolve_guidance_config
+from .running.run_options import RunOptions, resolve_call_options
+from .running.context import GuidanceContext, GuidanceObserver, GuidanceReport
+from .algorithm.levels import FlowLevels, NoiseLevels, VPLevels, ddim_step, renoise, v_to_x0
+from .algorithm.schedule import GuidanceSchedule, paper_schedule, parse_repeats, scale_schedule
+from .algorithm.slicing import (
     AnchorChunk,
     anchor_latent_chunks,
     check_num_frames,
     decode_anchor_frames,
 )
-from .step import GuidanceRecord, guided_step, normalized_update, score_anchor_frames
-from .search import SearchConfig
+from .algorithm.step import GuidanceRecord, guided_step, normalized_update, score_anchor_frames
+from .search.particle_search import SearchConfig
 
 _LAZY = {
-    "GeCoCogVideoXPipeline": "pipeline_cogvideox",
-    "GeCoCogVideoXPipelineOutput": "pipeline_cogvideox",
-    "attach_geco_guidance": "hooks",
-    "GeCoGuidanceHandle": "hooks",
-    "PipelineAdapter": "adapters",
-    "register_adapter": "adapters",
+    "GeCoCogVideoXPipeline": "pipelines.pipeline_cogvideox",
+    "GeCoCogVideoXPipelineOutput": "pipelines.pipeline_cogvideox",
+    "attach_geco_guidance": "pipelines.hooks",
+    "GeCoGuidanceHandle": "pipelines.hooks",
+    "PipelineAdapter": "pipelines.adapters",
+    "register_adapter": "pipelines.adapters",
 }
 
 __all__ = [

@@ -21,8 +21,8 @@ from typing import Any
 
 from ..estimators import tiny_estimators, tiny_random_decoder
 from ..families import VideoModel, models_of_pipeline
-from ..sampler.adapters import adapter_for
-from ..sampler.sampling import SamplingConfig, fit_to_model
+from ..sampler.pipelines.adapters import adapter_for
+from ..sampler.pipelines.sampling import SamplingConfig, fit_to_model
 from . import pipelines
 from .components import (
     TINY_ANCHORS,
@@ -80,7 +80,7 @@ def tiny_video_components(model: VideoModel, seed: int = 0) -> dict[str, Any]:
 
 def tiny_sampling(model: VideoModel) -> dict[str, int]:
     """The ``sampling`` of a tiny stand-in of ``model``'s family: 17 frames of 32x48 pixels, fitted
-    to the model (:func:`~geco_guide.sampler.sampling.fit_to_model`: the width of 64 where it wants
+    to the model (:func:`~geco_guide.sampler.pipelines.sampling.fit_to_model`: the width of 64 where it wants
     sizes in multiples of 32)."""
     fitted = fit_to_model(SamplingConfig(num_frames=TINY_NUM_FRAMES, height=TINY_HEIGHT, width=TINY_WIDTH), model)
     return {"num_frames": fitted.num_frames, "height": fitted.height, "width": fitted.width}
@@ -99,7 +99,7 @@ def tiny_guidance_config(**changes: Any):
     from dataclasses import replace
 
     from ..loss.presets import fused_guidance_loss
-    from ..sampler.config import GuidanceConfig
+    from ..sampler.algorithm.config import GuidanceConfig
 
     base = GuidanceConfig(
         anchors=list(TINY_ANCHORS),
@@ -116,7 +116,7 @@ def tiny_guidance_config(**changes: Any):
 def tiny_run_options(**changes: Any):
     """How guidance runs on the tiny models: no checkpointing (``explicit`` plan, flags off: the
     batched chunk decode; they need no memory plan), as ``configs/tiny.yaml``'s ``run``."""
-    from ..sampler.run_options import RunOptions
+    from ..sampler.running.run_options import RunOptions
 
     return RunOptions(**{"memory_plan": "explicit", "gradient_checkpointing": False, "vae_checkpointing": False,
                          **changes})
@@ -130,7 +130,7 @@ def tiny_pipeline(seed: int = 0, *, guidance_config: Any = None):
     num_inference_steps=4, max_sequence_length=TINY_MAX_SEQUENCE_LENGTH`` (the guidance default
     is :func:`tiny_guidance_config`, a 4-step schedule) and ``run_options=tiny_run_options()``.
     """
-    from ..sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from ..sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     pipe = GeCoCogVideoXPipeline(
         **tiny_cogvideox_components(seed),

@@ -206,7 +206,7 @@ def tiny_wan_modular_pipeline(seed: int = 0, *, version: str = "2.1", denoise_lo
     Its blocks leave out diffusers' text encoder step (it needs the optional ``ftfy``): calls take
     ``prompt_embeds`` / ``negative_prompt_embeds`` (e.g. ``tiny_wan_pipeline(seed).encode_prompt``).
     ``denoise_loop``: a block in place of diffusers' denoise loop, e.g. the GeCo-guided
-    :class:`~geco_guide.sampler.modular.GeCoWanDenoiseStep` (``GeCoWan22DenoiseStep`` for 2.2).
+    :class:`~geco_guide.sampler.pipelines.modular.GeCoWanDenoiseStep` (``GeCoWan22DenoiseStep`` for 2.2).
     """
     from diffusers import ClassifierFreeGuidance
     from diffusers.modular_pipelines import Wan22Blocks, WanBlocks

@@ -19,7 +19,7 @@ from geco_guide.config import config_to_dict, load_config
 from geco_guide.estimators.loading import WeightsNotFoundError
 from geco_guide.io.files import WriteError
 from geco_guide.io.video import read_video
-from geco_guide.sampler.loading import load_video_pipeline
+from geco_guide.sampler.pipelines.loading import load_video_pipeline
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -255,7 +255,7 @@ def test_scheduler_is_chosen_by_the_config_and_named_in_the_sidecar(choice, cls,
     # the pipeline keeps the scheduler it is given; the config (the presets: ddim) chooses
     from diffusers import CogVideoXDPMScheduler
 
-    from geco_guide.sampler.loading import load_video_pipeline
+    from geco_guide.sampler.pipelines.loading import load_video_pipeline
     from geco_guide.tiny import tiny_pipeline
 
     cfg = load_config(preset="tiny", overrides=[f"sampling.scheduler={choice}"])

@@ -14,8 +14,8 @@ import torch
 from safetensors.torch import save_file
 
 from geco_guide.__main__ import main
-from geco_guide.sampler.loading import ModelConfig, load_video_pipeline, pipeline_from_pretrained
-from geco_guide.sampler.model_folder import ModelFolderError, check_model_folder
+from geco_guide.sampler.pipelines.loading import ModelConfig, load_video_pipeline, pipeline_from_pretrained
+from geco_guide.sampler.pipelines.model_folder import ModelFolderError, check_model_folder
 from geco_guide.families import model_named
 
 TINY = ["--prompt", "a marble bust", "estimators.geometry=tiny-random", "estimators.flow=tiny-random"]

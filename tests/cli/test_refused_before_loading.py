@@ -44,7 +44,7 @@ def test_a_value_generate_cannot_act_on_is_one_line_before_loading(argv, expecte
 
 
 def test_a_number_of_repeats_in_python_is_one_line_naming_the_form():
-    from geco_guide.sampler.config import GuidanceConfig
+    from geco_guide.sampler.algorithm.config import GuidanceConfig
     from geco_guide.types import OptionError
 
     with pytest.raises(OptionError, match=r"repeats must be runs 'RxN,...' .* got 3"):

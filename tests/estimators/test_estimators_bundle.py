@@ -105,7 +105,7 @@ def test_evaluate_video_masks_text_subjects_with_the_bundles_segmenter(loaded, c
 
 
 def test_attach_geco_guidance_takes_the_bundle(loaded):
-    from geco_guide.sampler.hooks import attach_geco_guidance
+    from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
 
     pipe = T.tiny_wan_pipeline(0)
     with attach_geco_guidance(pipe, T.tiny_guidance_config(), estimators=loaded) as handle:

@@ -75,7 +75,7 @@ def test_rows_of_loaded_models_leave_them_as_they_were():
     from geco_guide.config import load_config
     from geco_guide.generation import Models, sample
     from geco_guide.perf.decoder_agreement import agreement_rows
-    from geco_guide.sampler.loading import LoadedPipeline
+    from geco_guide.sampler.pipelines.loading import LoadedPipeline
 
     torch.set_num_threads(1)
     pipe = T.tiny_pipeline(0)

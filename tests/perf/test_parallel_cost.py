@@ -13,7 +13,7 @@ from geco_guide.cli import bench
 from geco_guide.families.published import traced_models
 from geco_guide.perf import cards, parallel_cost, search_cost
 from geco_guide.perf.attention_shapes import load_attention
-from geco_guide.sampler.memory_plan import load_estimates, plan_named
+from geco_guide.sampler.running.memory_plan import load_estimates, plan_named
 
 RECORDS = Path(__file__).resolve().parents[2] / "docs" / "performance_records.md"
 CP_END = "<!-- end of the context-parallel table -->"

@@ -19,8 +19,8 @@ import torch
 
 from geco_guide.cli import bench
 from geco_guide.perf import cards, cost, full_size, mask_cost, profile, sampling, tracing
-from geco_guide.sampler.context import GuidanceObserver
-from geco_guide.sampler.schedule import PAPER_STEPS
+from geco_guide.sampler.running.context import GuidanceObserver
+from geco_guide.sampler.algorithm.schedule import PAPER_STEPS
 
 REPO = Path(__file__).resolve().parents[2]
 #: geco bench in its own process (the checkout's package: run from the repository's root)
@@ -176,7 +176,7 @@ def test_full_size_pipeline_on_meta() -> None:
     """The --full-size parts build on the meta device (nothing allocated) with CogVideoX-5B's published configs."""
     from geco_guide.estimators.ufm import UFM, UFMConfig
     from geco_guide.estimators.vggt import VGGT, VGGTConfig
-    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     components = full_size.build_full_size_components("cogvideox-5b", "meta", torch.bfloat16)
     transformer, vae = components["transformer"], components["vae"]
@@ -209,7 +209,7 @@ def test_full_size_pipeline_on_meta() -> None:
 def test_scaled_paper_schedule() -> None:
     """The harness scales the paper schedule by the package's rule (scale_schedule: phase boundaries
     rounded, b -> round(b * N / 50)); identity at 50."""
-    from geco_guide.sampler.schedule import PAPER_REPEATS, parse_repeats
+    from geco_guide.sampler.algorithm.schedule import PAPER_REPEATS, parse_repeats
 
     assert sampling.paper_schedule_for(50) == (PAPER_REPEATS, [15, 20])
     repeats, window = sampling.paper_schedule_for(2)
@@ -279,7 +279,7 @@ def test_cost_tracker_counts_flops_and_live_memory() -> None:
 def test_cost_schedule_counts_at_paper_schedule() -> None:
     """The real guided_step driven by counting stubs: 111 updates; faithful makes 111
     differentiated denoiser calls and 50 without gradients, fast 67 (docs/performance.md)."""
-    from geco_guide.sampler.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
+    from geco_guide.sampler.algorithm.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
 
     settings = {"preset": "full", "model": "cogvideox-5b", "frames": 49, "steps": 50, "repeats": PAPER_REPEATS,
                 "time_travel": list(PAPER_TIME_TRAVEL), "chunk_latents": None, "vae_checkpointing": None,
@@ -366,7 +366,7 @@ def test_casting_a_model_warns_only_about_float32_modules_it_has() -> None:
 
     from diffusers.utils import logging as dlogging
 
-    from geco_guide.sampler.loading import cast_model
+    from geco_guide.sampler.pipelines.loading import cast_model
     from geco_guide.tiny import tiny_cogvideox_components
 
     said: list[str] = []

@@ -12,8 +12,8 @@ import pytest
 from geco_guide.families.published import traced_models
 from geco_guide.perf import cost, search_cost
 from geco_guide.perf.family_table import family_table
-from geco_guide.sampler.memory_plan import load_estimates
-from geco_guide.sampler.search import default_resample_steps
+from geco_guide.sampler.running.memory_plan import load_estimates
+from geco_guide.sampler.search.particle_search import default_resample_steps
 
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "performance.md"
 BEGIN, END = "<!-- family table: geco bench cost --all-models -->", "<!-- end of the family table -->"

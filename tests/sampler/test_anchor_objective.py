@@ -12,19 +12,19 @@ import pytest
 import torch
 
 from geco_guide.loss.geco import GeCoLoss
-from geco_guide.sampler.anchor_decode import (
+from geco_guide.sampler.running.anchor_decode import (
     AcrossDevicesDecode,
     BatchedDecode,
     ChunkedDecode,
     anchor_decoder,
     plan_anchor_decode,
 )
-from geco_guide.sampler.context import GuidanceContext, GuidanceObserver
-from geco_guide.sampler.memory_plan import PLANS, PlanChoice, explicit_plan, plan_named
-from geco_guide.sampler.objective import AnchorObjective
-from geco_guide.sampler.run_options import RunOptions
-from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across, decode_chunk
-from geco_guide.sampler.step import loss_terms
+from geco_guide.sampler.running.context import GuidanceContext, GuidanceObserver
+from geco_guide.sampler.running.memory_plan import PLANS, PlanChoice, explicit_plan, plan_named
+from geco_guide.sampler.algorithm.objective import AnchorObjective
+from geco_guide.sampler.running.run_options import RunOptions
+from geco_guide.sampler.algorithm.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across, decode_chunk
+from geco_guide.sampler.algorithm.step import loss_terms
 from geco_guide.tiny import (
     TINY_CALL_KWARGS,
     TINY_NUM_FRAMES,

@@ -38,7 +38,7 @@ process alone.
 
 The collectives are diffusers' own (its functional all-to-all and all-gather) on gloo; the one
 line of diffusers replaced on a CPU is the choice of the rank's accelerator
-(``_resolve_parallel_config``, see ``geco_guide.sampler.context_parallel``). Not covered on a CPU:
+(``_resolve_parallel_config``, see ``geco_guide.sampler.running.context_parallel``). Not covered on a CPU:
 ring attention (the native backend returns no log-sum-exp, which ring attention merges with),
 NCCL and the GPU attention kernels (flash, cuDNN); ``scripts/check_context_parallel.py`` checks a
 GPU run against one GPU.
@@ -56,8 +56,8 @@ import torch.multiprocessing as mp
 
 import geco_guide.tiny as T
 from geco_guide.estimators import tiny_estimators
-from geco_guide.sampler.hooks import attach_geco_guidance
-from geco_guide.sampler.run_options import RunOptions
+from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
+from geco_guide.sampler.running.run_options import RunOptions
 
 PROCESSES = 2
 FAMILIES = ("cogvideox", "cogvideox-padded", "wan", "wan2.2", "hunyuan", "ltx", "ltx2", "hunyuan1.5")
@@ -191,8 +191,8 @@ def _guided_call(pipe, family: str, run: RunOptions) -> tuple[torch.Tensor, torc
 def _run(family: str, run: RunOptions) -> dict[str, torch.Tensor]:
     pipe = _pipeline(family)
     if run.context_parallel:  # the split as the guided call makes it, before the gradient check
-        from geco_guide.sampler.adapters import adapter_for
-        from geco_guide.sampler.context_parallel import start_context_parallel
+        from geco_guide.sampler.pipelines.adapters import adapter_for
+        from geco_guide.sampler.running.context_parallel import start_context_parallel
 
         start_context_parallel(pipe, adapter_for(pipe), run, differentiates=True)
     out, grad = _denoiser_gradient(pipe, family)
@@ -204,8 +204,8 @@ def _run(family: str, run: RunOptions) -> dict[str, torch.Tensor]:
 
 def _uneven_message() -> str:
     """What a split Wan denoiser says to a sequence of 9 tokens (after one of 18, which splits)."""
-    from geco_guide.sampler.adapters import adapter_for
-    from geco_guide.sampler.context_parallel import start_context_parallel
+    from geco_guide.sampler.pipelines.adapters import adapter_for
+    from geco_guide.sampler.running.context_parallel import start_context_parallel
 
     pipe = T.tiny_wan_pipeline(0)
     start_context_parallel(pipe, adapter_for(pipe), T.tiny_run_options(context_parallel=PROCESSES), differentiates=True)
@@ -242,9 +242,9 @@ def _dealt_decode(processes: int, checkpointed: bool, anchors=DECODE_ANCHORS) ->
     """The anchor frames of random latents, decoded as ``processes`` processes deal them (one:
     the plan's own decode), the gradient of a loss of them with respect to the latents (every
     process computes the same loss, as guidance does), and how many spans this process decoded."""
-    from geco_guide.sampler.anchor_decode import plan_anchor_decode
-    from geco_guide.sampler.memory_plan import MemoryPlan
-    from geco_guide.sampler.slicing import anchor_latent_chunks
+    from geco_guide.sampler.running.anchor_decode import plan_anchor_decode
+    from geco_guide.sampler.running.memory_plan import MemoryPlan
+    from geco_guide.sampler.algorithm.slicing import anchor_latent_chunks
 
     calls = []
 
@@ -375,8 +375,8 @@ def test_an_attention_backend_that_cannot_split_or_differentiate_is_refused(back
                                                                             monkeypatch):
     from diffusers.models.attention_dispatch import AttentionBackendName, _AttentionBackendRegistry
 
-    from geco_guide.sampler.adapters import WanAdapter
-    from geco_guide.sampler.context_parallel import check_context_parallel_before_loading
+    from geco_guide.sampler.pipelines.adapters import WanAdapter
+    from geco_guide.sampler.running.context_parallel import check_context_parallel_before_loading
 
     monkeypatch.setenv("WORLD_SIZE", "2")
     monkeypatch.setattr(_AttentionBackendRegistry, "_active_backend", AttentionBackendName(backend))
@@ -390,8 +390,8 @@ def test_an_attention_backend_that_cannot_split_or_differentiate_is_refused(back
 
 def test_a_family_that_declares_it_cannot_be_split_is_refused(monkeypatch):
     """Every family shipped has a plan; a registered one may say why it cannot be split."""
-    from geco_guide.sampler.adapters import WanAdapter
-    from geco_guide.sampler.context_parallel import check_context_parallel_before_loading
+    from geco_guide.sampler.pipelines.adapters import WanAdapter
+    from geco_guide.sampler.running.context_parallel import check_context_parallel_before_loading
 
     class Unsplittable(WanAdapter):
         name = "Unsplittable"
@@ -403,8 +403,8 @@ def test_a_family_that_declares_it_cannot_be_split_is_refused(monkeypatch):
 
 
 def test_one_gpu_named_for_every_process_is_refused(monkeypatch):
-    from geco_guide.sampler.adapters import WanAdapter
-    from geco_guide.sampler.context_parallel import check_context_parallel_before_loading
+    from geco_guide.sampler.pipelines.adapters import WanAdapter
+    from geco_guide.sampler.running.context_parallel import check_context_parallel_before_loading
 
     monkeypatch.setenv("WORLD_SIZE", "2")
     with pytest.raises(ValueError, match="model.device=cuda:1 would put every process on one GPU"):

@@ -20,8 +20,8 @@ import torch.multiprocessing as mp
 
 import geco_guide.tiny as T
 from geco_guide.estimators import tiny_estimators
-from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
-from geco_guide.sampler.search import SearchConfig
+from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
+from geco_guide.sampler.search.particle_search import SearchConfig
 
 PROCESSES = 2
 #: two anchors of a 9-frame video (3 latents), in latents 1 and 2: two chunks, one per process

@@ -8,11 +8,11 @@ from dataclasses import replace
 import pytest
 import torch
 
-from geco_guide.sampler.config import GuidanceConfig
+from geco_guide.sampler.algorithm.config import GuidanceConfig
 from geco_guide.io.devices import resolve_devices
-from geco_guide.sampler.multi_device import module_replicas
-from geco_guide.sampler.run_options import RunOptions
-from geco_guide.sampler.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across
+from geco_guide.sampler.running.multi_device import module_replicas
+from geco_guide.sampler.running.run_options import RunOptions
+from geco_guide.sampler.algorithm.slicing import anchor_latent_chunks, decode_anchor_frames, decode_anchor_frames_across
 from geco_guide.tiny import TINY_CALL_KWARGS, tiny_estimators, tiny_call_kwargs, tiny_guidance_config, tiny_pipeline, \
     tiny_run_options
 
@@ -137,7 +137,7 @@ def test_one_plan_fits_the_smallest_of_the_devices(monkeypatch):
 
 
 def test_the_pipeline_plans_for_the_devices_it_deals_the_decode_over(monkeypatch):
-    from geco_guide.sampler import pipeline_cogvideox
+    from geco_guide.sampler.pipelines import pipeline_cogvideox
 
     seen = []
 
@@ -182,7 +182,7 @@ def test_the_cfg_halves_are_the_two_half_calls_and_the_one_call_to_float_roundin
     guidance ``u + s (c - u)`` multiplies a rounding of the halves by up to ``1 + 2 s``. (A whole
     guided run then follows another path, since normalised updates of tiny random models amplify
     it.)"""
-    from geco_guide.sampler.multi_device import CfgHalves
+    from geco_guide.sampler.running.multi_device import CfgHalves
 
     pipe = tiny_pipeline(seed=0)
     z = torch.randn(1, 5, 4, 4, 6, generator=torch.Generator().manual_seed(0))
@@ -205,7 +205,7 @@ def test_the_cfg_halves_are_the_two_half_calls_and_the_one_call_to_float_roundin
 
 
 def test_the_cfg_halves_split_every_batched_input_and_share_the_rest():
-    from geco_guide.sampler.multi_device import CfgHalves
+    from geco_guide.sampler.running.multi_device import CfgHalves
 
     seen = []
 

@@ -14,7 +14,7 @@ import torch
 import geco_guide
 from geco_guide import tiny as T
 from geco_guide.sampler import diffusers_private as private
-from geco_guide.sampler.module_hooks import hooked
+from geco_guide.sampler.running.module_hooks import hooked
 
 PACKAGE = Path(geco_guide.__file__).parent
 READER = PACKAGE / "sampler" / "diffusers_private.py"

@@ -13,8 +13,8 @@ from geco_guide import tiny as T
 from geco_guide.cli.generate import main
 from geco_guide.generation import default_name, video_key
 from geco_guide.config import config_to_dict, load_config
-from geco_guide.sampler.dynamic import RefreshedMasks
-from geco_guide.sampler.hooks import attach_geco_guidance
+from geco_guide.sampler.algorithm.dynamic import RefreshedMasks
+from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
 
 PROMPT = "a dog on a lawn"
 #: Guided steps 1, 2 (two updates each) and 3 (one) of 4.
@@ -91,7 +91,7 @@ def test_pipeline_guidance_leaves_the_masked_pixels_out(estimators):
 def test_hooks_guide_with_masks_as_the_pipeline_does(estimators):
     from diffusers import CogVideoXPipeline
 
-    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     config = T.tiny_guidance_config(dynamic="the dog", denoiser_grad=False)
     geco = GeCoCogVideoXPipeline(**T.tiny_cogvideox_components(0))

@@ -1,4 +1,4 @@
-"""The faster guidance decode (geco_guide/sampler/fast_decode.py): the channels-last-3d layout of the
+"""The faster guidance decode (geco_guide/sampler/running/fast_decode.py): the channels-last-3d layout of the
 CogVideoX VAE decoder and ``run.compile``, against the stock eager decode, on the tiny models."""
 
 from __future__ import annotations
@@ -12,16 +12,16 @@ from counting import CountingHook
 from diffusers.hooks import HookRegistry
 from torch import nn
 
-from geco_guide.sampler import fast_decode
-from geco_guide.sampler.multi_device import module_replicas
-from geco_guide.sampler.fast_decode import (
+from geco_guide.sampler.running import fast_decode
+from geco_guide.sampler.running.multi_device import module_replicas
+from geco_guide.sampler.running.fast_decode import (
     CompileFallbackWarning,
     causal_time_pad,
     channels_last_group_norm,
     guidance_decode,
 )
-from geco_guide.sampler.run_options import RunOptions, check_run_for_guidance, resolve_run_options
-from geco_guide.sampler.slicing import decode_anchor_frames, decode_chunk
+from geco_guide.sampler.running.run_options import RunOptions, check_run_for_guidance, resolve_run_options
+from geco_guide.sampler.algorithm.slicing import decode_anchor_frames, decode_chunk
 from geco_guide.tiny import (
     TINY_CALL_KWARGS,
     TINY_NUM_FRAMES,
@@ -329,7 +329,7 @@ def test_compiling_says_so_once_before_the_first_compiled_call(monkeypatch, fres
     monkeypatch.setattr(torch, "compile", recording)
     decoder = tiny_guidance_decoder().requires_grad_(False)
     latents = torch.randn(1, 3, 4, 4, 6, generator=torch.Generator().manual_seed(2))
-    with caplog.at_level("WARNING", logger="geco_guide.sampler.fast_decode"):
+    with caplog.at_level("WARNING", logger="geco_guide.sampler.running.fast_decode"):
         for _ in range(2):
             with guidance_decode(RunOptions(compile=True), "tiny", vae=None, guidance_decoder=decoder):
                 decoder.decode(latents)
@@ -441,7 +441,7 @@ def anchor_decode_chunk(vae, latents):
 
 
 def test_a_hooked_pipeline_of_another_vae_is_refused_before_its_first_denoiser_call(estimators):
-    from geco_guide.sampler.hooks import attach_geco_guidance
+    from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
     from geco_guide.tiny import tiny_call_kwargs, tiny_wan_pipeline
 
     pipe = tiny_wan_pipeline(0)

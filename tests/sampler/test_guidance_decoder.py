@@ -9,8 +9,8 @@ import torch
 
 from geco_guide import tiny as T
 from geco_guide.estimators.tiny_decoder import CONTEXT_LATENTS, TinyDecoder
-from geco_guide.sampler.config import GuidanceConfig
-from geco_guide.sampler.hooks import attach_geco_guidance
+from geco_guide.sampler.algorithm.config import GuidanceConfig
+from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
 
 PROMPT = "a marble bust on a table"
 
@@ -128,7 +128,7 @@ def tiny_config(*overrides):
 def no_model_loads(monkeypatch):
     """Make every model load fail loudly: a check must come before it."""
     from geco_guide import estimators, generation
-    from geco_guide.sampler import loading
+    from geco_guide.sampler.pipelines import loading
 
     def refuse(*args, **kwargs):
         raise AssertionError("a model loaded before the tiny decoder's weights were checked")
@@ -148,14 +148,14 @@ def generate_tiny(tmp_path, *overrides):
 
 def load_tiny_decoder_of(cfg, latent_channels=16):
     """``load_tiny_decoder`` of ``cfg``'s estimators for its model's latents."""
-    from geco_guide.sampler.loading import load_tiny_decoder
+    from geco_guide.sampler.pipelines.loading import load_tiny_decoder
 
     return load_tiny_decoder(cfg.estimators, cfg.model.video_model, latent_channels, torch.float32)
 
 
 def test_the_tiny_preset_loads_the_tiny_random_decoder_for_its_vae():
     from geco_guide.generation import load_models
-    from geco_guide.sampler.context import decoder_note
+    from geco_guide.sampler.running.context import decoder_note
 
     cfg = tiny_config("guidance.decoder=tiny")
     assert cfg.estimators.tiny_decoder == "tiny-random"
@@ -189,7 +189,7 @@ def test_tiny_without_weights_is_one_line_with_the_url_and_the_key_before_any_mo
 def test_the_tiny_decoder_line_names_the_file_of_the_models_latents(model, expected):
     from geco_guide.estimators import EstimatorsConfig
     from geco_guide.families import model_named
-    from geco_guide.sampler.loading import check_tiny_decoder
+    from geco_guide.sampler.pipelines.loading import check_tiny_decoder
 
     # a model without a tiny decoder says so before asking for weights it could not use
     with pytest.raises(ValueError, match=f"^guidance.decoder=tiny.*{re.escape(expected)}"):
@@ -208,7 +208,7 @@ def test_a_missing_tiny_decoder_file_is_one_line_naming_it_and_the_key(monkeypat
 
 
 def test_a_checkpoint_file_loads_with_its_path_recorded(tmp_path, estimators):
-    from geco_guide.sampler.context import decoder_note
+    from geco_guide.sampler.running.context import decoder_note
 
     saved = T.tiny_guidance_decoder("cogvideox", seed=3, latent_channels=16)  # the published variant's channels
     path = tmp_path / "taecvx.pth"

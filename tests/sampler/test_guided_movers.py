@@ -17,12 +17,12 @@ from geco_guide.estimators.oracle import OracleGeometry
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig
 from geco_guide.loss.movers import RefreshedMovers
 from geco_guide.loss.presets import guidance_loss
-from geco_guide.sampler.config import GuidanceConfig
-from geco_guide.sampler.dynamic import RefreshedMasks
-from geco_guide.sampler.hooks import attach_geco_guidance
-from geco_guide.sampler.levels import FlowLevels
-from geco_guide.sampler.objective import AnchorObjective
-from geco_guide.sampler.step import guided_step
+from geco_guide.sampler.algorithm.config import GuidanceConfig
+from geco_guide.sampler.algorithm.dynamic import RefreshedMasks
+from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
+from geco_guide.sampler.algorithm.levels import FlowLevels
+from geco_guide.sampler.algorithm.objective import AnchorObjective
+from geco_guide.sampler.algorithm.step import guided_step
 from geco_guide.types import OptionError
 
 from loss.test_movers import CarriedFlow

@@ -13,10 +13,10 @@ from diffusers.hooks import HookRegistry
 
 from geco_guide import tiny as T
 from geco_guide.loss.geco import GeCoLoss, GeCoLossConfig
-from geco_guide.sampler.adapters import keep_update
-from geco_guide.sampler.hooks import attach_geco_guidance
-from geco_guide.sampler.levels import FlowLevels, flow_renoise, flow_step, flow_to_x0
-from geco_guide.sampler.step import score_anchor_frames
+from geco_guide.sampler.algorithm.levels import keep_update
+from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
+from geco_guide.sampler.algorithm.levels import FlowLevels, flow_renoise, flow_step, flow_to_x0
+from geco_guide.sampler.algorithm.step import score_anchor_frames
 
 PROMPT = "a marble bust on a table"
 NUM_FRAMES = 9  # 3 latents at r=4 (2 at r=8, LTX)
@@ -108,7 +108,7 @@ def test_guidance_lowers_geco_loss_and_detach_restores_bitwise(family, faithful,
 def test_hook_on_stock_cogvideox_matches_geco_pipeline(faithful, estimators):
     from diffusers import CogVideoXPipeline
 
-    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     config = T.tiny_guidance_config(
         anchors=ANCHORS, repeats="0x2,1x1,1x1", time_travel=[2, 2], step_size=1.0, denoiser_grad=faithful
@@ -277,7 +277,7 @@ def test_guidance_off_and_models_untouched(estimators):
 
 
 def test_ltx_guidance_rescale_is_rebuilt_and_wrong_combinations_fail_loudly(estimators, monkeypatch):
-    from geco_guide.sampler.adapters import LTXAdapter
+    from geco_guide.sampler.pipelines.adapters import LTXAdapter
 
     pipe = T.tiny_ltx_pipeline(0)
     config = T.tiny_guidance_config(**LAST_STEP, denoiser_grad=False)
@@ -410,7 +410,7 @@ def test_the_handle_reports_what_the_last_call_decided(estimators):
 def test_a_calls_state_is_one_diffusers_state_object_reset_by_the_next_call(estimators):
     from diffusers.hooks.hooks import BaseState
 
-    from geco_guide.sampler.hooks import GuidanceCallState
+    from geco_guide.sampler.pipelines.hooks import GuidanceCallState
 
     pipe = T.tiny_wan_pipeline(0)
     with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), estimators) as handle:
@@ -428,7 +428,7 @@ def test_a_calls_state_is_one_diffusers_state_object_reset_by_the_next_call(esti
 def test_the_denoiser_capture_is_a_hook_of_diffusers_registry(estimators):
     from diffusers.hooks import HookRegistry
 
-    from geco_guide.sampler.hooks import CAPTURE_HOOK, DenoiserCapture
+    from geco_guide.sampler.pipelines.hooks import CAPTURE_HOOK, DenoiserCapture
 
     pipe = T.tiny_wan_pipeline(0)
     with attach_geco_guidance(pipe, T.tiny_guidance_config(**LAST_STEP), estimators):
@@ -470,7 +470,7 @@ def test_the_callers_latents_are_checked_before_any_denoising_step(family, estim
 
 @pytest.mark.parametrize("detach", ["detach", "with block"])
 def test_a_detached_handle_refuses_a_search_in_one_line(detach, estimators):
-    from geco_guide.sampler.search import SearchConfig
+    from geco_guide.sampler.search.particle_search import SearchConfig
 
     pipe = T.tiny_ltx_pipeline(0)
     if detach == "detach":

@@ -12,10 +12,10 @@ import torch
 
 from geco_guide.config import load_config
 from geco_guide.perf.plans import KNOWN_MODELS, MODES, anchor_decoders, card_plan, offload_peak
-from geco_guide.sampler.config import GuidanceConfig
-from geco_guide.sampler.context import GuidanceContext
-from geco_guide.sampler.run_options import RUN_KEYS, RunOptions
-from geco_guide.sampler.memory_plan import (
+from geco_guide.sampler.algorithm.config import GuidanceConfig
+from geco_guide.sampler.running.context import GuidanceContext
+from geco_guide.sampler.running.run_options import RUN_KEYS, RunOptions
+from geco_guide.sampler.running.memory_plan import (
     DEVICE_HEADROOM,
     ESTIMATES_PATH,
     PLAN_NAMES,
@@ -27,7 +27,7 @@ from geco_guide.sampler.memory_plan import (
     plan_named,
     process_peak,
 )
-from geco_guide.sampler.slicing import (
+from geco_guide.sampler.algorithm.slicing import (
     anchor_latent_chunks,
     decode_anchor_frames,
     decode_chunk,
@@ -128,7 +128,7 @@ def test_partial_checkpoints_all_denoiser_blocks_but_every_fourth_and_changes_no
     """``partial`` on a 6-block tiny transformer: blocks 1-3 and 5 checkpointed one by one during the
     faithful call (the model's own checkpointing off), blocks 0 and 4 kept; the frames are the
     default's exactly, and the blocks are restored after the call."""
-    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
     from geco_guide.tiny import (
         TinySizes,
         tiny_cogvideox_components,
@@ -305,7 +305,7 @@ def test_oom_at_the_first_update_falls_back_to_the_next_plan(pipe, monkeypatch, 
     expected = plain.report.memory_plan["fallbacks"][0]
     assert PLANS.index(plan_named(expected)) > PLANS.index(plan_named(first))
     fake_oom_at_calls(monkeypatch, {0})
-    with caplog.at_level("WARNING", logger="geco_guide.sampler.context"):
+    with caplog.at_level("WARNING", logger="geco_guide.sampler.running.context"):
         out = run(pipe, mode, **budget)
     assert out.report.memory_plan["name"] == expected and first in out.report.memory_plan["reason"]
     assert f"memory plan {first!r}; retrying it with {expected!r}" in caplog.text
@@ -336,7 +336,7 @@ def test_the_shipped_estimates_know_the_models_and_are_package_data():
     assert full["fastest"]["peak_gb"] > full["chunked"]["peak_gb"] > full["checkpointed"]["peak_gb"]
     assert full["fastest"]["time_s"] < full["chunked"]["time_s"] < full["checkpointed"]["time_s"]
     pyproject = (Path(__file__).resolve().parents[2] / "pyproject.toml").read_text()
-    assert '"geco_guide.sampler" = ["data/*.json"]' in pyproject and ESTIMATES_PATH.parent.name == "data"
+    assert '"geco_guide.sampler.running" = ["data/*.json"]' in pyproject and ESTIMATES_PATH.parent.name == "data"
     assert '"geco_guide.families" = ["data/*.json"]' in pyproject  # the published configs they are traced from
 
 
@@ -345,7 +345,7 @@ def test_every_traced_family_is_known_by_its_signature_and_its_hub_id():
     2.2 A14B's two experts share Wan 2.1 14B's config, and the estimates tell them apart."""
     from geco_guide.families import model_named
     from geco_guide.families.published import published_configs, traced_models
-    from geco_guide.sampler.memory_plan import known_model, model_signature
+    from geco_guide.sampler.running.memory_plan import known_model, model_signature
 
     data = load_estimates()
     signatures = [json.dumps(data["models"][name]["signature"], sort_keys=True) for name in traced_models()]
@@ -366,7 +366,7 @@ def test_each_family_gets_its_own_plans_on_a_card():
     from geco_guide import tiny as T
     from geco_guide.families import model_named
     from geco_guide.families.published import traced_models
-    from geco_guide.sampler.adapters import adapter_for
+    from geco_guide.sampler.pipelines.adapters import adapter_for
 
     for name in traced_models():
         video = model_named(name).call
@@ -411,7 +411,7 @@ def test_a_hooked_stock_pipeline_runs_the_plans_and_reports_them():
     picks its least-recompute plan), every plan gives the same frames there too, and the handle
     reports the plan; a Wan pipeline is not known: the safe plan."""
     from geco_guide import tiny as T
-    from geco_guide.sampler.hooks import attach_geco_guidance
+    from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
 
     stock = T.tiny_cogvideox_pipeline(0)
     kwargs = T.tiny_call_kwargs(stock, num_frames=9, output_type="pt")
@@ -434,7 +434,7 @@ def test_a_hooked_stock_pipeline_runs_the_plans_and_reports_them():
 
 
 def test_a_command_line_can_check_the_budget_before_loading():
-    from geco_guide.sampler.memory_plan import plan_before_loading
+    from geco_guide.sampler.running.memory_plan import plan_before_loading
 
     cfg = load_config(preset="cogvideox-5b", overrides=["run.memory_budget_gb=20"])
     with pytest.raises(ValueError, match="the smallest, 'checkpointed', is predicted to peak at 40.3 GiB") as err:
@@ -453,7 +453,7 @@ def test_a_command_line_can_check_the_budget_before_loading():
 ])
 @pytest.mark.parametrize("enabled", [True, False])
 def test_a_video_size_no_video_has_is_refused_before_any_plan(frames, height, width, bad, enabled):
-    from geco_guide.sampler.memory_plan import plan_before_loading
+    from geco_guide.sampler.running.memory_plan import plan_before_loading
 
     guidance = GuidanceConfig(enabled=enabled)
     with pytest.raises(ValueError, match=rf"^a memory plan needs a video size of positive integers: {bad} ") as err:

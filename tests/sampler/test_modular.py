@@ -1,4 +1,4 @@
-"""The GeCo block of diffusers' Modular Wan loops (geco_guide.sampler.modular), on tiny random
+"""The GeCo block of diffusers' Modular Wan loops (geco_guide.sampler.pipelines.modular), on tiny random
 Wan 2.1 / 2.2 built from the real diffusers classes: the hooked ``WanPipeline``'s video, stock
 output with guidance off, what a call decided in the pipeline state, and the block shared as
 diffusers shares custom blocks."""
@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from geco_guide import tiny as T
-from geco_guide.sampler.config import GuidanceConfig
-from geco_guide.sampler.hooks import attach_geco_guidance
-from geco_guide.sampler.modular import GeCoWan22DenoiseStep, GeCoWanDenoiseStep, save_geco_block
+from geco_guide.sampler.algorithm.config import GuidanceConfig
+from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
+from geco_guide.sampler.pipelines.modular import GeCoWan22DenoiseStep, GeCoWanDenoiseStep, save_geco_block
 
 NUM_FRAMES = 9  # 3 latents
 # guided at steps 1 and 3 of 4: Wan 2.2's first expert (t >= 875) guides step 1, its second step 3
@@ -213,8 +213,8 @@ def test_a_loop_block_predicting_without_a_denoiser_is_refused_in_faithful_mode(
 def test_guidance_is_a_pair_of_sub_blocks_in_diffusers_loop(estimators):
     from diffusers.modular_pipelines.wan.denoise import WanDenoiseStep
 
-    from geco_guide.sampler.context import GuidanceObserver
-    from geco_guide.sampler.modular import GeCoGuidanceStep, GeCoStartStep
+    from geco_guide.sampler.running.context import GuidanceObserver
+    from geco_guide.sampler.pipelines.modular import GeCoGuidanceStep, GeCoStartStep
 
     loop = GeCoWanDenoiseStep()
     assert list(loop.sub_blocks) == ["geco_start", "before_denoiser", "denoiser", "geco_guidance", "after_denoiser"]

@@ -1,4 +1,4 @@
-"""Our hooks in diffusers' HookRegistry (geco_guide/sampler/module_hooks.py) and the denoiser's partial
+"""Our hooks in diffusers' HookRegistry (geco_guide/sampler/running/module_hooks.py) and the denoiser's partial
 checkpointing made of them: a hook registered before ours stays in effect, and on exit, even after
 an error, every module's registry and forward are as they were found."""
 
@@ -10,8 +10,8 @@ from counting import CountingHook
 from diffusers.hooks import HookRegistry
 from torch import nn
 
-from geco_guide.sampler.context import partial_checkpointing
-from geco_guide.sampler.module_hooks import CHECKPOINT_HOOK, CheckpointedForward, hooked
+from geco_guide.sampler.running.context import partial_checkpointing
+from geco_guide.sampler.running.module_hooks import CHECKPOINT_HOOK, CheckpointedForward, hooked
 from geco_guide.tiny import TinySizes, tiny_cogvideox_components
 
 

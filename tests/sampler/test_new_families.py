@@ -16,10 +16,10 @@ from counting import CountingForward
 
 from geco_guide import tiny as T
 from geco_guide.loss.geco import GeCoLoss
-from geco_guide.sampler.adapters import LTX2Adapter, PipelineAdapter, adapter_for, fit_combination, supported_pipelines
-from geco_guide.sampler.hooks import attach_geco_guidance
-from geco_guide.sampler.slicing import decode_anchor_frames
-from geco_guide.sampler.step import score_anchor_frames
+from geco_guide.sampler.pipelines.adapters import LTX2Adapter, PipelineAdapter, adapter_for, fit_combination, supported_pipelines
+from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
+from geco_guide.sampler.algorithm.slicing import decode_anchor_frames
+from geco_guide.sampler.algorithm.step import score_anchor_frames
 
 PROMPT = "a marble bust on a table"
 NUM_FRAMES = 9  # 3 latents at r=4, 2 at r=8 (LTX-2)

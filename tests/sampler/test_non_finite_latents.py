@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from geco_guide import tiny as T
-from geco_guide.sampler.hooks import attach_geco_guidance
-from geco_guide.sampler.step import LatentsWatch, NonFiniteLatentsError
+from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
+from geco_guide.sampler.algorithm.step import LatentsWatch, NonFiniteLatentsError
 
 PROMPT = "a marble bust"
 

@@ -10,9 +10,9 @@ from counting import CountingForward, HostSyncCounter
 from diffusers import CogVideoXDDIMScheduler, CogVideoXDPMScheduler, CogVideoXPipeline
 
 from geco_guide.loss.geco import GeCoLoss
-from geco_guide.sampler.config import GuidanceConfig, resolve_guidance_config
-from geco_guide.sampler.levels import VPLevels, ddim_step, renoise, v_to_x0
-from geco_guide.sampler.step import guided_step, loss_terms, score_anchor_frames
+from geco_guide.sampler.algorithm.config import GuidanceConfig, resolve_guidance_config
+from geco_guide.sampler.algorithm.levels import VPLevels, ddim_step, renoise, v_to_x0
+from geco_guide.sampler.algorithm.step import guided_step, loss_terms, score_anchor_frames
 from geco_guide.tiny import (
     TINY_ANCHORS,
     TINY_CALL_KWARGS,
@@ -304,7 +304,7 @@ def test_guidance_needs_estimators_but_unguided_does_not(pipe):
 
 @pytest.mark.parametrize("component", ["geometry_estimator", "flow_estimator", "guidance_decoder"])
 def test_the_earlier_components_are_refused_at_construction_and_loading(tmp_path, component):
-    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     with pytest.raises(TypeError, match=rf"^GeCoCogVideoXPipeline\({component}=...\) is the earlier spelling: the .* "
                                         r"to each call$"):
@@ -318,7 +318,7 @@ def test_the_earlier_components_are_refused_at_construction_and_loading(tmp_path
 def test_from_pretrained_keeps_the_checkpoints_scheduler(tmp_path, pipe):
     # the scheduler the checkpoint ships (CogVideoXDPMScheduler for CogVideoX-5B) is kept;
     # the paper's DDIM is chosen explicitly (the cogvideox-5b preset does, see test_presets.py)
-    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     components = tiny_cogvideox_components(0)
     components["scheduler"] = CogVideoXDPMScheduler.from_config(components["scheduler"].config)

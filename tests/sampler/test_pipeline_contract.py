@@ -25,9 +25,9 @@ from diffusers import (
     PyramidAttentionBroadcastConfig,
 )
 
-from geco_guide.sampler.config import GuidanceConfig
-from geco_guide.sampler.hooks import attach_geco_guidance
-from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+from geco_guide.sampler.algorithm.config import GuidanceConfig
+from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
+from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
 from geco_guide.loss.presets import fused_guidance_loss
 from geco_guide.tiny import (
     tiny_estimators,

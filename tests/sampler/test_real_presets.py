@@ -28,7 +28,7 @@ from geco_guide.config import CONFIG_DIR, load_config, preset_path
 from geco_guide.estimators.tiny_decoder import TinyDecoder
 from geco_guide.estimators.ufm import UFM
 from geco_guide.estimators.vggt import VGGT
-from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
 from geco_guide.tiny import tiny_cogvideox_components, tiny_estimators
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -171,10 +171,10 @@ def test_an_unusable_device_is_one_line_naming_the_key(tmp_path, capsys):
 
 
 def test_the_memory_planner_resolves_auto_and_refuses_a_missing_device():
-    from geco_guide.sampler.config import paper_guidance_config
+    from geco_guide.sampler.algorithm.config import paper_guidance_config
     from geco_guide.io.devices import device_memory_gb
-    from geco_guide.sampler.memory_plan import plan_before_loading
-    from geco_guide.sampler.run_options import RunOptions
+    from geco_guide.sampler.running.memory_plan import plan_before_loading
+    from geco_guide.sampler.running.run_options import RunOptions
 
     assert device_memory_gb("auto") == device_memory_gb("cuda" if torch.cuda.is_available() else "cpu")
     choice = plan_before_loading(paper_guidance_config(), RunOptions(memory_budget_gb=200.0), "THUDM/CogVideoX-5b",

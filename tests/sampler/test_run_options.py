@@ -14,8 +14,8 @@ import torch
 
 from geco_guide.config import config_to_dict, load_config
 from geco_guide.generation import default_name, video_key
-from geco_guide.sampler.config import GuidanceConfig
-from geco_guide.sampler.run_options import FRAME_ROUNDING_KEYS, RUN_KEYS, RunOptions, resolve_call_options
+from geco_guide.sampler.algorithm.config import GuidanceConfig
+from geco_guide.sampler.running.run_options import FRAME_ROUNDING_KEYS, RUN_KEYS, RunOptions, resolve_call_options
 from geco_guide.tiny import TINY_CALL_KWARGS, tiny_estimators, tiny_pipeline, tiny_run_options
 
 PROMPT = "a marble bust on a table"
@@ -35,7 +35,7 @@ def test_the_two_objects_share_no_option():
 
 @pytest.mark.slow
 def test_save_pretrained_writes_no_run_option(tmp_path):
-    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     pipe = tiny_pipeline(0)
     run = {"memory_plan": "leanest", "memory_budget_gb": 3.0, "devices": ["cpu"]}
@@ -52,7 +52,7 @@ def test_save_pretrained_writes_no_run_option(tmp_path):
 
 
 def test_a_folder_saved_with_run_options_in_its_guidance_is_refused_naming_the_run_key(tmp_path):
-    from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
+    from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
 
     tiny_pipeline(0).save_pretrained(tmp_path)
     index = json.loads((tmp_path / "model_index.json").read_text())

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from geco_guide.sampler.schedule import GuidanceSchedule, paper_schedule, parse_repeats
+from geco_guide.sampler.algorithm.schedule import GuidanceSchedule, paper_schedule, parse_repeats
 
 
 def test_paper_schedule():

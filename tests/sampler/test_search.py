@@ -1,4 +1,4 @@
-"""Particle search (geco_guide.sampler.search, .particles): the pure parts, and its exactness in
+"""Particle search (geco_guide.sampler.search.particle_search, .particles): the pure parts, and its exactness in
 GeCoCogVideoXPipeline and under the hooks (tiny models, CPU)."""
 
 from __future__ import annotations
@@ -14,14 +14,14 @@ from diffusers.hooks import HookRegistry
 
 from geco_guide import tiny as T
 from geco_guide.loss.geco import GeCoLoss
-from geco_guide.sampler import particles as P
-from geco_guide.sampler import search as S
-from geco_guide.sampler.dynamic import RefreshedMasks
-from geco_guide.sampler.hooks import attach_geco_guidance
-from geco_guide.sampler.memory_plan import PlanChoice, plan_named
-from geco_guide.sampler.multi_device import dealt_work
-from geco_guide.sampler.pipeline_cogvideox import GeCoCogVideoXPipeline
-from geco_guide.sampler.search import SearchConfig
+from geco_guide.sampler.search import particles as P
+from geco_guide.sampler.search import particle_search as S
+from geco_guide.sampler.algorithm.dynamic import RefreshedMasks
+from geco_guide.sampler.pipelines.hooks import attach_geco_guidance
+from geco_guide.sampler.running.memory_plan import PlanChoice, plan_named
+from geco_guide.sampler.running.multi_device import dealt_work
+from geco_guide.sampler.pipelines.pipeline_cogvideox import GeCoCogVideoXPipeline
+from geco_guide.sampler.search.particle_search import SearchConfig
 from geco_guide.types import OptionError
 
 PROMPT = "a marble bust on a table"

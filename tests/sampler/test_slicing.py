@@ -7,7 +7,7 @@ from functools import partial
 import pytest
 import torch
 
-from geco_guide.sampler.slicing import (
+from geco_guide.sampler.algorithm.slicing import (
     anchor_latent_chunks,
     check_latents,
     check_num_frames,

@@ -25,8 +25,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ..families import MODELS, VideoModel
-from ..families.published import published_configs, traced_models
+from ...families import MODELS, VideoModel
+from ...families.published import published_configs, traced_models
 
 __all__ = ["PIPELINE_INDEX", "ModelFolderError", "cached_pipeline_configs", "check_cached_model", "check_folder_files",
            "check_folder_model", "check_model_folder"]

@@ -26,7 +26,7 @@ from torch.utils.checkpoint import checkpoint
 
 __all__ = ["AnchorChunk", "anchor_latent_chunks", "check_latents", "check_num_frames",
            "check_paired_latent_frames", "deal_spans", "decode_anchor_frames", "decode_anchor_frames_across",
-           "decode_chunk", "latent_to_pixels", "pixel_to_latent"]
+           "decode_chunk", "latent_to_pixels", "pixel_to_latent", "vae_latent_channels"]
 
 
 def check_num_frames(num_frames: int, temporal_compression: int) -> int:
@@ -328,3 +328,6 @@ def decode_anchor_frames_across(
     return torch.stack([picked[((chunk.start, chunk.stop), chunk.from_end)] for chunk in chunks], dim=1).float()
 
 
+def vae_latent_channels(vae: torch.nn.Module) -> int | None:
+    """Channels of the latents ``vae`` decodes (its config's ``z_dim`` for Wan's), or None."""
+    return getattr(vae.config, "latent_channels", None) or getattr(vae.config, "z_dim", None)

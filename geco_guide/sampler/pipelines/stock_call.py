@@ -29,27 +29,27 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from ..estimators.bundle import Estimators
-from ..io.devices import planning_memory_gb, resolve_devices
-from ..loss.geco import GeCoLoss
+from ...estimators.bundle import Estimators
+from ...io.devices import planning_memory_gb, resolve_devices
+from ...loss.geco import GeCoLoss
 from .adapters import (
     CallGeometry,
     PipelineAdapter,
     check_no_denoiser_cache,
     check_scheduler,
-    keep_update,
     noise_levels,
 )
-from .anchor_decode import AnchorDecode, anchor_decoder, plan_anchor_decode
-from .config import GuidanceConfig
-from .context import GuidanceContext, GuidanceObserver
-from .diffusers_private import execution_device, offloads_models
-from .dynamic import RefreshedMasks, guidance_mask_source
-from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
-from .context_parallel import start_context_parallel
-from .run_options import RunOptions, check_call_options
-from .search import ParticleBatch, ParticleScorer, ParticleSearch, SearchConfig, choose_particle_batch
-from .slicing import AnchorChunk
+from ..algorithm.levels import keep_update
+from ..running.anchor_decode import AnchorDecode, anchor_decoder, plan_anchor_decode
+from ..algorithm.config import GuidanceConfig
+from ..running.context import GuidanceContext, GuidanceObserver
+from ..diffusers_private import execution_device, offloads_models
+from ..algorithm.dynamic import RefreshedMasks, guidance_mask_source
+from ..running.memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
+from ..running.context_parallel import start_context_parallel
+from ..running.run_options import RunOptions, check_call_options
+from ..search.particle_search import ParticleBatch, ParticleScorer, ParticleSearch, SearchConfig, choose_particle_batch
+from ..algorithm.slicing import AnchorChunk
 
 __all__ = ["StockCall", "denoiser_signature", "guide_stock_step", "stock_call"]
 
@@ -221,7 +221,7 @@ def guide_stock_step(
         ``(sample, model_output)`` for ``pipe.scheduler.step``: the guided latents in fp32 (fp64
         for an fp64 pipeline: a low-precision copy would round the update away) and the model
         output there in ``model_output``'s dtype, both on ``sample``'s device. A multistep
-        scheduler's history has been told to keep the update (:func:`~.adapters.keep_update`).
+        scheduler's history has been told to keep the update (:func:`~geco_guide.sampler.algorithm.levels.keep_update`).
     """
     scheduler = pipe.scheduler
     with context.models(denoisers, pipe.vae, adapter.frozen_modules(pipe)):

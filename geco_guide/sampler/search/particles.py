@@ -26,7 +26,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .multi_device import dealt_work, module_replicas, to_device
+from ..running.multi_device import dealt_work, module_replicas, to_device
 
 __all__ = ["UNBATCHED_KEYS", "ParticleBatches", "call_rows", "deal_final_decode", "denoiser_places", "hidden_states_of", "output_tensor",
            "particle_batches", "particle_rows", "reorder_scheduler_state", "with_output_tensor"]

@@ -32,22 +32,22 @@ from typing import Any, TypeVar
 import torch
 from torch import Tensor, nn
 
-from ..estimators.bundle import Estimators
-from ..estimators.tiny_decoder import TinyDecoder
-from ..loss.cues import CUES
-from ..loss.geco import GeCoLoss
+from ...estimators.bundle import Estimators
+from ...estimators.tiny_decoder import TinyDecoder
+from ...loss.cues import CUES
+from ...loss.geco import GeCoLoss
 from .anchor_decode import AnchorDecode, plan_anchor_decode
-from .config import GuidanceConfig
-from .diffusers_private import supports_gradient_checkpointing
-from .dynamic import RefreshedMasks
+from ..algorithm.config import GuidanceConfig
+from ..diffusers_private import supports_gradient_checkpointing
+from ..algorithm.dynamic import RefreshedMasks
 from .fast_decode import guidance_decode
-from .levels import NoiseLevels
+from ..algorithm.levels import NoiseLevels
 from .memory_plan import MemoryPlan, PlanChoice, explicit_plan
-from .objective import AnchorObjective
+from ..algorithm.objective import AnchorObjective
 from .run_options import RunOptions
-from .schedule import GuidanceSchedule
-from .slicing import AnchorChunk
-from .step import GuidanceRecord, Objective, Update, guided_step, read_scalars
+from ..algorithm.schedule import GuidanceSchedule
+from ..algorithm.slicing import AnchorChunk
+from ..algorithm.step import GuidanceRecord, Objective, Update, guided_step, read_scalars
 
 __all__ = ["GuidanceContext", "GuidanceExecution", "GuidanceLog", "GuidanceObserver", "GuidanceReport",
            "decoder_note", "estimator_checkpointing", "frozen", "generator_states", "gradient_checkpointing",
@@ -171,7 +171,7 @@ class GuidanceReport:
             grad_norm, seconds, time_travel, skipped, valid_fraction``; with dynamic masks ``masked_fraction`` and
             ``mask_source``).
         memory_plan: the memory plan the call ran with (:meth:`PlanChoice.to_dict
-            <geco_guide.sampler.memory_plan.PlanChoice.to_dict>`, after any fallback).
+            <geco_guide.sampler.running.memory_plan.PlanChoice.to_dict>`, after any fallback).
         devices: the devices its anchor decode was dealt over (``run.devices``), ``None`` for one.
         scheduler: the class of the scheduler that stepped.
         decoder: what decoded the loss' anchor frames (:func:`decoder_note`).
@@ -179,7 +179,7 @@ class GuidanceReport:
         masked_fraction: the mean fraction of the anchor frames' pixels masked over the updates,
             ``None`` without masks.
         search: what a particle search did (:meth:`ParticleSearch.report
-            <geco_guide.sampler.search.ParticleSearch.report>`), ``None`` without one.
+            <geco_guide.sampler.search.particle_search.ParticleSearch.report>`), ``None`` without one.
     """
 
     guidance: dict[str, Any] | None = None

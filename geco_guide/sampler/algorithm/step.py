@@ -24,7 +24,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..loss.cues import MAP_ORDER
+from ...loss.cues import MAP_ORDER
 from .levels import NoiseLevels, randn_like
 
 __all__ = ["GuidanceRecord", "LatentsWatch", "NonFiniteLatentsError", "Objective", "Update", "guided_step",
@@ -198,7 +198,7 @@ def score_anchor_frames(video: Tensor, anchors: Sequence[int], loss_fn: Callable
     decoded ``video [B, F, 3, H, W]`` in ``[0, 1]``, without gradients: a cue over no valid pixel
     is NaN, and ``nan_reason`` says why (``GeCoResult.scalars``); with dynamic masks also
     ``masked_fraction``."""
-    from ..loss.geco import no_valid_pixels_reason
+    from ...loss.geco import no_valid_pixels_reason
 
     if video.ndim != 5:
         raise ValueError(f"video must be [B, F, 3, H, W], got shape {list(video.shape)}")

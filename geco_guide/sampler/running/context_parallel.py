@@ -31,15 +31,14 @@ from __future__ import annotations
 
 import logging
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 import torch.distributed as dist
 from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
-from .adapters import PipelineAdapter, adapter_for_class
-from .diffusers_private import (
+from ..diffusers_private import (
     active_attention_backend,
     context_parallel_backends,
     context_parallel_processes,
@@ -50,7 +49,10 @@ from .diffusers_private import (
 from .module_hooks import register_hook
 from .process_collectives import SumOverProcesses
 
-__all__ = ["GRADIENT_SUM_HOOK", "GradientSum", "check_context_parallel_before_loading", "check_model_context_parallel",
+if TYPE_CHECKING:
+    from ..pipelines.adapters import PipelineAdapter
+
+__all__ = ["GRADIENT_SUM_HOOK", "GradientSum", "check_context_parallel_before_loading",
            "context_parallel_degree", "enable_context_parallel", "init_context_parallel", "is_writing_process",
            "start_context_parallel"]
 
@@ -75,21 +77,6 @@ def is_writing_process(run: Any) -> bool:
     """Whether this process writes the outputs of a run of ``run`` (:class:`~.run_options.RunOptions`):
     the only one, or rank 0 of a ``run.context_parallel`` launch (known before its process group starts)."""
     return context_parallel_degree(run) == 1 or int(os.environ.get("RANK", "0")) == 0
-
-
-def check_model_context_parallel(run: Any, model: Any, *, model_device: str, differentiates: bool) -> None:
-    """:func:`check_context_parallel_before_loading` for the registry's ``model``
-    (:class:`~geco_guide.families.VideoModel`), from its pipeline class alone; then this process
-    takes the GPU of its ``LOCAL_RANK``, the one ``model.device=auto`` (or ``cuda``) loads on."""
-    if context_parallel_degree(run) == 1:
-        return
-    import diffusers
-
-    pipeline_class = getattr(diffusers, model.pipeline)
-    check_context_parallel_before_loading(run, adapter_for_class(pipeline_class), model_device=model_device,
-                                          differentiates=differentiates)
-    if torch.cuda.is_available():
-        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
 
 
 def start_context_parallel(pipe: Any, adapter: PipelineAdapter, run: Any, *, differentiates: bool) -> None:

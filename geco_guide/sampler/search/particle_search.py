@@ -40,13 +40,13 @@ from typing import Any, Optional
 import torch
 from torch import Tensor
 
-from ..loss.cues import masked_mean
-from ..types import OptionError, is_integer, is_number, merge_dataclass
-from .adapters import keep_update
-from .config import GuidanceConfig
-from .dynamic import RefreshedMasks
-from .levels import NoiseLevels, randn_like
-from .memory_plan import (
+from ...loss.cues import masked_mean
+from ...types import OptionError, is_integer, is_number, merge_dataclass
+from ..algorithm.levels import keep_update
+from ..algorithm.config import GuidanceConfig
+from ..algorithm.dynamic import RefreshedMasks
+from ..algorithm.levels import NoiseLevels, randn_like
+from ..running.memory_plan import (
     DEVICE_HEADROOM,
     GIB,
     PlanChoice,
@@ -56,7 +56,7 @@ from .memory_plan import (
     search_parts,
 )
 from .particles import particle_batches, reorder_scheduler_state
-from .run_options import RunOptions
+from ..running.run_options import RunOptions
 
 __all__ = ["MAX_PARTICLES", "POTENTIALS", "RESAMPLERS", "ParticleBatch", "ParticleScorer", "ParticleSearch",
            "SearchConfig", "SearchCounts", "check_search_before_loading", "check_search_call", "choose_particle_batch", "clip_scores",
@@ -221,7 +221,7 @@ def check_search_call(search: SearchConfig, run: RunOptions, generator: Any, sea
                          ".manual_seed(seed + k) for k in range(K)] (or search.renoise=false)")
     if not isinstance(search_generator, torch.Generator):
         raise ValueError(f"a search draws its resamplings from a generator of its own: pass search_generator="
-                         f"torch.Generator().manual_seed(...) (geco_guide.sampler.search.search_seed), got "
+                         f"torch.Generator().manual_seed(...) (geco_guide.sampler.search.particle_search.search_seed), got "
                          f"{type(search_generator).__name__}")
 
 
@@ -407,7 +407,7 @@ class ParticleSearch:
                  scheduler: Any) -> tuple[Tensor, Tensor]:
         """The copies ``slots`` moved off their ancestors (a step to the next level, then the
         forward process back to ``t`` with their own noise) and their model outputs there; the
-        scheduler's history told to keep the move (:func:`~.adapters.keep_update`)."""
+        scheduler's history told to keep the move (:func:`~geco_guide.sampler.algorithm.levels.keep_update`)."""
         rows = torch.as_tensor(slots, device=z.device)
         start = z[rows].float()
         noise = randn_like(start, [self.noise[s] for s in slots] if isinstance(self.noise, list) else self.noise)
@@ -542,7 +542,7 @@ def check_search_before_loading(search: SearchConfig, guidance: GuidanceConfig, 
     Raises:
         ValueError: (one line) the particles do not fit the memory plan's budget.
     """
-    from .memory_plan import stored_signature
+    from ..running.memory_plan import stored_signature
 
     return choose_particle_batch(guidance, run, search.particles, plan, signature=stored_signature(model_id),
                                  model_id=model_id, frames=frames, height=height, width=width, device_gb=device_gb,

@@ -2,7 +2,7 @@
 
 The denoising loop below is the stock ``CogVideoXPipeline`` loop, readable top to bottom, with one
 addition: at a step with ``R_t > 0`` the latents get ``R_t`` GeCo updates before the step
-(:meth:`GuidanceContext.guide <geco_guide.sampler.context.GuidanceContext.guide>`, the same
+(:meth:`GuidanceContext.guide <geco_guide.sampler.running.context.GuidanceContext.guide>`, the same
 guidance the pipeline hooks use), and the pipeline's own scheduler then takes the step from the
 guided latents with the model output there, exactly as the hooks hand it to ``scheduler.step``. Noise levels come
 from the scheduler's ``alphas_cumprod`` with the scheduler's own rule (``t`` and
@@ -42,23 +42,23 @@ from diffusers.pipelines.cogvideo.pipeline_output import CogVideoXPipelineOutput
 from diffusers.utils import logging
 from torch import Tensor
 
-from ..estimators.bundle import Estimators
-from ..io.devices import planning_memory_gb, resolve_devices
-from ..loss.geco import GeCoLoss
-from ..types import check_estimator_bundle, refuses_earlier_keywords
+from ...estimators.bundle import Estimators
+from ...io.devices import planning_memory_gb, resolve_devices
+from ...loss.geco import GeCoLoss
+from ...types import check_estimator_bundle, refuses_earlier_keywords
 from .adapters import adapter_for, check_no_denoiser_cache, check_scheduler, noise_levels
-from .anchor_decode import anchor_decoder
-from .config import GuidanceConfig, resolve_guidance_config
-from .context import GuidanceContext, GuidanceObserver, GuidanceReport
-from .context_parallel import start_context_parallel
-from .diffusers_private import execution_device, offloads_models, rotary_embeddings
-from .multi_device import CfgHalves
-from .dynamic import guidance_mask_source
-from .anchor_decode import plan_anchor_decode
-from .memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
-from .particles import ParticleBatches, deal_final_decode, denoiser_places, output_tensor, particle_batches, particle_rows
-from .run_options import RunOptions, resolve_call_options
-from .search import (
+from ..running.anchor_decode import anchor_decoder
+from ..algorithm.config import GuidanceConfig, resolve_guidance_config
+from ..running.context import GuidanceContext, GuidanceObserver, GuidanceReport
+from ..running.context_parallel import start_context_parallel
+from ..diffusers_private import execution_device, offloads_models, rotary_embeddings
+from ..running.multi_device import CfgHalves
+from ..algorithm.dynamic import guidance_mask_source
+from ..running.anchor_decode import plan_anchor_decode
+from ..running.memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
+from ..search.particles import ParticleBatches, deal_final_decode, denoiser_places, output_tensor, particle_batches, particle_rows
+from ..running.run_options import RunOptions, resolve_call_options
+from ..search.particle_search import (
     ParticleBatch,
     ParticleScorer,
     ParticleSearch,
@@ -67,13 +67,13 @@ from .search import (
     choose_particle_batch,
     resolve_search_config,
 )
-from .slicing import (
+from ..algorithm.slicing import (
     check_latents,
     check_num_frames,
     check_paired_latent_frames,
     decode_chunk,
 )
-from .step import LatentsWatch
+from ..algorithm.step import LatentsWatch
 
 from diffusers.utils import is_torch_xla_available
 
@@ -95,7 +95,7 @@ class GeCoCogVideoXPipelineOutput(CogVideoXPipelineOutput):
 
     Attributes:
         frames: as :class:`CogVideoXPipelineOutput`.
-        report: the call's :class:`~geco_guide.sampler.context.GuidanceReport`: the guidance log
+        report: the call's :class:`~geco_guide.sampler.running.context.GuidanceReport`: the guidance log
             (``report.log``, one dict per guided update), the resolved guidance config, the
             memory plan, the devices, the scheduler, the decoder, the masks. Without guidance
             only ``scheduler`` is set.
@@ -194,7 +194,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
     :class:`~geco_guide.estimators.Estimators` (``estimators=``: the geometry and flow estimators,
     and the text segmenter and the tiny decoder where the guidance uses them), like a guider. How
     guidance runs on this machine (memory plan, decode layout, devices) is the call's
-    ``run_options`` (a :class:`~geco_guide.sampler.run_options.RunOptions`, or a dict of its
+    ``run_options`` (a :class:`~geco_guide.sampler.running.run_options.RunOptions`, or a dict of its
     fields), never saved with the pipeline: a folder saved on one card plans for the card that
     loads it.
 
@@ -296,7 +296,7 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
 
     def choose_memory_plan(self, guidance: GuidanceConfig, run: RunOptions, num_frames: int, height: int,
                            width: int, devices: list[torch.device] | None = None) -> PlanChoice:
-        """The memory plan of a guided call (:func:`~geco_guide.sampler.memory_plan.choose_plan`) for
+        """The memory plan of a guided call (:func:`~geco_guide.sampler.running.memory_plan.choose_plan`) for
         this transformer, video size and execution device, or the smallest of it and ``devices``
         (model CPU offload counted); ValueError (one line) where ``auto`` finds no plan that fits."""
         return choose_plan(guidance, run, signature=model_signature(self.transformer.config), frames=num_frames,
@@ -403,17 +403,17 @@ class GeCoCogVideoXPipeline(CogVideoXPipeline):
             guidance: a :class:`GuidanceConfig`, a dict of fields overriding
                 ``self.guidance_config`` (e.g. ``{"step_size": 2.0, "loss": {"cue": "motion"}}``),
                 ``False`` to sample without guidance, or ``None`` for the default.
-            run_options: how this call's guidance runs: a :class:`~geco_guide.sampler.run_options.RunOptions`
+            run_options: how this call's guidance runs: a :class:`~geco_guide.sampler.running.run_options.RunOptions`
                 or a dict of fields over the defaults (e.g. ``{"memory_plan": "chunked", "devices": ["cuda:0", "cuda:1"]}``).
             estimators: the models GeCo runs with, one :class:`~geco_guide.estimators.Estimators`
                 (required with guidance): the geometry and flow estimators, the text segmenter
                 of the subjects ``guidance.dynamic`` names (``"auto"`` needs none; see
                 docs/guidance.md, Moving subjects) and the tiny decoder of ``guidance.decoder="tiny"``.
-            observer: a :class:`~geco_guide.sampler.context.GuidanceObserver` that watches the
+            observer: a :class:`~geco_guide.sampler.running.context.GuidanceObserver` that watches the
                 updates (profilers, measurements); ``None``: nothing watches.
             eta: the scheduler's eta, passed to its ``step`` as in the stock pipeline (DDIM noise;
                 ``CogVideoXDDIMScheduler`` ignores it). The GeCo step size is ``guidance.step_size``.
-            search: a particle search (:class:`~geco_guide.sampler.search.SearchConfig`, or a dict
+            search: a particle search (:class:`~geco_guide.sampler.search.particle_search.SearchConfig`, or a dict
                 of its fields; ``None`` or ``particles=None``: none): ``K = search.particles``
                 videos of the one prompt as one batch, scored by GeCo and resampled at its
                 resampling steps (needs ``estimators``). ``generator``: a list of ``K``

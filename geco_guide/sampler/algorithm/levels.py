@@ -23,8 +23,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..diffusers_private import sigma_to_alpha_sigma_t
+
 __all__ = ["FlowLevels", "NoiseLevels", "VPLevels", "ddim_step", "flow_renoise", "flow_step", "flow_to_x0",
-           "randn_like", "renoise", "v_to_x0"]
+           "keep_update", "randn_like", "renoise", "v_to_x0"]
 
 
 def v_to_x0(z: Tensor, v: Tensor, alpha_t: Tensor | float) -> Tensor:
@@ -81,7 +83,7 @@ def flow_renoise(z_prev: Tensor, sigma_t: Tensor | float, sigma_prev: Tensor | f
 
 
 class NoiseLevels:
-    """The two noise levels of one step and the arithmetic :func:`~geco_guide.sampler.step.guided_step` needs between them."""
+    """The two noise levels of one step and the arithmetic :func:`~geco_guide.sampler.algorithm.step.guided_step` needs between them."""
 
     def to_x0(self, z: Tensor, out: Tensor) -> Tensor:  # pragma: no cover - interface
         """Clean estimate from the latents and the (CFG-combined) model output."""
@@ -129,3 +131,28 @@ class FlowLevels(NoiseLevels):
 
     def renoise(self, z_prev: Tensor, noise: Tensor) -> Tensor:
         return flow_renoise(z_prev, self.sigma_t, self.sigma_prev, noise)
+
+
+def keep_update(scheduler, old_sample: Tensor, new_sample: Tensor) -> None:
+    """Make a multistep scheduler's history keep a change of the sample about to be stepped.
+
+    UniPC's corrector rebuilds the current sample from ``last_sample`` (the previous step's
+    input) and the model outputs, ignoring the sample it is handed: a guided change would be
+    discarded. Its result is affine in ``last_sample`` with the coefficient ``c = sigma_t /
+    sigma_s0`` (data prediction; ``alpha_t / alpha_s0`` otherwise), so shifting ``last_sample`` by
+    ``delta / c`` makes the corrected sample move by exactly ``delta = new - old``. Other supported
+    schedulers step from the sample they are given (nothing to do).
+    """
+    from diffusers import UniPCMultistepScheduler
+
+    if not isinstance(scheduler, UniPCMultistepScheduler):
+        return
+    idx = scheduler.step_index
+    if idx is None or idx == 0 or scheduler.last_sample is None or (idx - 1) in scheduler.disable_corrector:
+        return  # no corrector at this step
+    alpha_t, sigma_t = sigma_to_alpha_sigma_t(scheduler, scheduler.sigmas[idx])
+    alpha_s0, sigma_s0 = sigma_to_alpha_sigma_t(scheduler, scheduler.sigmas[idx - 1])
+    coeff = float(sigma_t / sigma_s0) if scheduler.predict_x0 else float(alpha_t / alpha_s0)
+    last = scheduler.last_sample
+    delta = new_sample.float() - old_sample.float()
+    scheduler.last_sample = (last.float() + delta.to(last.device) / coeff).to(last.dtype)

@@ -1,5 +1,5 @@
 """How one machine runs guidance (:class:`RunOptions`), apart from what guidance computes
-(:class:`~geco_guide.sampler.config.GuidanceConfig`).
+(:class:`~geco_guide.sampler.algorithm.config.GuidanceConfig`).
 
 A :class:`GuidanceConfig` is the algorithm: it is saved with a pipeline and names the videos it
 makes. A :class:`RunOptions` is this machine's way of running it: what the guidance backward
@@ -11,7 +11,7 @@ of the video key, except for the options that change frames to float rounding
 
 These options sat in ``guidance`` before; their old keys (``guidance.memory_plan=...`` in a config
 file, a ``key=value`` override or a dict) are refused in one line naming the new key
-(:attr:`GuidanceConfig.RENAMED <geco_guide.sampler.config.GuidanceConfig.RENAMED>`).
+(:attr:`GuidanceConfig.RENAMED <geco_guide.sampler.algorithm.config.GuidanceConfig.RENAMED>`).
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Optional
 
-from ..types import OptionError, is_integer, is_number, merge_dataclass, non_finite_fields
-from .config import GuidanceConfig, resolve_guidance_config
+from ...types import OptionError, is_integer, is_number, merge_dataclass, non_finite_fields
+from ..algorithm.config import GuidanceConfig, resolve_guidance_config
 from .fast_decode import DECODE_LAYOUTS
 from .plan_names import PLAN_NAMES
 

@@ -12,7 +12,7 @@ loop and sub-blocks unchanged) with two sub-blocks inserted:
   its guidance set up, before any denoiser runs;
 - ``geco_guidance`` (:class:`GeCoGuidanceStep`), before ``after_denoiser``: at a step with
   ``R_t > 0`` the shared guidance (:func:`~.stock_call.guide_stock_step`, over
-  :meth:`GuidanceContext.guide <geco_guide.sampler.context.GuidanceContext.guide>`) moves the
+  :meth:`GuidanceContext.guide <geco_guide.sampler.running.context.GuidanceContext.guide>`) moves the
   latents the scheduler is about to step, and the scheduler step gets the guided latents and the
   model output there.
 
@@ -57,17 +57,17 @@ from diffusers.modular_pipelines.modular_pipeline_utils import InputParam, Outpu
 from diffusers.modular_pipelines.wan.denoise import Wan22DenoiseStep, WanDenoiseStep
 from torch import Tensor, nn
 
-from ..estimators.bundle import Estimators
-from ..io.files import write_texts_atomic
-from ..types import check_estimator_bundle
+from ...estimators.bundle import Estimators
+from ...io.files import write_texts_atomic
+from ...types import check_estimator_bundle
 from .adapters import PipelineAdapter, WanAdapter, fit_combination
-from .config import GuidanceConfig
-from .context import GuidanceContext, GuidanceObserver, GuidanceReport
-from .module_hooks import hooked
-from .particles import hidden_states_of, output_tensor
-from .run_options import RunOptions, resolve_call_options
-from .slicing import check_latents
-from .step import LatentsWatch
+from ..algorithm.config import GuidanceConfig
+from ..running.context import GuidanceContext, GuidanceObserver, GuidanceReport
+from ..running.module_hooks import hooked
+from ..search.particles import hidden_states_of, output_tensor
+from ..running.run_options import RunOptions, resolve_call_options
+from ..algorithm.slicing import check_latents
+from ..algorithm.step import LatentsWatch
 from .stock_call import guide_stock_step, stock_call
 
 __all__ = ["DifferentiableDenoiser", "GeCoGuidanceStep", "GeCoStartStep", "GeCoWan22DenoiseStep",
@@ -348,7 +348,7 @@ class GeCoWan22DenoiseStep(_GeCoLoop, Wan22DenoiseStep):
 _BLOCK_CODE = '''"""GeCo guidance in diffusers' Modular Wan denoise loops. The blocks' code is the geco_guide
 package, which must be installed; load with ModularPipelineBlocks.from_pretrained(..., trust_remote_code=True)."""
 
-from geco_guide.sampler.modular import GeCoWan22DenoiseStep, GeCoWanDenoiseStep  # noqa: F401
+from geco_guide.sampler.pipelines.modular import GeCoWan22DenoiseStep, GeCoWanDenoiseStep  # noqa: F401
 '''
 
 

@@ -18,7 +18,7 @@ from diffusers.hooks import HookRegistry, ModelHook
 from torch import nn
 from torch.utils.checkpoint import checkpoint
 
-from .diffusers_private import hook_registry, remove_hook_registry
+from ..diffusers_private import hook_registry, remove_hook_registry
 
 __all__ = ["CHECKPOINT_HOOK", "CheckpointedForward", "hooked", "register_hook"]
 

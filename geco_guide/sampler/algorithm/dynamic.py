@@ -18,11 +18,11 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..estimators.bundle import Estimators
-from ..estimators.dynamic_masks import AUTO, mask_source
-from ..estimators.motion_masks import dilate
-from ..loss.movers import RefreshedMovers
-from ..types import Correspondences, DynamicMaskSource, SceneGeometry
+from ...estimators.bundle import Estimators
+from ...estimators.dynamic_masks import AUTO, mask_source
+from ...estimators.motion_masks import dilate
+from ...loss.movers import RefreshedMovers
+from ...types import Correspondences, DynamicMaskSource, SceneGeometry
 from .config import GuidanceConfig
 
 __all__ = ["RefreshedMasks", "automatic_source", "guidance_mask_source"]

@@ -13,34 +13,36 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
 import torch
 
-from ..estimators import (
+from ...estimators import (
     TINY_RANDOM,
     EstimatorsConfig,
     tiny_random_decoder,
     with_config_key,
 )
-from ..families import DEFAULT_MODEL, VideoModel, model_named, scheduler_names
-from ..estimators.loading import (
+from ...families import DEFAULT_MODEL, VideoModel, model_named, scheduler_names
+from ...estimators.loading import (
     CHECKPOINT_SUFFIXES,
     WeightsNotFoundError,
     pretrained_or_one_line,
     quiet_hub_retries,
     short_reason,
 )
-from ..io.devices import resolve_device
-from .config import GuidanceConfig
-from .context_parallel import check_model_context_parallel
-from .diffusers_private import dtype_keyword, keeps_in_fp32
-from .memory_plan import plan_before_loading
+from ...io.devices import resolve_device
+from ..algorithm.config import GuidanceConfig
+from ..running.context_parallel import check_context_parallel_before_loading, context_parallel_degree
+from ..diffusers_private import dtype_keyword, keeps_in_fp32
+from ..running.memory_plan import plan_before_loading
+from .adapters import adapter_for_class
 from .model_folder import PIPELINE_INDEX, ModelFolderError, check_cached_model, check_model_folder
-from .run_options import RunOptions
-from .search import SearchConfig, check_search_before_loading
+from ..running.run_options import RunOptions
+from ..search.particle_search import SearchConfig, check_search_before_loading
 
 __all__ = ["CHECKPOINT_SCHEDULER", "PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
            "check_guidance_before_loading", "check_tiny_decoder", "load_tiny_decoder", "tiny_decoder_id", "check_model_source",
@@ -174,8 +176,8 @@ def missing_weights(model: ModelConfig, estimators: EstimatorsConfig, *, tiny_de
             file is another model's (:func:`check_tiny_decoder`).
         ModelFolderError: the video model's local folder is damaged or another model's.
     """
-    from ..estimators import check_weights
-    from ..estimators.loading import WeightsSource
+    from ...estimators import check_weights
+    from ...estimators.loading import WeightsSource
 
     rows = [] if model.source == TINY_RANDOM else [
         WeightsSource("model.id", model.source, model.name, (PIPELINE_INDEX,), model.revision)]
@@ -309,7 +311,7 @@ def check_tiny_decoder(estimators: EstimatorsConfig, model: VideoModel) -> Any:
             names the checkpoint file of another model's.
         WeightsNotFoundError: it names a checkpoint file that does not exist.
     """
-    from ..estimators.tiny_decoder import WEIGHTS_URL, resolve_variant, variant_from_filename
+    from ...estimators.tiny_decoder import WEIGHTS_URL, resolve_variant, variant_from_filename
 
     if model.tiny_decoder is None:
         raise ValueError(f"guidance.decoder=tiny: there is no tiny decoder for {model.name}'s latents; use "
@@ -354,7 +356,7 @@ def load_tiny_decoder(estimators: EstimatorsConfig, model: VideoModel, latent_ch
         WeightsNotFoundError: one line naming the source and the config key.
         ValueError: the model has no tiny decoder, or the file is the tiny decoder of another model.
     """
-    from ..estimators.tiny_decoder import TinyDecoder
+    from ...estimators.tiny_decoder import TinyDecoder
 
     variant = check_tiny_decoder(estimators, model)
     source = estimators.tiny_decoder
@@ -413,7 +415,7 @@ def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceCo
         ValueError: one line naming the option.
         WeightsNotFoundError: one line naming every missing model and how to pass a local path.
     """
-    from ..io.devices import check_device, check_memory_fits, planning_memory_gb, resolve_devices
+    from ...io.devices import check_device, check_memory_fits, planning_memory_gb, resolve_devices
 
     entry = model.video_model
     searching = search is not None and search.enabled
@@ -441,3 +443,18 @@ def check_before_loading(model: ModelConfig, sampling: Any, guidance: GuidanceCo
             check_memory_fits(search.particles * video, where, what)
     check_memory_fits(video, device, f"a {frames}-frame {height}x{width} video (sampling.num_frames/height/width)")
     return device
+
+
+def check_model_context_parallel(run: Any, model: Any, *, model_device: str, differentiates: bool) -> None:
+    """:func:`check_context_parallel_before_loading` for the registry's ``model``
+    (:class:`~geco_guide.families.VideoModel`), from its pipeline class alone; then this process
+    takes the GPU of its ``LOCAL_RANK``, the one ``model.device=auto`` (or ``cuda``) loads on."""
+    if context_parallel_degree(run) == 1:
+        return
+    import diffusers
+
+    pipeline_class = getattr(diffusers, model.pipeline)
+    check_context_parallel_before_loading(run, adapter_for_class(pipeline_class), model_device=model_device,
+                                          differentiates=differentiates)
+    if torch.cuda.is_available():
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))

@@ -15,7 +15,7 @@ A :class:`PipelineAdapter` knows, for one family of pipelines:
 
 The noise parametrisation is a property of the scheduler, not the family: see
 :func:`noise_levels` (v-prediction DDIM/DPM tables for CogVideoX, flow-matching ``sigmas`` for
-Wan, HunyuanVideo and LTX-Video), and :func:`keep_update` for multistep schedulers whose history
+Wan, HunyuanVideo and LTX-Video), and :func:`~geco_guide.sampler.algorithm.levels.keep_update` for multistep schedulers whose history
 would otherwise discard a change of the sample (UniPC's corrector).
 
 The cost model traces a step of a stock pipeline through its adapter too (:meth:`PipelineAdapter.traced_prediction`).
@@ -34,16 +34,16 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from ..families import MODELS, VideoModel
-from .diffusers_private import (cache_config, context_parallel_plan, denormalize_ltx_latents, guidance_rescale,
-                                sigma_to_alpha_sigma_t, unpack_ltx_latents)
-from .levels import FlowLevels, NoiseLevels, VPLevels
-from .slicing import decode_chunk
+from ...families import MODELS, VideoModel
+from ..diffusers_private import (cache_config, context_parallel_plan, denormalize_ltx_latents, guidance_rescale,
+                                unpack_ltx_latents)
+from ..algorithm.levels import FlowLevels, NoiseLevels, VPLevels
+from ..algorithm.slicing import decode_chunk, vae_latent_channels
 
 __all__ = ["ADAPTERS", "TRACED_TIMESTEP", "CallGeometry", "CogVideoXAdapter", "HunyuanVideo15Adapter", "HunyuanVideoAdapter", "LTX2Adapter", "LTXAdapter",
            "PipelineAdapter", "WanAdapter", "adapter_for", "adapter_for_class", "check_no_denoiser_cache",
-           "check_requested_frames", "check_scheduler", "fit_combination", "keep_update", "noise_levels",
-           "register_adapter", "vae_latent_channels"]
+           "check_requested_frames", "check_scheduler", "fit_combination", "noise_levels",
+           "register_adapter"]
 
 
 @dataclass(frozen=True)
@@ -79,11 +79,6 @@ def _to_unit(video: Tensor) -> Tensor:
 def _module_dtype(module: nn.Module, fallback: torch.dtype) -> torch.dtype:
     param = next(module.parameters(), None)
     return param.dtype if param is not None else fallback
-
-
-def vae_latent_channels(vae: nn.Module) -> int | None:
-    """Channels of the latents ``vae`` decodes (its config's ``z_dim`` for Wan's), or None."""
-    return getattr(vae.config, "latent_channels", None) or getattr(vae.config, "z_dim", None)
 
 
 TRACED_TIMESTEP = 1000.0  # of a traced step (the first of a flow-matching schedule): no cost depends on it
@@ -251,15 +246,15 @@ class CogVideoXAdapter(PipelineAdapter):
         }
 
     def prepare_context_parallel(self, denoiser):
-        from .split_attention import CogVideoXContextParallelAttention
+        from ..running.split_attention import CogVideoXContextParallelAttention
 
         denoiser.set_attn_processor(CogVideoXContextParallelAttention())
 
     def finish_context_parallel(self, denoiser):
         # registered after diffusers' hooks, which they then wrap: the padding before the split,
         # the cut after the gather
-        from .module_hooks import register_hook
-        from .split_attention import PADDED_TOKENS_HOOK, PaddedTokens
+        from ..running.module_hooks import register_hook
+        from ..running.split_attention import PADDED_TOKENS_HOOK, PaddedTokens
 
         padding = PaddedTokens(denoiser.transformer_blocks[0].attn1.processor)
         register_hook(denoiser.transformer_blocks[0], padding, PADDED_TOKENS_HOOK)
@@ -355,8 +350,8 @@ class HunyuanVideoAdapter(PipelineAdapter):
     def prepare_context_parallel(self, denoiser):
         # registered before diffusers' split hooks, which then wrap them: the blocks' tokens are
         # the process's shards when the mask is cut to them
-        from .module_hooks import register_hook
-        from .split_attention import SHARDED_MASK_HOOK, ShardedJointMask
+        from ..running.module_hooks import register_hook
+        from ..running.split_attention import SHARDED_MASK_HOOK, ShardedJointMask
 
         for block in [*denoiser.transformer_blocks, *denoiser.single_transformer_blocks]:
             register_hook(block, ShardedJointMask(), SHARDED_MASK_HOOK)
@@ -388,7 +383,7 @@ class LTXAdapter(PipelineAdapter):
         }
 
     def finish_context_parallel(self, denoiser):
-        from .split_attention import attend_within_process
+        from ..running.split_attention import attend_within_process
 
         attend_within_process(denoiser, lambda name: not name.endswith(".attn1"))
 
@@ -499,13 +494,13 @@ class HunyuanVideo15Adapter(PipelineAdapter):
         }
 
     def prepare_context_parallel(self, denoiser):
-        from .split_attention import HunyuanVideo15ContextParallelAttention
+        from ..running.split_attention import HunyuanVideo15ContextParallelAttention
 
         for block in denoiser.transformer_blocks:
             block.attn.set_processor(HunyuanVideo15ContextParallelAttention())
 
     def finish_context_parallel(self, denoiser):  # the token refiner's attention: the whole text
-        from .split_attention import attend_within_process
+        from ..running.split_attention import attend_within_process
 
         attend_within_process(denoiser, lambda name: not name.startswith("transformer_blocks."))
 
@@ -583,8 +578,8 @@ class LTX2Adapter(LTXAdapter):
         }
 
     def finish_context_parallel(self, denoiser):
-        from .module_hooks import register_hook
-        from .split_attention import GATHERED_KEYS_HOOK, GatheredVideoKeys, attend_within_process
+        from ..running.module_hooks import register_hook
+        from ..running.split_attention import GATHERED_KEYS_HOOK, GatheredVideoKeys, attend_within_process
 
         attend_within_process(denoiser, lambda name: not name.endswith(".attn1"))  # all but the video's self-attention
         for block in denoiser.transformer_blocks:
@@ -713,31 +708,6 @@ def check_scheduler(scheduler) -> None:
         noise_levels(scheduler, 0, 0)  # raises with the message
 
 
-def keep_update(scheduler, old_sample: Tensor, new_sample: Tensor) -> None:
-    """Make a multistep scheduler's history keep a change of the sample about to be stepped.
-
-    UniPC's corrector rebuilds the current sample from ``last_sample`` (the previous step's
-    input) and the model outputs, ignoring the sample it is handed: a guided change would be
-    discarded. Its result is affine in ``last_sample`` with the coefficient ``c = sigma_t /
-    sigma_s0`` (data prediction; ``alpha_t / alpha_s0`` otherwise), so shifting ``last_sample`` by
-    ``delta / c`` makes the corrected sample move by exactly ``delta = new - old``. Other supported
-    schedulers step from the sample they are given (nothing to do).
-    """
-    from diffusers import UniPCMultistepScheduler
-
-    if not isinstance(scheduler, UniPCMultistepScheduler):
-        return
-    idx = scheduler.step_index
-    if idx is None or idx == 0 or scheduler.last_sample is None or (idx - 1) in scheduler.disable_corrector:
-        return  # no corrector at this step
-    alpha_t, sigma_t = sigma_to_alpha_sigma_t(scheduler, scheduler.sigmas[idx])
-    alpha_s0, sigma_s0 = sigma_to_alpha_sigma_t(scheduler, scheduler.sigmas[idx - 1])
-    coeff = float(sigma_t / sigma_s0) if scheduler.predict_x0 else float(alpha_t / alpha_s0)
-    last = scheduler.last_sample
-    delta = new_sample.float() - old_sample.float()
-    scheduler.last_sample = (last.float() + delta.to(last.device) / coeff).to(last.dtype)
-
-
 # --------------------------------------------------------------------------------------------
 # registry
 
@@ -745,7 +715,7 @@ _REGISTRY: dict[type, PipelineAdapter] = {}
 
 
 def register_adapter(pipeline_class: type, adapter: PipelineAdapter) -> None:
-    """Let :func:`~geco_guide.sampler.hooks.attach_geco_guidance` guide ``pipeline_class`` (and subclasses)."""
+    """Let :func:`~geco_guide.sampler.pipelines.hooks.attach_geco_guidance` guide ``pipeline_class`` (and subclasses)."""
     if not isinstance(adapter, PipelineAdapter):
         raise TypeError(f"adapter must be a PipelineAdapter, got {type(adapter).__name__}")
     _REGISTRY[pipeline_class] = adapter
@@ -786,6 +756,6 @@ def adapter_for_class(pipeline_class: type) -> PipelineAdapter:
             return _REGISTRY[cls]
     raise ValueError(
         f"GeCo guidance has no adapter for {pipeline_class.__name__}. Supported: {', '.join(supported_pipelines())}. "
-        "To add one, subclass geco_guide.sampler.adapters.PipelineAdapter (latent layout, de-normalisation, "
-        "chunk decode) and call geco_guide.sampler.adapters.register_adapter(YourPipeline, YourAdapter())."
+        "To add one, subclass geco_guide.sampler.pipelines.adapters.PipelineAdapter (latent layout, de-normalisation, "
+        "chunk decode) and call geco_guide.sampler.pipelines.adapters.register_adapter(YourPipeline, YourAdapter())."
     )

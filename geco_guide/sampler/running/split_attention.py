@@ -12,7 +12,7 @@ import torch
 from diffusers.hooks import ModelHook
 from torch import Tensor, nn
 
-from .diffusers_private import without_parallel_config
+from ..diffusers_private import without_parallel_config
 
 __all__ = ["GATHERED_KEYS_HOOK", "PADDED_TOKENS_HOOK", "SHARDED_MASK_HOOK", "CogVideoXContextParallelAttention",
            "GatheredVideoKeys", "HunyuanVideo15ContextParallelAttention", "PaddedTokens", "ShardedJointMask",

@@ -17,12 +17,12 @@ again, leaving the pipeline exactly as it was:
    scheduler's timestep table. Registered in the registry, it composes with diffusers' own hooks
    (offloading, layerwise casting, context parallelism) as docs/architecture.md describes.
 3. ``pipe.scheduler.step`` is wrapped (an instance attribute). At a step with ``R_t > 0`` the
-   wrapper runs the shared guidance (:class:`~geco_guide.sampler.context.GuidanceContext`) on the
+   wrapper runs the shared guidance (:class:`~geco_guide.sampler.running.context.GuidanceContext`) on the
    ``sample`` the pipeline is about to step: it predicts ``x0`` from the captured model output (fast mode) or by
    re-running the captured denoiser calls with gradients, both CFG branches (faithful mode),
    decodes the anchor chunks, and updates ``z_t`` (time travel included). It then hands the
    original ``step`` the guided sample and the model output re-computed there, after telling a
-   multistep scheduler's history to keep the update (:func:`.adapters.keep_update`). Steps with
+   multistep scheduler's history to keep the update (:func:`~geco_guide.sampler.algorithm.levels.keep_update`). Steps with
    ``R_t = 0`` call the original ``step`` untouched.
 
 The model output of a step is rebuilt from the outputs of its denoiser calls with weights fitted
@@ -67,16 +67,16 @@ from diffusers.hooks import ModelHook
 from diffusers.hooks.hooks import BaseState
 from torch import Tensor, nn
 
-from ..estimators.bundle import Estimators
-from ..types import check_estimator_bundle, refuses_earlier_keywords
+from ...estimators.bundle import Estimators
+from ...types import check_estimator_bundle, refuses_earlier_keywords
 from .adapters import CallGeometry, PipelineAdapter, adapter_for, check_scheduler, fit_combination, noise_levels
-from .config import GuidanceConfig
-from .context import GuidanceContext, GuidanceObserver, GuidanceReport
-from .context_parallel import start_context_parallel
-from .diffusers_private import hook_registry
-from .module_hooks import register_hook
-from .multi_device import module_replicas
-from .particles import (
+from ..algorithm.config import GuidanceConfig
+from ..running.context import GuidanceContext, GuidanceObserver, GuidanceReport
+from ..running.context_parallel import start_context_parallel
+from ..diffusers_private import hook_registry
+from ..running.module_hooks import register_hook
+from ..running.multi_device import module_replicas
+from ..search.particles import (
     ParticleBatches,
     call_rows,
     deal_final_decode,
@@ -85,11 +85,11 @@ from .particles import (
     particle_batches,
     particle_rows,
 )
-from .run_options import RunOptions, resolve_call_options
+from ..running.run_options import RunOptions, resolve_call_options
 from .pipeline_cogvideox import GeCoCogVideoXPipeline
-from .search import ParticleBatch, ParticleSearch, SearchConfig, check_search_call, resolve_search_config
-from .slicing import check_latents
-from .step import LatentsWatch
+from ..search.particle_search import ParticleBatch, ParticleSearch, SearchConfig, check_search_call, resolve_search_config
+from ..algorithm.slicing import check_latents
+from ..algorithm.step import LatentsWatch
 from .stock_call import StockCall, guide_stock_step, stock_call
 
 __all__ = ["CAPTURE_HOOK", "PARTICLE_HOOK", "DenoiserCapture", "GeCoGuidanceHandle", "GuidanceCallState",
@@ -323,17 +323,17 @@ class GeCoGuidanceHandle:
 
     Attributes:
         pipe: the guided pipeline.
-        adapter: its family's :class:`~geco_guide.sampler.adapters.PipelineAdapter`.
+        adapter: its family's :class:`~geco_guide.sampler.pipelines.adapters.PipelineAdapter`.
         config: the :class:`GuidanceConfig` used by the next call (may be replaced between calls).
         run_options: how the next call's guidance runs (a :class:`~.run_options.RunOptions`;
             may be replaced between calls).
         estimators: the GeCo loss' models (:class:`~geco_guide.estimators.Estimators`: the
             geometry and flow estimators, and the segmenter of ``config.dynamic``'s subjects and
             the tiny decoder of ``config.decoder="tiny"`` where they are used).
-        observer: a :class:`~geco_guide.sampler.context.GuidanceObserver` watching the next
+        observer: a :class:`~geco_guide.sampler.running.context.GuidanceObserver` watching the next
             calls' updates, or ``None``.
         search: the particle search of the next calls (a
-            :class:`~geco_guide.sampler.search.SearchConfig`; ``None``: none), set by
+            :class:`~geco_guide.sampler.search.particle_search.SearchConfig`; ``None``: none), set by
             :meth:`enable_search`.
         search_generator: the generator of the search's resampling draws, set with ``search``.
         state: the current or last call's :class:`GuidanceCallState` (``last``, ``log`` and
@@ -364,7 +364,7 @@ class GeCoGuidanceHandle:
         says what it did.
 
         Args:
-            search: a :class:`~geco_guide.sampler.search.SearchConfig` or a dict of its fields.
+            search: a :class:`~geco_guide.sampler.search.particle_search.SearchConfig` or a dict of its fields.
             generator: the generator of the resamplings' draws, apart from the particles' own.
 
         Raises:
@@ -395,13 +395,13 @@ class GeCoGuidanceHandle:
 
     @property
     def last(self) -> GuidanceReport | None:
-        """What the last call decided (:class:`~geco_guide.sampler.context.GuidanceReport`),
+        """What the last call decided (:class:`~geco_guide.sampler.running.context.GuidanceReport`),
         ``None`` before one; set when its denoising loop ends."""
         return self.state.report
 
     @property
     def geometry(self) -> CallGeometry | None:
-        """The :class:`~geco_guide.sampler.adapters.CallGeometry` of the last call."""
+        """The :class:`~geco_guide.sampler.pipelines.adapters.CallGeometry` of the last call."""
         return self.state.geometry
 
     # ------------------------------------------------------------------------------------------
@@ -692,8 +692,8 @@ def attach_geco_guidance(
 
     Args:
         pipe: a pipeline of a class the model registry names (:mod:`geco_guide.families`, each
-            entry's ``pipeline``; :func:`geco_guide.sampler.adapters.supported_pipelines`), a
-            subclass, or a class registered with :func:`geco_guide.sampler.adapters.register_adapter`.
+            entry's ``pipeline``; :func:`geco_guide.sampler.pipelines.adapters.supported_pipelines`), a
+            subclass, or a class registered with :func:`geco_guide.sampler.pipelines.adapters.register_adapter`.
         config: a :class:`GuidanceConfig` or a dict of fields over the default one. Its
             ``repeats`` schedule must cover the call's ``num_inference_steps``; its anchors are
             pixel frames of the output video.
@@ -705,7 +705,7 @@ def attach_geco_guidance(
             of the pipeline's family, which decodes the loss' anchor frames; the video is always
             the VAE's).
         run_options: how the guidance runs on this machine (a
-            :class:`~geco_guide.sampler.run_options.RunOptions` or a dict of its fields: memory
+            :class:`~geco_guide.sampler.running.run_options.RunOptions` or a dict of its fields: memory
             plan, decode layout, devices).
 
     Returns:

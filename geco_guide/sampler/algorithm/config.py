@@ -13,12 +13,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Optional
 
-from ..estimators.tiny_decoder import CONTEXT_LATENTS
-from ..families import default_anchors
-from ..loss.cues import CUES, MAP_ORDER
-from ..loss.geco import GeCoLossConfig, movers_problem
-from ..loss.presets import fused_guidance_loss, guidance_loss
-from ..types import OptionError, is_integer, is_number, merge_dataclass, non_finite_fields, refuse_renamed_arguments
+from ...estimators.tiny_decoder import CONTEXT_LATENTS
+from ...families import default_anchors
+from ...loss.cues import CUES, MAP_ORDER
+from ...loss.geco import GeCoLossConfig, movers_problem
+from ...loss.presets import fused_guidance_loss, guidance_loss
+from ...types import OptionError, is_integer, is_number, merge_dataclass, non_finite_fields, refuse_renamed_arguments
 from .schedule import (
     PAPER_STEP_SIZE,
     PAPER_REPEATS,
@@ -45,7 +45,7 @@ class GuidanceConfig:
     """GeCo guidance options: what guidance computes (defaults: the paper's guidance experiment,
     for 50 DDIM steps of a 49-frame video; :func:`fused_guidance_config` is the method section's
     fused loss). How one machine runs it (memory plan, decode layout, devices) is
-    :class:`~geco_guide.sampler.run_options.RunOptions`.
+    :class:`~geco_guide.sampler.running.run_options.RunOptions`.
 
     Attributes:
         enabled: ``False`` samples without guidance (plain deterministic DDIM).
@@ -136,7 +136,7 @@ class GuidanceConfig:
 
     def schedule(self, num_steps: int) -> GuidanceSchedule:
         """The validated :class:`GuidanceSchedule` for ``num_steps`` steps (runs scaled, see
-        :func:`~geco_guide.sampler.schedule.scale_schedule`)."""
+        :func:`~geco_guide.sampler.algorithm.schedule.scale_schedule`)."""
         repeats, time_travel = scale_schedule(self.repeats, self.time_travel, num_steps)
         return GuidanceSchedule.build(repeats, num_steps, self.step_size, time_travel)
 
@@ -193,7 +193,7 @@ def dynamic_spec_problem(spec: Any) -> str | None:
     """Why ``spec`` is not what ``guidance.dynamic`` (``--dynamic``) takes: null, ``auto`` or the
     text of the subjects that move; ``None`` when it is. A mask file is given masks (``evaluate
     --dynamic-masks``), which guidance cannot use: the anchors' frames change at every update."""
-    from ..estimators.dynamic_masks import AUTO, looks_like_path
+    from ...estimators.dynamic_masks import AUTO, looks_like_path
 
     expected = "must be null, 'auto' or the subjects that move, e.g. 'a dog, a person'"
     if spec is None:

@@ -13,10 +13,10 @@ import inspect
 from dataclasses import dataclass, fields, replace
 from typing import TYPE_CHECKING, Any, Optional
 
-from ..families import VideoModel, frames_problem
+from ...families import VideoModel, frames_problem
 
 if TYPE_CHECKING:
-    from ..io.video import SoundTrack
+    from ...io.video import SoundTrack
 
 __all__ = ["SamplingConfig", "call_arguments", "fit_to_model", "sampling_problem", "sound_track", "with_model_defaults"]
 
@@ -148,6 +148,6 @@ def sound_track(pipe: Any, output: Any) -> SoundTrack | None:
         return None
     import torch
 
-    from ..io.video import SoundTrack
+    from ...io.video import SoundTrack
 
     return SoundTrack(torch.as_tensor(audio[0]).float().cpu(), int(pipe.vocoder.config.output_sampling_rate))

@@ -1,0 +1,1 @@
+"""Particle search with GeCo as the verifier: its options, the particles and their scoring."""
