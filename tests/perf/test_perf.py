@@ -401,7 +401,7 @@ def test_cost_time_scales_with_the_traced_size() -> None:
     measured_run = PAPER_STEPS * cards.H200_UNGUIDED_STEP_S
     assert report["roofline"]["wall_time_s"]["H200"]["unguided"] < 0.1 * measured_run
 
-    plans = json.loads((Path(cost.__file__).parents[1] / "sampler" / "data" / "memory_plans.json").read_text())
+    plans = json.loads((Path(cost.__file__).parents[1] / "sampler" / "running" / "data" / "memory_plans.json").read_text())
     times = {model: [plan["time_s"] for table in entry["estimates"].values() for plan in table.values()]
              for model, entry in plans["models"].items()}
     assert max(times["tiny"]) < min(times["cogvideox-5b"])
