@@ -42,8 +42,8 @@ from .families import (MODELS, default_anchors, did_you_mean, frames_problem, ge
 from .metric.protocol import EvaluationConfig
 from .sampler.algorithm.config import GuidanceConfig, paper_guidance_config
 from .sampler.pipelines.loading import CHECKPOINT_SCHEDULER, SCHEDULERS, ModelConfig
-from .sampler.running.run_options import RunOptions, check_run_for_guidance
 from .sampler.pipelines.sampling import SamplingConfig, fit_to_model, sampling_problem, with_model_defaults
+from .sampler.running.run_options import RunOptions, check_run_for_guidance
 from .sampler.search.particle_search import SearchConfig
 from .types import OptionError, non_finite_fields, renamed_option
 

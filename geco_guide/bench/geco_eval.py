@@ -57,8 +57,8 @@ from ..io.video import VIDEO_SUFFIXES, write_video
 from ..loss.cues import CUES, MAP_ORDER
 from ..metric.evaluate import PAPER_NAMES, evaluate_video
 from ..sampler.pipelines.loading import check_guidance_before_loading, check_tiny_decoder, quiet_hub_logs
-from ..sampler.running.memory_plan import plan_before_loading
 from ..sampler.pipelines.sampling import SamplingConfig, fit_to_model
+from ..sampler.running.memory_plan import plan_before_loading
 from ..types import plural
 from . import report
 from .report import fmt

@@ -26,9 +26,9 @@ import torch
 from PIL import Image
 from torch import Tensor
 
-from ..geometry import relative_pose, sample_at_projection
 from ..estimators.bundle import Estimators
 from ..estimators.dynamic_masks import GivenMasks, mask_source
+from ..geometry import relative_pose, sample_at_projection
 from ..io.files import write_bytes_atomic
 from ..io.masks import fit_masks
 from ..io.video import check_fps, write_video

@@ -33,6 +33,7 @@ from ..io.video import (
     read_frames,
     write_video,
 )
+from ..loss.cues import MAP_ORDER
 from ..loss.geco import (
     CUES,
     MIN_UNMASKED_FRACTION,
@@ -46,7 +47,6 @@ from ..loss.geco import (
     no_valid_pixels_reason,
     resolve_dynamic_masks,
 )
-from ..loss.cues import MAP_ORDER
 from ..loss.motion_stats import motion_statistics
 from ..types import (Correspondences, SceneGeometry, check_estimator_bundle, check_frame_values, plural,
                      refuses_earlier_keywords)

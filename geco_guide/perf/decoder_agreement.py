@@ -36,12 +36,12 @@ from collections.abc import Iterator
 from ..config import GeCoConfig, config_to_dict
 from ..estimators import TINY_RANDOM
 from ..generation import Models, check_generation, load_models, sample
+from ..sampler.algorithm.objective import AnchorObjective
+from ..sampler.algorithm.step import GuidanceRecord, loss_terms
 from ..sampler.pipelines.adapters import adapter_for
 from ..sampler.running.anchor_decode import anchor_decoder, plan_anchor_decode
 from ..sampler.running.context import GuidanceObserver, decoder_note
 from ..sampler.running.memory_plan import MemoryPlan
-from ..sampler.algorithm.objective import AnchorObjective
-from ..sampler.algorithm.step import GuidanceRecord, loss_terms
 from .measure import environment_info
 
 __all__ = ["DecoderAgreement", "agreement_record", "agreement_rows", "agreement_summary", "agreement_table",

@@ -21,8 +21,8 @@ import torch
 from torch import Tensor
 
 from ..families import VideoModel
-from ..sampler.pipelines.adapters import ADAPTERS, CallGeometry
 from ..sampler.algorithm.levels import FlowLevels, NoiseLevels
+from ..sampler.pipelines.adapters import ADAPTERS, CallGeometry
 from .full_size import text_embed_shape
 
 __all__ = ["DenoiserStep", "denoiser_step"]

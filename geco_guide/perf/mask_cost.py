@@ -7,9 +7,8 @@ from typing import Any
 
 import torch
 
-from ..sampler.algorithm.schedule import PAPER_REPEATS, PAPER_TIME_TRAVEL
+from ..sampler.algorithm.schedule import PAPER_REPEATS, PAPER_STEPS, PAPER_TIME_TRAVEL
 from .cards import GPU_SPECS, H200_UNGUIDED_STEP_S
-from ..sampler.algorithm.schedule import PAPER_STEPS
 from .cost import calibration_call_roofline_s
 from .tracing import CostTracker
 

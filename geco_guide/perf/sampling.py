@@ -26,7 +26,6 @@ from ..estimators.ufm import UFM, UFMConfig
 from ..estimators.vggt import VGGT, VGGTConfig
 from ..families import default_anchors, model_named
 from ..sampler.algorithm.config import GuidanceConfig, fused_guidance_config
-from ..sampler.running.run_options import RunOptions
 from ..sampler.algorithm.schedule import (
     PAPER_REPEATS,
     PAPER_TIME_TRAVEL,
@@ -34,6 +33,7 @@ from ..sampler.algorithm.schedule import (
     scale_schedule,
 )
 from ..sampler.algorithm.schedule import PAPER_STEPS
+from ..sampler.running.run_options import RunOptions
 from .full_size import CALIBRATION_MODEL, build_full_size_components, model_video, text_encoder_stand_in
 from .measure import (
     GIB,

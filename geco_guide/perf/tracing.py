@@ -27,11 +27,11 @@ from torch import Tensor
 from ..estimators.bundle import Estimators
 from ..families import VideoModel, default_anchors, model_named
 from ..sampler.algorithm.config import GuidanceConfig, fused_guidance_config
-from ..sampler.running.context import GuidanceObserver
 from ..sampler.algorithm.levels import VPLevels
+from ..sampler.algorithm.step import Update, guided_step, loss_terms
+from ..sampler.running.context import GuidanceObserver
 from ..sampler.running.memory_plan import model_signature
 from ..sampler.running.run_options import RunOptions
-from ..sampler.algorithm.step import Update, guided_step, loss_terms
 from .cards import GPU_SPECS
 from .full_size import CALIBRATION_MODEL, build_cost_pipeline, model_bytes, text_embed_shape
 from .profile import call_marking_backward

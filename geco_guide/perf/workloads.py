@@ -26,6 +26,8 @@ from ..sampler.algorithm.slicing import (
     decode_anchor_frames,
     decode_chunk,
 )
+from .full_size import full_size_vae
+from .geometry_backbones import geometry_model, network_hw
 from .measure import (
     MIB,
     current_memory_bytes,
@@ -35,8 +37,6 @@ from .measure import (
     synchronize,
     time_callable,
 )
-from .full_size import full_size_vae
-from .geometry_backbones import geometry_model, network_hw
 
 __all__ = ["WORKLOADS", "Workload", "estimator_specs", "loss_specs", "make_step", "run_worker", "vae_specs"]
 

@@ -7,8 +7,6 @@ that guide other diffusers video pipelines, the Modular blocks, loading; importe
 pull in diffusers)."""
 
 from .algorithm.config import GuidanceConfig, fused_guidance_config, paper_guidance_config, resolve_guidance_config
-from .running.run_options import RunOptions, resolve_call_options
-from .running.context import GuidanceContext, GuidanceObserver, GuidanceReport
 from .algorithm.levels import FlowLevels, NoiseLevels, VPLevels, ddim_step, renoise, v_to_x0
 from .algorithm.schedule import GuidanceSchedule, paper_schedule, parse_repeats, scale_schedule
 from .algorithm.slicing import (
@@ -18,6 +16,8 @@ from .algorithm.slicing import (
     decode_anchor_frames,
 )
 from .algorithm.step import GuidanceRecord, guided_step, normalized_update, score_anchor_frames
+from .running.context import GuidanceContext, GuidanceObserver, GuidanceReport
+from .running.run_options import RunOptions, resolve_call_options
 from .search.particle_search import SearchConfig
 
 _LAZY = {

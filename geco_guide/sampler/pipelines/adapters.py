@@ -35,10 +35,10 @@ import torch
 from torch import Tensor, nn
 
 from ...families import MODELS, VideoModel
-from ..diffusers_private import (cache_config, context_parallel_plan, denormalize_ltx_latents, guidance_rescale,
-                                unpack_ltx_latents)
 from ..algorithm.levels import FlowLevels, NoiseLevels, VPLevels
 from ..algorithm.slicing import decode_chunk, vae_latent_channels
+from ..diffusers_private import (cache_config, context_parallel_plan, denormalize_ltx_latents, guidance_rescale,
+                                unpack_ltx_latents)
 
 __all__ = ["ADAPTERS", "TRACED_TIMESTEP", "CallGeometry", "CogVideoXAdapter", "HunyuanVideo15Adapter", "HunyuanVideoAdapter", "LTX2Adapter", "LTXAdapter",
            "PipelineAdapter", "WanAdapter", "adapter_for", "adapter_for_class", "check_no_denoiser_cache",

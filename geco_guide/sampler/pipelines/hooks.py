@@ -69,13 +69,16 @@ from torch import Tensor, nn
 
 from ...estimators.bundle import Estimators
 from ...types import check_estimator_bundle, refuses_earlier_keywords
-from .adapters import CallGeometry, PipelineAdapter, adapter_for, check_scheduler, fit_combination, noise_levels
 from ..algorithm.config import GuidanceConfig
+from ..algorithm.slicing import check_latents
+from ..algorithm.step import LatentsWatch
+from ..diffusers_private import hook_registry
 from ..running.context import GuidanceContext, GuidanceObserver, GuidanceReport
 from ..running.context_parallel import start_context_parallel
-from ..diffusers_private import hook_registry
 from ..running.module_hooks import register_hook
 from ..running.multi_device import module_replicas
+from ..running.run_options import RunOptions, resolve_call_options
+from ..search.particle_search import ParticleBatch, ParticleSearch, SearchConfig, check_search_call, resolve_search_config
 from ..search.particles import (
     ParticleBatches,
     call_rows,
@@ -85,11 +88,8 @@ from ..search.particles import (
     particle_batches,
     particle_rows,
 )
-from ..running.run_options import RunOptions, resolve_call_options
+from .adapters import CallGeometry, PipelineAdapter, adapter_for, check_scheduler, fit_combination, noise_levels
 from .pipeline_cogvideox import GeCoCogVideoXPipeline
-from ..search.particle_search import ParticleBatch, ParticleSearch, SearchConfig, check_search_call, resolve_search_config
-from ..algorithm.slicing import check_latents
-from ..algorithm.step import LatentsWatch
 from .stock_call import StockCall, guide_stock_step, stock_call
 
 __all__ = ["CAPTURE_HOOK", "PARTICLE_HOOK", "DenoiserCapture", "GeCoGuidanceHandle", "GuidanceCallState",

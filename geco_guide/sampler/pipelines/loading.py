@@ -26,7 +26,6 @@ from ...estimators import (
     tiny_random_decoder,
     with_config_key,
 )
-from ...families import DEFAULT_MODEL, VideoModel, model_named, scheduler_names
 from ...estimators.loading import (
     CHECKPOINT_SUFFIXES,
     WeightsNotFoundError,
@@ -34,15 +33,16 @@ from ...estimators.loading import (
     quiet_hub_retries,
     short_reason,
 )
+from ...families import DEFAULT_MODEL, VideoModel, model_named, scheduler_names
 from ...io.devices import resolve_device
 from ..algorithm.config import GuidanceConfig
-from ..running.context_parallel import check_context_parallel_before_loading, context_parallel_degree
 from ..diffusers_private import dtype_keyword, keeps_in_fp32
+from ..running.context_parallel import check_context_parallel_before_loading, context_parallel_degree
 from ..running.memory_plan import plan_before_loading
-from .adapters import adapter_for_class
-from .model_folder import PIPELINE_INDEX, ModelFolderError, check_cached_model, check_model_folder
 from ..running.run_options import RunOptions
 from ..search.particle_search import SearchConfig, check_search_before_loading
+from .adapters import adapter_for_class
+from .model_folder import PIPELINE_INDEX, ModelFolderError, check_cached_model, check_model_folder
 
 __all__ = ["CHECKPOINT_SCHEDULER", "PIPELINE_INDEX", "SCHEDULERS", "LoadedPipeline", "ModelConfig", "cast_model", "check_before_loading",
            "check_guidance_before_loading", "check_tiny_decoder", "load_tiny_decoder", "tiny_decoder_id", "check_model_source",

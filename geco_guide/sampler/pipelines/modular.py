@@ -60,14 +60,14 @@ from torch import Tensor, nn
 from ...estimators.bundle import Estimators
 from ...io.files import write_texts_atomic
 from ...types import check_estimator_bundle
-from .adapters import PipelineAdapter, WanAdapter, fit_combination
 from ..algorithm.config import GuidanceConfig
-from ..running.context import GuidanceContext, GuidanceObserver, GuidanceReport
-from ..running.module_hooks import hooked
-from ..search.particles import hidden_states_of, output_tensor
-from ..running.run_options import RunOptions, resolve_call_options
 from ..algorithm.slicing import check_latents
 from ..algorithm.step import LatentsWatch
+from ..running.context import GuidanceContext, GuidanceObserver, GuidanceReport
+from ..running.module_hooks import hooked
+from ..running.run_options import RunOptions, resolve_call_options
+from ..search.particles import hidden_states_of, output_tensor
+from .adapters import PipelineAdapter, WanAdapter, fit_combination
 from .stock_call import guide_stock_step, stock_call
 
 __all__ = ["DifferentiableDenoiser", "GeCoGuidanceStep", "GeCoStartStep", "GeCoWan22DenoiseStep",

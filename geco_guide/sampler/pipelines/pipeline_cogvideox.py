@@ -46,17 +46,21 @@ from ...estimators.bundle import Estimators
 from ...io.devices import planning_memory_gb, resolve_devices
 from ...loss.geco import GeCoLoss
 from ...types import check_estimator_bundle, refuses_earlier_keywords
-from .adapters import adapter_for, check_no_denoiser_cache, check_scheduler, noise_levels
-from ..running.anchor_decode import anchor_decoder
 from ..algorithm.config import GuidanceConfig, resolve_guidance_config
+from ..algorithm.dynamic import guidance_mask_source
+from ..algorithm.slicing import (
+    check_latents,
+    check_num_frames,
+    check_paired_latent_frames,
+    decode_chunk,
+)
+from ..algorithm.step import LatentsWatch
+from ..diffusers_private import execution_device, offloads_models, rotary_embeddings
+from ..running.anchor_decode import anchor_decoder, plan_anchor_decode
 from ..running.context import GuidanceContext, GuidanceObserver, GuidanceReport
 from ..running.context_parallel import start_context_parallel
-from ..diffusers_private import execution_device, offloads_models, rotary_embeddings
-from ..running.multi_device import CfgHalves
-from ..algorithm.dynamic import guidance_mask_source
-from ..running.anchor_decode import plan_anchor_decode
 from ..running.memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
-from ..search.particles import ParticleBatches, deal_final_decode, denoiser_places, output_tensor, particle_batches, particle_rows
+from ..running.multi_device import CfgHalves
 from ..running.run_options import RunOptions, resolve_call_options
 from ..search.particle_search import (
     ParticleBatch,
@@ -67,13 +71,8 @@ from ..search.particle_search import (
     choose_particle_batch,
     resolve_search_config,
 )
-from ..algorithm.slicing import (
-    check_latents,
-    check_num_frames,
-    check_paired_latent_frames,
-    decode_chunk,
-)
-from ..algorithm.step import LatentsWatch
+from ..search.particles import ParticleBatches, deal_final_decode, denoiser_places, output_tensor, particle_batches, particle_rows
+from .adapters import adapter_for, check_no_denoiser_cache, check_scheduler, noise_levels
 
 from diffusers.utils import is_torch_xla_available
 

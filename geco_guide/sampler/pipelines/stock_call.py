@@ -32,6 +32,17 @@ from torch import Tensor, nn
 from ...estimators.bundle import Estimators
 from ...io.devices import planning_memory_gb, resolve_devices
 from ...loss.geco import GeCoLoss
+from ..algorithm.config import GuidanceConfig
+from ..algorithm.dynamic import RefreshedMasks, guidance_mask_source
+from ..algorithm.levels import keep_update
+from ..algorithm.slicing import AnchorChunk
+from ..diffusers_private import execution_device, offloads_models
+from ..running.anchor_decode import AnchorDecode, anchor_decoder, plan_anchor_decode
+from ..running.context import GuidanceContext, GuidanceObserver
+from ..running.context_parallel import start_context_parallel
+from ..running.memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
+from ..running.run_options import RunOptions, check_call_options
+from ..search.particle_search import ParticleBatch, ParticleScorer, ParticleSearch, SearchConfig, choose_particle_batch
 from .adapters import (
     CallGeometry,
     PipelineAdapter,
@@ -39,17 +50,6 @@ from .adapters import (
     check_scheduler,
     noise_levels,
 )
-from ..algorithm.levels import keep_update
-from ..running.anchor_decode import AnchorDecode, anchor_decoder, plan_anchor_decode
-from ..algorithm.config import GuidanceConfig
-from ..running.context import GuidanceContext, GuidanceObserver
-from ..diffusers_private import execution_device, offloads_models
-from ..algorithm.dynamic import RefreshedMasks, guidance_mask_source
-from ..running.memory_plan import SAFE_PLAN, PlanChoice, choose_plan, model_signature
-from ..running.context_parallel import start_context_parallel
-from ..running.run_options import RunOptions, check_call_options
-from ..search.particle_search import ParticleBatch, ParticleScorer, ParticleSearch, SearchConfig, choose_particle_batch
-from ..algorithm.slicing import AnchorChunk
 
 __all__ = ["StockCall", "denoiser_signature", "guide_stock_step", "stock_call"]
 

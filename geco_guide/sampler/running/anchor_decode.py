@@ -29,14 +29,14 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
-from ..algorithm.slicing import vae_latent_channels
 from ..algorithm.config import GuidanceConfig
-from .process_collectives import gather_from_processes, sum_gradient_over_processes
-from .multi_device import module_replicas
+from ..algorithm.slicing import (AnchorChunk, chunk_spans, deal_spans, decode_anchor_frames,
+                                 decode_anchor_frames_across, vae_latent_channels)
 from .fast_decode import check_channels_last_vae
 from .memory_plan import MemoryPlan
+from .multi_device import module_replicas
+from .process_collectives import gather_from_processes, sum_gradient_over_processes
 from .run_options import RunOptions
-from ..algorithm.slicing import AnchorChunk, chunk_spans, deal_spans, decode_anchor_frames, decode_anchor_frames_across
 
 __all__ = ["AcrossDevicesDecode", "AcrossProcessesDecode", "AnchorDecode", "BatchedDecode", "ChunkedDecode", "anchor_decoder",
            "plan_anchor_decode"]

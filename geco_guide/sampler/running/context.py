@@ -36,18 +36,18 @@ from ...estimators.bundle import Estimators
 from ...estimators.tiny_decoder import TinyDecoder
 from ...loss.cues import CUES
 from ...loss.geco import GeCoLoss
-from .anchor_decode import AnchorDecode, plan_anchor_decode
 from ..algorithm.config import GuidanceConfig
-from ..diffusers_private import supports_gradient_checkpointing
 from ..algorithm.dynamic import RefreshedMasks
-from .fast_decode import guidance_decode
 from ..algorithm.levels import NoiseLevels
-from .memory_plan import MemoryPlan, PlanChoice, explicit_plan
 from ..algorithm.objective import AnchorObjective
-from .run_options import RunOptions
 from ..algorithm.schedule import GuidanceSchedule
 from ..algorithm.slicing import AnchorChunk
 from ..algorithm.step import GuidanceRecord, Objective, Update, guided_step, read_scalars
+from ..diffusers_private import supports_gradient_checkpointing
+from .anchor_decode import AnchorDecode, plan_anchor_decode
+from .fast_decode import guidance_decode
+from .memory_plan import MemoryPlan, PlanChoice, explicit_plan
+from .run_options import RunOptions
 
 __all__ = ["GuidanceContext", "GuidanceExecution", "GuidanceLog", "GuidanceObserver", "GuidanceReport",
            "decoder_note", "estimator_checkpointing", "frozen", "generator_states", "gradient_checkpointing",

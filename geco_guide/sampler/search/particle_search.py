@@ -42,10 +42,9 @@ from torch import Tensor
 
 from ...loss.cues import masked_mean
 from ...types import OptionError, is_integer, is_number, merge_dataclass
-from ..algorithm.levels import keep_update
 from ..algorithm.config import GuidanceConfig
 from ..algorithm.dynamic import RefreshedMasks
-from ..algorithm.levels import NoiseLevels, randn_like
+from ..algorithm.levels import NoiseLevels, keep_update, randn_like
 from ..running.memory_plan import (
     DEVICE_HEADROOM,
     GIB,
@@ -55,8 +54,8 @@ from ..running.memory_plan import (
     predicted_parts,
     search_parts,
 )
-from .particles import particle_batches, reorder_scheduler_state
 from ..running.run_options import RunOptions
+from .particles import particle_batches, reorder_scheduler_state
 
 __all__ = ["MAX_PARTICLES", "POTENTIALS", "RESAMPLERS", "ParticleBatch", "ParticleScorer", "ParticleSearch",
            "SearchConfig", "SearchCounts", "check_search_before_loading", "check_search_call", "choose_particle_batch", "clip_scores",
