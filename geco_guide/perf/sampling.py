@@ -51,8 +51,6 @@ __all__ = ["PROMPT", "paper_schedule_for", "run_sampling_worker", "sampling_conf
 
 logger = logging.getLogger(__name__)
 
-#: Breakdown stages (keys of the profiler) in report order.
-STAGES = ("denoiser", "vae_decode", "vggt", "ufm")
 #: The prompt of every arm (the full-size models' random weights make any prompt noise).
 PROMPT = "a red cube on a table"
 
