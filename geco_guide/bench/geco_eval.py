@@ -53,7 +53,7 @@ from ..io.files import (
     write_json_atomic,
 )
 from ..io.plots import Panel, legend, legend_width, limits, text
-from ..io.video import VIDEO_SUFFIXES, write_video
+from ..io.video import VIDEO_SUFFIXES, SoundTrack, write_video
 from ..loss.cues import CUES, MAP_ORDER
 from ..metric.evaluate import PAPER_NAMES, evaluate_video
 from ..sampler.pipelines.loading import check_guidance_before_loading, check_tiny_decoder, quiet_hub_logs
@@ -313,13 +313,22 @@ def _video_models(cfg: GeCoConfig, name: str, weights: str | None, estimators: E
     return loaded
 
 
-def _generate(job: Job, cfg: GeCoConfig, models: Models, weights: str | None) -> tuple[Any, float, float, int]:
-    """``(frames [F, 3, H, W] in [0, 1], sampling seconds, peak MiB, guidance updates)`` of ``job``."""
+def _generate(job: Job, cfg: GeCoConfig, models: Models, weights: str | None,
+              fps: float) -> tuple[Any, SoundTrack | None, float, float, int]:
+    """``(frames [F, 3, H, W] in [0, 1], sound, sampling seconds, peak MiB, guidance updates)`` of
+    ``job``, its video to be written at ``fps``. The sound is the one the model made (LTX-2's),
+    kept where it was made for ``fps`` (it then lasts as long as the video; a real model's call
+    rate is its protocol rate), ``None`` otherwise or without one."""
     job_cfg = job_config(cfg, job.model, guided=job.guided, weights=weights,
                          subjects=job.prompt.get("subjects"))
     with PeakMemory(models.pipe.device) as memory, quiet_hub_logs():  # no prompt-truncation warnings
         made = sample(models, job_cfg, job.prompt["prompt"], seed=job.seed, progress=False)
-    return made.frames[0], made.seconds, memory.peak_mib, len(made.report.log)
+    audio = made.audio
+    if audio is not None and job_cfg.sampling.fps != fps:
+        logger.info("%s: the sound was made for %g fps, the video is written at the protocol's %g fps: "
+                    "written without it", f"{job.model} {job.name}", job_cfg.sampling.fps, fps)
+        audio = None
+    return made.frames[0], audio, made.seconds, memory.peak_mib, len(made.report.log)
 
 
 def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: Estimators, models: Models | None,
@@ -337,8 +346,8 @@ def run_job(job: Job, out: Path, cfg: GeCoConfig, estimators: Estimators, models
     fps = cfg.evaluation.fps_of_model(job.model)
     timing: dict[str, Any] = {"generation_s": None, "peak_memory_mib": None, "guidance_updates": 0}
     if job.video is None:
-        frames, seconds, peak, updates = _generate(job, cfg, models, weights)
-        write_video(video, frames, fps=fps)
+        frames, audio, seconds, peak, updates = _generate(job, cfg, models, weights, fps)
+        write_video(video, frames, fps=fps, audio=audio)
         timing = {"generation_s": seconds, "peak_memory_mib": peak, "guidance_updates": updates}
     source = job.video or video
     start = time.perf_counter()

@@ -337,3 +337,18 @@ def test_the_weights_of_every_model_are_checked_before_the_run_starts(tmp_path: 
     assert "(--weights wan2.1-t2v-1.3b=/path/to/Wan2.1-T2V-1.3B-Diffusers); (2) cogvideox-5b" in err
     assert err.rstrip().endswith("(config: estimators.flow=/path/to/UFM-Base)")
     assert not out.exists()
+
+
+@pytest.mark.slow
+def test_ltx2_videos_keep_their_sound_where_it_was_made_for_the_written_rate(tmp_path: Path, caplog):
+    # the tiny preset samples at 8 fps: written at the protocol's 24 fps the sound would outlast
+    # the video, so it is left out (and said); at a protocol rate of 8 fps it is muxed in
+    from geco_guide.io.video import audio_stream
+
+    video = Path("videos") / "ltx-2" / "a1-s0.mp4"
+    with caplog.at_level("INFO", logger="geco_guide.bench.geco_eval"):
+        assert _generate(tmp_path / "native", "--models", "ltx-2") == 0
+    assert audio_stream(tmp_path / "native" / video) is None
+    assert "the sound was made for 8 fps, the video is written at the protocol's 24 fps" in caplog.text
+    assert _generate(tmp_path / "eight", "evaluation.model_fps.ltx-2=8", "--models", "ltx-2") == 0
+    assert audio_stream(tmp_path / "eight" / video) == {"codec": "aac", "sample_rate": 16000, "channels": "stereo"}
