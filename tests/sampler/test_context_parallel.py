@@ -24,15 +24,18 @@ The split changes the order of sums only: the attention of the split sequence (C
 text-video sequence comes out of the all-to-all in another order), matrix products over fewer
 rows per process, the decode's gradient summed over the processes, and a process's chunks
 decoded in a smaller batch. So the gradients and the denoiser's output agree to float32 rounding,
-checked at 1e-5 relative to their largest entry (measured: at most 1.6e-7), as does the first
-update's gradient norm (measured: at most 9.3e-7). The later updates start from latents the first
-moved: their norms are checked at 1e-4 relative (measured: at most 2.9e-5, CogVideoX's; with the
+checked at 1e-5 relative to their largest entry (measured: at most 1.6e-7). The first update's
+gradient norm is checked at 1e-4 relative (measured: at most 9.3e-7 on one CPU, 2.5e-5 for
+HunyuanVideo on another, whose loss amplifies a rounding-sized change of the denoiser's output
+about 50 times). The later updates start from latents the first moved: their norms are checked
+at 1e-4 relative (measured: at most 2.9e-5, CogVideoX's; with the
 denoiser split and the decode not dealt, the latents after the first update differ from one
 process's by 1.1e-6 relative, and the second update's gradient by 9.5e-5 of its largest entry). The toy decode's frames and gradient are one
 process's to the last bit (checked at 1e-6 absolute and 1e-5 relative). The video is checked at
-5e-4 absolute (measured: 9.4e-5 for CogVideoX, 1.4e-5 for Wan, 1.5e-5 for HunyuanVideo): a
+5e-4 absolute (measured: 9.4e-5 for CogVideoX, 1.4e-5 for Wan, 1.3e-5 for HunyuanVideo): a
 guided update is normalised, so its direction carries the rounding into the latents, and a
-guided call amplifies it; the call here guides the first step only (two updates), since the tiny
+guided call amplifies it; the call here guides the first step only (two updates; one for
+HunyuanVideo, see ``UPDATES``), since the tiny
 models' full schedule turns a 1e-6 change of the initial latents into 0.18 of a frame in one
 process alone.
 
@@ -66,9 +69,16 @@ FAMILIES = ("cogvideox", "cogvideox-padded", "wan", "wan2.2", "hunyuan", "ltx", 
 #: relative change of its initial latents moves its frames by 2.7e-3, against 4e-5 at 32x48)
 GUIDED = ("cogvideox", "wan", "wan2.2", "hunyuan", "ltx", "ltx2", "hunyuan1.5")
 #: the guided call's updates: two at the first step, none after (see the module's docstring); Wan
-#: 2.2 one at the first step and one at the last, so that both experts are differentiated
-UPDATES = {"wan2.2": "1x1,0x2,1x1"}
+#: 2.2 one at the first step and one at the last, so that both experts are differentiated;
+#: HunyuanVideo one: its tiny call's second update amplifies rounding past the frames' tolerance
+#: (in one process, a 1e-7 relative change of the first denoiser output moves the second update's
+#: gradient norm by 2.7e-4 and the frames by 2.2e-3; with one update, by at most 7.2e-5)
+UPDATES = {"wan2.2": "1x1,0x2,1x1", "hunyuan": "1x1,0x3"}
 GRADIENT_TOLERANCE = 1e-5  # relative to the largest entry (of the gradient; of the denoiser's output)
+#: relative, the first update's gradient norm: the loss amplifies the denoiser's rounding (in one
+#: process, a 1e-7 to 3e-7 relative change of HunyuanVideo's first denoiser output moves it by
+#: up to 1.7e-5; split, on an AMD EPYC, 2.5e-5)
+FIRST_NORM_TOLERANCE = 1e-4
 #: relative, the gradient norms of the updates after the first: they start from latents the first
 #: update moved, by a direction that carries the rounding (see the module's docstring)
 LATER_NORM_TOLERANCE = 1e-4
@@ -299,7 +309,7 @@ def test_two_processes_give_one_process_video_and_gradient(family, split_runs):
             assert error <= GRADIENT_TOLERANCE, (rank, key, float(error))
         if family in GUIDED:
             assert (split["frames"] - one["frames"]).abs().max() <= FRAME_TOLERANCE, rank
-            torch.testing.assert_close(split["norms"][:1], one["norms"][:1], rtol=GRADIENT_TOLERANCE, atol=0)
+            torch.testing.assert_close(split["norms"][:1], one["norms"][:1], rtol=FIRST_NORM_TOLERANCE, atol=0)
             torch.testing.assert_close(split["norms"], one["norms"], rtol=LATER_NORM_TOLERANCE, atol=0)
 
 
