@@ -49,10 +49,12 @@ def sam3_refresh_cost(num_frames: int = 4, dtype: torch.dtype = torch.bfloat16) 
 
 
 #: Measured: one refresh of the automatic masks (``guidance.dynamic=auto``,
-#: :class:`~geco_guide.estimators.motion_masks.MotionMasks`) on 4 anchor frames of 480x720, with
-#: exact depth and flow, on one thread of this project's 2-core CPU machine (median of 3; 0.76-0.80 s
-#: on 2 threads). It runs on what GeCo already estimated: no model of its own.
-AUTO_MASK_REFRESH_S = 0.68
+#: :class:`~geco_guide.estimators.motion_masks.MotionMasks`) on 4 anchor frames of 480x720 (the
+#: synthetic ``moving_clip``, adjacent pairs), with exact depth and flow, on one thread of a 2-core
+#: Intel Xeon (two runs of 9, medians 0.857 and 0.879 s; following a mover into its unmatched
+#: pixels made it 20 % dearer: the masks before that took 0.72 s there, paired). It runs on what
+#: GeCo already estimated: no model of its own.
+AUTO_MASK_REFRESH_S = 0.87
 #: Measured (docs/performance_records.md, "Movers scored against their own motion"): with
 #: ``guidance.loss.movers=rigid``, the movers' fit at each refresh (``fit_movers``: RANSAC + Kabsch per
 #: pair and mover, on the host whatever the device), and what scoring them adds to an update's
