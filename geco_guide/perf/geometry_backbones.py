@@ -19,10 +19,11 @@ from ..estimators.da3 import DA3, network_size
 from ..estimators.da3_config import DA3Config
 from ..estimators.vggt import VGGT, VGGTConfig, plan_preprocess
 
-__all__ = ["GEOMETRY_BACKBONES", "PROTOCOL_FRAMES", "geometry_flops", "geometry_model", "network_hw"]
+__all__ = ["BACKBONE_ARCHITECTURES", "PROTOCOL_FRAMES", "geometry_flops", "geometry_model", "network_hw"]
 
-#: ``estimators.geometry`` name -> (class, full-size config, tiny config)
-GEOMETRY_BACKBONES: dict[str, tuple[type[FrozenEstimator], Callable[[], Any], Callable[[], Any]]] = {
+#: each backbone ``estimators.geometry`` names (:data:`~geco_guide.estimators.GEOMETRY_BACKBONES`, with
+#: its hub id) -> (class, full-size config, tiny config): what the benchmarks build and count
+BACKBONE_ARCHITECTURES: dict[str, tuple[type[FrozenEstimator], Callable[[], Any], Callable[[], Any]]] = {
     "vggt-1b": (VGGT, VGGTConfig, VGGTConfig.tiny),
     "da3-small": (DA3, DA3Config.small, DA3Config.tiny),
     "da3-base": (DA3, DA3Config.base, DA3Config.tiny),
@@ -33,9 +34,9 @@ PROTOCOL_FRAMES = {"guided update": 4, "evaluation window": 24}
 
 
 def _backbone(name: str) -> tuple[type[FrozenEstimator], Callable[[], Any], Callable[[], Any]]:
-    if name not in GEOMETRY_BACKBONES:
-        raise ValueError(f"unknown geometry backbone {name!r}; one of {', '.join(GEOMETRY_BACKBONES)}")
-    return GEOMETRY_BACKBONES[name]
+    if name not in BACKBONE_ARCHITECTURES:
+        raise ValueError(f"unknown geometry backbone {name!r}; one of {', '.join(BACKBONE_ARCHITECTURES)}")
+    return BACKBONE_ARCHITECTURES[name]
 
 
 def geometry_model(name: str, size: str, seed: int) -> FrozenEstimator:

@@ -16,17 +16,18 @@ import torch
 
 from geco_guide.__main__ import build_parser
 
+from geco_guide.estimators import GEOMETRY_BACKBONES
 from geco_guide.estimators.da3 import DA3
 from geco_guide.estimators.da3_config import DA3Config
 from geco_guide.estimators.vggt import VGGT
-from geco_guide.perf.geometry_backbones import GEOMETRY_BACKBONES, geometry_flops, geometry_model, network_hw
+from geco_guide.perf.geometry_backbones import BACKBONE_ARCHITECTURES, geometry_flops, geometry_model, network_hw
 from geco_guide.perf.workloads import estimator_specs, run_worker
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def test_each_name_builds_its_architecture_and_input_size():
-    assert list(GEOMETRY_BACKBONES) == ["vggt-1b", "da3-small", "da3-base"]
+    assert list(BACKBONE_ARCHITECTURES) == list(GEOMETRY_BACKBONES) == ["vggt-1b", "da3-small", "da3-base"]
     small, base = geometry_model("da3-small", "tiny", 0), geometry_model("da3-base", "tiny", 0)
     assert isinstance(small, DA3) and isinstance(geometry_model("vggt-1b", "tiny", 0), VGGT)
     assert small.config == base.config  # one tiny DA3 stands in for both
@@ -58,7 +59,10 @@ def test_geco_bench_estimators_offers_each_backbone_beside_ufm():
     _, parsers = build_parser()
     commands = next(a for a in parsers["bench"]._actions if isinstance(a, argparse._SubParsersAction))
     option = next(a for a in commands.choices["estimators"]._actions if a.dest == "geometry_estimator")
-    assert list(option.choices) == list(GEOMETRY_BACKBONES) and option.default == "vggt-1b"
+    assert list(option.choices) == list(BACKBONE_ARCHITECTURES) and option.default == "vggt-1b"
+    for command in ("generate", "evaluate"):  # their --geometry-estimator takes any id: the help names each backbone
+        help_text = next(a.help for a in parsers[command]._actions if a.dest == "geometry_estimator")
+        assert all(name in help_text for name in GEOMETRY_BACKBONES), command
     # VGGT keeps its case names (the recorded reports use them)
     assert [(s["case"], s["mode"]) for s in specs_of("vggt-1b")] == [
         ("vggt-full", "forward"), ("vggt-full", "forward_backward"),
